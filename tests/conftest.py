@@ -1,0 +1,62 @@
+"""Shared test fixtures: paths to ../shared/fixtures and small deterministic scenes."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+SHARED = Path(os.environ.get("CFGS_SHARED", REPO.parent / "shared"))
+FIXTURES = SHARED / "fixtures"
+DONUT_PLY = FIXTURES / "real_3dgs_donut_dc_only.ply"
+
+
+@pytest.fixture(scope="session")
+def donut_path() -> Path:
+    assert DONUT_PLY.is_file(), f"fixture missing: {DONUT_PLY} (set CFGS_SHARED to the shared/ folder)"
+    return DONUT_PLY
+
+
+def random_gaussians(n: int, seed: int = 0):
+    """Random Gaussians with generic (non-degenerate) parameters, float32.
+
+    Colours are drawn as SH DC coefficients, as every model read from a 3DGS PLY has them, so they
+    are exactly representable in the PLY layouts (see ``model.sh_dc_from_colors``)."""
+    from cfgs_jax import Gaussians
+    from cfgs_jax.model import colors_from_sh_dc
+
+    rng = np.random.default_rng(seed)
+    return Gaussians(
+        rng.normal(size=(n, 3)).astype(np.float32),
+        rng.normal(size=(n, 4)).astype(np.float32),
+        rng.normal(-2.0, 0.5, size=(n, 3)).astype(np.float32),
+        rng.normal(size=(n,)).astype(np.float32),
+        colors_from_sh_dc(rng.uniform(-2.5, 2.5, size=(n, 3)).astype(np.float32)),
+    )
+
+
+def random_temporal(n: int, t: int, seed: int = 0):
+    from cfgs_jax import DateInfo, TemporalGaussians
+
+    rng = np.random.default_rng(seed + 1000)
+    origin = np.sort(rng.integers(0, t, size=n)).astype(np.int32)
+    return TemporalGaussians(
+        random_gaussians(n, seed),
+        rng.normal(size=(n, t)).astype(np.float32),
+        rng.normal(size=(n, t, 3)).astype(np.float32),
+        origin,
+        tuple(DateInfo(f"date{i}", captured=f"2025-0{i + 1}-15", sources=(f"d{i}/point_cloud.ply",)) for i in range(t)),
+    )
+
+
+def bits_equal(a, b) -> bool:
+    a, b = np.asarray(a), np.asarray(b)
+    return a.dtype == b.dtype and a.shape == b.shape and a.tobytes() == b.tobytes()
+
+
+import warnings  # noqa: E402
+
+warnings.filterwarnings("ignore", message=".*Matplotlib.*")

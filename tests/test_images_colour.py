@@ -1,0 +1,64 @@
+import colour
+import numpy as np
+import pytest
+
+from cfgs_jax import InputError
+from cfgs_jax.colour import REC709_LUMA, linear_to_srgb, luminance, srgb_to_linear
+from cfgs_jax.io import read_image, write_image
+
+
+def test_srgb_matches_colour_science():
+    x = np.linspace(0, 1, 2001)
+    assert np.allclose(srgb_to_linear(x), colour.cctf_decoding(x, function="sRGB"), atol=2e-7)
+    assert np.allclose(linear_to_srgb(x), colour.cctf_encoding(x, function="sRGB"), atol=5e-7)
+    assert np.allclose(linear_to_srgb(srgb_to_linear(x)), x, atol=1e-6)
+
+
+def test_luminance_weights_from_colour_science():
+    y_row = colour.RGB_COLOURSPACES["sRGB"].matrix_RGB_to_XYZ[1]
+    assert np.allclose(REC709_LUMA, y_row, atol=1e-4)
+    assert np.isclose(float(luminance(np.ones(3))), 1.0)
+
+
+def test_srgb_gradients_finite():
+    import jax
+
+    g = jax.grad(lambda v: srgb_to_linear(v).sum())(np.array([0.0, 0.01, 0.04045, 0.5, 1.0], np.float32))
+    assert np.all(np.isfinite(np.asarray(g))) and np.all(np.asarray(g) > 0)
+
+
+def test_png_round_trip_8bit(tmp_path):
+    rng = np.random.default_rng(0)
+    img = rng.uniform(size=(9, 11, 3)).astype(np.float32)
+    write_image(tmp_path / "a.png", img)
+    back = read_image(tmp_path / "a.png")
+    assert back.shape == (9, 11, 3) and np.max(np.abs(back - img)) <= 0.5 / 255 + 1e-7
+    lin = read_image(tmp_path / "a.png", linear=True)
+    assert np.allclose(lin, colour.cctf_decoding(back.astype(np.float64), function="sRGB"), atol=1e-6)
+
+
+def test_exr_is_linear_float(tmp_path):
+    rng = np.random.default_rng(1)
+    lin = rng.uniform(0, 4, size=(5, 7, 3)).astype(np.float32)  # HDR values survive
+    write_image(tmp_path / "a.exr", lin, linear=True)
+    assert np.array_equal(read_image(tmp_path / "a.exr", linear=True), lin)
+    enc = rng.uniform(size=(5, 7, 3)).astype(np.float32)
+    write_image(tmp_path / "b.exr", enc)  # encoded input is stored linear
+    raw = read_image(tmp_path / "b.exr", linear=True)
+    assert np.allclose(raw, colour.cctf_decoding(enc.astype(np.float64), function="sRGB"), atol=1e-6)
+    assert np.allclose(read_image(tmp_path / "b.exr"), enc, atol=1e-6)
+
+
+def test_alpha_and_bad_images(tmp_path):
+    rgba = np.zeros((4, 4, 4), np.float32)
+    rgba[..., 3] = 0.5
+    write_image(tmp_path / "a.png", rgba)
+    assert read_image(tmp_path / "a.png", with_alpha=True).shape == (4, 4, 4)
+    (tmp_path / "junk.png").write_bytes(b"not a png at all")
+    with pytest.raises(InputError, match="unreadable image") as e:
+        read_image(tmp_path / "junk.png")
+    assert "junk.png" in str(e.value)
+    with pytest.raises(InputError, match="unsupported image format"):
+        read_image(tmp_path / "a.gifx") if (tmp_path / "a.gifx").write_bytes(b"x") else None
+    with pytest.raises(InputError, match="image file not found"):
+        read_image(tmp_path / "none.png")
