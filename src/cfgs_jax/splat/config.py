@@ -1,0 +1,40 @@
+"""Rasteriser configuration (INRIA/gsplat semantics by default)."""
+
+from __future__ import annotations
+
+import dataclasses
+
+
+@dataclasses.dataclass(frozen=True)
+class RenderConfig:
+    """Knobs of the splatting kernel. Defaults reproduce INRIA 3DGS exactly.
+
+    ``capacity``: intersection-buffer size (None: sized automatically, grown in power-of-two buckets
+    on overflow when rendering eagerly). ``tile_batch``: tiles composited together (None: 16 on CPU,
+    all tiles on GPU). ``chunk``: Gaussians loaded per step of a tile's walk.
+    """
+
+    near: float = 0.2
+    tile_size: int = 16
+    eps2d: float = 0.3
+    clamp_fov: float = 1.3
+    min_alpha: float = 1.0 / 255.0
+    max_alpha: float = 0.99
+    min_transmittance: float = 1e-4
+    chunk: int = 32
+    tile_batch: int | None = None
+    capacity: int | None = None
+
+    def __post_init__(self):
+        from cfgs_jax.errors import InputError
+
+        for name in ("tile_size", "chunk"):
+            v = getattr(self, name)
+            if not isinstance(v, int) or v <= 0:
+                raise InputError(f"must be a positive integer, got {v!r}", field=f"render.{name}")
+        if self.tile_batch is not None and (not isinstance(self.tile_batch, int) or self.tile_batch <= 0):
+            raise InputError(f"must be a positive integer or unset, got {self.tile_batch!r}", field="render.tile_batch")
+        if self.capacity is not None and (not isinstance(self.capacity, int) or self.capacity <= 0):
+            raise InputError(f"must be a positive integer or unset, got {self.capacity!r}", field="render.capacity")
+        if not self.near > 0:
+            raise InputError(f"must be > 0, got {self.near}", field="render.near")

@@ -1,0 +1,204 @@
+"""``render`` / ``render_dates``: the public splatting entry points (Eq. 1 for every requested date).
+
+Geometry (projection, binning, sort) is computed once and shared by all dates; compositing runs with
+per-date effective opacity α·o and colour l⊙c. Called with concrete arrays, the intersection buffer
+is sized from an exact count and regrown (power-of-two buckets, one compile each) on overflow, so
+nothing is ever dropped. Called under a JAX trace (inside ``jit``/``grad``), the capacity must be
+given (``RenderConfig(capacity=...)``; ``required_capacity`` computes it) and the result's
+``overflowed`` flag tells the caller to re-run with a larger one.
+"""
+
+from __future__ import annotations
+
+import functools
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float, Int
+
+from cfgs_jax.errors import InputError
+from cfgs_jax.model import Camera, Gaussians, opacities, rgb
+from cfgs_jax.splat.binning import bin_gaussians, intersection_counts
+from cfgs_jax.splat.composite import Layout, composite
+from cfgs_jax.splat.config import RenderConfig
+from cfgs_jax.splat.project import project, tile_grid
+
+MIN_CAPACITY = 1 << 12
+
+
+class RenderResult(eqx.Module):
+    """Rendered images and per-Gaussian statistics. Date axis T only from ``render_dates``."""
+
+    image: Float[Array, "*T H W 3"]
+    alpha: Float[Array, "*T H W"]  # 1 − final transmittance
+    depth: Float[Array, "*T H W"] | None  # Σ w·z (divide by alpha for the mean depth), if requested
+    max_weight: Float[Array, "*T N"]  # max over pixels of α·T (the visibility statistic)
+    hits: Int[Array, "*T N"]  # pixels each Gaussian contributed to
+    means2d: Float[Array, "N 2"]  # projected centres (pixels, centres at +0.5)
+    radii: Float[Array, "N"]  # 0 where culled
+    num_intersections: Int[Array, ""]
+    capacity: int = eqx.field(static=True)
+
+    @property
+    def overflowed(self) -> Array:
+        """True if the intersection buffer was too small (the image is then incomplete)."""
+        return self.num_intersections > self.capacity
+
+
+def _layout(camera: Camera, config: RenderConfig) -> Layout:
+    gx, gy = tile_grid(camera, config)
+    batch = config.tile_batch or (16 if jax.default_backend() == "cpu" else gx * gy)
+    return Layout(
+        camera.width, camera.height, config.tile_size, gx, gy, min(batch, gx * gy), config.chunk,
+        config.min_alpha, config.max_alpha, config.min_transmittance,
+    )  # fmt: skip
+
+
+def _bucket(n: int) -> int:
+    return max(MIN_CAPACITY, 1 << max(int(n) - 1, 0).bit_length())
+
+
+def _effective(gaussians: Gaussians, opacity_mult, color_mult):
+    opac = opacities(gaussians)[None, :] * opacity_mult
+    colors = rgb(gaussians)[None] * color_mult
+    return opac, colors
+
+
+def _render_impl(gaussians, camera, opacity_mult, color_mult, background, means2d_offset, *, config, capacity, with_depth):
+    proj = project(gaussians.means, gaussians.quats, gaussians.log_scales, camera, config)
+    opac, feats = _effective(gaussians, opacity_mult, color_mult)
+    if with_depth:
+        feats = jnp.concatenate([feats, jnp.broadcast_to(proj.depths[None, :, None], feats.shape[:2] + (1,))], -1)
+    active = jnp.any(opac >= config.min_alpha, axis=0)
+    layout = _layout(camera, config)
+    bins = bin_gaussians(proj, active, (layout.grid_x, layout.grid_y), capacity)
+    means2d = proj.means2d if means2d_offset is None else proj.means2d + means2d_offset
+    fg, t, maxw, hits = composite(
+        layout, means2d, proj.conics, opac, feats, bins.gaussian_ids, bins.tile_start, bins.tile_end
+    )
+    image = fg[..., :3] + t[..., None] * background
+    return RenderResult(
+        image=image,
+        alpha=1.0 - t,
+        depth=fg[..., 3] if with_depth else None,
+        max_weight=jax.lax.stop_gradient(maxw),
+        hits=hits,
+        means2d=proj.means2d,
+        radii=jnp.where(proj.valid, proj.radii, 0.0),
+        num_intersections=bins.num_intersections,
+        capacity=capacity,
+    )
+
+
+@functools.partial(jax.jit, static_argnames=("config", "capacity", "with_depth"))
+def _render_jit(gaussians, camera, opacity_mult, color_mult, background, means2d_offset, *, config, capacity, with_depth):
+    return _render_impl(
+        gaussians, camera, opacity_mult, color_mult, background, means2d_offset,
+        config=config, capacity=capacity, with_depth=with_depth,
+    )  # fmt: skip
+
+
+@functools.partial(jax.jit, static_argnames=("config",))
+def _count_jit(gaussians, camera, opacity_mult, *, config):
+    proj = project(gaussians.means, gaussians.quats, gaussians.log_scales, camera, config)
+    opac = opacities(gaussians)[None, :] * opacity_mult
+    return jnp.sum(intersection_counts(proj, jnp.any(opac >= config.min_alpha, axis=0)))
+
+
+def required_capacity(gaussians: Gaussians, camera: Camera, opacity_mult=None, *, config: RenderConfig | None = None) -> int:
+    """The bucketed intersection capacity this view needs (call outside jit; pass to RenderConfig)."""
+    config = config or RenderConfig()
+    if opacity_mult is None:
+        opacity_mult = jnp.ones((1, len(gaussians)), jnp.result_type(gaussians.means))
+    return _bucket(int(_count_jit(gaussians, camera, jnp.asarray(opacity_mult), config=config)))
+
+
+def _is_traced(*trees) -> bool:
+    return any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(trees))
+
+
+def _validate(gaussians, camera, opacity_mult, color_mult):
+    if not isinstance(gaussians, Gaussians):
+        raise InputError(f"expected Gaussians, got {type(gaussians).__name__}", field="gaussians")
+    if not isinstance(camera, Camera):
+        raise InputError(f"expected a Camera, got {type(camera).__name__}", field="camera")
+    n = len(gaussians)
+    if np.ndim(gaussians.means) != 2:
+        raise InputError("render takes unbatched Gaussians [N, ...]; vmap over a batch", field="gaussians.means")
+    if np.shape(opacity_mult)[-1:] != (n,) or np.ndim(opacity_mult) != 2:
+        raise InputError(f"expected shape [T, {n}], got {list(np.shape(opacity_mult))}", field="opacity_mult")
+    t = np.shape(opacity_mult)[0]
+    if tuple(np.shape(color_mult)) != (t, n, 3):
+        raise InputError(f"expected shape [{t}, {n}, 3], got {list(np.shape(color_mult))}", field="color_mult")
+
+
+def render_dates(
+    gaussians: Gaussians,
+    camera: Camera,
+    opacity_mult: Float[Array, "T N"],
+    color_mult: Float[Array, "T N 3"],
+    *,
+    background=(0.0, 0.0, 0.0),
+    config: RenderConfig | None = None,
+    with_depth: bool = False,
+    means2d_offset: Float[Array, "N 2"] | None = None,
+) -> RenderResult:
+    """Render T dates (Eq. 1): per-date opacity α·o^p and colour l^p⊙c, one shared projection and sort.
+
+    ``means2d_offset`` (zeros) is added to the projected centres; differentiate w.r.t. it to get the
+    screen-space positional gradient used for densification.
+    """
+    config = config or RenderConfig()
+    _validate(gaussians, camera, opacity_mult, color_mult)
+    if len(gaussians) == 0:  # one invisible Gaussian keeps every array non-empty
+        gaussians = Gaussians(jnp.asarray([[0.0, 0.0, -1.0]]), jnp.asarray([[1.0, 0, 0, 0]]), jnp.zeros((1, 3)), jnp.zeros(1), jnp.zeros((1, 3)))
+        opacity_mult = jnp.zeros((np.shape(opacity_mult)[0], 1))
+        color_mult = jnp.zeros((np.shape(opacity_mult)[0], 1, 3))
+        means2d_offset = None if means2d_offset is None else jnp.zeros((1, 2))
+    dtype = jnp.result_type(gaussians.means)
+    background = jnp.asarray(background, dtype)
+    opacity_mult = jnp.asarray(opacity_mult, dtype)
+    color_mult = jnp.asarray(color_mult, dtype)
+    args = (gaussians, camera, opacity_mult, color_mult, background, means2d_offset)
+    if _is_traced(args):
+        if config.capacity is None:
+            raise InputError(
+                "render was called under a JAX trace (jit/grad/vmap) without an intersection capacity",
+                field="config.capacity",
+                fix="pass config=RenderConfig(capacity=cfgs_jax.splat.required_capacity(gaussians, camera, "
+                "opacity_mult)) computed outside the trace, and check result.overflowed",
+            )
+        return _render_impl(*args, config=config, capacity=config.capacity, with_depth=with_depth)
+    capacity = config.capacity or required_capacity(gaussians, camera, opacity_mult, config=config)
+    while True:
+        result = _render_jit(*args, config=config, capacity=capacity, with_depth=with_depth)
+        n = int(result.num_intersections)
+        if n <= capacity:
+            return result
+        capacity = _bucket(n)
+
+
+def render(
+    gaussians: Gaussians,
+    camera: Camera,
+    *,
+    background=(0.0, 0.0, 0.0),
+    config: RenderConfig | None = None,
+    with_depth: bool = False,
+    means2d_offset: Float[Array, "N 2"] | None = None,
+) -> RenderResult:
+    """Render one image of a plain 3DGS model (``render_dates`` with T = 1 and unit multipliers)."""
+    n = len(gaussians)
+    dtype = jnp.result_type(gaussians.means)
+    res = render_dates(
+        gaussians, camera, jnp.ones((1, n), dtype), jnp.ones((1, n, 3), dtype),
+        background=background, config=config, with_depth=with_depth, means2d_offset=means2d_offset,
+    )  # fmt: skip
+    first = lambda x: None if x is None else x[0]  # noqa: E731
+    return RenderResult(
+        image=res.image[0], alpha=res.alpha[0], depth=first(res.depth), max_weight=res.max_weight[0],
+        hits=res.hits[0], means2d=res.means2d, radii=res.radii, num_intersections=res.num_intersections,
+        capacity=res.capacity,
+    )  # fmt: skip
