@@ -1,0 +1,178 @@
+"""Splatting-kernel benchmark: compile, forward, forward+backward times and peak RSS per case.
+
+Each case runs in its own subprocess (so peak RSS is that case's), timings are medians of ≥ 5 runs
+after compilation. Ratios (T = 4 vs 1 date, 75 % inactive vs all active) come from the same run.
+Writes benchmarks/results/splat.json and splat.md, naming the machine.
+
+    python benchmarks/bench_splat.py            # all cases
+    python benchmarks/bench_splat.py --quick    # the 20k case and the ratios only
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import resource
+import statistics
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+RESULTS = Path(__file__).resolve().parent / "results"
+FIXTURE = Path(__file__).resolve().parents[2] / "shared" / "fixtures" / "real_3dgs_donut_dc_only.ply"
+
+
+def synthetic(n: int, seed: int = 0):
+    """A box of Gaussians in front of the camera; opacities chosen for ~100 contributors/pixel."""
+    import numpy as np
+
+    import cfgs_jax as cj
+
+    rng = np.random.default_rng(seed)
+    means = rng.uniform([-1.6, -1.2, -1.0], [1.6, 1.2, 1.0], (n, 3))
+    return cj.Gaussians(
+        means.astype(np.float32),
+        rng.normal(size=(n, 4)).astype(np.float32),
+        np.log(rng.uniform(0.01, 0.05, (n, 3))).astype(np.float32),
+        rng.normal(-3.0, 0.5, n).astype(np.float32),
+        rng.uniform(0, 1, (n, 3)).astype(np.float32),
+    )
+
+
+def run_case(spec: dict) -> dict:
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+
+    import cfgs_jax as cj
+    from cfgs_jax import splat
+
+    w, h, dates = spec["width"], spec["height"], spec.get("dates", 1)
+    if spec["scene"] == "donut":
+        g = cj.io.read_ply(FIXTURE)
+        c = np.asarray(g.means).mean(0)
+        cam = cj.Camera.look_at(c + np.array([0.22, -0.1, 0.16]), c, width=w, height=h, fov_x_deg=50)
+    else:
+        g = synthetic(spec["n"])
+        cam = cj.Camera.look_at([0.0, 0.0, -4.0], [0.0, 0.0, 0.0], up=(0, -1, 0), width=w, height=h, fov_x_deg=50)
+    n = len(g)
+    om = np.ones((dates, n), np.float32)
+    if spec.get("inactive"):
+        om[:, np.random.default_rng(1).random(n) < spec["inactive"]] = 0.0
+    cm = np.ones((dates, n, 3), np.float32)
+    cfg = splat.RenderConfig(capacity=splat.required_capacity(g, cam, om))
+    target = jnp.asarray(np.random.default_rng(2).uniform(size=(dates, h, w, 3)), jnp.float32)
+
+    fwd = jax.jit(lambda g, om, cm: splat.render_dates(g, cam, om, cm, config=cfg))
+
+    def loss(g, om, cm):
+        return jnp.mean(jnp.abs(splat.render_dates(g, cam, om, cm, config=cfg).image - target))
+
+    fwd_bwd = jax.jit(jax.value_and_grad(loss, argnums=(0, 1, 2)))
+
+    def timed(f, reps):
+        out = []
+        for _ in range(reps):
+            t0 = time.perf_counter()
+            jax.block_until_ready(f(g, om, cm))
+            out.append(time.perf_counter() - t0)
+        return out
+
+    t0 = time.perf_counter()
+    res = jax.block_until_ready(fwd(g, om, cm))
+    compile_fwd = time.perf_counter() - t0
+    f_times = timed(fwd, spec.get("reps", 5))
+    out = {
+        **spec,
+        "num_gaussians": n,
+        "compile_fwd_s": compile_fwd,
+        "fwd_s": statistics.median(f_times),
+        "intersections": int(res.num_intersections),
+        "intersections_per_tile": int(res.num_intersections) / (-(-w // 16) * -(-h // 16)),
+        "contributors_per_pixel": float(np.asarray(res.hits).sum()) / (dates * w * h),
+    }
+    if spec.get("backward", True):
+        t0 = time.perf_counter()
+        jax.block_until_ready(fwd_bwd(g, om, cm))
+        out["compile_fwd_bwd_s"] = time.perf_counter() - t0
+        out["fwd_bwd_s"] = statistics.median(timed(fwd_bwd, spec.get("reps", 5)))
+    out["peak_rss_gb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e6
+    return out
+
+
+def machine() -> str:
+    import jax
+
+    cpu = platform.processor() or platform.machine()
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    return f"{cpu}, {os.cpu_count()} cores, jax {jax.__version__} on {jax.default_backend()}"
+
+
+CASES = {
+    "20k@320x240": {"scene": "synthetic", "n": 20_000, "width": 320, "height": 240},
+    "100k@640x480": {"scene": "synthetic", "n": 100_000, "width": 640, "height": 480},
+    "donut@640x480": {"scene": "donut", "width": 640, "height": 480},
+    "20k@320x240 T=4 fwd": {"scene": "synthetic", "n": 20_000, "width": 320, "height": 240, "dates": 4, "backward": False},
+    "20k@320x240 75% inactive": {"scene": "synthetic", "n": 20_000, "width": 320, "height": 240, "inactive": 0.75},
+}
+QUICK = ["20k@320x240", "20k@320x240 T=4 fwd", "20k@320x240 75% inactive"]
+
+
+def main():
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--quick", action="store_true")
+    ap.add_argument("--case", help=argparse.SUPPRESS)
+    args = ap.parse_args()
+    if args.case:  # child process
+        print(json.dumps(run_case(CASES[args.case])))
+        return
+    names = QUICK if args.quick else list(CASES)
+    rows = {}
+    for name in names:
+        r = subprocess.run([sys.executable, __file__, "--case", name], capture_output=True, text=True)
+        if r.returncode != 0:
+            print(r.stderr[-2000:], file=sys.stderr)
+            raise SystemExit(f"case {name} failed")
+        rows[name] = json.loads(r.stdout.strip().splitlines()[-1])
+        print(name, {k: (round(v, 4) if isinstance(v, float) else v) for k, v in rows[name].items() if k.endswith(("_s", "_gb", "pixel", "tile"))})
+    ratios = {}
+    base = rows.get("20k@320x240")
+    if base and "20k@320x240 T=4 fwd" in rows:
+        ratios["T=4 / T=1 forward"] = rows["20k@320x240 T=4 fwd"]["fwd_s"] / base["fwd_s"]
+    if base and "20k@320x240 75% inactive" in rows:
+        ratios["75% inactive / all active, forward"] = rows["20k@320x240 75% inactive"]["fwd_s"] / base["fwd_s"]
+        ratios["75% inactive / all active, fwd+bwd"] = rows["20k@320x240 75% inactive"]["fwd_bwd_s"] / base["fwd_bwd_s"]
+    result = {"machine": machine(), "date": time.strftime("%Y-%m-%d"), "cases": rows, "ratios": ratios}
+    RESULTS.mkdir(parents=True, exist_ok=True)
+    (RESULTS / "splat.json").write_text(json.dumps(result, indent=2))
+    lines = [
+        "# Splatting kernel benchmark",
+        "",
+        f"Machine: {result['machine']}. Date: {result['date']}. Medians of 5 runs after compilation;",
+        "peak RSS is the whole case process (JAX runtime included).",
+        "",
+        "| case | N | compile fwd (s) | fwd (s) | fwd+bwd (s) | peak RSS (GB) | intersections/tile | contributors/pixel |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for name, r in rows.items():
+        fb = f"{r['fwd_bwd_s']:.3f}" if "fwd_bwd_s" in r else "-"
+        lines.append(
+            f"| {name} | {r['num_gaussians']:,} | {r['compile_fwd_s']:.2f} | {r['fwd_s']:.3f} | {fb} | "
+            f"{r['peak_rss_gb']:.2f} | {r['intersections_per_tile']:.0f} | {r['contributors_per_pixel']:.1f} |"
+        )
+    lines += ["", "| ratio | value |", "|---|---|"] + [f"| {k} | {v:.2f} |" for k, v in ratios.items()]
+    (RESULTS / "splat.md").write_text("\n".join(lines) + "\n")
+    print("\n".join(lines))
+
+
+if __name__ == "__main__":
+    main()
