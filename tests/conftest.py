@@ -60,6 +60,3 @@ def bits_equal(a, b) -> bool:
 import warnings  # noqa: E402
 
 warnings.filterwarnings("ignore", message=".*Matplotlib.*")
-# reference results (float64, computed under jax.enable_x64) are compared with numpy outside that
-# context; JAX then warns that float64 is "truncated", which does not affect the numpy comparisons.
-warnings.filterwarnings("ignore", message="Explicitly requested dtype float64")
