@@ -118,6 +118,25 @@ def _rounds(layout: Layout, start, end):
     return jnp.max((end - start + layout.chunk - 1) // layout.chunk)
 
 
+def _batch_start(layout: Layout, tiles, tile_start, tile_end, d: int, f: int, dtype):
+    """Per tile batch: list ranges, pixel centres, round count, and the initial (T, done, zeros) carry."""
+    start, end = tile_start[tiles], tile_end[tiles]
+    px, py, inside = _pixels(layout, tiles, dtype)
+    p = layout.tile_size**2
+    t0 = jnp.ones((d, layout.batch, p), dtype)
+    done0 = jnp.broadcast_to(~inside, (d, layout.batch, p))
+    zeros = jnp.zeros((d, layout.batch, p, f), dtype)
+    return start, end, px, py, _rounds(layout, start, end), t0, done0, zeros
+
+
+def _still_running(n_rounds):
+    def cond(c):
+        r, _, done, *_ = c
+        return (r < n_rounds) & ~jnp.all(done)
+
+    return cond
+
+
 def _to_image(layout: Layout, x, order):
     """[nb, D, B, P, ...] per-batch tiles → [D, H, W, ...] image."""
     d = x.shape[1]
@@ -150,20 +169,10 @@ def _forward(layout: Layout, means2d, conics, opac, feats, ids, tile_start, tile
     f = feats.shape[-1]
     dtype = means2d.dtype
     order = _tile_order(layout, tile_start, tile_end)
-    p = layout.tile_size**2
 
     def batch_step(carry, tiles):
         maxw, hits = carry
-        start, end = tile_start[tiles], tile_end[tiles]
-        px, py, inside = _pixels(layout, tiles, dtype)
-        n_rounds = _rounds(layout, start, end)
-        t0 = jnp.ones((d, layout.batch, p), dtype)
-        done0 = jnp.broadcast_to(~inside, (d, layout.batch, p))
-        fg0 = jnp.zeros((d, layout.batch, p, f), dtype)
-
-        def cond(c):
-            r, _, done, *_ = c
-            return (r < n_rounds) & ~jnp.all(done)
+        start, end, px, py, n_rounds, t0, done0, fg0 = _batch_start(layout, tiles, tile_start, tile_end, d, f, dtype)
 
         def body(c):
             r, t, done, fg, maxw, hits = c
@@ -173,7 +182,9 @@ def _forward(layout: Layout, means2d, conics, opac, feats, ids, tile_start, tile
             hits = hits.at[:, ch.gid].add(jnp.sum(ch.contrib, axis=2, dtype=jnp.int32))
             return r + 1, ch.t_out, ch.done_out, fg, maxw, hits
 
-        _, t, _, fg, maxw, hits = jax.lax.while_loop(cond, body, (jnp.int32(0), t0, done0, fg0, maxw, hits))
+        _, t, _, fg, maxw, hits = jax.lax.while_loop(
+            _still_running(n_rounds), body, (jnp.int32(0), t0, done0, fg0, maxw, hits)
+        )
         return (maxw, hits), (fg, t)
 
     init = (jnp.zeros((d, n), dtype), jnp.zeros((d, n), jnp.int32))
@@ -205,23 +216,13 @@ def _composite_bwd(layout, res, cot):
     d, n = opac.shape
     f = feats.shape[-1]
     dtype = means2d.dtype
-    p = layout.tile_size**2
     g_fg_b = _from_image(layout, g_fg.astype(dtype), order)
     g_t_b = _from_image(layout, g_t.astype(dtype), order)
 
     def batch_step(carry, xs):
         tiles, gfg, gt, fg_res, t_res = xs
-        start, end = tile_start[tiles], tile_end[tiles]
-        px, py, inside = _pixels(layout, tiles, dtype)
-        n_rounds = _rounds(layout, start, end)
-        t0 = jnp.ones((d, layout.batch, p), dtype)
-        done0 = jnp.broadcast_to(~inside, (d, layout.batch, p))
-        s0 = jnp.zeros((d, layout.batch, p, f), dtype)
+        start, end, px, py, n_rounds, t0, done0, s0 = _batch_start(layout, tiles, tile_start, tile_end, d, f, dtype)
         tail = (gt * t_res)[..., None]  # ∂L/∂T_N · T_N
-
-        def cond(c):
-            r, _, done, *_ = c
-            return (r < n_rounds) & ~jnp.all(done)
 
         def body(c):
             r, t, done, s, (dm, dc, do, dfeat) = c
@@ -261,7 +262,7 @@ def _composite_bwd(layout, res, cot):
             return r + 1, ch.t_out, ch.done_out, s_incl[:, :, :, -1, :], grads
 
         init = (jnp.int32(0), t0, done0, s0, carry)
-        *_, grads = jax.lax.while_loop(cond, body, init)
+        *_, grads = jax.lax.while_loop(_still_running(n_rounds), body, init)
         return grads, None
 
     zeros = (
