@@ -199,8 +199,7 @@ def composite(layout: Layout, means2d, conics, opac, feats, ids, tile_start, til
     ``opac`` [D, N] are the effective opacities per date (α·o), ``feats`` [D, N, F] the features
     (colour·l, optionally depth). ``fg`` excludes the background; the image is fg + T·background.
     """
-    fg_b, t_b, maxw, hits, order = _forward(layout, means2d, conics, opac, feats, ids, tile_start, tile_end)
-    return _to_image(layout, fg_b, order), _to_image(layout, t_b, order), maxw, hits
+    return _composite_fwd(layout, means2d, conics, opac, feats, ids, tile_start, tile_end)[0]
 
 
 def _composite_fwd(layout, means2d, conics, opac, feats, ids, tile_start, tile_end):

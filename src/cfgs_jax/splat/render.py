@@ -60,18 +60,19 @@ def _bucket(n: int) -> int:
     return max(MIN_CAPACITY, 1 << max(int(n) - 1, 0).bit_length())
 
 
-def _effective(gaussians: Gaussians, opacity_mult, color_mult):
+def _effective_opacity(gaussians: Gaussians, opacity_mult, config: RenderConfig):
+    """Per-date effective opacity α·o [T, N], and which Gaussians reach α ≥ min_alpha at some requested
+    date (exp(power) ≤ 1, so the others never composite and are culled before binning)."""
     opac = opacities(gaussians)[None, :] * opacity_mult
-    colors = rgb(gaussians)[None] * color_mult
-    return opac, colors
+    return opac, jnp.any(opac >= config.min_alpha, axis=0)
 
 
 def _render_impl(gaussians, camera, opacity_mult, color_mult, background, means2d_offset, *, config, capacity, with_depth):
     proj = project(gaussians.means, gaussians.quats, gaussians.log_scales, camera, config)
-    opac, feats = _effective(gaussians, opacity_mult, color_mult)
+    opac, active = _effective_opacity(gaussians, opacity_mult, config)
+    feats = rgb(gaussians)[None] * color_mult
     if with_depth:
         feats = jnp.concatenate([feats, jnp.broadcast_to(proj.depths[None, :, None], feats.shape[:2] + (1,))], -1)
-    active = jnp.any(opac >= config.min_alpha, axis=0)
     layout = _layout(camera, config)
     bins = bin_gaussians(proj, active, (layout.grid_x, layout.grid_y), capacity)
     means2d = proj.means2d if means2d_offset is None else proj.means2d + means2d_offset
@@ -103,8 +104,8 @@ def _render_jit(gaussians, camera, opacity_mult, color_mult, background, means2d
 @functools.partial(jax.jit, static_argnames=("config",))
 def _count_jit(gaussians, camera, opacity_mult, *, config):
     proj = project(gaussians.means, gaussians.quats, gaussians.log_scales, camera, config)
-    opac = opacities(gaussians)[None, :] * opacity_mult
-    return jnp.sum(intersection_counts(proj, jnp.any(opac >= config.min_alpha, axis=0)))
+    _, active = _effective_opacity(gaussians, opacity_mult, config)
+    return jnp.sum(intersection_counts(proj, active))
 
 
 def required_capacity(gaussians: Gaussians, camera: Camera, opacity_mult=None, *, config: RenderConfig | None = None) -> int:
