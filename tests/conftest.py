@@ -15,6 +15,12 @@ DONUT_PLY = FIXTURES / "real_3dgs_donut_dc_only.ply"
 
 
 @pytest.fixture(scope="session")
+def shared() -> Path:
+    assert FIXTURES.is_dir(), f"fixtures missing: {FIXTURES} (set CFGS_SHARED to the shared/ folder)"
+    return SHARED
+
+
+@pytest.fixture(scope="session")
 def donut_path() -> Path:
     assert DONUT_PLY.is_file(), f"fixture missing: {DONUT_PLY} (set CFGS_SHARED to the shared/ folder)"
     return DONUT_PLY

@@ -3,6 +3,7 @@
 Commands (more arrive with their stages):
   inspect PATH            summarise a 3DGS PLY, a fused model directory or a COLMAP dataset
   convert SRC DST         convert between a 3DGS PLY and the fused layouts (cfgs / reference)
+  metrics A B             PSNR / SSIM / LPIPS between two images or two folders of images
   demo                    the embedded default job (see README)
 
 Errors at the file boundary print one line naming the file, field and fix, and exit with status 2.
@@ -116,6 +117,66 @@ def cmd_convert(args) -> int:
     return 0
 
 
+def _image_pairs(a: Path, b: Path) -> list[tuple[str, Path, Path]]:
+    """(name, a, b) for two image files, or for the images two folders share by file stem."""
+    from cfgs_jax.io.images import EXR_SUFFIXES, PIL_SUFFIXES
+
+    suffixes = PIL_SUFFIXES | EXR_SUFFIXES
+    for p in (a, b):
+        if not p.exists():
+            raise InputError("not found", path=p, fix="pass two image files or two folders of images")
+    if a.is_file() and b.is_file():
+        return [(a.name, a, b)]
+    if a.is_dir() and b.is_dir():
+        def index(d):
+            return {f.stem: f for f in sorted(d.iterdir()) if f.suffix.lower() in suffixes}
+
+        ia, ib = index(a), index(b)
+        common = sorted(set(ia) & set(ib))
+        if not common:
+            raise InputError(f"no image names in common with {b}", path=a, fix="compare folders of renders and ground truth with matching file names")
+        missing = sorted(set(ia) ^ set(ib))
+        if missing:
+            logging.getLogger(__name__).warning("%d images present in only one folder (skipped): %s", len(missing), ", ".join(missing[:5]))
+        return [(k, ia[k], ib[k]) for k in common]
+    raise InputError("compare a file with a file or a folder with a folder", path=a if a.is_dir() else b)
+
+
+def cmd_metrics(args) -> int:
+    import json
+
+    from rich.progress import track
+    from rich.table import Table
+
+    from cfgs_jax import metrics
+    from cfgs_jax.io import atomic_file, read_image
+
+    pairs = _image_pairs(Path(args.a), Path(args.b))
+    rows = []
+    for name, pa, pb in track(pairs, description="metrics", transient=True, disable=len(pairs) < 2):
+        ia, ib = read_image(pa), read_image(pb)
+        if ia.shape != ib.shape:
+            raise InputError(f"size {ia.shape[1]}×{ia.shape[0]} differs from {pb} ({ib.shape[1]}×{ib.shape[0]})", path=pa, fix="compare images of one size")
+        rows.append({
+            "name": name,
+            "psnr": float(metrics.psnr(ia, ib)),
+            "ssim": float(metrics.ssim(ia, ib)),
+            "lpips": float(metrics.lpips(ia, ib, net=args.net)),
+        })  # fmt: skip
+    mean = {k: float(np.mean([r[k] for r in rows])) for k in ("psnr", "ssim", "lpips")}
+    table = Table(title=f"{args.a} vs {args.b}")
+    for col in ("image", "PSNR (dB) ↑", "SSIM ↑", f"LPIPS-{args.net} ↓"):
+        table.add_column(col, justify="left" if col == "image" else "right")
+    for r in rows + ([{"name": f"mean of {len(rows)}", **mean}] if len(rows) > 1 else []):
+        table.add_row(r["name"], f"{r['psnr']:.3f}", f"{r['ssim']:.4f}", f"{r['lpips']:.4f}")
+    _console().print(table)
+    if args.json:
+        with atomic_file(args.json) as tmp:
+            Path(tmp).write_text(json.dumps({"net": args.net, "ssim_padding": "same", "mean": mean, "images": rows}, indent=2))
+        _console().print(f"wrote {args.json}")
+    return 0
+
+
 def _default_fixture() -> Path:
     env = os.environ.get("CFGS_DEMO_PLY")
     cands = [Path(env)] if env else []
@@ -171,6 +232,13 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--layout", choices=("cfgs", "reference", "ply"), default="cfgs")
     s.add_argument("--drop-invalid", action="store_true", help="drop rows with NaN/Inf instead of failing")
     s.set_defaults(func=cmd_convert)
+
+    s = sub.add_parser("metrics", help="PSNR / SSIM / LPIPS between two images or two folders")
+    s.add_argument("a", help="image file or folder (e.g. renders)")
+    s.add_argument("b", help="image file or folder (e.g. ground truth; matched by file name)")
+    s.add_argument("--net", choices=("alex", "vgg"), default="alex", help="LPIPS backbone")
+    s.add_argument("--json", help="also write the numbers to this JSON file")
+    s.set_defaults(func=cmd_metrics)
 
     s = sub.add_parser("demo", help="the embedded default job")
     s.add_argument("--ply", help="3DGS PLY to use (default: the real fixture model beside the checkout)")

@@ -11,7 +11,13 @@ transmittance T_k before it and running foreground sum S_k = Σ_{j≤k} w_j f_j,
     ∂fg/∂α_k = T_k f_k − (fg − S_k) / (1 − α_k),      ∂T_N/∂α_k = −T_N / (1 − α_k),
 
 so only per-pixel residuals (fg, T_N) are stored, never per-pixel × per-Gaussian intermediates.
-Gradients are scatter-added per Gaussian as each chunk is processed.
+The running Σ_f ∂L/∂fg_f (fg_f − S_k,f) is carried as one scalar per pixel and date. Gradients are
+scatter-added per Gaussian as each chunk is processed.
+
+CPU performance notes (XLA:CPU, measured): a round's arrays are laid out Gaussian-major
+[K, D, B, P] with features as separate planes; prefix products/sums along K are explicit chains
+(``jnp.cumprod`` lowers to an O(K²) reduce-window); reductions are element-wise chains or pairwise
+halving, because f32 ``reduce`` ops are handed to a library kernel that is ~10× slower at these shapes.
 """
 
 from __future__ import annotations
@@ -48,18 +54,21 @@ class Layout(NamedTuple):
 
 
 class _Chunk(NamedTuple):
-    gid: jax.Array  # [B, K]
-    dx: jax.Array  # [B, P, K]
+    """K Gaussians of each of B tiles' lists at the tiles' P pixels. The Gaussian axis K leads and the
+    feature axis F is kept as separate planes, so every per-(Gaussian, pixel) quantity is a contiguous
+    [K, (D,) B, P] array that XLA fuses into few passes."""
+
+    gid: jax.Array  # [K, B]
+    dx: jax.Array  # [K, B, P]
     dy: jax.Array
-    con: jax.Array  # [B, K, 3]
-    op: jax.Array  # [D, B, K]
-    ft: jax.Array  # [D, B, K, F]
-    g: jax.Array  # [B, P, K]
-    og: jax.Array  # [D, B, P, K]
+    con: jax.Array  # [3, K, B]
+    op: jax.Array  # [K, D, B]
+    ft: jax.Array  # [F, K, D, B]
+    g: jax.Array  # [K, B, P]  exp(power) where the pixel may composite the Gaussian, else 0; shared by dates
+    og: jax.Array  # [K, D, B, P]  opacity · g
     one_m: jax.Array  # 1 − α (α = 0 where skipped)
     tk: jax.Array  # transmittance before each Gaussian
-    contrib: jax.Array  # [D, B, P, K] bool
-    w: jax.Array  # α·T_k where contributing, else 0
+    w: jax.Array  # α·T_k where the Gaussian contributes, else 0 (so ``w > 0`` marks contributions)
     t_out: jax.Array  # [D, B, P]
     done_out: jax.Array
 
@@ -74,34 +83,82 @@ def _pixels(layout: Layout, tiles, dtype):
     return px, py, inside
 
 
+def _exclusive_cumprod(x):
+    """Π_{j<k} x_j along the leading axis as a sequential chain. On CPU ``jnp.cumprod`` lowers to an
+    O(K²) reduce-window and a triangular matmul in log space to a slow library call; the chain is
+    exact in order (INRIA's) and costs K small element-wise kernels."""
+    out = [jnp.ones_like(x[0])]
+    for i in range(x.shape[0] - 1):
+        out.append(out[-1] * x[i])
+    return jnp.stack(out)
+
+
+def _inclusive_cumsum(x):
+    """Σ_{j≤k} x_j along the leading axis (sequential chain, see ``_exclusive_cumprod``)."""
+    out = [x[0]]
+    for i in range(1, x.shape[0]):
+        out.append(out[-1] + x[i])
+    return jnp.stack(out)
+
+
+def _sum_leading_of(term, k: int):
+    """Σ_{j<k} term(j) as one chain of adds. XLA:CPU hands f32 ``reduce`` ops to a library kernel that
+    is an order of magnitude slower at these shapes; element-wise chains fuse into one pass instead."""
+    total = term(0)
+    for j in range(1, k):
+        total = total + term(j)
+    return total
+
+
+def _reduce_leading_min(x):
+    """min over the leading axis (chain, see ``_sum_leading_of``)."""
+    out = x[0]
+    for i in range(1, x.shape[0]):
+        out = jnp.minimum(out, x[i])
+    return out
+
+
+def _reduce_last(x, op=jnp.add):
+    """Reduce the last axis (the P pixels of a tile) by pairwise halving (see ``_sum_leading_of``)."""
+    while x.shape[-1] > 1:
+        h = x.shape[-1] // 2
+        if 2 * h != x.shape[-1]:
+            x = jnp.concatenate([op(x[..., :h], x[..., h : 2 * h]), x[..., 2 * h :]], axis=-1)
+        else:
+            x = op(x[..., :h], x[..., h:])
+    return x[..., 0]
+
+
 def _chunk(layout: Layout, r, start, end, ids, means2d, conics, opac, feats, px, py, t_in, done_in) -> _Chunk:
+    """Round ``r`` of the tiles' walks: Eq. 1's α and T for K Gaussians (INRIA's per-pixel loop)."""
     k = layout.chunk
-    slot = start[:, None] + r * k + jnp.arange(k)
-    in_range = slot < end[:, None]
+    slot = start[None, :] + r * k + jnp.arange(k)[:, None]  # [K, B]
+    in_range = slot < end[None, :]
     gid = jnp.where(in_range, ids[jnp.minimum(slot, ids.shape[0] - 1)], 0)
-    m = means2d[gid]
-    con = conics[gid]
-    op = opac[:, gid]
-    ft = feats[:, gid]
-    dx = m[:, None, :, 0] - px[:, :, None]
-    dy = m[:, None, :, 1] - py[:, :, None]
-    power = -0.5 * (con[:, None, :, 0] * dx * dx + con[:, None, :, 2] * dy * dy) - con[:, None, :, 1] * dx * dy
-    g = jnp.exp(jnp.minimum(power, 0.0))
-    og = op[:, :, None, :] * g[None]
+    mx, my = means2d[gid, 0], means2d[gid, 1]
+    con = jnp.moveaxis(conics[gid], -1, 0)
+    op = jnp.moveaxis(opac[:, gid], 0, 1)  # [K, D, B]
+    ft = jnp.moveaxis(feats[:, :, gid], 1, 2)  # [F, K, D, B]
+    dx = mx[..., None] - px[None]
+    dy = my[..., None] - py[None]
+    power = -0.5 * (con[0, ..., None] * dx * dx + con[2, ..., None] * dy * dy) - con[1, ..., None] * dx * dy
+    # INRIA skips power > 0; g = 0 there (and past the list's end) gives α = 0 < min_alpha: skipped too
+    g = jnp.where(in_range[..., None] & (power <= 0.0), jnp.exp(jnp.minimum(power, 0.0)), 0.0)
+    og = op[..., None] * g[:, None]
     a = jnp.minimum(layout.max_alpha, og)
-    valid = (in_range[:, None, :] & (power <= 0.0))[None] & (a >= layout.min_alpha)
-    a = jnp.where(valid, a, 0.0)
+    a = jnp.where(a >= layout.min_alpha, a, 0.0)
     one_m = 1.0 - a
-    cp = jnp.cumprod(one_m, axis=-1)
-    tk = t_in[..., None] * jnp.concatenate([jnp.ones_like(cp[..., :1]), cp[..., :-1]], axis=-1)
+    t_live = jnp.where(done_in, 0.0, t_in)  # finished pixels start at 0 and so never contribute
+    tk = t_live * _exclusive_cumprod(one_m)  # T before each Gaussian
     test = tk * one_m
-    alive = ~done_in[..., None]
-    contrib = valid & alive & (test >= layout.min_transmittance)
-    stop = valid & alive & (test < layout.min_transmittance)
-    w = jnp.where(contrib, a * tk, 0.0)
-    t_out = t_in * jnp.prod(jnp.where(contrib, one_m, 1.0), axis=-1)
-    done_out = done_in | jnp.any(stop, axis=-1)
-    return _Chunk(gid, dx, dy, con, op, ft, g, og, one_m, tk, contrib, w, t_out, done_out)
+    # Rounding (~1e-6 relative) cannot make ``test`` increase along K across a valid Gaussian (which
+    # scales it by 1 − α ≤ 1 − 1/255), so the first Gaussian that would take T below the threshold
+    # stops the pixel and none after it contributes, as in INRIA's sequential loop.
+    contrib = (a > 0.0) & (test >= layout.min_transmittance)
+    w = jnp.where(contrib, a * tk, 0.0)  # ≥ (1/255)·1e-4 where contributing
+    t_out = jnp.where(done_in, t_in, jnp.minimum(t_in, _reduce_leading_min(jnp.where(contrib, test, t_in))))
+    done_out = done_in | (test[-1] < layout.min_transmittance)
+    return _Chunk(gid, dx, dy, con, op, ft, g, og, one_m, tk, w, t_out, done_out)
 
 
 def _tile_order(layout: Layout, tile_start, tile_end):
@@ -119,13 +176,13 @@ def _rounds(layout: Layout, start, end):
 
 
 def _batch_start(layout: Layout, tiles, tile_start, tile_end, d: int, f: int, dtype):
-    """Per tile batch: list ranges, pixel centres, round count, and the initial (T, done, zeros) carry."""
+    """Per tile batch: list ranges, pixel centres, round count, and the initial (T, done, fg) carry."""
     start, end = tile_start[tiles], tile_end[tiles]
     px, py, inside = _pixels(layout, tiles, dtype)
     p = layout.tile_size**2
     t0 = jnp.ones((d, layout.batch, p), dtype)
     done0 = jnp.broadcast_to(~inside, (d, layout.batch, p))
-    zeros = jnp.zeros((d, layout.batch, p, f), dtype)
+    zeros = jnp.zeros((f, d, layout.batch, p), dtype)
     return start, end, px, py, _rounds(layout, start, end), t0, done0, zeros
 
 
@@ -165,8 +222,9 @@ def _from_image(layout: Layout, img, order):
 
 
 def _forward(layout: Layout, means2d, conics, opac, feats, ids, tile_start, tile_end):
-    d, n = opac.shape
-    f = feats.shape[-1]
+    """Per-batch fg [nb, F, D, B, P] and T [nb, D, B, P], per-Gaussian max α·T and hits [D, N]."""
+    f, d, n = feats.shape
+    k = layout.chunk
     dtype = means2d.dtype
     order = _tile_order(layout, tile_start, tile_end)
 
@@ -177,9 +235,10 @@ def _forward(layout: Layout, means2d, conics, opac, feats, ids, tile_start, tile
         def body(c):
             r, t, done, fg, maxw, hits = c
             ch = _chunk(layout, r, start, end, ids, means2d, conics, opac, feats, px, py, t, done)
-            fg = fg + jnp.einsum("dbpk,dbkf->dbpf", ch.w, ch.ft)
-            maxw = maxw.at[:, ch.gid].max(jnp.max(ch.w, axis=2))
-            hits = hits.at[:, ch.gid].add(jnp.sum(ch.contrib, axis=2, dtype=jnp.int32))
+            # Σ_k w_k f_k per feature plane, sliced per Gaussian so nothing [K, ...]-sized is materialised
+            fg = jnp.stack([fg[i] + _sum_leading_of(lambda j, i=i: ch.w[j] * ch.ft[i, j, ..., None], k) for i in range(f)])
+            maxw = maxw.at[:, ch.gid].max(jnp.moveaxis(_reduce_last(ch.w, jnp.maximum), 1, 0))
+            hits = hits.at[:, ch.gid].add(jnp.moveaxis(_reduce_last((ch.w > 0).astype(jnp.int32)), 1, 0))
             return r + 1, ch.t_out, ch.done_out, fg, maxw, hits
 
         _, t, _, fg, maxw, hits = jax.lax.while_loop(
@@ -203,64 +262,64 @@ def composite(layout: Layout, means2d, conics, opac, feats, ids, tile_start, til
 
 
 def _composite_fwd(layout, means2d, conics, opac, feats, ids, tile_start, tile_end):
-    fg_b, t_b, maxw, hits, order = _forward(layout, means2d, conics, opac, feats, ids, tile_start, tile_end)
-    out = (_to_image(layout, fg_b, order), _to_image(layout, t_b, order), maxw, hits)
-    res = (means2d, conics, opac, feats, ids, tile_start, tile_end, fg_b, t_b, order)
+    planes = jnp.moveaxis(feats, -1, 0)  # [F, D, N]
+    fg_b, t_b, maxw, hits, order = _forward(layout, means2d, conics, opac, planes, ids, tile_start, tile_end)
+    fg_img = _to_image(layout, jnp.moveaxis(fg_b, 1, -1), order)
+    out = (fg_img, _to_image(layout, t_b, order), maxw, hits)
+    res = (means2d, conics, opac, planes, ids, tile_start, tile_end, fg_img, t_b, order)
     return out, res
 
 
 def _composite_bwd(layout, res, cot):
-    means2d, conics, opac, feats, ids, tile_start, tile_end, fg_b, t_b, order = res
+    means2d, conics, opac, planes, ids, tile_start, tile_end, fg_img, t_b, order = res
     g_fg, g_t, _, _ = cot
-    d, n = opac.shape
-    f = feats.shape[-1]
+    f, d, n = planes.shape
     dtype = means2d.dtype
-    g_fg_b = _from_image(layout, g_fg.astype(dtype), order)
+    g_fg_b = jnp.moveaxis(_from_image(layout, g_fg.astype(dtype), order), -1, 1)  # [nb, F, D, B, P]
+    behind_b = _from_image(layout, jnp.sum(g_fg.astype(dtype) * fg_img, axis=-1), order)  # Σ_f ∂L/∂fg_f fg_f
     g_t_b = _from_image(layout, g_t.astype(dtype), order)
 
     def batch_step(carry, xs):
-        tiles, gfg, gt, fg_res, t_res = xs
-        start, end, px, py, n_rounds, t0, done0, s0 = _batch_start(layout, tiles, tile_start, tile_end, d, f, dtype)
-        tail = (gt * t_res)[..., None]  # ∂L/∂T_N · T_N
+        tiles, gfg, gt, behind0, t_res = xs
+        start, end, px, py, n_rounds, t0, done0, _ = _batch_start(layout, tiles, tile_start, tile_end, d, f, dtype)
+        tail = gt * t_res  # ∂L/∂T_N · T_N
 
         def body(c):
-            r, t, done, s, (dm, dc, do, dfeat) = c
-            ch = _chunk(layout, r, start, end, ids, means2d, conics, opac, feats, px, py, t, done)
-            wf = ch.w[..., None] * ch.ft[:, :, None, :, :]  # [D, B, P, K, F]
-            s_incl = s[:, :, :, None, :] + jnp.cumsum(wf, axis=3)
-            behind = jnp.sum(gfg[:, :, :, None, :] * (fg_res[:, :, :, None, :] - s_incl), axis=-1)
-            gf = jnp.einsum("dbpf,dbkf->dbpk", gfg, ch.ft)
-            safe = jnp.where(ch.contrib, ch.one_m, 1.0)
-            d_alpha = jnp.where(ch.contrib, ch.tk * gf - (behind + tail) / safe, 0.0)
+            r, t, done, behind, (dm, dc, do, dfeat) = c
+            ch = _chunk(layout, r, start, end, ids, means2d, conics, opac, planes, px, py, t, done)
+            gf = sum(gfg[i][None] * ch.ft[i, ..., None] for i in range(f))  # [K, D, B, P]  ∂L/∂fg · f_k
+            behind_k = behind - _inclusive_cumsum(ch.w * gf)  # Σ_f ∂L/∂fg_f (fg_f − S_k,f)
+            # 1 − α ≥ 0.01, so the division is safe everywhere
+            d_alpha = jnp.where(ch.w > 0, ch.tk * gf - (behind_k + tail) / ch.one_m, 0.0)
             d_og = jnp.where(ch.og < layout.max_alpha, d_alpha, 0.0)
-            d_op = jnp.sum(d_og * ch.g[None], axis=2)  # [D, B, K]
-            d_power = jnp.sum(d_og * ch.op[:, :, None, :], axis=0) * ch.g  # [B, P, K]
-            dx, dy, con = ch.dx, ch.dy, ch.con
+            d_op = _reduce_last(d_og * ch.g[:, None])  # [K, D, B]
+            d_power = _sum_leading_of(lambda j: d_og[:, j] * ch.op[:, j, :, None], d) * ch.g  # [K, B, P]
+            dx, dy, (ca, cb, cc) = ch.dx, ch.dy, ch.con
             d_con = jnp.stack(
                 [
-                    jnp.sum(d_power * (-0.5 * dx * dx), axis=1),
-                    jnp.sum(d_power * (-dx * dy), axis=1),
-                    jnp.sum(d_power * (-0.5 * dy * dy), axis=1),
+                    _reduce_last(d_power * (-0.5 * dx * dx)),
+                    _reduce_last(d_power * (-dx * dy)),
+                    _reduce_last(d_power * (-0.5 * dy * dy)),
                 ],
                 axis=-1,
             )
             d_mean = jnp.stack(
                 [
-                    jnp.sum(d_power * -(con[:, None, :, 0] * dx + con[:, None, :, 1] * dy), axis=1),
-                    jnp.sum(d_power * -(con[:, None, :, 1] * dx + con[:, None, :, 2] * dy), axis=1),
+                    _reduce_last(d_power * -(ca[..., None] * dx + cb[..., None] * dy)),
+                    _reduce_last(d_power * -(cb[..., None] * dx + cc[..., None] * dy)),
                 ],
                 axis=-1,
             )
-            d_feat = jnp.einsum("dbpk,dbpf->dbkf", ch.w, gfg)
+            d_feat = jnp.stack([_reduce_last(ch.w * gfg[i][None]) for i in range(f)])  # [F, K, D, B]
             grads = (
                 dm.at[ch.gid].add(d_mean),
                 dc.at[ch.gid].add(d_con),
-                do.at[:, ch.gid].add(d_op),
-                dfeat.at[:, ch.gid].add(d_feat),
+                do.at[:, ch.gid].add(jnp.moveaxis(d_op, 1, 0)),
+                dfeat.at[:, :, ch.gid].add(jnp.moveaxis(d_feat, 2, 1)),
             )
-            return r + 1, ch.t_out, ch.done_out, s_incl[:, :, :, -1, :], grads
+            return r + 1, ch.t_out, ch.done_out, behind_k[-1], grads
 
-        init = (jnp.int32(0), t0, done0, s0, carry)
+        init = (jnp.int32(0), t0, done0, behind0, carry)
         *_, grads = jax.lax.while_loop(_still_running(n_rounds), body, init)
         return grads, None
 
@@ -268,10 +327,10 @@ def _composite_bwd(layout, res, cot):
         jnp.zeros((n, 2), dtype),
         jnp.zeros((n, 3), dtype),
         jnp.zeros((d, n), dtype),
-        jnp.zeros((d, n, f), dtype),
+        jnp.zeros((f, d, n), dtype),
     )
-    (dm, dc, do, dfeat), _ = jax.lax.scan(batch_step, zeros, (order, g_fg_b, g_t_b, fg_b, t_b))
-    return dm, dc, do, dfeat, None, None, None
+    (dm, dc, do, dfeat), _ = jax.lax.scan(batch_step, zeros, (order, g_fg_b, g_t_b, behind_b, t_b))
+    return dm, dc, do, jnp.moveaxis(dfeat, 0, -1), None, None, None
 
 
 composite.defvjp(_composite_fwd, _composite_bwd)

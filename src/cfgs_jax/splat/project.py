@@ -19,6 +19,7 @@ class Projection(NamedTuple):
     conics: Float[Array, "N 3"]  # inverse 2D covariance (a, b, c) of [[a, b], [b, c]]
     depths: Float[Array, "N"]  # view-space z
     radii: Float[Array, "N"]  # ceil(3·sqrt(λ_max)), pixels
+    cov_diag: Float[Array, "N 2"]  # (Σ2D_xx, Σ2D_yy) incl. the low-pass, pixels²
     rect_min: Int[Array, "N 2"]  # first tile (x, y) touched, inclusive
     rect_max: Int[Array, "N 2"]  # last tile (x, y) touched, exclusive
     valid: Bool[Array, "N"]
@@ -92,4 +93,4 @@ def project(
     valid = valid & finite & (radii > 0) & (area > 0)
     lo = jnp.where(valid[:, None], lo, 0)
     hi = jnp.where(valid[:, None], hi, 0)
-    return Projection(means2d, conics, z, radii, lo, hi, valid)
+    return Projection(means2d, conics, z, radii, jnp.stack([a, c], -1), lo, hi, valid)

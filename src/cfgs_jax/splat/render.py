@@ -20,7 +20,7 @@ from jaxtyping import Array, Float, Int
 
 from cfgs_jax.errors import InputError
 from cfgs_jax.model import Camera, Gaussians, opacities, rgb
-from cfgs_jax.splat.binning import bin_gaussians, intersection_counts
+from cfgs_jax.splat.binning import bin_gaussians, intersection_counts, tile_rects
 from cfgs_jax.splat.composite import Layout, composite
 from cfgs_jax.splat.config import RenderConfig
 from cfgs_jax.splat.project import project, tile_grid
@@ -38,7 +38,8 @@ class RenderResult(eqx.Module):
     hits: Int[Array, "*T N"]  # pixels each Gaussian contributed to
     means2d: Float[Array, "N 2"]  # projected centres (pixels, centres at +0.5)
     radii: Float[Array, "N"]  # 0 where culled
-    num_intersections: Int[Array, ""]
+    num_intersections: Int[Array, ""]  # entries the intersection buffer needed (overflow if > capacity)
+    num_composited: Int[Array, ""]  # (Gaussian, tile) pairs composited, after exact tile culling
     capacity: int = eqx.field(static=True)
 
     @property
@@ -47,9 +48,10 @@ class RenderResult(eqx.Module):
         return self.num_intersections > self.capacity
 
 
-def _layout(camera: Camera, config: RenderConfig) -> Layout:
+def _layout(camera: Camera, config: RenderConfig, dates: int) -> Layout:
     gx, gy = tile_grid(camera, config)
-    batch = config.tile_batch or (16 if jax.default_backend() == "cpu" else gx * gy)
+    # CPU: ~32 tile-dates per batch keeps a round's [K, D, B, P] arrays cache-sized (measured best)
+    batch = config.tile_batch or (max(8, 32 // dates) if jax.default_backend() == "cpu" else gx * gy)
     return Layout(
         camera.width, camera.height, config.tile_size, gx, gy, min(batch, gx * gy), config.chunk,
         config.min_alpha, config.max_alpha, config.min_transmittance,
@@ -61,20 +63,23 @@ def _bucket(n: int) -> int:
 
 
 def _effective_opacity(gaussians: Gaussians, opacity_mult, config: RenderConfig):
-    """Per-date effective opacity α·o [T, N], and which Gaussians reach α ≥ min_alpha at some requested
-    date (exp(power) ≤ 1, so the others never composite and are culled before binning)."""
+    """Per-date effective opacity α·o [T, N] and its maximum over the requested dates [N]: Gaussians
+    below min_alpha at every date never composite (exp(power) ≤ 1) and are culled before binning."""
     opac = opacities(gaussians)[None, :] * opacity_mult
-    return opac, jnp.any(opac >= config.min_alpha, axis=0)
+    return opac, jax.lax.stop_gradient(jnp.max(opac, axis=0))
 
 
 def _render_impl(gaussians, camera, opacity_mult, color_mult, background, means2d_offset, *, config, capacity, with_depth):
     proj = project(gaussians.means, gaussians.quats, gaussians.log_scales, camera, config)
-    opac, active = _effective_opacity(gaussians, opacity_mult, config)
+    opac, max_opacity = _effective_opacity(gaussians, opacity_mult, config)
     feats = rgb(gaussians)[None] * color_mult
     if with_depth:
         feats = jnp.concatenate([feats, jnp.broadcast_to(proj.depths[None, :, None], feats.shape[:2] + (1,))], -1)
-    layout = _layout(camera, config)
-    bins = bin_gaussians(proj, active, (layout.grid_x, layout.grid_y), capacity)
+    layout = _layout(camera, config, opac.shape[0])
+    bins = bin_gaussians(
+        proj, max_opacity, (layout.grid_x, layout.grid_y), capacity,
+        tile_size=config.tile_size, min_alpha=config.min_alpha, cull=config.tile_cull,
+    )  # fmt: skip
     means2d = proj.means2d if means2d_offset is None else proj.means2d + means2d_offset
     fg, t, maxw, hits = composite(
         layout, means2d, proj.conics, opac, feats, bins.gaussian_ids, bins.tile_start, bins.tile_end
@@ -89,6 +94,7 @@ def _render_impl(gaussians, camera, opacity_mult, color_mult, background, means2
         means2d=proj.means2d,
         radii=jnp.where(proj.valid, proj.radii, 0.0),
         num_intersections=bins.num_intersections,
+        num_composited=jnp.sum(bins.tile_end - bins.tile_start),
         capacity=capacity,
     )
 
@@ -104,8 +110,9 @@ def _render_jit(gaussians, camera, opacity_mult, color_mult, background, means2d
 @functools.partial(jax.jit, static_argnames=("config",))
 def _count_jit(gaussians, camera, opacity_mult, *, config):
     proj = project(gaussians.means, gaussians.quats, gaussians.log_scales, camera, config)
-    _, active = _effective_opacity(gaussians, opacity_mult, config)
-    return jnp.sum(intersection_counts(proj, active))
+    _, max_opacity = _effective_opacity(gaussians, opacity_mult, config)
+    rects = tile_rects(proj, max_opacity, config.tile_size, config.min_alpha, config.tile_cull)
+    return jnp.sum(intersection_counts(proj, max_opacity >= config.min_alpha, rects))
 
 
 def required_capacity(gaussians: Gaussians, camera: Camera, opacity_mult=None, *, config: RenderConfig | None = None) -> int:
@@ -201,5 +208,6 @@ def render(
     return RenderResult(
         image=res.image[0], alpha=res.alpha[0], depth=first(res.depth), max_weight=res.max_weight[0],
         hits=res.hits[0], means2d=res.means2d, radii=res.radii, num_intersections=res.num_intersections,
+        num_composited=res.num_composited,
         capacity=res.capacity,
     )  # fmt: skip
