@@ -10,8 +10,8 @@ class RenderConfig:
     """Knobs of the splatting kernel. Defaults reproduce INRIA 3DGS exactly.
 
     ``capacity``: intersection-buffer size (None: sized automatically, grown in power-of-two buckets
-    on overflow when rendering eagerly). ``tile_batch``: tiles composited together (None: 32/T on CPU,
-    at least 8; all tiles on GPU). ``chunk``: Gaussians loaded per step of a tile's walk.
+    on overflow when rendering eagerly). ``tile_batch``: tiles composited together (None: on CPU 32 for
+    one date, max(8, 48/T) for T dates; all tiles on GPU). ``chunk``: Gaussians loaded per step of a tile's walk.
 
     ``tile_cull`` (default on) drops a Gaussian from a tile only where it provably reaches
     α < ``min_alpha`` at every pixel centre of that tile (its ellipse at that level misses the tile,

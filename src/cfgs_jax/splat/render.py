@@ -50,8 +50,10 @@ class RenderResult(eqx.Module):
 
 def _layout(camera: Camera, config: RenderConfig, dates: int) -> Layout:
     gx, gy = tile_grid(camera, config)
-    # CPU: ~32 tile-dates per batch keeps a round's [K, D, B, P] arrays cache-sized (measured best)
-    batch = config.tile_batch or (max(8, 32 // dates) if jax.default_backend() == "cpu" else gx * gy)
+    # CPU: 32 tiles for one date, ~48 tile-dates for several keep a round's [K, D, B, P] arrays
+    # cache-sized (measured best: benchmarks/bench_splat.py); GPU: every tile at once
+    cpu_batch = 32 if dates == 1 else max(8, 48 // dates)
+    batch = config.tile_batch or (cpu_batch if jax.default_backend() == "cpu" else gx * gy)
     return Layout(
         camera.width, camera.height, config.tile_size, gx, gy, min(batch, gx * gy), config.chunk,
         config.min_alpha, config.max_alpha, config.min_transmittance,
