@@ -8,6 +8,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+import cfgs_jax  # noqa: F401  (first: loads the system libz before any test module imports pycolmap)
+
 REPO = Path(__file__).resolve().parents[1]
 SHARED = Path(os.environ.get("CFGS_SHARED", REPO.parent / "shared"))
 FIXTURES = SHARED / "fixtures"

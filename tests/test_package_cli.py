@@ -88,3 +88,9 @@ def test_cli_demo_on_fixture(tmp_path, donut_path, capsys):
     assert main(["demo", "--ply", str(donut_path), "--out", str(tmp_path / "demo")]) == 0
     assert "round trip bit-exact: True" in " ".join(capsys.readouterr().out.split())
     assert (tmp_path / "demo" / "model.ply").is_file()
+    assert (tmp_path / "demo" / "scene" / "ground_truth.json").is_file()
+    from cfgs_jax.io import read_colmap, read_image
+
+    assert len(read_colmap(tmp_path / "demo" / "scene" / "d0")) == 8
+    img = read_image(tmp_path / "demo" / "render_0.png")
+    assert img.shape == (240, 320, 3) and 0.05 < float((img.sum(-1) < 2.9).mean()) < 0.95  # the donut, on white

@@ -1,0 +1,95 @@
+"""Similarity transforms Sim(3): x ↦ s·R·x + t, between independently reconstructed date frames."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+
+def quat_to_matrix(q_wxyz) -> np.ndarray:
+    w, x, y, z = np.asarray(q_wxyz, np.float64) / np.linalg.norm(q_wxyz)
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+
+
+def matrix_to_quat(r: np.ndarray) -> np.ndarray:
+    """Rotation matrix → unit quaternion (w, x, y, z) with w ≥ 0 (Shepperd's method)."""
+    r = np.asarray(r, np.float64)
+    t = np.trace(r)
+    if t > 0:
+        s = 2.0 * np.sqrt(1.0 + t)
+        q = [0.25 * s, (r[2, 1] - r[1, 2]) / s, (r[0, 2] - r[2, 0]) / s, (r[1, 0] - r[0, 1]) / s]
+    else:
+        i = int(np.argmax(np.diag(r)))
+        j, k = (i + 1) % 3, (i + 2) % 3
+        s = 2.0 * np.sqrt(1.0 + r[i, i] - r[j, j] - r[k, k])
+        q = np.zeros(4)
+        q[0] = (r[k, j] - r[j, k]) / s
+        q[1 + i] = 0.25 * s
+        q[1 + j] = (r[j, i] + r[i, j]) / s
+        q[1 + k] = (r[k, i] + r[i, k]) / s
+    q = np.asarray(q, np.float64)
+    return q * (1 if q[0] >= 0 else -1)
+
+
+@dataclasses.dataclass(frozen=True)
+class Sim3:
+    """x ↦ scale·R·x + t (float64)."""
+
+    scale: float
+    rotation: np.ndarray  # [3, 3]
+    translation: np.ndarray  # [3]
+
+    @staticmethod
+    def identity() -> Sim3:
+        return Sim3(1.0, np.eye(3), np.zeros(3))
+
+    @staticmethod
+    def random(rng: np.random.Generator, *, scale_range=(0.5, 2.0), shift: float = 3.0) -> Sim3:
+        """A random frame as an independent SfM run would pick: log-uniform scale, uniform rotation."""
+        q = rng.normal(size=4)
+        s = float(np.exp(rng.uniform(np.log(scale_range[0]), np.log(scale_range[1]))))
+        return Sim3(s, quat_to_matrix(q), rng.normal(0.0, shift, 3))
+
+    def apply(self, x) -> np.ndarray:
+        return self.scale * (np.asarray(x, np.float64) @ self.rotation.T) + self.translation
+
+    def inverse(self) -> Sim3:
+        rt = self.rotation.T
+        return Sim3(1.0 / self.scale, rt, -(rt @ self.translation) / self.scale)
+
+    def compose(self, other: Sim3) -> Sim3:
+        """self ∘ other (apply ``other`` first)."""
+        return Sim3(
+            self.scale * other.scale,
+            self.rotation @ other.rotation,
+            self.scale * (self.rotation @ other.translation) + self.translation,
+        )
+
+    def transform_cam_from_world(self, cam_from_world: np.ndarray) -> np.ndarray:
+        """The pose [R|t] of a camera in this Sim(3)'s target frame, given its pose in the source
+        frame. Camera coordinates scale with the world, so the new pose stays a rigid motion:
+        R' = R·Rsᵀ, t' = s·t − R'·ts."""
+        m = np.asarray(cam_from_world, np.float64)
+        r = m[:3, :3] @ self.rotation.T
+        out = np.eye(4)
+        out[:3, :3] = r
+        out[:3, 3] = self.scale * m[:3, 3] - r @ self.translation
+        return out
+
+    def to_dict(self) -> dict:
+        return {
+            "scale": float(self.scale),
+            "rotation_wxyz": matrix_to_quat(self.rotation).tolist(),
+            "translation": np.asarray(self.translation, np.float64).tolist(),
+        }
+
+    @staticmethod
+    def from_dict(d: dict) -> Sim3:
+        return Sim3(float(d["scale"]), quat_to_matrix(d["rotation_wxyz"]), np.asarray(d["translation"], np.float64))

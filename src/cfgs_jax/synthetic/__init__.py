@@ -1,0 +1,11 @@
+"""Synthetic multi-date ground truth rendered with Mitsuba 3 (never with our own kernel).
+
+``make_preset(name, seed=, width=, height=, images_per_date=, spp=)`` builds a ``SceneSpec`` (one of
+vase, corals, flood, coverage, light); ``render_dataset(spec, out)`` writes one COLMAP dataset per
+date in its own random Sim(3) frame, object-id and change masks, and ``ground_truth.json``.
+"""
+
+from cfgs_jax.synthetic.dataset import render_dataset, sun_rgb
+from cfgs_jax.synthetic.presets import PRESETS, DateSpec, ObjectSpec, SceneSpec, make_preset
+
+__all__ = ["PRESETS", "DateSpec", "ObjectSpec", "SceneSpec", "make_preset", "render_dataset", "sun_rgb"]

@@ -1,0 +1,321 @@
+"""Render a ``SceneSpec`` with Mitsuba 3 and write one COLMAP dataset per date plus ground truth.
+
+Per date ``DIR/<date>/``: ``images/`` (8-bit sRGB PNG, path traced), ``sparse/0/`` (PINHOLE cameras,
+poses, and points3D sampled on visible surfaces with their tracks, written by pycolmap) in the
+date's own random Sim(3) frame, ``masks/ids/`` (object id per pixel, 0 = background),
+``masks/changed_vs_<other>/`` (255 where the scene content at that pixel differs from date
+<other> seen through the same camera: another object, moved geometry, or changed texture — not
+lighting), ``masks/points3D_objects.json``. ``DIR/ground_truth.json`` holds the Sim(3)s, object
+presence/variants, lighting and the world-frame camera poses.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from pathlib import Path
+
+import numpy as np
+
+from cfgs_jax.errors import InputError
+from cfgs_jax.io.atomic import atomic_directory, atomic_file, ensure_writable_dir
+from cfgs_jax.io.images import write_image
+from cfgs_jax.sim3 import Sim3, matrix_to_quat
+from cfgs_jax.synthetic.presets import SceneSpec
+from cfgs_jax.synthetic.textures import base_texture, cracked, water_texture
+
+log = logging.getLogger(__name__)
+FORMAT = "cfgs_jax-synthetic/1"
+_FLIP = np.diag([-1.0, -1.0, 1.0, 1.0])  # OpenCV camera axes → Mitsuba's (x left, y up, z forward)
+
+
+def _mitsuba():
+    try:
+        import mitsuba as mi
+    except ImportError:
+        raise InputError("Mitsuba 3 is not installed", field="synth", fix="pip install mitsuba") from None
+    if mi.variant() != "scalar_rgb":
+        mi.set_variant("scalar_rgb")
+    return mi
+
+
+def texture(spec: SceneSpec, obj_index: int, date: int) -> np.ndarray:
+    o = spec.objects[obj_index]
+    if o.texture == "water":
+        return water_texture(o.texture_seed)
+    base = base_texture(o.texture_seed, coarse=o.shape != "rectangle")
+    return cracked(base, o.texture_seed, o.variant[date]) if o.variant[date] else base
+
+
+def sun_rgb(cct_kelvin: float) -> np.ndarray:
+    """Linear sRGB colour of a black-body-like illuminant at ``cct_kelvin``, unit luminance."""
+    import colour
+
+    xy = colour.temperature.CCT_to_xy(cct_kelvin, method="Kang 2002")
+    rgb = colour.XYZ_to_RGB(colour.xy_to_XYZ(xy), colour.RGB_COLOURSPACES["sRGB"], chromatic_adaptation_transform=None)
+    rgb = np.clip(np.asarray(rgb, np.float64), 1e-3, None)
+    return rgb / float(np.dot(rgb, [0.2126, 0.7152, 0.0722]))
+
+
+def _shape(mi, obj, m):
+    tw = mi.ScalarTransform4f(np.asarray(m).tolist())
+    if obj.shape == "rectangle":
+        return {"type": "rectangle", "to_world": tw}
+    if obj.shape == "sphere":
+        return {"type": "sphere", "to_world": tw}
+    if obj.shape == "cube":
+        return {"type": "cube", "to_world": tw}
+    if obj.shape == "cylinder":
+        return {"type": "cylinder", "p0": [0, 0, 0], "p1": [0, 0, 1], "radius": 1.0, "to_world": tw}
+    raise InputError(f"unknown shape {obj.shape!r}", field="objects.shape")
+
+
+def scene_dict(spec: SceneSpec, state: int, cam_date: int, *, aov: bool) -> dict:
+    """Mitsuba scene of date ``state``'s content seen by date ``cam_date``'s cameras."""
+    mi = _mitsuba()
+    d = spec.dates[state]
+    out: dict = {"type": "scene"}
+    if aov:
+        out["integrator"] = {"type": "aov", "aovs": "sid:shape_index,pos:position,uv:uv"}
+    else:
+        out["integrator"] = {"type": "path", "max_depth": 5}
+        az, el = np.radians(d.sun_azimuth_deg), np.radians(d.sun_elevation_deg)
+        towards_sun = np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
+        sun = sun_rgb(d.cct_kelvin)
+        out["sun"] = {"type": "directional", "direction": (-towards_sun).tolist(), "irradiance": {"type": "rgb", "value": (2.6 * sun).tolist()}}
+        sky = np.array([0.55, 0.7, 1.0]) * (0.6 + 0.4 * sun / sun.max())
+        out["sky"] = {"type": "constant", "radiance": {"type": "rgb", "value": (0.35 * sky).tolist()}}
+    fov = spec.fov_x_deg
+    for i, m in enumerate(spec.dates[cam_date].cam_from_world):
+        world_from_cam = np.linalg.inv(np.asarray(m)) @ _FLIP
+        out[f"camera_{i:03d}"] = {
+            "type": "perspective", "fov": fov, "fov_axis": "x",
+            "to_world": mi.ScalarTransform4f(world_from_cam.tolist()),
+            "film": {"type": "hdrfilm", "width": spec.width, "height": spec.height, "rfilter": {"type": "box"},
+                     "pixel_format": "rgb", "component_format": "float32"},
+            "sampler": {"type": "independent" if aov else "ldsampler", "sample_count": 1 if aov else spec.spp},
+        }  # fmt: skip
+    for k, o in enumerate(spec.objects):
+        if not o.present[state]:
+            continue
+        shape = _shape(mi, o, o.to_world[state])
+        tex = mi.Bitmap(texture(spec, k, state))
+        shape["bsdf"] = {"type": "diffuse", "reflectance": {"type": "bitmap", "bitmap": tex, "raw": True, "filter_type": "bilinear"}}
+        out[f"obj_{k:03d}_{o.name}"] = shape
+    return out
+
+
+class _Loaded:
+    """A loaded Mitsuba scene and the object id (1-based index into spec.objects) of each shape."""
+
+    def __init__(self, spec: SceneSpec, state: int, cam_date: int, *, aov: bool):
+        mi = _mitsuba()
+        self.mi = mi
+        self.scene = mi.load_dict(scene_dict(spec, state, cam_date, aov=aov))
+        ids = [s.id() for s in self.scene.shapes()]
+        if any(not i.startswith("obj_") for i in ids):
+            raise RuntimeError(f"Mitsuba merged shapes ({ids}); object masks would be wrong")
+        self.shape_to_object = np.array([0] + [int(i.split("_")[1]) + 1 for i in ids], np.int32)
+
+    def render(self, sensor: int, seed: int, spp: int | None = None) -> np.ndarray:
+        kw = {} if spp is None else {"spp": spp}
+        return np.array(self.mi.render(self.scene, sensor=sensor, seed=seed, **kw), np.float64)
+
+    def aov(self, sensor: int, seed: int):
+        a = self.render(sensor, seed)
+        sid = np.rint(a[..., 0]).astype(np.int64)
+        return self.shape_to_object[np.clip(sid, 0, len(self.shape_to_object) - 1)], a[..., 1:4], a[..., 4:6]
+
+
+def _project(cam_from_world, fx, cx, cy, pts):
+    pc = pts @ cam_from_world[:3, :3].T + cam_from_world[:3, 3]
+    z = pc[:, 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        uv = np.stack([fx * pc[:, 0] / z + cx, fx * pc[:, 1] / z + cy], -1)
+    return uv, z
+
+
+def _changed(spec, q, p, ids_q, pos_q, uv_q, ids_p, pos_p, uv_p, tex_cache) -> np.ndarray:
+    """Pixels of a date-q view whose content differs at date p (another object, moved geometry, or
+    a different texture value at the surface point); lighting alone never counts."""
+    changed = ids_q != ids_p
+    both = (ids_q > 0) & (ids_p > 0) & ~changed
+    moved = np.linalg.norm(pos_q - pos_p, axis=-1) > 0.02
+    changed |= both & moved
+    same = both & ~moved
+    if same.any():
+        for obj in np.unique(ids_q[same]):
+            m = same & (ids_q == obj)
+            ta, tb = tex_cache(obj - 1, q), tex_cache(obj - 1, p)
+            if ta is tb:
+                continue
+            s = ta.shape[0]
+            x = (np.floor(uv_q[m][:, 0] * s).astype(int)) % s
+            y = (np.floor(uv_q[m][:, 1] * s).astype(int)) % s
+            diff = np.abs(ta[y, x] - tb[y, x]).max(-1) > 0.05
+            # a bilinear lookup also sees the neighbouring texels: count them too
+            for dx, dy in ((1, 0), (0, 1), (-1, 0), (0, -1)):
+                diff |= np.abs(ta[(y + dy) % s, (x + dx) % s] - tb[(y + dy) % s, (x + dx) % s]).max(-1) > 0.05
+            idx = np.nonzero(m)
+            changed[idx[0][diff], idx[1][diff]] = True
+    return changed
+
+
+def render_dataset(
+    spec: SceneSpec, out: str | Path, *, dates=None, points_per_image: int | None = None, progress: bool = True
+) -> Path:
+    """Render the dates of ``spec`` (all, or the indices in ``dates``) and write their datasets and
+    the ground truth under ``out``."""
+    import pycolmap
+    from rich.progress import Progress
+
+    out = ensure_writable_dir(out)
+    nd = len(spec.dates)
+    rng = np.random.default_rng([spec.seed, 99])
+    frames = [Sim3.random(rng) for _ in range(nd)]  # date_from_world
+    fx = 0.5 * spec.width / np.tan(np.radians(spec.fov_x_deg) / 2)
+    cx, cy = spec.width / 2, spec.height / 2
+    n_points = points_per_image or max(40, spec.width * spec.height // 250)
+    textures: dict = {}
+
+    def tex_cache(k, date):
+        key = (k, spec.objects[k].variant[date] if spec.objects[k].texture != "water" else -1)
+        if key not in textures:
+            textures[key] = texture(spec, k, date)
+        return textures[key]
+
+    todo = list(range(nd)) if dates is None else sorted(set(int(d) for d in dates))
+    if not todo or todo[0] < 0 or todo[-1] >= nd:
+        raise InputError(f"date indices {dates} outside 0..{nd - 1}", field="dates")
+    total = sum(len(spec.dates[q].cam_from_world) for q in todo)
+    gt_dates = []
+    with Progress(disable=not progress, transient=True) as bar:
+        task = bar.add_task(f"rendering {spec.preset}", total=total * (1 + nd))
+        for q in todo:
+            date = spec.dates[q]
+            n_img = len(date.cam_from_world)
+            beauty = _Loaded(spec, q, q, aov=False)
+            own = _Loaded(spec, q, q, aov=True)
+            others = {p: _Loaded(spec, p, q, aov=True) for p in range(nd) if p != q}
+            with atomic_directory(out / date.name) as tmp:
+                tmp = Path(tmp)
+                for sub in ("images", "sparse/0", "masks/ids", *(f"masks/changed_vs_{spec.dates[p].name}" for p in others)):
+                    (tmp / sub).mkdir(parents=True, exist_ok=True)
+                names = [f"img_{i:03d}.png" for i in range(n_img)]
+                rgbs, aovs = [], []
+                for i, name in enumerate(names):
+                    seed = int(np.random.default_rng([spec.seed, q, i]).integers(2**31))
+                    img = beauty.render(i, seed)[..., :3] * 2.0**date.exposure_ev
+                    write_image(tmp / "images" / name, img.astype(np.float32), linear=True)
+                    rgbs.append(_read_srgb(tmp / "images" / name))  # the 8-bit colours SfM would see
+                    ids, pos, uv = own.aov(i, seed)
+                    aovs.append((ids, pos))
+                    _write_mask(tmp / "masks/ids" / name, ids)
+                    for p, loaded in others.items():
+                        ids_p, pos_p, uv_p = loaded.aov(i, seed)
+                        ch = _changed(spec, q, p, ids, pos, uv, ids_p, pos_p, uv_p, tex_cache)
+                        _write_mask(tmp / f"masks/changed_vs_{spec.dates[p].name}" / name, ch.astype(np.int32) * 255)
+                        bar.advance(task)
+                    bar.advance(task)
+                obs, xyz, colors, objects = _sample_points(spec, q, rgbs, aovs, fx, cx, cy, n_points)
+                point_ids = _write_colmap(pycolmap, tmp / "sparse/0", spec, q, names, frames[q], obs, xyz, colors, fx, cx, cy)
+                (tmp / "masks/points3D_objects.json").write_text(json.dumps(dict(zip(map(str, point_ids), objects))))
+            gt_dates.append({
+                "name": date.name,
+                "captured": date.captured,
+                "coverage": date.coverage,
+                "present": {o.name: bool(o.present[q]) for o in spec.objects},
+                "variant": {o.name: int(o.variant[q]) for o in spec.objects},
+                "lighting": {"sun_azimuth_deg": date.sun_azimuth_deg, "sun_elevation_deg": date.sun_elevation_deg,
+                             "cct_kelvin": date.cct_kelvin, "exposure_ev": date.exposure_ev},
+                "date_from_world": frames[q].to_dict(),
+                "world_from_date": frames[q].inverse().to_dict(),
+                "cameras_world": {n: np.asarray(m).tolist() for n, m in zip(names, date.cam_from_world)},
+            })  # fmt: skip
+    gt = {
+        "format": FORMAT,
+        "preset": spec.preset, "seed": spec.seed, "width": spec.width, "height": spec.height, "spp": spec.spp,
+        "fov_x_deg": spec.fov_x_deg,
+        "objects": [{"id": k + 1, "name": o.name, "shape": o.shape} for k, o in enumerate(spec.objects)],
+        "dates": gt_dates,
+    }  # fmt: skip
+    with atomic_file(out / "ground_truth.json") as tmp:
+        tmp.write_text(json.dumps(gt, indent=1))
+    return out
+
+
+def _read_srgb(path: Path) -> np.ndarray:
+    from PIL import Image
+
+    return np.asarray(Image.open(path).convert("RGB"))
+
+
+def _write_mask(path: Path, values: np.ndarray) -> None:
+    from PIL import Image
+
+    v = np.asarray(values)
+    if v.max(initial=0) > 255:
+        raise ValueError("more than 255 object ids")
+    Image.fromarray(v.astype(np.uint8), mode="L").save(path)
+
+
+def _sample_points(spec, q, rgbs, aovs, fx, cx, cy, n_points):
+    """Surface points seen by the date's cameras, with every image that sees them (an SfM-like
+    track: in frame, in front, and that image's own surface sample there is the same object within
+    three pixel footprints), their colour and object id."""
+    rng = np.random.default_rng([spec.seed, q, 7])
+    cams = [np.asarray(m, np.float64) for m in spec.dates[q].cam_from_world]
+    xyz, colors, objects, obs = [], [], [], []
+    for i, (ids, pos) in enumerate(aovs):
+        hit = np.argwhere(ids > 0)
+        if len(hit) == 0:
+            continue
+        pick = hit[rng.choice(len(hit), size=min(n_points, len(hit)), replace=False)]
+        pts = pos[pick[:, 0], pick[:, 1]]
+        obj = ids[pick[:, 0], pick[:, 1]]
+        tracks: list[list] = [[] for _ in pts]
+        for k, (ids_k, pos_k) in enumerate(aovs):
+            uv, z = _project(cams[k], fx, cx, cy, pts)
+            ok = (z > 0) & np.all(np.isfinite(uv), -1)
+            ok &= (uv[:, 0] >= 0) & (uv[:, 0] < spec.width) & (uv[:, 1] >= 0) & (uv[:, 1] < spec.height)
+            r = np.clip(np.where(ok, uv[:, 1], 0).astype(int), 0, spec.height - 1)
+            c = np.clip(np.where(ok, uv[:, 0], 0).astype(int), 0, spec.width - 1)
+            ok &= ids_k[r, c] == obj
+            ok &= np.linalg.norm(pos_k[r, c] - pts, axis=-1) < 3.0 * np.abs(z) / fx
+            for j in np.nonzero(ok)[0]:
+                tracks[j].append((k, float(uv[j, 0]), float(uv[j, 1])))
+        for j, track in enumerate(tracks):
+            if len(track) >= 2 and any(t[0] == i for t in track):
+                xyz.append(pts[j])
+                colors.append(rgbs[i][pick[j, 0], pick[j, 1]])
+                objects.append(int(obj[j]))
+                obs.append(track)
+    return obs, np.asarray(xyz, np.float64).reshape(-1, 3), np.asarray(colors, np.uint8).reshape(-1, 3), objects
+
+
+def _write_colmap(pycolmap, path, spec, q, names, frame: Sim3, obs, xyz, colors, fx, cx, cy):
+    rec = pycolmap.Reconstruction()
+    cam = pycolmap.Camera(model="PINHOLE", width=spec.width, height=spec.height, params=[fx, fx, cx, cy], camera_id=1)
+    rec.add_camera_with_trivial_rig(cam)
+    per_image: list[list] = [[] for _ in names]
+    for pid, track in enumerate(obs):
+        for k, u, v in track:
+            per_image[k].append((u, v, pid))
+    index: dict = {}
+    for k, name in enumerate(names):
+        m = frame.transform_cam_from_world(np.asarray(spec.dates[q].cam_from_world[k], np.float64))
+        w, x, y, z = matrix_to_quat(m[:3, :3])
+        image = pycolmap.Image(name=name, camera_id=1, image_id=k + 1)
+        image.points2D = pycolmap.Point2DList([pycolmap.Point2D(np.array([u, v])) for u, v, _ in per_image[k]])
+        rec.add_image_with_trivial_frame(image, pycolmap.Rigid3d(pycolmap.Rotation3d(np.array([x, y, z, w])), m[:3, 3]))
+        for j, (_, _, pid) in enumerate(per_image[k]):
+            index.setdefault(pid, []).append((k + 1, j))
+    xyz_d = frame.apply(xyz) if len(xyz) else xyz
+    point_ids = []
+    for pid in range(len(obs)):
+        track = pycolmap.Track()
+        for image_id, j in index[pid]:
+            track.add_element(image_id, j)
+        point_ids.append(int(rec.add_point3D(xyz_d[pid], track, colors[pid])))
+    rec.write_binary(str(path))
+    return point_ids
