@@ -45,7 +45,8 @@ def synthetic(n: int, seed: int = 0):
     )
 
 
-def run_case(spec: dict) -> dict:
+def _setup(spec: dict):
+    """Scene, camera, multipliers and the jitted forward / forward+backward for one case."""
     import jax
     import jax.numpy as jnp
     import numpy as np
@@ -69,45 +70,62 @@ def run_case(spec: dict) -> dict:
     cfg = splat.RenderConfig(tile_cull=spec.get("tile_cull", True))
     cfg = dataclasses.replace(cfg, capacity=splat.required_capacity(g, cam, om, config=cfg))
     target = jnp.asarray(np.random.default_rng(2).uniform(size=(dates, h, w, 3)), jnp.float32)
-
     fwd = jax.jit(lambda g, om, cm: splat.render_dates(g, cam, om, cm, config=cfg))
 
     def loss(g, om, cm):
         return jnp.mean(jnp.abs(splat.render_dates(g, cam, om, cm, config=cfg).image - target))
 
     fwd_bwd = jax.jit(jax.value_and_grad(loss, argnums=(0, 1, 2)))
+    return g, cam, om, cm, fwd, fwd_bwd
 
-    def timed(f, reps):
-        out = []
-        for _ in range(reps):
-            t0 = time.perf_counter()
-            jax.block_until_ready(f(g, om, cm))
-            out.append(time.perf_counter() - t0)
-        return out
 
-    inria = int(splat.render_dates(g, cam, om, cm, config=splat.RenderConfig(tile_cull=False)).num_composited)
+def _timed(f, args) -> float:
+    import jax
+
     t0 = time.perf_counter()
-    res = jax.block_until_ready(fwd(g, om, cm))
-    compile_fwd = time.perf_counter() - t0
-    f_times = timed(fwd, spec.get("reps", 5))
+    jax.block_until_ready(f(*args))
+    return time.perf_counter() - t0
+
+
+def run_case(spec: dict) -> dict:
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+
+    from cfgs_jax import splat
+
+    g, cam, om, cm, fwd, fwd_bwd = _setup(spec)
+    w, h, dates = spec["width"], spec["height"], spec.get("dates", 1)
+    args = (g, om, cm)
+    inria = int(splat.render_dates(g, cam, om, cm, config=splat.RenderConfig(tile_cull=False)).num_composited)
+    compile_fwd = _timed(fwd, args)
+    res = fwd(*args)
     out = {
         **spec,
-        "num_gaussians": n,
+        "num_gaussians": len(g),
         "compile_fwd_s": compile_fwd,
-        "fwd_s": statistics.median(f_times),
+        "fwd_s": statistics.median(_timed(fwd, args) for _ in range(spec.get("reps", 5))),
         "intersections": int(res.num_composited),
         "intersections_per_tile": int(res.num_composited) / (-(-w // 16) * -(-h // 16)),
         "inria_intersections_per_tile": inria / (-(-w // 16) * -(-h // 16)),
         "contributors_per_pixel": float(np.asarray(res.hits).sum()) / (dates * w * h),
     }
-    if spec.get("tile_cull", True) and spec.get("dates", 1) == 1:
+    if spec.get("tile_cull", True) and dates == 1:
         ref = splat.render_dates(g, cam, om, cm, config=splat.RenderConfig(tile_cull=False))
         out["max_abs_diff_vs_inria_lists"] = float(jnp.max(jnp.abs(res.image - ref.image)))
     if spec.get("backward", True):
-        t0 = time.perf_counter()
-        jax.block_until_ready(fwd_bwd(g, om, cm))
-        out["compile_fwd_bwd_s"] = time.perf_counter() - t0
-        out["fwd_bwd_s"] = statistics.median(timed(fwd_bwd, spec.get("reps", 5)))
+        out["compile_fwd_bwd_s"] = _timed(fwd_bwd, args)
+        out["fwd_bwd_s"] = statistics.median(_timed(fwd_bwd, args) for _ in range(spec.get("reps", 5)))
+    if spec.get("baseline"):  # a ratio case: time it against its baseline, interleaved, in this process
+        base = _setup(CASES[spec["baseline"]])
+        pairs = [("fwd", fwd, base[4])] + ([("fwd_bwd", fwd_bwd, base[5])] if spec.get("backward", True) else [])
+        for name, f_case, f_base in pairs:
+            _timed(f_base, base[:1] + base[2:4])
+            case_t, base_t = [], []
+            for _ in range(2 * spec.get("reps", 5) + 1):
+                base_t.append(_timed(f_base, (base[0], base[2], base[3])))
+                case_t.append(_timed(f_case, args))
+            out[f"ratio_{name}"] = statistics.median(case_t) / statistics.median(base_t)
     out["peak_rss_gb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e6
     return out
 
@@ -130,8 +148,13 @@ CASES = {
     "20k@320x240": {"scene": "synthetic", "n": 20_000, "width": 320, "height": 240},
     "100k@640x480": {"scene": "synthetic", "n": 100_000, "width": 640, "height": 480},
     "donut@640x480": {"scene": "donut", "width": 640, "height": 480},
-    "20k@320x240 T=4 fwd": {"scene": "synthetic", "n": 20_000, "width": 320, "height": 240, "dates": 4, "backward": False},
-    "20k@320x240 75% inactive": {"scene": "synthetic", "n": 20_000, "width": 320, "height": 240, "inactive": 0.75},
+    "20k@320x240 T=4 fwd": {
+        "scene": "synthetic", "n": 20_000, "width": 320, "height": 240, "dates": 4, "backward": False,
+        "baseline": "20k@320x240",
+    },
+    "20k@320x240 75% inactive": {
+        "scene": "synthetic", "n": 20_000, "width": 320, "height": 240, "inactive": 0.75, "baseline": "20k@320x240",
+    },
     "20k@320x240 tile_cull=False": {"scene": "synthetic", "n": 20_000, "width": 320, "height": 240, "tile_cull": False},
     "100k@640x480 tile_cull=False": {"scene": "synthetic", "n": 100_000, "width": 640, "height": 480, "tile_cull": False},
     "donut@640x480 tile_cull=False": {"scene": "donut", "width": 640, "height": 480, "tile_cull": False},
@@ -156,13 +179,12 @@ def main():
             raise SystemExit(f"case {name} failed")
         rows[name] = json.loads(r.stdout.strip().splitlines()[-1])
         print(name, {k: (round(v, 4) if isinstance(v, float) else v) for k, v in rows[name].items() if k.endswith(("_s", "_gb", "pixel", "tile"))})
-    ratios = {}
-    base = rows.get("20k@320x240")
-    if base and "20k@320x240 T=4 fwd" in rows:
-        ratios["T=4 / T=1 forward"] = rows["20k@320x240 T=4 fwd"]["fwd_s"] / base["fwd_s"]
-    if base and "20k@320x240 75% inactive" in rows:
-        ratios["75% inactive / all active, forward"] = rows["20k@320x240 75% inactive"]["fwd_s"] / base["fwd_s"]
-        ratios["75% inactive / all active, fwd+bwd"] = rows["20k@320x240 75% inactive"]["fwd_bwd_s"] / base["fwd_bwd_s"]
+    ratios = {}  # each measured in one process against its baseline, runs interleaved (medians of 11)
+    if "20k@320x240 T=4 fwd" in rows:
+        ratios["T=4 in one call / T=1, forward"] = rows["20k@320x240 T=4 fwd"]["ratio_fwd"]
+    if "20k@320x240 75% inactive" in rows:
+        ratios["75% inactive / all active, forward"] = rows["20k@320x240 75% inactive"]["ratio_fwd"]
+        ratios["75% inactive / all active, fwd+bwd"] = rows["20k@320x240 75% inactive"]["ratio_fwd_bwd"]
     result = {"machine": machine(), "date": time.strftime("%Y-%m-%d"), "cases": rows, "ratios": ratios}
     RESULTS.mkdir(parents=True, exist_ok=True)
     (RESULTS / "splat.json").write_text(json.dumps(result, indent=2))
@@ -195,7 +217,14 @@ def main():
             off = rows[f"{n} tile_cull=False"]
             fb = f"{r['fwd_bwd_s'] / off['fwd_bwd_s']:.2f}" if "fwd_bwd_s" in r and "fwd_bwd_s" in off else "-"
             lines.append(f"| {n} | {r['fwd_s'] / off['fwd_s']:.2f} | {fb} | {r['max_abs_diff_vs_inria_lists']:.1e} |")
-    lines += ["", "| ratio | value |", "|---|---|"] + [f"| {k} | {v:.2f} |" for k, v in ratios.items()]
+    lines += [
+        "",
+        "Ratios: each case timed against its baseline (20k@320x240, T=1, all active) in one process,",
+        "alternating runs, medians of 11 (the machine is shared and noisy).",
+        "",
+        "| ratio | value |",
+        "|---|---|",
+    ] + [f"| {k} | {v:.2f} |" for k, v in ratios.items()]
     (RESULTS / "splat.md").write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
 

@@ -50,12 +50,14 @@ class RenderResult(eqx.Module):
 
 def _layout(camera: Camera, config: RenderConfig, dates: int) -> Layout:
     gx, gy = tile_grid(camera, config)
-    # CPU: 32 tiles for one date, ~48 tile-dates for several keep a round's [K, D, B, P] arrays
-    # cache-sized (measured best: benchmarks/bench_splat.py); GPU: every tile at once
-    cpu_batch = 32 if dates == 1 else max(8, 48 // dates)
+    # CPU: one date: 32 tiles × 32 Gaussians per round; several: ~96 tile-dates × 16 Gaussians keep a
+    # round's [K, D, B, P] arrays cache-sized (measured best: benchmarks/bench_splat.py).
+    # GPU: every tile at once.
+    cpu_batch = 32 if dates == 1 else max(8, 96 // dates)
     batch = config.tile_batch or (cpu_batch if jax.default_backend() == "cpu" else gx * gy)
+    chunk = config.chunk or (32 if dates == 1 else 16)
     return Layout(
-        camera.width, camera.height, config.tile_size, gx, gy, min(batch, gx * gy), config.chunk,
+        camera.width, camera.height, config.tile_size, gx, gy, min(batch, gx * gy), chunk,
         config.min_alpha, config.max_alpha, config.min_transmittance,
     )  # fmt: skip
 
