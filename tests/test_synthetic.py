@@ -138,3 +138,17 @@ def test_sfm_registers_a_rendered_corals_date(tmp_path):
     maps = pycolmap.incremental_mapping(db, images, tmp_path / "sfm")
     best = max((m.num_reg_images() for m in maps.values()), default=0)
     assert best >= 0.9 * 24, best
+
+
+def test_synth_cli_writes_a_dataset_and_rejects_bad_sizes(tmp_path, capsys):
+    from cfgs_jax.pipeline import main
+
+    out = tmp_path / "light"
+    args = ["synth", "--preset", "light", "--out", str(out), "--width", "32", "--height", "24"]
+    assert main(args + ["--images-per-date", "3", "--spp", "1"]) == 0
+    gt = json.loads((out / "ground_truth.json").read_text())
+    assert gt["preset"] == "light" and [d["name"] for d in gt["dates"]] == ["d0", "d1", "d2", "d3"]
+    assert len(read_colmap(out / "d2")) == 3
+    assert "4 dates × 3 images at 32×24" in " ".join(capsys.readouterr().out.split())
+    assert main(args + ["--images-per-date", "2"]) == 2  # too few views: a clear error, exit 2
+    assert "images per date" in capsys.readouterr().err
