@@ -75,3 +75,34 @@ def test_short_training_run_reduces_the_loss(tmp_path):
     g = state.gaussians()
     assert len(g) == len(g0) and np.isfinite(np.asarray(g.means)).all()
     assert np.array_equal(np.asarray(state.params["means"][len(g0):]), np.zeros((64, 3)))  # padding untouched
+    assert np.all(np.asarray(state.params["opacity_logits"][len(g0):]) == -20.0)
+
+
+def test_step_accumulates_the_screen_space_gradient_in_ndc_units():
+    """The accumulated statistic equals |∂L/∂mean2D|·(W/2, H/2) from an independent autodiff of the
+    loss w.r.t. the projected centres, for the visible Gaussians only."""
+    rng = np.random.default_rng(5)
+    n = 40
+    g = cj.Gaussians(
+        rng.uniform(-0.6, 0.6, (n, 3)).astype(np.float32), rng.normal(size=(n, 4)).astype(np.float32),
+        np.full((n, 3), -2.5, np.float32), np.zeros(n, np.float32), rng.uniform(size=(n, 3)).astype(np.float32),
+    )  # fmt: skip
+    cam = cj.Camera.look_at([0, -3, 0.5], [0, 0, 0], width=40, height=30, fov_x_deg=50)
+    img = jnp.asarray(rng.uniform(size=(30, 40, 3)), jnp.float32)
+    cfg = train.TrainConfig(steps=10, random_background=False)
+    opt = train.make_optimizer(cfg, 1.0)
+    state = TrainState.create(g, opt, jax.random.key(1), capacity=n + 8)
+    rc = splat.RenderConfig(capacity=4 * splat.required_capacity(g, cam))
+    new, stats = make_train_step(opt, cfg, rc)(state, cam, img)
+
+    def by_offset(o):
+        return train.loss_fn(state.params, state.active, cam, img, jnp.zeros(3), cfg, rc, o)[0]
+
+    d = jax.grad(by_offset)(jnp.zeros((n + 8, 2)))
+    want = np.linalg.norm(np.asarray(d) * [20.0, 15.0], axis=-1)
+    radii = np.asarray(splat.render(gaussians_from_params(state.params), cam, config=rc).radii)
+    vis = (np.arange(n + 8) < n) & (radii > 0)
+    assert vis.sum() > 10 and int(stats["visible"]) == vis.sum()
+    assert np.allclose(np.asarray(new.grad_accum), np.where(vis, want, 0.0), rtol=1e-5, atol=1e-9)
+    assert np.array_equal(np.asarray(new.grad_count), vis.astype(np.int32))
+    assert np.allclose(np.asarray(new.max_radius), np.where(vis, radii, 0.0))

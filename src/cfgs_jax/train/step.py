@@ -25,14 +25,21 @@ def gaussians_from_params(params: dict[str, Array]) -> Gaussians:
 
 
 class TrainState(eqx.Module):
-    """Parameters in a fixed-capacity buffer (``active`` marks the live rows), optimiser state, step
-    and RNG key: everything a checkpoint holds."""
+    """Parameters in a fixed-capacity buffer (``active`` marks the live rows), optimiser state, step,
+    RNG key and the densification statistics: everything a checkpoint holds.
+
+    ``grad_accum``/``grad_count``: Σ and count of the screen-space positional gradient norm over the
+    steps a Gaussian was visible (INRIA's ``xyz_gradient_accum``/``denom``, in NDC units);
+    ``max_radius``: the largest projected radius seen (pixels)."""
 
     params: dict[str, Array]
     active: Bool[Array, "C"]
     opt_state: optax.OptState
     step: Int[Array, ""]
     key: Array
+    grad_accum: Float[Array, "C"]
+    grad_count: Int[Array, "C"]
+    max_radius: Float[Array, "C"]
 
     @staticmethod
     def create(g: Gaussians, optimizer: optax.GradientTransformation, key, *, capacity: int | None = None) -> TrainState:
@@ -44,9 +51,16 @@ class TrainState(eqx.Module):
             return jnp.concatenate([jnp.asarray(x), jnp.zeros((pad,) + jnp.shape(x)[1:], jnp.result_type(x))])
 
         params = {f: grow(v) for f, v in params_from_gaussians(g).items()}
-        params["quats"] = params["quats"].at[n:, 0].set(1.0)  # padding stays a valid (inactive) Gaussian
+        # padding rows are valid but inert Gaussians (unit quaternion, tiny, transparent) until used
+        params["quats"] = params["quats"].at[n:, 0].set(1.0)
+        params["log_scales"] = params["log_scales"].at[n:].set(-10.0)
+        params["opacity_logits"] = params["opacity_logits"].at[n:].set(-20.0)
         active = jnp.arange(capacity) < n
-        return TrainState(params, active, optimizer.init(params), jnp.int32(0), key)
+        dtype = params["means"].dtype
+        return TrainState(
+            params, active, optimizer.init(params), jnp.int32(0), key,
+            jnp.zeros(capacity, dtype), jnp.zeros(capacity, jnp.int32), jnp.zeros(capacity, dtype),
+        )  # fmt: skip
 
     def gaussians(self) -> Gaussians:
         """The live Gaussians (outside jit)."""
@@ -58,14 +72,15 @@ class TrainState(eqx.Module):
 
 def loss_fn(
     params, active, camera: Camera, image: Float[Array, "H W 3"], background, config: TrainConfig,
-    render_config: splat.RenderConfig,
+    render_config: splat.RenderConfig, means2d_offset=None,
 ):  # fmt: skip
-    """(1 − λ)·L1 + λ·D-SSIM of the render of the active Gaussians over ``background``; also the render."""
+    """(1 − λ)·L1 + λ·D-SSIM of the render of the active Gaussians over ``background``; also the render.
+    ``means2d_offset`` (zeros) exposes the screen-space positional gradient for densification."""
     g = gaussians_from_params(params)
     n = active.shape[0]
     res = splat.render_dates(
         g, camera, active.astype(image.dtype)[None], jnp.ones((1, n, 3), image.dtype),
-        background=background, config=render_config,
+        background=background, config=render_config, means2d_offset=means2d_offset,
     )  # fmt: skip
     pred = res.image[0]
     l1 = jnp.mean(jnp.abs(pred - image))
@@ -87,13 +102,24 @@ def make_train_step(optimizer: optax.GradientTransformation, config: TrainConfig
             background = jax.random.uniform(sub, (3,), image.dtype)
         else:
             background = jnp.zeros((3,), image.dtype)
-        (loss, res), grads = jax.value_and_grad(loss_fn, has_aux=True)(
-            state.params, state.active, camera, image, background, config, render_config
-        )
+        offset = jnp.zeros_like(state.params["means"][:, :2])
+
+        def objective(params, offset):
+            return loss_fn(params, state.active, camera, image, background, config, render_config, offset)
+
+        (loss, res), (grads, d_offset) = jax.value_and_grad(objective, argnums=(0, 1), has_aux=True)(state.params, offset)
         updates, opt_state = optimizer.update(grads, state.opt_state, state.params)
         params = optax.apply_updates(state.params, updates)
-        new = dataclasses.replace(state, params=params, opt_state=opt_state, step=state.step + 1, key=key)
-        return new, {"loss": loss, "overflowed": res.overflowed, "visible": jnp.sum(res.hits[0] > 0)}
+        # INRIA accumulates |∂L/∂mean2D| in NDC units (pixel gradient × half the image size) where visible
+        ndc = d_offset * (0.5 * jnp.asarray([camera.width, camera.height], d_offset.dtype))
+        visible = state.active & (res.radii > 0)
+        new = dataclasses.replace(
+            state, params=params, opt_state=opt_state, step=state.step + 1, key=key,
+            grad_accum=state.grad_accum + jnp.where(visible, jnp.linalg.norm(ndc, axis=-1), 0.0),
+            grad_count=state.grad_count + visible.astype(jnp.int32),
+            max_radius=jnp.where(visible, jnp.maximum(state.max_radius, res.radii), state.max_radius),
+        )  # fmt: skip
+        return new, {"loss": loss, "overflowed": res.overflowed, "visible": jnp.sum(visible)}
 
     return step
 
