@@ -117,13 +117,14 @@ def run_case(spec: dict) -> dict:
         out["compile_fwd_bwd_s"] = _timed(fwd_bwd, args)
         out["fwd_bwd_s"] = statistics.median(_timed(fwd_bwd, args) for _ in range(spec.get("reps", 5)))
     if spec.get("baseline"):  # a ratio case: time it against its baseline, interleaved, in this process
-        base = _setup(CASES[spec["baseline"]])
-        pairs = [("fwd", fwd, base[4])] + ([("fwd_bwd", fwd_bwd, base[5])] if spec.get("backward", True) else [])
+        base_g, _, base_om, base_cm, base_fwd, base_fwd_bwd = _setup(CASES[spec["baseline"]])
+        base_args = (base_g, base_om, base_cm)
+        pairs = [("fwd", fwd, base_fwd)] + ([("fwd_bwd", fwd_bwd, base_fwd_bwd)] if spec.get("backward", True) else [])
         for name, f_case, f_base in pairs:
-            _timed(f_base, base[:1] + base[2:4])
+            _timed(f_base, base_args)  # compile
             case_t, base_t = [], []
             for _ in range(2 * spec.get("reps", 5) + 1):
-                base_t.append(_timed(f_base, (base[0], base[2], base[3])))
+                base_t.append(_timed(f_base, base_args))
                 case_t.append(_timed(f_case, args))
             out[f"ratio_{name}"] = statistics.median(case_t) / statistics.median(base_t)
     out["peak_rss_gb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e6

@@ -22,7 +22,7 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
-from jaxtyping import Array, Bool, Float, Int
+from jaxtyping import Array, Float, Int
 
 from cfgs_jax.splat.project import Projection
 
@@ -54,13 +54,13 @@ def tile_rects(proj: Projection, max_opacity: Float[Array, "N"], tile_size: int,
     return lo, jnp.maximum(hi, lo)
 
 
-def intersection_counts(
-    proj: Projection, active: Bool[Array, "N"], rects=None
-) -> Int[Array, "N"]:
-    """Tiles each Gaussian is listed in (0 if culled or inactive)."""
-    lo, hi = rects if rects is not None else (proj.rect_min, proj.rect_max)
+def listed_tiles(proj: Projection, max_opacity: Float[Array, "N"], *, tile_size: int, min_alpha: float, cull: bool):
+    """Each Gaussian's tile rectangle [lo, hi) and how many tiles it is listed in (0 if invalid or
+    below ``min_alpha`` at every date): the one rule shared by binning and the capacity count."""
+    lo, hi = tile_rects(proj, max_opacity, tile_size, min_alpha, cull)
     span = jnp.maximum(hi - lo, 0)
-    return jnp.where(proj.valid & active, span[:, 0] * span[:, 1], 0).astype(jnp.int32)
+    listed = proj.valid & (max_opacity >= min_alpha)
+    return (lo, hi), jnp.where(listed, span[:, 0] * span[:, 1], 0).astype(jnp.int32)
 
 
 def _min_quadratic(conic, x0, x1, y0, y1):
@@ -107,9 +107,7 @@ def bin_gaussians(
     """
     gx, gy = grid
     num_tiles = gx * gy
-    active = max_opacity >= min_alpha
-    rects = tile_rects(proj, max_opacity, tile_size, min_alpha, cull)
-    counts = intersection_counts(proj, active, rects)
+    rects, counts = listed_tiles(proj, max_opacity, tile_size=tile_size, min_alpha=min_alpha, cull=cull)
     order = jnp.argsort(jnp.where(counts > 0, proj.depths, jnp.inf), stable=True)
     counts_o = counts[order]
     ends = jnp.cumsum(counts_o)

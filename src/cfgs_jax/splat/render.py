@@ -20,7 +20,7 @@ from jaxtyping import Array, Float, Int
 
 from cfgs_jax.errors import InputError
 from cfgs_jax.model import Camera, Gaussians, opacities, rgb
-from cfgs_jax.splat.binning import bin_gaussians, intersection_counts, tile_rects
+from cfgs_jax.splat.binning import bin_gaussians, listed_tiles
 from cfgs_jax.splat.composite import Layout, composite
 from cfgs_jax.splat.config import RenderConfig
 from cfgs_jax.splat.project import project, tile_grid
@@ -115,8 +115,8 @@ def _render_jit(gaussians, camera, opacity_mult, color_mult, background, means2d
 def _count_jit(gaussians, camera, opacity_mult, *, config):
     proj = project(gaussians.means, gaussians.quats, gaussians.log_scales, camera, config)
     _, max_opacity = _effective_opacity(gaussians, opacity_mult, config)
-    rects = tile_rects(proj, max_opacity, config.tile_size, config.min_alpha, config.tile_cull)
-    return jnp.sum(intersection_counts(proj, max_opacity >= config.min_alpha, rects))
+    _, counts = listed_tiles(proj, max_opacity, tile_size=config.tile_size, min_alpha=config.min_alpha, cull=config.tile_cull)
+    return jnp.sum(counts)
 
 
 def required_capacity(gaussians: Gaussians, camera: Camera, opacity_mult=None, *, config: RenderConfig | None = None) -> int:

@@ -5,7 +5,7 @@ optimiser and the training step are here; adaptive density control, checkpoints 
 from cfgs_jax.train.config import TrainConfig
 from cfgs_jax.train.init import init_from_points, scene_extent
 from cfgs_jax.train.optim import make_optimizer, position_lr
-from cfgs_jax.train.step import TrainState, loss_fn, train_step
+from cfgs_jax.train.step import TrainState, loss_fn, make_train_step
 
 __all__ = [
     "TrainConfig",
@@ -14,6 +14,6 @@ __all__ = [
     "loss_fn",
     "make_optimizer",
     "position_lr",
+    "make_train_step",
     "scene_extent",
-    "train_step",
 ]

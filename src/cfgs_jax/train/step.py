@@ -123,7 +123,3 @@ def make_train_step(optimizer: optax.GradientTransformation, config: TrainConfig
 
     return step
 
-
-def train_step(state, camera, image, optimizer, config, render_config):
-    """One step (builds the jitted step on each call; loops should use ``make_train_step``)."""
-    return make_train_step(optimizer, config, render_config)(state, camera, image)
