@@ -5,6 +5,7 @@ Commands (more arrive with their stages):
   convert SRC DST         convert between a 3DGS PLY and the fused layouts (cfgs / reference)
   metrics A B             PSNR / SSIM / LPIPS between two images or two folders of images
   synth --preset NAME     render a synthetic multi-date scene (Mitsuba 3) as per-date COLMAP datasets
+  train --scene D --out O train one date's 3DGS model (or --continue-from PLY: "Individual +N")
   demo                    the embedded default job (see README)
 
 Errors at the file boundary print one line naming the file, field and fix, and exit with status 2.
@@ -197,6 +198,61 @@ def cmd_synth(args) -> int:
     return 0
 
 
+def cmd_train(args) -> int:
+    import dataclasses
+    import json
+
+    import cfgs_jax as cj
+    from cfgs_jax import splat, train
+    from cfgs_jax.config import find_preset, load_config, section
+
+    raw = load_config(find_preset(args.config))
+    config = section(raw, "train", train.TrainConfig)
+    render_config = section(raw, "render", splat.RenderConfig)
+    if args.seed is not None:
+        config = dataclasses.replace(config, seed=args.seed)
+    init = None
+    if args.continue_from:
+        init = cj.io.read_ply(args.continue_from)
+        config = train.continuation_config(dataclasses.replace(config, steps=args.steps or config.steps))
+    elif args.steps:
+        config = config.scaled(args.steps)
+    out = cj.io.ensure_writable_dir(args.out)
+    ckpt = out / train.CHECKPOINT
+    if ckpt.exists() and not args.resume:
+        raise InputError("this output directory holds a checkpoint of an earlier run", path=ckpt,
+                         fix="pass --resume to continue it, or choose another --out")  # fmt: skip
+    scene = cj.io.read_colmap(args.scene, test_every=max(1, config.test_every))
+    console = _console()
+    what = f"continuing {args.continue_from} for" if init is not None else "training"
+    console.print(
+        f"{what} {config.steps:,} steps on {scene.root} ({len(scene.indices('train'))} training / "
+        f"{len(scene.indices('test'))} test views, {len(scene.points):,} SfM points)"
+    )
+    run = train.fit(
+        scene, config, render_config, init=init, out=out, resume=args.resume, progress=not args.no_progress,
+        stop_after=args.stop_after, evaluate_at_end=not args.no_eval, lpips_net=args.lpips_net,
+    )  # fmt: skip
+    if not run.finished:
+        console.print(f"stopped at step {int(run.state.step):,}; checkpoint in {ckpt} (continue with --resume)")
+        return 0
+    ply = cj.io.write_ply(out / "point_cloud.ply", run.gaussians)
+    report = {
+        "scene": str(scene.root), "steps": config.steps, "gaussians": len(run.gaussians),
+        "seconds_this_session": run.seconds, "final_loss": float(np.mean(run.losses[-50:])),
+        "growth": run.counts, "test": run.metrics, "config": dataclasses.asdict(config),
+        "continued_from": str(args.continue_from) if args.continue_from else None,
+    }  # fmt: skip
+    with cj.io.atomic_file(out / "train.json") as tmp:
+        tmp.write_text(json.dumps(report, indent=1))
+    console.print(f"wrote {ply} ({len(run.gaussians):,} Gaussians) and {out / 'train.json'}")
+    if run.metrics:
+        m = run.metrics
+        lp = f", LPIPS {m['lpips']:.4f}" if "lpips" in m else ""
+        console.print(f"test views: PSNR {m['psnr']:.2f} dB, SSIM {m['ssim']:.4f}{lp}")
+    return 0
+
+
 def _default_fixture() -> Path:
     env = os.environ.get("CFGS_DEMO_PLY")
     cands = [Path(env)] if env else []
@@ -282,6 +338,20 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--images-per-date", type=int, default=32)
     s.add_argument("--spp", type=int, default=32)
     s.set_defaults(func=cmd_synth)
+
+    s = sub.add_parser("train", help="train one date's 3DGS model from a COLMAP dataset")
+    s.add_argument("--scene", required=True, help="COLMAP dataset of one date (images/ + sparse/0)")
+    s.add_argument("--out", required=True, help="output directory (point_cloud.ply, train.json, checkpoint)")
+    s.add_argument("--config", default="paper", help="preset name (paper, fast) or TOML path; [train]/[render]")
+    s.add_argument("--steps", type=int, help="number of steps (the densification schedule is scaled to it)")
+    s.add_argument("--continue-from", metavar="PLY", help='train this model N more steps without densification')
+    s.add_argument("--resume", action="store_true", help="continue from the checkpoint in --out")
+    s.add_argument("--seed", type=int)
+    s.add_argument("--stop-after", type=int, help="stop (with a checkpoint) after this many total steps")
+    s.add_argument("--no-eval", action="store_true", help="skip the test-split evaluation")
+    s.add_argument("--lpips-net", choices=("alex", "vgg"), default="alex")
+    s.add_argument("--no-progress", action="store_true")
+    s.set_defaults(func=cmd_train)
 
     s = sub.add_parser("demo", help="the embedded default job")
     s.add_argument("--ply", help="3DGS PLY to use (default: the real fixture model beside the checkout)")

@@ -28,6 +28,34 @@ class TrainConfig:
     random_background: bool = True
     init_opacity: float = 0.1
     seed: int = 0
+    # adaptive density control (INRIA defaults; iteration numbers are 1-based like INRIA's loop)
+    densify: bool = True
+    densify_from: int = 500
+    densify_until: int = 15_000
+    densify_interval: int = 100
+    opacity_reset_interval: int = 3000
+    densify_grad_threshold: float = 2e-4
+    percent_dense: float = 0.01
+    min_opacity: float = 0.005
+    max_screen_size: float = 20.0
+    max_world_size: float = 0.1
+    # bookkeeping
+    test_every: int = 8
+    checkpoint_every: int = 1000
+    eval_every: int = 0
+
+    def scaled(self, steps: int) -> TrainConfig:
+        """This schedule with every iteration count scaled by ``steps / self.steps`` (for short runs):
+        the densification window, interval and opacity-reset period shrink in proportion."""
+        f = steps / self.steps
+
+        def s(n):
+            return max(1, round(n * f))
+
+        return dataclasses.replace(
+            self, steps=steps, densify_from=s(self.densify_from), densify_until=s(self.densify_until),
+            densify_interval=s(self.densify_interval), opacity_reset_interval=s(self.opacity_reset_interval),
+        )  # fmt: skip
 
     def __post_init__(self):
         if self.steps <= 0:
@@ -36,3 +64,9 @@ class TrainConfig:
             raise InputError(f"must be in (0, 1), got {self.init_opacity}", field="train.init_opacity")
         if not 0 <= self.lambda_dssim <= 1:
             raise InputError(f"must be in [0, 1], got {self.lambda_dssim}", field="train.lambda_dssim")
+        for name in ("densify_interval", "opacity_reset_interval", "checkpoint_every"):
+            if getattr(self, name) <= 0:
+                raise InputError(f"must be positive, got {getattr(self, name)}", field=f"train.{name}")
+        for name in ("densify_from", "densify_until", "eval_every", "test_every"):
+            if getattr(self, name) < 0:
+                raise InputError(f"must be ≥ 0, got {getattr(self, name)}", field=f"train.{name}")

@@ -119,7 +119,8 @@ def make_train_step(optimizer: optax.GradientTransformation, config: TrainConfig
             grad_count=state.grad_count + visible.astype(jnp.int32),
             max_radius=jnp.where(visible, jnp.maximum(state.max_radius, res.radii), state.max_radius),
         )  # fmt: skip
-        return new, {"loss": loss, "overflowed": res.overflowed, "visible": jnp.sum(visible)}
+        stats = {"loss": loss, "psnr": metrics.psnr(res.image[0], image), "overflowed": res.overflowed}
+        return new, stats | {"visible": jnp.sum(visible)}
 
     return step
 

@@ -1,0 +1,148 @@
+"""Training-step benchmark: steps/second, peak memory and the kernel's share of the step, for one
+320×240 date of the synthetic ``corals`` scene with ~50k Gaussians.
+
+The Gaussians are the scene's SfM points, each repeated and jittered by its kNN scale up to the
+target count (a model of the size a trained date reaches). The step is ``train.make_train_step``
+(render, L1 + D-SSIM, Adam, densification statistics). The kernel share is the time of the
+kernel alone — ``splat.render_dates`` forward and backward (VJP of the rendered image) with the same
+Gaussians, capacity and views — over the full step time, both timed alternately in one process.
+One densify-and-prune round is timed as well. Writes benchmarks/results/train.json and train.md.
+
+    python benchmarks/bench_train.py [--gaussians 50000] [--steps 30]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import resource
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bench_splat import RESULTS, machine  # noqa: E402
+
+
+def _timed(f, *args):
+    import jax
+
+    t0 = time.perf_counter()
+    out = f(*args)
+    jax.block_until_ready(out)
+    return time.perf_counter() - t0, out
+
+
+def main():
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--gaussians", type=int, default=50_000)
+    ap.add_argument("--steps", type=int, default=30)
+    ap.add_argument("--views", type=int, default=8)
+    args = ap.parse_args()
+
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+    from scipy.spatial import cKDTree
+
+    import cfgs_jax as cj
+    from cfgs_jax import splat, synthetic, train
+    from cfgs_jax.train.step import TrainState, gaussians_from_params
+
+    with tempfile.TemporaryDirectory() as tmp:
+        spec = synthetic.make_preset("corals", seed=0, width=320, height=240, images_per_date=args.views, spp=16)
+        t0 = time.perf_counter()
+        root = synthetic.render_dataset(spec, tmp, dates=[0], progress=False) / "d0"
+        synth_s = time.perf_counter() - t0
+        scene = cj.io.read_colmap(root, test_every=10**6)
+        images = [jnp.asarray(scene.load_image(i)) for i in range(len(scene))]
+
+    rng = np.random.default_rng(0)
+    pts = np.asarray(scene.points, np.float64)
+    knn = np.sqrt(np.mean(cKDTree(pts).query(pts, k=4)[0][:, 1:] ** 2, axis=1))
+    pick = rng.integers(0, len(pts), args.gaussians)
+    jitter = rng.normal(size=(args.gaussians, 3)) * knn[pick, None]
+    g0 = train.init_from_points(pts[pick] + jitter, scene.point_colors[pick])
+
+    config = train.TrainConfig(steps=30_000)
+    extent = train.scene_extent(scene.cameras)
+    opt = train.make_optimizer(config, extent)
+    state = TrainState.create(g0, opt, jax.random.key(0), capacity=train.capacity_bucket(len(g0)))
+    g_buf = gaussians_from_params(state.params)
+    mult = state.active.astype(jnp.float32)[None]
+    cap = max(splat.required_capacity(g_buf, c, mult) for c in scene.cameras)
+    rc = splat.RenderConfig(capacity=cap)
+    step = train.make_train_step(opt, config, rc)
+
+    def kernel_fwd_bwd(params, active, camera):
+        n = active.shape[0]
+
+        def image(p):
+            mult = active.astype(jnp.float32)[None]
+            return splat.render_dates(gaussians_from_params(p), camera, mult, jnp.ones((1, n, 3)), config=rc).image
+
+        out, vjp = jax.vjp(image, params)
+        return vjp(jnp.ones_like(out))
+
+    kernel = jax.jit(kernel_fwd_bwd)
+
+    compile_step, (state, _) = _timed(step, state, scene.cameras[0], images[0])
+    compile_kernel, _ = _timed(kernel, state.params, state.active, scene.cameras[0])
+    step_t, kernel_t = [], []
+    for k in range(args.steps):
+        v = k % len(images)
+        t, (state, stats) = _timed(step, state, scene.cameras[v], images[v])
+        assert not bool(stats["overflowed"])
+        step_t.append(t)
+        kernel_t.append(_timed(kernel, state.params, state.active, scene.cameras[v])[0])
+    # one densify-and-prune round on statistics accumulated over the timed steps
+    compile_densify, _ = _timed(lambda s: train.densify_step(s, config, extent, prune_big=False), state)
+
+    step_s = statistics.median(step_t)
+    kernel_s = statistics.median(kernel_t)
+    result = {
+        "machine": machine(),
+        "date": time.strftime("%Y-%m-%d"),
+        "image": "320x240",
+        "views": len(images),
+        "gaussians": len(g0),
+        "buffer_capacity": int(state.active.shape[0]),
+        "intersection_capacity": cap,
+        "synthesis_s": synth_s,
+        "compile_step_s": compile_step,
+        "compile_kernel_s": compile_kernel,
+        "step_s_median": step_s,
+        "steps_per_s": 1.0 / step_s,
+        "kernel_fwd_bwd_s_median": kernel_s,
+        "kernel_share": kernel_s / step_s,
+        "densify_round_s_incl_compile": compile_densify,
+        "peak_rss_gb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e6,
+        "timed_steps": args.steps,
+    }
+    RESULTS.mkdir(parents=True, exist_ok=True)
+    (RESULTS / "train.json").write_text(json.dumps(result, indent=2))
+    lines = [
+        "# Training-step benchmark",
+        "",
+        f"Machine: {result['machine']}. Date: {result['date']}.",
+        f"One 320×240 date of `corals` ({result['views']} views), {result['gaussians']:,} Gaussians in a buffer of "
+        f"{result['buffer_capacity']:,}; medians over {args.steps} steps, kernel timed alternately with the step.",
+        "",
+        "| quantity | value |",
+        "|---|---|",
+        f"| steps / second | {result['steps_per_s']:.2f} |",
+        f"| step time (median) | {step_s * 1e3:.0f} ms |",
+        f"| kernel forward+backward alone (median) | {kernel_s * 1e3:.0f} ms |",
+        f"| kernel share of the step | {100 * result['kernel_share']:.0f} % |",
+        f"| step compile | {compile_step:.1f} s |",
+        f"| one densify-and-prune round (incl. compile) | {compile_densify:.2f} s |",
+        f"| peak RSS (whole process) | {result['peak_rss_gb']:.2f} GB |",
+    ]
+    (RESULTS / "train.md").write_text("\n".join(lines) + "\n")
+    print("\n".join(lines))
+
+
+if __name__ == "__main__":
+    main()
