@@ -57,7 +57,7 @@ def main():
         root = synthetic.render_dataset(spec, tmp, dates=[0], progress=False) / "d0"
         synth_s = time.perf_counter() - t0
         scene = cj.io.read_colmap(root, test_every=10**6)
-        images = [jnp.asarray(scene.load_image(i)) for i in range(len(scene))]
+        images = [jnp.asarray(scene.load_image(i, with_alpha=True)) for i in range(len(scene))]
 
     rng = np.random.default_rng(0)
     pts = np.asarray(scene.points, np.float64)

@@ -93,6 +93,27 @@ def test_masks_agree_with_presence(corals):
             assert len(flagged) == 5 and sum(int(m.any()) for m in flagged) >= 1
 
 
+def test_images_carry_surface_coverage_as_alpha(corals):
+    """Alpha (from the beauty render, the sky hidden) agrees with the separately rendered object-id
+    AOV: ~0 where no object was hit, ~1 inside objects; uncovered pixels show the sky colour."""
+    spec, out, _ = corals
+    import colour
+
+    from cfgs_jax.io import read_image
+    from cfgs_jax.synthetic.dataset import sky_radiance
+
+    sky = colour.cctf_encoding(np.clip(sky_radiance(spec, 0) * 2.0 ** spec.dates[0].exposure_ev, 0, 1))
+    for f in sorted((out / "d0" / "images").iterdir())[:3]:
+        rgba = read_image(f, with_alpha=True)
+        ids = _mask(out / "d0" / "masks" / "ids" / f.name)
+        a = rgba[..., 3]
+        assert rgba.shape[-1] == 4
+        assert np.mean(a[ids == 0] < 0.05) > 0.95 and np.mean(a[ids > 0] > 0.95) > 0.9
+        assert np.mean(np.abs(a - (ids > 0))) < 0.1
+        empty = rgba[a == 0][:, :3]
+        assert len(empty) and np.abs(empty - sky).max() < 1.0 / 255  # the sky colour (8-bit rounding)
+
+
 def test_renders_are_deterministic_per_seed(corals, tmp_path):
     spec, out, gt = corals
     again = synthetic.render_dataset(spec, tmp_path / "again", progress=False)

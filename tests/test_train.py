@@ -118,6 +118,17 @@ def test_step_accumulates_the_screen_space_gradient_in_ndc_units():
     assert np.allclose(np.asarray(new.max_radius), np.where(vis, radii, 0.0))
 
 
+def test_rgba_targets_are_composited_over_the_step_background():
+    from cfgs_jax.train.step import over_background
+
+    rng = np.random.default_rng(0)
+    rgba = rng.uniform(size=(5, 6, 4)).astype(np.float32)
+    bg = np.float32([0.2, 0.9, 0.4])
+    want = rgba[..., :3] * rgba[..., 3:] + bg * (1 - rgba[..., 3:])
+    assert np.allclose(np.asarray(over_background(jnp.asarray(rgba), bg)), want, atol=1e-7)
+    assert np.array_equal(np.asarray(over_background(jnp.asarray(rgba[..., :3]), bg)), rgba[..., :3])
+
+
 # ------------------------------------------------------------------------------ adaptive density control
 
 

@@ -211,6 +211,8 @@ def cmd_train(args) -> int:
     render_config = section(raw, "render", splat.RenderConfig)
     if args.seed is not None:
         config = dataclasses.replace(config, seed=args.seed)
+    if args.eval_every is not None:
+        config = dataclasses.replace(config, eval_every=args.eval_every)
     init = None
     if args.continue_from:
         init = cj.io.read_ply(args.continue_from)
@@ -240,7 +242,7 @@ def cmd_train(args) -> int:
     report = {
         "scene": str(scene.root), "steps": config.steps, "gaussians": len(run.gaussians),
         "seconds_this_session": run.seconds, "final_loss": float(np.mean(run.losses[-50:])),
-        "growth": run.counts, "test": run.metrics, "config": dataclasses.asdict(config),
+        "growth": run.counts, "test": run.metrics, "test_history": run.eval_history, "config": dataclasses.asdict(config),
         "continued_from": str(args.continue_from) if args.continue_from else None,
     }  # fmt: skip
     with cj.io.atomic_file(out / "train.json") as tmp:
@@ -348,7 +350,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--resume", action="store_true", help="continue from the checkpoint in --out")
     s.add_argument("--seed", type=int)
     s.add_argument("--stop-after", type=int, help="stop (with a checkpoint) after this many total steps")
-    s.add_argument("--no-eval", action="store_true", help="skip the test-split evaluation")
+    s.add_argument("--eval-every", type=int, help="also evaluate on the test split every N steps")
+    s.add_argument("--no-eval", action="store_true", help="skip the test-split evaluation at the end")
     s.add_argument("--lpips-net", choices=("alex", "vgg"), default="alex")
     s.add_argument("--no-progress", action="store_true")
     s.set_defaults(func=cmd_train)

@@ -58,9 +58,10 @@ class Scene:
             raise InputError(f"unknown split {split!r}", field="split", fix='use "train", "test" or "all"')
         return np.array([i for i, s in enumerate(self.split) if split in ("all", s)], dtype=np.int64)
 
-    def load_image(self, i: int, *, linear: bool = False) -> np.ndarray:
-        """Image ``i`` as float32 [H, W, 3]; its size must match its camera."""
-        img = read_image(self.image_dir / self.image_names[i], linear=linear)
+    def load_image(self, i: int, *, linear: bool = False, with_alpha: bool = False) -> np.ndarray:
+        """Image ``i`` as float32 [H, W, 3] (or [H, W, 4] with ``with_alpha``: alpha 1 where the file
+        has none); its size must match its camera."""
+        img = read_image(self.image_dir / self.image_names[i], linear=linear, with_alpha=with_alpha)
         cam = self.cameras[i]
         if img.shape[:2] != (cam.height, cam.width):
             raise InputError(

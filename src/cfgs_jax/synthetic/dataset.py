@@ -70,6 +70,23 @@ def _shape(mi, obj, m):
     raise InputError(f"unknown shape {obj.shape!r}", field="objects.shape")
 
 
+def sky_radiance(spec: SceneSpec, state: int) -> np.ndarray:
+    """The constant sky's linear RGB radiance at date ``state`` (bluish, tinted by the sun's CCT)."""
+    sun = sun_rgb(spec.dates[state].cct_kelvin)
+    return 0.35 * np.array([0.55, 0.7, 1.0]) * (0.6 + 0.4 * sun / sun.max())
+
+
+def _straight_rgba(premultiplied: np.ndarray, sky: np.ndarray) -> np.ndarray:
+    """Film RGBA (colour premultiplied by coverage, sky hidden) → straight-alpha RGBA as PNG stores it:
+    colour = surface colour where covered, the sky where nothing was hit, alpha = coverage. Readers
+    that ignore alpha see the surfaces against the sky; compositing over a background b gives
+    a·c + (1 − a)·b (3DGS's RGBA convention)."""
+    rgb, a = premultiplied[..., :3], premultiplied[..., 3:4]
+    covered = a > 1e-4
+    colour = np.where(covered, rgb / np.where(covered, a, 1.0), sky)
+    return np.concatenate([colour, np.clip(a, 0.0, 1.0)], axis=-1)
+
+
 def scene_dict(spec: SceneSpec, state: int, cam_date: int, *, aov: bool) -> dict:
     """Mitsuba scene of date ``state``'s content seen by date ``cam_date``'s cameras."""
     mi = _mitsuba()
@@ -78,13 +95,14 @@ def scene_dict(spec: SceneSpec, state: int, cam_date: int, *, aov: bool) -> dict
     if aov:
         out["integrator"] = {"type": "aov", "aovs": "sid:shape_index,pos:position,uv:uv"}
     else:
-        out["integrator"] = {"type": "path", "max_depth": 5}
+        # the sky is hidden from camera rays (it still lights the scene), so the film's alpha is the
+        # surface coverage; ``_straight_rgba`` puts the sky colour back where nothing was hit
+        out["integrator"] = {"type": "path", "max_depth": 5, "hide_emitters": True}
         az, el = np.radians(d.sun_azimuth_deg), np.radians(d.sun_elevation_deg)
         towards_sun = np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
         sun = sun_rgb(d.cct_kelvin)
         out["sun"] = {"type": "directional", "direction": (-towards_sun).tolist(), "irradiance": {"type": "rgb", "value": (2.6 * sun).tolist()}}
-        sky = np.array([0.55, 0.7, 1.0]) * (0.6 + 0.4 * sun / sun.max())
-        out["sky"] = {"type": "constant", "radiance": {"type": "rgb", "value": (0.35 * sky).tolist()}}
+        out["sky"] = {"type": "constant", "radiance": {"type": "rgb", "value": sky_radiance(spec, state).tolist()}}
     fov = spec.fov_x_deg
     for i, m in enumerate(spec.dates[cam_date].cam_from_world):
         world_from_cam = np.linalg.inv(np.asarray(m)) @ _FLIP
@@ -92,7 +110,7 @@ def scene_dict(spec: SceneSpec, state: int, cam_date: int, *, aov: bool) -> dict
             "type": "perspective", "fov": fov, "fov_axis": "x",
             "to_world": mi.ScalarTransform4f(world_from_cam.tolist()),
             "film": {"type": "hdrfilm", "width": spec.width, "height": spec.height, "rfilter": {"type": "box"},
-                     "pixel_format": "rgb", "component_format": "float32"},
+                     "pixel_format": "rgb" if aov else "rgba", "component_format": "float32"},
             "sampler": {"type": "independent" if aov else "ldsampler", "sample_count": 1 if aov else spec.spp},
         }  # fmt: skip
     for k, o in enumerate(spec.objects):
@@ -205,7 +223,7 @@ def render_dataset(
                 rgbs, aovs = [], []
                 for i, name in enumerate(names):
                     seed = int(np.random.default_rng([spec.seed, q, i]).integers(2**31))
-                    img = beauty.render(i, seed)[..., :3] * 2.0**date.exposure_ev
+                    img = _straight_rgba(beauty.render(i, seed), sky_radiance(spec, q)) * [*[2.0**date.exposure_ev] * 3, 1]
                     write_image(tmp / "images" / name, img.astype(np.float32), linear=True)
                     rgbs.append(_read_srgb(tmp / "images" / name))  # the 8-bit colours SfM would see
                     ids, pos, uv = own.aov(i, seed)

@@ -7,6 +7,7 @@ import numpy as np
 from cfgs_jax import metrics, splat
 from cfgs_jax.io.colmap import Scene
 from cfgs_jax.model import Gaussians
+from cfgs_jax.train.step import over_background
 
 
 def evaluate(
@@ -19,12 +20,12 @@ def evaluate(
     lpips_net: str | None = "alex",
 ) -> dict:
     """Render ``gaussians`` at ``scene``'s views ``indices`` over a fixed ``background`` and compare with
-    the images: mean PSNR (dB), SSIM, LPIPS (``lpips_net``; None skips it) and the per-view values."""
+    the images (RGBA images composited over the same background): mean PSNR (dB), SSIM, LPIPS (``lpips_net``; None skips it) and the per-view values."""
     render_config = render_config or splat.RenderConfig()
     net = metrics.load_lpips(lpips_net) if lpips_net else None
     rows = []
     for i in np.asarray(indices, np.int64):
-        gt = scene.load_image(int(i))
+        gt = np.asarray(over_background(scene.load_image(int(i), with_alpha=True), np.asarray(background, np.float32)))
         pred = splat.render(gaussians, scene.cameras[int(i)], background=background, config=render_config).image
         row = {
             "image": scene.image_names[int(i)],

@@ -45,6 +45,7 @@ class TrainRun:
     losses: list[float]
     counts: list[tuple[int, int]]  # (step, live Gaussians) after each densification/reset event
     metrics: dict
+    eval_history: list[dict]  # {"step", "psnr", "ssim"[, "lpips"]} every ``config.eval_every`` steps
     seconds: float
     finished: bool
 
@@ -70,14 +71,14 @@ def _config_dict(config: TrainConfig) -> dict:
 
 
 def save_checkpoint(path: Path, state: TrainState, *, config: TrainConfig, extent: float, render_capacity: int,
-                    losses: list[float], counts: list) -> Path:  # fmt: skip
+                    losses: list[float], counts: list, eval_history: list | None = None) -> Path:  # fmt: skip
     """Parameters, optimiser state, statistics, step and RNG key, written atomically (npz)."""
     keyed = dataclasses.replace(state, key=jax.random.key_data(state.key))
     leaves = jax.tree_util.tree_leaves(keyed)
     meta = {
         "format": FORMAT, "step": int(state.step), "capacity": int(state.active.shape[0]),
         "render_capacity": int(render_capacity), "extent": extent, "config": _config_dict(config),
-        "losses": losses, "counts": counts, "num_leaves": len(leaves),
+        "losses": losses, "counts": counts, "eval_history": eval_history or [], "num_leaves": len(leaves),
     }  # fmt: skip
     arrays = {f"leaf_{i:04d}": np.asarray(x) for i, x in enumerate(leaves)}
     with atomic_file(path) as tmp:
@@ -159,16 +160,18 @@ def fit(
     if len(train_idx) == 0:
         raise InputError("the training split is empty", path=scene.root, fix="use more images or test_every = 0")
     cameras = [scene.cameras[i] for i in train_idx]
-    images = [jnp.asarray(scene.load_image(int(i))) for i in train_idx]
+    images = [jnp.asarray(scene.load_image(int(i), with_alpha=True)) for i in train_idx]  # alpha 1 if none
     extent = scene_extent(scene.cameras)
     optimizer = make_optimizer(config, extent)
     ckpt = Path(out) / CHECKPOINT if out is not None else None
     losses: list[float] = []
     counts: list = []
+    eval_history: list[dict] = []
     if resume and ckpt is not None and ckpt.is_file():
         state, meta = load_checkpoint(ckpt, optimizer, config)
         render_capacity, losses = meta["render_capacity"], meta["losses"]
         counts = [tuple(c) for c in meta["counts"]]
+        eval_history = meta.get("eval_history", [])
     else:
         g0 = init if init is not None else init_from_points(scene.points, scene.point_colors, opacity=config.init_opacity)
         state = TrainState.create(g0, optimizer, jax.random.key(config.seed), capacity=capacity_bucket(len(g0)))
@@ -183,7 +186,7 @@ def fit(
     def checkpoint():
         if ckpt is not None:
             save_checkpoint(ckpt, state, config=config, extent=extent, render_capacity=render_capacity,
-                            losses=losses, counts=counts)  # fmt: skip
+                            losses=losses, counts=counts, eval_history=eval_history)  # fmt: skip
 
     last = config.steps if stop_after is None else min(config.steps, stop_after)
     start = int(state.step)
@@ -207,6 +210,10 @@ def fit(
                     counts.append((it, int(jnp.sum(state.active))))
                 if it % config.opacity_reset_interval == 0:
                     state = reset_opacity(state)
+            if config.eval_every and it % config.eval_every == 0 and len(test_idx):
+                m = evaluate(state.gaussians(), scene, test_idx, render_config=render_config, lpips_net=lpips_net)
+                eval_history.append({"step": it} | {k: v for k, v in m.items() if k in ("psnr", "ssim", "lpips")})
+                bar.note(f"step {it:,}: test PSNR {m['psnr']:.2f} dB, SSIM {m['ssim']:.4f}")
             if it % config.checkpoint_every == 0:
                 checkpoint()
             bar.update(it, loss=losses[-1], psnr=float(stats["psnr"]), count=counts[-1][1])
@@ -218,7 +225,8 @@ def fit(
     metrics: dict = {}
     if finished and evaluate_at_end and len(test_idx):
         metrics = evaluate(gaussians, scene, test_idx, render_config=render_config, lpips_net=lpips_net)
-    return TrainRun(state, gaussians, config, extent, losses, counts, metrics, time.perf_counter() - t0, finished)
+    seconds = time.perf_counter() - t0
+    return TrainRun(state, gaussians, config, extent, losses, counts, metrics, eval_history, seconds, finished)
 
 
 class _Progress:
@@ -241,6 +249,10 @@ class _Progress:
         if self.bar is not None and (step % 10 == 0 or step == self.bar.tasks[0].total):
             info = f"loss {loss:.4f}  PSNR {psnr:.2f} dB  {count:,} Gaussians"
             self.bar.update(self.task, completed=step, info=info)
+
+    def note(self, text: str):
+        if self.bar is not None:
+            self.bar.console.print(text)
 
     def close(self):
         if self.bar is not None:

@@ -70,13 +70,24 @@ class TrainState(eqx.Module):
         return Gaussians(*(np.asarray(self.params[f])[idx] for f in FIELDS))
 
 
+def over_background(image: Float[Array, "H W C"], background: Float[Array, "3"]) -> Float[Array, "H W 3"]:
+    """The target a render over ``background`` must match: an RGBA image (straight alpha) composited
+    over it, a·c + (1 − a)·b, as 3DGS loads RGBA datasets; an RGB image as it is."""
+    if image.shape[-1] == 3:
+        return image
+    alpha = image[..., 3:4]
+    return image[..., :3] * alpha + jnp.asarray(background, image.dtype) * (1.0 - alpha)
+
+
 def loss_fn(
-    params, active, camera: Camera, image: Float[Array, "H W 3"], background, config: TrainConfig,
+    params, active, camera: Camera, image: Float[Array, "H W C"], background, config: TrainConfig,
     render_config: splat.RenderConfig, means2d_offset=None,
 ):  # fmt: skip
     """(1 − λ)·L1 + λ·D-SSIM of the render of the active Gaussians over ``background``; also the render.
-    ``means2d_offset`` (zeros) exposes the screen-space positional gradient for densification."""
+    ``means2d_offset`` (zeros) exposes the screen-space positional gradient for densification.
+    ``image`` is RGB or RGBA (composited over ``background``: ``over_background``)."""
     g = gaussians_from_params(params)
+    image = over_background(image, background)
     n = active.shape[0]
     res = splat.render_dates(
         g, camera, active.astype(image.dtype)[None], jnp.ones((1, n, 3), image.dtype),
@@ -119,7 +130,8 @@ def make_train_step(optimizer: optax.GradientTransformation, config: TrainConfig
             grad_count=state.grad_count + visible.astype(jnp.int32),
             max_radius=jnp.where(visible, jnp.maximum(state.max_radius, res.radii), state.max_radius),
         )  # fmt: skip
-        stats = {"loss": loss, "psnr": metrics.psnr(res.image[0], image), "overflowed": res.overflowed}
+        target = over_background(image, background)
+        stats = {"loss": loss, "psnr": metrics.psnr(res.image[0], target), "overflowed": res.overflowed}
         return new, stats | {"visible": jnp.sum(visible)}
 
     return step
