@@ -317,3 +317,39 @@ def test_train_cli_writes_a_model_continues_it_and_guards_the_output(corals, tmp
     report2 = json.loads((more / "train.json").read_text())
     assert len(g2) == len(g) and report2["config"]["densify"] is False  # "Individual +N": no densification
     assert not np.array_equal(np.asarray(g2.means), np.asarray(g.means))  # but it did train
+
+
+@pytest.mark.slow
+def test_train_cli_killed_mid_run_resumes_to_the_uninterrupted_result(corals, tmp_path):
+    """SIGKILL a `train` process after its first periodic checkpoint (work since then is lost), run it
+    again with --resume: the final PLY equals that of a run never interrupted."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    toml = tmp_path / "t.toml"
+    toml.write_text("[train]\nsteps = 240\ndensify_from = 40\ndensify_until = 200\ndensify_interval = 40\n"
+                    "opacity_reset_interval = 120\ncheckpoint_every = 60\n")  # fmt: skip
+
+    def cmd(out, *extra):
+        return [sys.executable, "-m", "cfgs_jax.pipeline", "train", "--scene", str(corals), "--out", str(out),
+                "--config", str(toml), "--no-progress", "--no-eval", *extra]  # fmt: skip
+
+    assert subprocess.run(cmd(tmp_path / "whole"), capture_output=True).returncode == 0
+    proc = subprocess.Popen(cmd(tmp_path / "killed"), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    ckpt = tmp_path / "killed" / train.CHECKPOINT
+    deadline = time.time() + 300
+    while not ckpt.exists() and proc.poll() is None and time.time() < deadline:
+        time.sleep(0.05)
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.wait()
+    step = json.loads(bytes(np.load(ckpt)["__meta__"]).decode())["step"]
+    assert step < 240 and not (tmp_path / "killed" / "point_cloud.ply").exists()  # it really died mid-run
+    assert subprocess.run(cmd(tmp_path / "killed", "--resume"), capture_output=True).returncode == 0
+    a = cj.io.read_ply(tmp_path / "whole" / "point_cloud.ply")
+    b = cj.io.read_ply(tmp_path / "killed" / "point_cloud.ply")
+    assert len(a) == len(b)
+    for x, y in zip(jax.tree_util.tree_leaves(a), jax.tree_util.tree_leaves(b)):
+        assert np.allclose(np.asarray(x), np.asarray(y), atol=1e-6)

@@ -11,6 +11,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import json
+import logging
 import time
 from pathlib import Path
 
@@ -253,6 +254,8 @@ class _Progress:
     def note(self, text: str):
         if self.bar is not None:
             self.bar.console.print(text)
+        else:
+            logging.getLogger("cfgs_jax.train").info(text)
 
     def close(self):
         if self.bar is not None:
