@@ -205,16 +205,17 @@ def fit(
                 render_capacity = max(need, 2 * render_capacity)
             state = new
             losses.append(float(stats["loss"]))
+            # like INRIA's training_report: evaluated before this step's densification / reset
+            if config.eval_every and it % config.eval_every == 0 and len(test_idx):
+                m = evaluate(state.gaussians(), scene, test_idx, render_config=render_config, lpips_net=lpips_net)
+                eval_history.append({"step": it} | {k: v for k, v in m.items() if k in ("psnr", "ssim", "lpips")})
+                bar.note(f"step {it:,}: test PSNR {m['psnr']:.2f} dB, SSIM {m['ssim']:.4f}")
             if config.densify and it < config.densify_until:
                 if it > config.densify_from and it % config.densify_interval == 0:
                     state = densify_step(state, config, extent, prune_big=it > config.opacity_reset_interval)
                     counts.append((it, int(jnp.sum(state.active))))
                 if it % config.opacity_reset_interval == 0:
                     state = reset_opacity(state)
-            if config.eval_every and it % config.eval_every == 0 and len(test_idx):
-                m = evaluate(state.gaussians(), scene, test_idx, render_config=render_config, lpips_net=lpips_net)
-                eval_history.append({"step": it} | {k: v for k, v in m.items() if k in ("psnr", "ssim", "lpips")})
-                bar.note(f"step {it:,}: test PSNR {m['psnr']:.2f} dB, SSIM {m['ssim']:.4f}")
             if it % config.checkpoint_every == 0:
                 checkpoint()
             bar.update(it, loss=losses[-1], psnr=float(stats["psnr"]), count=counts[-1][1])
