@@ -65,3 +65,35 @@ def test_merge_places_dates_and_initialises_o_and_l():
         fusion.merge([a, b], ["x", "x"])
     with pytest.raises(cj.InputError, match="one model per date"):
         fusion.merge([a], ["x", "y"])
+
+
+@pytest.fixture(scope="module")
+def two_dates(tmp_path_factory):
+    """Two dates of corals at 160×120, 12 views each, each date in its own random Sim(3) frame."""
+    from cfgs_jax import synthetic
+
+    spec = synthetic.make_preset("corals", seed=1, width=160, height=120, images_per_date=12, spp=8)
+    return synthetic.render_dataset(spec, tmp_path_factory.mktemp("two"), dates=[0, 1], progress=False)
+
+
+def test_registration_recovers_the_ground_truth_sim3(two_dates):
+    import json
+
+    from cfgs_jax.fusion.register import _angle
+
+    gt = json.loads((two_dates / "ground_truth.json").read_text())["dates"]
+    want = Sim3.from_dict(gt[0]["date_from_world"]).compose(Sim3.from_dict(gt[1]["world_from_date"]))
+    ref, new = cj.io.read_colmap(two_dates / "d0"), cj.io.read_colmap(two_dates / "d1")
+    reg = fusion.register_date(ref, new)
+    got = reg.transform
+    centres = np.stack([np.asarray(c.center, np.float64) for c in ref.cameras])
+    extent = np.max(np.linalg.norm(centres - centres.mean(0), axis=1))
+    assert reg.registered_reference >= 6 and reg.registered_date >= 6
+    assert np.degrees(_angle(got.rotation, want.rotation)) < 0.5
+    assert abs(got.scale / want.scale - 1) < 0.01
+    assert np.linalg.norm(got.translation - want.translation) / extent < 0.01
+    assert reg.centre_residual < 0.05 and reg.rotation_residual_deg < 2.0
+    with pytest.raises(cj.InputError, match="registered in the joint SfM"):  # the refusal names the counts
+        fusion.register_date(ref, new, config=fusion.RegisterConfig(min_registered=13))
+    with pytest.raises(cj.InputError, match="no reconstruction|registered"):  # too few views to map at all
+        fusion.register_date(ref, new, config=fusion.RegisterConfig(images_per_date=2))

@@ -1,12 +1,19 @@
 """Registration of a date into the reference frame (paper §"Multi-Temporal Gaussian Fusion", step 1).
 
-This module holds the part every registration route shares: applying a Sim(3) to a date's splats.
+``transform_gaussians`` applies a Sim(3) to a date's splats; ``register_date`` finds that Sim(3)
+from the images with pycolmap and optimistix.
 """
 
 from __future__ import annotations
 
+import dataclasses
+from pathlib import Path
+
+import jax
 import jax.numpy as jnp
 import numpy as np
+
+from cfgs_jax.errors import InputError
 
 from cfgs_jax.model import Gaussians
 from cfgs_jax.sim3 import Sim3, matrix_to_quat
@@ -41,3 +48,216 @@ def transform_gaussians(g: Gaussians, sim3: Sim3) -> Gaussians:
         g.opacity_logits,
         g.colors,
     )
+
+
+# ------------------------------------------------------------------------------------ SfM registration
+
+
+@dataclasses.dataclass(frozen=True)
+class RegisterConfig:
+    """``images_per_date``: evenly spaced images of each date put into the joint SfM (more: slower,
+    more robust). ``min_registered``: fewer registered images of either date is an error.
+    ``seed``: COLMAP's RANSAC/mapper seed (runs are deterministic)."""
+
+    images_per_date: int = 12
+    min_registered: int = 3
+    seed: int = 0
+    lm_max_steps: int = 200
+    # COLMAP settings loosened for small images (COLMAP defaults: 0.0067, 100, 30, 16°, 15)
+    sift_peak_threshold: float = 0.002
+    init_min_num_inliers: int = 30
+    abs_pose_min_num_inliers: int = 15
+    init_min_tri_angle: float = 4.0
+    min_num_matches: int = 10
+
+
+@dataclasses.dataclass(frozen=True)
+class Registration:
+    """``transform``: date frame → reference frame. Residuals are RMS camera-centre misfits after the
+    fit, as a fraction of the reference cameras' extent, and RMS orientation misfits in degrees."""
+
+    transform: Sim3
+    registered_reference: int
+    registered_date: int
+    centre_residual: float
+    rotation_residual_deg: float
+
+    def to_dict(self) -> dict:
+        return {
+            "transform": self.transform.to_dict(), "registered_reference": self.registered_reference,
+            "registered_date": self.registered_date, "centre_residual_rel": self.centre_residual,
+            "rotation_residual_deg": self.rotation_residual_deg,
+        }  # fmt: skip
+
+
+def _evenly(n: int, k: int) -> list[int]:
+    return sorted({int(round(x)) for x in np.linspace(0, n - 1, min(n, k))})
+
+
+def _world_from_cam(cam_from_world) -> np.ndarray:
+    return np.linalg.inv(np.asarray(cam_from_world, np.float64))
+
+
+def _rotvec_to_matrix(v):
+    """Rodrigues' formula (jnp, differentiable at 0 through the series guard)."""
+    theta2 = jnp.sum(v * v)
+    theta = jnp.sqrt(jnp.maximum(theta2, 1e-30))
+    k = jnp.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]], v.dtype)
+    small = theta2 < 1e-12
+    a = jnp.where(small, 1.0 - theta2 / 6.0, jnp.sin(theta) / theta)
+    b = jnp.where(small, 0.5 - theta2 / 24.0, (1.0 - jnp.cos(theta)) / jnp.maximum(theta2, 1e-30))
+    return jnp.eye(3, dtype=v.dtype) + a * k + b * (k @ k)
+
+
+def refine_sim3_pair(init_a: Sim3, init_b: Sim3, ref_pairs, date_pairs, extent: float, max_steps: int = 200):
+    """Joint Levenberg–Marquardt (optimistix) refinement of A: SfM frame → reference and
+    B: date frame → reference from the registered cameras.
+
+    ``ref_pairs`` = (centres, rotations) of reference images in the SfM frame and in the reference
+    frame; ``date_pairs`` = the same for the date's images in the SfM frame and in the date frame.
+    Residuals: A(c_sfm) − c_ref and A(c_sfm) − B(c_date) over ``extent``; R_A·R_sfm − R_ref and
+    R_A·R_sfm − R_B·R_date (world-from-camera rotations). Returns (A, B) as Sim3."""
+    import optimistix as optx
+
+    (c_rs, r_rs), (c_rr, r_rr) = ref_pairs
+    (c_ds, r_ds), (c_dd, r_dd) = date_pairs
+    def unpack(y):
+        return y[0], _rotvec_to_matrix(y[1:4]), y[4:7]
+
+    def residuals(y, args):
+        c_rs, r_rs, c_rr, r_rr, c_ds, r_ds, c_dd, r_dd = args
+        la, ra, ta = unpack(y[:7])
+        lb, rb, tb = unpack(y[7:])
+        a_c = lambda c: jnp.exp(la) * c @ ra.T + ta  # noqa: E731
+        out = [
+            ((a_c(c_rs) - c_rr) / extent).ravel(),
+            ((a_c(c_ds) - (jnp.exp(lb) * c_dd @ rb.T + tb)) / extent).ravel(),
+            (jnp.einsum("ij,njk->nik", ra, r_rs) - r_rr).ravel(),
+            (jnp.einsum("ij,njk->nik", ra, r_ds) - jnp.einsum("ij,njk->nik", rb, r_dd)).ravel(),
+        ]
+        return jnp.concatenate(out)
+
+    def pack(s: Sim3):
+        from scipy.spatial.transform import Rotation
+
+        return np.concatenate([[np.log(s.scale)], Rotation.from_matrix(s.rotation).as_rotvec(), s.translation])
+
+    @jax.jit
+    def solve(y0, args):
+        sol = optx.least_squares(
+            residuals, optx.LevenbergMarquardt(rtol=1e-10, atol=1e-12), y0, args=args,
+            max_steps=max_steps, throw=False,
+        )  # fmt: skip
+        return sol.value, sol.result == optx.RESULTS.successful
+
+    with jax.enable_x64(True):
+        data = tuple(jnp.asarray(x, jnp.float64) for x in (c_rs, r_rs, c_rr, r_rr, c_ds, r_ds, c_dd, r_dd))
+        y, ok = solve(jnp.asarray(np.concatenate([pack(init_a), pack(init_b)]), jnp.float64), data)
+        y = np.asarray(y, np.float64)
+        ok = bool(ok)
+
+    def to_sim3(p):
+        return Sim3(float(np.exp(p[0])), np.asarray(_rotvec_to_matrix(jnp.asarray(p[1:4])), np.float64), p[4:7].copy())
+
+    return to_sim3(y[:7]), to_sim3(y[7:]), ok
+
+
+def _sim3_from_pycolmap(s) -> Sim3:
+    m = np.asarray(s.matrix(), np.float64)  # [3, 4] = [s·R | t]
+    scale = float(np.cbrt(np.linalg.det(m[:, :3])))
+    return Sim3(scale, m[:, :3] / scale, m[:, 3].copy())
+
+
+def register_date(reference, date, *, config: RegisterConfig | None = None, workdir=None, progress=None) -> Registration:
+    """The Sim(3) that brings ``date`` (a ``Scene``) into ``reference``'s frame.
+
+    A subset of both dates' images goes through one joint SfM (pycolmap: SIFT, exhaustive matching,
+    incremental mapping with the dates' own pinhole intrinsics held fixed). Registered reference
+    images tie the SfM frame to the reference frame and registered date images tie it to the date's
+    frame, both through the camera poses the datasets already have: a robust closed-form Sim(3)
+    (pycolmap ``estimate_sim3d_robust`` on camera centres) initialises a joint optimistix
+    Levenberg–Marquardt over centres and orientations. Fewer than ``min_registered`` images of
+    either date registered is an error."""
+    import tempfile
+
+    import pycolmap
+
+    from cfgs_jax.io.images import read_image, write_image
+
+    config = config or RegisterConfig()
+    with tempfile.TemporaryDirectory(dir=workdir) as tmp:
+        tmp = Path(tmp)
+        picked = {}
+        for tag, scene in (("ref", reference), ("new", date)):
+            (tmp / "images" / tag).mkdir(parents=True)
+            for i in _evenly(len(scene), config.images_per_date):
+                name = f"{tag}/{i:05d}.png"
+                write_image(tmp / "images" / name, read_image(scene.image_dir / scene.image_names[i]))  # RGB
+                picked[name] = (tag, i)
+        db = tmp / "database.db"
+        for tag, scene in (("ref", reference), ("new", date)):
+            cam = scene.cameras[0]
+            reader = pycolmap.ImageReaderOptions(camera_model="PINHOLE", camera_params=",".join(
+                str(float(x)) for x in (cam.fx, cam.fy, cam.cx, cam.cy)))  # fmt: skip
+            names = [n for n, (t, _) in picked.items() if t == tag]
+            extraction = pycolmap.FeatureExtractionOptions()
+            extraction.sift.peak_threshold = config.sift_peak_threshold
+            pycolmap.extract_features(db, tmp / "images", image_names=names, camera_mode=pycolmap.CameraMode.SINGLE,
+                                      reader_options=reader, extraction_options=extraction, device=pycolmap.Device.cpu)  # fmt: skip
+        pycolmap.match_exhaustive(db, device=pycolmap.Device.cpu)
+        opts = pycolmap.IncrementalPipelineOptions(random_seed=config.seed, ba_refine_focal_length=False,
+                                                   ba_refine_principal_point=False, ba_refine_extra_params=False,
+                                                   min_num_matches=config.min_num_matches)  # fmt: skip
+        opts.mapper.init_min_num_inliers = config.init_min_num_inliers
+        opts.mapper.abs_pose_min_num_inliers = config.abs_pose_min_num_inliers
+        opts.mapper.init_min_tri_angle = config.init_min_tri_angle
+        maps = pycolmap.incremental_mapping(db, tmp / "images", tmp / "sfm", options=opts)
+    if not maps:
+        raise InputError("joint SfM of the two dates found no reconstruction", path=date.root, field="images",
+                         fix="the dates share too little; pass known transforms with --transforms JSON")  # fmt: skip
+    rec = max(maps.values(), key=lambda r: r.num_reg_images())
+    pairs = {"ref": ([], [], [], []), "new": ([], [], [], [])}
+    for img in rec.images.values():
+        if not img.has_pose or img.name not in picked:
+            continue
+        tag, i = picked[img.name]
+        scene = reference if tag == "ref" else date
+        w_sfm = _world_from_cam(img.cam_from_world().matrix().tolist() + [[0, 0, 0, 1]])
+        w_own = _world_from_cam(scene.cameras[i].cam_from_world)
+        for lst, v in zip(pairs[tag], (w_sfm[:3, 3], w_sfm[:3, :3], w_own[:3, 3], w_own[:3, :3])):
+            lst.append(v)
+    n_ref, n_new = len(pairs["ref"][0]), len(pairs["new"][0])
+    if min(n_ref, n_new) < config.min_registered:
+        raise InputError(
+            f"only {n_new} of {len([t for t, _ in picked.values() if t == 'new'])} images of this date and "
+            f"{n_ref} reference images registered in the joint SfM (need ≥ {config.min_registered} each)",
+            path=date.root, field="images",
+            fix="use more overlapping images (RegisterConfig.images_per_date) or pass --transforms JSON",
+        )  # fmt: skip
+    ref = [np.asarray(x) for x in pairs["ref"]]
+    new = [np.asarray(x) for x in pairs["new"]]
+    ransac = pycolmap.RANSACOptions(random_seed=config.seed)
+    centres = np.stack([np.asarray(c.center, np.float64) for c in reference.cameras])
+    extent = float(np.max(np.linalg.norm(centres - centres.mean(0), axis=1)))
+    ransac.max_error = 0.05 * extent
+    a0 = pycolmap.estimate_sim3d_robust(ref[0], ref[2], ransac)  # SfM → reference
+    b_sfm = pycolmap.estimate_sim3d_robust(new[0], new[2], ransac)  # SfM → date
+    if a0 is None or b_sfm is None:
+        raise InputError("no consistent Sim(3) between the SfM and the dates' cameras", path=date.root,
+                         fix="check the dates' COLMAP poses, or pass --transforms JSON")  # fmt: skip
+    a0, b_sfm = _sim3_from_pycolmap(a0["tgt_from_src"] if isinstance(a0, dict) else a0), _sim3_from_pycolmap(
+        b_sfm["tgt_from_src"] if isinstance(b_sfm, dict) else b_sfm)  # fmt: skip
+    b0 = a0.compose(b_sfm.inverse())  # date → reference
+    a, b, _ = refine_sim3_pair(a0, b0, ((ref[0], ref[1]), (ref[2], ref[3])), ((new[0], new[1]), (new[2], new[3])),
+                               extent, config.lm_max_steps)  # fmt: skip
+    c_err = np.concatenate([a.apply(ref[0]) - ref[2], a.apply(new[0]) - b.apply(new[2])])
+    r_err = [np.degrees(_angle(a.rotation @ r1, r2)) for r1, r2 in zip(ref[1], ref[3])]
+    r_err += [np.degrees(_angle(a.rotation @ r1, b.rotation @ r2)) for r1, r2 in zip(new[1], new[3])]
+    return Registration(
+        b, n_ref, n_new, float(np.sqrt(np.mean(np.sum(c_err**2, axis=1))) / extent), float(np.sqrt(np.mean(np.square(r_err))))
+    )
+
+
+def _angle(r1, r2) -> float:
+    c = (np.trace(r1 @ r2.T) - 1.0) / 2.0
+    return float(np.arccos(np.clip(c, -1.0, 1.0)))
