@@ -97,3 +97,57 @@ def test_registration_recovers_the_ground_truth_sim3(two_dates):
         fusion.register_date(ref, new, config=fusion.RegisterConfig(min_registered=13))
     with pytest.raises(cj.InputError, match="no reconstruction|registered"):  # too few views to map at all
         fusion.register_date(ref, new, config=fusion.RegisterConfig(images_per_date=2))
+
+
+def test_cold_warm_direction_is_zero_luminance_and_bluer_when_colder():
+    from cfgs_jax.fusion.light import cold_warm_direction, light_logits, light_multiplier
+
+    d = cold_warm_direction()
+    assert abs(d @ [0.2126, 0.7152, 0.0722]) < 1e-12 and np.isclose(np.abs(d).max(), 0.5)
+    assert d[2] > 0 > d[0]  # colder = more blue, less red
+    l = light_multiplier(jnp.asarray([0.0, 1.0]), jnp.asarray([0.0, -0.7]))
+    assert np.allclose(np.asarray(l[0]), 1.0)
+    assert np.allclose(np.asarray(l[1]), 2 / (1 + np.exp(-1.0)) * (1 + np.tanh(-0.7) * d), atol=1e-6)
+    back = 2 / (1 + np.exp(-np.asarray(light_logits(l))))
+    assert np.allclose(back, np.asarray(l), atol=1e-5)
+
+
+def test_cross_init_keeps_what_date_q_shows_and_drops_what_it_lacks():
+    """Date p has two groups of Gaussians; date q's images (RGBA) show only group A, warmer. After
+    cross-init o^q → high for A and low for B, and A's cold/warm parameter turns warm (w < 0)."""
+    from cfgs_jax.fusion import cross_init as ci
+    from cfgs_jax.fusion.light import cold_warm_direction
+
+    xs, ys = np.meshgrid(np.linspace(-0.875, 0.875, 8), np.linspace(-0.5, 0.5, 5))  # separated blobs
+    means = np.c_[xs.ravel(), ys.ravel(), np.zeros(xs.size)].astype(np.float32)
+    n = len(means)
+    group_a = means[:, 0] < 0
+    colours = np.random.default_rng(0).uniform(0.3, 0.7, (n, 3)).astype(np.float32)
+    g = cj.Gaussians(
+        means, np.tile(np.float32([1, 0, 0, 0]), (n, 1)), np.full((n, 3), np.log(0.06), np.float32),
+        np.full(n, 2.0, np.float32), colours,
+    )  # fmt: skip
+    cams = tuple(cj.Camera.look_at([x, -0.3, -3.0], [0, 0, 0], up=(0, -1, 0), width=128, height=96, fov_x_deg=60)
+                 for x in (-0.6, -0.2, 0.2, 0.6))  # fmt: skip
+    d = cold_warm_direction()
+    tint = (1 + np.tanh(-0.6) * d).astype(np.float32)  # warmer at date q
+    images = []
+    for cam in cams:
+        res = splat.render_dates(g, cam, group_a[None].astype(np.float32), np.broadcast_to(tint, (1, n, 3)))
+        images.append(np.concatenate([np.asarray(res.image[0]), np.asarray(res.alpha[0])[..., None]], -1))
+    model = fusion.merge([g, g], ["p", "q"])  # date q's own Gaussians are irrelevant to pair (0, 1)
+    views = ci.DateViews(cams, tuple(images))
+    cfg = ci.CrossInitConfig(steps=1200)
+    out, rep = ci.init_pair(model, 0, 1, views, cfg)
+    o_q = np.asarray(cj.opacity_multipliers(out))[:n, 1]
+    assert rep["visible"] == n and not rep["skipped"] and rep["loss_last"] < rep["loss_first"]
+    assert np.mean(o_q[group_a] > 0.6) > 0.9, np.round(o_q[group_a], 2)
+    assert np.mean(o_q[~group_a] < 0.2) > 0.9, np.round(o_q[~group_a], 2)
+    light = np.asarray(cj.light_multipliers(out))[:n, 1]
+    # l = gain·(1 + k·d) with Y(d) = 0, so gain = Y(l) and k = (l / Y(l) − 1)·d / |d|²; the truth is k = tanh(−0.6)
+    la = light[group_a]
+    k = (la / (la @ [0.2126, 0.7152, 0.0722])[:, None] - 1) @ d / (d @ d)
+    assert -0.75 < np.median(k) < -0.3, k  # warm, near the true −0.54
+    # the other column and date q's own Gaussians are untouched
+    assert np.array_equal(np.asarray(out.o_logits)[:, 0], np.asarray(model.o_logits)[:, 0])
+    assert np.array_equal(np.asarray(out.o_logits)[n:], np.asarray(model.o_logits)[n:])

@@ -1,0 +1,231 @@
+"""Cross-timestep initialisation (paper §"Cross-Timestep Initialization", Eq. 2).
+
+For every ordered pair of dates p ≠ q, the Gaussians that came from date p are rendered alone at date
+q's training views with opacity α·o^q and colour l^q ⊙ c, and only their o^q (a logit) and l^q (the
+constrained light model of ``fusion.light``: gain u, cold/warm w) are optimised against I^q with
+
+    L = (1 − ε)·|C − I| + ε·|b − C|                                             (Eq. 2, per pixel)
+
+b a random background colour per step, annealed to black; ε = 0.5 at first, moving linearly to the
+LPIPS spatial map over the first ``ramp_fraction`` of the steps (``epsilon_schedule="paper"``), or
+the released code's schedule (LPIPS-weighted ε mapped into [0.15, 0.85] at the start, constant 0.5 at
+the end; ``"reference"``).
+
+The LPIPS map of a view compares date p's own appearance there — its Gaussians rendered with their
+own o^p and no light change, over black — with I^q over black, once, before the optimisation: it
+says where date p's content does not look like date q. (Comparing the evolving render instead marks
+every pixel as different at the start, where o^q = δ·o^p halves the opacity, and drives persistent
+Gaussians toward the background.) It is normalised to [0, 1] as clip(map / ``lpips_scale``, 0, 1):
+LPIPS is 0 for identical patches and ≈ 0.5–1 for unrelated ones, so ε ≈ 1 marks pixels the date-p
+Gaussians cannot explain. α, geometry and colour stay frozen. o^q
+starts at δ·o^p. Gaussians of date p that project into no training view of date q get o^q = −4e
+(``INVISIBLE_LOGIT``) and are left out of that pair; a pair with none visible is skipped.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+from collections.abc import Sequence
+from typing import Literal
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+
+from cfgs_jax import metrics, splat
+from cfgs_jax.errors import InputError
+from cfgs_jax.fusion.fuse import INVISIBLE_LOGIT
+from cfgs_jax.fusion.light import light_logits, light_multiplier
+from cfgs_jax.model import Camera, Gaussians, TemporalGaussians
+from cfgs_jax.train.step import over_background
+
+
+@dataclasses.dataclass(frozen=True)
+class CrossInitConfig:
+    """The paper's values (3000 steps per pair, Adam lr 0.0075 for o, 0.00375 for l, δ = 0.5)."""
+
+    steps: int = 3000
+    lr_o: float = 0.0075
+    lr_light: float = 0.00375
+    delta: float = 0.5
+    epsilon_schedule: Literal["paper", "reference"] = "paper"
+    ramp_fraction: float = 0.5
+    lpips_net: Literal["alex", "vgg"] = "alex"
+    lpips_scale: float = 1.0  # ε_LPIPS = clip(map / lpips_scale, 0, 1)
+    background_anneal: float = 1.0  # fraction of the steps over which b's range shrinks to black
+    seed: int = 0
+
+    def __post_init__(self):
+        if self.steps <= 0:
+            raise InputError(f"must be positive, got {self.steps}", field="cross_init.steps")
+        if not 0 < self.delta <= 1:
+            raise InputError(f"must be in (0, 1], got {self.delta}", field="cross_init.delta")
+        if self.epsilon_schedule not in ("paper", "reference"):
+            raise InputError(f"unknown schedule {self.epsilon_schedule!r}", field="cross_init.epsilon_schedule",
+                             fix='use "paper" or "reference"')  # fmt: skip
+        if not 0 < self.ramp_fraction <= 1 or not 0 < self.background_anneal <= 1:
+            raise InputError("ramp_fraction and background_anneal must be in (0, 1]", field="cross_init")
+
+
+@dataclasses.dataclass(frozen=True)
+class DateViews:
+    """One date's training views in the reference frame: cameras and images ([H, W, 3|4])."""
+
+    cameras: tuple[Camera, ...]
+    images: tuple[np.ndarray, ...]
+
+    def __post_init__(self):
+        if len(self.cameras) != len(self.images) or not self.cameras:
+            raise InputError(f"{len(self.cameras)} cameras for {len(self.images)} images", field="DateViews")
+
+
+def epsilon(lpips_map, step, config: CrossInitConfig):
+    """Per-pixel ε of Eq. 2 at ``step`` from the (already normalised) LPIPS map."""
+    r = jnp.clip(step / (config.ramp_fraction * config.steps), 0.0, 1.0)
+    if config.epsilon_schedule == "paper":
+        return (1.0 - r) * 0.5 + r * lpips_map
+    return (1.0 - r) * (0.15 + 0.7 * lpips_map) + r * 0.5
+
+
+def background_colour(key, step, config: CrossInitConfig, dtype=jnp.float32):
+    """A random colour whose range shrinks linearly to black over ``background_anneal`` of the run."""
+    scale = jnp.clip(1.0 - step / (config.background_anneal * config.steps), 0.0, 1.0)
+    return jax.random.uniform(key, (3,), dtype) * scale
+
+
+def lpips_map(g: Gaussians, o_p, camera, image, lpips_net, config: CrossInitConfig, render_config=None):
+    """[H, W] in [0, 1]: LPIPS (spatial) between date p's own render at ``camera`` (opacity α·o^p, no
+    light change, over black) and ``image`` over black, clipped after dividing by ``lpips_scale``."""
+    n = len(g)
+    own = splat.render_dates(g, camera, o_p[None], jnp.ones((1, n, 3), jnp.float32), config=render_config).image[0]
+    target = over_background(jnp.asarray(image, jnp.float32), jnp.zeros(3, jnp.float32))
+    lp = metrics.perceptual.lpips_distance(lpips_net, own, target, spatial=True)
+    return jnp.clip(lp / config.lpips_scale, 0.0, 1.0)
+
+
+def pair_loss(params, g: Gaussians, camera, image, eps_map, b, step, config: CrossInitConfig, render_config):
+    """Eq. 2 for one view: the mean over pixels and channels; also the render."""
+    o = jax.nn.sigmoid(params["o_logit"])
+    light = light_multiplier(params["u"], params["w"])
+    res = splat.render_dates(g, camera, o[None], light[None], background=b, config=render_config)
+    c = res.image[0]
+    target = over_background(image, b)
+    eps = epsilon(eps_map, step, config)[..., None]
+    loss = jnp.mean((1.0 - eps) * jnp.abs(c - target) + eps * jnp.abs(b - c))
+    return loss, res
+
+
+def make_optimizer(config: CrossInitConfig) -> optax.GradientTransformation:
+    return optax.multi_transform(
+        {"o": optax.adam(config.lr_o), "light": optax.adam(config.lr_light)},
+        {"o_logit": "o", "u": "light", "w": "light"},
+    )
+
+
+@functools.lru_cache(maxsize=16)
+def _compiled_step(config: CrossInitConfig, render_config: splat.RenderConfig):
+    optimizer = make_optimizer(config)
+
+    @jax.jit
+    def step(params, opt_state, g, camera, image, eps_map, key, it):
+        b = background_colour(key, it, config, image.dtype)
+        (loss, res), grads = jax.value_and_grad(pair_loss, has_aux=True)(
+            params, g, camera, image, eps_map, b, it, config, render_config
+        )
+        updates, opt_state = optimizer.update(grads, opt_state, params)
+        return optax.apply_updates(params, updates), opt_state, loss, res.overflowed
+
+    return optimizer, step
+
+
+def visible_from(g: Gaussians, cameras: Sequence[Camera], render_config=None) -> np.ndarray:
+    """[N] bool: the Gaussian projects (radius > 0) into at least one of ``cameras``."""
+    seen = np.zeros(len(g), bool)
+    for cam in cameras:
+        seen |= np.asarray(splat.render(g, cam, config=render_config).radii) > 0
+    return seen
+
+
+def init_pair(model: TemporalGaussians, p: int, q: int, views: DateViews, config: CrossInitConfig, *,
+              render_config: splat.RenderConfig | None = None, lpips_net=None, progress=None) -> tuple[TemporalGaussians, dict]:  # fmt: skip
+    """Optimise o^q and l^q of the Gaussians from date p against date q's views (Eq. 2); returns the
+    updated model and a report (visible count, first/last loss, mean o^q)."""
+    render_config = render_config or splat.RenderConfig()
+    lpips_net = lpips_net if lpips_net is not None else metrics.load_lpips(config.lpips_net)
+    origin = np.asarray(model.origin)
+    rows = np.nonzero(origin == p)[0]
+    g_all = model.gaussians
+    g_p = jax.tree_util.tree_map(lambda x: jnp.asarray(x)[rows], g_all)
+    seen = visible_from(g_p, views.cameras, render_config)
+    o_logits = np.asarray(model.o_logits).copy()
+    l_logits = np.asarray(model.light_logits).copy()
+    o_logits[rows[~seen], q] = INVISIBLE_LOGIT
+    report = {"pair": [p, q], "gaussians": int(len(rows)), "visible": int(seen.sum())}
+    if not seen.any():
+        return dataclasses.replace(model, o_logits=jnp.asarray(o_logits), light_logits=jnp.asarray(l_logits)), report | {"skipped": True}
+    idx = rows[seen]
+    g = jax.tree_util.tree_map(lambda x: jnp.asarray(x)[idx], g_all)
+    o_p = jax.nn.sigmoid(jnp.asarray(o_logits[idx, p]))
+    o_q = jnp.clip(config.delta * o_p, 1e-4, 1 - 1e-4)
+    params = {"o_logit": jnp.log(o_q) - jnp.log1p(-o_q), "u": jnp.zeros(len(idx)), "w": jnp.zeros(len(idx))}
+    ones = jnp.ones((1, len(idx)), jnp.float32)
+    capacity = max(splat.required_capacity(g, c, ones, config=render_config) for c in views.cameras)
+    images = [jnp.asarray(im, jnp.float32) for im in views.images]
+    eps_maps = [lpips_map(g, o_p, c, im, lpips_net, config, render_config) for c, im in zip(views.cameras, images)]
+    key = jax.random.key(config.seed * 1_000_003 + p * 1009 + q)
+    losses = []
+    rc = dataclasses.replace(render_config, capacity=capacity)
+    optimizer, step = _compiled_step(config, rc)
+    opt_state = optimizer.init(params)
+    for it in range(config.steps):
+        key, k_bg = jax.random.split(key)
+        v = int(np.random.default_rng([config.seed, p, q, it // len(images)]).permutation(len(images))[it % len(images)])
+        params, opt_state, loss, overflowed = step(params, opt_state, g, views.cameras[v], images[v], eps_maps[v],
+                                                    k_bg, jnp.float32(it))  # fmt: skip
+        if bool(overflowed):  # cannot happen with capacities from o = 1 (o^q ≤ 1), but never silently
+            raise RuntimeError("cross-init render overflowed its intersection buffer")
+        losses.append(float(loss))
+        if progress is not None:
+            progress(it + 1)
+    o_logits[idx, q] = np.asarray(params["o_logit"])
+    l_logits[idx, q] = np.asarray(light_logits(light_multiplier(params["u"], params["w"])))
+    new = dataclasses.replace(model, o_logits=jnp.asarray(o_logits), light_logits=jnp.asarray(l_logits))
+    o_final = np.asarray(jax.nn.sigmoid(params["o_logit"]))
+    return new, report | {
+        "skipped": False, "loss_first": float(np.mean(losses[:10])), "loss_last": float(np.mean(losses[-10:])),
+        "mean_o": float(o_final.mean()), "mean_w": float(np.mean(np.asarray(params["w"]))),
+        "mean_gain": float(np.mean(2 * np.asarray(jax.nn.sigmoid(params["u"])))),
+        "mean_epsilon": float(np.mean([np.asarray(e).mean() for e in eps_maps])),
+    }  # fmt: skip
+
+
+def cross_init(model: TemporalGaussians, views: Sequence[DateViews], config: CrossInitConfig | None = None, *,
+               pairs: Sequence[tuple[int, int]] | None = None, render_config=None, progress: bool = False):  # fmt: skip
+    """Run ``init_pair`` for every ordered pair p ≠ q (or the given ``pairs``, e.g. only those that
+    involve a new date when extending); returns the model and the per-pair reports."""
+    config = config or CrossInitConfig()
+    t = model.num_dates
+    if len(views) != t:
+        raise InputError(f"{len(views)} date views for a model of {t} dates", field="cross_init.views")
+    pairs = list(pairs) if pairs is not None else [(p, q) for p in range(t) for q in range(t) if p != q]
+    for p, q in pairs:
+        if p == q or not (0 <= p < t and 0 <= q < t):
+            raise InputError(f"invalid pair ({p}, {q}) for {t} dates", field="cross_init.pairs")
+    net = metrics.load_lpips(config.lpips_net)
+    reports = []
+    from rich.progress import Progress
+
+    with Progress(disable=not progress, transient=True) as bar:
+        task = bar.add_task("cross-timestep init", total=len(pairs) * config.steps)
+        done = 0
+        for p, q in pairs:
+            def tick(k, base=done):
+                bar.update(task, completed=base + k)
+
+            model, rep = init_pair(model, p, q, views[q], config, render_config=render_config, lpips_net=net,
+                                   progress=tick)  # fmt: skip
+            reports.append(rep)
+            done += config.steps
+    return model, reports
