@@ -1,5 +1,6 @@
 """Fusion stages: Sim(3) on splats (more as the stages land)."""
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -151,3 +152,56 @@ def test_cross_init_keeps_what_date_q_shows_and_drops_what_it_lacks():
     # the other column and date q's own Gaussians are untouched
     assert np.array_equal(np.asarray(out.o_logits)[:, 0], np.asarray(model.o_logits)[:, 0])
     assert np.array_equal(np.asarray(out.o_logits)[n:], np.asarray(model.o_logits)[n:])
+
+
+def test_change_loss_visibility_rule_and_final_prune_hand_cases():
+    from cfgs_jax.fusion import refine as rf
+
+    logit = lambda p: np.log(p) - np.log1p(-np.asarray(p))  # noqa: E731
+    o0 = logit(np.array([[0.9, 0.2, 0.6], [0.5, 0.5, 0.5]]))
+    o1 = logit(np.array([[0.8, 0.2, 0.6], [0.5, 0.7, 0.5]]))
+    # d(õ) = [[0.7, -0.4], [0, 0]], d(o) = [[0.6, -0.4], [-0.2, 0.2]] → |diff| = [[0.1, 0], [0.2, 0.2]] → mean 0.125
+    assert np.isclose(float(rf.change_loss(jnp.asarray(o1), jnp.asarray(o0))), 0.125, atol=1e-6)
+    assert float(rf.change_loss(jnp.asarray(o0[:, :1]), jnp.asarray(o0[:, :1]))) == 0.0
+    contributed = np.array([[True, False, False], [False, False, True]])
+    rendered = np.array([True, True, False])
+    out = rf.apply_visibility(o0, contributed, rendered)
+    assert out[0, 0] == o0[0, 0] and out[0, 1] == fusion.INVISIBLE_LOGIT and out[0, 2] == o0[0, 2]  # date 2 not rendered
+    assert out[1, 0] == fusion.INVISIBLE_LOGIT and out[1, 1] == fusion.INVISIBLE_LOGIT and out[1, 2] == o0[1, 2]
+    a = _random_gaussians(3)
+    a = cj.Gaussians(a.means, a.quats, a.log_scales, jnp.asarray(logit([0.5, 0.5, 0.004])), a.colors)
+    m = fusion.merge([a], ["x"])
+    m = m.__class__(m.gaussians, jnp.asarray(logit([[0.9], [0.006], [0.9]])), m.light_logits, m.origin, m.dates)
+    kept = rf.final_prune(m)  # α·o: 0.45 (keep), 0.003 ≤ 1/255 (drop), 0.0036 (drop)
+    assert len(kept) == 1 and np.allclose(np.asarray(kept.gaussians.means), np.asarray(a.means[:1]))
+    assert np.isclose(float(jax.nn.sigmoid(rf.halve_alpha(jnp.float32(1.2)))), 0.5 / (1 + np.exp(-1.2)), atol=1e-6)
+
+
+def test_refine_lowers_the_loss_on_both_dates_and_keeps_the_model_finite():
+    from cfgs_jax.fusion import cross_init as ci
+    from cfgs_jax.fusion import refine as rf
+
+    xs, ys = np.meshgrid(np.linspace(-0.875, 0.875, 8), np.linspace(-0.5, 0.5, 5))
+    means = np.c_[xs.ravel(), ys.ravel(), np.zeros(xs.size)].astype(np.float32)
+    n = len(means)
+    rng = np.random.default_rng(1)
+    truth = cj.Gaussians(means, np.tile(np.float32([1, 0, 0, 0]), (n, 1)), np.full((n, 3), np.log(0.06), np.float32),
+                         np.full(n, 2.0, np.float32), rng.uniform(0.2, 0.8, (n, 3)).astype(np.float32))  # fmt: skip
+    # each date's input model: the truth with perturbed colours and positions (an imperfect per-date fit)
+    noisy = [cj.Gaussians(truth.means + rng.normal(0, 0.02, (n, 3)).astype(np.float32), truth.quats, truth.log_scales,
+                          truth.opacity_logits, np.clip(truth.colors + rng.normal(0, 0.1, (n, 3)), 0, 1).astype(np.float32))
+             for _ in range(2)]  # fmt: skip
+    cams = tuple(cj.Camera.look_at([x, -0.3, -3.0], [0, 0, 0], up=(0, -1, 0), width=64, height=48, fov_x_deg=60)
+                 for x in (-0.6, -0.2, 0.2, 0.6))  # fmt: skip
+    imgs = []
+    for cam in cams:
+        r = splat.render(truth, cam)
+        imgs.append(np.concatenate([np.asarray(r.image), np.asarray(r.alpha)[..., None]], -1))
+    views = [ci.DateViews(cams, tuple(imgs))] * 2
+    model = fusion.merge(noisy, ["a", "b"])
+    cfg = rf.RefineConfig(steps=150, lr_color=2e-3, visibility_interval=100)
+    out, rep = rf.refine(model, views, cfg, extent=1.0)
+    assert rep["loss_last"] < 0.8 * rep["loss_first"], rep
+    assert all(np.isfinite(np.asarray(x)).all() for x in jax.tree_util.tree_leaves(out.gaussians))
+    assert np.all(np.asarray(out.light_logits) == 0.0)  # l frozen at its merged value
+    assert rep["gaussians_after_prune"] == len(out) <= 2 * n

@@ -1,4 +1,9 @@
-"""ChronoFuseGS fusion stages (issue 7, in progress): register, merge, cross-timestep init, refine."""
+"""ChronoFuseGS fusion stages: register (Sim(3) from a joint SfM), merge, cross-timestep
+initialisation (Eq. 2), combined refinement (Eq. 3) and the final prune. Work in progress (issue 7):
+the pipeline commands ``fuse``/``extend`` follow."""
+
+from cfgs_jax.fusion.cross_init import CrossInitConfig, DateViews, cross_init, init_pair
+from cfgs_jax.fusion.refine import RefineConfig, final_prune, refine
 
 from cfgs_jax.fusion.fuse import INVISIBLE_LOGIT, OTHER_LOGIT, OWN_LOGIT, merge
 from cfgs_jax.fusion.register import (
@@ -11,6 +16,13 @@ from cfgs_jax.fusion.register import (
 )
 
 __all__ = [
+    "CrossInitConfig",
+    "DateViews",
+    "RefineConfig",
+    "cross_init",
+    "final_prune",
+    "init_pair",
+    "refine",
     "INVISIBLE_LOGIT",
     "OTHER_LOGIT",
     "OWN_LOGIT",

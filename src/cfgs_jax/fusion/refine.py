@@ -1,0 +1,221 @@
+"""Combined refinement (paper §"Combined Optimization", Eq. 3) and the final prune.
+
+All Gaussian parameters and the persistence logits o are optimised together (light l frozen) on one
+random training image of a random date per step, with
+
+    L = 0.8·L1 + 0.2·D-SSIM + λ_change·L_change,  L_change = mean |d(õ) − d(o)|          (Eq. 3)
+
+where d(o) = (o^p − o^{p+1})_p on activated o and õ are the values after cross-timestep
+initialisation. α is halved (as a probability) at the start. Visibility (DESIGN §5): a Gaussian
+contributes to an image where α·T ≥ ``contribution_threshold`` at some pixel (the kernel's
+``max_weight``); one that contributed to no training render of date p during an interval gets o^p := 0
+(logit ``INVISIBLE_LOGIT``), for the dates rendered at least once in that interval. The final prune
+drops Gaussians with α·o^p ≤ 1/255 at every date.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+from collections.abc import Sequence
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+
+from cfgs_jax import metrics, splat
+from cfgs_jax.errors import InputError
+from cfgs_jax.fusion.cross_init import DateViews
+from cfgs_jax.fusion.fuse import INVISIBLE_LOGIT
+from cfgs_jax.model import Gaussians, TemporalGaussians
+from cfgs_jax.train.step import over_background
+
+FIELDS = ("means", "quats", "log_scales", "opacity_logits", "colors", "o_logits")
+
+
+@dataclasses.dataclass(frozen=True)
+class RefineConfig:
+    """The paper's refinement values; ``position_lr`` is the input training's (× scene extent, decayed
+    log-linearly to ``position_lr_final`` over ``steps``)."""
+
+    steps: int = 6000
+    lr_o: float = 2.5e-6
+    lr_alpha: float = 0.005
+    lr_color: float = 2e-5
+    lr_other: float = 5e-5
+    position_lr: float = 1.6e-4
+    position_lr_final: float = 1.6e-6
+    lambda_dssim: float = 0.2
+    lambda_change: float = 0.1
+    halve_alpha: bool = True
+    visibility_interval: int = 2000
+    contribution_threshold: float = 0.01
+    random_background: bool = True
+    prune_threshold: float = 1.0 / 255.0
+    seed: int = 0
+
+    def __post_init__(self):
+        if self.steps < 0:
+            raise InputError(f"must be ≥ 0, got {self.steps}", field="refine.steps")
+        if self.visibility_interval <= 0:
+            raise InputError(f"must be positive, got {self.visibility_interval}", field="refine.visibility_interval")
+
+
+def opacity_differences(o: jnp.ndarray) -> jnp.ndarray:
+    """d(o) = (o^p − o^{p+1})_p along the date axis ([N, T] → [N, T−1])."""
+    return o[:, :-1] - o[:, 1:]
+
+
+def change_loss(o_logits, o_logits_init) -> jnp.ndarray:
+    """L_change of Eq. 3: mean |d(õ) − d(o)| on activated o (0 for a single date)."""
+    if o_logits.shape[1] < 2:
+        return jnp.zeros((), o_logits.dtype)
+    d = opacity_differences(jax.nn.sigmoid(o_logits))
+    d0 = opacity_differences(jax.nn.sigmoid(o_logits_init))
+    return jnp.mean(jnp.abs(d0 - d))
+
+
+def halve_alpha(opacity_logits):
+    """logit(σ(x)/2)."""
+    a = 0.5 * jax.nn.sigmoid(opacity_logits)
+    return jnp.log(a) - jnp.log1p(-a)
+
+
+def make_optimizer(config: RefineConfig, extent: float) -> optax.GradientTransformation:
+    lo, hi = np.log(config.position_lr_final * extent), np.log(config.position_lr * extent)
+
+    def position(step):
+        t = jnp.clip(step / max(config.steps, 1), 0.0, 1.0)
+        return jnp.exp(hi * (1 - t) + lo * t)
+
+    rates = {"means": position, "quats": config.lr_other, "log_scales": config.lr_other,
+             "opacity_logits": config.lr_alpha, "colors": config.lr_color, "o_logits": config.lr_o}  # fmt: skip
+    return optax.multi_transform({k: optax.adam(v, eps=1e-15) for k, v in rates.items()}, {f: f for f in FIELDS})
+
+
+def params_of(model: TemporalGaussians) -> dict:
+    g = model.gaussians
+    return {"means": g.means, "quats": g.quats, "log_scales": g.log_scales, "opacity_logits": g.opacity_logits,
+            "colors": g.colors, "o_logits": model.o_logits}  # fmt: skip
+
+
+def model_from(params: dict, like: TemporalGaussians) -> TemporalGaussians:
+    g = Gaussians(params["means"], params["quats"], params["log_scales"], params["opacity_logits"], params["colors"])
+    return dataclasses.replace(like, gaussians=g, o_logits=params["o_logits"])
+
+
+def refine_loss(params, light_logits, o_init, camera, image, date, background, config: RefineConfig, render_config):
+    """Eq. 3 for one training image of ``date``; also the render."""
+    g = Gaussians(params["means"], params["quats"], params["log_scales"], params["opacity_logits"], params["colors"])
+    o = jax.nn.sigmoid(params["o_logits"][:, date])
+    light = 2.0 * jax.nn.sigmoid(light_logits[:, date])
+    res = splat.render_dates(g, camera, o[None], light[None], background=background, config=render_config)
+    pred = res.image[0]
+    target = over_background(image, background)
+    l1 = jnp.mean(jnp.abs(pred - target))
+    photometric = (1.0 - config.lambda_dssim) * l1 + config.lambda_dssim * metrics.d_ssim(pred, target)
+    return photometric + config.lambda_change * change_loss(params["o_logits"], o_init), res
+
+
+@functools.lru_cache(maxsize=16)
+def _compiled_step(config: RefineConfig, extent: float, render_config: splat.RenderConfig):
+    optimizer = make_optimizer(config, extent)
+
+    @jax.jit
+    def step(params, opt_state, light_logits, o_init, camera, image, date, key):
+        bg = jax.random.uniform(key, (3,), image.dtype) if config.random_background else jnp.zeros(3, image.dtype)
+        (loss, res), grads = jax.value_and_grad(refine_loss, has_aux=True)(
+            params, light_logits, o_init, camera, image, date, bg, config, render_config
+        )
+        updates, opt_state = optimizer.update(grads, opt_state, params)
+        contributed = res.max_weight[0] >= config.contribution_threshold
+        return optax.apply_updates(params, updates), opt_state, loss, contributed, res.overflowed
+
+    return optimizer, step
+
+
+def apply_visibility(o_logits: np.ndarray, contributed: np.ndarray, rendered: np.ndarray) -> np.ndarray:
+    """o^p := 0 (``INVISIBLE_LOGIT``) for Gaussians that contributed to no render of date p, for the
+    dates p rendered at least once (``rendered[p]``)."""
+    out = np.array(o_logits, copy=True)
+    kill = ~contributed & rendered[None, :]
+    out[kill] = np.minimum(out[kill], INVISIBLE_LOGIT)
+    return out
+
+
+def final_prune(model: TemporalGaussians, threshold: float = 1.0 / 255.0) -> TemporalGaussians:
+    """Drop Gaussians with α·o^p ≤ ``threshold`` at every date p."""
+    alpha = np.asarray(jax.nn.sigmoid(model.gaussians.opacity_logits))
+    o = np.asarray(jax.nn.sigmoid(model.o_logits))
+    keep = np.any(alpha[:, None] * o > threshold, axis=1)
+    return jax.tree_util.tree_map(lambda x: jnp.asarray(x)[np.nonzero(keep)[0]], model)
+
+
+def refine(model: TemporalGaussians, views: Sequence[DateViews], config: RefineConfig | None = None, *,
+           extent: float, render_config: splat.RenderConfig | None = None, progress: bool = False):  # fmt: skip
+    """Eq. 3 refinement of a cross-initialised model on all dates' training views, the visibility
+    rule every ``visibility_interval`` steps and at the end, then the final prune. Returns the model
+    and a report (losses, Gaussians zeroed per date, pruned count)."""
+    config = config or RefineConfig()
+    render_config = render_config or splat.RenderConfig()
+    t = model.num_dates
+    if len(views) != t:
+        raise InputError(f"{len(views)} date views for a model of {t} dates", field="refine.views")
+    params = params_of(model)
+    if config.halve_alpha:
+        params["opacity_logits"] = halve_alpha(params["opacity_logits"])
+    o_init = jnp.asarray(model.o_logits)
+    light_logits = jnp.asarray(model.light_logits)
+    flat = [(q, v) for q in range(t) for v in range(len(views[q].cameras))]
+    images = [[jnp.asarray(im, jnp.float32) for im in dv.images] for dv in views]
+
+    def capacity_for(params, q, v):
+        g = Gaussians(params["means"], params["quats"], params["log_scales"], params["opacity_logits"], params["colors"])
+        o = jax.nn.sigmoid(params["o_logits"][:, q])[None]
+        return splat.required_capacity(g, views[q].cameras[v], o, config=render_config)
+
+    capacity = max(capacity_for(params, q, v) for q, v in flat)
+    optimizer, step = _compiled_step(config, float(extent), dataclasses.replace(render_config, capacity=capacity))
+    opt_state = optimizer.init(params)
+    n = len(model)
+    contributed = np.zeros((n, t), bool)
+    rendered = np.zeros(t, bool)
+    zeroed = np.zeros(t, np.int64)
+    losses = []
+    key = jax.random.key(config.seed)
+    from rich.progress import Progress
+
+    with Progress(disable=not progress, transient=True) as bar:
+        task = bar.add_task("refine", total=config.steps)
+        for it in range(config.steps):
+            key, sub = jax.random.split(key)
+            q, v = flat[int(np.random.default_rng([config.seed, it // len(flat)]).permutation(len(flat))[it % len(flat)])]
+            while True:
+                new, new_state, loss, contrib, overflowed = step(
+                    params, opt_state, light_logits, o_init, views[q].cameras[v], images[q][v], jnp.int32(q), sub
+                )
+                if not bool(overflowed):
+                    break
+                capacity = max(capacity_for(params, q, v), 2 * capacity)
+                optimizer, step = _compiled_step(config, float(extent), dataclasses.replace(render_config, capacity=capacity))
+            params, opt_state = new, new_state
+            losses.append(float(loss))
+            contributed[:, q] |= np.asarray(contrib)
+            rendered[q] = True
+            if (it + 1) % config.visibility_interval == 0 or it + 1 == config.steps:
+                before = np.asarray(params["o_logits"]) > INVISIBLE_LOGIT
+                o_new = apply_visibility(np.asarray(params["o_logits"]), contributed, rendered)
+                zeroed += np.sum(before & (o_new <= INVISIBLE_LOGIT), axis=0)
+                params["o_logits"] = jnp.asarray(o_new)
+                contributed[:] = False
+                rendered[:] = False
+            bar.update(task, completed=it + 1)
+    refined = model_from(params, model)
+    pruned = final_prune(refined, config.prune_threshold)
+    report = {
+        "steps": config.steps, "loss_first": float(np.mean(losses[:20])) if losses else None,
+        "loss_last": float(np.mean(losses[-20:])) if losses else None, "zeroed_per_date": zeroed.tolist(),
+        "gaussians_before_prune": n, "gaussians_after_prune": len(pruned),
+    }  # fmt: skip
+    return pruned, report
