@@ -205,3 +205,70 @@ def test_refine_lowers_the_loss_on_both_dates_and_keeps_the_model_finite():
     assert all(np.isfinite(np.asarray(x)).all() for x in jax.tree_util.tree_leaves(out.gaussians))
     assert np.all(np.asarray(out.light_logits) == 0.0)  # l frozen at its merged value
     assert rep["gaussians_after_prune"] == len(out) <= 2 * n
+
+
+@pytest.fixture(scope="module")
+def tiny_two_dates(tmp_path_factory):
+    """Two corals dates at 64×48 (6 views each) and their ground-truth date → reference Sim(3)s."""
+    import json
+
+    from cfgs_jax import synthetic
+
+    spec = synthetic.make_preset("corals", seed=5, width=64, height=48, images_per_date=6, spp=4)
+    root = synthetic.render_dataset(spec, tmp_path_factory.mktemp("tiny"), dates=[0, 1], progress=False)
+    gt = json.loads((root / "ground_truth.json").read_text())["dates"]
+    ref = Sim3.from_dict(gt[0]["date_from_world"])
+    sims = {d["name"]: ref.compose(Sim3.from_dict(d["world_from_date"])).to_dict() for d in gt[:2]}
+    (root / "transforms.json").write_text(json.dumps(sims))
+    toml = root / "tiny.toml"
+    toml.write_text(
+        "[train]\nsteps = 60\ndensify_from = 20\ndensify_until = 50\ndensify_interval = 20\n"
+        "[cross_init]\nsteps = 15\n[refine]\nsteps = 20\nvisibility_interval = 10\n"
+    )
+    return root
+
+
+def test_fuse_cli_runs_every_stage_and_resumes_mid_cross_init(tiny_two_dates, tmp_path):
+    import json
+
+    from cfgs_jax.fusion.run import run_fusion
+    from cfgs_jax.pipeline import main
+
+    root = tiny_two_dates
+    dates = [str(root / "d0"), str(root / "d1")]
+    args = ["fuse", "--dates", *dates, "--out", str(tmp_path / "a"), "--config", str(root / "tiny.toml"),
+            "--transforms", str(root / "transforms.json"), "--no-progress"]  # fmt: skip
+    assert main(args) == 0
+    a = cj.io.read_fused(tmp_path / "a" / "fused")
+    ref = cj.io.read_fused(tmp_path / "a" / "reference")
+    timings = json.loads((tmp_path / "a" / "timings.json").read_text())
+    assert set(timings) == {"train", "register", "merge", "cross_init", "refine", "export"}
+    assert a.num_dates == 2 and [d.name for d in a.dates] == ["d0", "d1"]
+    assert np.array_equal(np.asarray(ref.o_logits), np.asarray(a.o_logits)) and len(ref) == len(a)
+    report = json.loads((tmp_path / "a" / "report.json").read_text())
+    assert [r["pair"] for r in report["cross_init"]] == [[0, 1], [1, 0]]
+    assert main(args) == 2  # refuses to overwrite a run without --resume
+
+    # "kill" the second run after its first cross-init pair, then resume it
+    from cfgs_jax.config import load_config
+
+    class Killed(Exception):
+        pass
+
+    seen = []
+
+    def log(msg):
+        seen.append(msg)
+        if sum("[cross_init]" in m for m in seen) == 2:
+            raise Killed
+
+    b_dir = tmp_path / "b"
+    with pytest.raises(Killed):
+        run_fusion([root / "d0", root / "d1"], b_dir, load_config(root / "tiny.toml"),
+                   transforms=root / "transforms.json", progress=False, log=log)  # fmt: skip
+    assert json.loads((b_dir / "cross_init_pairs.json").read_text())["pairs"] == [[0, 1]]
+    assert main(args[:5] + [str(b_dir)] + args[6:] + ["--resume"]) == 0
+    b = cj.io.read_fused(b_dir / "fused")
+    assert len(a) == len(b)
+    for x, y in zip(jax.tree_util.tree_leaves(a), jax.tree_util.tree_leaves(b)):
+        assert np.allclose(np.asarray(x), np.asarray(y), atol=1e-6)

@@ -6,6 +6,7 @@ Commands (more arrive with their stages):
   metrics A B             PSNR / SSIM / LPIPS between two images or two folders of images
   synth --preset NAME     render a synthetic multi-date scene (Mitsuba 3) as per-date COLMAP datasets
   train --scene D --out O train one date's 3DGS model (or --continue-from PLY: "Individual +N")
+  fuse --dates D1 D2 ...  train, register, merge, cross-init, refine: one multi-temporal model
   demo                    the embedded default job (see README)
 
 Errors at the file boundary print one line naming the file, field and fix, and exit with status 2.
@@ -255,6 +256,33 @@ def cmd_train(args) -> int:
     return 0
 
 
+def cmd_fuse(args) -> int:
+    from cfgs_jax.config import find_preset, load_config
+    from cfgs_jax.fusion.run import run_fusion
+
+    raw = load_config(find_preset(args.config))
+    if args.models and len(args.models) != len(args.dates):
+        raise InputError(f"{len(args.models)} models for {len(args.dates)} dates", field="--models",
+                         fix="give one PLY per date, in the order of --dates")  # fmt: skip
+    console = _console()
+    run = run_fusion(
+        [Path(d) for d in args.dates], Path(args.out), raw, models=args.models, resume=args.resume,
+        transforms=Path(args.transforms) if args.transforms else None, progress=not args.no_progress,
+        log=console.print,
+    )  # fmt: skip
+    from rich.table import Table
+
+    t = Table(title=f"fusion run {run.out}")
+    t.add_column("stage")
+    t.add_column("wall time (s)", justify="right")
+    for stage, sec in run.timings.items():
+        t.add_row(stage, f"{sec:.1f}")
+    console.print(t)
+    rep = run.report.get("refine", {})
+    console.print(f"wrote {run.out / 'fused'} ({rep.get('gaussians_after_prune', '?')} Gaussians) and {run.out / 'reference'}")
+    return 0
+
+
 def _default_fixture() -> Path:
     env = os.environ.get("CFGS_DEMO_PLY")
     cands = [Path(env)] if env else []
@@ -355,6 +383,16 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--lpips-net", choices=("alex", "vgg"), default="alex")
     s.add_argument("--no-progress", action="store_true")
     s.set_defaults(func=cmd_train)
+
+    s = sub.add_parser("fuse", help="fuse per-date datasets into one multi-temporal model")
+    s.add_argument("--dates", nargs="+", required=True, help="per-date COLMAP datasets (the first is the reference)")
+    s.add_argument("--out", required=True, help="run directory")
+    s.add_argument("--config", default="paper", help="preset name (paper, fast) or TOML path")
+    s.add_argument("--models", nargs="+", help="trained per-date PLYs (default: train them in the run)")
+    s.add_argument("--transforms", help="JSON of known date → reference Sim(3)s (skips SfM registration)")
+    s.add_argument("--resume", action="store_true", help="continue the run in --out")
+    s.add_argument("--no-progress", action="store_true")
+    s.set_defaults(func=cmd_fuse)
 
     s = sub.add_parser("demo", help="the embedded default job")
     s.add_argument("--ply", help="3DGS PLY to use (default: the real fixture model beside the checkout)")

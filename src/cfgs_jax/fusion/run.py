@@ -1,0 +1,236 @@
+"""The fusion run: per-date training, registration, merge, cross-timestep initialisation, refinement
+and export, as resumable stages over one run directory (``python -m cfgs_jax.pipeline fuse``).
+
+Layout of ``RUN/``::
+
+    run.json            dates (name, dataset path), finished stages, configuration
+    timings.json        wall seconds per finished stage (per date / pair where it applies)
+    dates/<name>/       per-date training runs (point_cloud.ply, train.json, checkpoint.npz)
+    register.json       date → reference Sim(3)s with their residuals
+    merged/             the merged model (cfgs layout)
+    cross_init/         the model after cross-timestep init (written after every pair: resume point)
+    fused/              the refined, pruned model (cfgs layout)   reference/  the same, authors' layout
+    report.json         per-stage reports (pairs, refinement)
+
+Every file is written atomically; ``resume=True`` skips finished stages, continues per-date training
+from its checkpoint and cross-timestep init from the last finished pair.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import time
+from pathlib import Path
+
+import jax.numpy as jnp
+import numpy as np
+
+from cfgs_jax import splat, train
+from cfgs_jax.config import section
+from cfgs_jax.errors import InputError
+from cfgs_jax.fusion.cross_init import CrossInitConfig, DateViews, init_pair
+from cfgs_jax.fusion.fuse import merge
+from cfgs_jax.fusion.refine import RefineConfig, refine
+from cfgs_jax.fusion.register import RegisterConfig, register_date
+from cfgs_jax.io.atomic import atomic_file, ensure_writable_dir
+from cfgs_jax.io.colmap import Scene, read_colmap
+from cfgs_jax.io.fused import read_fused, write_fused
+from cfgs_jax.io.ply import read_ply
+from cfgs_jax.model import Camera, DateInfo
+from cfgs_jax.sim3 import Sim3
+
+STAGES = ("train", "register", "merge", "cross_init", "refine", "export")
+
+
+def _write_json(path: Path, data) -> None:
+    with atomic_file(path) as tmp:
+        tmp.write_text(json.dumps(data, indent=1))
+
+
+def _read_json(path: Path, default=None):
+    return json.loads(path.read_text()) if path.is_file() else default
+
+
+def camera_in_frame(camera: Camera, sim3: Sim3) -> Camera:
+    """``camera`` (posed in a date's frame) posed in the frame ``sim3`` maps that date into."""
+    m = sim3.transform_cam_from_world(np.asarray(camera.cam_from_world, np.float64))
+    return dataclasses.replace(camera, cam_from_world=jnp.asarray(m, jnp.float32))
+
+
+def date_views(scene: Scene, sim3: Sim3, split: str = "train") -> DateViews:
+    """A date's ``split`` views (RGBA images, alpha 1 where none) posed in the reference frame."""
+    idx = scene.indices(split) if len(scene.indices(split)) else scene.indices("all")
+    return DateViews(
+        tuple(camera_in_frame(scene.cameras[int(i)], sim3) for i in idx),
+        tuple(scene.load_image(int(i), with_alpha=True) for i in idx),
+    )
+
+
+def load_transforms(path: Path, names: list[str]) -> dict[str, Sim3]:
+    """A JSON ``{date name: {"scale", "rotation_wxyz", "translation"}}`` of date → reference Sim(3)s
+    (the reference date may be omitted: identity)."""
+    try:
+        data = json.loads(Path(path).read_text())
+    except (OSError, json.JSONDecodeError) as exc:
+        raise InputError(f"unreadable transforms ({exc})", path=path, fix="give a JSON object of Sim(3)s") from exc
+    out = {names[0]: Sim3.identity()}
+    for name in names[1:]:
+        if name not in data:
+            raise InputError(f"no transform for date {name!r}", path=path, field=name,
+                             fix='add {"scale": s, "rotation_wxyz": [w, x, y, z], "translation": [x, y, z]}')  # fmt: skip
+        try:
+            out[name] = Sim3.from_dict(data[name])
+        except (KeyError, TypeError, ValueError) as exc:
+            raise InputError(f"bad Sim(3) ({exc})", path=path, field=name) from exc
+    return out
+
+
+class FusionRun:
+    """One run directory and its stage bookkeeping."""
+
+    def __init__(self, out: Path, dates: list[Path], raw_config: dict | None, *, resume: bool, models=None):
+        self.out = ensure_writable_dir(out)
+        self.raw = raw_config or {}
+        state = _read_json(self.out / "run.json")
+        if state is not None and not resume:
+            raise InputError("this run directory holds an earlier run", path=self.out / "run.json",
+                             fix="pass --resume to continue it, or choose another --out")  # fmt: skip
+        if state is not None:
+            if [str(Path(d).resolve()) for d in dates] != [d["path"] for d in state["dates"]]:
+                raise InputError("the run was started with other dates", path=self.out / "run.json", field="--dates",
+                                 fix=f"use {[d['path'] for d in state['dates']]}")  # fmt: skip
+        names = [Path(d).name for d in dates]
+        if len(set(names)) != len(names) or len(names) < 2:
+            raise InputError(f"need ≥ 2 dates with distinct directory names, got {names}", field="--dates")
+        self.state = state or {
+            "dates": [{"name": n, "path": str(Path(d).resolve())} for n, d in zip(names, dates)],
+            "done": [], "config": {k: v for k, v in self.raw.items() if k != "__path__"},
+            "models": [str(Path(m).resolve()) for m in models] if models else None,
+        }  # fmt: skip
+        self.timings = _read_json(self.out / "timings.json", {})
+        self.report = _read_json(self.out / "report.json", {})
+        self._save()
+
+    @property
+    def names(self) -> list[str]:
+        return [d["name"] for d in self.state["dates"]]
+
+    def scene(self, i: int) -> Scene:
+        tc = section(self.raw, "train", train.TrainConfig)
+        return read_colmap(self.state["dates"][i]["path"], test_every=max(1, tc.test_every))
+
+    def _save(self):
+        _write_json(self.out / "run.json", self.state)
+        _write_json(self.out / "timings.json", self.timings)
+        _write_json(self.out / "report.json", self.report)
+
+    def finish(self, stage: str, seconds: float, report=None):
+        self.state["done"].append(stage)
+        self.timings[stage] = seconds
+        if report is not None:
+            self.report[stage] = report
+        self._save()
+
+    def done(self, stage: str) -> bool:
+        return stage in self.state["done"]
+
+
+def run_fusion(dates: list[Path], out: Path, raw_config: dict | None = None, *, models: list[Path] | None = None,
+               transforms: Path | None = None, resume: bool = False, progress: bool = True, log=print) -> FusionRun:  # fmt: skip
+    """All stages of ChronoFuseGS over ``dates`` (COLMAP datasets; the first is the reference frame)."""
+    run = FusionRun(Path(out), [Path(d) for d in dates], raw_config, resume=resume, models=models)
+    raw = run.raw
+    render_config = section(raw, "render", splat.RenderConfig)
+    names = run.names
+    scenes = [run.scene(i) for i in range(len(names))]
+
+    # 1. per-date models
+    if not run.done("train"):
+        t0 = time.perf_counter()
+        per_date = {}
+        tc = section(raw, "train", train.TrainConfig)
+        for i, name in enumerate(names):
+            d = run.out / "dates" / name
+            if run.state["models"]:
+                continue
+            if (d / "point_cloud.ply").is_file():
+                continue
+            log(f"[train] date {name}: {tc.steps:,} steps")
+            s = time.perf_counter()
+            r = train.fit(scenes[i], tc, render_config, out=d, resume=True, progress=progress)
+            from cfgs_jax.io.ply import write_ply
+
+            write_ply(d / "point_cloud.ply", r.gaussians)
+            _write_json(d / "train.json", {"gaussians": len(r.gaussians), "test": r.metrics, "growth": r.counts})
+            per_date[name] = time.perf_counter() - s
+        run.finish("train", time.perf_counter() - t0, {"per_date_seconds": per_date})
+    model_paths = run.state["models"] or [str(run.out / "dates" / n / "point_cloud.ply") for n in names]
+
+    # 2. registration
+    if not run.done("register"):
+        t0 = time.perf_counter()
+        if transforms is not None:
+            sims = load_transforms(transforms, names)
+            reg = {n: {"transform": sims[n].to_dict(), "source": str(transforms)} for n in names}
+        else:
+            rc = section(raw, "register", RegisterConfig)
+            reg = {names[0]: {"transform": Sim3.identity().to_dict(), "source": "reference"}}
+            for i in range(1, len(names)):
+                log(f"[register] date {names[i]} → {names[0]}")
+                r = register_date(scenes[0], scenes[i], config=rc)
+                reg[names[i]] = r.to_dict() | {"source": "joint SfM"}
+                log(f"  {r.registered_reference} + {r.registered_date} images registered; centre residual "
+                    f"{100 * r.centre_residual:.2f} % of the extent, rotation {r.rotation_residual_deg:.2f}°")  # fmt: skip
+        _write_json(run.out / "register.json", reg)
+        run.finish("register", time.perf_counter() - t0)
+    reg = _read_json(run.out / "register.json")
+    sims = [Sim3.from_dict(reg[n]["transform"]) for n in names]
+    dinfo = [DateInfo(n, sources=(run.state["dates"][i]["path"],)) for i, n in enumerate(names)]
+
+    # 3. merge
+    if not run.done("merge"):
+        t0 = time.perf_counter()
+        merged = merge([read_ply(p) for p in model_paths], dinfo, sims)
+        write_fused(run.out / "merged", merged)
+        run.finish("merge", time.perf_counter() - t0, {"gaussians": len(merged)})
+    views = [date_views(scenes[i], sims[i]) for i in range(len(names))]
+
+    # 4. cross-timestep initialisation, resumable per pair
+    if not run.done("cross_init"):
+        cc = section(raw, "cross_init", CrossInitConfig)
+        partial = run.out / "cross_init"
+        progress_file = run.out / "cross_init_pairs.json"
+        finished = _read_json(progress_file, {"pairs": [], "reports": [], "seconds": 0.0})
+        model = read_fused(partial) if finished["pairs"] else read_fused(run.out / "merged")
+        pairs = [(p, q) for p in range(len(names)) for q in range(len(names)) if p != q]
+        for p, q in pairs:
+            if [p, q] in finished["pairs"]:
+                continue
+            log(f"[cross_init] Gaussians of {names[p]} against images of {names[q]}: {cc.steps:,} steps")
+            s = time.perf_counter()
+            model, rep = init_pair(model, p, q, views[q], cc, render_config=render_config)
+            write_fused(partial, model)
+            finished["pairs"].append([p, q])
+            finished["reports"].append(rep | {"seconds": time.perf_counter() - s})
+            finished["seconds"] += time.perf_counter() - s
+            _write_json(progress_file, finished)
+        run.finish("cross_init", finished["seconds"], finished["reports"])
+
+    # 5. refinement and final prune
+    if not run.done("refine"):
+        t0 = time.perf_counter()
+        fc = section(raw, "refine", RefineConfig)
+        model = read_fused(run.out / "cross_init")
+        log(f"[refine] {len(model):,} Gaussians, {fc.steps:,} steps over all dates")
+        model, rep = refine(model, views, fc, extent=train.scene_extent(scenes[0].cameras),
+                            render_config=render_config, progress=progress)  # fmt: skip
+        write_fused(run.out / "fused", model, config=run.state["config"])
+        run.finish("refine", time.perf_counter() - t0, rep)
+
+    # 6. export in the authors' layout too
+    if not run.done("export"):
+        t0 = time.perf_counter()
+        write_fused(run.out / "reference", read_fused(run.out / "fused"), layout="reference")
+        run.finish("export", time.perf_counter() - t0)
+    return run
