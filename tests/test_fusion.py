@@ -215,10 +215,10 @@ def tiny_two_dates(tmp_path_factory):
     from cfgs_jax import synthetic
 
     spec = synthetic.make_preset("corals", seed=5, width=64, height=48, images_per_date=6, spp=4)
-    root = synthetic.render_dataset(spec, tmp_path_factory.mktemp("tiny"), dates=[0, 1], progress=False)
+    root = synthetic.render_dataset(spec, tmp_path_factory.mktemp("tiny"), dates=[0, 1, 2], progress=False)
     gt = json.loads((root / "ground_truth.json").read_text())["dates"]
     ref = Sim3.from_dict(gt[0]["date_from_world"])
-    sims = {d["name"]: ref.compose(Sim3.from_dict(d["world_from_date"])).to_dict() for d in gt[:2]}
+    sims = {d["name"]: ref.compose(Sim3.from_dict(d["world_from_date"])).to_dict() for d in gt[:3]}
     (root / "transforms.json").write_text(json.dumps(sims))
     toml = root / "tiny.toml"
     toml.write_text(
@@ -242,7 +242,9 @@ def test_fuse_cli_runs_every_stage_and_resumes_mid_cross_init(tiny_two_dates, tm
     a = cj.io.read_fused(tmp_path / "a" / "fused")
     ref = cj.io.read_fused(tmp_path / "a" / "reference")
     timings = json.loads((tmp_path / "a" / "timings.json").read_text())
-    assert set(timings) == {"train", "register", "merge", "cross_init", "refine", "export"}
+    assert set(timings) == {"train", "register", "merge", "cross_init", "refine", "export", "evaluate"}
+    metrics_json = json.loads((tmp_path / "a" / "metrics.json").read_text())
+    assert set(metrics_json["dates"]) == {"d0", "d1"} and np.isfinite(metrics_json["mean"]["psnr"])
     assert a.num_dates == 2 and [d.name for d in a.dates] == ["d0", "d1"]
     assert np.array_equal(np.asarray(ref.o_logits), np.asarray(a.o_logits)) and len(ref) == len(a)
     report = json.loads((tmp_path / "a" / "report.json").read_text())
@@ -272,3 +274,30 @@ def test_fuse_cli_runs_every_stage_and_resumes_mid_cross_init(tiny_two_dates, tm
     assert len(a) == len(b)
     for x, y in zip(jax.tree_util.tree_leaves(a), jax.tree_util.tree_leaves(b)):
         assert np.allclose(np.asarray(x), np.asarray(y), atol=1e-6)
+
+
+def test_extend_adds_a_date_initialising_only_its_pairs(tiny_two_dates, tmp_path):
+    import json
+
+    from cfgs_jax.pipeline import main
+
+    root = tiny_two_dates
+    run = tmp_path / "run"
+    common = ["--transforms", str(root / "transforms.json"), "--no-progress"]
+    assert main(["fuse", "--dates", str(root / "d0"), str(root / "d1"), "--out", str(run),
+                 "--config", str(root / "tiny.toml"), *common]) == 0  # fmt: skip
+    before = cj.io.read_fused(run / "fused")
+    assert main(["extend", "--run", str(run), "--date", str(root / "d2"), *common]) == 0
+    after_init = cj.io.read_fused(run / "cross_init")
+    n_old = len(before)
+    # old dates' o of the old Gaussians are untouched by the extension's cross-timestep init
+    assert np.array_equal(np.asarray(after_init.o_logits)[:n_old, :2], np.asarray(before.o_logits))
+    assert np.array_equal(np.asarray(after_init.light_logits)[:n_old, :2], np.asarray(before.light_logits))
+    report = json.loads((run / "report.json").read_text())
+    assert [r["pair"] for r in report["extend:d2:cross_init"]] == [[0, 2], [1, 2], [2, 0], [2, 1]]
+    fused = cj.io.read_fused(run / "fused")
+    assert fused.num_dates == 3 and [d.name for d in fused.dates] == ["d0", "d1", "d2"]
+    assert set(json.loads((run / "metrics.json").read_text())["dates"]) == {"d0", "d1", "d2"}
+    timings = json.loads((run / "timings.json").read_text())
+    assert timings["extend:d2:total"] > 0 and "extend:d2:cross_init" in timings
+    assert main(["extend", "--run", str(run), "--date", str(root / "d2"), *common]) == 2  # already there

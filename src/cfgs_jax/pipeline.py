@@ -7,6 +7,7 @@ Commands (more arrive with their stages):
   synth --preset NAME     render a synthetic multi-date scene (Mitsuba 3) as per-date COLMAP datasets
   train --scene D --out O train one date's 3DGS model (or --continue-from PLY: "Individual +N")
   fuse --dates D1 D2 ...  train, register, merge, cross-init, refine: one multi-temporal model
+  extend --run R --date D add one date to a fused run (only the new date's pairs are initialised)
   demo                    the embedded default job (see README)
 
 Errors at the file boundary print one line naming the file, field and fix, and exit with status 2.
@@ -283,6 +284,30 @@ def cmd_fuse(args) -> int:
     return 0
 
 
+def cmd_extend(args) -> int:
+    import json
+
+    from cfgs_jax.fusion.run import run_extend
+    from cfgs_jax.sim3 import Sim3
+
+    transform = None
+    if args.transforms:
+        name = Path(args.date).name
+        try:
+            transform = Sim3.from_dict(json.loads(Path(args.transforms).read_text())[name])
+        except (OSError, KeyError, ValueError, TypeError) as exc:
+            raise InputError(f"no usable Sim(3) for date {name!r} ({exc})", path=args.transforms, field=name) from exc
+    console = _console()
+    run = run_extend(Path(args.run), Path(args.date), model=Path(args.model) if args.model else None,
+                     transform=transform, resume=args.resume, progress=not args.no_progress, log=console.print)  # fmt: skip
+    name = Path(args.date).name
+    prefix = f"extend:{name}:"
+    stages = [(k[len(prefix):], v) for k, v in run.timings.items() if k.startswith(prefix) and not k.endswith("total")]
+    detail = ", ".join(f"{k} {v:.1f} s" for k, v in stages)
+    console.print(f"extended {run.out} by {name} in {run.timings.get(prefix + 'total', 0.0):.1f} s ({detail})")
+    return 0
+
+
 def _default_fixture() -> Path:
     env = os.environ.get("CFGS_DEMO_PLY")
     cands = [Path(env)] if env else []
@@ -393,6 +418,15 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--resume", action="store_true", help="continue the run in --out")
     s.add_argument("--no-progress", action="store_true")
     s.set_defaults(func=cmd_fuse)
+
+    s = sub.add_parser("extend", help="add one date to a finished fusion run (incremental fusion)")
+    s.add_argument("--run", required=True, help="run directory of a finished `fuse`")
+    s.add_argument("--date", required=True, help="the new date's COLMAP dataset")
+    s.add_argument("--model", help="its trained PLY (default: train it in the run)")
+    s.add_argument("--transforms", help="JSON with the new date's date → reference Sim(3) (skips registration)")
+    s.add_argument("--resume", action="store_true")
+    s.add_argument("--no-progress", action="store_true")
+    s.set_defaults(func=cmd_extend)
 
     s = sub.add_parser("demo", help="the embedded default job")
     s.add_argument("--ply", help="3DGS PLY to use (default: the real fixture model beside the checkout)")

@@ -40,7 +40,7 @@ from cfgs_jax.io.ply import read_ply
 from cfgs_jax.model import Camera, DateInfo
 from cfgs_jax.sim3 import Sim3
 
-STAGES = ("train", "register", "merge", "cross_init", "refine", "export")
+STAGES = ("train", "register", "merge", "cross_init", "refine", "export", "evaluate")
 
 
 def _write_json(path: Path, data) -> None:
@@ -137,7 +137,8 @@ class FusionRun:
 
 
 def run_fusion(dates: list[Path], out: Path, raw_config: dict | None = None, *, models: list[Path] | None = None,
-               transforms: Path | None = None, resume: bool = False, progress: bool = True, log=print) -> FusionRun:  # fmt: skip
+               transforms: Path | None = None, resume: bool = False, progress: bool = True, evaluate: bool = True,
+               log=print) -> FusionRun:  # fmt: skip
     """All stages of ChronoFuseGS over ``dates`` (COLMAP datasets; the first is the reference frame)."""
     run = FusionRun(Path(out), [Path(d) for d in dates], raw_config, resume=resume, models=models)
     raw = run.raw
@@ -233,4 +234,125 @@ def run_fusion(dates: list[Path], out: Path, raw_config: dict | None = None, *, 
         t0 = time.perf_counter()
         write_fused(run.out / "reference", read_fused(run.out / "fused"), layout="reference")
         run.finish("export", time.perf_counter() - t0)
+    _evaluate_stage(run, scenes, sims, render_config, evaluate, log)
+    return run
+
+
+def _evaluate_stage(run: FusionRun, scenes, sims, render_config, enabled: bool, log, stage="evaluate"):
+    """Test-split PSNR / SSIM / LPIPS of the fused model per date → RUN/metrics.json."""
+    if run.done(stage) or not enabled:
+        return
+    from cfgs_jax.fusion.evaluate import evaluate_fused
+
+    t0 = time.perf_counter()
+    model = read_fused(run.out / "fused")
+    test_views = [date_views(sc, sm, "test") for sc, sm in zip(scenes, sims)]
+    m = evaluate_fused(model, test_views, render_config=render_config)
+    _write_json(run.out / "metrics.json", m)
+    log("test views: " + ", ".join(f"{n} {v['psnr']:.2f} dB" for n, v in m["dates"].items())
+        + f"; mean PSNR {m['mean']['psnr']:.2f} dB, SSIM {m['mean']['ssim']:.4f}, LPIPS {m['mean'].get('lpips', float('nan')):.4f}")  # fmt: skip
+    run.finish(stage, time.perf_counter() - t0, m["mean"])
+
+
+def run_extend(run_dir: Path, date: Path, *, model: Path | None = None, transform: Sim3 | None = None,
+               resume: bool = False, progress: bool = True, evaluate: bool = True, log=print) -> FusionRun:  # fmt: skip
+    """Add one date to a finished fusion run in place (paper: incremental fusion): train it (unless
+    ``model``), register it to the reference date, append it (``add_date``), cross-initialise only the
+    pairs involving it, refine, export. Stages are named ``extend:<date>:<stage>`` (resumable)."""
+    from cfgs_jax.fusion.fuse import add_date
+
+    run_dir = Path(run_dir)
+    state = _read_json(run_dir / "run.json")
+    if state is None or "refine" not in state["done"]:
+        raise InputError("not a finished fusion run", path=run_dir, fix="run `fuse` first (or --resume it)")
+    name = Path(date).name
+    prefix = f"extend:{name}:"
+    if name in [d["name"] for d in state["dates"]] and not any(s.startswith(prefix) for s in state["done"]):
+        raise InputError(f"the run already has a date named {name!r}", path=run_dir, field="--date")
+    started = any(s.startswith(prefix) for s in state["done"])
+    if started and not resume:
+        raise InputError(f"an extension by {name!r} was started here", path=run_dir, fix="pass --resume")
+    paths = [d["path"] for d in state["dates"]]
+    if not started:
+        state["dates"].append({"name": name, "path": str(Path(date).resolve())})
+        if state.get("models"):
+            if model is None:
+                raise InputError("the run was fused from given models", field="--model", fix="pass --model PLY")
+            state["models"].append(str(Path(model).resolve()))
+        _write_json(run_dir / "run.json", state)
+        paths.append(str(Path(date).resolve()))
+    run = FusionRun(run_dir, [Path(p) for p in paths], state["config"], resume=True)
+    raw = run.raw
+    render_config = section(raw, "render", splat.RenderConfig)
+    names = run.names
+    k = len(names) - 1
+    scenes = [run.scene(i) for i in range(len(names))]
+    t_start = time.perf_counter()
+
+    if not run.done(prefix + "train"):
+        t0 = time.perf_counter()
+        d = run.out / "dates" / name
+        if model is None and not (d / "point_cloud.ply").is_file():
+            tc = section(raw, "train", train.TrainConfig)
+            log(f"[extend/train] date {name}: {tc.steps:,} steps")
+            r = train.fit(scenes[k], tc, render_config, out=d, resume=True, progress=progress)
+            from cfgs_jax.io.ply import write_ply
+
+            write_ply(d / "point_cloud.ply", r.gaussians)
+        run.finish(prefix + "train", time.perf_counter() - t0)
+    ply = Path(model) if model is not None else run.out / "dates" / name / "point_cloud.ply"
+
+    reg = _read_json(run.out / "register.json")
+    if not run.done(prefix + "register"):
+        t0 = time.perf_counter()
+        if transform is not None:
+            reg[name] = {"transform": transform.to_dict(), "source": "given"}
+        else:
+            log(f"[extend/register] date {name} → {names[0]}")
+            r = register_date(scenes[0], scenes[k], config=section(raw, "register", RegisterConfig))
+            reg[name] = r.to_dict() | {"source": "joint SfM"}
+        _write_json(run.out / "register.json", reg)
+        run.finish(prefix + "register", time.perf_counter() - t0)
+    sims = [Sim3.from_dict(reg[n]["transform"]) for n in names]
+
+    if not run.done(prefix + "merge"):
+        t0 = time.perf_counter()
+        old = read_fused(run.out / "fused")
+        merged = add_date(old, read_ply(ply), DateInfo(name, sources=(paths[k],)), sims[k])
+        write_fused(run.out / "cross_init", merged)
+        _write_json(run.out / "cross_init_pairs.json", {"pairs": [], "reports": [], "seconds": 0.0})
+        run.finish(prefix + "merge", time.perf_counter() - t0)
+    views = [date_views(scenes[i], sims[i]) for i in range(len(names))]
+
+    if not run.done(prefix + "cross_init"):
+        cc = section(raw, "cross_init", CrossInitConfig)
+        progress_file = run.out / "cross_init_pairs.json"
+        finished = _read_json(progress_file)
+        model_now = read_fused(run.out / "cross_init")
+        pairs = [(p, k) for p in range(k)] + [(k, q) for q in range(k)]  # only pairs involving the new date
+        for p, q in pairs:
+            if [p, q] in finished["pairs"]:
+                continue
+            log(f"[extend/cross_init] Gaussians of {names[p]} against images of {names[q]}: {cc.steps:,} steps")
+            s = time.perf_counter()
+            model_now, rep = init_pair(model_now, p, q, views[q], cc, render_config=render_config)
+            write_fused(run.out / "cross_init", model_now)
+            finished["pairs"].append([p, q])
+            finished["reports"].append(rep | {"seconds": time.perf_counter() - s})
+            finished["seconds"] += time.perf_counter() - s
+            _write_json(progress_file, finished)
+        run.finish(prefix + "cross_init", finished["seconds"], finished["reports"])
+
+    if not run.done(prefix + "refine"):
+        t0 = time.perf_counter()
+        fc = section(raw, "refine", RefineConfig)
+        m, rep = refine(read_fused(run.out / "cross_init"), views, fc, extent=train.scene_extent(scenes[0].cameras),
+                        render_config=render_config, progress=progress)  # fmt: skip
+        write_fused(run.out / "fused", m, config=run.state["config"])
+        write_fused(run.out / "reference", m, layout="reference")
+        run.finish(prefix + "refine", time.perf_counter() - t0, rep)
+    _evaluate_stage(run, scenes, sims, render_config, evaluate, log, stage=prefix + "evaluate")
+    run.timings[f"extend:{name}:total"] = sum(v for key, v in run.timings.items() if key.startswith(prefix))
+    run._save()
+    del t_start
     return run
