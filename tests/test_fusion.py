@@ -228,26 +228,37 @@ def tiny_two_dates(tmp_path_factory):
     return root
 
 
-def test_fuse_cli_runs_every_stage_and_resumes_mid_cross_init(tiny_two_dates, tmp_path):
+@pytest.fixture(scope="module")
+def fused_run(tiny_two_dates, tmp_path_factory):
+    """`fuse` of d0 and d1 through the CLI; returns (run directory, its argument list)."""
+    from cfgs_jax.pipeline import main
+
+    root = tiny_two_dates
+    out = tmp_path_factory.mktemp("fused") / "a"
+    args = ["fuse", "--dates", str(root / "d0"), str(root / "d1"), "--out", str(out), "--config",
+            str(root / "tiny.toml"), "--transforms", str(root / "transforms.json"), "--no-progress"]  # fmt: skip
+    assert main(args) == 0
+    return out, args
+
+
+def test_fuse_cli_runs_every_stage_and_resumes_mid_cross_init(tiny_two_dates, fused_run, tmp_path):
     import json
 
     from cfgs_jax.fusion.run import run_fusion
     from cfgs_jax.pipeline import main
 
     root = tiny_two_dates
-    dates = [str(root / "d0"), str(root / "d1")]
-    args = ["fuse", "--dates", *dates, "--out", str(tmp_path / "a"), "--config", str(root / "tiny.toml"),
-            "--transforms", str(root / "transforms.json"), "--no-progress"]  # fmt: skip
-    assert main(args) == 0
-    a = cj.io.read_fused(tmp_path / "a" / "fused")
-    ref = cj.io.read_fused(tmp_path / "a" / "reference")
-    timings = json.loads((tmp_path / "a" / "timings.json").read_text())
+    a_dir, args = fused_run
+    tmp_path = tmp_path  # the resumed run goes here
+    a = cj.io.read_fused(a_dir / "fused")
+    ref = cj.io.read_fused(a_dir / "reference")
+    timings = json.loads((a_dir / "timings.json").read_text())
     assert set(timings) == {"train", "register", "merge", "cross_init", "refine", "export", "evaluate"}
-    metrics_json = json.loads((tmp_path / "a" / "metrics.json").read_text())
+    metrics_json = json.loads((a_dir / "metrics.json").read_text())
     assert set(metrics_json["dates"]) == {"d0", "d1"} and np.isfinite(metrics_json["mean"]["psnr"])
     assert a.num_dates == 2 and [d.name for d in a.dates] == ["d0", "d1"]
     assert np.array_equal(np.asarray(ref.o_logits), np.asarray(a.o_logits)) and len(ref) == len(a)
-    report = json.loads((tmp_path / "a" / "report.json").read_text())
+    report = json.loads((a_dir / "report.json").read_text())
     assert [r["pair"] for r in report["cross_init"]] == [[0, 1], [1, 0]]
     assert main(args) == 2  # refuses to overwrite a run without --resume
 
@@ -276,16 +287,16 @@ def test_fuse_cli_runs_every_stage_and_resumes_mid_cross_init(tiny_two_dates, tm
         assert np.allclose(np.asarray(x), np.asarray(y), atol=1e-6)
 
 
-def test_extend_adds_a_date_initialising_only_its_pairs(tiny_two_dates, tmp_path):
+def test_extend_adds_a_date_initialising_only_its_pairs(tiny_two_dates, fused_run, tmp_path):
     import json
+    import shutil
 
     from cfgs_jax.pipeline import main
 
     root = tiny_two_dates
     run = tmp_path / "run"
+    shutil.copytree(fused_run[0], run)
     common = ["--transforms", str(root / "transforms.json"), "--no-progress"]
-    assert main(["fuse", "--dates", str(root / "d0"), str(root / "d1"), "--out", str(run),
-                 "--config", str(root / "tiny.toml"), *common]) == 0  # fmt: skip
     before = cj.io.read_fused(run / "fused")
     assert main(["extend", "--run", str(run), "--date", str(root / "d2"), *common]) == 0
     after_init = cj.io.read_fused(run / "cross_init")
