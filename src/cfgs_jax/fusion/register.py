@@ -7,6 +7,7 @@ from the images with pycolmap and optimistix.
 from __future__ import annotations
 
 import dataclasses
+import logging
 from pathlib import Path
 
 import jax
@@ -185,6 +186,8 @@ def register_date(reference, date, *, config: RegisterConfig | None = None, work
     from cfgs_jax.io.images import read_image, write_image
 
     config = config or RegisterConfig()
+    if not logging.getLogger("cfgs_jax").isEnabledFor(logging.INFO):
+        pycolmap.logging.minloglevel = 2  # COLMAP's per-image INFO lines only with --verbose
     with tempfile.TemporaryDirectory(dir=workdir) as tmp:
         tmp = Path(tmp)
         picked = {}
