@@ -39,6 +39,7 @@ from cfgs_jax.errors import InputError
 from cfgs_jax.fusion.fuse import INVISIBLE_LOGIT
 from cfgs_jax.fusion.light import light_logits, light_multiplier
 from cfgs_jax.model import Camera, Gaussians, TemporalGaussians
+from cfgs_jax.train.loop import view_order
 from cfgs_jax.train.step import over_background
 
 
@@ -181,7 +182,7 @@ def init_pair(model: TemporalGaussians, p: int, q: int, views: DateViews, config
     opt_state = optimizer.init(params)
     for it in range(config.steps):
         key, k_bg = jax.random.split(key)
-        v = int(np.random.default_rng([config.seed, p, q, it // len(images)]).permutation(len(images))[it % len(images)])
+        v = view_order((config.seed, p, q), it, len(images))
         params, opt_state, loss, overflowed = step(params, opt_state, g, views.cameras[v], images[v], eps_maps[v],
                                                     k_bg, jnp.float32(it))  # fmt: skip
         if bool(overflowed):  # cannot happen with capacities from o = 1 (o^q ≤ 1), but never silently

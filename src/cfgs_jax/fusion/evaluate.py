@@ -5,19 +5,19 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 
 from cfgs_jax import metrics, splat
-from cfgs_jax.model import TemporalGaussians
+from cfgs_jax.model import TemporalGaussians, light_multipliers, opacity_multipliers
+from cfgs_jax.train.evaluate import image_metrics
 from cfgs_jax.train.step import over_background
 
 
 def render_date(model: TemporalGaussians, q: int, camera, *, background=(0.0, 0.0, 0.0), config=None):
     """Date ``q`` of the model (Eq. 1: opacity α·o^q, colour l^q ⊙ c) at ``camera``."""
-    o = jax.nn.sigmoid(jnp.asarray(model.o_logits)[:, q])
-    light = 2.0 * jax.nn.sigmoid(jnp.asarray(model.light_logits)[:, q])
+    o = opacity_multipliers(model)[:, q]
+    light = light_multipliers(model)[:, q]
     return splat.render_dates(model.gaussians, camera, o[None], light[None], background=background, config=config)
 
 
@@ -32,10 +32,7 @@ def evaluate_fused(model: TemporalGaussians, views: Sequence, *, background=(0.0
         for cam, img in zip(dv.cameras, dv.images):
             pred = render_date(model, q, cam, background=bg, config=render_config).image[0]
             gt = over_background(jnp.asarray(img, jnp.float32), bg)
-            row = {"psnr": float(metrics.psnr(pred, gt)), "ssim": float(metrics.ssim(pred, gt))}
-            if net is not None:
-                row["lpips"] = float(metrics.perceptual.lpips_distance(net, pred, gt))
-            rows.append(row)
+            rows.append(image_metrics(pred, gt, net))
         out[model.dates[q].name] = {k: float(np.mean([r[k] for r in rows])) for k in rows[0]} | {"views": len(rows)}
         weights.append(len(rows))
     w = np.asarray(weights, np.float64) / np.sum(weights)

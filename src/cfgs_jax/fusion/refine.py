@@ -29,6 +29,7 @@ from cfgs_jax.errors import InputError
 from cfgs_jax.fusion.cross_init import DateViews
 from cfgs_jax.fusion.fuse import INVISIBLE_LOGIT
 from cfgs_jax.model import Gaussians, TemporalGaussians
+from cfgs_jax.train.loop import view_order
 from cfgs_jax.train.step import over_background
 
 FIELDS = ("means", "quats", "log_scales", "opacity_logits", "colors", "o_logits")
@@ -190,7 +191,7 @@ def refine(model: TemporalGaussians, views: Sequence[DateViews], config: RefineC
         task = bar.add_task("refine", total=config.steps)
         for it in range(config.steps):
             key, sub = jax.random.split(key)
-            q, v = flat[int(np.random.default_rng([config.seed, it // len(flat)]).permutation(len(flat))[it % len(flat)])]
+            q, v = flat[view_order(config.seed, it, len(flat))]
             while True:
                 new, new_state, loss, contrib, overflowed = step(
                     params, opt_state, light_logits, o_init, views[q].cameras[v], images[q][v], jnp.int32(q), sub

@@ -36,7 +36,7 @@ from cfgs_jax.fusion.register import RegisterConfig, register_date
 from cfgs_jax.io.atomic import atomic_file, ensure_writable_dir
 from cfgs_jax.io.colmap import Scene, read_colmap
 from cfgs_jax.io.fused import read_fused, write_fused
-from cfgs_jax.io.ply import read_ply
+from cfgs_jax.io.ply import read_ply, write_ply
 from cfgs_jax.model import Camera, DateInfo
 from cfgs_jax.sim3 import Sim3
 
@@ -136,6 +136,51 @@ class FusionRun:
         return stage in self.state["done"]
 
 
+def _train_date(run: FusionRun, scene: Scene, name: str, render_config, progress: bool, log, tag: str) -> None:
+    """Train one date into ``RUN/dates/<name>/`` (resuming its checkpoint): PLY and train.json."""
+    d = run.out / "dates" / name
+    tc = section(run.raw, "train", train.TrainConfig)
+    log(f"[{tag}] date {name}: {tc.steps:,} steps")
+    r = train.fit(scene, tc, render_config, out=d, resume=True, progress=progress)
+    write_ply(d / "point_cloud.ply", r.gaussians)
+    _write_json(d / "train.json", {"gaussians": len(r.gaussians), "test": r.metrics, "growth": r.counts})
+
+
+def _cross_init_pairs(run: FusionRun, start: Path, pairs, views, render_config, log, stage: str, tag: str) -> None:
+    """Cross-timestep init of ``pairs`` from the model at ``start``, resumable per pair: the model is
+    written to ``RUN/cross_init`` and the finished pairs to ``RUN/cross_init_pairs.json`` after each."""
+    cc = section(run.raw, "cross_init", CrossInitConfig)
+    partial = run.out / "cross_init"
+    progress_file = run.out / "cross_init_pairs.json"
+    finished = _read_json(progress_file, {"pairs": [], "reports": [], "seconds": 0.0})
+    model = read_fused(partial if finished["pairs"] else start)
+    names = run.names
+    for p, q in pairs:
+        if [p, q] in finished["pairs"]:
+            continue
+        log(f"[{tag}] Gaussians of {names[p]} against images of {names[q]}: {cc.steps:,} steps")
+        s = time.perf_counter()
+        model, rep = init_pair(model, p, q, views[q], cc, render_config=render_config)
+        write_fused(partial, model)
+        finished["pairs"].append([p, q])
+        finished["reports"].append(rep | {"seconds": time.perf_counter() - s})
+        finished["seconds"] += time.perf_counter() - s
+        _write_json(progress_file, finished)
+    run.finish(stage, finished["seconds"], finished["reports"])
+
+
+def _refine_stage(run: FusionRun, views, scenes, render_config, progress: bool, log, stage: str) -> None:
+    """Eq. 3 refinement of ``RUN/cross_init`` → ``RUN/fused``."""
+    t0 = time.perf_counter()
+    fc = section(run.raw, "refine", RefineConfig)
+    model = read_fused(run.out / "cross_init")
+    log(f"[{stage}] {len(model):,} Gaussians, {fc.steps:,} steps over all dates")
+    model, rep = refine(model, views, fc, extent=train.scene_extent(scenes[0].cameras),
+                        render_config=render_config, progress=progress)  # fmt: skip
+    write_fused(run.out / "fused", model, config=run.state["config"])
+    run.finish(stage, time.perf_counter() - t0, rep)
+
+
 def run_fusion(dates: list[Path], out: Path, raw_config: dict | None = None, *, models: list[Path] | None = None,
                transforms: Path | None = None, resume: bool = False, progress: bool = True, evaluate: bool = True,
                log=print) -> FusionRun:  # fmt: skip
@@ -150,20 +195,11 @@ def run_fusion(dates: list[Path], out: Path, raw_config: dict | None = None, *, 
     if not run.done("train"):
         t0 = time.perf_counter()
         per_date = {}
-        tc = section(raw, "train", train.TrainConfig)
         for i, name in enumerate(names):
-            d = run.out / "dates" / name
-            if run.state["models"]:
+            if run.state["models"] or (run.out / "dates" / name / "point_cloud.ply").is_file():
                 continue
-            if (d / "point_cloud.ply").is_file():
-                continue
-            log(f"[train] date {name}: {tc.steps:,} steps")
             s = time.perf_counter()
-            r = train.fit(scenes[i], tc, render_config, out=d, resume=True, progress=progress)
-            from cfgs_jax.io.ply import write_ply
-
-            write_ply(d / "point_cloud.ply", r.gaussians)
-            _write_json(d / "train.json", {"gaussians": len(r.gaussians), "test": r.metrics, "growth": r.counts})
+            _train_date(run, scenes[i], name, render_config, progress, log, "train")
             per_date[name] = time.perf_counter() - s
         run.finish("train", time.perf_counter() - t0, {"per_date_seconds": per_date})
     model_paths = run.state["models"] or [str(run.out / "dates" / n / "point_cloud.ply") for n in names]
@@ -199,35 +235,12 @@ def run_fusion(dates: list[Path], out: Path, raw_config: dict | None = None, *, 
 
     # 4. cross-timestep initialisation, resumable per pair
     if not run.done("cross_init"):
-        cc = section(raw, "cross_init", CrossInitConfig)
-        partial = run.out / "cross_init"
-        progress_file = run.out / "cross_init_pairs.json"
-        finished = _read_json(progress_file, {"pairs": [], "reports": [], "seconds": 0.0})
-        model = read_fused(partial) if finished["pairs"] else read_fused(run.out / "merged")
         pairs = [(p, q) for p in range(len(names)) for q in range(len(names)) if p != q]
-        for p, q in pairs:
-            if [p, q] in finished["pairs"]:
-                continue
-            log(f"[cross_init] Gaussians of {names[p]} against images of {names[q]}: {cc.steps:,} steps")
-            s = time.perf_counter()
-            model, rep = init_pair(model, p, q, views[q], cc, render_config=render_config)
-            write_fused(partial, model)
-            finished["pairs"].append([p, q])
-            finished["reports"].append(rep | {"seconds": time.perf_counter() - s})
-            finished["seconds"] += time.perf_counter() - s
-            _write_json(progress_file, finished)
-        run.finish("cross_init", finished["seconds"], finished["reports"])
+        _cross_init_pairs(run, run.out / "merged", pairs, views, render_config, log, "cross_init", "cross_init")
 
     # 5. refinement and final prune
     if not run.done("refine"):
-        t0 = time.perf_counter()
-        fc = section(raw, "refine", RefineConfig)
-        model = read_fused(run.out / "cross_init")
-        log(f"[refine] {len(model):,} Gaussians, {fc.steps:,} steps over all dates")
-        model, rep = refine(model, views, fc, extent=train.scene_extent(scenes[0].cameras),
-                            render_config=render_config, progress=progress)  # fmt: skip
-        write_fused(run.out / "fused", model, config=run.state["config"])
-        run.finish("refine", time.perf_counter() - t0, rep)
+        _refine_stage(run, views, scenes, render_config, progress, log, "refine")
 
     # 6. export in the authors' layout too
     if not run.done("export"):
@@ -287,18 +300,11 @@ def run_extend(run_dir: Path, date: Path, *, model: Path | None = None, transfor
     names = run.names
     k = len(names) - 1
     scenes = [run.scene(i) for i in range(len(names))]
-    t_start = time.perf_counter()
 
     if not run.done(prefix + "train"):
         t0 = time.perf_counter()
-        d = run.out / "dates" / name
-        if model is None and not (d / "point_cloud.ply").is_file():
-            tc = section(raw, "train", train.TrainConfig)
-            log(f"[extend/train] date {name}: {tc.steps:,} steps")
-            r = train.fit(scenes[k], tc, render_config, out=d, resume=True, progress=progress)
-            from cfgs_jax.io.ply import write_ply
-
-            write_ply(d / "point_cloud.ply", r.gaussians)
+        if model is None and not (run.out / "dates" / name / "point_cloud.ply").is_file():
+            _train_date(run, scenes[k], name, render_config, progress, log, "extend/train")
         run.finish(prefix + "train", time.perf_counter() - t0)
     ply = Path(model) if model is not None else run.out / "dates" / name / "point_cloud.ply"
 
@@ -325,34 +331,14 @@ def run_extend(run_dir: Path, date: Path, *, model: Path | None = None, transfor
     views = [date_views(scenes[i], sims[i]) for i in range(len(names))]
 
     if not run.done(prefix + "cross_init"):
-        cc = section(raw, "cross_init", CrossInitConfig)
-        progress_file = run.out / "cross_init_pairs.json"
-        finished = _read_json(progress_file)
-        model_now = read_fused(run.out / "cross_init")
         pairs = [(p, k) for p in range(k)] + [(k, q) for q in range(k)]  # only pairs involving the new date
-        for p, q in pairs:
-            if [p, q] in finished["pairs"]:
-                continue
-            log(f"[extend/cross_init] Gaussians of {names[p]} against images of {names[q]}: {cc.steps:,} steps")
-            s = time.perf_counter()
-            model_now, rep = init_pair(model_now, p, q, views[q], cc, render_config=render_config)
-            write_fused(run.out / "cross_init", model_now)
-            finished["pairs"].append([p, q])
-            finished["reports"].append(rep | {"seconds": time.perf_counter() - s})
-            finished["seconds"] += time.perf_counter() - s
-            _write_json(progress_file, finished)
-        run.finish(prefix + "cross_init", finished["seconds"], finished["reports"])
+        _cross_init_pairs(run, run.out / "cross_init", pairs, views, render_config, log, prefix + "cross_init",
+                          "extend/cross_init")  # fmt: skip
 
     if not run.done(prefix + "refine"):
-        t0 = time.perf_counter()
-        fc = section(raw, "refine", RefineConfig)
-        m, rep = refine(read_fused(run.out / "cross_init"), views, fc, extent=train.scene_extent(scenes[0].cameras),
-                        render_config=render_config, progress=progress)  # fmt: skip
-        write_fused(run.out / "fused", m, config=run.state["config"])
-        write_fused(run.out / "reference", m, layout="reference")
-        run.finish(prefix + "refine", time.perf_counter() - t0, rep)
+        _refine_stage(run, views, scenes, render_config, progress, log, prefix + "refine")
+        write_fused(run.out / "reference", read_fused(run.out / "fused"), layout="reference")
     _evaluate_stage(run, scenes, sims, render_config, evaluate, log, stage=prefix + "evaluate")
     run.timings[f"extend:{name}:total"] = sum(v for key, v in run.timings.items() if key.startswith(prefix))
     run._save()
-    del t_start
     return run

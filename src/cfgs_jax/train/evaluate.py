@@ -10,6 +10,14 @@ from cfgs_jax.model import Gaussians
 from cfgs_jax.train.step import over_background
 
 
+def image_metrics(pred, gt, net=None) -> dict:
+    """PSNR (dB), SSIM and, with an LPIPS ``net``, LPIPS of one rendered image against its target."""
+    row = {"psnr": float(metrics.psnr(pred, gt)), "ssim": float(metrics.ssim(pred, gt))}
+    if net is not None:
+        row["lpips"] = float(metrics.perceptual.lpips_distance(net, pred, gt))
+    return row
+
+
 def evaluate(
     gaussians: Gaussians,
     scene: Scene,
@@ -27,13 +35,6 @@ def evaluate(
     for i in np.asarray(indices, np.int64):
         gt = np.asarray(over_background(scene.load_image(int(i), with_alpha=True), np.asarray(background, np.float32)))
         pred = splat.render(gaussians, scene.cameras[int(i)], background=background, config=render_config).image
-        row = {
-            "image": scene.image_names[int(i)],
-            "psnr": float(metrics.psnr(pred, gt)),
-            "ssim": float(metrics.ssim(pred, gt)),
-        }
-        if net is not None:
-            row["lpips"] = float(metrics.perceptual.lpips_distance(net, pred, gt))
-        rows.append(row)
+        rows.append({"image": scene.image_names[int(i)]} | image_metrics(pred, gt, net))
     out = {k: float(np.mean([r[k] for r in rows])) for k in ("psnr", "ssim", "lpips") if rows and k in rows[0]}
     return out | {"views": rows, "background": list(map(float, background))}

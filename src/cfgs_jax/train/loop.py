@@ -25,7 +25,7 @@ from cfgs_jax.io.atomic import atomic_file, ensure_writable_dir
 from cfgs_jax.io.colmap import Scene
 from cfgs_jax.model import Gaussians
 from cfgs_jax.train.config import TrainConfig
-from cfgs_jax.train.densify import capacity_bucket, densify_step, grow_capacity, reset_opacity
+from cfgs_jax.train.densify import capacity_bucket, densify_step, reset_opacity
 from cfgs_jax.train.evaluate import evaluate
 from cfgs_jax.train.init import init_from_points, scene_extent
 from cfgs_jax.train.optim import make_optimizer
@@ -51,11 +51,12 @@ class TrainRun:
     finished: bool
 
 
-def view_order(seed: int, step: int, num_views: int) -> int:
+def view_order(seed: int | tuple[int, ...], step: int, num_views: int) -> int:
     """The training view at 0-based ``step``: INRIA's refilled random stack, as a pure function of
-    (seed, step) so a resumed run sees the same sequence."""
+    (seed, step) so a resumed run sees the same sequence. ``seed`` may be a tuple (e.g. seed, p, q)."""
     epoch, k = divmod(step, num_views)
-    return int(np.random.default_rng([seed, epoch]).permutation(num_views)[k])
+    seeds = list(seed) if isinstance(seed, tuple) else [seed]
+    return int(np.random.default_rng(seeds + [epoch]).permutation(num_views)[k])
 
 
 def continuation_config(config: TrainConfig) -> TrainConfig:
