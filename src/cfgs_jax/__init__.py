@@ -18,7 +18,7 @@ if "pycolmap" in _sys.modules and "zlib" not in _sys.modules:
 # "double free or corruption" in PNG writes after a Mitsuba render when pycolmap came first).
 import zlib as _zlib  # noqa: E402, F401
 
-from cfgs_jax import io
+from cfgs_jax import io, viz
 from cfgs_jax.errors import InputError, OutputError
 from cfgs_jax.model import (
     SH_C0,
@@ -52,6 +52,7 @@ __all__ = [
     "concatenate",
     "covariances",
     "io",
+    "viz",
     "light_multipliers",
     "normalized_quats",
     "num_dates",

@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import argparse
 import logging
-import os
 import sys
 from pathlib import Path
 
@@ -308,54 +307,86 @@ def cmd_extend(args) -> int:
     return 0
 
 
-def _default_fixture() -> Path:
-    env = os.environ.get("CFGS_DEMO_PLY")
-    cands = [Path(env)] if env else []
-    here = Path(__file__).resolve()
-    cands += [Path.cwd().parent / "shared/fixtures/real_3dgs_donut_dc_only.ply"]
-    cands += [p / "shared/fixtures/real_3dgs_donut_dc_only.ply" for p in here.parents]
-    for c in cands:
-        if c.is_file():
-            return c
-    raise InputError(
-        "the demo model real_3dgs_donut_dc_only.ply was not found beside the checkout",
-        field="--ply",
-        fix="pass --ply PATH or set CFGS_DEMO_PLY",
-    )
+def _selection_style(args):
+    from cfgs_jax.render_run import SelectionStyle, parse_stops
+
+    contrast = None
+    if args.contrast:
+        try:
+            k, b = (float(v) for v in args.contrast.split(","))
+        except ValueError:
+            raise InputError(f"cannot read {args.contrast!r}", field="--contrast", fix="write k,b e.g. 4,0.5") from None
+        contrast = (k, b)
+    base = "grey" if args.grey else ("low_contrast" if args.low_contrast else "colour")
+    return SelectionStyle(mode=args.mode, blend="max" if args.max_opacity else "mean", base=base, sigma=args.sigma,
+                          contrast=contrast, stops=parse_stops(args.stops))  # fmt: skip
+
+
+def cmd_render(args) -> int:
+    from rich.progress import Progress
+
+    from cfgs_jax.render_run import open_run, orbit_cameras, parse_selection, render_views
+
+    run = open_run(args.run)
+    t = parse_selection(args.t, run.names)
+    style = _selection_style(args)
+    if args.cameras == "test":
+        cams = run.test_cameras()
+    else:
+        cams = orbit_cameras(run.all_cameras(), args.frames, width=args.width, height=args.height)
+    bg = tuple(float(v) for v in args.background.split(","))
+    console = _console()
+    with Progress(console=console, disable=args.no_progress) as bar:
+        task = bar.add_task(f"render {args.mode} t={t.astype(int).tolist()}", total=len(cams))
+        paths = render_views(run, t, style, cams, args.out, background=bg, progress=lambda: bar.advance(task))
+    console.print(f"wrote {len(paths)} views (PNG sRGB with legend + EXR linear) to {args.out}")
+    return 0
+
+
+def cmd_export(args) -> int:
+    from cfgs_jax.render_run import export_selection, open_run, parse_selection
+
+    run = open_run(args.run)
+    t = parse_selection(args.t, run.names)
+    path = export_selection(run, t, _selection_style(args), args.out)
+    _console().print(f"wrote {path}: {len(run.model)} Gaussians, DC-only 3DGS PLY of {args.mode} t={t.astype(int).tolist()}")
+    return 0
+
+
+def _selection_args(s) -> None:
+    s.add_argument("--run", required=True, help="run directory of a finished `fuse`")
+    s.add_argument("--t", default="all", help="time selection: one 0/1 per date (1,0,1), date names (d0,d2) or 'all'")
+    s.add_argument("--mode", choices=("blend", "max", "highlight"), default="highlight",
+                   help="blend: Eq. 4 mean opacity; max: max opacity; highlight: change highlight (Eq. 5)")  # fmt: skip
+    s.add_argument("--grey", action="store_true", help="highlight on a greyscale base (Rec.709 luminance)")
+    s.add_argument("--low-contrast", action="store_true", help="highlight on a reduced-contrast base")
+    s.add_argument("--max-opacity", action="store_true", help="highlight with the max-opacity blend")
+    s.add_argument("--sigma", type=float, default=0.18, help="σ of the persistence filter (Eq. 7)")
+    s.add_argument("--contrast", help="k,b of the contrast sigmoid (Eq. 8) applied to o")
+    s.add_argument("--stops", help="gradient colours 'r,g,b;r,g,b;...' (linear RGB) or 'rgb' for no remap")
 
 
 def cmd_demo(args) -> int:
-    """The embedded default job, growing with the pipeline: a small synthetic multi-date scene
-    (Mitsuba), the real fixture model read, written back bit-exactly and rendered by our kernel."""
-    import cfgs_jax as cj
-    from cfgs_jax import splat, synthetic
+    """The embedded default job: the whole pipeline on a small synthetic scene (``cfgs_jax.demo``)."""
+    from rich.table import Table
+
+    from cfgs_jax.demo import run_demo
 
     console = _console()
-    out = cj.io.ensure_writable_dir(args.out)
-    spec = synthetic.make_preset("corals", seed=0, width=160, height=120, images_per_date=8, spp=16)
-    synthetic.render_dataset(spec, out / "scene")
-    console.print(f"wrote {out / 'scene'}: synthetic 'corals', {len(spec.dates)} dates × 8 views (COLMAP + masks + ground truth)")
-
-    ply = Path(args.ply) if args.ply else _default_fixture()
-    title, parts = describe(ply)
-    console.print(f"[bold]{title}[/bold]")
-    for p in parts:
-        console.print(p)
-    g = cj.io.read_ply(ply)
-    cj.io.write_ply(out / "model.ply", g)
-    back = cj.io.read_ply(out / "model.ply")
-    same = all(np.array_equal(np.asarray(a), np.asarray(b)) for a, b in zip(
-        (g.means, g.quats, g.log_scales, g.opacity_logits, g.colors),
-        (back.means, back.quats, back.log_scales, back.opacity_logits, back.colors),
-    ))  # fmt: skip
-    console.print(f"wrote {out / 'model.ply'} (round trip bit-exact: {same})")
-    centre = np.asarray(g.means).mean(0)
-    for i, eye in enumerate(([0.25, 0.0, 0.2], [-0.1, -0.22, 0.12], [0.05, 0.15, -0.2])):
-        cam = cj.Camera.look_at(np.asarray(eye) + centre, centre, width=320, height=240, fov_x_deg=45)
-        res = splat.render(g, cam, background=(1.0, 1.0, 1.0))
-        cj.io.write_image(out / f"render_{i}.png", np.asarray(res.image))
-    console.print(f"rendered the model from 3 views with the splatting kernel: {out}/render_*.png")
-    return 0 if same else 1
+    summary = run_demo(args.out, config=args.config, num_dates=args.dates, width=args.width, height=args.height,
+                       images_per_date=args.images_per_date, resume=args.resume, progress=not args.no_progress,
+                       log=console.print)  # fmt: skip
+    t = Table(title="test views: individual per-date models vs the fused model")
+    for col in ("date", "PSNR indiv.", "PSNR fused", "SSIM indiv.", "SSIM fused", "LPIPS indiv.", "LPIPS fused"):
+        t.add_column(col, justify="right")
+    for r in summary["metrics"]:
+        i, f = r["individual"], r["fused"]
+        t.add_row(r["date"], *(f"{d.get(k, float('nan')):.{n}f}" for k, n in (("psnr", 2), ("ssim", 4), ("lpips", 4)) for d in (i, f)))
+    console.print(t)
+    console.print(f"renders per date: {args.out}/renders/<date>/, change highlight: {args.out}/highlight/, "
+                  f"model: {args.out}/run/fused, table: {args.out}/summary.md")  # fmt: skip
+    console.print(f"total wall time {summary['timings_s']['total']:.0f} s")
+    return 0
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -428,9 +459,31 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--no-progress", action="store_true")
     s.set_defaults(func=cmd_extend)
 
-    s = sub.add_parser("demo", help="the embedded default job")
-    s.add_argument("--ply", help="3DGS PLY to use (default: the real fixture model beside the checkout)")
-    s.add_argument("--out", default="out/demo")
+    s = sub.add_parser("render", help="render a time selection / change highlight of a fused run")
+    _selection_args(s)
+    s.add_argument("--cameras", choices=("test", "orbit"), default="test")
+    s.add_argument("--frames", type=int, default=24, help="number of orbit views")
+    s.add_argument("--width", type=int, help="orbit image width (default: the training cameras')")
+    s.add_argument("--height", type=int)
+    s.add_argument("--background", default="0,0,0", help="r,g,b in [0, 1]")
+    s.add_argument("--out", required=True, help="output folder (PNG + EXR per view)")
+    s.add_argument("--no-progress", action="store_true")
+    s.set_defaults(func=cmd_render)
+
+    s = sub.add_parser("export", help="bake a time selection / highlight into a standard 3DGS PLY")
+    _selection_args(s)
+    s.add_argument("--out", required=True, help="output .ply")
+    s.set_defaults(func=cmd_export)
+
+    s = sub.add_parser("demo", help="the embedded default job: synthesise, train, fuse, render, tabulate")
+    s.add_argument("--out", default="runs/demo")
+    s.add_argument("--config", default="demo", help="preset name or TOML (default: cfgs_jax/demo.toml)")
+    s.add_argument("--dates", type=int, default=2, help="how many dates of the corals scene to fuse (2-4)")
+    s.add_argument("--width", type=int, default=160)
+    s.add_argument("--height", type=int, default=120)
+    s.add_argument("--images-per-date", type=int, default=12)
+    s.add_argument("--resume", action="store_true", help="continue an interrupted demo in --out")
+    s.add_argument("--no-progress", action="store_true")
     s.set_defaults(func=cmd_demo)
     return p
 

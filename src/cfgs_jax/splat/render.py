@@ -200,12 +200,15 @@ def render(
     config: RenderConfig | None = None,
     with_depth: bool = False,
     means2d_offset: Float[Array, "N 2"] | None = None,
+    opacity_mult: Float[Array, "N"] | None = None,
 ) -> RenderResult:
-    """Render one image of a plain 3DGS model (``render_dates`` with T = 1 and unit multipliers)."""
+    """Render one image of a plain 3DGS model (``render_dates`` with T = 1 and unit colour multipliers;
+    ``opacity_mult`` scales each α, default 1)."""
     n = len(gaussians)
     dtype = jnp.result_type(gaussians.means)
+    opacity_mult = jnp.ones((1, n), dtype) if opacity_mult is None else jnp.reshape(jnp.asarray(opacity_mult, dtype), (1, n))
     res = render_dates(
-        gaussians, camera, jnp.ones((1, n), dtype), jnp.ones((1, n, 3), dtype),
+        gaussians, camera, opacity_mult, jnp.ones((1, n, 3), dtype),
         background=background, config=config, with_depth=with_depth, means2d_offset=means2d_offset,
     )  # fmt: skip
     first = lambda x: None if x is None else x[0]  # noqa: E731

@@ -1,0 +1,220 @@
+"""Render and export time selections of a fused run (CLI ``render`` and ``export``).
+
+``render`` draws a selection t (Eq. 4, blend or max) or its change highlight (Eq. 5) at the test views
+of every date (posed in the reference frame) or on an orbit around the scene, writing an sRGB PNG with
+a legend (the date names, coloured by their highlight colour, unselected dates struck through) and a
+linear EXR per view. ``export`` bakes the same per-Gaussian colours/opacities into a DC-only 3DGS PLY.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from pathlib import Path
+
+import jax.numpy as jnp
+import numpy as np
+
+from cfgs_jax import viz
+from cfgs_jax.errors import InputError
+from cfgs_jax.io.atomic import ensure_writable_dir
+from cfgs_jax.io.colmap import read_colmap
+from cfgs_jax.io.fused import read_fused
+from cfgs_jax.io.images import write_image
+from cfgs_jax.io.ply import write_ply
+from cfgs_jax.model import Camera, TemporalGaussians
+from cfgs_jax.sim3 import Sim3
+
+
+@dataclasses.dataclass(frozen=True)
+class SelectionStyle:
+    """How a selection is drawn: ``mode`` blend|max|highlight (highlight uses the mean blend), the
+    highlight base (colour | grey | low_contrast), σ, contrast (k, b) and gradient stops."""
+
+    mode: str = "highlight"
+    blend: str = "mean"
+    base: str = "colour"
+    sigma: float = viz.DEFAULT_SIGMA
+    contrast: tuple[float, float] | None = None
+    stops: tuple[tuple[float, float, float], ...] | None = viz.DEFAULT_STOPS
+
+    def __post_init__(self):
+        if self.mode not in ("blend", "max", "highlight"):
+            raise InputError(f"unknown mode {self.mode!r}", field="--mode", fix="use blend, max or highlight")
+
+    def terms(self, model: TemporalGaussians, t):
+        """(colours, opacity multipliers) per Gaussian for this style."""
+        if self.mode == "highlight":
+            return viz.selection_terms(model, t, mode=self.blend, highlight_changes=True, base=self.base,
+                                       sigma=self.sigma, contrast=self.contrast, stops=self.stops)  # fmt: skip
+        return viz.selection_terms(model, t, mode="max" if self.mode == "max" else "mean")
+
+    def kwargs(self) -> dict:
+        if self.mode == "highlight":
+            return {"mode": self.blend, "highlight_changes": True, "base": self.base, "sigma": self.sigma,
+                    "contrast": self.contrast, "stops": self.stops}  # fmt: skip
+        return {"mode": "max" if self.mode == "max" else "mean"}
+
+
+def parse_selection(text: str, names: list[str]) -> np.ndarray:
+    """``"1,0,1"`` (one 0/1 per date), ``"all"`` or date names ``"d0,d2"`` → binary t."""
+    text = text.strip()
+    if text == "all":
+        return np.ones(len(names))
+    parts = [p.strip() for p in text.split(",") if p.strip()]
+    if parts and all(p in names for p in parts):
+        return np.asarray([float(n in parts) for n in names])
+    try:
+        t = np.asarray([float(p) for p in parts])
+    except ValueError:
+        raise InputError(f"cannot read {text!r}", field="--t", fix=f"give one 0/1 per date ({len(names)}), 'all', "
+                         f"or date names from {names}") from None  # fmt: skip
+    if len(t) != len(names):
+        raise InputError(f"{len(t)} entries for {len(names)} dates {names}", field="--t", fix="give one 0/1 per date")
+    viz.normalize_selection(t)  # binary, not all zero
+    return t
+
+
+def parse_stops(text: str | None):
+    """``"r,g,b;r,g,b;..."`` (linear RGB), ``"rgb"`` for the full-RGB filter, or None for the default."""
+    if text is None:
+        return viz.DEFAULT_STOPS
+    if text.strip().lower() == "rgb":
+        return None
+    try:
+        stops = tuple(tuple(float(v) for v in s.split(",")) for s in text.split(";"))
+    except ValueError:
+        raise InputError(f"cannot read {text!r}", field="--stops", fix="write colours as r,g,b;r,g,b;...") from None
+    viz.remap_to_gradient(jnp.ones(3), stops)  # validates
+    return stops
+
+
+@dataclasses.dataclass(frozen=True)
+class FusedRun:
+    """A fused run opened for rendering: the model, the date datasets and their Sim(3)s."""
+
+    path: Path
+    model: TemporalGaussians
+    names: list[str]
+    dataset_paths: list[Path]
+    sims: list[Sim3]
+
+    def test_cameras(self) -> list[tuple[str, Camera]]:
+        """Every date's test views posed in the model's frame, named ``<date>_<image>``."""
+        from cfgs_jax.fusion.run import camera_in_frame
+
+        out = []
+        for name, path, sim in zip(self.names, self.dataset_paths, self.sims):
+            scene = read_colmap(path)
+            idx = scene.indices("test") if len(scene.indices("test")) else scene.indices("all")
+            for i in idx:
+                stem = Path(scene.image_names[int(i)]).stem
+                out.append((f"{name}_{stem}", camera_in_frame(scene.cameras[int(i)], sim)))
+        return out
+
+    def all_cameras(self) -> list[Camera]:
+        from cfgs_jax.fusion.run import camera_in_frame
+
+        return [camera_in_frame(c, sim) for path, sim in zip(self.dataset_paths, self.sims) for c in read_colmap(path).cameras]
+
+
+def open_run(run_dir: str | Path) -> FusedRun:
+    """Open ``RUN/`` of ``fuse`` (its ``fused/`` model, ``run.json`` datasets, ``register.json``)."""
+    run_dir = Path(run_dir)
+    state_path, reg_path = run_dir / "run.json", run_dir / "register.json"
+    if not (run_dir / "fused").is_dir() or not state_path.is_file() or not reg_path.is_file():
+        raise InputError("not a finished fusion run (fused/, run.json, register.json)", path=run_dir,
+                         fix="run `python -m cfgs_jax.pipeline fuse` first, or --resume it")  # fmt: skip
+    state = json.loads(state_path.read_text())
+    reg = json.loads(reg_path.read_text())
+    model = read_fused(run_dir / "fused")
+    names = [d["name"] for d in state["dates"]]
+    if list(model.date_names) != names:
+        raise InputError(f"model dates {list(model.date_names)} differ from run dates {names}", path=run_dir / "fused")
+    return FusedRun(run_dir, model, names, [Path(d["path"]) for d in state["dates"]],
+                    [Sim3.from_dict(reg[n]["transform"]) for n in names])  # fmt: skip
+
+
+def orbit_cameras(training: list[Camera], n: int = 24, *, width: int | None = None, height: int | None = None) -> list[tuple[str, Camera]]:
+    """``n`` cameras on a circle through the training cameras' mean height and distance, around the
+    point nearest to all their optical axes, with the mean training 'up'."""
+    centres = np.stack([np.asarray(c.center, np.float64) for c in training])
+    rots = np.stack([np.asarray(c.cam_from_world, np.float64)[:3, :3] for c in training])
+    axes, ups = rots[:, 2], -rots[:, 1]  # camera +z (viewing direction) and −y (up) in world
+    # least-squares point closest to every optical axis
+    proj = np.eye(3)[None] - axes[:, :, None] * axes[:, None, :]
+    target = np.linalg.solve(proj.sum(0) + 1e-9 * np.eye(3), np.einsum("nij,nj->i", proj, centres))
+    up = ups.mean(0)
+    up /= np.linalg.norm(up)
+    rel = centres - target
+    height_along = rel @ up
+    radial = rel - height_along[:, None] * up
+    radius = float(np.linalg.norm(radial, axis=1).mean())
+    e1 = radial.mean(0) if np.linalg.norm(radial.mean(0)) > 1e-6 * radius else radial[0]
+    e1 = e1 - (e1 @ up) * up
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(up, e1)
+    ref = training[0]
+    w, h = width or int(ref.width), height or int(ref.height)
+    fov = float(np.degrees(2 * np.arctan(0.5 * int(ref.width) / float(ref.fx))))
+    out = []
+    for k in range(n):
+        a = 2 * np.pi * k / n
+        eye = target + float(height_along.mean()) * up + radius * (np.cos(a) * e1 + np.sin(a) * e2)
+        out.append((f"orbit_{k:03d}", Camera.look_at(eye, target, width=w, height=h, fov_x_deg=fov, up=up)))
+    return out
+
+
+def legend_strip(names: list[str], t, width: int, *, highlight: bool, stops=viz.DEFAULT_STOPS) -> np.ndarray:
+    """[h, width, 3] sRGB strip: the date names coloured by their highlight colour (white for plain
+    blends); unselected dates grey and struck through."""
+    from PIL import Image, ImageDraw, ImageFont
+
+    font = ImageFont.load_default()
+    height = 16
+    img = Image.new("RGB", (width, height), (24, 24, 24))
+    draw = ImageDraw.Draw(img)
+    cols = viz.date_colours(len(names), stops) if highlight else np.ones((len(names), 3))
+    x = 4
+    for name, sel, c in zip(names, np.asarray(t), cols):
+        fill = tuple(int(round(255 * v)) for v in (c if sel else (0.45, 0.45, 0.45)))
+        box = (x, 4, x + 8, 12)
+        draw.rectangle(box, fill=fill if sel else None, outline=fill)
+        x += 12
+        draw.text((x, 2), name, fill=fill, font=font)
+        w = draw.textlength(name, font=font)
+        if not sel:
+            draw.line((x, height // 2, x + w, height // 2), fill=fill, width=1)
+        x += int(w) + 10
+    return np.asarray(img, np.float32) / 255.0
+
+
+def render_views(run: FusedRun, t, style: SelectionStyle, cameras: list[tuple[str, Camera]], out: str | Path, *,
+                 background=(0.0, 0.0, 0.0), legend: bool = True, progress=None) -> list[Path]:  # fmt: skip
+    """Render the selection at every camera: ``<name>.png`` (sRGB, legend below) and ``<name>.exr``
+    (linear) under ``out``. Returns the PNG paths."""
+    from cfgs_jax import splat
+    from cfgs_jax.model import Gaussians
+
+    out = ensure_writable_dir(out)
+    colours, mult = style.terms(run.model, t)
+    g0 = run.model.gaussians
+    g = Gaussians(g0.means, g0.quats, g0.log_scales, g0.opacity_logits, colours)
+    written = []
+    strip = None
+    for name, cam in cameras:
+        img = np.asarray(splat.render(g, cam, opacity_mult=mult, background=background).image)
+        write_image(out / f"{name}.exr", img)
+        if legend:
+            if strip is None or strip.shape[1] != img.shape[1]:
+                strip = legend_strip(run.names, t, img.shape[1], highlight=style.mode == "highlight", stops=style.stops or viz.DEFAULT_STOPS)
+            img = np.concatenate([img, strip], axis=0)
+        written.append(write_image(out / f"{name}.png", img))
+        if progress is not None:
+            progress()
+    return written
+
+
+def export_selection(run: FusedRun, t, style: SelectionStyle, path: str | Path) -> Path:
+    """Bake the selection (or highlight) into a standard DC-only 3DGS PLY."""
+    return write_ply(path, viz.bake(run.model, t, **style.kwargs()))
