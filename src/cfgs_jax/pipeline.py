@@ -353,6 +353,14 @@ def cmd_export(args) -> int:
     return 0
 
 
+def cmd_view(args) -> int:
+    from cfgs_jax.viewer import serve
+
+    _console().print(f"serving {args.run} on http://127.0.0.1:{args.port} (Ctrl-C to stop)")
+    serve(args.run, port=args.port)
+    return 0
+
+
 def _selection_args(s) -> None:
     s.add_argument("--run", required=True, help="run directory of a finished `fuse`")
     s.add_argument("--t", default="all", help="time selection: one 0/1 per date (1,0,1), date names (d0,d2) or 'all'")
@@ -474,6 +482,11 @@ def build_parser() -> argparse.ArgumentParser:
     _selection_args(s)
     s.add_argument("--out", required=True, help="output .ply")
     s.set_defaults(func=cmd_export)
+
+    s = sub.add_parser("view", help="browser viewer of a fused run (viser; 127.0.0.1 only)")
+    s.add_argument("--run", required=True, help="run directory of a finished `fuse`")
+    s.add_argument("--port", type=int, default=8080)
+    s.set_defaults(func=cmd_view)
 
     s = sub.add_parser("demo", help="the embedded default job: synthesise, train, fuse, render, tabulate")
     s.add_argument("--out", default="runs/demo")
