@@ -245,3 +245,16 @@ def test_date_colours_follow_the_gradient():
     assert cols.shape == (4, 3) and np.all(cols >= 0) and np.all(cols <= 1 + 1e-6)
     # first date bluest, last date least blue (blue → magenta → orange)
     assert cols[0, 2] > cols[-1, 2] and cols[-1, 0] >= cols[0, 0]
+
+
+def test_viewer_terms_are_the_viz_functions_under_jit():
+    """The viewer's jitted recompute (σ, k, b traced) equals the eager `viz` result, contrast included."""
+    from cfgs_jax.viewer import GRADIENTS, splat_terms
+
+    model = random_temporal(30, 3, seed=9)
+    t = np.asarray([1.0, 0, 1])
+    for stops in (GRADIENTS["blue-red (authors')"], None):
+        rgb, alpha = splat_terms(model, jnp.asarray(t), 0.25, 3.0, 0.4, mode="highlight", base="grey", stops=stops, use_contrast=True)
+        want, want_alpha = viz.highlight(model, t, base="grey", sigma=0.25, contrast=(3.0, 0.4), stops=stops)
+        np.testing.assert_allclose(rgb, np.clip(want, 0, 1), atol=1e-6)
+        np.testing.assert_allclose(alpha, want_alpha, rtol=1e-6)

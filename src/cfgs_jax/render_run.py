@@ -44,12 +44,10 @@ class SelectionStyle:
 
     def terms(self, model: TemporalGaussians, t):
         """(colours, opacity multipliers) per Gaussian for this style."""
-        if self.mode == "highlight":
-            return viz.selection_terms(model, t, mode=self.blend, highlight_changes=True, base=self.base,
-                                       sigma=self.sigma, contrast=self.contrast, stops=self.stops)  # fmt: skip
-        return viz.selection_terms(model, t, mode="max" if self.mode == "max" else "mean")
+        return viz.selection_terms(model, t, **self.kwargs())
 
     def kwargs(self) -> dict:
+        """The keyword arguments of ``viz.selection_terms`` / ``render_selection`` / ``bake``."""
         if self.mode == "highlight":
             return {"mode": self.blend, "highlight_changes": True, "base": self.base, "sigma": self.sigma,
                     "contrast": self.contrast, "stops": self.stops}  # fmt: skip

@@ -18,7 +18,7 @@ import numpy as np
 
 from cfgs_jax import viz
 from cfgs_jax.model import covariances, opacities
-from cfgs_jax.render_run import FusedRun, open_run, orbit_geometry
+from cfgs_jax.render_run import FusedRun, SelectionStyle, open_run, orbit_geometry
 
 #: Gradient choices offered by the viewer (linear RGB stops; None = the full-RGB filter, no remap).
 GRADIENTS: dict[str, tuple | None] = {
@@ -33,13 +33,9 @@ MODES = ("highlight", "blend", "max")
 @functools.partial(jax.jit, static_argnames=("mode", "base", "stops", "use_contrast"))
 def splat_terms(model, t, sigma, k, b, *, mode: str, base: str, stops, use_contrast: bool):
     """(rgb [N,3] in [0,1], opacity [N]) of the viewer's current settings (Eq. 4 / Eq. 5)."""
-    if mode == "highlight":
-        colours, mult = viz.selection_terms(model, t, mode="mean", highlight_changes=True, base=base, sigma=sigma,
-                                            contrast=(k, b) if use_contrast else None, stops=stops)  # fmt: skip
-    else:
-        colours, mult = viz.selection_terms(model, t, mode="max" if mode == "max" else "mean")
+    style = SelectionStyle(mode=mode, base=base, sigma=sigma, contrast=(k, b) if use_contrast else None, stops=stops)
+    colours, mult = style.terms(model, t)
     return jnp.clip(colours, 0.0, 1.0), opacities(model.gaussians) * mult
-
 
 class Viewer:
     """A running viser server showing one fused run; ``settings`` holds the current controls."""

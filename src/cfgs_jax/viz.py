@@ -128,7 +128,7 @@ def persistence_filter(o: Float[Array, "N T"], t: Float[Array, "T"], *, sigma: f
     t_hat = t_hat.astype(dtype)
     if contrast is not None:
         k, b = contrast
-        if not (k > 0 and 0 < b < 1):
+        if not (_is_traced(k) or _is_traced(b)) and not (k > 0 and 0 < b < 1):
             raise InputError(f"contrast=(k, b) needs k > 0 and 0 < b < 1, got {contrast}", field="contrast")
         o = contrast_sigmoid(o, k, b)
     selected = (t_hat > 0).astype(dtype)
