@@ -1,5 +1,6 @@
 """Fusion stages: Sim(3) on splats, registration, merge, light model, cross-init, refinement, fuse/extend."""
 
+import dataclasses
 import importlib
 
 import jax
@@ -179,7 +180,7 @@ def test_change_loss_visibility_rule_and_final_prune_hand_cases():
     assert np.isclose(float(jax.nn.sigmoid(rf.halve_alpha(jnp.float32(1.2)))), 0.5 / (1 + np.exp(-1.2)), atol=1e-6)
 
 
-def test_refine_lowers_the_loss_on_both_dates_and_keeps_the_model_finite():
+def test_refine_lowers_the_loss_keeps_the_model_finite_and_resumes_exactly(tmp_path):
     ci = importlib.import_module("cfgs_jax.fusion.cross_init")  # the package exports a function of that name
     rf = importlib.import_module("cfgs_jax.fusion.refine")
 
@@ -207,6 +208,17 @@ def test_refine_lowers_the_loss_on_both_dates_and_keeps_the_model_finite():
     assert all(np.isfinite(np.asarray(x)).all() for x in jax.tree_util.tree_leaves(out.gaussians))
     assert np.all(np.asarray(out.light_logits) == 0.0)  # l frozen at its merged value
     assert rep["gaussians_after_prune"] == len(out) <= 2 * n
+    # stopped after 120 steps (past a visibility pass, between checkpoints) and resumed: the same model
+    ckpt = tmp_path / "refine_checkpoint.npz"
+    cfg = dataclasses.replace(cfg, checkpoint_every=50)
+    none, stop = rf.refine(model, views, cfg, extent=1.0, checkpoint=ckpt, stop_after=120)
+    assert none is None and stop == {"stopped_at": 120} and ckpt.is_file()
+    resumed, rep2 = rf.refine(model, views, cfg, extent=1.0, checkpoint=ckpt)
+    assert rep2 == rep
+    for x, y in zip(jax.tree_util.tree_leaves(out), jax.tree_util.tree_leaves(resumed)):
+        np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+    with pytest.raises(ValueError, match="another refinement"):
+        rf.refine(model, views, dataclasses.replace(cfg, lr_o=1e-3), extent=1.0, checkpoint=ckpt)
 
 
 @pytest.fixture(scope="module")

@@ -17,7 +17,9 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import json
 from collections.abc import Sequence
+from pathlib import Path
 
 import jax
 import jax.numpy as jnp
@@ -28,6 +30,7 @@ from cfgs_jax import metrics, splat
 from cfgs_jax.errors import InputError
 from cfgs_jax.fusion.cross_init import DateViews
 from cfgs_jax.fusion.fuse import INVISIBLE_LOGIT
+from cfgs_jax.io.atomic import atomic_file
 from cfgs_jax.model import Gaussians, TemporalGaussians
 from cfgs_jax.train.loop import view_order
 from cfgs_jax.train.step import over_background
@@ -54,6 +57,7 @@ class RefineConfig:
     contribution_threshold: float = 0.01
     random_background: bool = True
     prune_threshold: float = 1.0 / 255.0
+    checkpoint_every: int = 500
     seed: int = 0
 
     def __post_init__(self):
@@ -153,11 +157,45 @@ def final_prune(model: TemporalGaussians, threshold: float = 1.0 / 255.0) -> Tem
     return jax.tree_util.tree_map(lambda x: jnp.asarray(x)[np.nonzero(keep)[0]], model)
 
 
+CHECKPOINT_FORMAT = "cfgs_jax.refine_checkpoint/1"
+
+
+def _save_checkpoint(path: Path, step: int, state: dict, meta: dict) -> None:
+    """The refinement state (parameters, Adam moments, RNG key, visibility accumulators) and the step,
+    written atomically as npz."""
+    leaves = jax.tree_util.tree_leaves(state)
+    meta = meta | {"format": CHECKPOINT_FORMAT, "step": step, "num_leaves": len(leaves)}
+    with atomic_file(path) as tmp, open(tmp, "wb") as fh:
+        np.savez(fh, __meta__=np.frombuffer(json.dumps(meta).encode(), np.uint8),
+                 **{f"leaf_{i:04d}": np.asarray(x) for i, x in enumerate(leaves)})  # fmt: skip
+
+
+def _load_checkpoint(path: Path, template: dict, meta_now: dict) -> tuple[dict, dict]:
+    try:
+        with np.load(path) as data:
+            meta = json.loads(bytes(data["__meta__"]).decode())
+            arrays = [data[f"leaf_{i:04d}"] for i in range(meta["num_leaves"])]
+    except (OSError, KeyError, ValueError, json.JSONDecodeError) as exc:
+        raise InputError(f"unreadable refinement checkpoint ({exc})", path=path, fix="delete it to restart the stage") from exc
+    treedef = jax.tree_util.tree_structure(template)
+    same = {k: meta.get(k) == v for k, v in meta_now.items()}
+    if meta.get("format") != CHECKPOINT_FORMAT or not all(same.values()) or treedef.num_leaves != len(arrays):
+        bad = [k for k, ok in same.items() if not ok] or ["format"]
+        raise InputError(f"the checkpoint belongs to another refinement (differs in {', '.join(bad)})", path=path,
+                         fix="resume with the original model and settings, or delete it to restart the stage")  # fmt: skip
+    return jax.tree_util.tree_unflatten(treedef, [jnp.asarray(a) for a in arrays]), meta
+
+
 def refine(model: TemporalGaussians, views: Sequence[DateViews], config: RefineConfig | None = None, *,
-           extent: float, render_config: splat.RenderConfig | None = None, progress: bool = False):  # fmt: skip
+           extent: float, render_config: splat.RenderConfig | None = None, progress: bool = False,
+           checkpoint: str | Path | None = None, stop_after: int | None = None):  # fmt: skip
     """Eq. 3 refinement of a cross-initialised model on all dates' training views, the visibility
     rule every ``visibility_interval`` steps and at the end, then the final prune. Returns the model
-    and a report (losses, Gaussians zeroed per date, pruned count)."""
+    and a report (losses, Gaussians zeroed per date, pruned count).
+
+    With ``checkpoint`` (a path), the state is saved there every ``config.checkpoint_every`` steps and a
+    run finding it continues from it, ending with the same model as an uninterrupted run.
+    ``stop_after=k`` saves at step k and returns ``(None, {"stopped_at": k})``."""
     config = config or RefineConfig()
     render_config = render_config or splat.RenderConfig()
     t = model.num_dates
@@ -185,11 +223,26 @@ def refine(model: TemporalGaussians, views: Sequence[DateViews], config: RefineC
     zeroed = np.zeros(t, np.int64)
     losses = []
     key = jax.random.key(config.seed)
+    start = 0
+    meta_now = {"config": dataclasses.asdict(config), "gaussians": n, "dates": t, "extent": float(extent)}
+
+    def state():
+        return {"params": params, "opt_state": opt_state, "key": jax.random.key_data(key), "contributed": contributed,
+                "rendered": rendered, "zeroed": zeroed}  # fmt: skip
+
+    if checkpoint is not None and Path(checkpoint).is_file():
+        loaded, meta = _load_checkpoint(Path(checkpoint), state(), meta_now)
+        params, opt_state = loaded["params"], loaded["opt_state"]
+        key = jax.random.wrap_key_data(loaded["key"])
+        contributed, rendered, zeroed = (np.asarray(loaded[k]).copy() for k in ("contributed", "rendered", "zeroed"))
+        start, losses = int(meta["step"]), list(meta["losses"])
+        capacity = max(capacity_for(params, q, v) for q, v in flat)
+        optimizer, step = _compiled_step(config, float(extent), dataclasses.replace(render_config, capacity=capacity))
     from rich.progress import Progress
 
     with Progress(disable=not progress, transient=True) as bar:
-        task = bar.add_task("refine", total=config.steps)
-        for it in range(config.steps):
+        task = bar.add_task("refine", total=config.steps, completed=start)
+        for it in range(start, config.steps):
             key, sub = jax.random.split(key)
             q, v = flat[view_order(config.seed, it, len(flat))]
             while True:
@@ -212,6 +265,11 @@ def refine(model: TemporalGaussians, views: Sequence[DateViews], config: RefineC
                 contributed[:] = False
                 rendered[:] = False
             bar.update(task, completed=it + 1)
+            done = it + 1
+            if checkpoint is not None and done < config.steps and (done % config.checkpoint_every == 0 or done == stop_after):
+                _save_checkpoint(Path(checkpoint), done, state(), meta_now | {"losses": losses})
+            if stop_after is not None and done == stop_after:
+                return None, {"stopped_at": done}
     refined = model_from(params, model)
     pruned = final_prune(refined, config.prune_threshold)
     report = {

@@ -170,15 +170,18 @@ def _cross_init_pairs(run: FusionRun, start: Path, pairs, views, render_config, 
 
 
 def _refine_stage(run: FusionRun, views, scenes, render_config, progress: bool, log, stage: str) -> None:
-    """Eq. 3 refinement of ``RUN/cross_init`` → ``RUN/fused``."""
+    """Eq. 3 refinement of ``RUN/cross_init`` → ``RUN/fused``, resumable mid-way from
+    ``RUN/<stage>_checkpoint.npz`` (saved every ``refine.checkpoint_every`` steps)."""
     t0 = time.perf_counter()
     fc = section(run.raw, "refine", RefineConfig)
     model = read_fused(run.out / "cross_init")
     log(f"[{stage}] {len(model):,} Gaussians, {fc.steps:,} steps over all dates")
+    ckpt = run.out / f"{stage.replace(':', '_')}_checkpoint.npz"
     model, rep = refine(model, views, fc, extent=train.scene_extent(scenes[0].cameras),
-                        render_config=render_config, progress=progress)  # fmt: skip
+                        render_config=render_config, progress=progress, checkpoint=ckpt)  # fmt: skip
     write_fused(run.out / "fused", model, config=run.state["config"])
     run.finish(stage, time.perf_counter() - t0, rep)
+    ckpt.unlink(missing_ok=True)
 
 
 def run_fusion(dates: list[Path], out: Path, raw_config: dict | None = None, *, models: list[Path] | None = None,
