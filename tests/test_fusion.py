@@ -230,10 +230,7 @@ def tiny_two_dates(tmp_path_factory):
 
     spec = synthetic.make_preset("corals", seed=5, width=64, height=48, images_per_date=6, spp=4)
     root = synthetic.render_dataset(spec, tmp_path_factory.mktemp("tiny"), dates=[0, 1, 2], progress=False)
-    gt = json.loads((root / "ground_truth.json").read_text())["dates"]
-    ref = Sim3.from_dict(gt[0]["date_from_world"])
-    sims = {d["name"]: ref.compose(Sim3.from_dict(d["world_from_date"])).to_dict() for d in gt[:3]}
-    (root / "transforms.json").write_text(json.dumps(sims))
+    (root / "transforms.json").write_text(json.dumps(synthetic.reference_transforms(root, ["d0", "d1", "d2"])))
     toml = root / "tiny.toml"
     toml.write_text(
         "[train]\nsteps = 60\ndensify_from = 20\ndensify_until = 50\ndensify_interval = 20\n"

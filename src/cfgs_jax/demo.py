@@ -44,7 +44,10 @@ def run_demo(out: str | Path, *, config: str = "demo", num_dates: int = 2, width
         if "train" not in state.get("done", ()) or "register" in state.get("done", ()):
             raise
         log(f"registration failed ({exc}); continuing with the scene's ground-truth Sim(3)s")
-        run = run_fusion(dates, run_dir, raw, resume=True, transforms=ground_truth_transforms(scene_dir, names, out),
+        gt_path = out / "ground_truth_transforms.json"
+        with atomic_file(gt_path) as tmp:
+            tmp.write_text(json.dumps(synthetic.reference_transforms(scene_dir, names), indent=1))
+        run = run_fusion(dates, run_dir, raw, resume=True, transforms=gt_path,
                          progress=progress, log=log)  # fmt: skip
 
     fused = open_run(run_dir)
@@ -76,19 +79,6 @@ def run_demo(out: str | Path, *, config: str = "demo", num_dates: int = 2, width
     with atomic_file(out / "summary.md") as tmp:
         tmp.write_text(summary_markdown(summary))
     return summary
-
-
-def ground_truth_transforms(scene_dir: Path, names: list[str], out: Path) -> Path:
-    """Write the synthetic scene's exact date → reference-date Sim(3)s as a ``--transforms`` JSON."""
-    from cfgs_jax.sim3 import Sim3
-
-    gt = {d["name"]: d for d in json.loads((scene_dir / "ground_truth.json").read_text())["dates"]}
-    ref = Sim3.from_dict(gt[names[0]]["date_from_world"])
-    sims = {n: ref.compose(Sim3.from_dict(gt[n]["world_from_date"])).to_dict() for n in names}
-    path = out / "ground_truth_transforms.json"
-    with atomic_file(path) as tmp:
-        tmp.write_text(json.dumps(sims, indent=1))
-    return path
 
 
 def summary_markdown(summary: dict) -> str:

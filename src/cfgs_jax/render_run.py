@@ -9,6 +9,7 @@ linear EXR per view. ``export`` bakes the same per-Gaussian colours/opacities in
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 from pathlib import Path
 
@@ -16,14 +17,16 @@ import jax.numpy as jnp
 import numpy as np
 
 from cfgs_jax import viz
+from cfgs_jax.config import section
 from cfgs_jax.errors import InputError
 from cfgs_jax.io.atomic import ensure_writable_dir
-from cfgs_jax.io.colmap import read_colmap
+from cfgs_jax.io.colmap import Scene, read_colmap
 from cfgs_jax.io.fused import read_fused
 from cfgs_jax.io.images import write_image
 from cfgs_jax.io.ply import write_ply
 from cfgs_jax.model import Camera, TemporalGaussians
 from cfgs_jax.sim3 import Sim3
+from cfgs_jax.train.config import TrainConfig
 
 
 @dataclasses.dataclass(frozen=True)
@@ -97,23 +100,24 @@ class FusedRun:
     dataset_paths: list[Path]
     sims: list[Sim3]
 
+    test_every: int = 8
+
+    @functools.cached_property
+    def scenes(self) -> list[Scene]:
+        """The dates' datasets, split as the run split them (every ``test_every``-th image is a test view)."""
+        return [read_colmap(path, test_every=self.test_every) for path in self.dataset_paths]
+
     def test_cameras(self) -> list[tuple[str, Camera]]:
         """Every date's test views posed in the model's frame, named ``<date>_<image>``."""
-        from cfgs_jax.fusion.run import camera_in_frame
+        from cfgs_jax.fusion.run import camera_in_frame, split_or_all
 
-        out = []
-        for name, path, sim in zip(self.names, self.dataset_paths, self.sims):
-            scene = read_colmap(path)
-            idx = scene.indices("test") if len(scene.indices("test")) else scene.indices("all")
-            for i in idx:
-                stem = Path(scene.image_names[int(i)]).stem
-                out.append((f"{name}_{stem}", camera_in_frame(scene.cameras[int(i)], sim)))
-        return out
+        return [(f"{name}_{Path(scene.image_names[int(i)]).stem}", camera_in_frame(scene.cameras[int(i)], sim))
+                for name, scene, sim in zip(self.names, self.scenes, self.sims) for i in split_or_all(scene, "test")]  # fmt: skip
 
     def all_cameras(self) -> list[Camera]:
         from cfgs_jax.fusion.run import camera_in_frame
 
-        return [camera_in_frame(c, sim) for path, sim in zip(self.dataset_paths, self.sims) for c in read_colmap(path).cameras]
+        return [camera_in_frame(c, sim) for scene, sim in zip(self.scenes, self.sims) for c in scene.cameras]
 
 
 def open_run(run_dir: str | Path) -> FusedRun:
@@ -129,8 +133,9 @@ def open_run(run_dir: str | Path) -> FusedRun:
     names = [d["name"] for d in state["dates"]]
     if list(model.date_names) != names:
         raise InputError(f"model dates {list(model.date_names)} differ from run dates {names}", path=run_dir / "fused")
+    test_every = max(1, section(state.get("config", {}), "train", TrainConfig).test_every)
     return FusedRun(run_dir, model, names, [Path(d["path"]) for d in state["dates"]],
-                    [Sim3.from_dict(reg[n]["transform"]) for n in names])  # fmt: skip
+                    [Sim3.from_dict(reg[n]["transform"]) for n in names], test_every)  # fmt: skip
 
 
 def orbit_geometry(training: list[Camera]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, float, float]:

@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-import json
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -30,7 +29,7 @@ from cfgs_jax import metrics, splat
 from cfgs_jax.errors import InputError
 from cfgs_jax.fusion.cross_init import DateViews
 from cfgs_jax.fusion.fuse import INVISIBLE_LOGIT
-from cfgs_jax.io.atomic import atomic_file
+from cfgs_jax.io.checkpoint import read_meta, restore_tree, save_tree
 from cfgs_jax.model import Gaussians, TemporalGaussians
 from cfgs_jax.train.loop import view_order
 from cfgs_jax.train.step import over_background
@@ -160,30 +159,14 @@ def final_prune(model: TemporalGaussians, threshold: float = 1.0 / 255.0) -> Tem
 CHECKPOINT_FORMAT = "cfgs_jax.refine_checkpoint/1"
 
 
-def _save_checkpoint(path: Path, step: int, state: dict, meta: dict) -> None:
-    """The refinement state (parameters, Adam moments, RNG key, visibility accumulators) and the step,
-    written atomically as npz."""
-    leaves = jax.tree_util.tree_leaves(state)
-    meta = meta | {"format": CHECKPOINT_FORMAT, "step": step, "num_leaves": len(leaves)}
-    with atomic_file(path) as tmp, open(tmp, "wb") as fh:
-        np.savez(fh, __meta__=np.frombuffer(json.dumps(meta).encode(), np.uint8),
-                 **{f"leaf_{i:04d}": np.asarray(x) for i, x in enumerate(leaves)})  # fmt: skip
-
-
 def _load_checkpoint(path: Path, template: dict, meta_now: dict) -> tuple[dict, dict]:
-    try:
-        with np.load(path) as data:
-            meta = json.loads(bytes(data["__meta__"]).decode())
-            arrays = [data[f"leaf_{i:04d}"] for i in range(meta["num_leaves"])]
-    except (OSError, KeyError, ValueError, json.JSONDecodeError) as exc:
-        raise InputError(f"unreadable refinement checkpoint ({exc})", path=path, fix="delete it to restart the stage") from exc
-    treedef = jax.tree_util.tree_structure(template)
-    same = {k: meta.get(k) == v for k, v in meta_now.items()}
-    if meta.get("format") != CHECKPOINT_FORMAT or not all(same.values()) or treedef.num_leaves != len(arrays):
-        bad = [k for k, ok in same.items() if not ok] or ["format"]
+    """(state, meta) of a refinement checkpoint, refused unless it was written by the same refinement."""
+    meta, arrays = read_meta(path, format=CHECKPOINT_FORMAT)
+    bad = [k for k, v in meta_now.items() if meta.get(k) != v]
+    if bad:
         raise InputError(f"the checkpoint belongs to another refinement (differs in {', '.join(bad)})", path=path,
                          fix="resume with the original model and settings, or delete it to restart the stage")  # fmt: skip
-    return jax.tree_util.tree_unflatten(treedef, [jnp.asarray(a) for a in arrays]), meta
+    return restore_tree(path, arrays, template), meta
 
 
 def refine(model: TemporalGaussians, views: Sequence[DateViews], config: RefineConfig | None = None, *,
@@ -267,7 +250,7 @@ def refine(model: TemporalGaussians, views: Sequence[DateViews], config: RefineC
             bar.update(task, completed=it + 1)
             done = it + 1
             if checkpoint is not None and done < config.steps and (done % config.checkpoint_every == 0 or done == stop_after):
-                _save_checkpoint(Path(checkpoint), done, state(), meta_now | {"losses": losses})
+                save_tree(checkpoint, state(), meta_now | {"step": done, "losses": losses}, format=CHECKPOINT_FORMAT)
             if stop_after is not None and done == stop_after:
                 return None, {"stopped_at": done}
     refined = model_from(params, model)

@@ -58,9 +58,15 @@ def camera_in_frame(camera: Camera, sim3: Sim3) -> Camera:
     return dataclasses.replace(camera, cam_from_world=jnp.asarray(m, jnp.float32))
 
 
+def split_or_all(scene: Scene, split: str) -> np.ndarray:
+    """Image indices of ``split``, or of all images when that split is empty (tiny datasets)."""
+    idx = scene.indices(split)
+    return idx if len(idx) else scene.indices("all")
+
+
 def date_views(scene: Scene, sim3: Sim3, split: str = "train") -> DateViews:
     """A date's ``split`` views (RGBA images, alpha 1 where none) posed in the reference frame."""
-    idx = scene.indices(split) if len(scene.indices(split)) else scene.indices("all")
+    idx = split_or_all(scene, split)
     return DateViews(
         tuple(camera_in_frame(scene.cameras[int(i)], sim3) for i in idx),
         tuple(scene.load_image(int(i), with_alpha=True) for i in idx),

@@ -5,7 +5,7 @@ vase, corals, flood, coverage, light); ``render_dataset(spec, out)`` writes one 
 date in its own random Sim(3) frame, object-id and change masks, and ``ground_truth.json``.
 """
 
-from cfgs_jax.synthetic.dataset import render_dataset, sun_rgb
+from cfgs_jax.synthetic.dataset import reference_transforms, render_dataset, sun_rgb
 from cfgs_jax.synthetic.presets import PRESETS, DateSpec, ObjectSpec, SceneSpec, make_preset
 
-__all__ = ["PRESETS", "DateSpec", "ObjectSpec", "SceneSpec", "make_preset", "render_dataset", "sun_rgb"]
+__all__ = ["PRESETS", "DateSpec", "ObjectSpec", "SceneSpec", "make_preset", "reference_transforms", "render_dataset", "sun_rgb"]

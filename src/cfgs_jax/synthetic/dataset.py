@@ -337,3 +337,11 @@ def _write_colmap(pycolmap, path, spec, q, names, frame: Sim3, obs, xyz, colors,
         point_ids.append(int(rec.add_point3D(xyz_d[pid], track, colors[pid])))
     rec.write_binary(str(path))
     return point_ids
+
+
+def reference_transforms(root: str | Path, names: list[str]) -> dict[str, dict]:
+    """The exact date → reference-date (``names[0]``) Sim(3)s of a rendered scene, from its
+    ``ground_truth.json``, in the ``--transforms`` JSON layout."""
+    gt = {d["name"]: d for d in json.loads((Path(root) / "ground_truth.json").read_text())["dates"]}
+    ref = Sim3.from_dict(gt[names[0]]["date_from_world"])
+    return {n: ref.compose(Sim3.from_dict(gt[n]["world_from_date"])).to_dict() for n in names}

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-import json
 import logging
 import time
 from pathlib import Path
@@ -21,7 +20,8 @@ import numpy as np
 
 from cfgs_jax import splat
 from cfgs_jax.errors import InputError
-from cfgs_jax.io.atomic import atomic_file, ensure_writable_dir
+from cfgs_jax.io.atomic import ensure_writable_dir
+from cfgs_jax.io.checkpoint import read_meta, restore_tree, save_tree
 from cfgs_jax.io.colmap import Scene
 from cfgs_jax.model import Gaussians
 from cfgs_jax.train.config import TrainConfig
@@ -76,29 +76,18 @@ def save_checkpoint(path: Path, state: TrainState, *, config: TrainConfig, exten
                     losses: list[float], counts: list, eval_history: list | None = None) -> Path:  # fmt: skip
     """Parameters, optimiser state, statistics, step and RNG key, written atomically (npz)."""
     keyed = dataclasses.replace(state, key=jax.random.key_data(state.key))
-    leaves = jax.tree_util.tree_leaves(keyed)
     meta = {
-        "format": FORMAT, "step": int(state.step), "capacity": int(state.active.shape[0]),
+        "step": int(state.step), "capacity": int(state.active.shape[0]),
         "render_capacity": int(render_capacity), "extent": extent, "config": _config_dict(config),
-        "losses": losses, "counts": counts, "eval_history": eval_history or [], "num_leaves": len(leaves),
+        "losses": losses, "counts": counts, "eval_history": eval_history or [],
     }  # fmt: skip
-    arrays = {f"leaf_{i:04d}": np.asarray(x) for i, x in enumerate(leaves)}
-    with atomic_file(path) as tmp:
-        with open(tmp, "wb") as fh:
-            np.savez(fh, __meta__=np.frombuffer(json.dumps(meta).encode(), np.uint8), **arrays)
+    save_tree(path, keyed, meta, format=FORMAT)
     return path
 
 
 def load_checkpoint(path: Path, optimizer, config: TrainConfig):
     """(state, meta) from ``save_checkpoint``; the config must match the one the run was started with."""
-    try:
-        with np.load(path) as data:
-            meta = json.loads(bytes(data["__meta__"]).decode())
-            arrays = [data[f"leaf_{i:04d}"] for i in range(meta["num_leaves"])]
-    except (OSError, KeyError, ValueError, json.JSONDecodeError) as exc:
-        raise InputError(f"unreadable checkpoint ({exc})", path=path, fix="delete it to start over") from exc
-    if meta.get("format") != FORMAT:
-        raise InputError(f"not a {FORMAT} checkpoint", path=path, field="format", fix="delete it to start over")
+    meta, arrays = read_meta(path, format=FORMAT)
     saved = meta["config"]
     now = _config_dict(config)
     diff = sorted(k for k in set(saved) | set(now) if saved.get(k) != now.get(k))
@@ -108,11 +97,7 @@ def load_checkpoint(path: Path, optimizer, config: TrainConfig):
             path=path, field=f"train.{diff[0]}", fix="resume with the original settings or start a new --out",
         )  # fmt: skip
     template = TrainState.create(_dummy(1), optimizer, jax.random.key(0), capacity=meta["capacity"])
-    template = dataclasses.replace(template, key=jax.random.key_data(template.key))
-    treedef = jax.tree_util.tree_structure(template)
-    if treedef.num_leaves != len(arrays):
-        raise InputError("checkpoint layout does not match this version", path=path, fix="delete it to start over")
-    state = jax.tree_util.tree_unflatten(treedef, [jnp.asarray(a) for a in arrays])
+    state = restore_tree(path, arrays, dataclasses.replace(template, key=jax.random.key_data(template.key)))
     state = dataclasses.replace(state, key=jax.random.wrap_key_data(state.key))
     return state, meta
 
