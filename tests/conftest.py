@@ -67,4 +67,23 @@ def bits_equal(a, b) -> bool:
 
 import warnings  # noqa: E402
 
+from hypothesis import HealthCheck, settings  # noqa: E402
+
+# Hypothesis profiles for the stress suite (tests/stress): "ci" is the default (bounded and
+# derandomised: same examples every run); "thorough" via --hypothesis-profile=thorough.
+_SLOW_OK = [HealthCheck.too_slow, HealthCheck.data_too_large]
+settings.register_profile("ci", max_examples=12, deadline=None, derandomize=True, suppress_health_check=_SLOW_OK,
+                          print_blob=True)  # fmt: skip
+settings.register_profile("thorough", max_examples=400, deadline=None, suppress_health_check=_SLOW_OK, print_blob=True)
+settings.load_profile("ci")
+
 warnings.filterwarnings("ignore", message=".*Matplotlib.*")
+
+
+def pytest_collection_modifyitems(config, items):
+    """Everything under tests/stress/ carries the ``stress`` marker (select with -m stress)."""
+    import pytest
+
+    for item in items:
+        if "stress" in Path(str(item.fspath)).parts:
+            item.add_marker(pytest.mark.stress)

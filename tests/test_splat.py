@@ -41,7 +41,7 @@ def camera(w=50, h=37, eye=(0, -4, 1)):
     return cj.Camera.look_at(eye, [0, 0, 0], width=w, height=h, fov_x_deg=50)
 
 
-def assert_matches_reference(fast_image, g, cam, *, background=BG, tol=1e-5):
+def assert_matches_reference(fast_image, g, cam, *, background=BG, tol=1e-5, om=None):
     """Fast float32 image vs the float64 reference: ≤ ``tol`` at every pixel, except float32 ties.
 
     A tie is a pixel where a hard decision sits within float32 rounding of its switch point, so
@@ -52,16 +52,23 @@ def assert_matches_reference(fast_image, g, cam, *, background=BG, tol=1e-5):
     pixels must be rare (≤ 1 %; seen: 0–1 per scene on random scenes, ≤ 6 of 1280 on the dense donut)."""
     fast = np.asarray(fast_image, np.float64)
     base = splat.RenderConfig()
-    ref = np.asarray(splat.reference.render(g, cam, background=background, config=base).image)
+    n = len(g)
+    om = np.ones((1, n)) if om is None else np.reshape(np.asarray(om, np.float64), (1, n))
+
+    def reference(config, depth_key=None):
+        r = splat.reference.render_dates(g, cam, om, np.ones((1, n, 3)), background=background, config=config,
+                                         depth_key=depth_key)  # fmt: skip
+        return np.asarray(r.image[0])
+
+    ref = reference(base)
     err = np.abs(fast - ref).max(-1)
     over = err > tol
     if over.any():
         nudged = [dataclasses.replace(base, min_alpha=base.min_alpha * (1 + s)) for s in (1e-3, -1e-3)]
         nudged += [dataclasses.replace(base, min_transmittance=base.min_transmittance * (1 + s)) for s in (1e-3, -1e-3)]
-        alt = [np.abs(fast - np.asarray(splat.reference.render(g, cam, background=background, config=c).image)).max(-1) for c in nudged]
+        alt = [np.abs(fast - reference(c)).max(-1) for c in nudged]
         z32 = np.asarray(splat.project(g.means, g.quats, g.log_scales, cam, base).depths)
-        by_f32_order = splat.reference.render(g, cam, background=background, depth_key=z32).image
-        alt.append(np.abs(fast - np.asarray(by_f32_order)).max(-1))
+        alt.append(np.abs(fast - reference(base, z32)).max(-1))
         explained = np.min(alt, axis=0)
         assert np.all(explained[over] <= tol), f"unexplained error {explained[over].max():.3g}"
         assert over.sum() <= max(1, over.size // 100), f"{over.sum()} tie pixels of {over.size}"

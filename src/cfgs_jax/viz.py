@@ -123,13 +123,16 @@ def persistence_filter(o: Float[Array, "N T"], t: Float[Array, "T"], *, sigma: f
     t_hat = normalize_selection(t)
     o = jnp.asarray(o)
     _check_dates(o, t_hat)
+    if not _is_traced(sigma) and not (np.isfinite(sigma) and sigma > 0):
+        raise InputError(f"sigma must be a positive finite number, got {sigma}", field="sigma",
+                         fix=f"use e.g. the authors' {DEFAULT_SIGMA}")  # fmt: skip
     dtype = jnp.result_type(o, float)
     o = o.astype(dtype)
     t_hat = t_hat.astype(dtype)
     if contrast is not None:
         k, b = contrast
-        if not (_is_traced(k) or _is_traced(b)) and not (k > 0 and 0 < b < 1):
-            raise InputError(f"contrast=(k, b) needs k > 0 and 0 < b < 1, got {contrast}", field="contrast")
+        if not (_is_traced(k) or _is_traced(b)) and not (np.isfinite(k) and k > 0 and 0 < b < 1):
+            raise InputError(f"contrast=(k, b) needs a finite k > 0 and 0 < b < 1, got {contrast}", field="contrast")
         o = contrast_sigmoid(o, k, b)
     selected = (t_hat > 0).astype(dtype)
     ends = jnp.cumsum(t_hat)
@@ -167,7 +170,15 @@ def remap_to_gradient(S: Float[Array, "... 3"], stops: Sequence[Sequence[float]]
     stops = _validate_stops(stops).astype(jnp.result_type(S, float))
     S = S.astype(stops.dtype)
     norm = jnp.sum(jnp.abs(S), axis=-1, keepdims=True)
-    S_hat = S / jnp.maximum(norm, jnp.finfo(S.dtype).tiny)
+    # Ŝ is scale-invariant, so S is first divided by a constant c = max|S| (stop_gradient: exact, as
+    # Ŝ does not depend on c) to keep 1/|S|² out of the backward pass, which overflowed to NaN for
+    # |S| ≲ 1e-19 in float32. S below the smallest normal float (e.g. a Gaussian absent at every
+    # selected date, S = 0) has no direction: it maps to 0 with finite gradients (found by tests/stress).
+    c = jax.lax.stop_gradient(jnp.max(jnp.abs(S), axis=-1, keepdims=True))
+    nonzero = c >= jnp.finfo(S.dtype).tiny
+    scaled = S / jnp.where(nonzero, c, 1)
+    scaled_norm = jnp.sum(jnp.abs(scaled), axis=-1, keepdims=True)
+    S_hat = jnp.where(nonzero, scaled / jnp.where(nonzero, scaled_norm, 1), 0)
     n = stops.shape[0]
     rho = (S_hat[..., 1] / 2 + S_hat[..., 2]) * (n - 1)
     grid = jnp.arange(n, dtype=S.dtype)
