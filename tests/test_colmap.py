@@ -102,10 +102,12 @@ def test_missing_and_mismatched_images(tmp_path):
     poses, _, _ = make_dataset(tmp_path, n=4)
     name = sorted(poses)[1]
     Image.new("RGB", (32, 48)).save(tmp_path / "images" / name)
-    s = read_colmap(tmp_path)
     with pytest.raises(InputError, match="field 'width/height'") as e:
-        s.load_image(1)
-    assert "32x48" in str(e.value) and "64x48" in str(e.value)
+        read_colmap(tmp_path)  # checked up front from the image headers
+    assert "32x48" in str(e.value) and "64x48" in str(e.value) and name in str(e.value)
+    s = read_colmap(tmp_path, check_images=False)
+    with pytest.raises(InputError, match="field 'width/height'"):
+        s.load_image(1)  # and again when an image is loaded
     (tmp_path / "images" / sorted(poses)[2]).unlink()
     with pytest.raises(InputError, match="missing"):
         read_colmap(tmp_path)

@@ -103,6 +103,8 @@ def cmd_convert(args) -> int:
     import cfgs_jax as cj
 
     src, dst = Path(args.src), Path(args.dst)
+    if args.layout is None:  # from the destination: a .ply file, else a fused-model directory
+        args.layout = "ply" if dst.suffix.lower() == ".ply" else "cfgs"
     if src.is_file():
         g = cj.io.read_ply(src, drop_invalid=args.drop_invalid)
         if args.layout != "ply":
@@ -207,7 +209,10 @@ def cmd_train(args) -> int:
     from cfgs_jax import splat, train
     from cfgs_jax.config import find_preset, load_config, section
 
+    from cfgs_jax.fusion.run import validate_config
+
     raw = load_config(find_preset(args.config))
+    validate_config(raw)
     config = section(raw, "train", train.TrainConfig)
     render_config = section(raw, "render", splat.RenderConfig)
     if args.seed is not None:
@@ -220,12 +225,12 @@ def cmd_train(args) -> int:
         config = train.continuation_config(dataclasses.replace(config, steps=args.steps or config.steps))
     elif args.steps:
         config = config.scaled(args.steps)
+    scene = cj.io.read_colmap(args.scene, test_every=max(1, config.test_every))  # inputs first: no output on bad input
     out = cj.io.ensure_writable_dir(args.out)
     ckpt = out / train.CHECKPOINT
     if ckpt.exists() and not args.resume:
         raise InputError("this output directory holds a checkpoint of an earlier run", path=ckpt,
                          fix="pass --resume to continue it, or choose another --out")  # fmt: skip
-    scene = cj.io.read_colmap(args.scene, test_every=max(1, config.test_every))
     console = _console()
     what = f"continuing {args.continue_from} for" if init is not None else "training"
     console.print(
@@ -261,14 +266,11 @@ def cmd_fuse(args) -> int:
     from cfgs_jax.fusion.run import run_fusion
 
     raw = load_config(find_preset(args.config))
-    if args.models and len(args.models) != len(args.dates):
-        raise InputError(f"{len(args.models)} models for {len(args.dates)} dates", field="--models",
-                         fix="give one PLY per date, in the order of --dates")  # fmt: skip
     console = _console()
     run = run_fusion(
         [Path(d) for d in args.dates], Path(args.out), raw, models=args.models, resume=args.resume,
         transforms=Path(args.transforms) if args.transforms else None, progress=not args.no_progress,
-        log=console.print,
+        drop_invalid=args.drop_invalid, log=console.print,
     )  # fmt: skip
     from rich.table import Table
 
@@ -412,7 +414,8 @@ def build_parser() -> argparse.ArgumentParser:
     s = sub.add_parser("convert", help="convert between 3DGS PLY and fused-model layouts")
     s.add_argument("src")
     s.add_argument("dst")
-    s.add_argument("--layout", choices=("cfgs", "reference", "ply"), default="cfgs")
+    s.add_argument("--layout", choices=("cfgs", "reference", "ply"),
+                   help="output layout (default: ply when DST ends in .ply, else cfgs)")
     s.add_argument("--drop-invalid", action="store_true", help="drop rows with NaN/Inf instead of failing")
     s.set_defaults(func=cmd_convert)
 
@@ -454,6 +457,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--config", default="paper", help="preset name (paper, fast) or TOML path")
     s.add_argument("--models", nargs="+", help="trained per-date PLYs (default: train them in the run)")
     s.add_argument("--transforms", help="JSON of known date → reference Sim(3)s (skips SfM registration)")
+    s.add_argument("--drop-invalid", action="store_true", help="drop --models rows with NaN/Inf instead of failing")
     s.add_argument("--resume", action="store_true", help="continue the run in --out")
     s.add_argument("--no-progress", action="store_true")
     s.set_defaults(func=cmd_fuse)
@@ -501,9 +505,20 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+class _StderrHandler(logging.Handler):
+    """The library's log records on the current stderr as ``warning: ...`` lines (e.g. how many invalid
+    rows ``--drop-invalid`` dropped)."""
+
+    def emit(self, record):
+        print(f"{record.levelname.lower()}: {record.getMessage()}", file=sys.stderr)
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING, format="%(levelname)s %(message)s")
+    logger = logging.getLogger("cfgs_jax")
+    if not any(isinstance(h, _StderrHandler) for h in logger.handlers):
+        logger.addHandler(_StderrHandler())
+    logger.setLevel(logging.INFO if args.verbose else logging.WARNING)
     try:
         return args.func(args)
     except (InputError, OutputError) as exc:

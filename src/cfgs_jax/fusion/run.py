@@ -21,13 +21,14 @@ from __future__ import annotations
 import dataclasses
 import json
 import time
+import warnings
 from pathlib import Path
 
 import jax.numpy as jnp
 import numpy as np
 
 from cfgs_jax import splat, train
-from cfgs_jax.config import section
+from cfgs_jax.config import check_sections, section
 from cfgs_jax.errors import InputError
 from cfgs_jax.fusion.cross_init import CrossInitConfig, DateViews, init_pair
 from cfgs_jax.fusion.fuse import merge
@@ -41,6 +42,22 @@ from cfgs_jax.model import Camera, DateInfo
 from cfgs_jax.sim3 import Sim3
 
 STAGES = ("train", "register", "merge", "cross_init", "refine", "export", "evaluate")
+#: The tables a run configuration may hold, and the dataclass each one builds.
+CONFIG_SECTIONS = {"render": splat.RenderConfig, "train": train.TrainConfig, "register": RegisterConfig,
+                   "cross_init": CrossInitConfig, "refine": RefineConfig}  # fmt: skip
+#: o-logit of every Gaussian of a one-date "fusion": σ(30) rounds to exactly 1.0 in float32, so the
+#: fused model renders bit-identically to its input.
+IDENTITY_LOGIT = 30.0
+
+
+def validate_config(raw: dict | None) -> None:
+    """Build every table of a run configuration once, so unknown tables or keys and bad values fail
+    before any output exists (each error names the file, the key and the closest valid one)."""
+    if not raw:
+        return
+    check_sections(raw, CONFIG_SECTIONS)
+    for name, cls in CONFIG_SECTIONS.items():
+        section(raw, name, cls)
 
 
 def _write_json(path: Path, data) -> None:
@@ -107,8 +124,9 @@ class FusionRun:
                 raise InputError("the run was started with other dates", path=self.out / "run.json", field="--dates",
                                  fix=f"use {[d['path'] for d in state['dates']]}")  # fmt: skip
         names = [Path(d).name for d in dates]
-        if len(set(names)) != len(names) or len(names) < 2:
-            raise InputError(f"need ≥ 2 dates with distinct directory names, got {names}", field="--dates")
+        if len(set(names)) != len(names) or not names:
+            raise InputError(f"need dates with distinct directory names, got {names}", field="--dates",
+                             fix="give each date's dataset its own directory name")  # fmt: skip
         self.state = state or {
             "dates": [{"name": n, "path": str(Path(d).resolve())} for n, d in zip(names, dates)],
             "done": [], "config": {k: v for k, v in self.raw.items() if k != "__path__"},
@@ -192,13 +210,28 @@ def _refine_stage(run: FusionRun, views, scenes, render_config, progress: bool, 
 
 def run_fusion(dates: list[Path], out: Path, raw_config: dict | None = None, *, models: list[Path] | None = None,
                transforms: Path | None = None, resume: bool = False, progress: bool = True, evaluate: bool = True,
-               log=print) -> FusionRun:  # fmt: skip
-    """All stages of ChronoFuseGS over ``dates`` (COLMAP datasets; the first is the reference frame)."""
+               drop_invalid: bool = False, log=print) -> FusionRun:  # fmt: skip
+    """All stages of ChronoFuseGS over ``dates`` (COLMAP datasets; the first is the reference frame).
+
+    Every input (configuration, datasets with their image sizes, given models) is read and checked
+    before the run directory is created, so bad input leaves no output behind. One date is allowed,
+    with a warning: its "fusion" is the identity (o = 1 exactly, no cross-init, no refinement)."""
+    validate_config(raw_config)
+    test_every = max(1, section(raw_config, "train", train.TrainConfig).test_every)
+    scenes = [read_colmap(d, test_every=test_every) for d in dates]
+    for m in models or ():
+        read_ply(m, drop_invalid=drop_invalid)
+    if models is not None and len(models) != len(dates):
+        raise InputError(f"{len(models)} models for {len(dates)} dates", field="--models",
+                         fix="give one PLY per date, in the order of --dates")  # fmt: skip
+    if len(dates) == 1:
+        msg = f"fusing a single date ({Path(dates[0]).name}): the result is that date's model unchanged (identity)"
+        warnings.warn(msg, UserWarning, stacklevel=2)
+        log(f"warning: {msg}")
     run = FusionRun(Path(out), [Path(d) for d in dates], raw_config, resume=resume, models=models)
     raw = run.raw
     render_config = section(raw, "render", splat.RenderConfig)
     names = run.names
-    scenes = [run.scene(i) for i in range(len(names))]
 
     # 1. per-date models
     if not run.done("train"):
@@ -237,9 +270,15 @@ def run_fusion(dates: list[Path], out: Path, raw_config: dict | None = None, *, 
     # 3. merge
     if not run.done("merge"):
         t0 = time.perf_counter()
-        merged = merge([read_ply(p) for p in model_paths], dinfo, sims)
+        merged = merge([read_ply(p, drop_invalid=drop_invalid) for p in model_paths], dinfo, sims)
         write_fused(run.out / "merged", merged)
         run.finish("merge", time.perf_counter() - t0, {"gaussians": len(merged)})
+    if len(names) == 1 and not run.done("refine"):
+        merged = read_fused(run.out / "merged")
+        identity = dataclasses.replace(merged, o_logits=jnp.full_like(jnp.asarray(merged.o_logits), IDENTITY_LOGIT))
+        for stage, folder in (("cross_init", "cross_init"), ("refine", "fused")):
+            write_fused(run.out / folder, identity, config=run.state["config"])
+            run.finish(stage, 0.0, {"skipped": "one date: identity", "gaussians_after_prune": len(identity)})
     views = [date_views(scenes[i], sims[i]) for i in range(len(names))]
 
     # 4. cross-timestep initialisation, resumable per pair
@@ -294,6 +333,10 @@ def run_extend(run_dir: Path, date: Path, *, model: Path | None = None, transfor
     started = any(s.startswith(prefix) for s in state["done"])
     if started and not resume:
         raise InputError(f"an extension by {name!r} was started here", path=run_dir, fix="pass --resume")
+    tc = section(state["config"], "train", train.TrainConfig)
+    read_colmap(date, test_every=max(1, tc.test_every))  # bad input fails before the run is touched
+    if model is not None:
+        read_ply(model)
     paths = [d["path"] for d in state["dates"]]
     if not started:
         state["dates"].append({"name": name, "path": str(Path(date).resolve())})

@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from cfgs_jax.errors import InputError
-from cfgs_jax.io.images import read_image
+from cfgs_jax.io.images import image_size, read_image
 from cfgs_jax.model import Camera
 
 SUPPORTED_MODELS = ("PINHOLE", "SIMPLE_PINHOLE")
@@ -205,6 +205,15 @@ def read_colmap(
                 f"{len(missing)} image(s) of the COLMAP model are missing (e.g. {missing[:3]})",
                 path=image_dir, field="images", fix="copy the missing images or re-run SfM",
             )  # fmt: skip
+        for name, cam in zip(names, cameras):  # headers only: a wrong size fails now, not mid-training
+            w, h = image_size(image_dir / name)
+            if (w, h) != (cam.width, cam.height):
+                raise InputError(
+                    f"image is {w}x{h} but its COLMAP camera is {cam.width}x{cam.height}",
+                    path=image_dir / name, field="width/height",
+                    fix="use the images the model was built from (resize the camera with pycolmap "
+                    "Camera.rescale if you downscaled them)",
+                )  # fmt: skip
     pts = list(rec.points3D.values())
     xyz = np.array([pt.xyz for pt in pts], np.float32).reshape(-1, 3)
     rgb = np.array([pt.color for pt in pts], np.float32).reshape(-1, 3) / 255.0

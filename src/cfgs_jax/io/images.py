@@ -55,6 +55,28 @@ def read_image(path: str | os.PathLike, *, linear: bool = False, with_alpha: boo
     return np.ascontiguousarray(rgb)
 
 
+def image_size(path: str | os.PathLike) -> tuple[int, int]:
+    """(width, height) of an image file from its header only (PIL formats and EXR)."""
+    p = Path(path)
+    suffix = p.suffix.lower()
+    if suffix in EXR_SUFFIXES:
+        import OpenEXR
+
+        try:
+            with OpenEXR.File(str(p), header_only=True) as f:
+                (x0, y0), (x1, y1) = f.header()["dataWindow"]
+        except Exception as exc:
+            raise InputError(f"unreadable EXR ({exc})", path=p, fix="the file is corrupt: replace it") from exc
+        return int(x1 - x0 + 1), int(y1 - y0 + 1)
+    from PIL import Image, UnidentifiedImageError
+
+    try:
+        with Image.open(p) as im:
+            return im.size
+    except (UnidentifiedImageError, OSError, SyntaxError) as exc:
+        raise InputError(f"unreadable image ({exc})", path=p, fix="the file is corrupt or not an image: replace it") from exc
+
+
 def _read_pil(p: Path) -> np.ndarray:
     from PIL import Image, UnidentifiedImageError
 
