@@ -9,7 +9,7 @@ forward pass must agree with the independent float64 reference wherever the refe
 import jax
 import jax.numpy as jnp
 import numpy as np
-from hypothesis import given
+from hypothesis import example, given
 from hypothesis import strategies as st
 
 import cfgs_jax as cj
@@ -44,7 +44,8 @@ def extreme_scenes(draw, n=N):
     right = np.asarray(cam.cam_from_world, np.float64)[0, :3]
     up = np.asarray(cam.cam_from_world, np.float64)[1, :3]
     means = rng.uniform(-1.0, 1.0, (n, 3))
-    counts = (np.asarray(fractions) * n).astype(int)
+    fractions = np.asarray(fractions) / max(1.0, sum(fractions))  # at most all of the Gaussians
+    counts = (fractions * n).astype(int)
     a, b, c = np.cumsum(counts)
     means[:a] = eye - fwd * rng.uniform(0.01, 3.0, (a, 1))  # behind the camera
     means[a:b] = eye + fwd * rng.uniform(0.15, 0.25, (b - a, 1))  # straddling the near plane (0.2)
@@ -110,9 +111,15 @@ def test_extreme_scenes_are_finite_and_match_the_float64_reference(scene):
 
 
 @given(st.integers(1, 40), st.floats(LOG_1E_6, LOG_1E4), st.floats(-30.0, 30.0), st.integers(0, 2**31 - 1))
+@example(copies=2, log_scale=1.0, logit=5.0, seed=0)  # found by the thorough profile: see below
 def test_coincident_identical_gaussians(copies, log_scale, logit, seed):
-    """``copies`` identical Gaussians at one point composite like the closed form 1 − (1 − α)^k
-    (until T < 1e-4 stops them), with finite gradients."""
+    """``copies`` identical Gaussians at one point, with finite gradients, as the float64 reference.
+
+    Found by the thorough profile: two coincident layers with α clamped to 0.99 leave T = 0.01² —
+    exactly INRIA's 1e-4 stop threshold, which float32 (9.99999955e-05 < 1e-4: stop) and float64
+    (1.0000000000000018e-04: go on) decide differently at every covered pixel. That is a genuine
+    float32 tie (explained by the nudged-threshold reference), not a kernel error, so ties may cover
+    any number of pixels here; each one must still be explained."""
     rng = np.random.default_rng(seed)
     one = np.concatenate([rng.uniform(-0.3, 0.3, 3), rng.normal(size=4), np.full(3, log_scale), [logit], rng.uniform(0, 1, 3)])
     rows = np.repeat(one[None], N, 0)
@@ -121,7 +128,7 @@ def test_coincident_identical_gaussians(copies, log_scale, logit, seed):
     cam = _camera()
     r = splat.render(g, cam, background=BG)
     _assert_finite_result(r)
-    assert_matches_reference(r.image, g, cam)
+    assert_matches_reference(r.image, g, cam, max_tie_fraction=1.0)
     om = np.ones((1, N), np.float32)
     cm = np.ones((1, N, 3), np.float32)
     _assert_finite_gradients(_all_gradients(g, om, cm, cam))

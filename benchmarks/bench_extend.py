@@ -1,0 +1,122 @@
+"""Incremental fusion vs fusing from scratch (issue 7: ``extend`` must land within 0.3 dB PSNR of a
+from-scratch fusion of all T dates in ≤ 0.5× its wall time; paper Fig. "incremental vs scratch").
+
+On the synthetic ``corals`` scene (T dates, ground-truth Sim(3)s so registration noise does not
+differ between the two paths):
+
+1. ``fuse`` all T dates from scratch (trains every date's model: those PLYs are then reused);
+2. ``fuse`` the first T − 1 dates from the same per-date models (``--models``);
+3. ``extend`` that run by date T (its model given: ``--model``).
+
+Wall times come from each run's ``timings.json``; the time of training the per-date models is
+reported separately and added to both sides as it would be paid (all T dates from scratch, one date
+when extending). Test metrics come from each run's ``metrics.json`` (every 8th view per date).
+Writes benchmarks/results/extend.json and extend.md.
+
+    python benchmarks/bench_extend.py [--dates 3] [--width 160 --height 120 --images-per-date 12]
+        [--config demo] [--work /tmp/bench_extend]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+import sys
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bench_splat import RESULTS, machine  # noqa: E402
+
+
+def _stage_seconds(run: Path, prefix: str = "") -> dict[str, float]:
+    t = json.loads((run / "timings.json").read_text())
+    return {k[len(prefix):]: v for k, v in t.items() if k.startswith(prefix) and not k.endswith(":total")}
+
+
+def _metrics(run: Path, names: list[str]) -> dict:
+    m = json.loads((run / "metrics.json").read_text())
+    return {n: m["dates"][n] for n in names} | {"mean": m["mean"]}
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--dates", type=int, default=3)
+    ap.add_argument("--width", type=int, default=160)
+    ap.add_argument("--height", type=int, default=120)
+    ap.add_argument("--images-per-date", type=int, default=12)
+    ap.add_argument("--spp", type=int, default=16)
+    ap.add_argument("--config", default="demo")
+    ap.add_argument("--work", default="/tmp/bench_extend")
+    args = ap.parse_args()
+
+    from cfgs_jax import synthetic
+    from cfgs_jax.pipeline import main as cli
+
+    work = Path(args.work)
+    data = work / "data"
+    spec = synthetic.make_preset("corals", seed=0, width=args.width, height=args.height,
+                                 images_per_date=args.images_per_date, spp=args.spp)  # fmt: skip
+    names = [d.name for d in spec.dates][: args.dates]
+    if not (data / "ground_truth.json").is_file():
+        synthetic.render_dataset(spec, data, dates=list(range(args.dates)), progress=False)
+    (data / "transforms.json").write_text(json.dumps(synthetic.reference_transforms(data, names)))
+    common = ["--config", args.config, "--transforms", str(data / "transforms.json"), "--no-progress"]
+
+    scratch = work / "scratch"
+    if not (scratch / "metrics.json").is_file():
+        shutil.rmtree(scratch, ignore_errors=True)
+        assert cli(["fuse", "--dates", *[str(data / n) for n in names], "--out", str(scratch), *common]) == 0
+    models = [str(scratch / "dates" / n / "point_cloud.ply") for n in names]
+    train_s = json.loads((scratch / "report.json").read_text())["train"]["per_date_seconds"]
+
+    incremental = work / "incremental"
+    shutil.rmtree(incremental, ignore_errors=True)
+    t0 = time.perf_counter()
+    assert cli(["fuse", "--dates", *[str(data / n) for n in names[:-1]], "--out", str(incremental),
+                "--models", *models[:-1], *common]) == 0  # fmt: skip
+    base_wall = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    assert cli(["extend", "--run", str(incremental), "--date", str(data / names[-1]), "--model", models[-1],
+                "--transforms", str(data / "transforms.json"), "--no-progress"]) == 0  # fmt: skip
+    extend_wall = time.perf_counter() - t0
+
+    scratch_stages = _stage_seconds(scratch)
+    scratch_fusion = sum(v for k, v in scratch_stages.items() if k not in ("train", "evaluate"))
+    ext_stages = _stage_seconds(incremental, f"extend:{names[-1]}:")
+    ext_fusion = sum(v for k, v in ext_stages.items() if k not in ("train", "evaluate"))
+    scratch_total = scratch_fusion + sum(train_s.values())
+    ext_total = ext_fusion + train_s[names[-1]]
+    ms, me = _metrics(scratch, names), _metrics(incremental, names)
+    result = {
+        "machine": machine(), "date": time.strftime("%Y-%m-%d"), "scene": f"corals {args.width}x{args.height}, "
+        f"{args.images_per_date} views/date, dates {names}", "config": args.config,
+        "train_seconds_per_date": train_s, "scratch_stage_seconds": scratch_stages, "extend_stage_seconds": ext_stages,
+        "scratch_fusion_s": scratch_fusion, "extend_fusion_s": ext_fusion, "fusion_time_ratio": ext_fusion / scratch_fusion,
+        "scratch_total_s": scratch_total, "extend_total_s": ext_total, "total_time_ratio": ext_total / scratch_total,
+        "base_fuse_wall_s": base_wall, "extend_wall_s": extend_wall,
+        "metrics_scratch": ms, "metrics_extend": me,
+        "psnr_gap_db": ms["mean"]["psnr"] - me["mean"]["psnr"],
+    }  # fmt: skip
+    RESULTS.mkdir(parents=True, exist_ok=True)
+    (RESULTS / "extend.json").write_text(json.dumps(result, indent=2))
+    rows = [f"| {n} | {ms[n]['psnr']:.2f} | {me[n]['psnr']:.2f} | {ms[n].get('lpips', float('nan')):.4f} | "
+            f"{me[n].get('lpips', float('nan')):.4f} |" for n in names]  # fmt: skip
+    lines = [
+        "# Incremental fusion (`extend`) vs fusing from scratch", "",
+        f"Machine: {result['machine']}. Date: {result['date']}. Scene: {result['scene']}; config `{args.config}`; "
+        "ground-truth Sim(3)s for both paths.", "",
+        "| | from scratch | extend by the last date | ratio |", "|---|---|---|---|",
+        f"| fusion stages (s) | {scratch_fusion:.0f} | {ext_fusion:.0f} | {result['fusion_time_ratio']:.2f} |",
+        f"| incl. training the per-date models (s) | {scratch_total:.0f} | {ext_total:.0f} | {result['total_time_ratio']:.2f} |",
+        f"| mean test PSNR (dB) | {ms['mean']['psnr']:.2f} | {me['mean']['psnr']:.2f} | gap {result['psnr_gap_db']:+.2f} dB |",
+        "", "| date | PSNR scratch | PSNR extend | LPIPS scratch | LPIPS extend |", "|---|---|---|---|---|", *rows, "",
+        "Targets (issue 7): PSNR gap ≤ 0.3 dB, time ratio ≤ 0.5.",
+    ]  # fmt: skip
+    (RESULTS / "extend.md").write_text("\n".join(lines) + "\n")
+    print("\n".join(lines))
+
+
+if __name__ == "__main__":
+    main()
