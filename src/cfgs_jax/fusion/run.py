@@ -219,11 +219,10 @@ def run_fusion(dates: list[Path], out: Path, raw_config: dict | None = None, *, 
     validate_config(raw_config)
     test_every = max(1, section(raw_config, "train", train.TrainConfig).test_every)
     scenes = [read_colmap(d, test_every=test_every) for d in dates]
-    for m in models or ():
-        read_ply(m, drop_invalid=drop_invalid)
     if models is not None and len(models) != len(dates):
         raise InputError(f"{len(models)} models for {len(dates)} dates", field="--models",
                          fix="give one PLY per date, in the order of --dates")  # fmt: skip
+    given = [read_ply(m, drop_invalid=drop_invalid) for m in models or ()]  # checked now, merged below
     if len(dates) == 1:
         msg = f"fusing a single date ({Path(dates[0]).name}): the result is that date's model unchanged (identity)"
         warnings.warn(msg, UserWarning, stacklevel=2)
@@ -270,7 +269,7 @@ def run_fusion(dates: list[Path], out: Path, raw_config: dict | None = None, *, 
     # 3. merge
     if not run.done("merge"):
         t0 = time.perf_counter()
-        merged = merge([read_ply(p, drop_invalid=drop_invalid) for p in model_paths], dinfo, sims)
+        merged = merge(given or [read_ply(p, drop_invalid=drop_invalid) for p in model_paths], dinfo, sims)
         write_fused(run.out / "merged", merged)
         run.finish("merge", time.perf_counter() - t0, {"gaussians": len(merged)})
     if len(names) == 1 and not run.done("refine"):

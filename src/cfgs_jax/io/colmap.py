@@ -61,17 +61,23 @@ class Scene:
     def load_image(self, i: int, *, linear: bool = False, with_alpha: bool = False) -> np.ndarray:
         """Image ``i`` as float32 [H, W, 3] (or [H, W, 4] with ``with_alpha``: alpha 1 where the file
         has none); its size must match its camera."""
-        img = read_image(self.image_dir / self.image_names[i], linear=linear, with_alpha=with_alpha)
-        cam = self.cameras[i]
-        if img.shape[:2] != (cam.height, cam.width):
-            raise InputError(
-                f"image is {img.shape[1]}x{img.shape[0]} but its COLMAP camera is {cam.width}x{cam.height}",
-                path=self.image_dir / self.image_names[i],
-                field="width/height",
-                fix="use the images the model was built from (resize the camera with pycolmap "
-                "Camera.rescale if you downscaled them)",
-            )
+        path = self.image_dir / self.image_names[i]
+        img = read_image(path, linear=linear, with_alpha=with_alpha)
+        check_image_size(path, (img.shape[1], img.shape[0]), self.cameras[i])
         return img
+
+
+def check_image_size(path: Path, size: tuple[int, int], camera: Camera) -> None:
+    """Raise naming the image when its (width, height) is not its COLMAP camera's."""
+    w, h = size
+    if (w, h) != (camera.width, camera.height):
+        raise InputError(
+            f"image is {w}x{h} but its COLMAP camera is {camera.width}x{camera.height}",
+            path=path,
+            field="width/height",
+            fix="use the images the model was built from (resize the camera with pycolmap "
+            "Camera.rescale if you downscaled them)",
+        )
 
 
 def _has_model(d: Path) -> bool:
@@ -206,14 +212,7 @@ def read_colmap(
                 path=image_dir, field="images", fix="copy the missing images or re-run SfM",
             )  # fmt: skip
         for name, cam in zip(names, cameras):  # headers only: a wrong size fails now, not mid-training
-            w, h = image_size(image_dir / name)
-            if (w, h) != (cam.width, cam.height):
-                raise InputError(
-                    f"image is {w}x{h} but its COLMAP camera is {cam.width}x{cam.height}",
-                    path=image_dir / name, field="width/height",
-                    fix="use the images the model was built from (resize the camera with pycolmap "
-                    "Camera.rescale if you downscaled them)",
-                )  # fmt: skip
+            check_image_size(image_dir / name, image_size(image_dir / name), cam)
     pts = list(rec.points3D.values())
     xyz = np.array([pt.xyz for pt in pts], np.float32).reshape(-1, 3)
     rgb = np.array([pt.color for pt in pts], np.float32).reshape(-1, 3) / 255.0
