@@ -15,13 +15,12 @@ from hypothesis import strategies as st
 import cfgs_jax as cj
 from cfgs_jax import splat
 
-from test_splat import assert_matches_reference  # noqa: E402  (tests/ is on sys.path: rootdir conftest)
+from test_splat import BG, _loss_fast, assert_matches_reference  # noqa: E402  (tests/ is on sys.path: rootdir conftest)
 
 N = 48
 W, H = 24, 20
 T = 2
 LOG_1E_6, LOG_1E4 = float(np.log(1e-6)), float(np.log(1e4))
-BG = (0.2, 0.3, 0.4)
 
 
 def _camera(w=W, h=H):
@@ -66,12 +65,7 @@ def extreme_scenes(draw, n=N):
     return g, om, cm
 
 
-def _loss(g, om, cm, w_img, w_a, cam, cfg):
-    r = splat.render_dates(g, cam, om, cm, background=jnp.asarray(BG, jnp.float32), config=cfg)
-    return jnp.sum(r.image * w_img) + jnp.sum(r.alpha * w_a)
-
-
-_grad = jax.jit(jax.grad(_loss, argnums=(0, 1, 2)), static_argnames=("cfg",))
+_grad = jax.jit(jax.grad(_loss_fast, argnums=(0, 1, 2)), static_argnames=("cfg", "dtype"))
 
 
 def _all_gradients(g, om, cm, cam):
@@ -80,7 +74,7 @@ def _all_gradients(g, om, cm, cam):
     rng = np.random.default_rng(0)
     w_img = jnp.asarray(rng.normal(size=(om.shape[0], cam.height, cam.width, 3)), jnp.float32)
     w_a = jnp.asarray(rng.normal(size=(om.shape[0], cam.height, cam.width)), jnp.float32)
-    return _grad(g, jnp.asarray(om), jnp.asarray(cm), w_img, w_a, cam, cfg=cfg)
+    return _grad(g, jnp.asarray(om), jnp.asarray(cm), cam, cfg=cfg, w_img=w_img, w_a=w_a, dtype=jnp.float32)
 
 
 def _assert_finite_gradients(grads):

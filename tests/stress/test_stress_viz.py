@@ -19,6 +19,8 @@ from hypothesis import strategies as st
 import cfgs_jax as cj
 from cfgs_jax import InputError, viz
 
+from conftest import random_temporal  # noqa: E402  (tests/conftest.py)
+
 N = 16
 
 
@@ -57,12 +59,7 @@ stops_strategy = st.integers(2, 3).flatmap(
 
 
 def _model_with(o):
-    n, t = o.shape
-    rng = np.random.default_rng(3)
-    g = cj.Gaussians(*(rng.normal(size=s).astype(np.float32) for s in ((n, 3), (n, 4), (n, 3), (n,))),
-                     rng.uniform(0, 1, (n, 3)).astype(np.float32))  # fmt: skip
-    light = rng.normal(0, 0.3, (n, t, 3)).astype(np.float32)
-    m = cj.TemporalGaussians(g, np.zeros((n, t), np.float32), light, np.arange(n) % t, tuple(cj.DateInfo(f"d{i}") for i in range(t)))
+    m = random_temporal(len(o), o.shape[1], seed=3)
     o64 = np.clip(np.asarray(o, np.float64), 0.0, 1.0)
     logits = np.log(np.maximum(o64, 1e-30)) - np.log(np.maximum(1 - o64, 1e-30))  # ±69 at 0 / 1
     return cj.TemporalGaussians(m.gaussians, jnp.asarray(logits, jnp.float32), m.light_logits, m.origin, m.dates)
