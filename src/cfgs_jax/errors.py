@@ -34,6 +34,13 @@ class InputError(ValueError):
             parts.append(f"Fix: {fix.rstrip('.')}.")
         super().__init__(" ".join(parts))
 
+    def __reduce__(self):  # keep path / field / fix across processes (pickle calls cls(*args) otherwise)
+        return _rebuild_input_error, (type(self), self.problem, self.path, self.field, self.fix)
+
+
+def _rebuild_input_error(cls, problem, path, field, fix):
+    return cls(problem, path=path, field=field, fix=fix)
+
 
 class OutputError(OSError):
     """An output location that cannot be written (missing parent, no permission, a file in the way)."""

@@ -171,14 +171,18 @@ def _load_checkpoint(path: Path, template: dict, meta_now: dict) -> tuple[dict, 
 
 def refine(model: TemporalGaussians, views: Sequence[DateViews], config: RefineConfig | None = None, *,
            extent: float, render_config: splat.RenderConfig | None = None, progress: bool = False,
-           checkpoint: str | Path | None = None, stop_after: int | None = None):  # fmt: skip
+           checkpoint: str | Path | None = None, stop_after: int | None = None,
+           snapshot_steps: Sequence[int] = (), on_snapshot=None):  # fmt: skip
     """Eq. 3 refinement of a cross-initialised model on all dates' training views, the visibility
     rule every ``visibility_interval`` steps and at the end, then the final prune. Returns the model
     and a report (losses, Gaussians zeroed per date, pruned count).
 
     With ``checkpoint`` (a path), the state is saved there every ``config.checkpoint_every`` steps and a
     run finding it continues from it, ending with the same model as an uninterrupted run.
-    ``stop_after=k`` saves at step k and returns ``(None, {"stopped_at": k})``."""
+    ``stop_after=k`` saves at step k and returns ``(None, {"stopped_at": k})``. ``on_snapshot(k, model)``
+    is called after each step k in ``snapshot_steps`` (< ``config.steps``) with the model as it stands,
+    finally pruned (the visibility rule is left to its interval: a partial interval would zero
+    Gaussians whose views were not drawn yet) — the paper's "saved iteration checkpoints"."""
     config = config or RefineConfig()
     render_config = render_config or splat.RenderConfig()
     t = model.num_dates
@@ -251,6 +255,8 @@ def refine(model: TemporalGaussians, views: Sequence[DateViews], config: RefineC
             done = it + 1
             if checkpoint is not None and done < config.steps and (done % config.checkpoint_every == 0 or done == stop_after):
                 save_tree(checkpoint, state(), meta_now | {"step": done, "losses": losses}, format=CHECKPOINT_FORMAT)
+            if on_snapshot is not None and done in snapshot_steps and done < config.steps:
+                on_snapshot(done, final_prune(model_from(params, model), config.prune_threshold))
             if stop_after is not None and done == stop_after:
                 return None, {"stopped_at": done}
     refined = model_from(params, model)

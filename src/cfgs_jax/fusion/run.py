@@ -193,16 +193,20 @@ def _cross_init_pairs(run: FusionRun, start: Path, pairs, views, render_config, 
     run.finish(stage, finished["seconds"], finished["reports"])
 
 
-def _refine_stage(run: FusionRun, views, scenes, render_config, progress: bool, log, stage: str) -> None:
+def _refine_stage(run: FusionRun, views, scenes, render_config, progress: bool, log, stage: str, snapshots=()) -> None:
     """Eq. 3 refinement of ``RUN/cross_init`` → ``RUN/fused``, resumable mid-way from
-    ``RUN/<stage>_checkpoint.npz`` (saved every ``refine.checkpoint_every`` steps)."""
+    ``RUN/<stage>_checkpoint.npz`` (saved every ``refine.checkpoint_every`` steps); the model after each
+    step count in ``snapshots`` goes to ``RUN/snapshots/refine_<k>/``."""
     t0 = time.perf_counter()
     fc = section(run.raw, "refine", RefineConfig)
     model = read_fused(run.out / "cross_init")
     log(f"[{stage}] {len(model):,} Gaussians, {fc.steps:,} steps over all dates")
     ckpt = run.out / f"{stage.replace(':', '_')}_checkpoint.npz"
-    model, rep = refine(model, views, fc, extent=train.scene_extent(scenes[0].cameras),
-                        render_config=render_config, progress=progress, checkpoint=ckpt)  # fmt: skip
+    def snapshot(k, m):
+        write_fused(run.out / "snapshots" / f"refine_{k}", m, config=run.state["config"])
+
+    model, rep = refine(model, views, fc, extent=train.scene_extent(scenes[0].cameras), render_config=render_config,
+                        progress=progress, checkpoint=ckpt, snapshot_steps=tuple(snapshots), on_snapshot=snapshot)  # fmt: skip
     write_fused(run.out / "fused", model, config=run.state["config"])
     run.finish(stage, time.perf_counter() - t0, rep)
     ckpt.unlink(missing_ok=True)
@@ -210,11 +214,12 @@ def _refine_stage(run: FusionRun, views, scenes, render_config, progress: bool, 
 
 def run_fusion(dates: list[Path], out: Path, raw_config: dict | None = None, *, models: list[Path] | None = None,
                transforms: Path | None = None, resume: bool = False, progress: bool = True, evaluate: bool = True,
-               drop_invalid: bool = False, log=print) -> FusionRun:  # fmt: skip
+               drop_invalid: bool = False, snapshots: tuple[int, ...] = (), log=print) -> FusionRun:  # fmt: skip
     """All stages of ChronoFuseGS over ``dates`` (COLMAP datasets; the first is the reference frame).
 
     Every input (configuration, datasets with their image sizes, given models) is read and checked
-    before the run directory is created, so bad input leaves no output behind. One date is allowed,
+    before the run directory is created, so bad input leaves no output behind. ``snapshots``: refinement
+    step counts whose models are also kept (``RUN/snapshots/refine_<k>/``). One date is allowed,
     with a warning: its "fusion" is the identity (o = 1 exactly, no cross-init, no refinement)."""
     validate_config(raw_config)
     test_every = max(1, section(raw_config, "train", train.TrainConfig).test_every)
@@ -287,7 +292,7 @@ def run_fusion(dates: list[Path], out: Path, raw_config: dict | None = None, *, 
 
     # 5. refinement and final prune
     if not run.done("refine"):
-        _refine_stage(run, views, scenes, render_config, progress, log, "refine")
+        _refine_stage(run, views, scenes, render_config, progress, log, "refine", snapshots)
 
     # 6. export in the authors' layout too
     if not run.done("export"):

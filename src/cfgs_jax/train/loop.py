@@ -12,6 +12,7 @@ import dataclasses
 import functools
 import logging
 import time
+from collections.abc import Sequence
 from pathlib import Path
 
 import jax
@@ -134,13 +135,15 @@ def fit(
     stop_after: int | None = None,
     evaluate_at_end: bool = True,
     lpips_net: str | None = "alex",
+    eval_steps: Sequence[int] = (),
 ) -> TrainRun:
     """Train one date's model on ``scene``'s training split for ``config.steps`` steps.
 
     ``init``: start from these Gaussians instead of the SfM points (with ``continuation_config`` this is
     the "Individual +N" baseline). ``out``: checkpoints every ``config.checkpoint_every`` steps go to
     ``out/checkpoint.npz``; ``resume`` continues from it. ``stop_after``: return after that many total
-    steps (as if killed there; checkpoints first)."""
+    steps (as if killed there; checkpoints first). ``eval_steps``: also evaluate the test split after these
+    steps (into ``eval_history``, like ``config.eval_every``)."""
     render_config = render_config or splat.RenderConfig()
     train_idx = np.arange(len(scene)) if config.test_every == 0 else scene.indices("train")
     test_idx = np.zeros(0, np.int64) if config.test_every == 0 else scene.indices("test")
@@ -192,7 +195,7 @@ def fit(
             state = new
             losses.append(float(stats["loss"]))
             # like INRIA's training_report: evaluated before this step's densification / reset
-            if config.eval_every and it % config.eval_every == 0 and len(test_idx):
+            if ((config.eval_every and it % config.eval_every == 0) or it in eval_steps) and len(test_idx):
                 m = evaluate(state.gaussians(), scene, test_idx, render_config=render_config, lpips_net=lpips_net)
                 eval_history.append({"step": it} | {k: v for k, v in m.items() if k in ("psnr", "ssim", "lpips")})
                 bar.note(f"step {it:,}: test PSNR {m['psnr']:.2f} dB, SSIM {m['ssim']:.4f}")

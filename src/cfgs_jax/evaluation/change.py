@@ -1,0 +1,259 @@
+"""Change detection against ground truth (beyond the paper; DESIGN §7).
+
+Per Gaussian: which ground-truth label (object id, or "changed vs date q") a Gaussian belongs to is
+decided by its *dominant contribution* in its own date's training views: the sum over pixels of its
+compositing weight w_i = α_i·o_i·T_i on pixels of each label. That sum is exactly the gradient of
+Σ_pixels mask·C with respect to a per-Gaussian colour multiplier, so the exact splatting kernel's
+backward pass computes it for three masks per rendered date channel, all labels in one pass.
+
+A Gaussian of date p is *observed* at date q when, rendered alone with its date's Gaussians, it has
+α·T ≥ ``contribution_threshold`` at some pixel of some training view of q (the refinement's
+visibility rule). It is *absent* at q when o^q < τ, and *flagged changed* when observed and absent:
+an unobserved Gaussian (e.g. the half a date did not cover) is absent but not changed.
+
+Per pixel: the highlight of the selection {p, q} (Eq. 5–6) gives every Gaussian |S − 1|_∞; rendered
+as a colour with the selection's max opacity α·max(o ⊙ t) (so an object of one date renders solid)
+and divided by the rendered alpha, it is a per-pixel change score. Thresholded, that mask
+is compared (IoU) with the ground-truth mask of pixels whose visible surface differs between p and q,
+on date p's test views, over pixels observed at both dates.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+from collections.abc import Sequence
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float
+from PIL import Image
+
+from cfgs_jax import splat, viz
+from cfgs_jax.errors import InputError
+from cfgs_jax.model import Camera, Gaussians, TemporalGaussians, opacity_multipliers
+
+
+@dataclasses.dataclass(frozen=True)
+class ChangeConfig:
+    """Thresholds: τ on o^q (absent below), the per-pixel |S − 1| score, and the visibility rule."""
+
+    absent_below: float = 0.5
+    pixel_threshold: float = 0.5
+    contribution_threshold: float = 0.01
+    majority: float = 0.5  # a Gaussian is "changed" when this share of its weight lies on changed pixels
+
+    def __post_init__(self):
+        for name in ("absent_below", "pixel_threshold", "contribution_threshold", "majority"):
+            v = getattr(self, name)
+            if not 0.0 < v < 1.0:
+                raise InputError(f"must lie in (0, 1), got {v}", field=f"change.{name}")
+
+
+@functools.partial(jax.jit, static_argnames=("config",))
+def _weights_on_masks(g: Gaussians, camera: Camera, opacity: Float[Array, "N"], masks: Float[Array, "M H W 3"], config):
+    n = len(g)
+    ones = dataclasses.replace(g, colors=jnp.ones_like(g.colors))
+    m = masks.shape[0]
+
+    def weighted(mult):
+        res = splat.render_dates(ones, camera, jnp.broadcast_to(opacity, (m, n)), mult, config=config)
+        return jnp.sum(res.image * masks)
+
+    return jax.grad(weighted)(jnp.ones((m, n, 3), masks.dtype))  # [M, N, 3]: Σ_pixels w_i·mask
+
+
+def contribution_per_label(g: Gaussians, opacity: Float[Array, "N"], cameras: Sequence[Camera],
+                           label_images: Sequence[np.ndarray], num_labels: int, *,
+                           render_config: splat.RenderConfig | None = None) -> np.ndarray:  # fmt: skip
+    """[N, K] float64: Σ over views and pixels of w_i = α_i·opacity_i·T_i on pixels whose label is k.
+
+    ``label_images[v]`` is an [H, W] integer image in 0..K−1 for ``cameras[v]`` (other values ignored).
+    """
+    rc = render_config or splat.RenderConfig()
+    groups = -(-num_labels // 3)
+    total = np.zeros((len(g), groups * 3), np.float64)
+    for cam, labels in zip(cameras, label_images):
+        labels = np.asarray(labels)
+        if labels.shape != (int(cam.height), int(cam.width)):
+            raise InputError(f"label image {labels.shape} for a {int(cam.width)}×{int(cam.height)} camera",
+                             field="label_images", fix="give one [H, W] label image per camera")  # fmt: skip
+        onehot = (labels[None, ..., None] == np.arange(groups * 3).reshape(groups, 1, 1, 3)).astype(np.float32)
+        cap = splat.required_capacity(g, cam, jnp.broadcast_to(opacity, (1, len(g))), config=rc)  # bucketed
+        cfg = dataclasses.replace(rc, capacity=cap)
+        w = np.asarray(_weights_on_masks(g, cam, jnp.asarray(opacity), jnp.asarray(onehot), cfg), np.float64)
+        total += np.transpose(w, (1, 0, 2)).reshape(len(g), groups * 3)
+    return total[:, :num_labels]
+
+
+def observed_from(g: Gaussians, opacity: Float[Array, "N"], cameras: Sequence[Camera], threshold: float, *,
+                  render_config=None) -> np.ndarray:  # fmt: skip
+    """[N] bool: α·opacity·T ≥ ``threshold`` at some pixel of some camera (the visibility rule)."""
+    seen = np.zeros(len(g), bool)
+    for cam in cameras:
+        seen |= np.asarray(splat.render(g, cam, opacity_mult=opacity, config=render_config).max_weight) >= threshold
+    return seen
+
+
+@dataclasses.dataclass(frozen=True)
+class DateMasks:
+    """Ground truth of one date in the model's frame: its cameras, object-id images and, per other
+    date name, the "surface differs" masks of the same views."""
+
+    cameras: tuple[Camera, ...]
+    object_ids: tuple[np.ndarray, ...]
+    changed_vs: dict[str, tuple[np.ndarray, ...]]
+
+
+def read_date_masks(root: str | Path, image_names: Sequence[str], cameras: Sequence[Camera], other_dates: Sequence[str]) -> DateMasks:
+    """The synthetic dataset's ``masks/ids`` and ``masks/changed_vs_<date>`` PNGs of ``image_names``."""
+    root = Path(root)
+
+    def load(sub, name):
+        path = root / "masks" / sub / name
+        if not path.is_file():
+            raise InputError(f"missing ground-truth mask {path}", field="masks",
+                             fix="change detection needs a synthetic dataset (python -m cfgs_jax.pipeline synth)")  # fmt: skip
+        with Image.open(path) as im:
+            return np.asarray(im)
+
+    ids = tuple(load("ids", n).astype(np.int64) for n in image_names)
+    changed = {d: tuple(load(f"changed_vs_{d}", n) > 127 for n in image_names) for d in other_dates}
+    return DateMasks(tuple(cameras), ids, changed)
+
+
+def gaussian_change_table(model: TemporalGaussians, masks: Sequence[DateMasks], observing: Sequence[Sequence[Camera]],
+                          num_objects: int, config: ChangeConfig = ChangeConfig(), *,
+                          render_config=None) -> dict:  # fmt: skip
+    """Per ordered pair (p, q): ground-truth label and prediction of every Gaussian of date p.
+
+    ``masks[p]``: date p's training views with their ground truth; ``observing[q]``: date q's training
+    cameras. Returns per pair the arrays ``gt_changed``, ``observed``, ``o_q`` (rows: Gaussians of
+    date p with non-zero weight in their own views) and per Gaussian its object id."""
+    names = [d.name for d in model.dates]
+    o = np.asarray(opacity_multipliers(model))
+    origin = np.asarray(model.origin)
+    g_all = model.gaussians
+    objects = np.full(len(origin), -1, np.int64)
+    pairs = {}
+    for p, dm in enumerate(masks):
+        rows = np.nonzero(origin == p)[0]
+        if len(rows) == 0:
+            continue
+        g = jax.tree_util.tree_map(lambda x: jnp.asarray(x)[rows], g_all)
+        own = jnp.asarray(o[rows, p])
+        w_obj = contribution_per_label(g, own, dm.cameras, dm.object_ids, num_objects + 1, render_config=render_config)
+        seen_own = w_obj.sum(1) > 0
+        objects[rows] = np.where(seen_own, w_obj.argmax(1), -1)
+        for q, qn in enumerate(names):
+            if q == p:
+                continue
+            w_ch = contribution_per_label(g, own, dm.cameras, [m.astype(np.int64) for m in dm.changed_vs[qn]], 2,
+                                          render_config=render_config)  # fmt: skip
+            share = w_ch[:, 1] / np.maximum(w_ch.sum(1), 1e-30)
+            observed = observed_from(g, own, observing[q], config.contribution_threshold, render_config=render_config)
+            keep = seen_own
+            pairs[(p, q)] = {"rows": rows[keep], "gt_changed": (share > config.majority)[keep],
+                             "observed": observed[keep], "o_q": o[rows[keep], q]}  # fmt: skip
+    return {"pairs": pairs, "objects": objects}
+
+
+def precision_recall(scores: np.ndarray, labels: np.ndarray, thresholds: np.ndarray) -> dict:
+    """Precision / recall / F1 of ``scores ≥ threshold`` for each threshold (labels: bool positives)."""
+    scores, labels = np.asarray(scores, np.float64), np.asarray(labels, bool)
+    pred = scores[None, :] >= np.asarray(thresholds, np.float64)[:, None]
+    tp = (pred & labels).sum(1).astype(np.float64)
+    fp = (pred & ~labels).sum(1)
+    fn = (~pred & labels).sum(1)
+    precision = np.where(tp + fp > 0, tp / np.maximum(tp + fp, 1), 1.0)
+    recall = np.where(tp + fn > 0, tp / np.maximum(tp + fn, 1), 1.0)
+    f1 = np.where(precision + recall > 0, 2 * precision * recall / np.maximum(precision + recall, 1e-30), 0.0)
+    return {"threshold": np.asarray(thresholds, np.float64), "precision": precision, "recall": recall, "f1": f1}
+
+
+def summarise_gaussians(table: dict, config: ChangeConfig = ChangeConfig(), thresholds=None) -> dict:
+    """Micro-averaged over all pairs: PR curve of the "changed" score (1 − o^q, observed Gaussians
+    only), F1 at τ, and the shares flagged changed / absent / unobserved."""
+    thresholds = np.linspace(0.02, 0.98, 49) if thresholds is None else np.asarray(thresholds)
+    pairs = table["pairs"].values()
+    if not pairs:
+        raise InputError("no Gaussian has weight in its own date's views", field="change detection")
+    cat = {k: np.concatenate([np.asarray(v[k]) for v in pairs]) for k in ("gt_changed", "observed", "o_q")}
+    obs = cat["observed"]
+    score = 1.0 - cat["o_q"]
+    curve = precision_recall(score[obs], cat["gt_changed"][obs], 1.0 - thresholds[::-1])
+    at = precision_recall(score[obs], cat["gt_changed"][obs], [1.0 - config.absent_below])
+    absent = cat["o_q"] < config.absent_below
+    return {
+        "pairs": len(table["pairs"]),
+        "entries": int(len(obs)),
+        "observed": float(obs.mean()),
+        "gt_changed": float(cat["gt_changed"][obs].mean()) if obs.any() else 0.0,
+        "flagged_changed": float((absent & obs).mean()),
+        "unobserved_marked_absent": float(absent[~obs].mean()) if (~obs).any() else float("nan"),
+        "unobserved_flagged_changed": 0.0,  # by definition: a change needs an observation
+        "precision": float(at["precision"][0]), "recall": float(at["recall"][0]), "f1": float(at["f1"][0]),
+        "curve": {k: v.tolist() for k, v in curve.items()},
+    }  # fmt: skip
+
+
+@functools.partial(jax.jit, static_argnames=("config",))
+def _pixel_scores(g: Gaussians, camera: Camera, opacity, score, observed, config):
+    ones = dataclasses.replace(g, colors=jnp.ones_like(g.colors))
+    mult = jnp.stack([score, observed, jnp.zeros_like(score)], -1)[None]
+    res = splat.render_dates(ones, camera, opacity[None], mult, config=config)
+    alpha = res.alpha[0]
+    safe = jnp.maximum(alpha, 1e-6)
+    return res.image[0, ..., 0] / safe, res.image[0, ..., 1] / safe, alpha
+
+
+def pixel_change_iou(model: TemporalGaussians, masks: Sequence[DateMasks], observing: Sequence[Sequence[Camera]],
+                     config: ChangeConfig = ChangeConfig(), *, render_config=None) -> dict:  # fmt: skip
+    """IoU of the rendered highlight's change mask (|S − 1|_∞ > threshold for the selection {p, q})
+    with the ground-truth changed mask, on ``masks[p]``'s views, over pixels covered (alpha ≥ 0.5)
+    and observed at both dates; micro-averaged over all ordered pairs, and per pair."""
+    names = [d.name for d in model.dates]
+    o = opacity_multipliers(model)
+    rc = render_config or splat.RenderConfig()
+    g = model.gaussians
+    observed_at = []
+    for q in range(len(names)):  # per Gaussian: observed at q (Gaussians of q itself: by their own weight)
+        seen = np.zeros(len(g), bool)
+        for p in range(len(names)):
+            rows = np.nonzero(np.asarray(model.origin) == p)[0]
+            if len(rows):
+                sub = jax.tree_util.tree_map(lambda x: jnp.asarray(x)[rows], g)
+                seen[rows] = observed_from(sub, o[rows, p], observing[q], config.contribution_threshold, render_config=rc)
+        observed_at.append(seen)
+    inter = union = predicted = truth_total = valid_total = 0
+    per_pair = {}
+    for p, dm in enumerate(masks):
+        for q in range(len(names)):
+            if q == p:
+                continue
+            t = np.zeros(len(names), np.float32)
+            t[[p, q]] = 1.0
+            S = viz.persistence_filter(o, jnp.asarray(t))
+            score = jnp.max(jnp.abs(S - 1.0), axis=-1)
+            opacity = viz.selection_opacity(o, jnp.asarray(t), "max")  # a removed object renders solid
+            both = jnp.asarray((observed_at[p] & observed_at[q]).astype(np.float32))
+            i_pq = u_pq = 0
+            for cam, gt in zip(dm.cameras, dm.changed_vs[names[q]]):
+                cfg = dataclasses.replace(rc, capacity=splat.required_capacity(g, cam, opacity[None], config=rc))
+                s, seen, alpha = (np.asarray(x) for x in _pixel_scores(g, cam, opacity, score, both, cfg))
+                valid = (alpha >= 0.5) & (seen >= 0.5)
+                pred = (s > config.pixel_threshold) & valid
+                truth = gt & valid
+                i_pq += int((pred & truth).sum())
+                u_pq += int((pred | truth).sum())
+                predicted += int(pred.sum())
+                truth_total += int(truth.sum())
+                valid_total += int(valid.sum())
+            per_pair[f"{names[p]}→{names[q]}"] = i_pq / u_pq if u_pq else float("nan")
+            inter, union = inter + i_pq, union + u_pq
+    share = (lambda k: k / valid_total if valid_total else float("nan"))  # noqa: E731
+    return {"iou": inter / union if union else float("nan"), "per_pair": per_pair,
+            "predicted_changed_share": share(predicted), "gt_changed_share": share(truth_total),
+            "evaluated_pixels": valid_total}  # fmt: skip

@@ -1,0 +1,340 @@
+"""The paper's evaluation protocol (§Evaluation, Table 2) on one scene, plus change detection.
+
+Rows: Individual init (each date's own model), Merged (before any refinement), Ours after N₁ < N₂ < N₃
+refinement steps (snapshots of one N₃ run, as the paper evaluates "each saved iteration checkpoint"),
+Individual +N (each date's model trained N more steps with its own parameters: no densification,
+position lr at its final value), and the ablations freeze-α / freeze-o (refinement of N₃ steps with
+that learning rate 0). PSNR / SSIM / LPIPS on every 8th image per date, averaged over dates weighted
+by image count; Gaussian counts per row. Every stage is resumable: re-running the command skips
+finished work (the fusion run, the continuations and the ablations keep their own state).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+
+from cfgs_jax import splat, train
+from cfgs_jax.config import check_sections, section
+from cfgs_jax.errors import InputError
+from cfgs_jax.fusion.evaluate import evaluate_fused, render_date
+from cfgs_jax.fusion.refine import RefineConfig, refine
+from cfgs_jax.fusion.run import CONFIG_SECTIONS, _read_json, _write_json, date_views, run_fusion
+from cfgs_jax.io.colmap import read_colmap
+from cfgs_jax.io.fused import read_fused
+from cfgs_jax.io.ply import read_ply, write_ply
+from cfgs_jax.model import opacity_multipliers
+from cfgs_jax.sim3 import Sim3
+
+
+@dataclasses.dataclass(frozen=True)
+class EvalConfig:
+    """``[eval]``: refinement step counts N (the paper: 6k, 15k, 30k), ablations and change detection."""
+
+    steps: tuple[int, ...] = (6000, 15000, 30000)
+    ablations: bool = True
+    change_detection: bool = True
+    lpips_net: str = "alex"
+    known_transforms: bool = False  # synthetic scenes: the exact Sim(3)s instead of SfM registration
+
+    def __post_init__(self):
+        steps = tuple(int(s) for s in self.steps)
+        if not steps or any(s <= 0 for s in steps) or list(steps) != sorted(set(steps)):
+            raise InputError(f"need increasing positive step counts, got {list(self.steps)}", field="eval.steps")
+        object.__setattr__(self, "steps", steps)
+
+
+@dataclasses.dataclass(frozen=True)
+class SceneConfig:
+    """``[scene]``: the synthetic preset's size when ``--scene`` names a preset."""
+
+    width: int = 128
+    height: int = 96
+    images_per_date: int = 16
+    spp: int = 16
+    seed: int = 0
+
+
+EVAL_SECTIONS = {**CONFIG_SECTIONS, "eval": EvalConfig, "scene": SceneConfig}
+
+
+def validate_eval_config(raw: dict | None) -> None:
+    """Every table of an eval configuration built once: bad keys fail before any work."""
+    if not raw:
+        return
+    check_sections(raw, EVAL_SECTIONS)
+    for name, cls in EVAL_SECTIONS.items():
+        section(raw, name, cls)
+
+
+def prepare_scene(scene: str, raw: dict | None, out: Path, *, progress: bool = True) -> Path:
+    """A preset name → its dataset rendered under ``out/data`` (once); a directory → itself."""
+    from cfgs_jax import synthetic
+
+    if scene in synthetic.PRESETS:
+        data = out / "data"
+        if not (data / "ground_truth.json").is_file():
+            sc = section(raw, "scene", SceneConfig)
+            spec = synthetic.make_preset(scene, seed=sc.seed, width=sc.width, height=sc.height,
+                                         images_per_date=sc.images_per_date, spp=sc.spp)  # fmt: skip
+            synthetic.render_dataset(spec, data, progress=progress)
+        return data
+    root = Path(scene)
+    if not root.is_dir():
+        raise InputError(f"{scene!r} is neither a preset nor a directory", field="--scene",
+                         fix=f"use one of {', '.join(synthetic.PRESETS)} or a folder of per-date datasets")  # fmt: skip
+    return root
+
+
+def date_dirs(root: Path) -> list[Path]:
+    """The per-date datasets of a scene folder: in ground_truth.json's order, else sorted by name."""
+    gt = root / "ground_truth.json"
+    if gt.is_file():
+        names = [d["name"] for d in json.loads(gt.read_text())["dates"] if (root / d["name"]).is_dir()]
+    else:
+        names = sorted(p.name for p in root.iterdir() if (p / "sparse").is_dir())
+    if len(names) < 2:
+        raise InputError(f"found {len(names)} date datasets", path=root, field="--scene",
+                         fix="give a folder with ≥ 2 COLMAP datasets (<date>/images, <date>/sparse/0)")  # fmt: skip
+    return [root / n for n in names]
+
+
+def _row(name: str, metrics: dict, gaussians: int, **extra) -> dict:
+    return {"row": name, "psnr": metrics["psnr"], "ssim": metrics["ssim"], "lpips": metrics.get("lpips", float("nan")),
+            "gaussians": int(gaussians)} | extra  # fmt: skip
+
+
+def _weighted(per_date: list[dict], weights: list[int]) -> dict:
+    w = np.asarray(weights, np.float64) / np.sum(weights)
+    return {k: float(sum(wi * d[k] for wi, d in zip(w, per_date))) for k in per_date[0] if k in ("psnr", "ssim", "lpips")}
+
+
+def _individual_plus(run_dir: Path, scenes, raw, steps: tuple[int, ...], render_config, lpips_net, progress, log) -> dict:
+    """Each date's model trained ``max(steps)`` more steps (``continuation_config``), evaluated after
+    every count in ``steps``; resumable per date (``RUN/individual_plus/<date>/``)."""
+    tc = train.continuation_config(dataclasses.replace(section(raw, "train", train.TrainConfig), steps=max(steps)))
+    results = {}
+    for sc in scenes:
+        name = sc.root.name
+        d = run_dir / "individual_plus" / name
+        done = _read_json(d / "result.json")
+        if done is None:
+            log(f"[eval] Individual +{max(steps):,}: date {name}")
+            g = read_ply(run_dir / "dates" / name / "point_cloud.ply")
+            t0 = time.perf_counter()
+            r = train.fit(sc, tc, render_config, init=g, out=d, resume=True, progress=progress, eval_steps=steps,
+                          lpips_net=lpips_net)  # fmt: skip
+            write_ply(d / "point_cloud.ply", r.gaussians)
+            hist = {int(h["step"]): h for h in r.eval_history}
+            done = {"steps": {str(s): hist[s] for s in steps}, "gaussians": len(r.gaussians),
+                    "views": len(sc.indices("test")), "seconds": time.perf_counter() - t0}  # fmt: skip
+            _write_json(d / "result.json", done)
+        results[name] = done
+    return results
+
+
+def _ablation(run_dir: Path, key: str, overrides: dict, views, scenes, test_views, raw, render_config, lpips_net, log) -> dict:
+    path = run_dir / "ablations" / f"{key}.json"
+    done = _read_json(path)
+    if done is None:
+        fc = dataclasses.replace(section(raw, "refine", RefineConfig), **overrides)
+        log(f"[eval] ablation {key}: {fc.steps:,} refinement steps")
+        t0 = time.perf_counter()
+        model, _ = refine(read_fused(run_dir / "cross_init"), views, fc, extent=train.scene_extent(scenes[0].cameras),
+                          render_config=render_config, checkpoint=run_dir / "ablations" / f"{key}_checkpoint.npz")  # fmt: skip
+        m = evaluate_fused(model, test_views, render_config=render_config, lpips_net=lpips_net)
+        done = {"metrics": m["mean"], "gaussians": len(model), "seconds": time.perf_counter() - t0}
+        _write_json(path, done)
+        (run_dir / "ablations" / f"{key}_checkpoint.npz").unlink(missing_ok=True)
+    return done
+
+
+def run_protocol(scene: str, out: str | Path, raw: dict | None = None, *, progress: bool = True, log=print) -> dict:
+    """The whole protocol on one scene → ``out/table.json``, ``out/table.md``, ``out/figure.png``
+    (and ``out/change.json`` where ground truth exists). Returns the table dict."""
+    validate_eval_config(raw)
+    ec = section(raw, "eval", EvalConfig)
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    data = prepare_scene(scene, raw, out, progress=progress)
+    dirs = date_dirs(data)
+    fusion_raw = {k: v for k, v in (raw or {}).items() if k in CONFIG_SECTIONS or k == "__path__"}
+    fusion_raw["refine"] = dict(fusion_raw.get("refine", {})) | {"steps": max(ec.steps)}
+    run_dir = out / "run"
+    t0 = time.perf_counter()
+    transforms = None
+    if ec.known_transforms:
+        from cfgs_jax import synthetic
+
+        if not (data / "ground_truth.json").is_file():
+            raise InputError("known_transforms needs a synthetic scene's ground_truth.json", path=data,
+                             field="eval.known_transforms", fix="set it to false (register with SfM)")  # fmt: skip
+        transforms = out / "transforms.json"
+        _write_json(transforms, synthetic.reference_transforms(data, [d.name for d in dirs]))
+    run_fusion(dirs, run_dir, fusion_raw, resume=(run_dir / "run.json").is_file(), progress=progress, evaluate=False,
+               transforms=transforms, snapshots=ec.steps[:-1], log=log)  # fmt: skip
+    fusion_seconds = time.perf_counter() - t0
+    render_config = section(fusion_raw, "render", splat.RenderConfig)
+    test_every = max(1, section(fusion_raw, "train", train.TrainConfig).test_every)
+    scenes = [read_colmap(d, test_every=test_every) for d in dirs]
+    names = [d.name for d in dirs]
+    reg = _read_json(run_dir / "register.json")
+    sims = [Sim3.from_dict(reg[n]["transform"]) for n in names]
+    test_views = [date_views(sc, sm, "test") for sc, sm in zip(scenes, sims)]
+    weights = [len(v.cameras) for v in test_views]
+    evals = _read_json(out / "rows.json", {})
+
+    def fused_row(key: str, label: str, path: Path, **extra):
+        if key not in evals:
+            model = read_fused(path)
+            log(f"[eval] {label}")
+            m = evaluate_fused(model, test_views, render_config=render_config, lpips_net=ec.lpips_net)
+            evals[key] = _row(label, m["mean"], len(model), **extra) | {"per_date": m["dates"]}
+            _write_json(out / "rows.json", evals)
+        return evals[key]
+
+    rows = []
+    per_date = [json.loads((run_dir / "dates" / n / "train.json").read_text()) for n in names]
+    init = _weighted([p["test"] for p in per_date], weights)
+    rows.append(_row("Individual init", init, sum(p["gaussians"] for p in per_date), group="input"))
+    rows.append(fused_row("merged", "Merged", run_dir / "merged") | {"group": "ours"})
+    for k in ec.steps[:-1]:
+        rows.append(fused_row(f"ours_{k}", f"Ours {k:,}", run_dir / "snapshots" / f"refine_{k}") | {"group": "ours", "steps": k})
+    rows.append(fused_row(f"ours_{ec.steps[-1]}", f"Ours {ec.steps[-1]:,}", run_dir / "fused") | {"group": "ours", "steps": ec.steps[-1]})
+    plus = _individual_plus(run_dir, scenes, fusion_raw, ec.steps, render_config, ec.lpips_net, progress, log)
+    for k in ec.steps:
+        m = _weighted([plus[n]["steps"][str(k)] for n in names], weights)
+        rows.append(_row(f"Individual +{k:,}", m, sum(plus[n]["gaussians"] for n in names), group="baseline", steps=k))
+    ablations = {}
+    if ec.ablations:
+        views = [date_views(sc, sm) for sc, sm in zip(scenes, sims)]
+        for key, label, over in (("freeze_alpha", "Ours, α frozen", {"lr_alpha": 0.0}), ("freeze_o", "Ours, o frozen", {"lr_o": 0.0})):
+            a = _ablation(run_dir, key, over | {"steps": ec.steps[-1]}, views, scenes, test_views, fusion_raw,
+                          render_config, ec.lpips_net, log)  # fmt: skip
+            ablations[key] = a
+            rows.append(_row(f"{label} {ec.steps[-1]:,}", a["metrics"], a["gaussians"], group="ablation", steps=ec.steps[-1]))
+    change = None
+    if ec.change_detection and (data / "ground_truth.json").is_file():
+        change = _read_json(out / "change.json")
+        if change is None:
+            log("[eval] change detection against ground truth")
+            change = change_detection(read_fused(run_dir / "fused"), data, scenes, sims, render_config)
+            _write_json(out / "change.json", change)
+    timings = _read_json(run_dir / "timings.json", {})
+    table = {
+        "scene": scene, "dates": names, "test_views": dict(zip(names, weights)), "steps": list(ec.steps),
+        "rows": rows, "timings": {k: timings.get(k) for k in ("train", "register", "merge", "cross_init", "refine")},
+        "fusion_wall_seconds_this_call": fusion_seconds, "change": change,
+        "margins": margins(rows, ec.steps[-1]),
+    }  # fmt: skip
+    _write_json(out / "table.json", table)
+    _atomic_text(out / "table.md", table_markdown(table))
+    figure_grid(out / "figure.png", run_dir, scenes, sims, names, render_config)
+    return table
+
+
+def margins(rows: list[dict], n: int) -> dict:
+    """Ours N − Individual +N at the largest N (PSNR dB, SSIM; LPIPS as Individual − Ours: > 0 is better)."""
+    ours = next(r for r in rows if r["row"] == f"Ours {n:,}")
+    ind = next(r for r in rows if r["row"] == f"Individual +{n:,}")
+    return {"steps": n, "psnr": ours["psnr"] - ind["psnr"], "ssim": ours["ssim"] - ind["ssim"],
+            "lpips": ind["lpips"] - ours["lpips"]}  # fmt: skip
+
+
+def change_detection(model, data: Path, scenes, sims, render_config) -> dict:
+    """Per-Gaussian and per-pixel change detection of the fused model against the synthetic ground truth."""
+    from cfgs_jax.evaluation import change
+
+    gt = json.loads((data / "ground_truth.json").read_text())
+    names = [d.name for d in model.dates]
+    masks, masks_test, observing = [], [], []
+    for p, (sc, sm) in enumerate(zip(scenes, sims)):
+        others = [n for n in names if n != names[p]]
+        for split, bucket in (("train", masks), ("test", masks_test)):
+            idx = sc.indices(split) if len(sc.indices(split)) else sc.indices("all")
+            v = date_views(sc, sm, split)
+            bucket.append(change.read_date_masks(sc.root, [sc.image_names[int(i)] for i in idx], v.cameras, others))
+        observing.append(masks[-1].cameras)
+    cfg = change.ChangeConfig()
+    table = change.gaussian_change_table(model, masks, observing, len(gt["objects"]), cfg, render_config=render_config)
+    summary = change.summarise_gaussians(table, cfg)
+    pixels = change.pixel_change_iou(model, masks_test, observing, cfg, render_config=render_config)
+    absent_objects = {}
+    objects = table["objects"]
+    o = np.asarray(opacity_multipliers(model))
+    origin = np.asarray(model.origin)
+    obj_names = [ob["name"] for ob in gt["objects"]]
+    for p, dp in enumerate(gt["dates"]):
+        for q, dq in enumerate(gt["dates"]):
+            if p == q:
+                continue
+            for k, on in enumerate(obj_names, start=1):
+                rows = (origin == p) & (objects == k)
+                if rows.any() and dp["present"][on] and not dq["present"][on]:
+                    absent_objects[f"{on}: {names[p]}→{names[q]}"] = float(np.mean(o[rows, q] < 0.2))
+    summary["absent_objects_below_0.2"] = absent_objects
+    return {"gaussians": summary, "pixels": pixels, "config": dataclasses.asdict(cfg)}
+
+
+def _atomic_text(path: Path, text: str) -> None:
+    from cfgs_jax.io.atomic import atomic_file
+
+    with atomic_file(path) as tmp:
+        Path(tmp).write_text(text)
+
+
+def table_markdown(table: dict) -> str:
+    """The protocol table as markdown (best per column in bold)."""
+    rows = table["rows"]
+    best = {k: (max if k in ("psnr", "ssim") else min)(r[k] for r in rows if np.isfinite(r[k])) for k in ("psnr", "ssim", "lpips")}
+    fmt = {"psnr": "{:.2f}", "ssim": "{:.4f}", "lpips": "{:.4f}"}
+
+    def cell(r, k):
+        s = fmt[k].format(r[k])
+        return f"**{s}**" if np.isclose(r[k], best[k]) else s
+
+    lines = [f"# Evaluation: `{table['scene']}` ({len(table['dates'])} dates, test views "
+             + ", ".join(f"{n} {v}" for n, v in table["test_views"].items()) + ")", "",
+             "| Method | PSNR ↑ | SSIM ↑ | LPIPS ↓ | Gaussians |", "|---|---:|---:|---:|---:|"]  # fmt: skip
+    for r in rows:
+        lines.append(f"| {r['row']} | {cell(r, 'psnr')} | {cell(r, 'ssim')} | {cell(r, 'lpips')} | {r['gaussians']:,} |")
+    m = table["margins"]
+    lines += ["", f"Ours − Individual at N = {m['steps']:,}: PSNR {m['psnr']:+.2f} dB, SSIM {m['ssim']:+.4f}, "
+              f"LPIPS {m['lpips']:+.4f} (positive: ours better).", "",
+              "Stage wall times (s): " + ", ".join(f"{k} {v:.1f}" for k, v in table["timings"].items() if v is not None)]  # fmt: skip
+    ch = table.get("change")
+    if ch:
+        g, p = ch["gaussians"], ch["pixels"]
+        lines += ["", "## Change detection against ground truth", "",
+                  "| Level | Precision | Recall | F1 | IoU | flagged changed | ground truth changed |",
+                  "|---|---:|---:|---:|---:|---:|---:|",
+                  f"| Gaussians (o^q < {ch['config']['absent_below']}, observed) | {g['precision']:.3f} | {g['recall']:.3f} | "
+                  f"{g['f1']:.3f} | – | {100 * g['flagged_changed']:.1f} % | {100 * g['gt_changed']:.1f} % |",
+                  f"| Pixels (highlight |S−1| > {ch['config']['pixel_threshold']}) | – | – | – | {p['iou']:.3f} | "
+                  f"{100 * p['predicted_changed_share']:.1f} % | {100 * p['gt_changed_share']:.1f} % |", "",
+                  f"Gaussians not observed at a date: {100 * (1 - g['observed']):.1f} % of (Gaussian, date) entries, "
+                  f"{100 * g['unobserved_marked_absent']:.1f} % of them absent (o < {ch['config']['absent_below']}), none flagged changed."]  # fmt: skip
+    return "\n".join(lines) + "\n"
+
+
+def figure_grid(path: Path, run_dir: Path, scenes, sims, names, render_config) -> None:
+    """One row per date (its first test view): Individual +N₃ | Ours N₃ | ground truth."""
+    from cfgs_jax.io.images import write_image
+    from cfgs_jax.train.step import over_background
+
+    model = read_fused(run_dir / "fused")
+    rows = []
+    for q, (sc, sm) in enumerate(zip(scenes, sims)):
+        idx = sc.indices("test") if len(sc.indices("test")) else sc.indices("all")
+        i = int(idx[0])
+        g = read_ply(run_dir / "individual_plus" / names[q] / "point_cloud.ply")
+        ind = np.asarray(splat.render(g, sc.cameras[i], config=render_config).image)
+        cam = date_views(sc, sm, "test").cameras[0]
+        ours = np.asarray(render_date(model, q, cam, config=render_config).image[0])
+        gt = np.asarray(over_background(sc.load_image(i, with_alpha=True), np.zeros(3, np.float32)))
+        rows.append(np.concatenate([ind, ours, gt], 1))
+    write_image(path, np.clip(np.concatenate(rows, 0), 0, 1))
