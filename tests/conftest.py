@@ -16,6 +16,20 @@ FIXTURES = SHARED / "fixtures"
 DONUT_PLY = FIXTURES / "real_3dgs_donut_dc_only.ply"
 
 
+@pytest.fixture(autouse=True, scope="module")
+def _release_compiled_code():
+    """After each test module: drop JAX's compiled executables. XLA:CPU keeps ~12 memory mappings per
+    executable and one pytest process compiles thousands; at Linux's 65 530-mapping cap the next XLA
+    compilation deadlocks (the suite hung there in CI). See cfgs_jax.compiled_code."""
+    yield
+    import gc
+
+    import jax
+
+    jax.clear_caches()
+    gc.collect()
+
+
 @pytest.fixture(scope="session")
 def shared() -> Path:
     assert FIXTURES.is_dir(), f"fixtures missing: {FIXTURES} (set CFGS_SHARED to the shared/ folder)"

@@ -92,3 +92,13 @@ def test_pixel_iou_of_a_removed_blob():
     assert r["per_pair"]["a→b"] > 0.8 and r["per_pair"]["b→a"] > 0.8
     # the right blob persists: nothing flagged where it dominates
     assert r["predicted_changed_share"] < truth.sum() / r["evaluated_pixels"] * 1.3
+
+
+def test_weighted_precision_recall_counts_each_entry_by_its_weight():
+    scores = np.array([0.9, 0.8, 0.2])
+    labels = np.array([True, False, True])
+    w = np.array([3.0, 1.0, 2.0])
+    r = change.precision_recall(scores, labels, [0.5], w)
+    # predicted {0, 1}: tp 3, fp 1, fn 2 → P 3/4, R 3/5
+    assert np.isclose(r["precision"][0], 0.75) and np.isclose(r["recall"][0], 0.6)
+    assert np.isclose(r["f1"][0], 2 * 0.75 * 0.6 / 1.35)

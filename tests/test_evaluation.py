@@ -106,6 +106,7 @@ def test_eval_change_detection_and_resume(protocol):
     assert len(curve["precision"]) == len(curve["recall"]) == len(curve["threshold"])
     # corals d0 → d1 removes / adds objects: the ground truth has changed Gaussians and pixels
     assert g["gt_changed"] > 0 and p["gt_changed_share"] > 0
+    assert (out / "change_pr.png").stat().st_size > 1000
     # a second call resumes: no stage runs again and the table is unchanged
     before = json.loads((out / "table.json").read_text())
     seen = []
@@ -113,3 +114,45 @@ def test_eval_change_detection_and_resume(protocol):
     assert not [m for m in seen if m.startswith("[eval]") or "steps" in m], seen
     assert [r["psnr"] for r in again["rows"]] == [r["psnr"] for r in before["rows"]]
     assert cj.io.read_fused(out / "run" / "snapshots" / "refine_6").num_dates == 2
+
+
+def test_sweep_file_errors_name_the_key(tmp_path):
+    from cfgs_jax import InputError
+    from cfgs_jax.evaluation.sweep import parse_sweep
+
+    with pytest.raises(InputError, match=r"cross_init\.dleta|dleta"):
+        parse_sweep({"sweep": {"scene": "corals", "base": "fast", "grid": {"cross_init.dleta": [0.3]}}})
+    with pytest.raises(InputError, match="table.key"):
+        parse_sweep({"sweep": {"scene": "corals", "base": "fast", "grid": {"nosuch.delta": [0.3]}}})
+    with pytest.raises(InputError, match="non-empty list"):
+        parse_sweep({"sweep": {"scene": "corals", "base": "fast", "grid": {"cross_init.delta": []}}})
+    scene, base, variants = parse_sweep({"sweep": {"scene": "corals", "base": "fast",
+                                                   "grid": {"cross_init.delta": [0.3, 0.6], "refine.steps": [5, 9, 11]}}})  # fmt: skip
+    assert scene == "corals" and len(variants) == 6 and len({v.id for v in variants}) == 6
+
+
+@pytest.mark.slow
+def test_sweep_shares_training_and_resumes(protocol, tmp_path):
+    from cfgs_jax.evaluation.sweep import run_sweep
+
+    data, out, _ = protocol
+    base = tmp_path / "base.toml"
+    base.write_text(TOML)
+    raw = {"sweep": {"scene": str(data), "base": str(base), "grid": {"cross_init.delta": [0.2, 0.9]}}}
+    seen = []
+    summary = run_sweep(raw, tmp_path / "sw", progress=False, log=seen.append)
+    assert sum("[train]" in m for m in seen) == 2  # two dates trained once, shared by both variants
+    a, b = summary["variants"]
+    assert a["overrides"] == {"cross_init.delta": 0.2} and b["overrides"] == {"cross_init.delta": 0.9}
+    runs = [json.loads((tmp_path / "sw" / "variants" / r["id"] / "run" / "run.json").read_text()) for r in (a, b)]
+    assert [r["config"]["cross_init"]["delta"] for r in runs] == [0.2, 0.9]
+    assert all(r["models"] and "/base/dates/" in r["models"][0] for r in runs)
+    # δ is o^q's starting point: the smaller δ leaves a lower mean o^q after the same few steps
+    reports = [json.loads((tmp_path / "sw" / "variants" / r["id"] / "run" / "report.json").read_text()) for r in (a, b)]
+    mean_o = [np.mean([p["mean_o"] for p in rep["cross_init"]]) for rep in reports]
+    assert mean_o[0] < mean_o[1]
+    md = (tmp_path / "sw" / "sweep.md").read_text()
+    assert md.count("\n| 0.") == 2 and (tmp_path / "sw" / "sweep.png").stat().st_size > 1000
+    seen.clear()
+    again = run_sweep(raw, tmp_path / "sw", progress=False, log=seen.append)
+    assert not [m for m in seen if "[sweep] variant" in m or "[train]" in m] and again["variants"] == summary["variants"]

@@ -305,7 +305,28 @@ def cmd_eval(args) -> int:
         g, p = ch["gaussians"], ch["pixels"]
         console.print(f"change detection: Gaussians F1 {g['f1']:.3f} (P {g['precision']:.3f}, R {g['recall']:.3f}), "
                       f"{100 * g['flagged_changed']:.1f} % flagged; pixels IoU {p['iou']:.3f}")  # fmt: skip
-    console.print(f"wrote {Path(args.out) / 'table.md'}, table.json, figure.png")
+    console.print(f"wrote {Path(args.out) / 'table.md'}, table.json, figure.png, change_pr.png (with ground truth)")
+    return 0
+
+
+def cmd_sweep(args) -> int:
+    from cfgs_jax.config import find_preset, load_config
+    from cfgs_jax.evaluation.sweep import run_sweep
+
+    console = _console()
+    summary = run_sweep(load_config(find_preset(args.config)), Path(args.out), progress=not args.no_progress,
+                        log=console.print)  # fmt: skip
+    from rich.table import Table
+
+    t = Table(title=f"sweep on {summary['scene']} ({len(summary['variants'])} variants)")
+    for c in ("variant", "PSNR", "SSIM", "LPIPS", "change F1", "cross-init + refine (s)"):
+        t.add_column(c, justify="left" if c == "variant" else "right")
+    for r in summary["variants"]:
+        m, c, tm = r["metrics"], r["change"] or {}, r["timings"]
+        t.add_row(str(r["overrides"] or "base"), f"{m['psnr']:.2f}", f"{m['ssim']:.4f}", f"{m.get('lpips', float('nan')):.4f}",
+                  f"{c['f1']:.3f}" if c else "–", f"{(tm.get('cross_init') or 0) + (tm.get('refine') or 0):.1f}")  # fmt: skip
+    console.print(t)
+    console.print(f"wrote {Path(args.out) / 'sweep.md'}, sweep.json, sweep.png")
     return 0
 
 
@@ -424,6 +445,8 @@ def cmd_demo(args) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from cfgs_jax.synthetic.presets import PRESETS
+
     p = argparse.ArgumentParser(
         prog="python -m cfgs_jax.pipeline",
         description="cfgs_jax: fuse per-date 3DGS models into one multi-temporal model and render changes.",
@@ -451,7 +474,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.set_defaults(func=cmd_metrics)
 
     s = sub.add_parser("synth", help="render a synthetic multi-date scene with Mitsuba 3")
-    s.add_argument("--preset", required=True, choices=("vase", "corals", "flood", "coverage", "light"))
+    s.add_argument("--preset", required=True, choices=tuple(PRESETS))
     s.add_argument("--out", required=True)
     s.add_argument("--seed", type=int, default=0)
     s.add_argument("--width", type=int, default=320)
@@ -487,12 +510,18 @@ def build_parser() -> argparse.ArgumentParser:
     s.set_defaults(func=cmd_fuse)
 
     s = sub.add_parser("eval", help="the paper's evaluation protocol on one scene, plus change detection")
-    s.add_argument("--scene", required=True, help="a synthetic preset (vase, corals, flood, coverage, light) or a "
+    s.add_argument("--scene", required=True, help="a synthetic preset (vase, corals, flood, coverage, light, reef) or a "
                    "folder of per-date datasets")  # fmt: skip
     s.add_argument("--config", default="fast", help="preset name or TOML ([scene], [eval] and the fusion tables)")
     s.add_argument("--out", required=True, help="output folder (re-running it resumes)")
     s.add_argument("--no-progress", action="store_true")
     s.set_defaults(func=cmd_eval)
+
+    s = sub.add_parser("sweep", help="ablation sweep: a base configuration and a grid of overrides, resumable")
+    s.add_argument("--config", required=True, help="sweep TOML ([sweep] scene, base, [sweep.grid]), e.g. sweep_fast")
+    s.add_argument("--out", required=True, help="output folder (re-running it skips finished variants)")
+    s.add_argument("--no-progress", action="store_true")
+    s.set_defaults(func=cmd_sweep)
 
     s = sub.add_parser("extend", help="add one date to a finished fusion run (incremental fusion)")
     s.add_argument("--run", required=True, help="run directory of a finished `fuse`")

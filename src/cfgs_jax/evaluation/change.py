@@ -124,6 +124,22 @@ def read_date_masks(root: str | Path, image_names: Sequence[str], cameras: Seque
     return DateMasks(tuple(cameras), ids, changed)
 
 
+def object_labels(model: TemporalGaussians, masks: Sequence[DateMasks], num_objects: int, *, render_config=None) -> np.ndarray:
+    """[N] int: the ground-truth object id (0 = background) holding most of each Gaussian's weight in
+    its own date's views, −1 for a Gaussian with no weight there."""
+    o = np.asarray(opacity_multipliers(model))
+    origin = np.asarray(model.origin)
+    labels = np.full(len(origin), -1, np.int64)
+    for p, dm in enumerate(masks):
+        rows = np.nonzero(origin == p)[0]
+        if len(rows):
+            g = jax.tree_util.tree_map(lambda x: jnp.asarray(x)[rows], model.gaussians)
+            w = contribution_per_label(g, jnp.asarray(o[rows, p]), dm.cameras, dm.object_ids, num_objects + 1,
+                                       render_config=render_config)  # fmt: skip
+            labels[rows] = np.where(w.sum(1) > 0, w.argmax(1), -1)
+    return labels
+
+
 def gaussian_change_table(model: TemporalGaussians, masks: Sequence[DateMasks], observing: Sequence[Sequence[Camera]],
                           num_objects: int, config: ChangeConfig = ChangeConfig(), *,
                           render_config=None) -> dict:  # fmt: skip
@@ -156,19 +172,21 @@ def gaussian_change_table(model: TemporalGaussians, masks: Sequence[DateMasks], 
             observed = observed_from(g, own, observing[q], config.contribution_threshold, render_config=render_config)
             keep = seen_own
             pairs[(p, q)] = {"rows": rows[keep], "gt_changed": (share > config.majority)[keep],
-                             "observed": observed[keep], "o_q": o[rows[keep], q]}  # fmt: skip
+                             "observed": observed[keep], "o_q": o[rows[keep], q], "weight": w_ch.sum(1)[keep]}  # fmt: skip
     return {"pairs": pairs, "objects": objects}
 
 
-def precision_recall(scores: np.ndarray, labels: np.ndarray, thresholds: np.ndarray) -> dict:
-    """Precision / recall / F1 of ``scores ≥ threshold`` for each threshold (labels: bool positives)."""
+def precision_recall(scores: np.ndarray, labels: np.ndarray, thresholds: np.ndarray, weights=None) -> dict:
+    """Precision / recall / F1 of ``scores ≥ threshold`` for each threshold (labels: bool positives),
+    each entry counted with its ``weight`` (default 1)."""
     scores, labels = np.asarray(scores, np.float64), np.asarray(labels, bool)
+    w = np.ones_like(scores) if weights is None else np.asarray(weights, np.float64)
     pred = scores[None, :] >= np.asarray(thresholds, np.float64)[:, None]
-    tp = (pred & labels).sum(1).astype(np.float64)
-    fp = (pred & ~labels).sum(1)
-    fn = (~pred & labels).sum(1)
-    precision = np.where(tp + fp > 0, tp / np.maximum(tp + fp, 1), 1.0)
-    recall = np.where(tp + fn > 0, tp / np.maximum(tp + fn, 1), 1.0)
+    tp = ((pred & labels) * w).sum(1)
+    fp = ((pred & ~labels) * w).sum(1)
+    fn = ((~pred & labels) * w).sum(1)
+    precision = np.where(tp + fp > 0, tp / np.maximum(tp + fp, 1e-300), 1.0)
+    recall = np.where(tp + fn > 0, tp / np.maximum(tp + fn, 1e-300), 1.0)
     f1 = np.where(precision + recall > 0, 2 * precision * recall / np.maximum(precision + recall, 1e-30), 0.0)
     return {"threshold": np.asarray(thresholds, np.float64), "precision": precision, "recall": recall, "f1": f1}
 
@@ -180,13 +198,18 @@ def summarise_gaussians(table: dict, config: ChangeConfig = ChangeConfig(), thre
     pairs = table["pairs"].values()
     if not pairs:
         raise InputError("no Gaussian has weight in its own date's views", field="change detection")
-    cat = {k: np.concatenate([np.asarray(v[k]) for v in pairs]) for k in ("gt_changed", "observed", "o_q")}
+    keys = ("gt_changed", "observed", "o_q") + (("weight",) if all("weight" in v for v in pairs) else ())
+    cat = {k: np.concatenate([np.asarray(v[k]) for v in pairs]) for k in keys}
     obs = cat["observed"]
     score = 1.0 - cat["o_q"]
     curve = precision_recall(score[obs], cat["gt_changed"][obs], 1.0 - thresholds[::-1])
     at = precision_recall(score[obs], cat["gt_changed"][obs], [1.0 - config.absent_below])
     absent = cat["o_q"] < config.absent_below
-    return {
+    weighted = {}
+    if "weight" in cat:  # each Gaussian counted by its compositing weight in its own views
+        wt = precision_recall(score[obs], cat["gt_changed"][obs], [1.0 - config.absent_below], cat["weight"][obs])
+        weighted = {f"weighted_{k}": float(wt[k][0]) for k in ("precision", "recall", "f1")}
+    return weighted | {
         "pairs": len(table["pairs"]),
         "entries": int(len(obs)),
         "observed": float(obs.mean()),

@@ -19,11 +19,13 @@ from pathlib import Path
 import numpy as np
 
 from cfgs_jax import splat, train
+from cfgs_jax.compiled_code import release_if_near_limit
 from cfgs_jax.config import check_sections, section
 from cfgs_jax.errors import InputError
 from cfgs_jax.fusion.evaluate import evaluate_fused, render_date
 from cfgs_jax.fusion.refine import RefineConfig, refine
-from cfgs_jax.fusion.run import CONFIG_SECTIONS, _read_json, _write_json, date_views, run_fusion
+from cfgs_jax.fusion.run import CONFIG_SECTIONS, date_views, run_fusion
+from cfgs_jax.io.atomic import read_json, write_json, write_text
 from cfgs_jax.io.colmap import read_colmap
 from cfgs_jax.io.fused import read_fused
 from cfgs_jax.io.ply import read_ply, write_ply
@@ -121,7 +123,7 @@ def _individual_plus(run_dir: Path, scenes, raw, steps: tuple[int, ...], render_
     for sc in scenes:
         name = sc.root.name
         d = run_dir / "individual_plus" / name
-        done = _read_json(d / "result.json")
+        done = read_json(d / "result.json")
         if done is None:
             log(f"[eval] Individual +{max(steps):,}: date {name}")
             g = read_ply(run_dir / "dates" / name / "point_cloud.ply")
@@ -132,14 +134,14 @@ def _individual_plus(run_dir: Path, scenes, raw, steps: tuple[int, ...], render_
             hist = {int(h["step"]): h for h in r.eval_history}
             done = {"steps": {str(s): hist[s] for s in steps}, "gaussians": len(r.gaussians),
                     "views": len(sc.indices("test")), "seconds": time.perf_counter() - t0}  # fmt: skip
-            _write_json(d / "result.json", done)
+            write_json(d / "result.json", done)
         results[name] = done
     return results
 
 
 def _ablation(run_dir: Path, key: str, overrides: dict, views, scenes, test_views, raw, render_config, lpips_net, log) -> dict:
     path = run_dir / "ablations" / f"{key}.json"
-    done = _read_json(path)
+    done = read_json(path)
     if done is None:
         fc = dataclasses.replace(section(raw, "refine", RefineConfig), **overrides)
         log(f"[eval] ablation {key}: {fc.steps:,} refinement steps")
@@ -148,7 +150,7 @@ def _ablation(run_dir: Path, key: str, overrides: dict, views, scenes, test_view
                           render_config=render_config, checkpoint=run_dir / "ablations" / f"{key}_checkpoint.npz")  # fmt: skip
         m = evaluate_fused(model, test_views, render_config=render_config, lpips_net=lpips_net)
         done = {"metrics": m["mean"], "gaussians": len(model), "seconds": time.perf_counter() - t0}
-        _write_json(path, done)
+        write_json(path, done)
         (run_dir / "ablations" / f"{key}_checkpoint.npz").unlink(missing_ok=True)
     return done
 
@@ -174,7 +176,7 @@ def run_protocol(scene: str, out: str | Path, raw: dict | None = None, *, progre
             raise InputError("known_transforms needs a synthetic scene's ground_truth.json", path=data,
                              field="eval.known_transforms", fix="set it to false (register with SfM)")  # fmt: skip
         transforms = out / "transforms.json"
-        _write_json(transforms, synthetic.reference_transforms(data, [d.name for d in dirs]))
+        write_json(transforms, synthetic.reference_transforms(data, [d.name for d in dirs]))
     run_fusion(dirs, run_dir, fusion_raw, resume=(run_dir / "run.json").is_file(), progress=progress, evaluate=False,
                transforms=transforms, snapshots=ec.steps[:-1], log=log)  # fmt: skip
     fusion_seconds = time.perf_counter() - t0
@@ -182,11 +184,11 @@ def run_protocol(scene: str, out: str | Path, raw: dict | None = None, *, progre
     test_every = max(1, section(fusion_raw, "train", train.TrainConfig).test_every)
     scenes = [read_colmap(d, test_every=test_every) for d in dirs]
     names = [d.name for d in dirs]
-    reg = _read_json(run_dir / "register.json")
+    reg = read_json(run_dir / "register.json")
     sims = [Sim3.from_dict(reg[n]["transform"]) for n in names]
     test_views = [date_views(sc, sm, "test") for sc, sm in zip(scenes, sims)]
     weights = [len(v.cameras) for v in test_views]
-    evals = _read_json(out / "rows.json", {})
+    evals = read_json(out / "rows.json", {})
 
     def fused_row(key: str, label: str, path: Path, **extra):
         if key not in evals:
@@ -194,7 +196,7 @@ def run_protocol(scene: str, out: str | Path, raw: dict | None = None, *, progre
             log(f"[eval] {label}")
             m = evaluate_fused(model, test_views, render_config=render_config, lpips_net=ec.lpips_net)
             evals[key] = _row(label, m["mean"], len(model), **extra) | {"per_date": m["dates"]}
-            _write_json(out / "rows.json", evals)
+            write_json(out / "rows.json", evals)
         return evals[key]
 
     rows = []
@@ -205,12 +207,14 @@ def run_protocol(scene: str, out: str | Path, raw: dict | None = None, *, progre
     for k in ec.steps[:-1]:
         rows.append(fused_row(f"ours_{k}", f"Ours {k:,}", run_dir / "snapshots" / f"refine_{k}") | {"group": "ours", "steps": k})
     rows.append(fused_row(f"ours_{ec.steps[-1]}", f"Ours {ec.steps[-1]:,}", run_dir / "fused") | {"group": "ours", "steps": ec.steps[-1]})
+    release_if_near_limit()
     plus = _individual_plus(run_dir, scenes, fusion_raw, ec.steps, render_config, ec.lpips_net, progress, log)
     for k in ec.steps:
         m = _weighted([plus[n]["steps"][str(k)] for n in names], weights)
         rows.append(_row(f"Individual +{k:,}", m, sum(plus[n]["gaussians"] for n in names), group="baseline", steps=k))
     ablations = {}
     if ec.ablations:
+        release_if_near_limit()
         views = [date_views(sc, sm) for sc, sm in zip(scenes, sims)]
         for key, label, over in (("freeze_alpha", "Ours, α frozen", {"lr_alpha": 0.0}), ("freeze_o", "Ours, o frozen", {"lr_o": 0.0})):
             a = _ablation(run_dir, key, over | {"steps": ec.steps[-1]}, views, scenes, test_views, fusion_raw,
@@ -219,20 +223,22 @@ def run_protocol(scene: str, out: str | Path, raw: dict | None = None, *, progre
             rows.append(_row(f"{label} {ec.steps[-1]:,}", a["metrics"], a["gaussians"], group="ablation", steps=ec.steps[-1]))
     change = None
     if ec.change_detection and (data / "ground_truth.json").is_file():
-        change = _read_json(out / "change.json")
+        change = read_json(out / "change.json")
         if change is None:
             log("[eval] change detection against ground truth")
-            change = change_detection(read_fused(run_dir / "fused"), data, scenes, sims, render_config)
-            _write_json(out / "change.json", change)
-    timings = _read_json(run_dir / "timings.json", {})
+            change = change_detection(read_fused(run_dir / "fused"), data, scenes, sims, render_config,
+                                      cross_init=read_fused(run_dir / "cross_init"))  # fmt: skip
+            write_json(out / "change.json", change)
+        pr_curve_plot(out / "change_pr.png", change, scene)
+    timings = read_json(run_dir / "timings.json", {})
     table = {
         "scene": scene, "dates": names, "test_views": dict(zip(names, weights)), "steps": list(ec.steps),
         "rows": rows, "timings": {k: timings.get(k) for k in ("train", "register", "merge", "cross_init", "refine")},
         "fusion_wall_seconds_this_call": fusion_seconds, "change": change,
         "margins": margins(rows, ec.steps[-1]),
     }  # fmt: skip
-    _write_json(out / "table.json", table)
-    _atomic_text(out / "table.md", table_markdown(table))
+    write_json(out / "table.json", table)
+    write_text(out / "table.md", table_markdown(table))
     figure_grid(out / "figure.png", run_dir, scenes, sims, names, render_config)
     return table
 
@@ -245,7 +251,7 @@ def margins(rows: list[dict], n: int) -> dict:
             "lpips": ind["lpips"] - ours["lpips"]}  # fmt: skip
 
 
-def change_detection(model, data: Path, scenes, sims, render_config) -> dict:
+def change_detection(model, data: Path, scenes, sims, render_config, cross_init=None) -> dict:
     """Per-Gaussian and per-pixel change detection of the fused model against the synthetic ground truth."""
     from cfgs_jax.evaluation import change
 
@@ -277,14 +283,39 @@ def change_detection(model, data: Path, scenes, sims, render_config) -> dict:
                 if rows.any() and dp["present"][on] and not dq["present"][on]:
                     absent_objects[f"{on}: {names[p]}→{names[q]}"] = float(np.mean(o[rows, q] < 0.2))
     summary["absent_objects_below_0.2"] = absent_objects
-    return {"gaussians": summary, "pixels": pixels, "config": dataclasses.asdict(cfg)}
+    result = {"gaussians": summary, "pixels": pixels, "config": dataclasses.asdict(cfg),
+              "objects_fused": object_persistence(model, objects, gt)}  # fmt: skip
+    if cross_init is not None:
+        labels = change.object_labels(cross_init, masks, len(gt["objects"]), render_config=render_config)
+        result["objects_cross_init"] = object_persistence(cross_init, labels, gt)
+    return result
 
 
-def _atomic_text(path: Path, text: str) -> None:
-    from cfgs_jax.io.atomic import atomic_file
-
-    with atomic_file(path) as tmp:
-        Path(tmp).write_text(text)
+def object_persistence(model, objects: np.ndarray, gt: dict) -> dict:
+    """Issue 7's check by ground-truth object: for every ordered pair (p, q), the Gaussians of date p
+    labelled with an object absent at q should have o^q < 0.2, those of an object present and
+    unchanged at both dates (the ground plane included) o^q > 0.6. Shares over all such entries."""
+    o = np.asarray(opacity_multipliers(model))
+    origin = np.asarray(model.origin)
+    names = [ob["name"] for ob in gt["objects"]]
+    absent_ok = absent_n = persist_ok = persist_n = 0
+    for p, dp in enumerate(gt["dates"]):
+        for q, dq in enumerate(gt["dates"]):
+            if p == q:
+                continue
+            for k, on in enumerate(["background", *names]):
+                rows = (origin == p) & (objects == k)
+                if k == 0 or not rows.any():
+                    continue
+                if dp["present"][on] and not dq["present"][on]:
+                    absent_ok += int(np.sum(o[rows, q] < 0.2))
+                    absent_n += int(rows.sum())
+                elif dp["present"][on] and dq["present"][on] and dp["variant"][on] == dq["variant"][on]:
+                    persist_ok += int(np.sum(o[rows, q] > 0.6))
+                    persist_n += int(rows.sum())
+    return {"absent_below_0.2": absent_ok / absent_n if absent_n else float("nan"), "absent_entries": absent_n,
+            "persistent_above_0.6": persist_ok / persist_n if persist_n else float("nan"),
+            "persistent_entries": persist_n}  # fmt: skip
 
 
 def table_markdown(table: dict) -> str:
@@ -314,10 +345,19 @@ def table_markdown(table: dict) -> str:
                   "|---|---:|---:|---:|---:|---:|---:|",
                   f"| Gaussians (o^q < {ch['config']['absent_below']}, observed) | {g['precision']:.3f} | {g['recall']:.3f} | "
                   f"{g['f1']:.3f} | – | {100 * g['flagged_changed']:.1f} % | {100 * g['gt_changed']:.1f} % |",
+                  *([f"| … weighted by compositing weight | {g['weighted_precision']:.3f} | {g['weighted_recall']:.3f} | "
+                     f"{g['weighted_f1']:.3f} | – | – | – |"] if "weighted_f1" in g else []),
                   f"| Pixels (highlight |S−1| > {ch['config']['pixel_threshold']}) | – | – | – | {p['iou']:.3f} | "
                   f"{100 * p['predicted_changed_share']:.1f} % | {100 * p['gt_changed_share']:.1f} % |", "",
                   f"Gaussians not observed at a date: {100 * (1 - g['observed']):.1f} % of (Gaussian, date) entries, "
                   f"{100 * g['unobserved_marked_absent']:.1f} % of them absent (o < {ch['config']['absent_below']}), none flagged changed."]  # fmt: skip
+        for key, when in (("objects_cross_init", "after cross-init"), ("objects_fused", "after refinement")):
+            ob = ch.get(key)
+            if ob:
+                lines.append(f"\nBy ground-truth object, {when}: {100 * ob['absent_below_0.2']:.1f} % of the Gaussians of "
+                             f"objects absent at a date have o < 0.2 there ({ob['absent_entries']:,} entries), "
+                             f"{100 * ob['persistent_above_0.6']:.1f} % of those of persistent objects o > 0.6 "
+                             f"({ob['persistent_entries']:,}).")  # fmt: skip
     return "\n".join(lines) + "\n"
 
 
@@ -338,3 +378,30 @@ def figure_grid(path: Path, run_dir: Path, scenes, sims, names, render_config) -
         gt = np.asarray(over_background(sc.load_image(i, with_alpha=True), np.zeros(3, np.float32)))
         rows.append(np.concatenate([ind, ours, gt], 1))
     write_image(path, np.clip(np.concatenate(rows, 0), 0, 1))
+
+
+def pr_curve_plot(path: Path, change: dict, scene: str) -> None:
+    """Precision–recall of the per-Gaussian "changed" score 1 − o^q over the threshold, F1 at τ marked."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from cfgs_jax.io.atomic import atomic_file
+
+    g = change["gaussians"]
+    c = g["curve"]
+    fig, ax = plt.subplots(figsize=(4.6, 4.2))
+    ax.plot(c["recall"], c["precision"], marker=".", lw=1)
+    ax.scatter([g["recall"]], [g["precision"]], color="C3", zorder=3,
+               label=f"o^q < {change['config']['absent_below']}: F1 {g['f1']:.3f}")  # fmt: skip
+    ax.set_xlabel("recall (changed Gaussians found)")
+    ax.set_ylabel("precision")
+    ax.set_xlim(0, 1.02)
+    ax.set_ylim(0, 1.02)
+    ax.set_title(f"change detection, {scene}")
+    ax.legend(loc="lower left")
+    fig.tight_layout()
+    with atomic_file(path) as tmp:
+        fig.savefig(tmp, format="png", dpi=110)
+    plt.close(fig)

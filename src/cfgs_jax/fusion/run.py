@@ -28,13 +28,14 @@ import jax.numpy as jnp
 import numpy as np
 
 from cfgs_jax import splat, train
+from cfgs_jax.compiled_code import release_if_near_limit
 from cfgs_jax.config import check_sections, section
 from cfgs_jax.errors import InputError
 from cfgs_jax.fusion.cross_init import CrossInitConfig, DateViews, init_pair
 from cfgs_jax.fusion.fuse import merge
 from cfgs_jax.fusion.refine import RefineConfig, refine
 from cfgs_jax.fusion.register import RegisterConfig, register_date
-from cfgs_jax.io.atomic import atomic_file, ensure_writable_dir
+from cfgs_jax.io.atomic import ensure_writable_dir, read_json, write_json
 from cfgs_jax.io.colmap import Scene, read_colmap
 from cfgs_jax.io.fused import read_fused, write_fused
 from cfgs_jax.io.ply import read_ply, write_ply
@@ -58,15 +59,6 @@ def validate_config(raw: dict | None) -> None:
     check_sections(raw, CONFIG_SECTIONS)
     for name, cls in CONFIG_SECTIONS.items():
         section(raw, name, cls)
-
-
-def _write_json(path: Path, data) -> None:
-    with atomic_file(path) as tmp:
-        tmp.write_text(json.dumps(data, indent=1))
-
-
-def _read_json(path: Path, default=None):
-    return json.loads(path.read_text()) if path.is_file() else default
 
 
 def camera_in_frame(camera: Camera, sim3: Sim3) -> Camera:
@@ -115,7 +107,7 @@ class FusionRun:
     def __init__(self, out: Path, dates: list[Path], raw_config: dict | None, *, resume: bool, models=None):
         self.out = ensure_writable_dir(out)
         self.raw = raw_config or {}
-        state = _read_json(self.out / "run.json")
+        state = read_json(self.out / "run.json")
         if state is not None and not resume:
             raise InputError("this run directory holds an earlier run", path=self.out / "run.json",
                              fix="pass --resume to continue it, or choose another --out")  # fmt: skip
@@ -132,8 +124,8 @@ class FusionRun:
             "done": [], "config": {k: v for k, v in self.raw.items() if k != "__path__"},
             "models": [str(Path(m).resolve()) for m in models] if models else None,
         }  # fmt: skip
-        self.timings = _read_json(self.out / "timings.json", {})
-        self.report = _read_json(self.out / "report.json", {})
+        self.timings = read_json(self.out / "timings.json", {})
+        self.report = read_json(self.out / "report.json", {})
         self._save()
 
     @property
@@ -145,9 +137,9 @@ class FusionRun:
         return read_colmap(self.state["dates"][i]["path"], test_every=max(1, tc.test_every))
 
     def _save(self):
-        _write_json(self.out / "run.json", self.state)
-        _write_json(self.out / "timings.json", self.timings)
-        _write_json(self.out / "report.json", self.report)
+        write_json(self.out / "run.json", self.state)
+        write_json(self.out / "timings.json", self.timings)
+        write_json(self.out / "report.json", self.report)
 
     def finish(self, stage: str, seconds: float, report=None):
         self.state["done"].append(stage)
@@ -162,12 +154,13 @@ class FusionRun:
 
 def _train_date(run: FusionRun, scene: Scene, name: str, render_config, progress: bool, log, tag: str) -> None:
     """Train one date into ``RUN/dates/<name>/`` (resuming its checkpoint): PLY and train.json."""
+    release_if_near_limit()
     d = run.out / "dates" / name
     tc = section(run.raw, "train", train.TrainConfig)
     log(f"[{tag}] date {name}: {tc.steps:,} steps")
     r = train.fit(scene, tc, render_config, out=d, resume=True, progress=progress)
     write_ply(d / "point_cloud.ply", r.gaussians)
-    _write_json(d / "train.json", {"gaussians": len(r.gaussians), "test": r.metrics, "growth": r.counts})
+    write_json(d / "train.json", {"gaussians": len(r.gaussians), "test": r.metrics, "growth": r.counts})
 
 
 def _cross_init_pairs(run: FusionRun, start: Path, pairs, views, render_config, log, stage: str, tag: str) -> None:
@@ -176,12 +169,13 @@ def _cross_init_pairs(run: FusionRun, start: Path, pairs, views, render_config, 
     cc = section(run.raw, "cross_init", CrossInitConfig)
     partial = run.out / "cross_init"
     progress_file = run.out / "cross_init_pairs.json"
-    finished = _read_json(progress_file, {"pairs": [], "reports": [], "seconds": 0.0})
+    finished = read_json(progress_file, {"pairs": [], "reports": [], "seconds": 0.0})
     model = read_fused(partial if finished["pairs"] else start)
     names = run.names
     for p, q in pairs:
         if [p, q] in finished["pairs"]:
             continue
+        release_if_near_limit()  # each pair compiles for its own Gaussian count
         log(f"[{tag}] Gaussians of {names[p]} against images of {names[q]}: {cc.steps:,} steps")
         s = time.perf_counter()
         model, rep = init_pair(model, p, q, views[q], cc, render_config=render_config)
@@ -189,7 +183,7 @@ def _cross_init_pairs(run: FusionRun, start: Path, pairs, views, render_config, 
         finished["pairs"].append([p, q])
         finished["reports"].append(rep | {"seconds": time.perf_counter() - s})
         finished["seconds"] += time.perf_counter() - s
-        _write_json(progress_file, finished)
+        write_json(progress_file, finished)
     run.finish(stage, finished["seconds"], finished["reports"])
 
 
@@ -197,6 +191,7 @@ def _refine_stage(run: FusionRun, views, scenes, render_config, progress: bool, 
     """Eq. 3 refinement of ``RUN/cross_init`` → ``RUN/fused``, resumable mid-way from
     ``RUN/<stage>_checkpoint.npz`` (saved every ``refine.checkpoint_every`` steps); the model after each
     step count in ``snapshots`` goes to ``RUN/snapshots/refine_<k>/``."""
+    release_if_near_limit()
     t0 = time.perf_counter()
     fc = section(run.raw, "refine", RefineConfig)
     model = read_fused(run.out / "cross_init")
@@ -214,14 +209,18 @@ def _refine_stage(run: FusionRun, views, scenes, render_config, progress: bool, 
 
 def run_fusion(dates: list[Path], out: Path, raw_config: dict | None = None, *, models: list[Path] | None = None,
                transforms: Path | None = None, resume: bool = False, progress: bool = True, evaluate: bool = True,
-               drop_invalid: bool = False, snapshots: tuple[int, ...] = (), log=print) -> FusionRun:  # fmt: skip
+               drop_invalid: bool = False, snapshots: tuple[int, ...] = (), until: str | None = None,
+               log=print) -> FusionRun:  # fmt: skip
     """All stages of ChronoFuseGS over ``dates`` (COLMAP datasets; the first is the reference frame).
 
     Every input (configuration, datasets with their image sizes, given models) is read and checked
     before the run directory is created, so bad input leaves no output behind. ``snapshots``: refinement
-    step counts whose models are also kept (``RUN/snapshots/refine_<k>/``). One date is allowed,
+    step counts whose models are also kept (``RUN/snapshots/refine_<k>/``); ``until``: stop after that
+    stage ("train", "register", "merge": e.g. shared inputs of a sweep). One date is allowed,
     with a warning: its "fusion" is the identity (o = 1 exactly, no cross-init, no refinement)."""
     validate_config(raw_config)
+    if until not in (None, "train", "register", "merge"):
+        raise InputError(f"cannot stop after {until!r}", field="until", fix='use "train", "register" or "merge"')
     test_every = max(1, section(raw_config, "train", train.TrainConfig).test_every)
     scenes = [read_colmap(d, test_every=test_every) for d in dates]
     if models is not None and len(models) != len(dates):
@@ -250,6 +249,9 @@ def run_fusion(dates: list[Path], out: Path, raw_config: dict | None = None, *, 
         run.finish("train", time.perf_counter() - t0, {"per_date_seconds": per_date})
     model_paths = run.state["models"] or [str(run.out / "dates" / n / "point_cloud.ply") for n in names]
 
+    if until == "train":
+        return run
+
     # 2. registration
     if not run.done("register"):
         t0 = time.perf_counter()
@@ -265,11 +267,13 @@ def run_fusion(dates: list[Path], out: Path, raw_config: dict | None = None, *, 
                 reg[names[i]] = r.to_dict() | {"source": "joint SfM"}
                 log(f"  {r.registered_reference} + {r.registered_date} images registered; centre residual "
                     f"{100 * r.centre_residual:.2f} % of the extent, rotation {r.rotation_residual_deg:.2f}°")  # fmt: skip
-        _write_json(run.out / "register.json", reg)
+        write_json(run.out / "register.json", reg)
         run.finish("register", time.perf_counter() - t0)
-    reg = _read_json(run.out / "register.json")
+    reg = read_json(run.out / "register.json")
     sims = [Sim3.from_dict(reg[n]["transform"]) for n in names]
     dinfo = [DateInfo(n, sources=(run.state["dates"][i]["path"],)) for i, n in enumerate(names)]
+    if until == "register":
+        return run
 
     # 3. merge
     if not run.done("merge"):
@@ -277,6 +281,8 @@ def run_fusion(dates: list[Path], out: Path, raw_config: dict | None = None, *, 
         merged = merge(given or [read_ply(p, drop_invalid=drop_invalid) for p in model_paths], dinfo, sims)
         write_fused(run.out / "merged", merged)
         run.finish("merge", time.perf_counter() - t0, {"gaussians": len(merged)})
+    if until == "merge":
+        return run
     if len(names) == 1 and not run.done("refine"):
         merged = read_fused(run.out / "merged")
         identity = dataclasses.replace(merged, o_logits=jnp.full_like(jnp.asarray(merged.o_logits), IDENTITY_LOGIT))
@@ -313,7 +319,7 @@ def _evaluate_stage(run: FusionRun, scenes, sims, render_config, enabled: bool, 
     model = read_fused(run.out / "fused")
     test_views = [date_views(sc, sm, "test") for sc, sm in zip(scenes, sims)]
     m = evaluate_fused(model, test_views, render_config=render_config)
-    _write_json(run.out / "metrics.json", m)
+    write_json(run.out / "metrics.json", m)
     log("test views: " + ", ".join(f"{n} {v['psnr']:.2f} dB" for n, v in m["dates"].items())
         + f"; mean PSNR {m['mean']['psnr']:.2f} dB, SSIM {m['mean']['ssim']:.4f}, LPIPS {m['mean'].get('lpips', float('nan')):.4f}")  # fmt: skip
     run.finish(stage, time.perf_counter() - t0, m["mean"])
@@ -327,7 +333,7 @@ def run_extend(run_dir: Path, date: Path, *, model: Path | None = None, transfor
     from cfgs_jax.fusion.fuse import add_date
 
     run_dir = Path(run_dir)
-    state = _read_json(run_dir / "run.json")
+    state = read_json(run_dir / "run.json")
     if state is None or "refine" not in state["done"]:
         raise InputError("not a finished fusion run", path=run_dir, fix="run `fuse` first (or --resume it)")
     name = Path(date).name
@@ -348,7 +354,7 @@ def run_extend(run_dir: Path, date: Path, *, model: Path | None = None, transfor
             if model is None:
                 raise InputError("the run was fused from given models", field="--model", fix="pass --model PLY")
             state["models"].append(str(Path(model).resolve()))
-        _write_json(run_dir / "run.json", state)
+        write_json(run_dir / "run.json", state)
         paths.append(str(Path(date).resolve()))
     run = FusionRun(run_dir, [Path(p) for p in paths], state["config"], resume=True)
     raw = run.raw
@@ -364,7 +370,7 @@ def run_extend(run_dir: Path, date: Path, *, model: Path | None = None, transfor
         run.finish(prefix + "train", time.perf_counter() - t0)
     ply = Path(model) if model is not None else run.out / "dates" / name / "point_cloud.ply"
 
-    reg = _read_json(run.out / "register.json")
+    reg = read_json(run.out / "register.json")
     if not run.done(prefix + "register"):
         t0 = time.perf_counter()
         if transform is not None:
@@ -373,7 +379,7 @@ def run_extend(run_dir: Path, date: Path, *, model: Path | None = None, transfor
             log(f"[extend/register] date {name} → {names[0]}")
             r = register_date(scenes[0], scenes[k], config=section(raw, "register", RegisterConfig))
             reg[name] = r.to_dict() | {"source": "joint SfM"}
-        _write_json(run.out / "register.json", reg)
+        write_json(run.out / "register.json", reg)
         run.finish(prefix + "register", time.perf_counter() - t0)
     sims = [Sim3.from_dict(reg[n]["transform"]) for n in names]
 
@@ -382,7 +388,7 @@ def run_extend(run_dir: Path, date: Path, *, model: Path | None = None, transfor
         old = read_fused(run.out / "fused")
         merged = add_date(old, read_ply(ply), DateInfo(name, sources=(paths[k],)), sims[k])
         write_fused(run.out / "cross_init", merged)
-        _write_json(run.out / "cross_init_pairs.json", {"pairs": [], "reports": [], "seconds": 0.0})
+        write_json(run.out / "cross_init_pairs.json", {"pairs": [], "reports": [], "seconds": 0.0})
         run.finish(prefix + "merge", time.perf_counter() - t0)
     views = [date_views(scenes[i], sims[i]) for i in range(len(names))]
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import json
 import os
 import shutil
 import tempfile
@@ -74,3 +75,23 @@ def atomic_directory(path: str | os.PathLike) -> Iterator[Path]:
     os.replace(tmp_dir, target)
     if old is not None:
         shutil.rmtree(old, ignore_errors=True)
+
+
+def write_json(path: str | os.PathLike, data) -> Path:
+    """Write ``data`` as indented JSON, atomically."""
+    with atomic_file(path) as tmp:
+        tmp.write_text(json.dumps(data, indent=1))
+    return Path(path)
+
+
+def read_json(path: str | os.PathLike, default=None):
+    """The JSON at ``path``, or ``default`` when there is no such file."""
+    p = Path(path)
+    return json.loads(p.read_text()) if p.is_file() else default
+
+
+def write_text(path: str | os.PathLike, text: str) -> Path:
+    """Write ``text``, atomically."""
+    with atomic_file(path) as tmp:
+        tmp.write_text(text)
+    return Path(path)

@@ -1,7 +1,7 @@
 """Synthetic multi-date ground truth rendered with Mitsuba 3 (never with our own kernel).
 
 ``make_preset(name, seed=, width=, height=, images_per_date=, spp=)`` builds a ``SceneSpec`` (one of
-vase, corals, flood, coverage, light); ``render_dataset(spec, out)`` writes one COLMAP dataset per
+vase, corals, flood, coverage, light, reef); ``render_dataset(spec, out)`` writes one COLMAP dataset per
 date in its own random Sim(3) frame, object-id and change masks, and ``ground_truth.json``.
 """
 

@@ -183,29 +183,7 @@ def render_dataset(
     spec: SceneSpec, out: str | Path, *, dates=None, points_per_image: int | None = None, progress: bool = True
 ) -> Path:
     """Render the dates of ``spec`` (all, or the indices in ``dates``) and write their datasets and
-    the ground truth under ``out``.
-
-    Mitsuba runs in a spawned child process: importing it loads the system's libLLVM (Dr.Jit's JIT
-    back end) next to XLA's own LLVM, and a process holding both was seen to deadlock in a later
-    XLA compilation. The calling process never imports Mitsuba, so JAX work after synthesis is safe."""
-    import concurrent.futures
-    import multiprocessing
-
-    nd = len(spec.dates)
-    todo = list(range(nd)) if dates is None else sorted(set(int(d) for d in dates))
-    if not todo or todo[0] < 0 or todo[-1] >= nd:
-        raise InputError(f"date indices {dates} outside 0..{nd - 1}", field="dates")
-    out = ensure_writable_dir(out)
-    ctx = multiprocessing.get_context("spawn")
-    with concurrent.futures.ProcessPoolExecutor(1, mp_context=ctx) as pool:
-        return pool.submit(render_dataset_in_process, spec, out, dates=todo, points_per_image=points_per_image,
-                           progress=progress).result()  # fmt: skip
-
-
-def render_dataset_in_process(
-    spec: SceneSpec, out: str | Path, *, dates=None, points_per_image: int | None = None, progress: bool = True
-) -> Path:
-    """``render_dataset`` in this process (imports Mitsuba here: see ``render_dataset``)."""
+    the ground truth under ``out``."""
     import pycolmap
     from rich.progress import Progress
 

@@ -128,7 +128,7 @@ def _dates(rng, names, n_images, *, lighting, coverage=None) -> tuple[DateSpec, 
 
 def make_preset(name: str, *, seed: int = 0, width: int = 320, height: int = 240,
                 images_per_date: int = 32, spp: int = 32) -> SceneSpec:
-    """The named preset (vase, corals, flood, coverage, light) at the given size and quality
+    """The named preset (vase, corals, flood, coverage, light, reef) at the given size and quality
     (``spp`` is rounded up to a power of two for the low-discrepancy sampler)."""
     if name not in PRESETS:
         raise InputError(f"unknown preset {name!r}", field="--preset", fix=f"use one of {', '.join(PRESETS)}")
@@ -194,4 +194,18 @@ def _light(rng, seed, k):
     return objs, _dates(rng, ["d0", "d1", "d2", "d3"], k, lighting=light)
 
 
-PRESETS = {"vase": _vase, "corals": _corals, "flood": _flood, "coverage": _coverage, "light": _light}
+def _reef(rng, seed, k):
+    """Six dates of appearing / disappearing objects: the incremental-vs-scratch benchmark (T = 2..6)."""
+    d = 6
+    objs = [_ground(d, seed * 100 + 1)]
+    presence = [
+        (1, 1, 1, 1, 1, 1), (1, 1, 0, 0, 1, 1), (1, 0, 0, 1, 1, 0), (0, 1, 1, 1, 0, 0), (0, 0, 1, 1, 1, 1),
+        (1, 1, 1, 0, 0, 1), (0, 1, 1, 0, 1, 1),
+    ]  # fmt: skip
+    for i, xy in enumerate(_placements(rng, len(presence))):
+        objs.append(_thing(rng, f"coral_{i}", xy, d, [bool(p) for p in presence[i]], seed * 100 + 10 + i))
+    light = [(30 + 25 * i, 55 + 3 * (i % 2), 5400 + 100 * i, 0.0) for i in range(d)]
+    return objs, _dates(rng, [f"d{i}" for i in range(d)], k, lighting=light)
+
+
+PRESETS = {"vase": _vase, "corals": _corals, "flood": _flood, "coverage": _coverage, "light": _light, "reef": _reef}

@@ -1,0 +1,158 @@
+"""Adding dates one by one (``extend``) vs recomputing the fusion from scratch each time a date
+arrives, for T = 2..T_max on one scene (issue 9, the paper's Fig. "incremental vs from scratch";
+goal: accumulated incremental time ≤ 0.25 × accumulated from-scratch time at the largest T).
+
+Scene: the synthetic ``reef`` preset (6 dates), ground-truth Sim(3)s (registration is the same on
+both paths). The per-date models are trained once and given to every run, so the comparison is the
+fusion itself (merge, cross-init, refine, export); per-date training is paid equally by both paths
+(once per date) and reported separately.
+
+- from scratch at T: ``fuse`` of dates 1..T; accumulated = Σ_{t=2..T} of those fusion times.
+- incremental at T: ``fuse`` of dates 1..2, then ``extend`` by dates 3..T in turn; accumulated = the
+  2-date fusion + Σ of the extensions.
+
+Test PSNR of the final T_max models of both paths is reported too. Writes
+benchmarks/results/incremental.json, incremental.md and incremental.png (bar plot).
+
+    python benchmarks/bench_incremental.py [--max-dates 6] [--width 64 --height 48 --images-per-date 8]
+        [--config demo] [--work /tmp/bench_incremental]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bench_splat import RESULTS, machine  # noqa: E402
+
+FUSION_STAGES = ("merge", "cross_init", "refine", "export")
+
+
+def _fusion_seconds(run: Path, prefix: str = "") -> float:
+    t = json.loads((run / "timings.json").read_text())
+    return float(sum(t.get(prefix + s, 0.0) for s in FUSION_STAGES))
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--max-dates", type=int, default=6)
+    ap.add_argument("--width", type=int, default=64)
+    ap.add_argument("--height", type=int, default=48)
+    ap.add_argument("--images-per-date", type=int, default=8)
+    ap.add_argument("--spp", type=int, default=8)
+    ap.add_argument("--config", default="demo")
+    ap.add_argument("--work", default="/tmp/bench_incremental")
+    args = ap.parse_args()
+    if not 3 <= args.max_dates <= 6:
+        raise SystemExit("--max-dates must lie in 3..6 (the reef preset has 6 dates)")
+
+    from cfgs_jax import synthetic
+    from cfgs_jax.config import find_preset, load_config
+    from cfgs_jax.fusion.run import run_extend, run_fusion
+    from cfgs_jax.sim3 import Sim3
+
+    work = Path(args.work)
+    data = work / "data"
+    spec = synthetic.make_preset("reef", seed=0, width=args.width, height=args.height,
+                                 images_per_date=args.images_per_date, spp=args.spp)  # fmt: skip
+    names = [d.name for d in spec.dates][: args.max_dates]
+    if not (data / "ground_truth.json").is_file():
+        synthetic.render_dataset(spec, data, dates=list(range(args.max_dates)), progress=False)
+    transforms = data / "transforms.json"
+    sims = synthetic.reference_transforms(data, names)
+    transforms.write_text(json.dumps(sims))
+    raw = load_config(find_preset(args.config))
+    dirs = [data / n for n in names]
+    quiet = lambda *a, **k: None  # noqa: E731
+
+    trained = run_fusion(dirs, work / "models", raw, transforms=transforms, resume=(work / "models" / "run.json").is_file(),
+                         progress=False, evaluate=False, until="train", log=quiet)  # fmt: skip
+    train_s = trained.report["train"]["per_date_seconds"]
+    models = [work / "models" / "dates" / n / "point_cloud.ply" for n in names]
+
+    scratch, scratch_acc, acc = {}, {}, 0.0
+    for t in range(2, args.max_dates + 1):
+        run = work / f"scratch_{t}"
+        if not (run / "run.json").is_file() or "export" not in json.loads((run / "run.json").read_text())["done"]:
+            run_fusion(dirs[:t], run, raw, models=models[:t], transforms=transforms, resume=(run / "run.json").is_file(),
+                       progress=False, evaluate=(t == args.max_dates), log=quiet)  # fmt: skip
+        scratch[t] = _fusion_seconds(run)
+        acc += scratch[t]
+        scratch_acc[t] = acc
+        print(f"from scratch T={t}: {scratch[t]:.1f} s (accumulated {acc:.1f} s)", flush=True)
+
+    inc_dir = work / "incremental"
+    run_fusion(dirs[:2], inc_dir, raw, models=models[:2], transforms=transforms, resume=(inc_dir / "run.json").is_file(),
+               progress=False, evaluate=False, log=quiet)  # fmt: skip
+    incremental, inc_acc = {2: _fusion_seconds(inc_dir)}, {2: _fusion_seconds(inc_dir)}
+    for t in range(3, args.max_dates + 1):
+        name = names[t - 1]
+        state = json.loads((inc_dir / "run.json").read_text())
+        if f"extend:{name}:export" not in state["done"]:
+            run_extend(inc_dir, dirs[t - 1], model=models[t - 1], transform=Sim3.from_dict(sims[name]),
+                       resume=any(s.startswith(f"extend:{name}:") for s in state["done"]), progress=False,
+                       evaluate=(t == args.max_dates), log=quiet)  # fmt: skip
+        incremental[t] = _fusion_seconds(inc_dir, f"extend:{name}:")
+        inc_acc[t] = inc_acc[t - 1] + incremental[t]
+        print(f"incremental T={t}: +{incremental[t]:.1f} s (accumulated {inc_acc[t]:.1f} s)", flush=True)
+
+    tmax = args.max_dates
+    ms = json.loads((work / f"scratch_{tmax}" / "metrics.json").read_text())["mean"]
+    me_all = json.loads((inc_dir / "metrics.json").read_text())
+    me = me_all["mean"]
+    ratio = inc_acc[tmax] / scratch_acc[tmax]
+    result = {
+        "machine": machine(), "date": time.strftime("%Y-%m-%d"), "config": args.config,
+        "scene": f"reef {args.width}x{args.height}, {args.images_per_date} views/date, dates {names}",
+        "train_seconds_per_date": train_s, "scratch_seconds": scratch, "scratch_accumulated": scratch_acc,
+        "incremental_seconds": incremental, "incremental_accumulated": inc_acc, "accumulated_ratio": ratio,
+        "psnr_scratch": ms["psnr"], "psnr_incremental": me["psnr"], "lpips_scratch": ms.get("lpips"),
+        "lpips_incremental": me.get("lpips"),
+    }  # fmt: skip
+    RESULTS.mkdir(parents=True, exist_ok=True)
+    (RESULTS / "incremental.json").write_text(json.dumps(result, indent=2))
+    rows = [f"| {t} | {scratch[t]:.0f} | {scratch_acc[t]:.0f} | {incremental[t]:.0f} | {inc_acc[t]:.0f} | "
+            f"{inc_acc[t] / scratch_acc[t]:.2f} |" for t in range(2, tmax + 1)]  # fmt: skip
+    lines = [
+        "# Adding dates incrementally vs recomputing from scratch (bench_incremental.py)", "",
+        f"Machine: {result['machine']}. Date: {result['date']}. Scene: {result['scene']}; config `{args.config}`; "
+        "ground-truth Sim(3)s; per-date models trained once and shared (training: "
+        + ", ".join(f"{n} {s:.0f} s" for n, s in train_s.items()) + ").", "",
+        "| T | from scratch (s) | accumulated | incremental step (s) | accumulated | ratio |", "|---|---:|---:|---:|---:|---:|",
+        *rows, "",
+        f"At T = {tmax}: accumulated incremental / from scratch = **{ratio:.2f}** (goal ≤ 0.25). "
+        f"Test PSNR of the final model: from scratch {ms['psnr']:.2f} dB, incremental {me['psnr']:.2f} dB "
+        f"(gap {ms['psnr'] - me['psnr']:+.2f} dB).",
+    ]  # fmt: skip
+    (RESULTS / "incremental.md").write_text("\n".join(lines) + "\n")
+    _plot(RESULTS / "incremental.png", scratch_acc, inc_acc)
+    print("\n".join(lines))
+
+
+def _plot(path: Path, scratch_acc: dict, inc_acc: dict) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    ts = sorted(scratch_acc)
+    x = np.arange(len(ts))
+    fig, ax = plt.subplots(figsize=(6.5, 3.8))
+    ax.bar(x - 0.2, [scratch_acc[t] for t in ts], 0.4, label="recompute from scratch")
+    ax.bar(x + 0.2, [inc_acc[t] for t in ts], 0.4, label="incremental (extend)")
+    ax.set_xticks(x, [str(t) for t in ts])
+    ax.set_xlabel("number of dates T")
+    ax.set_ylabel("accumulated fusion wall time (s)")
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+if __name__ == "__main__":
+    main()
