@@ -22,12 +22,9 @@ def _release_compiled_code():
     executable and one pytest process compiles thousands; at Linux's 65 530-mapping cap the next XLA
     compilation deadlocks (the suite hung there in CI). See cfgs_jax.compiled_code."""
     yield
-    import gc
+    from cfgs_jax.compiled_code import release
 
-    import jax
-
-    jax.clear_caches()
-    gc.collect()
+    release()
 
 
 @pytest.fixture(scope="session")

@@ -29,16 +29,21 @@ def map_usage() -> tuple[int, int] | None:
     return used, limit
 
 
-def release_if_near_limit(fraction: float = 0.5) -> bool:
-    """``jax.clear_caches()`` when this process uses more than ``fraction`` of its memory-map limit.
-    Returns whether it cleared."""
-    usage = map_usage()
-    if usage is None or usage[0] <= fraction * usage[1]:
-        return False
+def release() -> None:
+    """Drop JAX's compiled executables now (their code is unmapped; functions recompile on demand)."""
     import jax
 
     jax.clear_caches()
     gc.collect()
+
+
+def release_if_near_limit(fraction: float = 0.5) -> bool:
+    """``release()`` when this process uses more than ``fraction`` of its memory-map limit.
+    Returns whether it released."""
+    usage = map_usage()
+    if usage is None or usage[0] <= fraction * usage[1]:
+        return False
+    release()
     after = map_usage()
     log.info("released compiled code: %d → %s memory mappings (limit %d)", usage[0], after and after[0], usage[1])
     return True

@@ -140,39 +140,54 @@ def object_labels(model: TemporalGaussians, masks: Sequence[DateMasks], num_obje
     return labels
 
 
+def observed_matrix(model: TemporalGaussians, observing: Sequence[Sequence[Camera]], threshold: float, *,
+                    render_config=None) -> np.ndarray:  # fmt: skip
+    """[N, T] bool: column q says whether each Gaussian is observed at date q (``observing[q]``: date
+    q's training cameras) — ``observed_from`` with its own date's Gaussians and opacity o^origin."""
+    o = np.asarray(opacity_multipliers(model))
+    origin = np.asarray(model.origin)
+    seen = np.zeros((len(origin), len(observing)), bool)
+    for p in range(model.num_dates):
+        rows = np.nonzero(origin == p)[0]
+        if len(rows):
+            g = jax.tree_util.tree_map(lambda x: jnp.asarray(x)[rows], model.gaussians)
+            for q, cams in enumerate(observing):
+                seen[rows, q] = observed_from(g, o[rows, p], cams, threshold, render_config=render_config)
+    return seen
+
+
 def gaussian_change_table(model: TemporalGaussians, masks: Sequence[DateMasks], observing: Sequence[Sequence[Camera]],
                           num_objects: int, config: ChangeConfig = ChangeConfig(), *,
-                          render_config=None) -> dict:  # fmt: skip
+                          render_config=None, observed: np.ndarray | None = None) -> dict:  # fmt: skip
     """Per ordered pair (p, q): ground-truth label and prediction of every Gaussian of date p.
 
     ``masks[p]``: date p's training views with their ground truth; ``observing[q]``: date q's training
-    cameras. Returns per pair the arrays ``gt_changed``, ``observed``, ``o_q`` (rows: Gaussians of
-    date p with non-zero weight in their own views) and per Gaussian its object id."""
+    cameras (``observed``: their ``observed_matrix``, computed when not given). Returns per pair the
+    arrays ``gt_changed``, ``observed``, ``o_q`` (rows: Gaussians of date p with non-zero weight in
+    their own views) and per Gaussian its object id."""
     names = [d.name for d in model.dates]
     o = np.asarray(opacity_multipliers(model))
     origin = np.asarray(model.origin)
-    g_all = model.gaussians
-    objects = np.full(len(origin), -1, np.int64)
+    if observed is None:
+        observed = observed_matrix(model, observing, config.contribution_threshold, render_config=render_config)
+    objects = object_labels(model, masks, num_objects, render_config=render_config)
     pairs = {}
     for p, dm in enumerate(masks):
         rows = np.nonzero(origin == p)[0]
         if len(rows) == 0:
             continue
-        g = jax.tree_util.tree_map(lambda x: jnp.asarray(x)[rows], g_all)
+        g = jax.tree_util.tree_map(lambda x: jnp.asarray(x)[rows], model.gaussians)
         own = jnp.asarray(o[rows, p])
-        w_obj = contribution_per_label(g, own, dm.cameras, dm.object_ids, num_objects + 1, render_config=render_config)
-        seen_own = w_obj.sum(1) > 0
-        objects[rows] = np.where(seen_own, w_obj.argmax(1), -1)
+        keep = objects[rows] >= 0  # Gaussians with weight in their own views
         for q, qn in enumerate(names):
             if q == p:
                 continue
             w_ch = contribution_per_label(g, own, dm.cameras, [m.astype(np.int64) for m in dm.changed_vs[qn]], 2,
                                           render_config=render_config)  # fmt: skip
             share = w_ch[:, 1] / np.maximum(w_ch.sum(1), 1e-30)
-            observed = observed_from(g, own, observing[q], config.contribution_threshold, render_config=render_config)
-            keep = seen_own
             pairs[(p, q)] = {"rows": rows[keep], "gt_changed": (share > config.majority)[keep],
-                             "observed": observed[keep], "o_q": o[rows[keep], q], "weight": w_ch.sum(1)[keep]}  # fmt: skip
+                             "observed": observed[rows, q][keep], "o_q": o[rows[keep], q],
+                             "weight": w_ch.sum(1)[keep]}  # fmt: skip
     return {"pairs": pairs, "objects": objects}
 
 
@@ -233,23 +248,18 @@ def _pixel_scores(g: Gaussians, camera: Camera, opacity, score, observed, config
 
 
 def pixel_change_iou(model: TemporalGaussians, masks: Sequence[DateMasks], observing: Sequence[Sequence[Camera]],
-                     config: ChangeConfig = ChangeConfig(), *, render_config=None) -> dict:  # fmt: skip
+                     config: ChangeConfig = ChangeConfig(), *, render_config=None,
+                     observed: np.ndarray | None = None) -> dict:  # fmt: skip
     """IoU of the rendered highlight's change mask (|S − 1|_∞ > threshold for the selection {p, q})
     with the ground-truth changed mask, on ``masks[p]``'s views, over pixels covered (alpha ≥ 0.5)
-    and observed at both dates; micro-averaged over all ordered pairs, and per pair."""
+    and observed at both dates (``observed``: the ``observed_matrix`` of ``observing``, computed when
+    not given); micro-averaged over all ordered pairs, and per pair."""
     names = [d.name for d in model.dates]
     o = opacity_multipliers(model)
     rc = render_config or splat.RenderConfig()
     g = model.gaussians
-    observed_at = []
-    for q in range(len(names)):  # per Gaussian: observed at q (Gaussians of q itself: by their own weight)
-        seen = np.zeros(len(g), bool)
-        for p in range(len(names)):
-            rows = np.nonzero(np.asarray(model.origin) == p)[0]
-            if len(rows):
-                sub = jax.tree_util.tree_map(lambda x: jnp.asarray(x)[rows], g)
-                seen[rows] = observed_from(sub, o[rows, p], observing[q], config.contribution_threshold, render_config=rc)
-        observed_at.append(seen)
+    if observed is None:
+        observed = observed_matrix(model, observing, config.contribution_threshold, render_config=rc)
     inter = union = predicted = truth_total = valid_total = 0
     per_pair = {}
     for p, dm in enumerate(masks):
@@ -261,7 +271,7 @@ def pixel_change_iou(model: TemporalGaussians, masks: Sequence[DateMasks], obser
             S = viz.persistence_filter(o, jnp.asarray(t))
             score = jnp.max(jnp.abs(S - 1.0), axis=-1)
             opacity = viz.selection_opacity(o, jnp.asarray(t), "max")  # a removed object renders solid
-            both = jnp.asarray((observed_at[p] & observed_at[q]).astype(np.float32))
+            both = jnp.asarray((observed[:, p] & observed[:, q]).astype(np.float32))
             i_pq = u_pq = 0
             for cam, gt in zip(dm.cameras, dm.changed_vs[names[q]]):
                 cfg = dataclasses.replace(rc, capacity=splat.required_capacity(g, cam, opacity[None], config=rc))

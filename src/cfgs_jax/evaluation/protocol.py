@@ -20,11 +20,11 @@ import numpy as np
 
 from cfgs_jax import splat, train
 from cfgs_jax.compiled_code import release_if_near_limit
-from cfgs_jax.config import check_sections, section
+from cfgs_jax.config import section
 from cfgs_jax.errors import InputError
-from cfgs_jax.fusion.evaluate import evaluate_fused, render_date
+from cfgs_jax.fusion.evaluate import evaluate_fused, render_date, weighted_mean
 from cfgs_jax.fusion.refine import RefineConfig, refine
-from cfgs_jax.fusion.run import CONFIG_SECTIONS, date_views, run_fusion
+from cfgs_jax.fusion.run import CONFIG_SECTIONS, camera_in_frame, date_views, run_fusion, split_or_all, validate_config
 from cfgs_jax.io.atomic import read_json, write_json, write_text
 from cfgs_jax.io.colmap import read_colmap
 from cfgs_jax.io.fused import read_fused
@@ -66,11 +66,7 @@ EVAL_SECTIONS = {**CONFIG_SECTIONS, "eval": EvalConfig, "scene": SceneConfig}
 
 def validate_eval_config(raw: dict | None) -> None:
     """Every table of an eval configuration built once: bad keys fail before any work."""
-    if not raw:
-        return
-    check_sections(raw, EVAL_SECTIONS)
-    for name, cls in EVAL_SECTIONS.items():
-        section(raw, name, cls)
+    validate_config(raw, EVAL_SECTIONS)
 
 
 def prepare_scene(scene: str, raw: dict | None, out: Path, *, progress: bool = True) -> Path:
@@ -108,11 +104,6 @@ def date_dirs(root: Path) -> list[Path]:
 def _row(name: str, metrics: dict, gaussians: int, **extra) -> dict:
     return {"row": name, "psnr": metrics["psnr"], "ssim": metrics["ssim"], "lpips": metrics.get("lpips", float("nan")),
             "gaussians": int(gaussians)} | extra  # fmt: skip
-
-
-def _weighted(per_date: list[dict], weights: list[int]) -> dict:
-    w = np.asarray(weights, np.float64) / np.sum(weights)
-    return {k: float(sum(wi * d[k] for wi, d in zip(w, per_date))) for k in per_date[0] if k in ("psnr", "ssim", "lpips")}
 
 
 def _individual_plus(run_dir: Path, scenes, raw, steps: tuple[int, ...], render_config, lpips_net, progress, log) -> dict:
@@ -201,7 +192,7 @@ def run_protocol(scene: str, out: str | Path, raw: dict | None = None, *, progre
 
     rows = []
     per_date = [json.loads((run_dir / "dates" / n / "train.json").read_text()) for n in names]
-    init = _weighted([p["test"] for p in per_date], weights)
+    init = weighted_mean([p["test"] for p in per_date], weights)
     rows.append(_row("Individual init", init, sum(p["gaussians"] for p in per_date), group="input"))
     rows.append(fused_row("merged", "Merged", run_dir / "merged") | {"group": "ours"})
     for k in ec.steps[:-1]:
@@ -210,7 +201,7 @@ def run_protocol(scene: str, out: str | Path, raw: dict | None = None, *, progre
     release_if_near_limit()
     plus = _individual_plus(run_dir, scenes, fusion_raw, ec.steps, render_config, ec.lpips_net, progress, log)
     for k in ec.steps:
-        m = _weighted([plus[n]["steps"][str(k)] for n in names], weights)
+        m = weighted_mean([plus[n]["steps"][str(k)] for n in names], weights)
         rows.append(_row(f"Individual +{k:,}", m, sum(plus[n]["gaussians"] for n in names), group="baseline", steps=k))
     ablations = {}
     if ec.ablations:
@@ -261,44 +252,37 @@ def change_detection(model, data: Path, scenes, sims, render_config, cross_init=
     for p, (sc, sm) in enumerate(zip(scenes, sims)):
         others = [n for n in names if n != names[p]]
         for split, bucket in (("train", masks), ("test", masks_test)):
-            idx = sc.indices(split) if len(sc.indices(split)) else sc.indices("all")
-            v = date_views(sc, sm, split)
-            bucket.append(change.read_date_masks(sc.root, [sc.image_names[int(i)] for i in idx], v.cameras, others))
+            idx = split_or_all(sc, split)
+            cams = [camera_in_frame(sc.cameras[int(i)], sm) for i in idx]
+            bucket.append(change.read_date_masks(sc.root, [sc.image_names[int(i)] for i in idx], cams, others))
         observing.append(masks[-1].cameras)
     cfg = change.ChangeConfig()
-    table = change.gaussian_change_table(model, masks, observing, len(gt["objects"]), cfg, render_config=render_config)
+    observed = change.observed_matrix(model, observing, cfg.contribution_threshold, render_config=render_config)
+    table = change.gaussian_change_table(model, masks, observing, len(gt["objects"]), cfg, render_config=render_config,
+                                         observed=observed)  # fmt: skip
     summary = change.summarise_gaussians(table, cfg)
-    pixels = change.pixel_change_iou(model, masks_test, observing, cfg, render_config=render_config)
-    absent_objects = {}
-    objects = table["objects"]
-    o = np.asarray(opacity_multipliers(model))
-    origin = np.asarray(model.origin)
-    obj_names = [ob["name"] for ob in gt["objects"]]
-    for p, dp in enumerate(gt["dates"]):
-        for q, dq in enumerate(gt["dates"]):
-            if p == q:
-                continue
-            for k, on in enumerate(obj_names, start=1):
-                rows = (origin == p) & (objects == k)
-                if rows.any() and dp["present"][on] and not dq["present"][on]:
-                    absent_objects[f"{on}: {names[p]}→{names[q]}"] = float(np.mean(o[rows, q] < 0.2))
-    summary["absent_objects_below_0.2"] = absent_objects
-    result = {"gaussians": summary, "pixels": pixels, "config": dataclasses.asdict(cfg),
-              "objects_fused": object_persistence(model, objects, gt)}  # fmt: skip
+    pixels = change.pixel_change_iou(model, masks_test, observing, cfg, render_config=render_config, observed=observed)
+    fused = object_persistence(model, table["objects"], gt)
+    summary["absent_objects_below_0.2"] = fused.pop("absent_by_object")
+    result = {"gaussians": summary, "pixels": pixels, "config": dataclasses.asdict(cfg), "objects_fused": fused}
     if cross_init is not None:
         labels = change.object_labels(cross_init, masks, len(gt["objects"]), render_config=render_config)
         result["objects_cross_init"] = object_persistence(cross_init, labels, gt)
+        result["objects_cross_init"].pop("absent_by_object")
     return result
 
 
 def object_persistence(model, objects: np.ndarray, gt: dict) -> dict:
     """Issue 7's check by ground-truth object: for every ordered pair (p, q), the Gaussians of date p
     labelled with an object absent at q should have o^q < 0.2, those of an object present and
-    unchanged at both dates (the ground plane included) o^q > 0.6. Shares over all such entries."""
+    unchanged at both dates (the ground plane included) o^q > 0.6. Shares over all such entries, and
+    per absent object and pair ("absent_by_object")."""
     o = np.asarray(opacity_multipliers(model))
     origin = np.asarray(model.origin)
     names = [ob["name"] for ob in gt["objects"]]
+    dates = [d["name"] for d in gt["dates"]]
     absent_ok = absent_n = persist_ok = persist_n = 0
+    by_object = {}
     for p, dp in enumerate(gt["dates"]):
         for q, dq in enumerate(gt["dates"]):
             if p == q:
@@ -310,12 +294,13 @@ def object_persistence(model, objects: np.ndarray, gt: dict) -> dict:
                 if dp["present"][on] and not dq["present"][on]:
                     absent_ok += int(np.sum(o[rows, q] < 0.2))
                     absent_n += int(rows.sum())
+                    by_object[f"{on}: {dates[p]}→{dates[q]}"] = float(np.mean(o[rows, q] < 0.2))
                 elif dp["present"][on] and dq["present"][on] and dp["variant"][on] == dq["variant"][on]:
                     persist_ok += int(np.sum(o[rows, q] > 0.6))
                     persist_n += int(rows.sum())
     return {"absent_below_0.2": absent_ok / absent_n if absent_n else float("nan"), "absent_entries": absent_n,
             "persistent_above_0.6": persist_ok / persist_n if persist_n else float("nan"),
-            "persistent_entries": persist_n}  # fmt: skip
+            "persistent_entries": persist_n, "absent_by_object": by_object}  # fmt: skip
 
 
 def table_markdown(table: dict) -> str:
@@ -369,12 +354,10 @@ def figure_grid(path: Path, run_dir: Path, scenes, sims, names, render_config) -
     model = read_fused(run_dir / "fused")
     rows = []
     for q, (sc, sm) in enumerate(zip(scenes, sims)):
-        idx = sc.indices("test") if len(sc.indices("test")) else sc.indices("all")
-        i = int(idx[0])
+        i = int(split_or_all(sc, "test")[0])
         g = read_ply(run_dir / "individual_plus" / names[q] / "point_cloud.ply")
         ind = np.asarray(splat.render(g, sc.cameras[i], config=render_config).image)
-        cam = date_views(sc, sm, "test").cameras[0]
-        ours = np.asarray(render_date(model, q, cam, config=render_config).image[0])
+        ours = np.asarray(render_date(model, q, camera_in_frame(sc.cameras[i], sm), config=render_config).image[0])
         gt = np.asarray(over_background(sc.load_image(i, with_alpha=True), np.zeros(3, np.float32)))
         rows.append(np.concatenate([ind, ours, gt], 1))
     write_image(path, np.clip(np.concatenate(rows, 0), 0, 1))

@@ -35,7 +35,12 @@ def evaluate_fused(model: TemporalGaussians, views: Sequence, *, background=(0.0
             rows.append(image_metrics(pred, gt, net))
         out[model.dates[q].name] = {k: float(np.mean([r[k] for r in rows])) for k in rows[0]} | {"views": len(rows)}
         weights.append(len(rows))
+    return {"dates": out, "mean": weighted_mean(list(out.values()), weights)}
+
+
+def weighted_mean(per_date: Sequence[dict], weights: Sequence[float]) -> dict:
+    """The paper's average over dates: each of PSNR / SSIM / LPIPS (those present) weighted by the
+    date's test-image count."""
     w = np.asarray(weights, np.float64) / np.sum(weights)
-    keys = [k for k in next(iter(out.values())) if k != "views"]
-    mean = {k: float(sum(wi * out[n][k] for wi, n in zip(w, out))) for k in keys}
-    return {"dates": out, "mean": mean}
+    keys = [k for k in ("psnr", "ssim", "lpips") if k in per_date[0]]
+    return {k: float(sum(wi * d[k] for wi, d in zip(w, per_date))) for k in keys}

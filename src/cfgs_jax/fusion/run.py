@@ -51,13 +51,15 @@ CONFIG_SECTIONS = {"render": splat.RenderConfig, "train": train.TrainConfig, "re
 IDENTITY_LOGIT = 30.0
 
 
-def validate_config(raw: dict | None) -> None:
-    """Build every table of a run configuration once, so unknown tables or keys and bad values fail
-    before any output exists (each error names the file, the key and the closest valid one)."""
+def validate_config(raw: dict | None, sections: dict | None = None) -> None:
+    """Build every table of a run configuration once (``sections``: table → dataclass, default
+    ``CONFIG_SECTIONS``), so unknown tables or keys and bad values fail before any output exists
+    (each error names the file, the key and the closest valid one)."""
     if not raw:
         return
-    check_sections(raw, CONFIG_SECTIONS)
-    for name, cls in CONFIG_SECTIONS.items():
+    sections = CONFIG_SECTIONS if sections is None else sections
+    check_sections(raw, sections)
+    for name, cls in sections.items():
         section(raw, name, cls)
 
 
