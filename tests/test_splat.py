@@ -219,6 +219,32 @@ def test_render_dates_equals_single_renders():
         assert float(jnp.max(jnp.abs(single.depth - res.depth[d]))) <= 2e-5
 
 
+def test_images_only_render_equals_the_full_render():
+    """statistics=False skips max_weight / hits (None) and changes neither images nor gradients."""
+    g = scene(250, 5)
+    cam = camera(40, 32)
+    rng = np.random.default_rng(3)
+    om = rng.uniform(0.2, 1.0, (2, len(g))).astype(F32)
+    cm = rng.uniform(0.5, 1.5, (2, len(g), 3)).astype(F32)
+    w_img = jnp.asarray(rng.normal(size=(2, 32, 40, 3)), F32)
+    outs = {}
+    for stats in (True, False):
+        res = splat.render_dates(g, cam, om, cm, background=BG, with_depth=True, statistics=stats)
+        cfg = splat.RenderConfig(capacity=res.capacity)
+        loss = lambda g, om, cm: jnp.sum(  # noqa: E731
+            splat.render_dates(g, cam, om, cm, background=BG, config=cfg, statistics=stats).image * w_img
+        )
+        outs[stats] = (res, jax.tree_util.tree_leaves(jax.grad(loss, argnums=(0, 1, 2))(g, om, cm)))
+    (full, g_full), (fast, g_fast) = outs[True], outs[False]
+    assert fast.max_weight is None and fast.hits is None and full.max_weight.shape == (2, len(g))
+    for name in ("image", "alpha", "depth"):
+        assert float(jnp.max(jnp.abs(getattr(fast, name) - getattr(full, name)))) <= 1e-6, name
+    for x, y in zip(g_fast, g_full):
+        x, y = np.asarray(x), np.asarray(y)
+        assert np.all(np.abs(x - y) <= 1e-5 * np.abs(y) + 1e-6 * np.abs(y).max())
+    assert splat.render(g, cam, statistics=False).max_weight is None
+
+
 def _logit32(p):
     p = np.asarray(p, np.float64)
     with np.errstate(divide="ignore"):

@@ -211,7 +211,7 @@ def render_views(run: FusedRun, t, style: SelectionStyle, cameras: list[tuple[st
     written = []
     strip = None
     for name, cam in cameras:
-        img = np.asarray(splat.render(g, cam, opacity_mult=mult, background=background).image)
+        img = np.asarray(splat.render(g, cam, opacity_mult=mult, background=background, statistics=False).image)
         write_image(out / f"{name}.exr", img)
         if legend:
             if strip is None or strip.shape[1] != img.shape[1]:

@@ -233,13 +233,13 @@ def render_selection(model: TemporalGaussians, camera, t, *, mode: Mode = "mean"
     """Render a time selection (Eq. 4) or its change highlight (Eq. 5) with the splatting kernel.
 
     Gaussians whose selected opacity is 0 (dates with t_p = 0) are culled before binning, so they cost
-    nothing. Returns the kernel's ``RenderResult``."""
+    nothing. Returns the kernel's ``RenderResult`` (images only: no per-Gaussian statistics)."""
     from cfgs_jax import splat
 
     colours, mult = selection_terms(model, t, mode=mode, highlight_changes=highlight_changes, **highlight_kwargs)
     g = model.gaussians
     g = Gaussians(g.means, g.quats, g.log_scales, g.opacity_logits, colours)
-    return splat.render(g, camera, opacity_mult=mult, background=background, config=config)
+    return splat.render(g, camera, opacity_mult=mult, background=background, config=config, statistics=False)
 
 
 def bake(model: TemporalGaussians, t, *, mode: Mode = "mean", highlight_changes: bool = False, **highlight_kwargs) -> Gaussians:

@@ -59,7 +59,7 @@ def _weights_on_masks(g: Gaussians, camera: Camera, opacity: Float[Array, "N"], 
     m = masks.shape[0]
 
     def weighted(mult):
-        res = splat.render_dates(ones, camera, jnp.broadcast_to(opacity, (m, n)), mult, config=config)
+        res = splat.render_dates(ones, camera, jnp.broadcast_to(opacity, (m, n)), mult, config=config, statistics=False)
         return jnp.sum(res.image * masks)
 
     return jax.grad(weighted)(jnp.ones((m, n, 3), masks.dtype))  # [M, N, 3]: Σ_pixels w_i·mask
@@ -241,7 +241,7 @@ def summarise_gaussians(table: dict, config: ChangeConfig = ChangeConfig(), thre
 def _pixel_scores(g: Gaussians, camera: Camera, opacity, score, observed, config):
     ones = dataclasses.replace(g, colors=jnp.ones_like(g.colors))
     mult = jnp.stack([score, observed, jnp.zeros_like(score)], -1)[None]
-    res = splat.render_dates(ones, camera, opacity[None], mult, config=config)
+    res = splat.render_dates(ones, camera, opacity[None], mult, config=config, statistics=False)
     alpha = res.alpha[0]
     safe = jnp.maximum(alpha, 1e-6)
     return res.image[0, ..., 0] / safe, res.image[0, ..., 1] / safe, alpha

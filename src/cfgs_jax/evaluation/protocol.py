@@ -356,7 +356,7 @@ def figure_grid(path: Path, run_dir: Path, scenes, sims, names, render_config) -
     for q, (sc, sm) in enumerate(zip(scenes, sims)):
         i = int(split_or_all(sc, "test")[0])
         g = read_ply(run_dir / "individual_plus" / names[q] / "point_cloud.ply")
-        ind = np.asarray(splat.render(g, sc.cameras[i], config=render_config).image)
+        ind = np.asarray(splat.render(g, sc.cameras[i], config=render_config, statistics=False).image)
         ours = np.asarray(render_date(model, q, camera_in_frame(sc.cameras[i], sm), config=render_config).image[0])
         gt = np.asarray(over_background(sc.load_image(i, with_alpha=True), np.zeros(3, np.float32)))
         rows.append(np.concatenate([ind, ours, gt], 1))

@@ -100,7 +100,7 @@ def lpips_map(g: Gaussians, o_p, camera, image, lpips_net, config: CrossInitConf
     """[H, W] in [0, 1]: LPIPS (spatial) between date p's own render at ``camera`` (opacity α·o^p, no
     light change, over black) and ``image`` over black, clipped after dividing by ``lpips_scale``."""
     n = len(g)
-    own = splat.render_dates(g, camera, o_p[None], jnp.ones((1, n, 3), jnp.float32), config=render_config).image[0]
+    own = splat.render_dates(g, camera, o_p[None], jnp.ones((1, n, 3), jnp.float32), config=render_config, statistics=False).image[0]
     target = over_background(jnp.asarray(image, jnp.float32), jnp.zeros(3, jnp.float32))
     lp = metrics.perceptual.lpips_distance(lpips_net, own, target, spatial=True)
     return jnp.clip(lp / config.lpips_scale, 0.0, 1.0)
@@ -110,7 +110,7 @@ def pair_loss(params, g: Gaussians, camera, image, eps_map, b, step, config: Cro
     """Eq. 2 for one view: the mean over pixels and channels; also the render."""
     o = jax.nn.sigmoid(params["o_logit"])
     light = light_multiplier(params["u"], params["w"])
-    res = splat.render_dates(g, camera, o[None], light[None], background=b, config=render_config)
+    res = splat.render_dates(g, camera, o[None], light[None], background=b, config=render_config, statistics=False)
     c = res.image[0]
     target = over_background(image, b)
     eps = epsilon(eps_map, step, config)[..., None]
@@ -145,7 +145,7 @@ def visible_from(g: Gaussians, cameras: Sequence[Camera], render_config=None) ->
     """[N] bool: the Gaussian projects (radius > 0) into at least one of ``cameras``."""
     seen = np.zeros(len(g), bool)
     for cam in cameras:
-        seen |= np.asarray(splat.render(g, cam, config=render_config).radii) > 0
+        seen |= np.asarray(splat.render(g, cam, config=render_config, statistics=False).radii) > 0
     return seen
 
 

@@ -18,7 +18,8 @@ def render_date(model: TemporalGaussians, q: int, camera, *, background=(0.0, 0.
     """Date ``q`` of the model (Eq. 1: opacity α·o^q, colour l^q ⊙ c) at ``camera``."""
     o = opacity_multipliers(model)[:, q]
     light = light_multipliers(model)[:, q]
-    return splat.render_dates(model.gaussians, camera, o[None], light[None], background=background, config=config)
+    return splat.render_dates(model.gaussians, camera, o[None], light[None], background=background, config=config,
+                              statistics=False)
 
 
 def evaluate_fused(model: TemporalGaussians, views: Sequence, *, background=(0.0, 0.0, 0.0), render_config=None,

@@ -43,6 +43,7 @@ class Layout(NamedTuple):
     min_alpha: float
     max_alpha: float
     min_transmittance: float
+    statistics: bool = True  # per-Gaussian max α·T and hit counts (False: not computed, returned as zeros)
 
     @property
     def num_tiles(self) -> int:
@@ -238,8 +239,9 @@ def _forward(layout: Layout, means2d, conics, opac, feats, ids, tile_start, tile
             ch = _chunk(layout, r, start, end, ids, means2d, conics, opac, feats, px, py, t, done)
             # Σ_k w_k f_k per feature plane, sliced per Gaussian so nothing [K, ...]-sized is materialised
             fg = jnp.stack([fg[i] + _sum_leading_of(lambda j, i=i: ch.w[j] * ch.ft[i, j, ..., None], k) for i in range(f)])
-            maxw = maxw.at[:, ch.gid].max(jnp.moveaxis(_reduce_last(ch.w, jnp.maximum), 1, 0))
-            hits = hits.at[:, ch.gid].add(jnp.moveaxis(_reduce_last((ch.w > 0).astype(jnp.int32)), 1, 0))
+            if layout.statistics:
+                maxw = maxw.at[:, ch.gid].max(jnp.moveaxis(_reduce_last(ch.w, jnp.maximum), 1, 0))
+                hits = hits.at[:, ch.gid].add(jnp.moveaxis(_reduce_last((ch.w > 0).astype(jnp.int32)), 1, 0))
             return r + 1, ch.t_out, ch.done_out, fg, maxw, hits
 
         _, t, _, fg, maxw, hits = jax.lax.while_loop(

@@ -91,7 +91,7 @@ def loss_fn(
     n = active.shape[0]
     res = splat.render_dates(
         g, camera, active.astype(image.dtype)[None], jnp.ones((1, n, 3), image.dtype),
-        background=background, config=render_config, means2d_offset=means2d_offset,
+        background=background, config=render_config, means2d_offset=means2d_offset, statistics=False,
     )  # fmt: skip
     pred = res.image[0]
     l1 = jnp.mean(jnp.abs(pred - image))
