@@ -157,6 +157,31 @@ def test_cross_init_keeps_what_date_q_shows_and_drops_what_it_lacks():
     assert np.array_equal(np.asarray(out.o_logits)[n:], np.asarray(model.o_logits)[n:])
 
 
+def test_cross_init_padding_renders_nothing_and_gets_no_gradient():
+    """Pairs pad their Gaussians to shared counts: the padded rows change neither the image nor the
+    real rows' gradients, and get zero gradient themselves."""
+    ci = importlib.import_module("cfgs_jax.fusion.cross_init")
+    assert [ci.padded_count(n) for n in (1, 64, 65, 80, 81, 100, 1000, 4096, 4097)] == [64, 64, 80, 80, 96, 112, 1024, 4096, 5120]
+    assert all(n <= ci.padded_count(n) <= 1.25 * n for n in range(64, 5000, 7))
+    g = _random_gaussians(70, seed=3)
+    cam = cj.Camera.look_at([0.2, -0.3, -2.5], [0, 0, 0], up=(0, -1, 0), width=40, height=32, fov_x_deg=55)
+    padded = ci.pad_gaussians(g, ci.padded_count(len(g)))
+    assert len(padded) == 80
+    assert not np.any(ci.visible_from(g, [cam]) != ci.visible_from(padded, [cam])[:70])
+
+    def image(o, gs):
+        cfg = splat.RenderConfig(capacity=1 << 14)
+        return splat.render_dates(gs, cam, o[None], jnp.ones((1, len(gs), 3)), config=cfg, statistics=False).image[0]
+
+    w = jnp.asarray(np.random.default_rng(0).normal(size=(32, 40, 3)), jnp.float32)
+    o = jnp.full(70, 0.7)
+    o_pad = jnp.full(80, 0.7)
+    assert float(jnp.max(jnp.abs(image(o, g) - image(o_pad, padded)))) <= 1e-6
+    grad = jax.grad(lambda o: jnp.sum(image(o, g) * w))(o)
+    grad_pad = jax.grad(lambda o: jnp.sum(image(o, padded) * w))(o_pad)
+    assert np.allclose(grad_pad[:70], grad, rtol=1e-5, atol=1e-7) and not np.any(grad_pad[70:])
+
+
 def test_change_loss_visibility_rule_and_final_prune_hand_cases():
     rf = importlib.import_module("cfgs_jax.fusion.refine")
 

@@ -141,12 +141,34 @@ def _compiled_step(config: CrossInitConfig, render_config: splat.RenderConfig):
     return optimizer, step
 
 
+def padded_count(n: int) -> int:
+    """The smallest of 2^k·{1, 1.25, 1.5, 1.75} ≥ n (at least 64): per-pair Gaussian counts rounded up
+    so that pairs (and ``extend`` runs, whose counts differ from any earlier run's) share compilations,
+    padding at most 25 %."""
+    n = max(int(n), 64)
+    top = 1 << (n - 1).bit_length()
+    return min(c for c in (top // 2, top * 5 // 8, top * 3 // 4, top * 7 // 8, top) if c >= n)
+
+
+def pad_gaussians(g: Gaussians, count: int) -> Gaussians:
+    """``g`` followed by copies of its first row with zero opacity (logit −100 → α ≈ 4e-44 < 1/255):
+    the kernel culls them before binning, so they render nothing and receive zero gradient."""
+    extra = count - len(g)
+    if extra <= 0:
+        return g
+    pad = jax.tree_util.tree_map(lambda x: jnp.repeat(jnp.asarray(x)[:1], extra, axis=0), g)
+    pad = dataclasses.replace(pad, opacity_logits=jnp.full((extra,), -100.0, jnp.result_type(g.opacity_logits)))
+    return jax.tree_util.tree_map(lambda a, b: jnp.concatenate([jnp.asarray(a), b]), g, pad)
+
+
 def visible_from(g: Gaussians, cameras: Sequence[Camera], render_config=None) -> np.ndarray:
     """[N] bool: the Gaussian projects (radius > 0) into at least one of ``cameras``."""
+    n = len(g)
+    g = pad_gaussians(g, padded_count(n))
     seen = np.zeros(len(g), bool)
     for cam in cameras:
         seen |= np.asarray(splat.render(g, cam, config=render_config, statistics=False).radii) > 0
-    return seen
+    return seen[:n]
 
 
 def init_pair(model: TemporalGaussians, p: int, q: int, views: DateViews, config: CrossInitConfig, *,
@@ -167,11 +189,12 @@ def init_pair(model: TemporalGaussians, p: int, q: int, views: DateViews, config
     if not seen.any():
         return dataclasses.replace(model, o_logits=jnp.asarray(o_logits), light_logits=jnp.asarray(l_logits)), report | {"skipped": True}
     idx = rows[seen]
-    g = jax.tree_util.tree_map(lambda x: jnp.asarray(x)[idx], g_all)
-    o_p = jax.nn.sigmoid(jnp.asarray(o_logits[idx, p]))
+    n, m = len(idx), padded_count(len(idx))  # padded rows: zero opacity, never rendered (shared compilations)
+    g = pad_gaussians(jax.tree_util.tree_map(lambda x: jnp.asarray(x)[idx], g_all), m)
+    o_p = jnp.pad(jax.nn.sigmoid(jnp.asarray(o_logits[idx, p])), (0, m - n), constant_values=1.0)
     o_q = jnp.clip(config.delta * o_p, 1e-4, 1 - 1e-4)
-    params = {"o_logit": jnp.log(o_q) - jnp.log1p(-o_q), "u": jnp.zeros(len(idx)), "w": jnp.zeros(len(idx))}
-    ones = jnp.ones((1, len(idx)), jnp.float32)
+    params = {"o_logit": jnp.log(o_q) - jnp.log1p(-o_q), "u": jnp.zeros(m), "w": jnp.zeros(m)}
+    ones = jnp.ones((1, m), jnp.float32)
     capacity = max(splat.required_capacity(g, c, ones, config=render_config) for c in views.cameras)
     images = [jnp.asarray(im, jnp.float32) for im in views.images]
     eps_maps = [lpips_map(g, o_p, c, im, lpips_net, config, render_config) for c, im in zip(views.cameras, images)]
@@ -190,6 +213,7 @@ def init_pair(model: TemporalGaussians, p: int, q: int, views: DateViews, config
         losses.append(float(loss))
         if progress is not None:
             progress(it + 1)
+    params = jax.tree_util.tree_map(lambda x: x[:n], params)
     o_logits[idx, q] = np.asarray(params["o_logit"])
     l_logits[idx, q] = np.asarray(light_logits(light_multiplier(params["u"], params["w"])))
     new = dataclasses.replace(model, o_logits=jnp.asarray(o_logits), light_logits=jnp.asarray(l_logits))
