@@ -114,6 +114,11 @@ def test_cold_warm_direction_is_zero_luminance_and_bluer_when_colder():
     assert np.allclose(np.asarray(l[1]), 2 / (1 + np.exp(-1.0)) * (1 + np.tanh(-0.7) * d), atol=1e-6)
     back = 2 / (1 + np.exp(-np.asarray(light_logits(l))))
     assert np.allclose(back, np.asarray(l), atol=1e-5)
+    from cfgs_jax.fusion.light import cold_warm_coefficient  # the inverse: recovers tanh(w) whatever the gain
+
+    w = np.linspace(-2.0, 2.0, 9)
+    k = cold_warm_coefficient(light_multiplier(jnp.linspace(-1.0, 1.0, 9), jnp.asarray(w, jnp.float32)))
+    assert np.allclose(k, np.tanh(w), atol=1e-6)
 
 
 def test_cross_init_keeps_what_date_q_shows_and_drops_what_it_lacks():

@@ -29,7 +29,9 @@ from cfgs_jax.io.atomic import read_json, write_json, write_text
 from cfgs_jax.io.colmap import read_colmap
 from cfgs_jax.io.fused import read_fused
 from cfgs_jax.io.ply import read_ply, write_ply
-from cfgs_jax.model import opacity_multipliers
+from cfgs_jax.fusion.fuse import INVISIBLE_LOGIT
+from cfgs_jax.fusion.light import cold_warm_coefficient
+from cfgs_jax.model import light_multipliers, opacity_multipliers
 from cfgs_jax.sim3 import Sim3
 
 
@@ -269,7 +271,33 @@ def change_detection(model, data: Path, scenes, sims, render_config, cross_init=
         labels = change.object_labels(cross_init, masks, len(gt["objects"]), render_config=render_config)
         result["objects_cross_init"] = object_persistence(cross_init, labels, gt)
         result["objects_cross_init"].pop("absent_by_object")
+        result["light_cross_init"] = light_by_pair(cross_init, gt)
     return result
+
+
+def light_by_pair(model, gt: dict) -> dict:
+    """Issue 7's lighting check after cross-init, per ordered pair (p, q) over date p's Gaussians seen
+    from q: mean o^q and the median fitted cold/warm coefficient k (``light.cold_warm_coefficient``)
+    against the true colour-temperature change (k should share the sign of CCT_q − CCT_p: a colder,
+    bluer light at q needs k > 0); also mean o^q over every such entry."""
+    o = np.asarray(opacity_multipliers(model))
+    light = np.asarray(light_multipliers(model))
+    seen = np.asarray(model.o_logits) != np.float32(INVISIBLE_LOGIT)  # cross-init's mark: no view of q sees it
+    origin = np.asarray(model.origin)
+    pairs, o_all = [], []
+    for p, dp in enumerate(gt["dates"]):
+        for q, dq in enumerate(gt["dates"]):
+            rows = (origin == p) & seen[:, q]
+            if p == q or not rows.any():
+                continue
+            k = float(np.median(cold_warm_coefficient(light[rows, q])))
+            dcct = dq["lighting"]["cct_kelvin"] - dp["lighting"]["cct_kelvin"]
+            pairs.append({"pair": [dp["name"], dq["name"]], "mean_o": float(o[rows, q].mean()), "median_k": k,
+                          "cct_change_kelvin": dcct, "sign_agrees": bool(dcct == 0 or np.sign(k) == np.sign(dcct))})  # fmt: skip
+            o_all.append(o[rows, q])
+    changed = [x for x in pairs if x["cct_change_kelvin"] != 0]
+    return {"pairs": pairs, "mean_o": float(np.concatenate(o_all).mean()) if o_all else float("nan"),
+            "sign_agrees": sum(x["sign_agrees"] for x in changed), "pairs_with_cct_change": len(changed)}  # fmt: skip
 
 
 def object_persistence(model, objects: np.ndarray, gt: dict) -> dict:
@@ -343,6 +371,14 @@ def table_markdown(table: dict) -> str:
                              f"objects absent at a date have o < 0.2 there ({ob['absent_entries']:,} entries), "
                              f"{100 * ob['persistent_above_0.6']:.1f} % of those of persistent objects o > 0.6 "
                              f"({ob['persistent_entries']:,}).")  # fmt: skip
+        li = ch.get("light_cross_init")
+        if li:
+            lines += [f"\nAfter cross-init: mean o^q over all seen (Gaussian, other date) entries {li['mean_o']:.3f}; the "
+                      f"fitted cold/warm shift has the sign of the true colour-temperature change in {li['sign_agrees']} "
+                      f"of {li['pairs_with_cct_change']} pairs with one.", "",
+                      "| pair p→q | mean o^q | median k (>0 colder) | CCT_q − CCT_p (K) |", "|---|---:|---:|---:|",
+                      *[f"| {a}→{b} | {x['mean_o']:.3f} | {x['median_k']:+.3f} | {x['cct_change_kelvin']:+.0f} |"
+                        for x in li["pairs"] for a, b in [x["pair"]]]]  # fmt: skip
     return "\n".join(lines) + "\n"
 
 

@@ -46,3 +46,11 @@ def light_logits(l: Float[Array, "*N 3"], eps: float = 1e-4) -> Float[Array, "*N
     """The stored logits of multipliers l (l = 2·sigmoid(logit)); l is clipped into (0, 2)."""
     half = jnp.clip(l / 2.0, eps, 1.0 - eps)
     return jnp.log(half) - jnp.log1p(-half)
+
+
+def cold_warm_coefficient(l: Float[Array, "*N 3"], direction=None) -> np.ndarray:
+    """The fitted tanh(w) of multipliers ``l`` (the inverse of ``light_multiplier`` on its range):
+    Y(d) = 0 gives gain = Y(l), so k = (l / Y(l) − 1)·d / |d|². k > 0: colder (bluer), k < 0: warmer."""
+    d = cold_warm_direction() if direction is None else np.asarray(direction, np.float64)
+    l = np.asarray(l, np.float64)
+    return (l / (l @ REC709)[..., None] - 1.0) @ d / (d @ d)
