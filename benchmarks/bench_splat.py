@@ -100,7 +100,7 @@ def run_case(spec: dict) -> dict:
     args = (g, om, cm)
     inria = int(splat.render_dates(g, cam, om, cm, config=splat.RenderConfig(tile_cull=False)).num_composited)
     compile_fwd = _timed(fwd, args)
-    res = splat.render_dates(g, cam, om, cm, config=splat.RenderConfig())  # with statistics, for the counts
+    res = splat.render_dates(g, cam, om, cm, config=splat.RenderConfig(tile_cull=spec.get("tile_cull", True)))  # with statistics, for the counts
     out = {
         **spec,
         "num_gaussians": len(g),
