@@ -5,7 +5,7 @@ after compilation. Ratios (T = 4 vs 1 date, 75 % inactive vs all active) come fr
 Writes benchmarks/results/splat.json and splat.md, naming the machine.
 
     python benchmarks/bench_splat.py            # all cases
-    python benchmarks/bench_splat.py --quick    # the 20k case and the ratios only
+    python benchmarks/bench_splat.py --quick    # the 20k case and the ratios only (→ results/splat_quick.md)
 """
 
 from __future__ import annotations
@@ -196,7 +196,8 @@ def main():
         ratios["75% inactive / all active, fwd+bwd"] = rows["20k@320x240 75% inactive"]["ratio_fwd_bwd"]
     result = {"machine": machine(), "date": time.strftime("%Y-%m-%d"), "cases": rows, "ratios": ratios}
     RESULTS.mkdir(parents=True, exist_ok=True)
-    (RESULTS / "splat.json").write_text(json.dumps(result, indent=2))
+    stem = "splat_quick" if args.quick else "splat"  # a quick run never overwrites the full table
+    (RESULTS / f"{stem}.json").write_text(json.dumps(result, indent=2))
     lines = [
         "# Splatting kernel benchmark",
         "",
@@ -234,7 +235,7 @@ def main():
         "| ratio | value |",
         "|---|---|",
     ] + [f"| {k} | {v:.2f} |" for k, v in ratios.items()]
-    (RESULTS / "splat.md").write_text("\n".join(lines) + "\n")
+    (RESULTS / f"{stem}.md").write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
 
 
