@@ -11,7 +11,8 @@ fusion itself (merge, cross-init, refine, export); per-date training is paid equ
 - incremental at T: ``fuse`` of dates 1..2, then ``extend`` by dates 3..T in turn; accumulated = the
   2-date fusion + Σ of the extensions.
 
-Test PSNR of the final T_max models of both paths is reported too. Writes
+Each path runs in its own process (neither reuses the other's compiled code). Test PSNR of the
+final T_max models of both paths is reported too. Writes
 benchmarks/results/incremental.json, incremental.md and incremental.png (bar plot).
 
     python benchmarks/bench_incremental.py [--max-dates 6] [--width 64 --height 48 --images-per-date 8]
@@ -22,6 +23,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import subprocess
 import sys
 import time
 from pathlib import Path
@@ -37,6 +39,45 @@ def _fusion_seconds(run: Path, prefix: str = "") -> float:
     return float(sum(t.get(prefix + s, 0.0) for s in FUSION_STAGES))
 
 
+def _scratch(work, dirs, names, raw, models, transforms, sims, max_dates) -> dict:
+    """Fuse dates 1..T from scratch for T = 2..max_dates (resumable); fusion seconds per T."""
+    from cfgs_jax.fusion.run import run_fusion
+
+    each, accumulated, acc = {}, {}, 0.0
+    for t in range(2, max_dates + 1):
+        run = work / f"scratch_{t}"
+        if not (run / "run.json").is_file() or "export" not in json.loads((run / "run.json").read_text())["done"]:
+            run_fusion(dirs[:t], run, raw, models=models[:t], transforms=transforms, resume=(run / "run.json").is_file(),
+                       progress=False, evaluate=(t == max_dates), log=lambda *a, **k: None)  # fmt: skip
+        each[t] = _fusion_seconds(run)
+        acc += each[t]
+        accumulated[t] = acc
+        print(f"from scratch T={t}: {each[t]:.1f} s (accumulated {acc:.1f} s)", flush=True)
+    return {"each": each, "accumulated": accumulated}
+
+
+def _incremental(work, dirs, names, raw, models, transforms, sims, max_dates) -> dict:
+    """Fuse dates 1..2, then extend by dates 3..max_dates in turn (resumable); fusion seconds per step."""
+    from cfgs_jax.fusion.run import run_extend, run_fusion
+    from cfgs_jax.sim3 import Sim3
+
+    inc_dir = work / "incremental"
+    run_fusion(dirs[:2], inc_dir, raw, models=models[:2], transforms=transforms, resume=(inc_dir / "run.json").is_file(),
+               progress=False, evaluate=False, log=lambda *a, **k: None)  # fmt: skip
+    each, accumulated = {2: _fusion_seconds(inc_dir)}, {2: _fusion_seconds(inc_dir)}
+    for t in range(3, max_dates + 1):
+        name = names[t - 1]
+        state = json.loads((inc_dir / "run.json").read_text())
+        if f"extend:{name}:export" not in state["done"]:
+            run_extend(inc_dir, dirs[t - 1], model=models[t - 1], transform=Sim3.from_dict(sims[name]),
+                       resume=any(s.startswith(f"extend:{name}:") for s in state["done"]), progress=False,
+                       evaluate=(t == max_dates), log=lambda *a, **k: None)  # fmt: skip
+        each[t] = _fusion_seconds(inc_dir, f"extend:{name}:")
+        accumulated[t] = accumulated[t - 1] + each[t]
+        print(f"incremental T={t}: +{each[t]:.1f} s (accumulated {accumulated[t]:.1f} s)", flush=True)
+    return {"each": each, "accumulated": accumulated}
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--max-dates", type=int, default=6)
@@ -46,14 +87,14 @@ def main():
     ap.add_argument("--spp", type=int, default=8)
     ap.add_argument("--config", default="demo")
     ap.add_argument("--work", default="/tmp/bench_incremental")
+    ap.add_argument("--path", choices=("scratch", "incremental"), help=argparse.SUPPRESS)
     args = ap.parse_args()
     if not 3 <= args.max_dates <= 6:
         raise SystemExit("--max-dates must lie in 3..6 (the reef preset has 6 dates)")
 
     from cfgs_jax import synthetic
     from cfgs_jax.config import find_preset, load_config
-    from cfgs_jax.fusion.run import run_extend, run_fusion
-    from cfgs_jax.sim3 import Sim3
+    from cfgs_jax.fusion.run import run_fusion
 
     work = Path(args.work)
     data = work / "data"
@@ -69,36 +110,23 @@ def main():
     dirs = [data / n for n in names]
     quiet = lambda *a, **k: None  # noqa: E731
 
+    if args.path:  # child process: one path, its own compilations (no warm cache from the other path)
+        models = [work / "models" / "dates" / n / "point_cloud.ply" for n in names]
+        out = (_scratch if args.path == "scratch" else _incremental)(work, dirs, names, raw, models, transforms, sims, args.max_dates)
+        (work / f"{args.path}.json").write_text(json.dumps(out))
+        return
     trained = run_fusion(dirs, work / "models", raw, transforms=transforms, resume=(work / "models" / "run.json").is_file(),
                          progress=False, evaluate=False, until="train", log=quiet)  # fmt: skip
     train_s = trained.report["train"]["per_date_seconds"]
-    models = [work / "models" / "dates" / n / "point_cloud.ply" for n in names]
-
-    scratch, scratch_acc, acc = {}, {}, 0.0
-    for t in range(2, args.max_dates + 1):
-        run = work / f"scratch_{t}"
-        if not (run / "run.json").is_file() or "export" not in json.loads((run / "run.json").read_text())["done"]:
-            run_fusion(dirs[:t], run, raw, models=models[:t], transforms=transforms, resume=(run / "run.json").is_file(),
-                       progress=False, evaluate=(t == args.max_dates), log=quiet)  # fmt: skip
-        scratch[t] = _fusion_seconds(run)
-        acc += scratch[t]
-        scratch_acc[t] = acc
-        print(f"from scratch T={t}: {scratch[t]:.1f} s (accumulated {acc:.1f} s)", flush=True)
-
+    paths = {}
+    for path in ("scratch", "incremental"):
+        cmd = [sys.executable, __file__, "--path", path, *sys.argv[1:]]
+        if subprocess.run(cmd).returncode != 0:
+            raise SystemExit(f"the {path} path failed")
+        paths[path] = {k: {int(t): v for t, v in d.items()} for k, d in json.loads((work / f"{path}.json").read_text()).items()}
+    scratch, scratch_acc = paths["scratch"]["each"], paths["scratch"]["accumulated"]
+    incremental, inc_acc = paths["incremental"]["each"], paths["incremental"]["accumulated"]
     inc_dir = work / "incremental"
-    run_fusion(dirs[:2], inc_dir, raw, models=models[:2], transforms=transforms, resume=(inc_dir / "run.json").is_file(),
-               progress=False, evaluate=False, log=quiet)  # fmt: skip
-    incremental, inc_acc = {2: _fusion_seconds(inc_dir)}, {2: _fusion_seconds(inc_dir)}
-    for t in range(3, args.max_dates + 1):
-        name = names[t - 1]
-        state = json.loads((inc_dir / "run.json").read_text())
-        if f"extend:{name}:export" not in state["done"]:
-            run_extend(inc_dir, dirs[t - 1], model=models[t - 1], transform=Sim3.from_dict(sims[name]),
-                       resume=any(s.startswith(f"extend:{name}:") for s in state["done"]), progress=False,
-                       evaluate=(t == args.max_dates), log=quiet)  # fmt: skip
-        incremental[t] = _fusion_seconds(inc_dir, f"extend:{name}:")
-        inc_acc[t] = inc_acc[t - 1] + incremental[t]
-        print(f"incremental T={t}: +{incremental[t]:.1f} s (accumulated {inc_acc[t]:.1f} s)", flush=True)
 
     tmax = args.max_dates
     ms = json.loads((work / f"scratch_{tmax}" / "metrics.json").read_text())["mean"]
