@@ -27,6 +27,7 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bench_scene import add_scene_args, scene_dates  # noqa: E402
 from bench_splat import RESULTS, machine  # noqa: E402
 
 
@@ -43,26 +44,14 @@ def _metrics(run: Path, names: list[str]) -> dict:
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--dates", type=int, default=3)
-    ap.add_argument("--width", type=int, default=160)
-    ap.add_argument("--height", type=int, default=120)
-    ap.add_argument("--images-per-date", type=int, default=12)
-    ap.add_argument("--spp", type=int, default=16)
-    ap.add_argument("--config", default="demo")
-    ap.add_argument("--work", default="/tmp/bench_extend")
+    add_scene_args(ap, width=160, height=120, images_per_date=12, spp=16, work="/tmp/bench_extend")
     args = ap.parse_args()
 
-    from cfgs_jax import synthetic
     from cfgs_jax.pipeline import main as cli
 
     work = Path(args.work)
-    data = work / "data"
-    spec = synthetic.make_preset("corals", seed=0, width=args.width, height=args.height,
-                                 images_per_date=args.images_per_date, spp=args.spp)  # fmt: skip
-    names = [d.name for d in spec.dates][: args.dates]
-    if not (data / "ground_truth.json").is_file():
-        synthetic.render_dataset(spec, data, dates=list(range(args.dates)), progress=False)
-    (data / "transforms.json").write_text(json.dumps(synthetic.reference_transforms(data, names)))
-    common = ["--config", args.config, "--transforms", str(data / "transforms.json"), "--no-progress"]
+    data, names, transforms, _ = scene_dates("corals", args, args.dates)
+    common = ["--config", args.config, "--transforms", str(transforms), "--no-progress"]
 
     scratch = work / "scratch"
     if not (scratch / "metrics.json").is_file():
@@ -79,7 +68,7 @@ def main():
     base_wall = time.perf_counter() - t0
     t0 = time.perf_counter()
     assert cli(["extend", "--run", str(incremental), "--date", str(data / names[-1]), "--model", models[-1],
-                "--transforms", str(data / "transforms.json"), "--no-progress"]) == 0  # fmt: skip
+                "--transforms", str(transforms), "--no-progress"]) == 0  # fmt: skip
     extend_wall = time.perf_counter() - t0
 
     scratch_stages = _stage_seconds(scratch)

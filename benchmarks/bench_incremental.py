@@ -29,9 +29,14 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bench_scene import add_scene_args, scene_dates  # noqa: E402
 from bench_splat import RESULTS, machine  # noqa: E402
 
 FUSION_STAGES = ("merge", "cross_init", "refine", "export")
+
+
+def _quiet(*args, **kwargs) -> None:
+    """A ``log`` for the fusion runs: the benchmark prints its own lines."""
 
 
 def _fusion_seconds(run: Path, prefix: str = "") -> float:
@@ -48,7 +53,7 @@ def _scratch(work, dirs, names, raw, models, transforms, sims, max_dates) -> dic
         run = work / f"scratch_{t}"
         if not (run / "run.json").is_file() or "export" not in json.loads((run / "run.json").read_text())["done"]:
             run_fusion(dirs[:t], run, raw, models=models[:t], transforms=transforms, resume=(run / "run.json").is_file(),
-                       progress=False, evaluate=(t == max_dates), log=lambda *a, **k: None)  # fmt: skip
+                       progress=False, evaluate=(t == max_dates), log=_quiet)  # fmt: skip
         each[t] = _fusion_seconds(run)
         acc += each[t]
         accumulated[t] = acc
@@ -63,7 +68,7 @@ def _incremental(work, dirs, names, raw, models, transforms, sims, max_dates) ->
 
     inc_dir = work / "incremental"
     run_fusion(dirs[:2], inc_dir, raw, models=models[:2], transforms=transforms, resume=(inc_dir / "run.json").is_file(),
-               progress=False, evaluate=False, log=lambda *a, **k: None)  # fmt: skip
+               progress=False, evaluate=False, log=_quiet)  # fmt: skip
     each, accumulated = {2: _fusion_seconds(inc_dir)}, {2: _fusion_seconds(inc_dir)}
     for t in range(3, max_dates + 1):
         name = names[t - 1]
@@ -71,7 +76,7 @@ def _incremental(work, dirs, names, raw, models, transforms, sims, max_dates) ->
         if f"extend:{name}:export" not in state["done"]:
             run_extend(inc_dir, dirs[t - 1], model=models[t - 1], transform=Sim3.from_dict(sims[name]),
                        resume=any(s.startswith(f"extend:{name}:") for s in state["done"]), progress=False,
-                       evaluate=(t == max_dates), log=lambda *a, **k: None)  # fmt: skip
+                       evaluate=(t == max_dates), log=_quiet)  # fmt: skip
         each[t] = _fusion_seconds(inc_dir, f"extend:{name}:")
         accumulated[t] = accumulated[t - 1] + each[t]
         print(f"incremental T={t}: +{each[t]:.1f} s (accumulated {accumulated[t]:.1f} s)", flush=True)
@@ -81,34 +86,19 @@ def _incremental(work, dirs, names, raw, models, transforms, sims, max_dates) ->
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--max-dates", type=int, default=6)
-    ap.add_argument("--width", type=int, default=64)
-    ap.add_argument("--height", type=int, default=48)
-    ap.add_argument("--images-per-date", type=int, default=8)
-    ap.add_argument("--spp", type=int, default=8)
-    ap.add_argument("--config", default="demo")
-    ap.add_argument("--work", default="/tmp/bench_incremental")
+    add_scene_args(ap, width=64, height=48, images_per_date=8, spp=8, work="/tmp/bench_incremental")
     ap.add_argument("--path", choices=("scratch", "incremental"), help=argparse.SUPPRESS)
     args = ap.parse_args()
     if not 3 <= args.max_dates <= 6:
         raise SystemExit("--max-dates must lie in 3..6 (the reef preset has 6 dates)")
 
-    from cfgs_jax import synthetic
     from cfgs_jax.config import find_preset, load_config
     from cfgs_jax.fusion.run import run_fusion
 
     work = Path(args.work)
-    data = work / "data"
-    spec = synthetic.make_preset("reef", seed=0, width=args.width, height=args.height,
-                                 images_per_date=args.images_per_date, spp=args.spp)  # fmt: skip
-    names = [d.name for d in spec.dates][: args.max_dates]
-    if not (data / "ground_truth.json").is_file():
-        synthetic.render_dataset(spec, data, dates=list(range(args.max_dates)), progress=False)
-    transforms = data / "transforms.json"
-    sims = synthetic.reference_transforms(data, names)
-    transforms.write_text(json.dumps(sims))
+    data, names, transforms, sims = scene_dates("reef", args, args.max_dates)
     raw = load_config(find_preset(args.config))
     dirs = [data / n for n in names]
-    quiet = lambda *a, **k: None  # noqa: E731
 
     if args.path:  # child process: one path, its own compilations (no warm cache from the other path)
         models = [work / "models" / "dates" / n / "point_cloud.ply" for n in names]
@@ -116,7 +106,7 @@ def main():
         (work / f"{args.path}.json").write_text(json.dumps(out))
         return
     trained = run_fusion(dirs, work / "models", raw, transforms=transforms, resume=(work / "models" / "run.json").is_file(),
-                         progress=False, evaluate=False, until="train", log=quiet)  # fmt: skip
+                         progress=False, evaluate=False, until="train", log=_quiet)  # fmt: skip
     train_s = trained.report["train"]["per_date_seconds"]
     paths = {}
     for path in ("scratch", "incremental"):
