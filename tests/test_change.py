@@ -102,3 +102,36 @@ def test_weighted_precision_recall_counts_each_entry_by_its_weight():
     # predicted {0, 1}: tp 3, fp 1, fn 2 → P 3/4, R 3/5
     assert np.isclose(r["precision"][0], 0.75) and np.isclose(r["recall"][0], 0.6)
     assert np.isclose(r["f1"][0], 2 * 0.75 * 0.6 / 1.35)
+
+
+def test_light_by_pair_hand_case():
+    """Two dates, 2 000 K apart: date 0's Gaussians at date 1 carry a colder shift (k = tanh(0.5) > 0,
+    sign right), date 1's at date 0 a colder one too (sign wrong); one Gaussian of date 0 is marked
+    unseen from date 1 (INVISIBLE_LOGIT) and is left out of the means."""
+    import dataclasses
+
+    from conftest import random_temporal
+
+    from cfgs_jax.evaluation.protocol import light_by_pair
+    from cfgs_jax.fusion.fuse import INVISIBLE_LOGIT
+    from cfgs_jax.fusion.light import light_logits, light_multiplier
+
+    model = random_temporal(6, 2)
+    origin = np.array([0, 0, 0, 1, 1, 1])
+    o = np.array([[2.0, 0.0], [2.0, 1.0], [2.0, INVISIBLE_LOGIT], [-1.0, 2.0], [0.5, 2.0], [3.0, 2.0]], np.float32)
+    colder = np.asarray(light_logits(light_multiplier(jnp.float32(0.3), jnp.float32(0.5))))
+    light = np.zeros((6, 2, 3), np.float32)
+    light[:3, 1] = colder  # date 0's Gaussians at date 1
+    light[3:, 0] = colder  # date 1's Gaussians at date 0
+    model = dataclasses.replace(model, o_logits=jnp.asarray(o), light_logits=jnp.asarray(light), origin=jnp.asarray(origin))
+    gt = {"dates": [{"name": "a", "lighting": {"cct_kelvin": 4000}}, {"name": "b", "lighting": {"cct_kelvin": 6000}}]}
+    out = light_by_pair(model, gt)
+    sig = lambda x: 1 / (1 + np.exp(-np.asarray(x, np.float64)))  # noqa: E731
+    a, b = out["pairs"]
+    assert a["pair"] == ["a", "b"] and a["cct_change_kelvin"] == 2000 and a["sign_agrees"]
+    assert b["pair"] == ["b", "a"] and b["cct_change_kelvin"] == -2000 and not b["sign_agrees"]
+    assert np.isclose(a["median_k"], np.tanh(0.5), atol=1e-4) and np.isclose(b["median_k"], np.tanh(0.5), atol=1e-4)
+    assert np.isclose(a["mean_o"], sig([0.0, 1.0]).mean(), atol=1e-6)
+    assert np.isclose(b["mean_o"], sig([-1.0, 0.5, 3.0]).mean(), atol=1e-6)
+    assert np.isclose(out["mean_o"], sig([0.0, 1.0, -1.0, 0.5, 3.0]).mean(), atol=1e-6)
+    assert out["sign_agrees"] == 1 and out["pairs_with_cct_change"] == 2

@@ -23,14 +23,14 @@ from cfgs_jax.compiled_code import release_if_near_limit
 from cfgs_jax.config import section
 from cfgs_jax.errors import InputError
 from cfgs_jax.fusion.evaluate import evaluate_fused, render_date, weighted_mean
+from cfgs_jax.fusion.fuse import INVISIBLE_LOGIT
+from cfgs_jax.fusion.light import cold_warm_coefficient
 from cfgs_jax.fusion.refine import RefineConfig, refine
 from cfgs_jax.fusion.run import CONFIG_SECTIONS, camera_in_frame, date_views, run_fusion, split_or_all, validate_config
 from cfgs_jax.io.atomic import read_json, write_json, write_text
 from cfgs_jax.io.colmap import read_colmap
 from cfgs_jax.io.fused import read_fused
 from cfgs_jax.io.ply import read_ply, write_ply
-from cfgs_jax.fusion.fuse import INVISIBLE_LOGIT
-from cfgs_jax.fusion.light import cold_warm_coefficient
 from cfgs_jax.model import light_multipliers, opacity_multipliers
 from cfgs_jax.sim3 import Sim3
 
