@@ -43,7 +43,7 @@ class Layout(NamedTuple):
     min_alpha: float
     max_alpha: float
     min_transmittance: float
-    statistics: bool = True  # per-Gaussian max α·T and hit counts (False: not computed, returned as zeros)
+    statistics: bool  # per-Gaussian max α·T and hit counts (False: not computed, returned as zeros)
 
     @property
     def num_tiles(self) -> int:

@@ -48,7 +48,7 @@ class RenderResult(eqx.Module):
         return self.num_intersections > self.capacity
 
 
-def _layout(camera: Camera, config: RenderConfig, dates: int, statistics: bool = True) -> Layout:
+def _layout(camera: Camera, config: RenderConfig, dates: int, statistics: bool) -> Layout:
     gx, gy = tile_grid(camera, config)
     # CPU: one date: 32 tiles × 32 Gaussians per round; several: ~96 tile-dates × 16 Gaussians keep a
     # round's [K, D, B, P] arrays cache-sized (measured best: benchmarks/bench_splat.py).
