@@ -187,6 +187,46 @@ def test_cross_init_padding_renders_nothing_and_gets_no_gradient():
     assert np.allclose(grad_pad[:70], grad, rtol=1e-5, atol=1e-7) and not np.any(grad_pad[70:])
 
 
+def test_batched_pairs_equal_the_pairs_one_by_one():
+    """init_pairs runs (p, q₁), (p, q₂) vmapped in one step; the result equals running the pairs one by
+    one, although q₂'s cameras see only part of date p's Gaussians (the union is optimised, masked)."""
+    ci = importlib.import_module("cfgs_jax.fusion.cross_init")
+    g = _random_gaussians(90, seed=4)
+    g = cj.Gaussians(g.means * np.float32([2.4, 1, 1]), g.quats, g.log_scales, g.opacity_logits, g.colors)
+    wide = tuple(cj.Camera.look_at([x, -0.3, -2.6], [0, 0, 0], up=(0, -1, 0), width=64, height=48, fov_x_deg=60)
+                 for x in (-0.3, 0.3))  # fmt: skip
+    left = tuple(cj.Camera.look_at([x, -0.2, -1.0], [x, 0, 0], up=(0, -1, 0), width=64, height=48, fov_x_deg=40)
+                 for x in (-0.9, -0.7, -0.8))  # fmt: skip
+    rng = np.random.default_rng(2)
+
+    def views(cams):
+        ims = [np.asarray(splat.render(g, c).image) * 0.8 + 0.1 * rng.uniform(size=(48, 64, 3)) for c in cams]
+        return ci.DateViews(cams, tuple(np.float32(im) for im in ims))
+
+    v1, v2 = views(wide), views(left)
+    seen2 = ci.visible_from(g, left)
+    assert 0 < seen2.sum() < 0.7 * len(g)  # q₂ sees part of date p
+    model = fusion.merge([g, g, g], ["p", "q1", "q2"])
+    cfg = ci.CrossInitConfig(steps=12, lr_o=0.05, lr_light=0.03)
+    both, reps = ci.init_pairs(model, 0, [1, 2], [v1, v2], cfg)
+    one, r1 = ci.init_pair(model, 0, 1, v1, cfg)
+    one, r2 = ci.init_pair(one, 0, 2, v2, cfg)
+    for name in ("o_logits", "light_logits"):
+        a, b = np.asarray(getattr(both, name)), np.asarray(getattr(one, name))
+        np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-4)
+        assert not np.allclose(a[:90, 1:], np.asarray(getattr(model, name))[:90, 1:])  # something was fitted
+    assert np.all(np.asarray(both.o_logits)[:90][~seen2, 2] == fusion.INVISIBLE_LOGIT)
+    for rb, ro in zip(reps, (r1, r2)):
+        assert rb["pair"] == ro["pair"] and rb["visible"] == ro["visible"]
+        assert np.isclose(rb["loss_last"], ro["loss_last"], rtol=1e-4) and np.isclose(rb["mean_o"], ro["mean_o"], rtol=1e-4)
+    # grouping: consecutive pairs of one p, one image shape, at most `batch` per group
+    small = ci.DateViews(wide[:1], (np.zeros((32, 40, 3), np.float32),))
+    vs = [v1, v1, small, v1]
+    pairs = [(0, 1), (0, 2), (0, 3), (1, 0), (1, 3), (2, 0)]
+    assert ci.pair_groups(pairs, vs, 0) == [(0, [1]), (0, [2]), (0, [3]), (1, [0, 3]), (2, [0])]
+    assert ci.pair_groups([(2, 0), (2, 1), (2, 3)], vs, 2) == [(2, [0, 1]), (2, [3])]
+
+
 def test_change_loss_visibility_rule_and_final_prune_hand_cases():
     rf = importlib.import_module("cfgs_jax.fusion.refine")
 

@@ -244,20 +244,43 @@ def margins(rows: list[dict], n: int) -> dict:
             "lpips": ind["lpips"] - ours["lpips"]}  # fmt: skip
 
 
+def date_masks(data: Path, scenes, sims, names: list[str], split: str = "train") -> list:
+    """Each date's ground-truth object masks (``change.DateMasks``) of its ``split`` views, posed in the
+    reference frame."""
+    from cfgs_jax.evaluation import change
+
+    out = []
+    for p, (sc, sm) in enumerate(zip(scenes, sims)):
+        idx = split_or_all(sc, split)
+        cams = [camera_in_frame(sc.cameras[int(i)], sm) for i in idx]
+        others = [n for n in names if n != names[p]]
+        out.append(change.read_date_masks(sc.root, [sc.image_names[int(i)] for i in idx], cams, others))
+    return out
+
+
+def cross_init_checks(model, data: Path, scenes, sims, render_config, masks=None) -> dict:
+    """Issue 7's checks of a model after cross-init against the synthetic ground truth: by object
+    (``object_persistence``, Gaussians labelled by their dominant object in the training views) and the
+    light model per pair (``light_by_pair``)."""
+    from cfgs_jax.evaluation import change
+
+    gt = json.loads((Path(data) / "ground_truth.json").read_text())
+    masks = masks if masks is not None else date_masks(data, scenes, sims, [d.name for d in model.dates])
+    labels = change.object_labels(model, masks, len(gt["objects"]), render_config=render_config)
+    objects = object_persistence(model, labels, gt)
+    objects.pop("absent_by_object")
+    return {"objects": objects, "light": light_by_pair(model, gt)}
+
+
 def change_detection(model, data: Path, scenes, sims, render_config, cross_init=None) -> dict:
     """Per-Gaussian and per-pixel change detection of the fused model against the synthetic ground truth."""
     from cfgs_jax.evaluation import change
 
     gt = json.loads((data / "ground_truth.json").read_text())
     names = [d.name for d in model.dates]
-    masks, masks_test, observing = [], [], []
-    for p, (sc, sm) in enumerate(zip(scenes, sims)):
-        others = [n for n in names if n != names[p]]
-        for split, bucket in (("train", masks), ("test", masks_test)):
-            idx = split_or_all(sc, split)
-            cams = [camera_in_frame(sc.cameras[int(i)], sm) for i in idx]
-            bucket.append(change.read_date_masks(sc.root, [sc.image_names[int(i)] for i in idx], cams, others))
-        observing.append(masks[-1].cameras)
+    masks = date_masks(data, scenes, sims, names)
+    masks_test = date_masks(data, scenes, sims, names, "test")
+    observing = [m.cameras for m in masks]
     cfg = change.ChangeConfig()
     observed = change.observed_matrix(model, observing, cfg.contribution_threshold, render_config=render_config)
     table = change.gaussian_change_table(model, masks, observing, len(gt["objects"]), cfg, render_config=render_config,
@@ -268,10 +291,8 @@ def change_detection(model, data: Path, scenes, sims, render_config, cross_init=
     summary["absent_objects_below_0.2"] = fused.pop("absent_by_object")
     result = {"gaussians": summary, "pixels": pixels, "config": dataclasses.asdict(cfg), "objects_fused": fused}
     if cross_init is not None:
-        labels = change.object_labels(cross_init, masks, len(gt["objects"]), render_config=render_config)
-        result["objects_cross_init"] = object_persistence(cross_init, labels, gt)
-        result["objects_cross_init"].pop("absent_by_object")
-        result["light_cross_init"] = light_by_pair(cross_init, gt)
+        checks = cross_init_checks(cross_init, data, scenes, sims, render_config, masks)
+        result["objects_cross_init"], result["light_cross_init"] = checks["objects"], checks["light"]
     return result
 
 

@@ -1,8 +1,8 @@
 """ChronoFuseGS fusion stages: register (Sim(3) from a joint SfM), merge, cross-timestep
-initialisation (Eq. 2), combined refinement (Eq. 3) and the final prune. Work in progress (issue 7):
-the pipeline commands ``fuse``/``extend`` follow."""
+initialisation (Eq. 2), combined refinement (Eq. 3) and the final prune; ``fusion.run`` composes them
+into the pipeline commands ``fuse`` and ``extend``."""
 
-from cfgs_jax.fusion.cross_init import CrossInitConfig, DateViews, cross_init, init_pair
+from cfgs_jax.fusion.cross_init import CrossInitConfig, DateViews, cross_init, init_pair, init_pairs
 from cfgs_jax.fusion.refine import RefineConfig, final_prune, refine
 
 from cfgs_jax.fusion.fuse import INVISIBLE_LOGIT, OTHER_LOGIT, OWN_LOGIT, merge
@@ -22,6 +22,7 @@ __all__ = [
     "cross_init",
     "final_prune",
     "init_pair",
+    "init_pairs",
     "refine",
     "INVISIBLE_LOGIT",
     "OTHER_LOGIT",

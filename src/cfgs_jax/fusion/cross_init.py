@@ -20,6 +20,12 @@ LPIPS is 0 for identical patches and ≈ 0.5–1 for unrelated ones, so ε ≈ 1
 Gaussians cannot explain. α, geometry and colour stay frozen. o^q
 starts at δ·o^p. Gaussians of date p that project into no training view of date q get o^q = −4e
 (``INVISIBLE_LOGIT``) and are left out of that pair; a pair with none visible is skipped.
+
+The pairs of one date p run together (``init_pairs``): each step renders one view of every date q,
+``jax.vmap``-ed over the pairs' parameters, Adam states, cameras and images, with the Gaussians shared —
+the same numbers as running the pairs one by one, fewer dispatches and one compilation per date p.
+``batch_dates`` caps how many run at once (memory grows with it); dates with other image sizes run
+apart.
 """
 
 from __future__ import annotations
@@ -56,6 +62,7 @@ class CrossInitConfig:
     lpips_net: Literal["alex", "vgg"] = "alex"
     lpips_scale: float = 1.0  # ε_LPIPS = clip(map / lpips_scale, 0, 1)
     background_anneal: float = 1.0  # fraction of the steps over which b's range shrinks to black
+    batch_dates: int = 0  # pairs (p, q) of one p optimised together per step (vmapped); 0: all of them
     seed: int = 0
 
     def __post_init__(self):
@@ -68,6 +75,9 @@ class CrossInitConfig:
                              fix='use "paper" or "reference"')  # fmt: skip
         if not 0 < self.ramp_fraction <= 1 or not 0 < self.background_anneal <= 1:
             raise InputError("ramp_fraction and background_anneal must be in (0, 1]", field="cross_init")
+        if self.batch_dates < 0:
+            raise InputError(f"must be ≥ 0 (0: all dates q of one p at once), got {self.batch_dates}",
+                             field="cross_init.batch_dates", fix="lower it (e.g. 1) when memory is short")  # fmt: skip
 
 
 @dataclasses.dataclass(frozen=True)
@@ -127,16 +137,25 @@ def make_optimizer(config: CrossInitConfig) -> optax.GradientTransformation:
 
 @functools.lru_cache(maxsize=16)
 def _compiled_step(config: CrossInitConfig, render_config: splat.RenderConfig):
+    """One optimisation step of several pairs (p, q₁), (p, q₂), … at once: ``jax.vmap`` over the pairs'
+    parameters, optimiser states, cameras, images, ε maps and keys (the Gaussians are shared); the
+    per-pair inputs arrive as tuples and are stacked inside the jit."""
     optimizer = make_optimizer(config)
 
-    @jax.jit
-    def step(params, opt_state, g, camera, image, eps_map, key, it):
+    def one(params, opt_state, g, camera, image, eps_map, key, it):
         b = background_colour(key, it, config, image.dtype)
         (loss, res), grads = jax.value_and_grad(pair_loss, has_aux=True)(
             params, g, camera, image, eps_map, b, it, config, render_config
         )
         updates, opt_state = optimizer.update(grads, opt_state, params)
         return optax.apply_updates(params, updates), opt_state, loss, res.overflowed
+
+    @jax.jit
+    def step(params, opt_state, g, cameras, images, eps_maps, keys, it):
+        stack = lambda *xs: jnp.stack(xs)  # noqa: E731
+        cams = jax.tree_util.tree_map(stack, *cameras)
+        batched = jax.vmap(one, in_axes=(0, 0, None, 0, 0, 0, 0, None))
+        return batched(params, opt_state, g, cams, jnp.stack(images), jnp.stack(eps_maps), keys, it)
 
     return optimizer, step
 
@@ -171,65 +190,118 @@ def visible_from(g: Gaussians, cameras: Sequence[Camera], render_config=None) ->
     return seen[:n]
 
 
-def init_pair(model: TemporalGaussians, p: int, q: int, views: DateViews, config: CrossInitConfig, *,
-              render_config: splat.RenderConfig | None = None, lpips_net=None, progress=None) -> tuple[TemporalGaussians, dict]:  # fmt: skip
-    """Optimise o^q and l^q of the Gaussians from date p against date q's views (Eq. 2); returns the
-    updated model and a report (visible count, first/last loss, mean o^q)."""
+def _image_shape(views: DateViews) -> tuple | None:
+    """The one (H, W, C) of all of a date's views, or None when they differ (such a date runs alone)."""
+    shapes = {np.shape(im) for im in views.images}
+    return shapes.pop() if len(shapes) == 1 else None
+
+
+def init_pairs(model: TemporalGaussians, p: int, qs: Sequence[int], views: Sequence[DateViews], config: CrossInitConfig, *,
+               render_config: splat.RenderConfig | None = None, lpips_net=None, progress=None) -> tuple[TemporalGaussians, list[dict]]:  # fmt: skip
+    """Optimise o^q and l^q of the Gaussians from date p against date q's views (Eq. 2) for every q in
+    ``qs`` at once (``views[i]`` the views of ``qs[i]``; all of one image shape): each step renders one
+    view of every q, vmapped, each pair with its own parameters, Adam state, view sequence and
+    background colours — the same result as running the pairs one by one. Returns the updated model
+    and one report per pair (visible count, first/last loss, mean o^q, light, ε)."""
+    qs = list(qs)
+    if len(views) != len(qs) or len({_image_shape(v) for v in views}) != 1 or _image_shape(views[0]) is None:
+        raise InputError("init_pairs needs one DateViews per q, all views of one image shape", field="cross_init.pairs",
+                         fix="run dates with other image sizes separately (cross_init groups them itself)")  # fmt: skip
     render_config = render_config or splat.RenderConfig()
     lpips_net = lpips_net if lpips_net is not None else metrics.load_lpips(config.lpips_net)
-    origin = np.asarray(model.origin)
-    rows = np.nonzero(origin == p)[0]
+    rows = np.nonzero(np.asarray(model.origin) == p)[0]
     g_all = model.gaussians
     g_p = jax.tree_util.tree_map(lambda x: jnp.asarray(x)[rows], g_all)
-    seen = visible_from(g_p, views.cameras, render_config)
+    seen = np.stack([visible_from(g_p, v.cameras, render_config) for v in views])  # [Q, N_p]
     o_logits = np.asarray(model.o_logits).copy()
     l_logits = np.asarray(model.light_logits).copy()
-    o_logits[rows[~seen], q] = INVISIBLE_LOGIT
-    report = {"pair": [p, q], "gaussians": int(len(rows)), "visible": int(seen.sum())}
-    if not seen.any():
-        return dataclasses.replace(model, o_logits=jnp.asarray(o_logits), light_logits=jnp.asarray(l_logits)), report | {"skipped": True}
-    idx = rows[seen]
+    reports = []
+    for i, q in enumerate(qs):
+        o_logits[rows[~seen[i]], q] = INVISIBLE_LOGIT
+        reports.append({"pair": [p, q], "gaussians": int(len(rows)), "visible": int(seen[i].sum())})
+    active = [i for i in range(len(qs)) if seen[i].any()]
+    for i in set(range(len(qs))) - set(active):
+        reports[i]["skipped"] = True
+    if not active:
+        return dataclasses.replace(model, o_logits=jnp.asarray(o_logits), light_logits=jnp.asarray(l_logits)), reports
+    union = seen[active].any(axis=0)
+    idx = rows[union]
     n, m = len(idx), padded_count(len(idx))  # padded rows: zero opacity, never rendered (shared compilations)
     g = pad_gaussians(jax.tree_util.tree_map(lambda x: jnp.asarray(x)[idx], g_all), m)
+    mask = jnp.asarray(np.pad(seen[active][:, union], ((0, 0), (0, m - n))), jnp.float32)  # [Q, m] seen from q
     o_p = jnp.pad(jax.nn.sigmoid(jnp.asarray(o_logits[idx, p])), (0, m - n), constant_values=1.0)
     o_q = jnp.clip(config.delta * o_p, 1e-4, 1 - 1e-4)
-    params = {"o_logit": jnp.log(o_q) - jnp.log1p(-o_q), "u": jnp.zeros(m), "w": jnp.zeros(m)}
+    k = len(active)
+    o_init = jnp.where(mask > 0, jnp.log(o_q) - jnp.log1p(-o_q), -100.0)  # unseen from q: off (culled), no gradient
+    params = {"o_logit": o_init, "u": jnp.zeros((k, m)), "w": jnp.zeros((k, m))}
     ones = jnp.ones((1, m), jnp.float32)
-    capacity = max(splat.required_capacity(g, c, ones, config=render_config) for c in views.cameras)
-    images = [jnp.asarray(im, jnp.float32) for im in views.images]
-    eps_maps = [lpips_map(g, o_p, c, im, lpips_net, config, render_config) for c, im in zip(views.cameras, images)]
-    key = jax.random.key(config.seed * 1_000_003 + p * 1009 + q)
+    cameras = [views[i].cameras for i in active]
+    capacity = max(splat.required_capacity(g, c, ones, config=render_config) for cs in cameras for c in cs)
+    images = [[jnp.asarray(im, jnp.float32) for im in views[i].images] for i in active]
+    # the ε maps, each from the Gaussians seen from its own date only (the others render nothing there)
+    eps_maps = [[lpips_map(g, o_p * mask[j], c, im, lpips_net, config, render_config) for c, im in zip(cameras[j], images[j])]
+                for j in range(k)]  # fmt: skip
+    keys = jnp.stack([jax.random.key(config.seed * 1_000_003 + p * 1009 + qs[i]) for i in active])
     losses = []
     rc = dataclasses.replace(render_config, capacity=capacity)
     optimizer, step = _compiled_step(config, rc)
-    opt_state = optimizer.init(params)
+    opt_state = jax.vmap(optimizer.init)(params)
+    split = jax.vmap(jax.random.split)
     for it in range(config.steps):
-        key, k_bg = jax.random.split(key)
-        v = view_order((config.seed, p, q), it, len(images))
-        params, opt_state, loss, overflowed = step(params, opt_state, g, views.cameras[v], images[v], eps_maps[v],
-                                                    k_bg, jnp.float32(it))  # fmt: skip
-        if bool(overflowed):  # cannot happen with capacities from o = 1 (o^q ≤ 1), but never silently
+        keys, k_bg = (lambda s: (s[:, 0], s[:, 1]))(split(keys))
+        v = [view_order((config.seed, p, qs[i]), it, len(images[j])) for j, i in enumerate(active)]
+        params, opt_state, loss, overflowed = step(
+            params, opt_state, g, tuple(cameras[j][v[j]] for j in range(k)), tuple(images[j][v[j]] for j in range(k)),
+            tuple(eps_maps[j][v[j]] for j in range(k)), k_bg, jnp.float32(it))  # fmt: skip
+        if bool(jnp.any(overflowed)):  # cannot happen with capacities from o = 1 (o^q ≤ 1), but never silently
             raise RuntimeError("cross-init render overflowed its intersection buffer")
-        losses.append(float(loss))
+        losses.append(np.asarray(loss))
         if progress is not None:
             progress(it + 1)
-    params = jax.tree_util.tree_map(lambda x: x[:n], params)
-    o_logits[idx, q] = np.asarray(params["o_logit"])
-    l_logits[idx, q] = np.asarray(light_logits(light_multiplier(params["u"], params["w"])))
+    losses = np.stack(losses)  # [steps, k]
+    for j, i in enumerate(active):
+        q, sel = qs[i], np.asarray(mask[j, :n]) > 0
+        o_fit, u, w = (np.asarray(params[name][j, :n])[sel] for name in ("o_logit", "u", "w"))
+        o_logits[idx[sel], q] = o_fit
+        l_logits[idx[sel], q] = np.asarray(light_logits(light_multiplier(jnp.asarray(u), jnp.asarray(w))))
+        reports[i] |= {
+            "skipped": False, "loss_first": float(np.mean(losses[:10, j])), "loss_last": float(np.mean(losses[-10:, j])),
+            "mean_o": float(np.mean(np.asarray(jax.nn.sigmoid(o_fit)))), "mean_w": float(np.mean(w)),
+            "mean_gain": float(np.mean(2 * np.asarray(jax.nn.sigmoid(u)))),
+            "mean_epsilon": float(np.mean([np.asarray(e).mean() for e in eps_maps[j]])),
+        }  # fmt: skip
     new = dataclasses.replace(model, o_logits=jnp.asarray(o_logits), light_logits=jnp.asarray(l_logits))
-    o_final = np.asarray(jax.nn.sigmoid(params["o_logit"]))
-    return new, report | {
-        "skipped": False, "loss_first": float(np.mean(losses[:10])), "loss_last": float(np.mean(losses[-10:])),
-        "mean_o": float(o_final.mean()), "mean_w": float(np.mean(np.asarray(params["w"]))),
-        "mean_gain": float(np.mean(2 * np.asarray(jax.nn.sigmoid(params["u"])))),
-        "mean_epsilon": float(np.mean([np.asarray(e).mean() for e in eps_maps])),
-    }  # fmt: skip
+    return new, reports
+
+
+def init_pair(model: TemporalGaussians, p: int, q: int, views: DateViews, config: CrossInitConfig, *,
+              render_config: splat.RenderConfig | None = None, lpips_net=None, progress=None) -> tuple[TemporalGaussians, dict]:  # fmt: skip
+    """``init_pairs`` for the one pair (p, q): the updated model and its report."""
+    model, reports = init_pairs(model, p, [q], [views], config, render_config=render_config, lpips_net=lpips_net,
+                                progress=progress)  # fmt: skip
+    return model, reports[0]
+
+
+def pair_groups(pairs: Sequence[tuple[int, int]], views: Sequence[DateViews], batch: int) -> list[tuple[int, list[int]]]:
+    """``pairs`` as (p, [q, …]) groups run together by ``init_pairs``: the same p, dates q of one image
+    shape, at most ``batch`` (0: no limit) per group, in the order of ``pairs``."""
+    groups: list[tuple[int, list[int]]] = []
+    for p, q in pairs:
+        shape = _image_shape(views[q])
+        last = groups[-1] if groups else None
+        if (last is not None and last[0] == p and shape is not None and _image_shape(views[last[1][0]]) == shape
+                and (batch == 0 or len(last[1]) < batch)):  # fmt: skip
+            last[1].append(q)
+        else:
+            groups.append((p, [q]))
+    return groups
 
 
 def cross_init(model: TemporalGaussians, views: Sequence[DateViews], config: CrossInitConfig | None = None, *,
                pairs: Sequence[tuple[int, int]] | None = None, render_config=None, progress: bool = False):  # fmt: skip
-    """Run ``init_pair`` for every ordered pair p ≠ q (or the given ``pairs``, e.g. only those that
-    involve a new date when extending); returns the model and the per-pair reports."""
+    """Eq. 2 for every ordered pair p ≠ q (or the given ``pairs``, e.g. only those that involve a new
+    date when extending), the pairs of one p run together (``pair_groups``, ``init_pairs``: vmapped,
+    up to ``config.batch_dates`` at a time); returns the model and the per-pair reports."""
     config = config or CrossInitConfig()
     t = model.num_dates
     if len(views) != t:
@@ -245,12 +317,12 @@ def cross_init(model: TemporalGaussians, views: Sequence[DateViews], config: Cro
     with Progress(disable=not progress, transient=True) as bar:
         task = bar.add_task("cross-timestep init", total=len(pairs) * config.steps)
         done = 0
-        for p, q in pairs:
-            def tick(k, base=done):
-                bar.update(task, completed=base + k)
+        for p, qs in pair_groups(pairs, views, config.batch_dates):
+            def tick(k, base=done, width=len(qs)):
+                bar.update(task, completed=base + width * k)
 
-            model, rep = init_pair(model, p, q, views[q], config, render_config=render_config, lpips_net=net,
-                                   progress=tick)  # fmt: skip
-            reports.append(rep)
-            done += config.steps
+            model, reps = init_pairs(model, p, qs, [views[q] for q in qs], config, render_config=render_config,
+                                     lpips_net=net, progress=tick)  # fmt: skip
+            reports.extend(reps)
+            done += len(qs) * config.steps
     return model, reports

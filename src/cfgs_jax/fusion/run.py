@@ -31,7 +31,7 @@ from cfgs_jax import splat, train
 from cfgs_jax.compiled_code import release_if_near_limit
 from cfgs_jax.config import check_sections, section
 from cfgs_jax.errors import InputError
-from cfgs_jax.fusion.cross_init import CrossInitConfig, DateViews, init_pair
+from cfgs_jax.fusion.cross_init import CrossInitConfig, DateViews, init_pairs, pair_groups
 from cfgs_jax.fusion.fuse import merge
 from cfgs_jax.fusion.refine import RefineConfig, refine
 from cfgs_jax.fusion.register import RegisterConfig, register_date
@@ -166,25 +166,26 @@ def _train_date(run: FusionRun, scene: Scene, name: str, render_config, progress
 
 
 def _cross_init_pairs(run: FusionRun, start: Path, pairs, views, render_config, log, stage: str, tag: str) -> None:
-    """Cross-timestep init of ``pairs`` from the model at ``start``, resumable per pair: the model is
-    written to ``RUN/cross_init`` and the finished pairs to ``RUN/cross_init_pairs.json`` after each."""
+    """Cross-timestep init of ``pairs`` from the model at ``start``, resumable per group of pairs run
+    together (``pair_groups``: one p, up to ``cross_init.batch_dates`` dates q): the model is written to
+    ``RUN/cross_init`` and the finished pairs to ``RUN/cross_init_pairs.json`` after each group."""
     cc = section(run.raw, "cross_init", CrossInitConfig)
     partial = run.out / "cross_init"
     progress_file = run.out / "cross_init_pairs.json"
     finished = read_json(progress_file, {"pairs": [], "reports": [], "seconds": 0.0})
     model = read_fused(partial if finished["pairs"] else start)
     names = run.names
-    for p, q in pairs:
-        if [p, q] in finished["pairs"]:
-            continue
-        release_if_near_limit()  # each pair compiles for its own Gaussian count
-        log(f"[{tag}] Gaussians of {names[p]} against images of {names[q]}: {cc.steps:,} steps")
+    todo = [(p, q) for p, q in pairs if [p, q] not in finished["pairs"]]
+    for p, qs in pair_groups(todo, views, cc.batch_dates):
+        release_if_near_limit()  # each group compiles for its own Gaussian count
+        log(f"[{tag}] Gaussians of {names[p]} against images of {', '.join(names[q] for q in qs)}: {cc.steps:,} steps")
         s = time.perf_counter()
-        model, rep = init_pair(model, p, q, views[q], cc, render_config=render_config)
+        model, reps = init_pairs(model, p, qs, [views[q] for q in qs], cc, render_config=render_config)
         write_fused(partial, model)
-        finished["pairs"].append([p, q])
-        finished["reports"].append(rep | {"seconds": time.perf_counter() - s})
-        finished["seconds"] += time.perf_counter() - s
+        seconds = time.perf_counter() - s
+        finished["pairs"].extend([p, q] for q in qs)
+        finished["reports"].extend(rep | {"seconds": seconds / len(qs)} for rep in reps)
+        finished["seconds"] += seconds
         write_json(progress_file, finished)
     run.finish(stage, finished["seconds"], finished["reports"])
 
