@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
+import cfgs_jax as cj
 from cfgs_jax import InputError, metrics
 from cfgs_jax.io import read_image
 from cfgs_jax.metrics import perceptual as lpips_mod
@@ -113,6 +114,26 @@ def test_lpips_gradient_matches_finite_differences():
         assert abs(fd - ad) <= 1e-4 * abs(ad), (fd, ad)
         gs = jax.grad(lambda x: jnp.sum(metrics.lpips(x, jnp.asarray(b), spatial=True) ** 2))(x0)
         assert np.isfinite(np.asarray(gs)).all()
+
+
+def test_lpips_refuses_images_smaller_than_its_network_takes(tmp_path):
+    """AlexNet: conv 11/4 pad 2, pool 3/2, conv 5 pad 2, pool 3/2 keeps ≥ 1 pixel from side 31 on
+    ((31 + 4 − 11) // 4 + 1 = 7 → 3 → 1); VGG pools 4 times by 2 before its last tap: side 16."""
+    from types import SimpleNamespace
+
+    from cfgs_jax.fusion.run import check_lpips_size
+    from cfgs_jax.metrics.perceptual import minimum_side
+
+    assert minimum_side("alex") == 31 and minimum_side("vgg") == 16
+    a, b = _images((31, 40, 3), 5)
+    assert np.isfinite(np.asarray(metrics.lpips(a, b, spatial=True))).all()
+    with pytest.raises(InputError, match=r"40×30 pixels are too small .* at least 31"):
+        metrics.lpips(a[:30], b[:30], spatial=True)
+    cams = [cj.Camera.look_at([0, 0, -2], [0, 0, 0], width=w, height=h) for w, h in ((64, 48), (40, 24))]
+    with pytest.raises(InputError, match=r"1 images as small as 40×24 .* ≥ 31") as err:
+        check_lpips_size(SimpleNamespace(root=tmp_path, cameras=cams), None)
+    assert str(tmp_path) in str(err.value)
+    check_lpips_size(SimpleNamespace(root=tmp_path, cameras=cams[:1]), None)
 
 
 class _Evil:

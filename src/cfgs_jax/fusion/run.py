@@ -84,6 +84,20 @@ def date_views(scene: Scene, sim3: Sim3, split: str = "train") -> DateViews:
     )
 
 
+def check_lpips_size(scene: Scene, raw: dict | None) -> None:
+    """Cross-init's ε comes from LPIPS maps of the training views: refuse, before any work, a date whose
+    images are smaller than the LPIPS network takes."""
+    from cfgs_jax.metrics.perceptual import minimum_side
+
+    net = section(raw, "cross_init", CrossInitConfig).lpips_net
+    side = minimum_side(net)
+    small = [(c.width, c.height) for c in scene.cameras if min(c.width, c.height) < side]
+    if small:
+        raise InputError(f"{len(small)} images as small as {small[0][0]}×{small[0][1]} pixels; cross-init's LPIPS "
+                         f"({net}) needs both sides ≥ {side}", path=scene.root,
+                         fix=f"use images of at least {side}×{side} pixels")  # fmt: skip
+
+
 def load_transforms(path: Path, names: list[str]) -> dict[str, Sim3]:
     """A JSON ``{date name: {"scale", "rotation_wxyz", "translation"}}`` of date → reference Sim(3)s
     (the reference date may be omitted: identity)."""
@@ -226,6 +240,8 @@ def run_fusion(dates: list[Path], out: Path, raw_config: dict | None = None, *, 
         raise InputError(f"cannot stop after {until!r}", field="until", fix='use "train", "register" or "merge"')
     test_every = max(1, section(raw_config, "train", train.TrainConfig).test_every)
     scenes = [read_colmap(d, test_every=test_every) for d in dates]
+    for sc in scenes if len(scenes) > 1 else ():
+        check_lpips_size(sc, raw_config)
     if models is not None and len(models) != len(dates):
         raise InputError(f"{len(models)} models for {len(dates)} dates", field="--models",
                          fix="give one PLY per date, in the order of --dates")  # fmt: skip
@@ -347,7 +363,7 @@ def run_extend(run_dir: Path, date: Path, *, model: Path | None = None, transfor
     if started and not resume:
         raise InputError(f"an extension by {name!r} was started here", path=run_dir, fix="pass --resume")
     tc = section(state["config"], "train", train.TrainConfig)
-    read_colmap(date, test_every=max(1, tc.test_every))  # bad input fails before the run is touched
+    check_lpips_size(read_colmap(date, test_every=max(1, tc.test_every)), state["config"])  # fails before the run is touched
     if model is not None:
         read_ply(model)
     paths = [d["path"] for d in state["dates"]]

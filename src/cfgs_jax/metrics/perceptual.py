@@ -157,11 +157,27 @@ def _normalize(f, eps=1e-10):
     return f / (jnp.sqrt(jnp.sum(f * f, axis=-1, keepdims=True)) + eps)
 
 
+@functools.lru_cache(maxsize=4)
+def minimum_side(net: str) -> int:
+    """The smallest image side (pixels) whose every backbone tap keeps at least one pixel."""
+    model = load_lpips(net)
+    for side in range(1, 257):
+        taps = jax.eval_shape(model.features, jax.ShapeDtypeStruct((1, side, side, 3), jnp.float32))
+        if all(t.shape[1] > 0 for t in taps):
+            return side
+    raise AssertionError("no LPIPS input size up to 256 works")  # unreachable for AlexNet / VGG
+
+
 def lpips_distance(model: LPIPSNet, a, b, *, spatial: bool = False):
     """LPIPS between images [..., H, W, 3] in [0, 1] with an explicit network (see ``lpips``)."""
     a, b = jnp.asarray(a), jnp.asarray(b)
     if a.shape != b.shape or a.ndim < 3 or a.shape[-1] != 3:
         raise InputError(f"expected two images [..., H, W, 3] of one shape, got {a.shape} and {b.shape}", field="lpips")
+    side = minimum_side(model.net)
+    if min(a.shape[-3:-1]) < side:
+        raise InputError(f"images of {a.shape[-2]}×{a.shape[-3]} pixels are too small for LPIPS ({model.net}): both "
+                         f"sides must be at least {side} pixels", field="lpips",
+                         fix=f"render or load the images at ≥ {side}×{side} (e.g. a larger --width/--height)")  # fmt: skip
     dtype = jnp.result_type(a.dtype, b.dtype, jnp.float32)
     lead, (h, w) = a.shape[:-3], a.shape[-3:-1]
     model = jax.tree_util.tree_map(lambda x: x.astype(dtype), model)
