@@ -48,6 +48,7 @@ def _preset(preset: str, args, raw: dict) -> dict:
     from cfgs_jax.io.fused import read_fused, write_fused
     from cfgs_jax.model import opacity_multipliers
     from cfgs_jax.sim3 import Sim3
+    from cfgs_jax.train import TrainConfig
 
     sub = argparse.Namespace(**{**vars(args), "work": str(Path(args.work) / preset)})
     data, names, transforms, sims = scene_dates(preset, sub, args.dates)
@@ -57,7 +58,7 @@ def _preset(preset: str, args, raw: dict) -> dict:
                progress=False, log=lambda *a: None)  # fmt: skip
     render_config = section(raw, "render", splat.RenderConfig)
     base = section(raw, "cross_init", CrossInitConfig)
-    scenes = [read_colmap(d, test_every=8) for d in dirs]
+    scenes = [read_colmap(d, test_every=max(1, section(raw, "train", TrainConfig).test_every)) for d in dirs]
     sim3s = [Sim3.from_dict(sims[n]) for n in names]
     views = [date_views(sc, sm) for sc, sm in zip(scenes, sim3s)]
     masks = date_masks(data, scenes, sim3s, names)

@@ -219,9 +219,9 @@ def init_pairs(model: TemporalGaussians, p: int, qs: Sequence[int], views: Seque
     for i, q in enumerate(qs):
         o_logits[rows[~seen[i]], q] = INVISIBLE_LOGIT
         reports.append({"pair": [p, q], "gaussians": int(len(rows)), "visible": int(seen[i].sum())})
+        if not seen[i].any():
+            reports[i]["skipped"] = True
     active = [i for i in range(len(qs)) if seen[i].any()]
-    for i in set(range(len(qs))) - set(active):
-        reports[i]["skipped"] = True
     if not active:
         return dataclasses.replace(model, o_logits=jnp.asarray(o_logits), light_logits=jnp.asarray(l_logits)), reports
     union = seen[active].any(axis=0)
@@ -248,7 +248,8 @@ def init_pairs(model: TemporalGaussians, p: int, qs: Sequence[int], views: Seque
     opt_state = jax.vmap(optimizer.init)(params)
     split = jax.vmap(jax.random.split)
     for it in range(config.steps):
-        keys, k_bg = (lambda s: (s[:, 0], s[:, 1]))(split(keys))
+        both = split(keys)
+        keys, k_bg = both[:, 0], both[:, 1]
         v = [view_order((config.seed, p, qs[i]), it, len(images[j])) for j, i in enumerate(active)]
         params, opt_state, loss, overflowed = step(
             params, opt_state, g, tuple(cameras[j][v[j]] for j in range(k)), tuple(images[j][v[j]] for j in range(k)),
@@ -285,11 +286,11 @@ def init_pair(model: TemporalGaussians, p: int, q: int, views: DateViews, config
 def pair_groups(pairs: Sequence[tuple[int, int]], views: Sequence[DateViews], batch: int) -> list[tuple[int, list[int]]]:
     """``pairs`` as (p, [q, …]) groups run together by ``init_pairs``: the same p, dates q of one image
     shape, at most ``batch`` (0: no limit) per group, in the order of ``pairs``."""
+    shapes = [_image_shape(v) for v in views]
     groups: list[tuple[int, list[int]]] = []
     for p, q in pairs:
-        shape = _image_shape(views[q])
         last = groups[-1] if groups else None
-        if (last is not None and last[0] == p and shape is not None and _image_shape(views[last[1][0]]) == shape
+        if (last is not None and last[0] == p and shapes[q] is not None and shapes[last[1][0]] == shapes[q]
                 and (batch == 0 or len(last[1]) < batch)):  # fmt: skip
             last[1].append(q)
         else:
