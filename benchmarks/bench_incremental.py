@@ -87,6 +87,8 @@ def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--max-dates", type=int, default=6)
     add_scene_args(ap, width=64, height=48, images_per_date=8, spp=8, work="/tmp/bench_incremental")
+    ap.add_argument("--extend-steps", type=int, default=None,
+                    help="refinement steps of each extension (refine.extend_steps; default: the config's)")
     ap.add_argument("--path", choices=("scratch", "incremental"), help=argparse.SUPPRESS)
     args = ap.parse_args()
     if not 3 <= args.max_dates <= 6:
@@ -98,6 +100,10 @@ def main():
     work = Path(args.work)
     data, names, transforms, sims = scene_dates("reef", args, args.max_dates)
     raw = load_config(find_preset(args.config))
+    if args.extend_steps is not None:
+        raw["refine"] = dict(raw.get("refine", {})) | {"extend_steps": args.extend_steps}
+    refine_steps = raw.get("refine", {}).get("steps", 6000)
+    extend_steps = raw.get("refine", {}).get("extend_steps", 0) or refine_steps
     dirs = [data / n for n in names]
 
     if args.path:  # child process: one path, its own compilations (no warm cache from the other path)
@@ -129,7 +135,7 @@ def main():
         "train_seconds_per_date": train_s, "scratch_seconds": scratch, "scratch_accumulated": scratch_acc,
         "incremental_seconds": incremental, "incremental_accumulated": inc_acc, "accumulated_ratio": ratio,
         "psnr_scratch": ms["psnr"], "psnr_incremental": me["psnr"], "lpips_scratch": ms.get("lpips"),
-        "lpips_incremental": me.get("lpips"),
+        "lpips_incremental": me.get("lpips"), "refine_steps": refine_steps, "extend_refine_steps": extend_steps,
     }  # fmt: skip
     RESULTS.mkdir(parents=True, exist_ok=True)
     (RESULTS / "incremental.json").write_text(json.dumps(result, indent=2))
@@ -139,7 +145,8 @@ def main():
         "# Adding dates incrementally vs recomputing from scratch (bench_incremental.py)", "",
         f"Machine: {result['machine']}. Date: {result['date']}. Scene: {result['scene']}; config `{args.config}`; "
         "ground-truth Sim(3)s; per-date models trained once and shared (training: "
-        + ", ".join(f"{n} {s:.0f} s" for n, s in train_s.items()) + ").", "",
+        + ", ".join(f"{n} {s:.0f} s" for n, s in train_s.items()) + f"). Refinement: {refine_steps} steps per "
+        f"fusion from scratch, {extend_steps} per extension (`refine.extend_steps`).", "",
         "| T | from scratch (s) | accumulated | incremental step (s) | accumulated | ratio |", "|---|---:|---:|---:|---:|---:|",
         *rows, "",
         f"At T = {tmax}: accumulated incremental / from scratch = **{ratio:.2f}** (goal ≤ 0.25). "

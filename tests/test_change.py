@@ -57,14 +57,20 @@ def test_precision_recall_hand_case():
 
 
 def test_summary_gates_changes_by_observation():
-    table = {"pairs": {(0, 1): {"gt_changed": np.array([True, False, False, True]),
-                                "observed": np.array([True, True, False, True]),
-                                "o_q": np.array([0.1, 0.9, 0.05, 0.7])}}}  # fmt: skip
+    table = {"pairs": {(0, 1): {"gt_changed": np.array([True, False, False, True, False]),
+                                "observed": np.array([True, True, False, True, True]),
+                                "o_q": np.array([0.1, 0.9, 0.05, 0.7, 0.35])}}}  # fmt: skip
     s = change.summarise_gaussians(table)
-    # observed rows 0, 1, 3: predicted changed (o < 0.5) only row 0 → P 1, R 1/2
+    # observed rows 0, 1, 3, 4: predicted changed (o < τ = 0.2) only row 0 — row 4 drifted below the
+    # cross-init start 0.5 but not to "absent" → P 1, R 1/2
+    assert change.ChangeConfig().absent_below == 0.2
     assert np.isclose(s["precision"], 1.0) and np.isclose(s["recall"], 0.5) and np.isclose(s["f1"], 2 / 3)
-    assert np.isclose(s["flagged_changed"], 0.25) and s["unobserved_marked_absent"] == 1.0
-    assert np.isclose(s["observed"], 0.75)
+    assert np.isclose(s["flagged_changed"], 0.2) and s["unobserved_marked_absent"] == 1.0
+    assert np.isclose(s["observed"], 0.8) and "weighted_flagged_changed" not in s
+    table["pairs"][(0, 1)]["weight"] = np.array([1.0, 2.0, 5.0, 3.0, 4.0])
+    w = change.summarise_gaussians(table)
+    # observed weights 1, 2, 3, 4 (row 2 unobserved); flagged: row 0 → 1/10
+    assert np.isclose(w["weighted_flagged_changed"], 0.1) and np.isclose(w["weighted_recall"], 0.25)
 
 
 def _two_blobs():

@@ -377,6 +377,9 @@ def test_extend_adds_a_date_initialising_only_its_pairs(tiny_two_dates, fused_ru
     root = tiny_two_dates
     run = tmp_path / "run"
     shutil.copytree(fused_run[0], run)
+    state = json.loads((run / "run.json").read_text())  # the run's config: extension refines 7 steps, not 20
+    state["config"]["refine"]["extend_steps"] = 7
+    (run / "run.json").write_text(json.dumps(state))
     common = ["--transforms", str(root / "transforms.json"), "--no-progress"]
     before = cj.io.read_fused(run / "fused")
     assert main(["extend", "--run", str(run), "--date", str(root / "d2"), *common]) == 0
@@ -387,6 +390,7 @@ def test_extend_adds_a_date_initialising_only_its_pairs(tiny_two_dates, fused_ru
     assert np.array_equal(np.asarray(after_init.light_logits)[:n_old, :2], np.asarray(before.light_logits))
     report = json.loads((run / "report.json").read_text())
     assert [r["pair"] for r in report["extend:d2:cross_init"]] == [[0, 2], [1, 2], [2, 0], [2, 1]]
+    assert report["extend:d2:refine"]["steps"] == 7 and report["refine"]["steps"] == 20
     fused = cj.io.read_fused(run / "fused")
     assert fused.num_dates == 3 and [d.name for d in fused.dates] == ["d0", "d1", "d2"]
     assert set(json.loads((run / "metrics.json").read_text())["dates"]) == {"d0", "d1", "d2"}
@@ -500,3 +504,36 @@ def test_viewer_in_headless_chromium(fused_run):
         viewer.stop()
     assert np.abs(both - empty).mean() > 2.0  # splats drew
     assert np.abs(only_d1 - both).mean() > 0.5 and np.abs(only_d0 - only_d1).mean() > 0.5
+
+
+def test_visibility_rule_leaves_persistence_out_and_zeroes_hidden_gaussians():
+    """Refinement's visibility test is α·T ≥ 0.01 with α the Gaussian's own opacity: a Gaussian in
+    full view whose o at date 1 is 0.012 (α·o·T ≈ 0.007 < 0.01, still rendered) keeps that o; one
+    hidden behind an opaque wall and one behind the camera are zeroed at both dates and pruned.
+    Every learning rate is 0 (position: 1e-12), so only the rule moves o."""
+    rf = importlib.import_module("cfgs_jax.fusion.refine")
+    ci = importlib.import_module("cfgs_jax.fusion.cross_init")
+    logit = lambda p: float(np.log(p) - np.log1p(-p))  # noqa: E731
+    # wall (two layers, α 0.99 each), hidden blob behind it, faint-o blob in view, blob behind the camera
+    means = np.float32([[0, 0, -0.5], [0, 0, -0.45], [0, 0, 0.5], [1.2, 0.0, 0.0], [0, 0, -5.0]])
+    log_scales = np.log(np.float32([[0.3, 0.3, 0.01], [0.3, 0.3, 0.01], [0.05] * 3, [0.15] * 3, [0.05] * 3]))
+    g = cj.Gaussians(means, np.tile(np.float32([1, 0, 0, 0]), (5, 1)), log_scales,
+                     np.float32([8, 8, 2, logit(0.6), 2]), np.full((5, 3), 0.5, np.float32))  # fmt: skip
+    model = fusion.merge([g], ["a"])
+    o = np.full((5, 2), 8.0, np.float32)
+    o[3, 1] = logit(0.012)
+    model = cj.TemporalGaussians(model.gaussians, jnp.asarray(o), jnp.zeros((5, 2, 3)), jnp.zeros(5, jnp.int32),
+                                 (cj.DateInfo("a"), cj.DateInfo("b")))  # fmt: skip
+    cam = cj.Camera.look_at([0, 0, -3], [0, 0, 0], up=(0, -1, 0), width=32, height=24, fov_x_deg=60)
+    r = splat.render(g, cam)
+    image = np.concatenate([np.asarray(r.image), np.asarray(r.alpha)[..., None]], -1)
+    w = np.asarray(splat.render(g, cam, opacity_mult=jnp.asarray(jax.nn.sigmoid(o[:, 1]))).max_weight)
+    assert 1 / 255 < w[3] < 0.01 and w[2] < 0.01 and w[4] == 0.0  # what the rule is tested on
+    cfg = rf.RefineConfig(steps=6, visibility_interval=6, lr_o=0.0, lr_alpha=0.0, lr_color=0.0, lr_other=0.0,
+                          position_lr=1e-12, position_lr_final=1e-12, halve_alpha=False, random_background=False)  # fmt: skip
+    views = [ci.DateViews((cam,), (image,))] * 2
+    out, rep = rf.refine(model, views, cfg, extent=1.0)
+    assert rep["zeroed_per_date"] == [2, 2] and len(out) == 3, rep
+    kept = np.asarray(out.o_logits)
+    np.testing.assert_allclose(np.asarray(out.gaussians.means), means[[0, 1, 3]], atol=1e-6)
+    assert np.isclose(kept[2, 1], logit(0.012), atol=1e-6)  # faint o, in view: kept

@@ -38,10 +38,16 @@ from cfgs_jax.model import Camera, Gaussians, TemporalGaussians, opacity_multipl
 
 @dataclasses.dataclass(frozen=True)
 class ChangeConfig:
-    """Thresholds: τ on o^q (absent below), the per-pixel |S − 1| score, and the visibility rule."""
+    """Thresholds: τ on o^q (absent below), the per-pixel |S − 1| score, and the visibility rule.
 
-    absent_below: float = 0.5
-    pixel_threshold: float = 0.5
+    τ = 0.2 is issue 7's "absent" bound, and lies well below the cross-init's uninformed start
+    δ·o^p = 0.5: a Gaussian counts as absent only where the images moved o^q away from that start,
+    not where it got no signal and drifted around 0.5. The pixel threshold 0.8 is the same decision
+    for a Gaussian present at p (o^p = 1): for the selection {p, q}, S ≈ [1, (1 + o^q)/2, o^q], so
+    |S − 1|_∞ = 1 − o^q > 0.8 ⇔ o^q < 0.2."""
+
+    absent_below: float = 0.2
+    pixel_threshold: float = 0.8
     contribution_threshold: float = 0.01
     majority: float = 0.5  # a Gaussian is "changed" when this share of its weight lies on changed pixels
 
@@ -224,6 +230,8 @@ def summarise_gaussians(table: dict, config: ChangeConfig = ChangeConfig(), thre
     if "weight" in cat:  # each Gaussian counted by its compositing weight in its own views
         wt = precision_recall(score[obs], cat["gt_changed"][obs], [1.0 - config.absent_below], cat["weight"][obs])
         weighted = {f"weighted_{k}": float(wt[k][0]) for k in ("precision", "recall", "f1")}
+        w_obs = cat["weight"][obs]
+        weighted["weighted_flagged_changed"] = float((w_obs * absent[obs]).sum() / max(w_obs.sum(), 1e-30))
     return weighted | {
         "pairs": len(table["pairs"]),
         "entries": int(len(obs)),

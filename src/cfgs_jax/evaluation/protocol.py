@@ -244,6 +244,10 @@ def margins(rows: list[dict], n: int) -> dict:
             "lpips": ind["lpips"] - ours["lpips"]}  # fmt: skip
 
 
+def _share(x) -> str:
+    return "–" if x is None else f"{100 * x:.1f} %"
+
+
 def date_masks(data: Path, scenes, sims, names: list[str], split: str = "train") -> list:
     """Each date's ground-truth object masks (``change.DateMasks``) of its ``split`` views, posed in the
     reference frame."""
@@ -380,7 +384,8 @@ def table_markdown(table: dict) -> str:
                   f"| Gaussians (o^q < {ch['config']['absent_below']}, observed) | {g['precision']:.3f} | {g['recall']:.3f} | "
                   f"{g['f1']:.3f} | – | {100 * g['flagged_changed']:.1f} % | {100 * g['gt_changed']:.1f} % |",
                   *([f"| … weighted by compositing weight | {g['weighted_precision']:.3f} | {g['weighted_recall']:.3f} | "
-                     f"{g['weighted_f1']:.3f} | – | – | – |"] if "weighted_f1" in g else []),
+                     f"{g['weighted_f1']:.3f} | – | {_share(g.get('weighted_flagged_changed'))} | – |"]
+                    if "weighted_f1" in g else []),
                   f"| Pixels (highlight |S−1| > {ch['config']['pixel_threshold']}) | – | – | – | {p['iou']:.3f} | "
                   f"{100 * p['predicted_changed_share']:.1f} % | {100 * p['gt_changed_share']:.1f} % |", "",
                   f"Gaussians not observed at a date: {100 * (1 - g['observed']):.1f} % of (Gaussian, date) entries, "

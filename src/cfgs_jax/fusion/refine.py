@@ -7,8 +7,13 @@ random training image of a random date per step, with
 
 where d(o) = (o^p − o^{p+1})_p on activated o and õ are the values after cross-timestep
 initialisation. α is halved (as a probability) at the start. Visibility (DESIGN §5): a Gaussian
-contributes to an image where α·T ≥ ``contribution_threshold`` at some pixel (the kernel's
-``max_weight``); one that contributed to no training render of date p during an interval gets o^p := 0
+contributes to an image of date p where α·T ≥ ``contribution_threshold`` at some pixel, α its own
+opacity (times its 2D falloff) and T the transmittance the date-p render leaves in front of it — the
+kernel's ``max_weight`` of the render, which carries α·o^p, divided by o^p. Leaving o^p out of the
+test keeps the rule about whether the Gaussian *can be validated* at date p (in view, not hidden):
+with it, a faint Gaussian whose o^p the cross-init left at ~0.5 would fail the test at the other
+dates only and be zeroed there, a persistence difference — a false "change" — that no image shows.
+One that contributed to no training render of date p during an interval gets o^p := 0
 (logit ``INVISIBLE_LOGIT``), for the dates rendered at least once in that interval. The final prune
 drops Gaussians with α·o^p ≤ 1/255 at every date.
 """
@@ -24,6 +29,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
+from jaxtyping import Array, Float
 
 from cfgs_jax import metrics, splat
 from cfgs_jax.errors import InputError
@@ -43,6 +49,7 @@ class RefineConfig:
     log-linearly to ``position_lr_final`` over ``steps``)."""
 
     steps: int = 6000
+    extend_steps: int = 0  # refinement steps when `extend` adds a date (0: ``steps``; the paper is silent)
     lr_o: float = 2.5e-6
     lr_alpha: float = 0.005
     lr_color: float = 2e-5
@@ -62,6 +69,8 @@ class RefineConfig:
     def __post_init__(self):
         if self.steps < 0:
             raise InputError(f"must be ≥ 0, got {self.steps}", field="refine.steps")
+        if self.extend_steps < 0:
+            raise InputError(f"must be ≥ 0 (0: refine.steps), got {self.extend_steps}", field="refine.extend_steps")
         if self.visibility_interval <= 0:
             raise InputError(f"must be positive, got {self.visibility_interval}", field="refine.visibility_interval")
 
@@ -133,10 +142,15 @@ def _compiled_step(config: RefineConfig, extent: float, render_config: splat.Ren
             params, light_logits, o_init, camera, image, date, bg, config, render_config
         )
         updates, opt_state = optimizer.update(grads, opt_state, params)
-        contributed = res.max_weight[0] >= config.contribution_threshold
+        contributed = visible_weight(res.max_weight[0], params["o_logits"][:, date]) >= config.contribution_threshold
         return optax.apply_updates(params, updates), opt_state, loss, contributed, res.overflowed
 
     return optimizer, step
+
+
+def visible_weight(max_weight: Float[Array, "N"], o_logits: Float[Array, "N"]) -> Float[Array, "N"]:
+    """max over pixels of α·T without the persistence factor: the kernel's α·o·T divided by o."""
+    return max_weight / jax.nn.sigmoid(o_logits)
 
 
 def apply_visibility(o_logits: np.ndarray, contributed: np.ndarray, rendered: np.ndarray) -> np.ndarray:

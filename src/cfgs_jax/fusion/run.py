@@ -211,6 +211,8 @@ def _refine_stage(run: FusionRun, views, scenes, render_config, progress: bool, 
     release_if_near_limit()
     t0 = time.perf_counter()
     fc = section(run.raw, "refine", RefineConfig)
+    if stage.startswith("extend:") and fc.extend_steps:
+        fc = dataclasses.replace(fc, steps=fc.extend_steps)
     model = read_fused(run.out / "cross_init")
     log(f"[{stage}] {len(model):,} Gaussians, {fc.steps:,} steps over all dates")
     ckpt = run.out / f"{stage.replace(':', '_')}_checkpoint.npz"
