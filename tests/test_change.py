@@ -98,6 +98,11 @@ def test_pixel_iou_of_a_removed_blob():
     assert r["per_pair"]["a→b"] > 0.8 and r["per_pair"]["b→a"] > 0.8
     # the right blob persists: nothing flagged where it dominates
     assert r["predicted_changed_share"] < truth.sum() / r["evaluated_pixels"] * 1.3
+    # the threshold sweep: at the default threshold it is the reported IoU; fewer pixels flagged as it rises
+    c = r["curve"]
+    at = c["threshold"].index(change.ChangeConfig().pixel_threshold)
+    assert np.isclose(c["iou"][at], r["iou"]) and np.isclose(c["predicted_changed_share"][at], r["predicted_changed_share"])
+    assert np.all(np.diff(c["predicted_changed_share"]) <= 0) and c["predicted_changed_share"][0] > 0
 
 
 def test_weighted_precision_recall_counts_each_entry_by_its_weight():

@@ -257,11 +257,16 @@ def _pixel_scores(g: Gaussians, camera: Camera, opacity, score, observed, config
 
 def pixel_change_iou(model: TemporalGaussians, masks: Sequence[DateMasks], observing: Sequence[Sequence[Camera]],
                      config: ChangeConfig = ChangeConfig(), *, render_config=None,
-                     observed: np.ndarray | None = None) -> dict:  # fmt: skip
+                     observed: np.ndarray | None = None, thresholds=None) -> dict:  # fmt: skip
     """IoU of the rendered highlight's change mask (|S − 1|_∞ > threshold for the selection {p, q})
     with the ground-truth changed mask, on ``masks[p]``'s views, over pixels covered (alpha ≥ 0.5)
     and observed at both dates (``observed``: the ``observed_matrix`` of ``observing``, computed when
-    not given); micro-averaged over all ordered pairs, and per pair."""
+    not given); micro-averaged over all ordered pairs, and per pair, at ``config.pixel_threshold``;
+    ``curve``: IoU and flagged share at each of ``thresholds`` (default 0.05, 0.10, …, 0.95)."""
+    thresholds = np.round(np.arange(1, 20) * 0.05, 2) if thresholds is None else np.asarray(thresholds, np.float64)
+    sweep_inter = np.zeros(len(thresholds), np.int64)
+    sweep_union = np.zeros(len(thresholds), np.int64)
+    sweep_pred = np.zeros(len(thresholds), np.int64)
     names = [d.name for d in model.dates]
     o = opacity_multipliers(model)
     rc = render_config or splat.RenderConfig()
@@ -287,6 +292,10 @@ def pixel_change_iou(model: TemporalGaussians, masks: Sequence[DateMasks], obser
                 valid = (alpha >= 0.5) & (seen >= 0.5)
                 pred = (s > config.pixel_threshold) & valid
                 truth = gt & valid
+                sweep = (s[None] > thresholds[:, None, None]) & valid[None]
+                sweep_inter += (sweep & truth[None]).sum((1, 2))
+                sweep_union += (sweep | truth[None]).sum((1, 2))
+                sweep_pred += sweep.sum((1, 2))
                 i_pq += int((pred & truth).sum())
                 u_pq += int((pred | truth).sum())
                 predicted += int(pred.sum())
@@ -297,4 +306,7 @@ def pixel_change_iou(model: TemporalGaussians, masks: Sequence[DateMasks], obser
     share = (lambda k: k / valid_total if valid_total else float("nan"))  # noqa: E731
     return {"iou": inter / union if union else float("nan"), "per_pair": per_pair,
             "predicted_changed_share": share(predicted), "gt_changed_share": share(truth_total),
-            "evaluated_pixels": valid_total}  # fmt: skip
+            "evaluated_pixels": valid_total,
+            "curve": {"threshold": thresholds.tolist(),
+                      "iou": np.where(sweep_union > 0, sweep_inter / np.maximum(sweep_union, 1), np.nan).tolist(),
+                      "predicted_changed_share": (sweep_pred / max(valid_total, 1)).tolist()}}  # fmt: skip

@@ -390,6 +390,13 @@ def table_markdown(table: dict) -> str:
                   f"{100 * p['predicted_changed_share']:.1f} % | {100 * p['gt_changed_share']:.1f} % |", "",
                   f"Gaussians not observed at a date: {100 * (1 - g['observed']):.1f} % of (Gaussian, date) entries, "
                   f"{100 * g['unobserved_marked_absent']:.1f} % of them absent (o < {ch['config']['absent_below']}), none flagged changed."]  # fmt: skip
+        if "curve" in p:
+            c = p["curve"]
+            best = int(np.argmax(np.nan_to_num(c["iou"], nan=-1.0)))
+            lines.append("\nPixels over the threshold on |S−1|: " + ", ".join(
+                f"{t:.2f}: IoU {i:.3f} ({100 * f:.1f} % flagged)" for t, i, f in
+                zip(c["threshold"], c["iou"], c["predicted_changed_share"]) if round(t * 20) % 2 == 0)
+                + f"; best IoU {c['iou'][best]:.3f} at {c['threshold'][best]:.2f}.")  # fmt: skip
         for key, when in (("objects_cross_init", "after cross-init"), ("objects_fused", "after refinement")):
             ob = ch.get(key)
             if ob:
