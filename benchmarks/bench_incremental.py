@@ -94,7 +94,8 @@ def main():
     if not 3 <= args.max_dates <= 6:
         raise SystemExit("--max-dates must lie in 3..6 (the reef preset has 6 dates)")
 
-    from cfgs_jax.config import find_preset, load_config
+    from cfgs_jax.config import find_preset, load_config, section
+    from cfgs_jax.fusion.refine import RefineConfig
     from cfgs_jax.fusion.run import run_fusion
 
     work = Path(args.work)
@@ -102,8 +103,8 @@ def main():
     raw = load_config(find_preset(args.config))
     if args.extend_steps is not None:
         raw["refine"] = dict(raw.get("refine", {})) | {"extend_steps": args.extend_steps}
-    refine_steps = raw.get("refine", {}).get("steps", 6000)
-    extend_steps = raw.get("refine", {}).get("extend_steps", 0) or refine_steps
+    refine = section(raw, "refine", RefineConfig)
+    refine_steps, extend_steps = refine.steps, refine.extend_steps or refine.steps
     dirs = [data / n for n in names]
 
     if args.path:  # child process: one path, its own compilations (no warm cache from the other path)

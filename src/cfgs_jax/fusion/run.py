@@ -204,14 +204,16 @@ def _cross_init_pairs(run: FusionRun, start: Path, pairs, views, render_config, 
     run.finish(stage, finished["seconds"], finished["reports"])
 
 
-def _refine_stage(run: FusionRun, views, scenes, render_config, progress: bool, log, stage: str, snapshots=()) -> None:
+def _refine_stage(run: FusionRun, views, scenes, render_config, progress: bool, log, stage: str, snapshots=(), *,
+                  extension: bool = False) -> None:  # fmt: skip
     """Eq. 3 refinement of ``RUN/cross_init`` → ``RUN/fused``, resumable mid-way from
     ``RUN/<stage>_checkpoint.npz`` (saved every ``refine.checkpoint_every`` steps); the model after each
-    step count in ``snapshots`` goes to ``RUN/snapshots/refine_<k>/``."""
+    step count in ``snapshots`` goes to ``RUN/snapshots/refine_<k>/``. An ``extension`` refines
+    ``refine.extend_steps`` steps where that is set."""
     release_if_near_limit()
     t0 = time.perf_counter()
     fc = section(run.raw, "refine", RefineConfig)
-    if stage.startswith("extend:") and fc.extend_steps:
+    if extension and fc.extend_steps:
         fc = dataclasses.replace(fc, steps=fc.extend_steps)
     model = read_fused(run.out / "cross_init")
     log(f"[{stage}] {len(model):,} Gaussians, {fc.steps:,} steps over all dates")
@@ -419,7 +421,7 @@ def run_extend(run_dir: Path, date: Path, *, model: Path | None = None, transfor
                           "extend/cross_init")  # fmt: skip
 
     if not run.done(prefix + "refine"):
-        _refine_stage(run, views, scenes, render_config, progress, log, prefix + "refine")
+        _refine_stage(run, views, scenes, render_config, progress, log, prefix + "refine", extension=True)
         write_fused(run.out / "reference", read_fused(run.out / "fused"), layout="reference")
     _evaluate_stage(run, scenes, sims, render_config, evaluate, log, stage=prefix + "evaluate")
     run.timings[f"extend:{name}:total"] = sum(v for key, v in run.timings.items() if key.startswith(prefix))
