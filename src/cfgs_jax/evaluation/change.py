@@ -41,8 +41,8 @@ class ChangeConfig:
     """Thresholds: τ on o^q (absent below), the per-pixel |S − 1| score, and the visibility rule.
 
     τ = 0.2 is issue 7's "absent" bound, and lies well below the cross-init's uninformed start
-    δ·o^p = 0.5: a Gaussian counts as absent only where the images moved o^q away from that start,
-    not where it got no signal and drifted around 0.5. The pixel threshold 0.8 is the same decision
+    δ·o^p (δ = 0.8 by default): a Gaussian counts as absent only where the images moved o^q away from
+    that start, not where it got no signal and drifted around it. The pixel threshold 0.8 is the same decision
     for a Gaussian present at p (o^p = 1): for the selection {p, q}, S ≈ [1, (1 + o^q)/2, o^q], so
     |S − 1|_∞ = 1 − o^q > 0.8 ⇔ o^q < 0.2."""
 

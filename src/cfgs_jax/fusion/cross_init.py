@@ -56,7 +56,7 @@ class CrossInitConfig:
     steps: int = 3000
     lr_o: float = 0.0075
     lr_light: float = 0.00375
-    delta: float = 0.8  # the paper gives only δ < 1; 0.8 leaves unidentified o^q on the "persistent" side (README §Cross-init)
+    delta: float = 0.8  # the paper gives only δ < 1; 0.8 leaves unidentified o^q on the "persistent" side (README §Conventions)
     epsilon_schedule: Literal["paper", "reference"] = "paper"
     ramp_fraction: float = 0.5
     lpips_net: Literal["alex", "vgg"] = "alex"

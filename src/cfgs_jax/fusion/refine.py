@@ -11,7 +11,7 @@ contributes to an image of date p where α·T ≥ ``contribution_threshold`` at 
 opacity (times its 2D falloff) and T the transmittance the date-p render leaves in front of it — the
 kernel's ``max_weight`` of the render, which carries α·o^p, divided by o^p. Leaving o^p out of the
 test keeps the rule about whether the Gaussian *can be validated* at date p (in view, not hidden):
-with it, a faint Gaussian whose o^p the cross-init left at ~0.5 would fail the test at the other
+with it, a faint Gaussian whose o^p the cross-init left well below 1 would fail the test at the other
 dates only and be zeroed there, a persistence difference — a false "change" — that no image shows.
 One that contributed to no training render of date p during an interval gets o^p := 0
 (logit ``INVISIBLE_LOGIT``), for the dates rendered at least once in that interval. The final prune
