@@ -83,6 +83,34 @@ def _two_blobs():
     return cj.TemporalGaussians(g, o_logits, np.zeros((2, 2, 3), np.float32), np.zeros(2, np.int32), dates)
 
 
+def test_observed_at_a_date_is_visibility_behind_that_dates_model():
+    """Date a: blob A (behind) and blob R (removed at b); date b: an opaque wall W in front of A only.
+    At b, A is hidden behind W, so not observed there (it could not be validated), while R is
+    observed; with the own-date rule both are. Checked against the float64 reference's α·T."""
+    # A, R, and W as two layers (nearer: y −0.6, −0.7) wide enough to cover A's footprint
+    means = np.array([[-0.6, 0.3, 0], [0.8, 0, 0], [-0.6, -0.6, 0], [-0.6, -0.7, 0]], np.float32)
+    scales = np.array([[-2.5] * 3, [-1.5] * 3, [-0.5, -3.0, -0.5], [-0.5, -3.0, -0.5]], np.float32)
+    g = cj.Gaussians(means, np.tile([1, 0, 0, 0], (4, 1)).astype(np.float32), scales,
+                     np.array([4.0, 4.0, 8.0, 8.0], np.float32), np.full((4, 3), 0.5, np.float32))  # fmt: skip
+    o_logits = np.array([[8.0, -8.0], [8.0, -8.0], [-8.0, 8.0], [-8.0, 8.0]], np.float32)
+    model = cj.TemporalGaussians(g, o_logits, np.zeros((4, 2, 3), np.float32), np.array([0, 0, 1, 1], np.int32),
+                                 (cj.DateInfo("a"), cj.DateInfo("b")))  # fmt: skip
+    cams = [(cj.Camera.look_at([0, -4, 0], [0, 0, 0], width=40, height=20, fov_x_deg=50),)] * 2
+    fused = change.observed_matrix(model, cams, 0.01)
+    alone = change.observed_matrix(model, cams, 0.01, occlusion="own date")
+    o = 1 / (1 + np.exp(-o_logits.astype(np.float64)))
+    mult = np.array([[o[0, 0], o[1, 0], o[2, 1], o[3, 1]]])  # date a's Gaussians at b: a's own o, W at o^b
+    ref = reference.render_dates(g, cams[1][0], mult, np.ones((1, 4, 3)))
+    want = np.asarray(ref.max_weight)[0, :2] / o[:2, 0] >= 0.01
+    assert list(want) == [False, True]
+    assert list(fused[:2, 1]) == [False, True] and fused[2:, 1].any()
+    assert alone[:2, 1].all() and alone[:, 0].all() == fused[:2, 0].all()
+    # the hidden blob is absent at b but not flagged changed; the removed one is
+    table = {"pairs": {(0, 1): {"gt_changed": np.array([False, True]), "observed": fused[:2, 1], "o_q": o[:2, 1]}}}
+    s = change.summarise_gaussians(table)
+    assert np.isclose(s["flagged_changed"], 0.5) and np.isclose(s["precision"], 1.0) and np.isclose(s["recall"], 1.0)
+
+
 def test_pixel_iou_of_a_removed_blob():
     model = _two_blobs()
     cam = cj.Camera.look_at([0, -4, 0], [0, 0, 0], width=40, height=20, fov_x_deg=50)

@@ -102,6 +102,7 @@ def test_eval_change_detection_and_resume(protocol):
     g, p = change["gaussians"], change["pixels"]
     assert 0.0 <= g["f1"] <= 1.0 and 0.0 < g["observed"] <= 1.0 and g["entries"] > 0
     assert p["evaluated_pixels"] > 0 and 0.0 <= p["predicted_changed_share"] <= 1.0
+    assert 0.0 <= g["hidden_in_fused_absent"] <= g["hidden_in_fused"] <= 1.0 - g["observed"]
     curve = g["curve"]
     assert len(curve["precision"]) == len(curve["recall"]) == len(curve["threshold"])
     # corals d0 → d1 removes / adds objects: the ground truth has changed Gaussians and pixels

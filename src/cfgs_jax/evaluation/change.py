@@ -6,10 +6,16 @@ compositing weight w_i = α_i·o_i·T_i on pixels of each label. That sum is exa
 Σ_pixels mask·C with respect to a per-Gaussian colour multiplier, so the exact splatting kernel's
 backward pass computes it for three masks per rendered date channel, all labels in one pass.
 
-A Gaussian of date p is *observed* at date q when, rendered alone with its date's Gaussians, it has
-α·T ≥ ``contribution_threshold`` at some pixel of some training view of q (the refinement's
-visibility rule). It is *absent* at q when o^q < τ, and *flagged changed* when observed and absent:
-an unobserved Gaussian (e.g. the half a date did not cover) is absent but not changed.
+A Gaussian of date p is *observed* at date q when q's training views could see it were it there: the
+refinement's visibility rule (α·T ≥ ``contribution_threshold`` at some pixel of some training view of
+q, α its own opacity), with T from the fused model rendered at q in which date p's Gaussians carry
+o^p and every other Gaussian o^q. So a Gaussian hidden behind date q's surface (e.g. date q's own
+copy of a persistent wall, just in front of date p's) is not observed at q — refinement zeroes its
+o^q for the same reason, and no image of q can tell whether it is there; a Gaussian of an object
+removed at q is observed (nothing of q lies in front of it). ``occlusion="own date"`` gives the
+stricter rule that renders date p's Gaussians alone. It is *absent* at q when o^q < τ, and *flagged
+changed* when observed and absent: an unobserved Gaussian (e.g. the half a date did not cover) is
+absent but not changed.
 
 Per pixel: the highlight of the selection {p, q} (Eq. 5–6) gives every Gaussian |S − 1|_∞; rendered
 as a colour with the selection's max opacity α·max(o ⊙ t) (so an object of one date renders solid)
@@ -147,19 +153,41 @@ def object_labels(model: TemporalGaussians, masks: Sequence[DateMasks], num_obje
 
 
 def observed_matrix(model: TemporalGaussians, observing: Sequence[Sequence[Camera]], threshold: float, *,
-                    render_config=None) -> np.ndarray:  # fmt: skip
+                    occlusion: str = "fused", render_config=None) -> np.ndarray:  # fmt: skip
     """[N, T] bool: column q says whether each Gaussian is observed at date q (``observing[q]``: date
-    q's training cameras) — ``observed_from`` with its own date's Gaussians and opacity o^origin."""
+    q's training cameras). ``occlusion="fused"``: the whole model rendered at q, the Gaussians of the
+    evaluated date p at opacity o^p and all others at o^q (so column q of date q's own Gaussians is
+    the fused render at q); ``"own date"``: date p's Gaussians alone at o^p."""
+    if occlusion not in ("fused", "own date"):
+        raise InputError(f"unknown occlusion {occlusion!r}", field="occlusion", fix='use "fused" or "own date"')
     o = np.asarray(opacity_multipliers(model))
     origin = np.asarray(model.origin)
     seen = np.zeros((len(origin), len(observing)), bool)
     for p in range(model.num_dates):
         rows = np.nonzero(origin == p)[0]
-        if len(rows):
+        if not len(rows):
+            continue
+        if occlusion == "own date":
             g = jax.tree_util.tree_map(lambda x: jnp.asarray(x)[rows], model.gaussians)
             for q, cams in enumerate(observing):
                 seen[rows, q] = observed_from(g, o[rows, p], cams, threshold, render_config=render_config)
+            continue
+        for q, cams in enumerate(observing):
+            mult = np.where(origin == p, o[:, p], o[:, q])
+            weight = visible_weight(model.gaussians, mult, cams, render_config=render_config)
+            seen[rows, q] = weight[rows] >= threshold
     return seen
+
+
+def visible_weight(g: Gaussians, opacity: Float[Array, "N"], cameras: Sequence[Camera], *,
+                   render_config=None) -> np.ndarray:  # fmt: skip
+    """[N] max over pixels and ``cameras`` of α·T, α the Gaussian's own opacity (the kernel's α·opacity·T
+    divided by ``opacity``; 0 where ``opacity`` is 0)."""
+    opacity = np.asarray(opacity, np.float32)
+    best = np.zeros(len(opacity), np.float32)
+    for cam in cameras:
+        best = np.maximum(best, np.asarray(splat.render(g, cam, opacity_mult=jnp.asarray(opacity), config=render_config).max_weight))
+    return np.where(opacity > 0, best / np.maximum(opacity, 1e-30), 0.0)
 
 
 def gaussian_change_table(model: TemporalGaussians, masks: Sequence[DateMasks], observing: Sequence[Sequence[Camera]],

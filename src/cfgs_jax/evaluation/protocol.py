@@ -290,6 +290,17 @@ def change_detection(model, data: Path, scenes, sims, render_config, cross_init=
     table = change.gaussian_change_table(model, masks, observing, len(gt["objects"]), cfg, render_config=render_config,
                                          observed=observed)  # fmt: skip
     summary = change.summarise_gaussians(table, cfg)
+    # how much the fused occlusion rule matters: entries seen with their own date's Gaussians alone but
+    # hidden in the fused model at q, and how many of those are absent (would count as changed otherwise)
+    alone = change.observed_matrix(model, observing, cfg.contribution_threshold, occlusion="own date",
+                                   render_config=render_config)  # fmt: skip
+    seen_alone = np.concatenate([alone[v["rows"], q] for (_, q), v in table["pairs"].items()])
+    seen_fused = np.concatenate([v["observed"] for v in table["pairs"].values()])
+    o_q = np.concatenate([v["o_q"] for v in table["pairs"].values()])
+    hidden = seen_alone & ~seen_fused
+    summary["hidden_in_fused"] = float(hidden.mean())
+    summary["hidden_in_fused_absent"] = float((hidden & (o_q < cfg.absent_below)).mean())
+    summary["flagged_changed_own_date_rule"] = float((seen_alone & (o_q < cfg.absent_below)).mean())
     pixels = change.pixel_change_iou(model, masks_test, observing, cfg, render_config=render_config, observed=observed)
     fused = object_persistence(model, table["objects"], gt)
     summary["absent_objects_below_0.2"] = fused.pop("absent_by_object")
@@ -390,6 +401,12 @@ def table_markdown(table: dict) -> str:
                   f"{100 * p['predicted_changed_share']:.1f} % | {100 * p['gt_changed_share']:.1f} % |", "",
                   f"Gaussians not observed at a date: {100 * (1 - g['observed']):.1f} % of (Gaussian, date) entries, "
                   f"{100 * g['unobserved_marked_absent']:.1f} % of them absent (o < {ch['config']['absent_below']}), none flagged changed."]  # fmt: skip
+        if "hidden_in_fused" in g:
+            lines.append(f"\nObserved = visible at q were it there, behind what the fused model shows at q (the refinement's "
+                         f"visibility rule). {100 * g['hidden_in_fused']:.1f} % of the entries are visible with their own "
+                         f"date's Gaussians alone but hidden in the fused model ({100 * g['hidden_in_fused_absent']:.1f} % "
+                         f"hidden and absent); with the own-date rule {100 * g['flagged_changed_own_date_rule']:.1f} % "
+                         "would be flagged changed.")  # fmt: skip
         if "curve" in p:
             c = p["curve"]
             best = int(np.argmax(np.nan_to_num(c["iou"], nan=-1.0)))
