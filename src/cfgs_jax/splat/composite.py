@@ -88,7 +88,8 @@ def _exclusive_cumprod(x):
     """Π_{j<k} x_j along the leading axis as a sequential chain. On CPU ``jnp.cumprod`` lowers to an
     O(K²) reduce-window, a log-space triangular matmul to a slow library call, and a two-level
     (blocked) chain fuses into one kernel that recomputes; the plain chain (INRIA's order) costs K
-    small element-wise kernels and measured fastest."""
+    small element-wise kernels and measured fastest (also faster than a chain started from T itself,
+    which materialises T before and after each Gaussian separately)."""
     out = [jnp.ones_like(x[0])]
     for i in range(x.shape[0] - 1):
         out.append(out[-1] * x[i])
@@ -154,11 +155,12 @@ def _chunk(layout: Layout, r, start, end, ids, means2d, conics, opac, feats, px,
     tk = t_live * _exclusive_cumprod(one_m)  # T before each Gaussian
     test = tk * one_m
     # Rounding (~1e-6 relative) cannot make ``test`` increase along K across a valid Gaussian (which
-    # scales it by 1 − α ≤ 1 − 1/255), so the first Gaussian that would take T below the threshold
-    # stops the pixel and none after it contributes, as in INRIA's sequential loop.
-    contrib = (a > 0.0) & (test >= layout.min_transmittance)
-    w = jnp.where(contrib, a * tk, 0.0)  # ≥ (1/255)·1e-4 where contributing
-    t_out = jnp.where(done_in, t_in, jnp.minimum(t_in, _reduce_leading_min(jnp.where(contrib, test, t_in))))
+    # scales it by 1 − α ≤ 1 − 1/255), so the first Gaussian that would take T below the threshold stops the pixel and none after it
+    # contributes, as in INRIA's sequential loop. A skipped Gaussian (α = 0) leaves T as it was, so
+    # ``test ≥ threshold`` alone selects the contributions once w = α·T is 0 for it.
+    live = test >= layout.min_transmittance
+    w = jnp.where(live, a * tk, 0.0)  # ≥ (1/255)·1e-4 where contributing, 0 where skipped or stopped
+    t_out = jnp.where(done_in, t_in, jnp.minimum(t_in, _reduce_leading_min(jnp.where(live, test, t_in))))
     done_out = done_in | (test[-1] < layout.min_transmittance)
     return _Chunk(gid, dx, dy, con, op, ft, g, og, one_m, tk, w, t_out, done_out)
 
