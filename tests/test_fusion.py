@@ -162,6 +162,41 @@ def test_cross_init_keeps_what_date_q_shows_and_drops_what_it_lacks():
     assert np.array_equal(np.asarray(out.o_logits)[n:], np.asarray(model.o_logits)[n:])
 
 
+def test_exposure_init_starts_the_gain_at_the_least_squares_exposure():
+    """exposure_gain is Σ Y(C)·Y(I) / Σ Y(C)² over pixels both cover (closed form on the float64
+    reference render); with ``exposure_init`` a pair's gains start there (k = 0), without it at 1."""
+    ci = importlib.import_module("cfgs_jax.fusion.cross_init")
+    from cfgs_jax.splat import reference
+
+    g = _random_gaussians(60, seed=5)
+    cams = tuple(cj.Camera.look_at([x, -0.3, -2.5], [0, 0, 0], up=(0, -1, 0), width=40, height=32, fov_x_deg=55)
+                 for x in (-0.3, 0.3))  # fmt: skip
+    rng = np.random.default_rng(1)
+    images, num, den = [], 0.0, 0.0
+    y = np.array([0.2126, 0.7152, 0.0722])
+    model = fusion.merge([g, g], ["p", "q"])
+    o_p = np.asarray(cj.opacity_multipliers(model))[:60, 0]  # ≈ 0.996: date p's render in the merged model
+    for cam in cams:
+        ref = reference.render_dates(g, cam, o_p[None].astype(np.float64), np.ones((1, 60, 3)))
+        c, a = np.asarray(ref.image[0], np.float64), np.asarray(ref.alpha[0], np.float64)
+        rgb = np.clip(1.6 * c + rng.normal(0, 0.02, c.shape), 0, None)
+        images.append(np.float32(rgb))
+        covered = a >= 0.5
+        num += np.sum(((c @ y) * (np.float32(rgb) @ y))[covered])
+        den += np.sum(((c @ y) ** 2)[covered])
+    assert 1.5 < num / den < 1.7
+    got = ci.exposure_gain(g, jnp.asarray(o_p), cams, images)
+    assert np.isclose(got, num / den, rtol=1e-4), (got, num / den)
+    views = ci.DateViews(cams, tuple(images))
+    for on, want in ((True, num / den), (False, 1.0)):
+        cfg = ci.CrossInitConfig(steps=1, lr_o=0.0, lr_light=0.0, exposure_init=on)
+        out, rep = ci.init_pair(model, 0, 1, views, cfg)
+        seen = np.asarray(out.o_logits)[:60, 1] != fusion.INVISIBLE_LOGIT
+        light = np.asarray(cj.light_multipliers(out))[:60, 1][seen]
+        assert np.isclose(rep["start_gain"], want, rtol=1e-4), (rep["start_gain"], want)
+        assert np.allclose(light, want, rtol=1e-3)
+
+
 def test_cross_init_padding_renders_nothing_and_gets_no_gradient():
     """Pairs pad their Gaussians to shared counts: the padded rows change neither the image nor the
     real rows' gradients, and get zero gradient themselves."""

@@ -43,7 +43,7 @@ import optax
 from cfgs_jax import metrics, splat
 from cfgs_jax.errors import InputError
 from cfgs_jax.fusion.fuse import INVISIBLE_LOGIT
-from cfgs_jax.fusion.light import light_logits, light_multiplier
+from cfgs_jax.fusion.light import REC709, light_logits, light_multiplier
 from cfgs_jax.model import Camera, Gaussians, TemporalGaussians
 from cfgs_jax.train.loop import view_order
 from cfgs_jax.train.step import over_background
@@ -63,6 +63,7 @@ class CrossInitConfig:
     lpips_scale: float = 1.0  # ε_LPIPS = clip(map / lpips_scale, 0, 1)
     background_anneal: float = 1.0  # fraction of the steps over which b's range shrinks to black
     batch_dates: int = 0  # pairs (p, q) of one p optimised together per step (vmapped); 0: all of them
+    exposure_init: bool = False  # start every Gaussian's gain at the pair's least-squares exposure (else 1)
     seed: int = 0
 
     def __post_init__(self):
@@ -114,6 +115,25 @@ def lpips_map(g: Gaussians, o_p, camera, image, lpips_net, config: CrossInitConf
     target = over_background(jnp.asarray(image, jnp.float32), jnp.zeros(3, jnp.float32))
     lp = metrics.perceptual.lpips_distance(lpips_net, own, target, spatial=True)
     return jnp.clip(lp / config.lpips_scale, 0.0, 1.0)
+
+
+def exposure_gain(g: Gaussians, o_p, cameras: Sequence[Camera], images, render_config=None) -> float:
+    """The least-squares luminance gain s minimising Σ (s·Y(C) − Y(I))² over ``cameras`` (C: date p's
+    render at opacity α·o^p over black, I: the image over black) on pixels both cover (alpha ≥ 0.5)."""
+    n = len(g)
+    num = den = 0.0
+    for cam, im in zip(cameras, images):
+        res = splat.render_dates(g, cam, o_p[None], jnp.ones((1, n, 3), jnp.float32), config=render_config, statistics=False)
+        im = np.asarray(im, np.float32)
+        target = np.asarray(over_background(jnp.asarray(im), jnp.zeros(3, jnp.float32)))
+        covered = np.asarray(res.alpha[0]) >= 0.5
+        if im.shape[-1] == 4:
+            covered &= im[..., 3] >= 0.5
+        yc = np.asarray(res.image[0]) @ REC709
+        yi = target @ REC709
+        num += float(np.sum((yc * yi)[covered]))
+        den += float(np.sum((yc * yc)[covered]))
+    return num / den if den > 0 else 1.0
 
 
 def pair_loss(params, g: Gaussians, camera, image, eps_map, b, step, config: CrossInitConfig, render_config):
@@ -233,17 +253,22 @@ def init_pairs(model: TemporalGaussians, p: int, qs: Sequence[int], views: Seque
     o_q = jnp.clip(config.delta * o_p, 1e-4, 1 - 1e-4)
     k = len(active)
     o_init = jnp.where(mask > 0, jnp.log(o_q) - jnp.log1p(-o_q), -100.0)  # unseen from q: off (culled), no gradient
-    params = {"o_logit": o_init, "u": jnp.zeros((k, m)), "w": jnp.zeros((k, m))}
     ones = jnp.ones((1, m), jnp.float32)
     cameras = [views[i].cameras for i in active]
     capacity = max(splat.required_capacity(g, c, ones, config=render_config) for cs in cameras for c in cs)
     images = [[jnp.asarray(im, jnp.float32) for im in views[i].images] for i in active]
+    rc = dataclasses.replace(render_config, capacity=capacity)
+    u0 = np.zeros((k, 1), np.float32)  # gain 2σ(u) = 1
+    if config.exposure_init:  # gain := the pair's exposure, inside the stored range (0, 2)
+        for j in range(k):
+            half = np.clip(exposure_gain(g, o_p * mask[j], cameras[j], images[j], rc) / 2.0, 0.02, 0.98)
+            u0[j] = np.log(half) - np.log1p(-half)
+    params = {"o_logit": o_init, "u": jnp.broadcast_to(jnp.asarray(u0), (k, m)), "w": jnp.zeros((k, m))}
     # the ε maps, each from the Gaussians seen from its own date only (the others render nothing there)
     eps_maps = [[lpips_map(g, o_p * mask[j], c, im, lpips_net, config, render_config) for c, im in zip(cameras[j], images[j])]
                 for j in range(k)]  # fmt: skip
     keys = jnp.stack([jax.random.key(config.seed * 1_000_003 + p * 1009 + qs[i]) for i in active])
     losses = []
-    rc = dataclasses.replace(render_config, capacity=capacity)
     optimizer, step = _compiled_step(config, rc)
     opt_state = jax.vmap(optimizer.init)(params)
     split = jax.vmap(jax.random.split)
@@ -269,6 +294,7 @@ def init_pairs(model: TemporalGaussians, p: int, qs: Sequence[int], views: Seque
             "skipped": False, "loss_first": float(np.mean(losses[:10, j])), "loss_last": float(np.mean(losses[-10:, j])),
             "mean_o": float(np.mean(np.asarray(jax.nn.sigmoid(o_fit)))), "mean_w": float(np.mean(w)),
             "mean_gain": float(np.mean(2 * np.asarray(jax.nn.sigmoid(u)))),
+            "start_gain": float(2 * jax.nn.sigmoid(u0[j, 0])),
             "mean_epsilon": float(np.mean([np.asarray(e).mean() for e in eps_maps[j]])),
         }  # fmt: skip
     new = dataclasses.replace(model, o_logits=jnp.asarray(o_logits), light_logits=jnp.asarray(l_logits))
