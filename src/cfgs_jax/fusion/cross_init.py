@@ -51,7 +51,8 @@ from cfgs_jax.train.step import over_background
 
 @dataclasses.dataclass(frozen=True)
 class CrossInitConfig:
-    """The paper's values (3000 steps per pair, Adam lr 0.0075 for o, 0.00375 for l, δ = 0.5)."""
+    """The paper's values (3000 steps per pair, Adam lr 0.0075 for o, 0.00375 for l); ours where it is
+    silent: δ = 0.8 (it says δ < 1) and gains starting at the pair's exposure (README §Conventions)."""
 
     steps: int = 3000
     lr_o: float = 0.0075
@@ -63,7 +64,7 @@ class CrossInitConfig:
     lpips_scale: float = 1.0  # ε_LPIPS = clip(map / lpips_scale, 0, 1)
     background_anneal: float = 1.0  # fraction of the steps over which b's range shrinks to black
     batch_dates: int = 0  # pairs (p, q) of one p optimised together per step (vmapped); 0: all of them
-    exposure_init: bool = False  # start every Gaussian's gain at the pair's least-squares exposure (else 1)
+    exposure_init: bool = True  # start the gains at the pair's least-squares exposure, not 1 (README §Conventions)
     seed: int = 0
 
     def __post_init__(self):
