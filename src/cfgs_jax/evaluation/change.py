@@ -100,13 +100,18 @@ def contribution_per_label(g: Gaussians, opacity: Float[Array, "N"], cameras: Se
     return total[:, :num_labels]
 
 
+def max_weight(g: Gaussians, opacity: Float[Array, "N"], cameras: Sequence[Camera], *, render_config=None) -> np.ndarray:
+    """[N] max over the pixels of ``cameras`` of α·opacity·T (the kernel's per-Gaussian statistic)."""
+    best = np.zeros(len(g), np.float32)
+    for cam in cameras:
+        best = np.maximum(best, np.asarray(splat.render(g, cam, opacity_mult=jnp.asarray(opacity), config=render_config).max_weight))
+    return best
+
+
 def observed_from(g: Gaussians, opacity: Float[Array, "N"], cameras: Sequence[Camera], threshold: float, *,
                   render_config=None) -> np.ndarray:  # fmt: skip
     """[N] bool: α·opacity·T ≥ ``threshold`` at some pixel of some camera (the visibility rule)."""
-    seen = np.zeros(len(g), bool)
-    for cam in cameras:
-        seen |= np.asarray(splat.render(g, cam, opacity_mult=opacity, config=render_config).max_weight) >= threshold
-    return seen
+    return max_weight(g, opacity, cameras, render_config=render_config) >= threshold
 
 
 @dataclasses.dataclass(frozen=True)
@@ -173,21 +178,11 @@ def observed_matrix(model: TemporalGaussians, observing: Sequence[Sequence[Camer
                 seen[rows, q] = observed_from(g, o[rows, p], cams, threshold, render_config=render_config)
             continue
         for q, cams in enumerate(observing):
-            mult = np.where(origin == p, o[:, p], o[:, q])
-            weight = visible_weight(model.gaussians, mult, cams, render_config=render_config)
-            seen[rows, q] = weight[rows] >= threshold
+            mult = np.where(origin == p, o[:, p], o[:, q]).astype(np.float32)
+            weight = max_weight(model.gaussians, mult, cams, render_config=render_config)[rows]
+            own = mult[rows]  # α·T with α the Gaussian's own opacity: the statistic divided by the multiplier
+            seen[rows, q] = np.where(own > 0, weight / np.maximum(own, 1e-30), 0.0) >= threshold
     return seen
-
-
-def visible_weight(g: Gaussians, opacity: Float[Array, "N"], cameras: Sequence[Camera], *,
-                   render_config=None) -> np.ndarray:  # fmt: skip
-    """[N] max over pixels and ``cameras`` of α·T, α the Gaussian's own opacity (the kernel's α·opacity·T
-    divided by ``opacity``; 0 where ``opacity`` is 0)."""
-    opacity = np.asarray(opacity, np.float32)
-    best = np.zeros(len(opacity), np.float32)
-    for cam in cameras:
-        best = np.maximum(best, np.asarray(splat.render(g, cam, opacity_mult=jnp.asarray(opacity), config=render_config).max_weight))
-    return np.where(opacity > 0, best / np.maximum(opacity, 1e-30), 0.0)
 
 
 def gaussian_change_table(model: TemporalGaussians, masks: Sequence[DateMasks], observing: Sequence[Sequence[Camera]],

@@ -155,9 +155,9 @@ def _chunk(layout: Layout, r, start, end, ids, means2d, conics, opac, feats, px,
     tk = t_live * _exclusive_cumprod(one_m)  # T before each Gaussian
     test = tk * one_m
     # Rounding (~1e-6 relative) cannot make ``test`` increase along K across a valid Gaussian (which
-    # scales it by 1 − α ≤ 1 − 1/255), so the first Gaussian that would take T below the threshold stops the pixel and none after it
-    # contributes, as in INRIA's sequential loop. A skipped Gaussian (α = 0) leaves T as it was, so
-    # ``test ≥ threshold`` alone selects the contributions once w = α·T is 0 for it.
+    # scales it by 1 − α ≤ 1 − 1/255), so the first Gaussian that would take T below the threshold
+    # stops the pixel and none after it contributes, as in INRIA's sequential loop. A skipped Gaussian
+    # (α = 0) leaves T as it was and has w = α·T = 0, so ``test ≥ threshold`` alone selects contributions.
     live = test >= layout.min_transmittance
     w = jnp.where(live, a * tk, 0.0)  # ≥ (1/255)·1e-4 where contributing, 0 where skipped or stopped
     t_out = jnp.where(done_in, t_in, jnp.minimum(t_in, _reduce_leading_min(jnp.where(live, test, t_in))))
