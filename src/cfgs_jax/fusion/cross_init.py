@@ -108,29 +108,33 @@ def background_colour(key, step, config: CrossInitConfig, dtype=jnp.float32):
     return jax.random.uniform(key, (3,), dtype) * scale
 
 
-def lpips_map(g: Gaussians, o_p, camera, image, lpips_net, config: CrossInitConfig, render_config=None):
-    """[H, W] in [0, 1]: LPIPS (spatial) between date p's own render at ``camera`` (opacity α·o^p, no
-    light change, over black) and ``image`` over black, clipped after dividing by ``lpips_scale``."""
+def own_render(g: Gaussians, o_p, camera, render_config=None):
+    """Date p's own appearance at ``camera``: its Gaussians at opacity α·o^p, no light change, over
+    black (the render both the exposure gain and the LPIPS map compare with I^q)."""
     n = len(g)
-    own = splat.render_dates(g, camera, o_p[None], jnp.ones((1, n, 3), jnp.float32), config=render_config, statistics=False).image[0]
+    return splat.render_dates(g, camera, o_p[None], jnp.ones((1, n, 3), jnp.float32), config=render_config,
+                              statistics=False)  # fmt: skip
+
+
+def lpips_map(own, image, lpips_net, config: CrossInitConfig):
+    """[H, W] in [0, 1]: LPIPS (spatial) between ``own`` (``own_render``) and ``image`` over black,
+    clipped after dividing by ``lpips_scale``."""
     target = over_background(jnp.asarray(image, jnp.float32), jnp.zeros(3, jnp.float32))
-    lp = metrics.perceptual.lpips_distance(lpips_net, own, target, spatial=True)
+    lp = metrics.perceptual.lpips_distance(lpips_net, own.image[0], target, spatial=True)
     return jnp.clip(lp / config.lpips_scale, 0.0, 1.0)
 
 
-def exposure_gain(g: Gaussians, o_p, cameras: Sequence[Camera], images, render_config=None) -> float:
-    """The least-squares luminance gain s minimising Σ (s·Y(C) − Y(I))² over ``cameras`` (C: date p's
-    render at opacity α·o^p over black, I: the image over black) on pixels both cover (alpha ≥ 0.5)."""
-    n = len(g)
+def exposure_gain(owns, images) -> float:
+    """The least-squares luminance gain s minimising Σ (s·Y(C) − Y(I))² over the views (C: date p's
+    ``own_render`` there, I: the image over black) on pixels both cover (alpha ≥ 0.5)."""
     num = den = 0.0
-    for cam, im in zip(cameras, images):
-        res = splat.render_dates(g, cam, o_p[None], jnp.ones((1, n, 3), jnp.float32), config=render_config, statistics=False)
+    for own, im in zip(owns, images):
         im = np.asarray(im, np.float32)
         target = np.asarray(over_background(jnp.asarray(im), jnp.zeros(3, jnp.float32)))
-        covered = np.asarray(res.alpha[0]) >= 0.5
+        covered = np.asarray(own.alpha[0]) >= 0.5
         if im.shape[-1] == 4:
             covered &= im[..., 3] >= 0.5
-        yc = np.asarray(res.image[0]) @ REC709
+        yc = np.asarray(own.image[0]) @ REC709
         yi = target @ REC709
         num += float(np.sum((yc * yi)[covered]))
         den += float(np.sum((yc * yc)[covered]))
@@ -259,15 +263,17 @@ def init_pairs(model: TemporalGaussians, p: int, qs: Sequence[int], views: Seque
     capacity = max(splat.required_capacity(g, c, ones, config=render_config) for cs in cameras for c in cs)
     images = [[jnp.asarray(im, jnp.float32) for im in views[i].images] for i in active]
     rc = dataclasses.replace(render_config, capacity=capacity)
+    # date p's own render at each view of each q (seen from q only: the others render nothing there),
+    # shared by the exposure start and the ε maps
+    owns = [[own_render(g, o_p * mask[j], c, rc) for c in cameras[j]] for j in range(k)]
     u0 = np.zeros((k, 1), np.float32)  # gain 2σ(u) = 1
     if config.exposure_init:  # gain := the pair's exposure, inside the stored range (0, 2)
         for j in range(k):
-            half = np.clip(exposure_gain(g, o_p * mask[j], cameras[j], images[j], rc) / 2.0, 0.02, 0.98)
+            half = np.clip(exposure_gain(owns[j], images[j]) / 2.0, 0.02, 0.98)
             u0[j] = np.log(half) - np.log1p(-half)
     params = {"o_logit": o_init, "u": jnp.broadcast_to(jnp.asarray(u0), (k, m)), "w": jnp.zeros((k, m))}
-    # the ε maps, each from the Gaussians seen from its own date only (the others render nothing there)
-    eps_maps = [[lpips_map(g, o_p * mask[j], c, im, lpips_net, config, render_config) for c, im in zip(cameras[j], images[j])]
-                for j in range(k)]  # fmt: skip
+    eps_maps = [[lpips_map(own, im, lpips_net, config) for own, im in zip(owns[j], images[j])] for j in range(k)]
+    del owns
     keys = jnp.stack([jax.random.key(config.seed * 1_000_003 + p * 1009 + qs[i]) for i in active])
     losses = []
     optimizer, step = _compiled_step(config, rc)
