@@ -113,14 +113,6 @@ def _sum_leading_of(term, k: int):
     return total
 
 
-def _reduce_leading_min(x):
-    """min over the leading axis (chain, see ``_sum_leading_of``)."""
-    out = x[0]
-    for i in range(1, x.shape[0]):
-        out = jnp.minimum(out, x[i])
-    return out
-
-
 def _reduce_last(x, op=jnp.add):
     """Reduce the last axis (the P pixels of a tile) by pairwise halving (see ``_sum_leading_of``)."""
     while x.shape[-1] > 1:
@@ -160,8 +152,13 @@ def _chunk(layout: Layout, r, start, end, ids, means2d, conics, opac, feats, px,
     # (α = 0) leaves T as it was and has w = α·T = 0, so ``test ≥ threshold`` alone selects contributions.
     live = test >= layout.min_transmittance
     w = jnp.where(live, a * tk, 0.0)  # ≥ (1/255)·1e-4 where contributing, 0 where skipped or stopped
-    t_out = jnp.where(done_in, t_in, jnp.minimum(t_in, _reduce_leading_min(jnp.where(live, test, t_in))))
-    done_out = done_in | (test[-1] < layout.min_transmittance)
+    # T after the chunk: the product itself where the pixel runs on; where it stops inside the chunk, the
+    # T before the stopping Gaussian is t_in − Σ_k w_k (each contribution lowers T by w_k = α_k·T_k), an
+    # add chain (one op per element and date, where a masked min over ``test`` takes two). Its rounding
+    # (~K·1e-7 absolute) enters only the output T / alpha, never a stopping decision.
+    stops = test[-1] < layout.min_transmittance
+    t_out = jnp.where(done_in, t_in, jnp.where(stops, t_in - _sum_leading_of(lambda j: w[j], w.shape[0]), test[-1]))
+    done_out = done_in | stops
     return _Chunk(gid, dx, dy, con, op, ft, g, og, one_m, tk, w, t_out, done_out)
 
 
