@@ -403,6 +403,29 @@ def test_fuse_cli_runs_every_stage_and_resumes_mid_cross_init(tiny_two_dates, fu
         assert np.allclose(np.asarray(x), np.asarray(y), atol=1e-6)
 
 
+def test_resume_refuses_another_configuration(tiny_two_dates, fused_run):
+    """Resuming a run with other settings would mix two configurations in one result: it is refused
+    before anything is touched, naming the changed value; the stored configuration resumes fine."""
+    import json
+
+    from cfgs_jax.config import load_config
+    from cfgs_jax.errors import InputError
+    from cfgs_jax.fusion.run import config_changes, run_fusion
+
+    root = tiny_two_dates
+    a_dir, _ = fused_run
+    raw = load_config(root / "tiny.toml")
+    changed = json.loads(json.dumps({k: v for k, v in raw.items() if k != "__path__"}))
+    changed.setdefault("cross_init", {})["lr_o"] = 0.5
+    before = (a_dir / "run.json").read_text()
+    with pytest.raises(InputError, match=r"cross_init\.lr_o: \(default\) → 0\.5"):
+        run_fusion([root / "d0", root / "d1"], a_dir, changed, transforms=root / "transforms.json", resume=True,
+                   progress=False, evaluate=False, log=lambda *a: None)  # fmt: skip
+    assert (a_dir / "run.json").read_text() == before
+    assert config_changes({"a": {"b": [1, 2]}}, {"a": {"b": (1, 2)}}) == []
+    assert config_changes({"a": {"b": 1}}, {"a": {"b": 2}, "c": {"d": 3}}) == ["a.b: 1 → 2", "c.d: (default) → 3"]
+
+
 def test_extend_adds_a_date_initialising_only_its_pairs(tiny_two_dates, fused_run, tmp_path):
     import json
     import shutil

@@ -117,6 +117,21 @@ def load_transforms(path: Path, names: list[str]) -> dict[str, Sim3]:
     return out
 
 
+def _flatten(raw: dict, prefix: str = "") -> dict:
+    out = {}
+    for k, v in raw.items():
+        out |= _flatten(v, f"{prefix}{k}.") if isinstance(v, dict) else {f"{prefix}{k}": v}
+    return out
+
+
+def config_changes(started: dict, given: dict) -> list[str]:
+    """``section.key: old → new`` for every value that differs between a run's stored configuration and
+    the one it is resumed with (JSON-normalised, so a TOML list equals its stored copy)."""
+    a, b = _flatten(json.loads(json.dumps(started))), _flatten(json.loads(json.dumps(given)))
+    unset = "(default)"
+    return [f"{k}: {a.get(k, unset)} → {b.get(k, unset)}" for k in sorted(set(a) | set(b)) if a.get(k) != b.get(k)]
+
+
 class FusionRun:
     """One run directory and its stage bookkeeping."""
 
@@ -131,6 +146,12 @@ class FusionRun:
             if [str(Path(d).resolve()) for d in dates] != [d["path"] for d in state["dates"]]:
                 raise InputError("the run was started with other dates", path=self.out / "run.json", field="--dates",
                                  fix=f"use {[d['path'] for d in state['dates']]}")  # fmt: skip
+            changed = config_changes(state["config"], {k: v for k, v in self.raw.items() if k != "__path__"})
+            if changed:
+                raise InputError(f"the run was started with another configuration ({'; '.join(changed[:6])})",
+                                 path=self.out / "run.json", field="--config",
+                                 fix="resume with the configuration it was started with (its values are in run.json "
+                                     "under \"config\"), or choose another --out")  # fmt: skip
         names = [Path(d).name for d in dates]
         if len(set(names)) != len(names) or not names:
             raise InputError(f"need dates with distinct directory names, got {names}", field="--dates",
