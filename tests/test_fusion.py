@@ -405,7 +405,8 @@ def test_fuse_cli_runs_every_stage_and_resumes_mid_cross_init(tiny_two_dates, fu
 
 def test_resume_refuses_another_configuration(tiny_two_dates, fused_run):
     """Resuming a run with other settings would mix two configurations in one result: it is refused
-    before anything is touched, naming the changed value; the stored configuration resumes fine."""
+    before anything is touched, naming the changed value (resuming with the stored configuration is
+    test_fuse_cli_runs_every_stage_and_resumes_mid_cross_init)."""
     import json
 
     from cfgs_jax.config import load_config

@@ -138,6 +138,7 @@ class FusionRun:
     def __init__(self, out: Path, dates: list[Path], raw_config: dict | None, *, resume: bool, models=None):
         self.out = ensure_writable_dir(out)
         self.raw = raw_config or {}
+        given = {k: v for k, v in self.raw.items() if k != "__path__"}  # what run.json stores as "config"
         state = read_json(self.out / "run.json")
         if state is not None and not resume:
             raise InputError("this run directory holds an earlier run", path=self.out / "run.json",
@@ -146,7 +147,7 @@ class FusionRun:
             if [str(Path(d).resolve()) for d in dates] != [d["path"] for d in state["dates"]]:
                 raise InputError("the run was started with other dates", path=self.out / "run.json", field="--dates",
                                  fix=f"use {[d['path'] for d in state['dates']]}")  # fmt: skip
-            changed = config_changes(state["config"], {k: v for k, v in self.raw.items() if k != "__path__"})
+            changed = config_changes(state["config"], given)
             if changed:
                 raise InputError(f"the run was started with another configuration ({'; '.join(changed[:6])})",
                                  path=self.out / "run.json", field="--config",
@@ -158,7 +159,7 @@ class FusionRun:
                              fix="give each date's dataset its own directory name")  # fmt: skip
         self.state = state or {
             "dates": [{"name": n, "path": str(Path(d).resolve())} for n, d in zip(names, dates)],
-            "done": [], "config": {k: v for k, v in self.raw.items() if k != "__path__"},
+            "done": [], "config": given,
             "models": [str(Path(m).resolve()) for m in models] if models else None,
         }  # fmt: skip
         self.timings = read_json(self.out / "timings.json", {})
