@@ -174,3 +174,34 @@ def test_light_by_pair_hand_case():
     assert np.isclose(b["mean_o"], sig([-1.0, 0.5, 3.0]).mean(), atol=1e-6)
     assert np.isclose(out["mean_o"], sig([0.0, 1.0, -1.0, 0.5, 3.0]).mean(), atol=1e-6)
     assert out["sign_agrees"] == 1 and out["pairs_with_cct_change"] == 2
+
+
+def test_surface_effect_separates_a_dropped_front_layer_from_a_removed_object():
+    """Date a: a front layer F over an opaque back layer B of the same colour, and a lone blob R. At
+    date b cross-init dropped F (o^b ≈ 0: B shows the same surface) and R (removed). Both are absent
+    and observed, but only R's absence changes what b shows: its surface score (float64 reference
+    weights and renders) is its contrast with the black behind it, F's ≈ 0; the summary flags R only."""
+    means = np.array([[-0.6, -0.3, 0], [-0.6, 0.3, 0], [0.6, 0, 0]], np.float32)
+    scales = np.array([[-1.4] * 3, [-0.8] * 3, [-1.4] * 3], np.float32)  # B wider: F lies on its opaque part
+    g = cj.Gaussians(means, np.tile([1, 0, 0, 0], (3, 1)).astype(np.float32), scales,
+                     np.array([1.0, 8.0, 4.0], np.float32), np.full((3, 3), 0.5, np.float32))  # fmt: skip
+    o_logits = np.array([[8.0, -8.0], [8.0, 8.0], [8.0, -8.0]], np.float32)
+    model = cj.TemporalGaussians(g, o_logits, np.zeros((3, 2, 3), np.float32), np.zeros(3, np.int32),
+                                 (cj.DateInfo("a"), cj.DateInfo("b")))  # fmt: skip
+    cam = cj.Camera.look_at([0, -4, 0], [0, 0, 0], width=40, height=20, fov_x_deg=50)
+    got = change.surface_effect(model, [(cam,), (cam,)])
+    o = 1 / (1 + np.exp(-o_logits.astype(np.float64)))
+    full, as_is = o[:, 0], o[:, 1]  # every Gaussian is date a's: at b, "full" puts them at o^a
+    imgs = [np.asarray(reference.render_dates(g, cam, m[None], np.ones((1, 3, 3))).image[0]) for m in (full, as_is)]
+    d = np.abs(imgs[0] - imgs[1]).mean(-1)
+    w = _weights64(g, cam, full)
+    want = (w * d).sum((1, 2)) / w.sum((1, 2))
+    assert np.allclose(got[:, 1], want, rtol=1e-3, atol=1e-4), (got[:, 1], want)
+    assert want[2] > 0.15 and want[0] < 0.05 and np.all(got[:, 0] == 0)  # R: colour 0.5 against black, weighted over its falloff
+    observed = change.observed_matrix(model, [(cam,), (cam,)], 0.01)[:, 1]
+    assert observed[0] and observed[2]
+    table = {"pairs": {(0, 1): {"gt_changed": np.array([False, False, True]), "observed": observed,
+                                "o_q": as_is, "surface": got[:, 1]}}}  # fmt: skip
+    s = change.summarise_gaussians(table)
+    assert np.isclose(s["flagged_changed"], 1 / 3) and np.isclose(s["precision"], 1.0) and np.isclose(s["recall"], 1.0)
+    assert np.isclose(s["flagged_changed_o_only"], 2 / 3) and np.isclose(s["precision_o_only"], 0.5)

@@ -15,7 +15,10 @@ o^q for the same reason, and no image of q can tell whether it is there; a Gauss
 removed at q is observed (nothing of q lies in front of it). ``occlusion="own date"`` gives the
 stricter rule that renders date p's Gaussians alone. It is *absent* at q when o^q < τ, and *flagged
 changed* when observed and absent: an unobserved Gaussian (e.g. the half a date did not cover) is
-absent but not changed.
+absent but not changed. With ``surface_threshold`` > 0 a change also needs its absence to show at q
+(``surface_effect``: the footprint-weighted colour difference its date's o^p → o^q makes in the fused
+render at q): a front layer whose o^q fell while an identical layer behind it still shows the surface
+is absent (Eq. 2 cannot tell its o^q) but not changed.
 
 Per pixel: the highlight of the selection {p, q} (Eq. 5–6) gives every Gaussian |S − 1|_∞; rendered
 as a colour with the selection's max opacity α·max(o ⊙ t) (so an object of one date renders solid)
@@ -56,12 +59,15 @@ class ChangeConfig:
     pixel_threshold: float = 0.8
     contribution_threshold: float = 0.01
     majority: float = 0.5  # a Gaussian is "changed" when this share of its weight lies on changed pixels
+    surface_threshold: float = 0.1  # flagged only where its absence changes date q's render by more (0: o^q alone)
 
     def __post_init__(self):
         for name in ("absent_below", "pixel_threshold", "contribution_threshold", "majority"):
             v = getattr(self, name)
             if not 0.0 < v < 1.0:
                 raise InputError(f"must lie in (0, 1), got {v}", field=f"change.{name}")
+        if not 0.0 <= self.surface_threshold < 1.0:
+            raise InputError(f"must lie in [0, 1), got {self.surface_threshold}", field="change.surface_threshold")
 
 
 @functools.partial(jax.jit, static_argnames=("config",))
@@ -185,6 +191,47 @@ def observed_matrix(model: TemporalGaussians, observing: Sequence[Sequence[Camer
     return seen
 
 
+def surface_effect(model: TemporalGaussians, observing: Sequence[Sequence[Camera]], *, render_config=None) -> np.ndarray:
+    """[N, T]: for a Gaussian i of date p and a date q ≠ p, how much date p's o^q change what date q
+    shows where i would be: Σ_px w_i·d / Σ_px w_i over date q's training views, d = mean |F − F'| over
+    channels with F the fused render at q (light l^q) with date p's Gaussians at o^p and F' the same at
+    o^q, w_i the Gaussian's compositing weight in F (one backward pass per view, as for the labels).
+    A front layer whose o^q fell while the surface behind it shows the same colour scores ≈ 0 (Eq. 2
+    cannot tell its o^q); an object removed at q scores its colour contrast with what replaced it.
+    Entries of the own date (q = p) and Gaussians without weight are 0."""
+    from cfgs_jax.model import light_multipliers
+
+    rc = render_config or splat.RenderConfig()
+    o = np.asarray(opacity_multipliers(model), np.float32)
+    light = jnp.asarray(light_multipliers(model), jnp.float32)
+    origin = np.asarray(model.origin)
+    g = model.gaussians
+    out = np.zeros(o.shape, np.float64)
+    for p in range(model.num_dates):
+        if not (origin == p).any():
+            continue
+        for q, cams in enumerate(observing):
+            if q == p:
+                continue
+            full = jnp.asarray(np.where(origin == p, o[:, p], o[:, q]))
+            as_is = jnp.asarray(o[:, q])
+            num = np.zeros(len(origin))
+            den = np.zeros(len(origin))
+            for cam in cams:
+                both = jnp.stack([full, as_is])
+                cfg = dataclasses.replace(rc, capacity=splat.required_capacity(g, cam, both, config=rc))
+                img = splat.render_dates(g, cam, both, jnp.broadcast_to(light[:, q], (2,) + light[:, q].shape),
+                                         config=cfg, statistics=False).image  # fmt: skip
+                d = jnp.mean(jnp.abs(img[0] - img[1]), axis=-1)
+                maps = jnp.stack([d, jnp.ones_like(d), jnp.zeros_like(d)], axis=-1)[None]
+                w = np.asarray(_weights_on_masks(g, cam, full, maps, cfg), np.float64)[0]
+                num += w[:, 0]
+                den += w[:, 1]
+            rows = origin == p
+            out[rows, q] = np.where(den[rows] > 0, num[rows] / np.maximum(den[rows], 1e-30), 0.0)
+    return out
+
+
 def gaussian_change_table(model: TemporalGaussians, masks: Sequence[DateMasks], observing: Sequence[Sequence[Camera]],
                           num_objects: int, config: ChangeConfig = ChangeConfig(), *,
                           render_config=None, observed: np.ndarray | None = None) -> dict:  # fmt: skip
@@ -200,6 +247,7 @@ def gaussian_change_table(model: TemporalGaussians, masks: Sequence[DateMasks], 
     if observed is None:
         observed = observed_matrix(model, observing, config.contribution_threshold, render_config=render_config)
     objects = object_labels(model, masks, num_objects, render_config=render_config)
+    surface = surface_effect(model, observing, render_config=render_config) if config.surface_threshold > 0 else None
     pairs = {}
     for p, dm in enumerate(masks):
         rows = np.nonzero(origin == p)[0]
@@ -216,7 +264,8 @@ def gaussian_change_table(model: TemporalGaussians, masks: Sequence[DateMasks], 
             share = w_ch[:, 1] / np.maximum(w_ch.sum(1), 1e-30)
             pairs[(p, q)] = {"rows": rows[keep], "gt_changed": (share > config.majority)[keep],
                              "observed": observed[rows, q][keep], "o_q": o[rows[keep], q],
-                             "weight": w_ch.sum(1)[keep]}  # fmt: skip
+                             "weight": w_ch.sum(1)[keep],
+                             "surface": surface[rows[keep], q] if surface is not None else np.ones(int(keep.sum()))}  # fmt: skip
     return {"pairs": pairs, "objects": objects}
 
 
@@ -242,13 +291,17 @@ def summarise_gaussians(table: dict, config: ChangeConfig = ChangeConfig(), thre
     pairs = table["pairs"].values()
     if not pairs:
         raise InputError("no Gaussian has weight in its own date's views", field="change detection")
-    keys = ("gt_changed", "observed", "o_q") + (("weight",) if all("weight" in v for v in pairs) else ())
-    cat = {k: np.concatenate([np.asarray(v[k]) for v in pairs]) for k in keys}
+    optional = tuple(k for k in ("weight", "surface") if all(k in v for v in pairs))
+    cat = {k: np.concatenate([np.asarray(v[k]) for v in pairs]) for k in ("gt_changed", "observed", "o_q") + optional}
     obs = cat["observed"]
-    score = 1.0 - cat["o_q"]
+    # the surface rule: an absent Gaussian counts as changed only where its absence shows at q
+    shows = cat["surface"] > config.surface_threshold if "surface" in cat and config.surface_threshold > 0 else np.ones_like(obs)
+    o_only = precision_recall(1.0 - cat["o_q"][obs], cat["gt_changed"][obs], [1.0 - config.absent_below])
+    score = np.where(shows, 1.0 - cat["o_q"], 0.0)
     curve = precision_recall(score[obs], cat["gt_changed"][obs], 1.0 - thresholds[::-1])
     at = precision_recall(score[obs], cat["gt_changed"][obs], [1.0 - config.absent_below])
-    absent = cat["o_q"] < config.absent_below
+    absent_o = cat["o_q"] < config.absent_below
+    absent = absent_o & shows
     weighted = {}
     if "weight" in cat:  # each Gaussian counted by its compositing weight in its own views
         wt = precision_recall(score[obs], cat["gt_changed"][obs], [1.0 - config.absent_below], cat["weight"][obs])
@@ -261,7 +314,10 @@ def summarise_gaussians(table: dict, config: ChangeConfig = ChangeConfig(), thre
         "observed": float(obs.mean()),
         "gt_changed": float(cat["gt_changed"][obs].mean()) if obs.any() else 0.0,
         "flagged_changed": float((absent & obs).mean()),
-        "unobserved_marked_absent": float(absent[~obs].mean()) if (~obs).any() else float("nan"),
+        "flagged_changed_o_only": float((absent_o & obs).mean()),  # without the surface rule
+        "f1_o_only": float(o_only["f1"][0]), "precision_o_only": float(o_only["precision"][0]),
+        "recall_o_only": float(o_only["recall"][0]), "surface_threshold": config.surface_threshold,
+        "unobserved_marked_absent": float(absent_o[~obs].mean()) if (~obs).any() else float("nan"),
         "unobserved_flagged_changed": 0.0,  # by definition: a change needs an observation
         "precision": float(at["precision"][0]), "recall": float(at["recall"][0]), "f1": float(at["f1"][0]),
         "curve": {k: v.tolist() for k, v in curve.items()},

@@ -392,8 +392,13 @@ def table_markdown(table: dict) -> str:
         lines += ["", "## Change detection against ground truth", "",
                   "| Level | Precision | Recall | F1 | IoU | flagged changed | ground truth changed |",
                   "|---|---:|---:|---:|---:|---:|---:|",
-                  f"| Gaussians (o^q < {ch['config']['absent_below']}, observed) | {g['precision']:.3f} | {g['recall']:.3f} | "
+                  f"| Gaussians (o^q < {ch['config']['absent_below']}, observed"
+                  + (f", surface effect > {g['surface_threshold']}" if g.get("surface_threshold") else "")
+                  + f") | {g['precision']:.3f} | {g['recall']:.3f} | "
                   f"{g['f1']:.3f} | – | {100 * g['flagged_changed']:.1f} % | {100 * g['gt_changed']:.1f} % |",
+                  *([f"| … o^q alone (no surface rule) | {g['precision_o_only']:.3f} | {g['recall_o_only']:.3f} | "
+                     f"{g['f1_o_only']:.3f} | – | {100 * g['flagged_changed_o_only']:.1f} % | – |"]
+                    if g.get("surface_threshold") else []),
                   *([f"| … weighted by compositing weight | {g['weighted_precision']:.3f} | {g['weighted_recall']:.3f} | "
                      f"{g['weighted_f1']:.3f} | – | {_share(g.get('weighted_flagged_changed'))} | – |"]
                     if "weighted_f1" in g else []),
