@@ -162,6 +162,23 @@ def test_cross_init_keeps_what_date_q_shows_and_drops_what_it_lacks():
     assert np.array_equal(np.asarray(out.o_logits)[n:], np.asarray(model.o_logits)[n:])
 
 
+def test_shorter_schedules_keep_the_papers_travel():
+    """Adam's first step moves every parameter by lr·sign(g) (closed form): 3 000 steps at the paper's
+    rates, 500 steps at 6× them (so o^q can still travel 22.5 logits), the rates as given when off."""
+    ci = importlib.import_module("cfgs_jax.fusion.cross_init")
+    params = {"o_logit": jnp.zeros(3), "u": jnp.zeros(3), "w": jnp.zeros(3)}
+    grads = {"o_logit": jnp.array([2.0, -0.5, 1e-3]), "u": jnp.array([-1.0, 3.0, 0.2]), "w": jnp.array([1.0, -1.0, 4.0])}
+    for steps, ref, k in ((3000, 3000, 1.0), (500, 3000, 6.0), (6000, 3000, 1.0), (500, 0, 1.0)):
+        cfg = ci.CrossInitConfig(steps=steps, rate_reference_steps=ref)
+        assert ci.rate_scale(cfg) == k
+        opt = ci.make_optimizer(cfg)
+        upd, _ = opt.update(grads, opt.init(params), params)
+        for name, lr in (("o_logit", 0.0075), ("u", 0.00375), ("w", 0.00375)):
+            np.testing.assert_allclose(upd[name], -k * lr * np.sign(grads[name]), rtol=1e-4)
+    with pytest.raises(cj.InputError, match="rate_reference_steps"):
+        ci.CrossInitConfig(rate_reference_steps=-1)
+
+
 def test_exposure_init_starts_the_gain_at_the_least_squares_exposure():
     """exposure_gain is Σ Y(C)·Y(I) / Σ Y(C)² over pixels both cover (closed form on the float64
     reference render); with ``exposure_init`` a pair's gains start there (k = 0), without it at 1."""
@@ -242,7 +259,7 @@ def test_batched_pairs_equal_the_pairs_one_by_one():
     seen2 = ci.visible_from(g, left)
     assert 0 < seen2.sum() < 0.7 * len(g)  # q₂ sees part of date p
     model = fusion.merge([g, g, g], ["p", "q1", "q2"])
-    cfg = ci.CrossInitConfig(steps=12, lr_o=0.05, lr_light=0.03)
+    cfg = ci.CrossInitConfig(steps=12, lr_o=0.05, lr_light=0.03, rate_reference_steps=0)
     both, reps = ci.init_pairs(model, 0, [1, 2], [v1, v2], cfg)
     one, r1 = ci.init_pair(model, 0, 1, v1, cfg)
     one, r2 = ci.init_pair(one, 0, 2, v2, cfg)

@@ -52,7 +52,10 @@ from cfgs_jax.train.step import over_background
 @dataclasses.dataclass(frozen=True)
 class CrossInitConfig:
     """The paper's values (3000 steps per pair, Adam lr 0.0075 for o, 0.00375 for l); ours where it is
-    silent: δ = 0.8 (it says δ < 1) and gains starting at the pair's exposure (README §Conventions)."""
+    silent: δ = 0.8 (it says δ < 1) and gains starting at the pair's exposure (README §Conventions).
+    Shorter schedules keep the paper's travel: with ``steps`` < ``rate_reference_steps`` both rates are
+    multiplied by rate_reference_steps / steps (an Adam step moves a logit by ≈ lr, so o^q can still
+    travel lr·3000 in logit; 0 uses the rates as given)."""
 
     steps: int = 3000
     lr_o: float = 0.0075
@@ -65,6 +68,7 @@ class CrossInitConfig:
     background_anneal: float = 1.0  # fraction of the steps over which b's range shrinks to black
     batch_dates: int = 0  # pairs (p, q) of one p optimised together per step (vmapped); 0: all of them
     exposure_init: bool = True  # start the gains at the pair's least-squares exposure, not 1 (README §Conventions)
+    rate_reference_steps: int = 3000  # the step count the rates are meant for; fewer steps scale them up (0: off)
     seed: int = 0
 
     def __post_init__(self):
@@ -77,6 +81,9 @@ class CrossInitConfig:
                              fix='use "paper" or "reference"')  # fmt: skip
         if not 0 < self.ramp_fraction <= 1 or not 0 < self.background_anneal <= 1:
             raise InputError("ramp_fraction and background_anneal must be in (0, 1]", field="cross_init")
+        if self.rate_reference_steps < 0:
+            raise InputError(f"must be ≥ 0 (0: the rates as given), got {self.rate_reference_steps}",
+                             field="cross_init.rate_reference_steps")  # fmt: skip
         if self.batch_dates < 0:
             raise InputError(f"must be ≥ 0 (0: all dates q of one p at once), got {self.batch_dates}",
                              field="cross_init.batch_dates", fix="lower it (e.g. 1) when memory is short")  # fmt: skip
@@ -153,9 +160,16 @@ def pair_loss(params, g: Gaussians, camera, image, eps_map, b, step, config: Cro
     return loss, res
 
 
+def rate_scale(config: CrossInitConfig) -> float:
+    """The factor on both learning rates: rate_reference_steps / steps when the schedule is shorter, else 1."""
+    return max(1.0, config.rate_reference_steps / config.steps) if config.rate_reference_steps else 1.0
+
+
 def make_optimizer(config: CrossInitConfig) -> optax.GradientTransformation:
+    """Adam on the o^q logits and on the light parameters (Eq. 2's rates, scaled by ``rate_scale``)."""
+    k = rate_scale(config)
     return optax.multi_transform(
-        {"o": optax.adam(config.lr_o), "light": optax.adam(config.lr_light)},
+        {"o": optax.adam(config.lr_o * k), "light": optax.adam(config.lr_light * k)},
         {"o_logit": "o", "u": "light", "w": "light"},
     )
 
