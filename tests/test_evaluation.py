@@ -27,6 +27,8 @@ densify_interval = 10
 steps = 10
 [refine]
 visibility_interval = 6
+[change]
+surface_threshold = 0.05
 """
 
 
@@ -102,12 +104,16 @@ def test_eval_change_detection_and_resume(protocol):
     g, p = change["gaussians"], change["pixels"]
     assert 0.0 <= g["f1"] <= 1.0 and 0.0 < g["observed"] <= 1.0 and g["entries"] > 0
     assert p["evaluated_pixels"] > 0 and 0.0 <= p["predicted_changed_share"] <= 1.0
-    assert 0.0 <= g["hidden_in_fused_absent"] <= g["hidden_in_fused"] <= 1.0 - g["observed"]
+    assert 0.0 <= g["hidden_in_fused_absent"] <= g["hidden_in_fused"] <= 1.0 - g["observed"] + 1e-12  # two float shares of one count
     curve = g["curve"]
     assert len(curve["precision"]) == len(curve["recall"]) == len(curve["threshold"])
     # corals d0 → d1 removes / adds objects: the ground truth has changed Gaussians and pixels
     assert g["gt_changed"] > 0 and p["gt_changed_share"] > 0
     assert (out / "change_pr.png").stat().st_size > 1000
+    # the [change] table reaches the eval; the surface rule can only withdraw flags
+    assert change["config"]["surface_threshold"] == g["surface_threshold"] == 0.05
+    assert g["flagged_changed"] <= g["flagged_changed_o_only"]
+    assert "o^q alone (no surface rule)" in (out / "table.md").read_text()
     # a second call resumes: no stage runs again and the table is unchanged
     before = json.loads((out / "table.json").read_text())
     seen = []
@@ -115,6 +121,17 @@ def test_eval_change_detection_and_resume(protocol):
     assert not [m for m in seen if m.startswith("[eval]") or "steps" in m], seen
     assert [r["psnr"] for r in again["rows"]] == [r["psnr"] for r in before["rows"]]
     assert cj.io.read_fused(out / "run" / "snapshots" / "refine_6").num_dates == 2
+
+
+def test_eval_change_table_is_checked_before_any_work():
+    from cfgs_jax import InputError
+    from cfgs_jax.evaluation.protocol import validate_eval_config
+
+    with pytest.raises(InputError, match=r"change\.surface_threshold"):
+        validate_eval_config({"change": {"surface_threshold": 1.5}})
+    with pytest.raises(InputError, match="surfce"):
+        validate_eval_config({"change": {"surfce_threshold": 0.1}})
+    validate_eval_config({"change": {"surface_threshold": 0.0, "absent_below": 0.3}})
 
 
 def test_sweep_file_errors_name_the_key(tmp_path):

@@ -22,6 +22,7 @@ from cfgs_jax import splat, train
 from cfgs_jax.compiled_code import release_if_near_limit
 from cfgs_jax.config import section
 from cfgs_jax.errors import InputError
+from cfgs_jax.evaluation.change import ChangeConfig
 from cfgs_jax.fusion.evaluate import evaluate_fused, render_date, weighted_mean
 from cfgs_jax.fusion.fuse import INVISIBLE_LOGIT
 from cfgs_jax.fusion.light import cold_warm_coefficient
@@ -63,7 +64,7 @@ class SceneConfig:
     seed: int = 0
 
 
-EVAL_SECTIONS = {**CONFIG_SECTIONS, "eval": EvalConfig, "scene": SceneConfig}
+EVAL_SECTIONS = {**CONFIG_SECTIONS, "eval": EvalConfig, "scene": SceneConfig, "change": ChangeConfig}
 
 
 def validate_eval_config(raw: dict | None) -> None:
@@ -220,7 +221,8 @@ def run_protocol(scene: str, out: str | Path, raw: dict | None = None, *, progre
         if change is None:
             log("[eval] change detection against ground truth")
             change = change_detection(read_fused(run_dir / "fused"), data, scenes, sims, render_config,
-                                      cross_init=read_fused(run_dir / "cross_init"))  # fmt: skip
+                                      cross_init=read_fused(run_dir / "cross_init"),
+                                      config=section(raw, "change", ChangeConfig))  # fmt: skip
             write_json(out / "change.json", change)
         pr_curve_plot(out / "change_pr.png", change, scene)
     timings = read_json(run_dir / "timings.json", {})
@@ -276,8 +278,9 @@ def cross_init_checks(model, data: Path, scenes, sims, render_config, masks=None
     return {"objects": objects, "light": light_by_pair(model, gt)}
 
 
-def change_detection(model, data: Path, scenes, sims, render_config, cross_init=None) -> dict:
-    """Per-Gaussian and per-pixel change detection of the fused model against the synthetic ground truth."""
+def change_detection(model, data: Path, scenes, sims, render_config, cross_init=None, config: ChangeConfig | None = None) -> dict:
+    """Per-Gaussian and per-pixel change detection of the fused model against the synthetic ground truth
+    (``config``: the eval's ``[change]`` table)."""
     from cfgs_jax.evaluation import change
 
     gt = json.loads((data / "ground_truth.json").read_text())
@@ -285,7 +288,7 @@ def change_detection(model, data: Path, scenes, sims, render_config, cross_init=
     masks = date_masks(data, scenes, sims, names)
     masks_test = date_masks(data, scenes, sims, names, "test")
     observing = [m.cameras for m in masks]
-    cfg = change.ChangeConfig()
+    cfg = config or ChangeConfig()
     observed = change.observed_matrix(model, observing, cfg.contribution_threshold, render_config=render_config)
     table = change.gaussian_change_table(model, masks, observing, len(gt["objects"]), cfg, render_config=render_config,
                                          observed=observed)  # fmt: skip
