@@ -356,8 +356,8 @@ def tiny_two_dates(tmp_path_factory):
     toml = root / "tiny.toml"
     toml.write_text(
         "[train]\nsteps = 60\ndensify_from = 20\ndensify_until = 50\ndensify_interval = 20\n"
-        "[cross_init]\nsteps = 15\n[refine]\nsteps = 20\nvisibility_interval = 10\n"
-    )
+        "[cross_init]\nsteps = 15\nrate_reference_steps = 0\n[refine]\nsteps = 20\nvisibility_interval = 10\n"
+    )  # the rates as given: 15 steps at 200× would saturate every o^q (the README snippet's FD check needs slopes)
     return root
 
 
