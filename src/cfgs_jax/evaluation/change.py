@@ -42,7 +42,7 @@ from PIL import Image
 
 from cfgs_jax import splat, viz
 from cfgs_jax.errors import InputError
-from cfgs_jax.model import Camera, Gaussians, TemporalGaussians, opacity_multipliers
+from cfgs_jax.model import Camera, Gaussians, TemporalGaussians, light_multipliers, opacity_multipliers
 
 
 @dataclasses.dataclass(frozen=True)
@@ -199,8 +199,6 @@ def surface_effect(model: TemporalGaussians, observing: Sequence[Sequence[Camera
     A front layer whose o^q fell while the surface behind it shows the same colour scores ≈ 0 (Eq. 2
     cannot tell its o^q); an object removed at q scores its colour contrast with what replaced it.
     Entries of the own date (q = p) and Gaussians without weight are 0."""
-    from cfgs_jax.model import light_multipliers
-
     rc = render_config or splat.RenderConfig()
     o = np.asarray(opacity_multipliers(model), np.float32)
     light = jnp.asarray(light_multipliers(model), jnp.float32)
@@ -214,14 +212,13 @@ def surface_effect(model: TemporalGaussians, observing: Sequence[Sequence[Camera
             if q == p:
                 continue
             full = jnp.asarray(np.where(origin == p, o[:, p], o[:, q]))
-            as_is = jnp.asarray(o[:, q])
+            both = jnp.stack([full, jnp.asarray(o[:, q])])  # date p's Gaussians at o^p, then at o^q
+            light_q = jnp.broadcast_to(light[:, q], (2,) + light[:, q].shape)
             num = np.zeros(len(origin))
             den = np.zeros(len(origin))
             for cam in cams:
-                both = jnp.stack([full, as_is])
                 cfg = dataclasses.replace(rc, capacity=splat.required_capacity(g, cam, both, config=rc))
-                img = splat.render_dates(g, cam, both, jnp.broadcast_to(light[:, q], (2,) + light[:, q].shape),
-                                         config=cfg, statistics=False).image  # fmt: skip
+                img = splat.render_dates(g, cam, both, light_q, config=cfg, statistics=False).image
                 d = jnp.mean(jnp.abs(img[0] - img[1]), axis=-1)
                 maps = jnp.stack([d, jnp.ones_like(d), jnp.zeros_like(d)], axis=-1)[None]
                 w = np.asarray(_weights_on_masks(g, cam, full, maps, cfg), np.float64)[0]
@@ -264,8 +261,9 @@ def gaussian_change_table(model: TemporalGaussians, masks: Sequence[DateMasks], 
             share = w_ch[:, 1] / np.maximum(w_ch.sum(1), 1e-30)
             pairs[(p, q)] = {"rows": rows[keep], "gt_changed": (share > config.majority)[keep],
                              "observed": observed[rows, q][keep], "o_q": o[rows[keep], q],
-                             "weight": w_ch.sum(1)[keep],
-                             "surface": surface[rows[keep], q] if surface is not None else np.ones(int(keep.sum()))}  # fmt: skip
+                             "weight": w_ch.sum(1)[keep]}  # fmt: skip
+            if surface is not None:
+                pairs[(p, q)]["surface"] = surface[rows[keep], q]
     return {"pairs": pairs, "objects": objects}
 
 
