@@ -8,7 +8,26 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-import cfgs_jax  # noqa: F401  (first: loads the system libz before any test module imports pycolmap)
+
+def _persistent_compilation_cache() -> None:
+    """Keep XLA's compiled executables on disk between test runs (most of a cold run is compilation).
+
+    Set through the environment before JAX is imported, so the CLI subprocesses the tests start use
+    the same cache. The folder lives outside the checkout and the venv (a fresh clone reuses it);
+    ``CFGS_JAX_CACHE`` moves it, ``CFGS_JAX_CACHE=off`` turns it off. JAX keys every entry by the
+    program, the compiler options and the JAX/jaxlib version, so a stale entry is never used."""
+    where = os.environ.get("CFGS_JAX_CACHE", str(Path.home() / ".cache" / "cfgs_jax" / "xla"))
+    if where == "off":
+        return
+    os.environ.setdefault("JAX_COMPILATION_CACHE_DIR", where)
+    os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0")
+    os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES", "0")
+    os.environ.setdefault("JAX_COMPILATION_CACHE_MAX_SIZE", str(4 * 1024**3))  # LRU-evicted beyond 4 GiB
+
+
+_persistent_compilation_cache()
+
+import cfgs_jax  # noqa: E402, F401  (first: loads the system libz before any test module imports pycolmap)
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED = Path(os.environ.get("CFGS_SHARED", REPO.parent / "shared"))

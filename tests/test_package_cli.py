@@ -1,6 +1,7 @@
 import dataclasses
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -21,7 +22,10 @@ def test_config_folder_holds_only_toml_and_does_not_shadow_package():
         [sys.executable, "-c", "import cfgs_jax, cfgs_jax.pipeline; print(cfgs_jax.__file__)"],
         cwd=REPO, capture_output=True, text=True, check=True,
     )  # fmt: skip
-    assert r.stdout.strip().endswith("__init__.py") and "src" in r.stdout or "site-packages" in r.stdout
+    imported = Path(r.stdout.strip())
+    assert imported.name == "__init__.py" and imported.parent.name == "cfgs_jax"
+    assert imported.parent != folder  # the package (src/ or site-packages), not the TOML folder
+    assert imported.parent.parent.name in ("src", "site-packages"), imported
     r = subprocess.run([sys.executable, "-m", "cfgs_jax.pipeline", "--help"], cwd=REPO, capture_output=True, text=True)
     assert r.returncode == 0 and "inspect" in r.stdout
 

@@ -10,10 +10,13 @@ from __future__ import annotations
 import dataclasses
 import difflib
 import os
+import re
 import tomllib
 import typing
 from pathlib import Path
 from typing import Any, TypeVar
+
+import msgspec
 
 from cfgs_jax.errors import InputError
 
@@ -49,28 +52,56 @@ def load_config(path: str | os.PathLike) -> dict[str, Any]:
     return data
 
 
-def from_dict(cls: type[T], values: dict[str, Any], *, where: str = "config", path=None) -> T:
-    """Build frozen dataclass ``cls`` from ``values``; unknown keys raise with the closest valid key."""
+def _check_keys(cls: type, values: dict[str, Any], where: str, path) -> None:
+    """Unknown keys (in ``cls`` and its nested dataclass tables) raise with the closest valid key."""
     fields = {f.name: f for f in dataclasses.fields(cls)}
     hints = typing.get_type_hints(cls)
-    kwargs = {}
     for key, val in values.items():
         if key not in fields:
             close = difflib.get_close_matches(key, list(fields), n=1)
             hint = f"did you mean '{close[0]}'?" if close else f"valid keys: {sorted(fields)}"
             raise InputError(f"unknown key in [{where}]; {hint}", path=path, field=f"{where}.{key}", fix=hint)
-        typ = hints[key]
-        if dataclasses.is_dataclass(typ) and isinstance(val, dict):
-            val = from_dict(typ, val, where=f"{where}.{key}", path=path)
-        elif typ is float and isinstance(val, int) and not isinstance(val, bool):
-            val = float(val)
-        elif isinstance(val, list):
-            val = tuple(tuple(v) if isinstance(v, list) else v for v in val)
-        kwargs[key] = val
+        if dataclasses.is_dataclass(hints[key]) and isinstance(val, dict):
+            _check_keys(hints[key], val, f"{where}.{key}", path)
+
+
+def _tuples(value: Any) -> Any:
+    """TOML arrays as tuples, at every depth (frozen configurations hold no mutable lists, also in a
+    field annotated as a bare ``tuple``)."""
+    if isinstance(value, dict):
+        return {k: _tuples(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return tuple(_tuples(v) for v in value)
+    return value
+
+
+_TYPE_ERROR = re.compile(r"^(?P<what>.*?) - at `\$(?P<where>[^`]*)`$")
+
+
+def from_dict(cls: type[T], values: dict[str, Any], *, where: str = "config", path=None) -> T:
+    """Build frozen dataclass ``cls`` from ``values``: unknown keys raise with the closest valid key,
+    every value is checked against its field's type (msgspec: ``int`` fields take no bools or strings,
+    ``float`` fields take ints, lists become tuples, ``Literal`` fields take only their values), and
+    the dataclass's own range checks run last."""
+    _check_keys(cls, values, where, path)
     try:
-        return cls(**kwargs)
-    except (TypeError, ValueError) as exc:
-        raise InputError(str(exc), path=path, field=where) from exc
+        return msgspec.convert(_tuples(values), cls)
+    except msgspec.ValidationError as exc:
+        m = _TYPE_ERROR.match(str(exc))
+        if m is None:  # raised by the dataclass's own range checks (__post_init__)
+            cause = exc.__cause__
+            if isinstance(cause, InputError):
+                raise InputError(cause.problem, path=path, field=cause.field or where, fix=cause.fix) from exc
+            raise InputError(str(cause or exc), path=path, field=where) from exc
+        key = where + m["where"] if m["where"] else where
+        what = m["what"].replace("`", "")
+        expected = what[len("Expected "):].split(",")[0] if what.startswith("Expected ") else "a valid value"
+        top = re.match(r"\.(\w+)", m["where"])
+        choices = typing.get_args(typing.get_type_hints(cls).get(top[1])) if top else ()
+        if top and typing.get_origin(typing.get_type_hints(cls)[top[1]]) is typing.Literal:
+            expected = "one of " + ", ".join(repr(c) for c in choices)
+        raise InputError(what.lower() if what[:1].isupper() else what, path=path, field=key,
+                         fix=f"write {key} as {expected} (see the preset files in cfgs_jax/)") from exc
 
 
 def section(config: dict[str, Any] | None, name: str, cls: type[T]) -> T:

@@ -36,7 +36,8 @@ from pathlib import Path
 from cfgs_jax.compiled_code import release_if_near_limit
 from cfgs_jax.config import find_preset, load_config
 from cfgs_jax.errors import InputError
-from cfgs_jax.evaluation.protocol import EvalConfig, SceneConfig, change_detection, date_dirs, prepare_scene
+from cfgs_jax.evaluation.protocol import (EvalConfig, SceneConfig, change_detection, date_dirs, prepare_scene,
+                                         validate_eval_config)
 from cfgs_jax.fusion.run import CONFIG_SECTIONS, run_fusion, validate_config
 from cfgs_jax.io.atomic import read_json, write_json, write_text
 
@@ -68,6 +69,7 @@ def parse_sweep(raw: dict) -> tuple[str, dict, list[Variant]]:
         raise InputError("missing", path=where, field="sweep.scene", fix='e.g. scene = "corals"')
     base = load_config(find_preset(sw.get("base", "eval")))
     base.update({k: v for k, v in raw.items() if k not in ("sweep", "__path__")})  # tables in the sweep file win
+    validate_eval_config(base)  # the base's own tables (an eval base has [scene], [eval], [change])
     grid = sw.get("grid", {})
     if not isinstance(grid, dict) or any(not isinstance(v, list) or not v for v in grid.values()):
         raise InputError("each grid entry must be a non-empty list", path=where, field="sweep.grid",
@@ -83,8 +85,14 @@ def parse_sweep(raw: dict) -> tuple[str, dict, list[Variant]]:
 
 
 def variant_config(base: dict, variant: Variant) -> dict:
-    """The base configuration with the variant's overrides (the base dict is not changed)."""
+    """The base configuration with the variant's overrides (the base dict is not changed).
+
+    An evaluation base (one with ``[eval] steps``) that leaves ``[refine] steps`` unset refines each
+    variant for its largest step count N₃, the steps the eval reports as "Ours N₃"."""
     raw = copy.deepcopy({k: v for k, v in base.items() if k in CONFIG_SECTIONS or k == "__path__"})
+    eval_steps = base.get("eval", {}).get("steps")
+    if eval_steps and "steps" not in raw.get("refine", {}):
+        raw.setdefault("refine", {})["steps"] = max(eval_steps)
     for key, value in variant.overrides:
         table, _, field = key.partition(".")
         raw.setdefault(table, {})[field] = value
