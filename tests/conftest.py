@@ -22,7 +22,24 @@ def _persistent_compilation_cache() -> None:
     os.environ.setdefault("JAX_COMPILATION_CACHE_DIR", where)
     os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0")
     os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES", "0")
-    os.environ.setdefault("JAX_COMPILATION_CACHE_MAX_SIZE", str(4 * 1024**3))  # LRU-evicted beyond 4 GiB
+    if "PYTEST_XDIST_WORKER" not in os.environ:  # once per session, in the controlling process
+        _trim(Path(os.environ["JAX_COMPILATION_CACHE_DIR"]))
+
+
+def _trim(folder: Path, high: int = 2 * 1024**3, low: int = 1024**3) -> None:
+    """Above ``high`` bytes, delete the least recently modified entries down to ``low``. (JAX's own
+    size limit keeps access-time files that concurrent pytest workers race on, so it is not used.)"""
+    if not folder.is_dir():
+        return
+    entries = sorted((p.stat().st_mtime, p.stat().st_size, p) for p in folder.iterdir() if p.is_file())
+    total = sum(size for _, size, _ in entries)
+    if total <= high:
+        return
+    for _, size, path in entries:
+        if total <= low:
+            break
+        path.unlink(missing_ok=True)
+        total -= size
 
 
 _persistent_compilation_cache()

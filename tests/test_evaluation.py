@@ -16,20 +16,23 @@ from cfgs_jax.sim3 import Sim3
 
 TOML = """
 [eval]
-steps = [6, 12]
+steps = [60, 120]
 known_transforms = true
 [train]
-steps = 40
-densify_from = 10
-densify_until = 30
-densify_interval = 10
+steps = 300
+densify_from = 50
+densify_until = 250
+densify_interval = 50
 [cross_init]
-steps = 10
+steps = 100
 [refine]
-visibility_interval = 6
+visibility_interval = 60
 [change]
-surface_threshold = 0.05
+surface_threshold = 0.08
 """
+# 100 cross-init steps run at 30× the paper's rates (rate_reference_steps = 3000 by default), so o^q can
+# travel as far as in the paper's 3 000 steps; 300 training steps leave the per-date models short of
+# converged, which is the regime where a date gains from the others' views (the paper's claim).
 
 
 def _psnr_np(pred, gt) -> float:
@@ -44,7 +47,7 @@ def protocol(tmp_path_factory):
     from cfgs_jax.pipeline import main
 
     root = tmp_path_factory.mktemp("eval")
-    spec = synthetic.make_preset("corals", seed=2, width=48, height=36, images_per_date=9, spp=4)
+    spec = synthetic.make_preset("corals", seed=2, width=64, height=48, images_per_date=12, spp=4)
     data = synthetic.render_dataset(spec, root / "data", dates=[0, 1], progress=False)
     (root / "tiny.toml").write_text(TOML)
     out = root / "out"
@@ -69,8 +72,8 @@ def test_eval_rows_are_the_weighted_test_psnr_of_each_model(protocol):
     data, out, _ = protocol
     table = json.loads((out / "table.json").read_text())
     names = [r["row"] for r in table["rows"]]
-    assert names == ["Individual init", "Merged", "Ours 6", "Ours 12", "Individual +6", "Individual +12",
-                     "Ours, α frozen 12", "Ours, o frozen 12"]  # fmt: skip
+    assert names == ["Individual init", "Merged", "Ours 60", "Ours 120", "Individual +60", "Individual +120",
+                     "Ours, α frozen 120", "Ours, o frozen 120"]  # fmt: skip
     row = {r["row"]: r for r in table["rows"]}
     dates = table["dates"]
     assert dates == ["d0", "d1"]
@@ -82,17 +85,33 @@ def test_eval_rows_are_the_weighted_test_psnr_of_each_model(protocol):
             ours.append(_psnr_np(render_date(fused, q, cam_ref).image[0], gt))
             ind.append(_psnr_np(splat.render(plus, cam_own).image, gt))
             w.append(1.0)
-    assert len(w) == sum(table["test_views"].values()) == 4  # 9 views per date: every 8th is 0 and 8
-    assert np.isclose(row["Ours 12"]["psnr"], np.average(ours, weights=w), atol=1e-3)
-    assert np.isclose(row["Individual +12"]["psnr"], np.average(ind, weights=w), atol=1e-3)
-    assert row["Ours 12"]["gaussians"] == len(fused)
+    assert len(w) == sum(table["test_views"].values()) == 4  # 12 views per date: every 8th is 0 and 8
+    assert np.isclose(row["Ours 120"]["psnr"], np.average(ours, weights=w), atol=1e-3)
+    assert np.isclose(row["Individual +120"]["psnr"], np.average(ind, weights=w), atol=1e-3)
+    assert row["Ours 120"]["gaussians"] == len(fused)
     # merged ≈ the inputs (own o ≈ 0.996, others ≈ 0.004): the paper's "equivalent scores"
     assert abs(row["Merged"]["psnr"] - row["Individual init"]["psnr"]) < 0.3
-    assert table["margins"]["psnr"] == pytest.approx(row["Ours 12"]["psnr"] - row["Individual +12"]["psnr"])
+    assert table["margins"]["psnr"] == pytest.approx(row["Ours 120"]["psnr"] - row["Individual +120"]["psnr"])
     md = (out / "table.md").read_text()
     assert all(f"| {n} |" in md for n in names) and "Change detection" in md
     fig = np.asarray(Image.open(out / "figure.png"))
-    assert fig.shape[:2] == (2 * 36, 3 * 48)
+    assert fig.shape[:2] == (2 * 48, 3 * 64)
+
+
+@pytest.mark.slow
+def test_fusion_beats_the_individual_models_at_equal_steps(protocol):
+    """The paper's claim on this scene: the fused model after N refinement steps beats each date's own
+    model trained N more steps (PSNR and SSIM, held-out views), and refinement helps (Ours 120 ≥ Merged).
+    LPIPS is reported but not asserted: at 64×48 and 120 steps it is ~0.02 worse than Individual +120
+    (halving α at the start of refinement blurs fine detail that 120 steps do not recover); the eval
+    presets at 80×60 and 800 steps measure it better (benchmarks/results/eval_*.md)."""
+    _, out, _ = protocol
+    row = {r["row"]: r for r in json.loads((out / "table.json").read_text())["rows"]}
+    ours, ind, merged = row["Ours 120"], row["Individual +120"], row["Merged"]
+    assert ours["psnr"] > ind["psnr"] and ours["ssim"] > ind["ssim"], (ours, ind)
+    assert ours["psnr"] > merged["psnr"] + 0.3, (ours, merged)
+    # freezing o at its cross-init values changes nothing (o's refinement rate is 2.5e-6); freezing α costs
+    assert row["Ours, α frozen 120"]["psnr"] < ours["psnr"]
 
 
 @pytest.mark.slow
@@ -102,16 +121,21 @@ def test_eval_change_detection_and_resume(protocol):
 
     change = json.loads((out / "change.json").read_text())
     g, p = change["gaussians"], change["pixels"]
-    assert 0.0 <= g["f1"] <= 1.0 and 0.0 < g["observed"] <= 1.0 and g["entries"] > 0
-    assert p["evaluated_pixels"] > 0 and 0.0 <= p["predicted_changed_share"] <= 1.0
+    assert 0.0 < g["observed"] <= 1.0 and g["entries"] > 0 and p["evaluated_pixels"] > 0
     assert 0.0 <= g["hidden_in_fused_absent"] <= g["hidden_in_fused"] <= 1.0 - g["observed"] + 1e-12  # two float shares of one count
+    # floors derived from the ground truth's prevalence π (share of observed entries / pixels that truly
+    # changed): flagging every entry gives precision π and F1 2π/(1+π); flagging every pixel gives IoU π.
+    # Detection must beat those, and beat chance precision by a wide margin.
+    prevalence = g["gt_changed"]
+    assert 0 < prevalence < 0.5 and p["gt_changed_share"] > 0  # corals d0 → d1 removes and adds objects
+    assert g["f1"] > 2 * (2 * prevalence / (1 + prevalence)), (g["f1"], prevalence)
+    assert g["precision"] > 5 * prevalence, (g["precision"], prevalence)
+    assert max(p["curve"]["iou"]) > 2 * p["gt_changed_share"], (p["curve"], p["gt_changed_share"])
     curve = g["curve"]
     assert len(curve["precision"]) == len(curve["recall"]) == len(curve["threshold"])
-    # corals d0 → d1 removes / adds objects: the ground truth has changed Gaussians and pixels
-    assert g["gt_changed"] > 0 and p["gt_changed_share"] > 0
     assert (out / "change_pr.png").stat().st_size > 1000
     # the [change] table reaches the eval; the surface rule can only withdraw flags
-    assert change["config"]["surface_threshold"] == g["surface_threshold"] == 0.05
+    assert change["config"]["surface_threshold"] == g["surface_threshold"] == 0.08
     assert g["flagged_changed"] <= g["flagged_changed_o_only"]
     assert "o^q alone (no surface rule)" in (out / "table.md").read_text()
     # a second call resumes: no stage runs again and the table is unchanged
@@ -120,7 +144,7 @@ def test_eval_change_detection_and_resume(protocol):
     again = run_protocol(str(data), out, raw, progress=False, log=seen.append)
     assert not [m for m in seen if m.startswith("[eval]") or "steps" in m], seen
     assert [r["psnr"] for r in again["rows"]] == [r["psnr"] for r in before["rows"]]
-    assert cj.io.read_fused(out / "run" / "snapshots" / "refine_6").num_dates == 2
+    assert cj.io.read_fused(out / "run" / "snapshots" / "refine_60").num_dates == 2
 
 
 def test_eval_change_table_is_checked_before_any_work():

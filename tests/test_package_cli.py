@@ -95,8 +95,11 @@ def test_cli_demo_runs_the_whole_pipeline(tmp_path, capsys):
     import json
 
     toml = tmp_path / "tiny.toml"
-    toml.write_text("[train]\nsteps = 60\ndensify_from = 20\ndensify_until = 50\ndensify_interval = 20\n"
-                    "[cross_init]\nsteps = 10\n[refine]\nsteps = 10\nvisibility_interval = 5\n")  # fmt: skip
+    # 40 cross-init steps at 10× the paper's rates (rate_reference_steps 400 / 40 steps): o^q may travel
+    # 3 logits, enough to leave its 0.8 start where the images say so, without the random walk that
+    # 75× (the default reference of 3 000 steps) gives unidentified entries on a schedule this short
+    toml.write_text("[train]\nsteps = 150\ndensify_from = 30\ndensify_until = 120\ndensify_interval = 30\n"
+                    "[cross_init]\nsteps = 40\nrate_reference_steps = 400\n[refine]\nsteps = 40\nvisibility_interval = 20\n")  # fmt: skip
     out = tmp_path / "demo"
     assert main(["demo", "--out", str(out), "--config", str(toml), "--width", "64", "--height", "48",
                  "--images-per-date", "6", "--no-progress"]) == 0  # fmt: skip
@@ -105,7 +108,9 @@ def test_cli_demo_runs_the_whole_pipeline(tmp_path, capsys):
     assert "registration failed" in text  # 64×48 is too small for SfM: the ground-truth Sim(3)s are used
     summary = json.loads((out / "summary.json").read_text())
     assert [r["date"] for r in summary["metrics"]] == ["d0", "d1"]
-    assert all(np.isfinite(r["fused"]["psnr"]) and np.isfinite(r["individual"]["psnr"]) for r in summary["metrics"])
+    for r in summary["metrics"]:  # the fused model is no worse than each date's own model on its test view
+        assert r["fused"]["psnr"] >= r["individual"]["psnr"] - 0.5, r
+        assert r["fused"]["ssim"] >= r["individual"]["ssim"] - 0.02, r
     from cfgs_jax.io import read_fused, read_image
 
     assert read_fused(out / "run" / "fused").num_dates == 2
