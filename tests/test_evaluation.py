@@ -173,6 +173,18 @@ def test_sweep_file_errors_name_the_key(tmp_path):
     assert scene == "corals" and len(variants) == 6 and len({v.id for v in variants}) == 6
 
 
+def test_sweep_on_an_eval_base_refines_for_its_last_eval_step():
+    """A sweep whose base is an eval configuration without [refine] steps refines each variant for
+    N₃ = max([eval] steps) (eval.toml: 1 500), not RefineConfig's 6 000; a grid value still wins."""
+    from cfgs_jax.evaluation.sweep import parse_sweep, variant_config
+
+    _, base, variants = parse_sweep({"sweep": {"scene": "corals", "base": "eval", "grid": {"cross_init.delta": [0.3]}}})
+    assert "steps" not in base.get("refine", {}) and max(base["eval"]["steps"]) == 1500
+    assert variant_config(base, variants[0])["refine"]["steps"] == 1500
+    _, base, variants = parse_sweep({"sweep": {"scene": "corals", "base": "eval", "grid": {"refine.steps": [7]}}})
+    assert variant_config(base, variants[0])["refine"]["steps"] == 7
+
+
 @pytest.mark.slow
 def test_sweep_shares_training_and_resumes(protocol, tmp_path):
     from cfgs_jax.evaluation.sweep import run_sweep
