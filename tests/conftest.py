@@ -31,7 +31,8 @@ def _trim(folder: Path, high: int = 2 * 1024**3, low: int = 1024**3) -> None:
     size limit keeps access-time files that concurrent pytest workers race on, so it is not used.)"""
     if not folder.is_dir():
         return
-    entries = sorted((p.stat().st_mtime, p.stat().st_size, p) for p in folder.iterdir() if p.is_file())
+    stats = [(p.stat(), p) for p in folder.iterdir() if p.is_file()]
+    entries = sorted((st.st_mtime, st.st_size, p) for st, p in stats)
     total = sum(size for _, size, _ in entries)
     if total <= high:
         return

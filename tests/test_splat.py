@@ -41,6 +41,15 @@ def camera(w=50, h=37, eye=(0, -4, 1)):
     return cj.Camera.look_at(eye, [0, 0, 0], width=w, height=h, fov_x_deg=50)
 
 
+def reference_image(g, cam, om, *, background=BG, config=None, depth_key=None) -> np.ndarray:
+    """The float64 reference image of one date (opacity multipliers ``om`` [N], colour multipliers 1),
+    composited in view-depth order or in the order of ``depth_key``."""
+    n = len(g)
+    r = splat.reference.render_dates(g, cam, np.reshape(np.asarray(om, np.float64), (1, n)), np.ones((1, n, 3)),
+                                     background=background, config=config, depth_key=depth_key)  # fmt: skip
+    return np.asarray(r.image[0])
+
+
 def assert_matches_reference(fast_image, g, cam, *, background=BG, tol=1e-5, om=None, max_tie_fraction=0.01):
     """Fast float32 image vs the float64 reference: ≤ ``tol`` at every pixel, except float32 ties.
 
@@ -52,13 +61,10 @@ def assert_matches_reference(fast_image, g, cam, *, background=BG, tol=1e-5, om=
     pixels must be rare (≤ 1 %; seen: 0–1 per scene on random scenes, ≤ 6 of 1280 on the dense donut)."""
     fast = np.asarray(fast_image, np.float64)
     base = splat.RenderConfig()
-    n = len(g)
-    om = np.ones((1, n)) if om is None else np.reshape(np.asarray(om, np.float64), (1, n))
+    om = np.ones(len(g)) if om is None else om
 
     def reference(config, depth_key=None):
-        r = splat.reference.render_dates(g, cam, om, np.ones((1, n, 3)), background=background, config=config,
-                                         depth_key=depth_key)  # fmt: skip
-        return np.asarray(r.image[0])
+        return reference_image(g, cam, om, background=background, config=config, depth_key=depth_key)
 
     ref = reference(base)
     err = np.abs(fast - ref).max(-1)

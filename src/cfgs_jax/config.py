@@ -97,9 +97,9 @@ def from_dict(cls: type[T], values: dict[str, Any], *, where: str = "config", pa
         what = m["what"].replace("`", "")
         expected = what[len("Expected "):].split(",")[0] if what.startswith("Expected ") else "a valid value"
         top = re.match(r"\.(\w+)", m["where"])
-        choices = typing.get_args(typing.get_type_hints(cls).get(top[1])) if top else ()
-        if top and typing.get_origin(typing.get_type_hints(cls)[top[1]]) is typing.Literal:
-            expected = "one of " + ", ".join(repr(c) for c in choices)
+        hint = typing.get_type_hints(cls).get(top[1]) if top else None
+        if typing.get_origin(hint) is typing.Literal:
+            expected = "one of " + ", ".join(repr(c) for c in typing.get_args(hint))
         raise InputError(what.lower() if what[:1].isupper() else what, path=path, field=key,
                          fix=f"write {key} as {expected} (see the preset files in cfgs_jax/)") from exc
 
