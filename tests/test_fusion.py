@@ -109,15 +109,16 @@ def test_cold_warm_direction_is_zero_luminance_and_bluer_when_colder():
     d = cold_warm_direction()
     assert abs(d @ [0.2126, 0.7152, 0.0722]) < 1e-12 and np.isclose(np.abs(d).max(), 0.5)
     assert d[2] > 0 > d[0]  # colder = more blue, less red
-    l = light_multiplier(jnp.asarray([0.0, 1.0]), jnp.asarray([0.0, -0.7]))
+    u1 = 0.3  # gain 1.98·σ(0.3) ≈ 1.13 < 1.98 / 1.5: the shift keeps its full range
+    l = light_multiplier(jnp.asarray([np.log(1 / 0.98), u1]), jnp.asarray([0.0, -0.7]))
     assert np.allclose(np.asarray(l[0]), 1.0)
-    assert np.allclose(np.asarray(l[1]), 2 / (1 + np.exp(-1.0)) * (1 + np.tanh(-0.7) * d), atol=1e-6)
+    assert np.allclose(np.asarray(l[1]), 1.98 / (1 + np.exp(-u1)) * (1 + np.tanh(-0.7) * d), atol=1e-6)
     back = 2 / (1 + np.exp(-np.asarray(light_logits(l))))
     assert np.allclose(back, np.asarray(l), atol=1e-5)
     from cfgs_jax.fusion.light import cold_warm_coefficient  # the inverse: recovers tanh(w) whatever the gain
 
     w = np.linspace(-2.0, 2.0, 9)
-    k = cold_warm_coefficient(light_multiplier(jnp.linspace(-1.0, 1.0, 9), jnp.asarray(w, jnp.float32)))
+    k = cold_warm_coefficient(light_multiplier(jnp.linspace(-1.0, 0.6, 9), jnp.asarray(w, jnp.float32)))
     assert np.allclose(k, np.tanh(w), atol=1e-6)
 
 
@@ -288,11 +289,12 @@ def test_change_loss_visibility_rule_and_final_prune_hand_cases():
     # d(õ) = [[0.7, -0.4], [0, 0]], d(o) = [[0.6, -0.4], [-0.2, 0.2]] → |diff| = [[0.1, 0], [0.2, 0.2]] → mean 0.125
     assert np.isclose(float(rf.change_loss(jnp.asarray(o1), jnp.asarray(o0))), 0.125, atol=1e-6)
     assert float(rf.change_loss(jnp.asarray(o0[:, :1]), jnp.asarray(o0[:, :1]))) == 0.0
-    contributed = np.array([[True, False, False], [False, False, True]])
-    rendered = np.array([True, True, False])
-    out = rf.apply_visibility(o0, contributed, rendered)
-    assert out[0, 0] == o0[0, 0] and out[0, 1] == fusion.INVISIBLE_LOGIT and out[0, 2] == o0[0, 2]  # date 2 not rendered
-    assert out[1, 0] == fusion.INVISIBLE_LOGIT and out[1, 1] == fusion.INVISIBLE_LOGIT and out[1, 2] == o0[1, 2]
+    contributed = np.array([[True, False, True], [False, False, True]])
+    o0[1, 1] = fusion.INVISIBLE_LOGIT - 1.0  # already below the rule's value: left as it is
+    out, kill = rf.apply_visibility(o0, contributed)
+    assert out[0, 0] == o0[0, 0] and out[0, 1] == fusion.INVISIBLE_LOGIT and out[0, 2] == o0[0, 2]
+    assert out[1, 0] == fusion.INVISIBLE_LOGIT and out[1, 1] == o0[1, 1] and out[1, 2] == o0[1, 2]
+    assert kill.tolist() == [[False, True, False], [True, False, False]]
     a = _random_gaussians(3)
     a = cj.Gaussians(a.means, a.quats, a.log_scales, jnp.asarray(logit([0.5, 0.5, 0.004])), a.colors)
     m = fusion.merge([a], ["x"])
@@ -324,7 +326,7 @@ def test_refine_lowers_the_loss_keeps_the_model_finite_and_resumes_exactly(tmp_p
         imgs.append(np.concatenate([np.asarray(r.image), np.asarray(r.alpha)[..., None]], -1))
     views = [ci.DateViews(cams, tuple(imgs))] * 2
     model = fusion.merge(noisy, ["a", "b"])
-    cfg = rf.RefineConfig(steps=150, lr_color=2e-3, visibility_interval=100)
+    cfg = rf.RefineConfig(steps=150, lr_color=7e-3, visibility_interval=100)  # f_dc units: RGB moves 2e-3
     out, rep = rf.refine(model, views, cfg, extent=1.0)
     assert rep["loss_last"] < 0.8 * rep["loss_first"], rep
     assert all(np.isfinite(np.asarray(x)).all() for x in jax.tree_util.tree_leaves(out.gaussians))
@@ -490,12 +492,47 @@ def test_extend_adds_a_date_initialising_only_its_pairs(tiny_two_dates, fused_ru
     report = json.loads((run / "report.json").read_text())
     assert [r["pair"] for r in report["extend:d2:cross_init"]] == [[0, 2], [1, 2], [2, 0], [2, 1]]
     assert report["extend:d2:refine"]["steps"] == 7 and report["refine"]["steps"] == 20
+    assert report["extend:d2:refine"]["halved_dates"] == [2] and report["refine"]["halved_dates"] == [0, 1]
     fused = cj.io.read_fused(run / "fused")
     assert fused.num_dates == 3 and [d.name for d in fused.dates] == ["d0", "d1", "d2"]
     assert set(json.loads((run / "metrics.json").read_text())["dates"]) == {"d0", "d1", "d2"}
     timings = json.loads((run / "timings.json").read_text())
     assert timings["extend:d2:total"] > 0 and "extend:d2:cross_init" in timings
     assert main(["extend", "--run", str(run), "--date", str(root / "d2"), *common]) == 2  # already there
+
+
+def test_dates_are_fused_and_extended_in_time_order(tiny_two_dates, tmp_path):
+    """d2 and d0 given newest first are fused oldest first (their images carry EXIF capture times), and
+    extending by d1 (captured between them) inserts it as date 1: the old Gaussians keep o and l at d0
+    and d2, only the pairs with d1 are initialised, and only d1's α is halved. Before, the given order
+    was the time axis and `extend` always appended the new date (and halved every α)."""
+    import json
+
+    from cfgs_jax.pipeline import main
+
+    root = tiny_two_dates
+    run = tmp_path / "run"
+    common = ["--transforms", str(root / "transforms.json"), "--no-progress"]
+    assert main(["fuse", "--dates", str(root / "d2"), str(root / "d0"), "--out", str(run), "--config",
+                 str(root / "tiny.toml"), *common]) == 0  # fmt: skip
+    before = cj.io.read_fused(run / "fused")
+    assert [(d.name, d.captured) for d in before.dates] == [("d0", "2024-01-15T00:00:00"), ("d2", "2024-07-15T00:00:00")]
+    state = json.loads((run / "run.json").read_text())
+    assert state["reference"] == "d0"
+    state["config"]["refine"]["extend_steps"] = 3
+    (run / "run.json").write_text(json.dumps(state))
+    assert main(["extend", "--run", str(run), "--date", str(root / "d1"), *common]) == 0
+    init = cj.io.read_fused(run / "cross_init")
+    n = len(before)
+    assert [d.name for d in init.dates] == ["d0", "d1", "d2"]
+    np.testing.assert_array_equal(np.asarray(init.o_logits)[:n][:, [0, 2]], np.asarray(before.o_logits))
+    np.testing.assert_array_equal(np.asarray(init.light_logits)[:n][:, [0, 2]], np.asarray(before.light_logits))
+    assert np.array_equal(np.asarray(init.origin)[:n], np.where(np.asarray(before.origin) == 1, 2, 0))
+    assert np.all(np.asarray(init.origin)[n:] == 1)
+    report = json.loads((run / "report.json").read_text())
+    assert [r["pair"] for r in report["extend:d1:cross_init"]] == [[0, 1], [2, 1], [1, 0], [1, 2]]
+    assert report["extend:d1:refine"]["halved_dates"] == [1]
+    assert [d.name for d in cj.io.read_fused(run / "fused").dates] == ["d0", "d1", "d2"]
 
 
 def test_render_and_export_cli_on_a_fused_run(fused_run, tmp_path):
@@ -609,7 +646,7 @@ def test_visibility_rule_leaves_persistence_out_and_zeroes_hidden_gaussians():
     """Refinement's visibility test is α·T ≥ 0.01 with α the Gaussian's own opacity: a Gaussian in
     full view whose o at date 1 is 0.012 (α·o·T ≈ 0.007 < 0.01, still rendered) keeps that o; one
     hidden behind an opaque wall and one behind the camera are zeroed at both dates and pruned.
-    Every learning rate is 0 (position: 1e-12), so only the rule moves o."""
+    Every learning rate is 0, so only the rule moves o."""
     rf = importlib.import_module("cfgs_jax.fusion.refine")
     ci = importlib.import_module("cfgs_jax.fusion.cross_init")
     logit = lambda p: float(np.log(p) - np.log1p(-p))  # noqa: E731
@@ -629,7 +666,7 @@ def test_visibility_rule_leaves_persistence_out_and_zeroes_hidden_gaussians():
     w = np.asarray(splat.render(g, cam, opacity_mult=jnp.asarray(jax.nn.sigmoid(o[:, 1]))).max_weight)
     assert 1 / 255 < w[3] < 0.01 and w[2] < 0.01 and w[4] == 0.0  # what the rule is tested on
     cfg = rf.RefineConfig(steps=6, visibility_interval=6, lr_o=0.0, lr_alpha=0.0, lr_color=0.0, lr_other=0.0,
-                          position_lr=1e-12, position_lr_final=1e-12, halve_alpha=False, random_background=False)  # fmt: skip
+                          position_lr_scale=0.0, halve_alpha=False, random_background=False)  # fmt: skip
     views = [ci.DateViews((cam,), (image,))] * 2
     out, rep = rf.refine(model, views, cfg, extent=1.0)
     assert rep["zeroed_per_date"] == [2, 2] and len(out) == 3, rep

@@ -269,7 +269,8 @@ def cmd_fuse(args) -> int:
     console = _console()
     run = run_fusion(
         [Path(d) for d in args.dates], Path(args.out), raw, models=args.models, resume=args.resume,
-        transforms=Path(args.transforms) if args.transforms else None, progress=not args.no_progress,
+        transforms=Path(args.transforms) if args.transforms else None, captured=args.captured,
+        progress=not args.no_progress,
         drop_invalid=args.drop_invalid, log=console.print,
     )  # fmt: skip
     from rich.table import Table
@@ -345,7 +346,8 @@ def cmd_extend(args) -> int:
             raise InputError(f"no usable Sim(3) for date {name!r} ({exc})", path=args.transforms, field=name) from exc
     console = _console()
     run = run_extend(Path(args.run), Path(args.date), model=Path(args.model) if args.model else None,
-                     transform=transform, resume=args.resume, progress=not args.no_progress, log=console.print)  # fmt: skip
+                     transform=transform, captured=args.captured, resume=args.resume, progress=not args.no_progress,
+                     log=console.print)  # fmt: skip
     name = Path(args.date).name
     prefix = f"extend:{name}:"
     stages = [(k[len(prefix):], v) for k, v in run.timings.items() if k.startswith(prefix) and not k.endswith("total")]
@@ -504,6 +506,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--config", default="paper", help="preset name (paper, fast) or TOML path")
     s.add_argument("--models", nargs="+", help="trained per-date PLYs (default: train them in the run)")
     s.add_argument("--transforms", help="JSON of known date → reference Sim(3)s (skips SfM registration)")
+    s.add_argument("--captured", nargs="+", metavar="DATE",
+                   help="capture time of each --dates entry (ISO 8601, same order; default: the images' EXIF); "
+                        "dates are fused in time order")  # fmt: skip
     s.add_argument("--drop-invalid", action="store_true", help="drop --models rows with NaN/Inf instead of failing")
     s.add_argument("--resume", action="store_true", help="continue the run in --out")
     s.add_argument("--no-progress", action="store_true")
@@ -528,6 +533,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--date", required=True, help="the new date's COLMAP dataset")
     s.add_argument("--model", help="its trained PLY (default: train it in the run)")
     s.add_argument("--transforms", help="JSON with the new date's date → reference Sim(3) (skips registration)")
+    s.add_argument("--captured", metavar="DATE", help="its capture time (ISO 8601; default: its images' EXIF): "
+                   "the date is inserted at its place in time")  # fmt: skip
     s.add_argument("--resume", action="store_true")
     s.add_argument("--no-progress", action="store_true")
     s.set_defaults(func=cmd_extend)

@@ -116,8 +116,12 @@ def max_weight(g: Gaussians, opacity: Float[Array, "N"], cameras: Sequence[Camer
 
 def observed_from(g: Gaussians, opacity: Float[Array, "N"], cameras: Sequence[Camera], threshold: float, *,
                   render_config=None) -> np.ndarray:  # fmt: skip
-    """[N] bool: α·opacity·T ≥ ``threshold`` at some pixel of some camera (the visibility rule)."""
-    return max_weight(g, opacity, cameras, render_config=render_config) >= threshold
+    """[N] bool: the refinement's visibility rule — α·T ≥ ``threshold`` at some pixel of some camera,
+    α the Gaussian's own opacity (times its falloff), T from the render at ``opacity`` (the kernel's
+    α·opacity·T divided by the opacity)."""
+    opacity = np.asarray(opacity, np.float32)
+    weight = max_weight(g, opacity, cameras, render_config=render_config)
+    return np.where(opacity > 0, weight / np.maximum(opacity, 1e-30), 0.0) >= threshold
 
 
 @dataclasses.dataclass(frozen=True)
@@ -185,9 +189,7 @@ def observed_matrix(model: TemporalGaussians, observing: Sequence[Sequence[Camer
             continue
         for q, cams in enumerate(observing):
             mult = np.where(origin == p, o[:, p], o[:, q]).astype(np.float32)
-            weight = max_weight(model.gaussians, mult, cams, render_config=render_config)[rows]
-            own = mult[rows]  # α·T with α the Gaussian's own opacity: the statistic divided by the multiplier
-            seen[rows, q] = np.where(own > 0, weight / np.maximum(own, 1e-30), 0.0) >= threshold
+            seen[rows, q] = observed_from(model.gaussians, mult, cams, threshold, render_config=render_config)[rows]
     return seen
 
 

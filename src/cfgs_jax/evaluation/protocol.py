@@ -4,7 +4,7 @@ Rows: Individual init (each date's own model), Merged (before any refinement), O
 refinement steps (snapshots of one N₃ run, as the paper evaluates "each saved iteration checkpoint"),
 Individual +N (each date's model trained N more steps with its own parameters: no densification,
 position lr at its final value), and the ablations freeze-α / freeze-o (refinement of N₃ steps with
-that learning rate 0). PSNR / SSIM / LPIPS on every 8th image per date, averaged over dates weighted
+α, or o, held at its input value: that rate 0, and for α no halving at the start). PSNR / SSIM / LPIPS on every 8th image per date, averaged over dates weighted
 by image count; Gaussian counts per row. Every stage is resumable: re-running the command skips
 finished work (the fusion run, the continuations and the ablations keep their own state).
 """
@@ -64,6 +64,12 @@ class SceneConfig:
     seed: int = 0
 
 
+#: The ablation rows: key → (label, the [refine] values it overrides). Freezing α keeps it at its
+#: input value, so the halving at the start is off too.
+ABLATIONS = {
+    "freeze_alpha": ("Ours, α frozen", {"lr_alpha": 0.0, "halve_alpha": False}),
+    "freeze_o": ("Ours, o frozen", {"lr_o": 0.0}),
+}
 EVAL_SECTIONS = {**CONFIG_SECTIONS, "eval": EvalConfig, "scene": SceneConfig, "change": ChangeConfig}
 
 
@@ -141,7 +147,8 @@ def _ablation(run_dir: Path, key: str, overrides: dict, views, scenes, test_view
         log(f"[eval] ablation {key}: {fc.steps:,} refinement steps")
         t0 = time.perf_counter()
         model, _ = refine(read_fused(run_dir / "cross_init"), views, fc, extent=train.scene_extent(scenes[0].cameras),
-                          render_config=render_config, checkpoint=run_dir / "ablations" / f"{key}_checkpoint.npz")  # fmt: skip
+                          train_config=section(raw, "train", train.TrainConfig), render_config=render_config,
+                          checkpoint=run_dir / "ablations" / f"{key}_checkpoint.npz")  # fmt: skip
         m = evaluate_fused(model, test_views, render_config=render_config, lpips_net=lpips_net)
         done = {"metrics": m["mean"], "gaussians": len(model), "seconds": time.perf_counter() - t0}
         write_json(path, done)
@@ -210,7 +217,7 @@ def run_protocol(scene: str, out: str | Path, raw: dict | None = None, *, progre
     if ec.ablations:
         release_if_near_limit()
         views = [date_views(sc, sm) for sc, sm in zip(scenes, sims)]
-        for key, label, over in (("freeze_alpha", "Ours, α frozen", {"lr_alpha": 0.0}), ("freeze_o", "Ours, o frozen", {"lr_o": 0.0})):
+        for key, (label, over) in ABLATIONS.items():
             a = _ablation(run_dir, key, over | {"steps": ec.steps[-1]}, views, scenes, test_views, fusion_raw,
                           render_config, ec.lpips_net, log)  # fmt: skip
             ablations[key] = a

@@ -5,7 +5,7 @@ into the pipeline commands ``fuse`` and ``extend``."""
 from cfgs_jax.fusion.cross_init import CrossInitConfig, DateViews, cross_init, init_pair, init_pairs
 from cfgs_jax.fusion.refine import RefineConfig, final_prune, refine
 
-from cfgs_jax.fusion.fuse import INVISIBLE_LOGIT, OTHER_LOGIT, OWN_LOGIT, merge
+from cfgs_jax.fusion.fuse import INVISIBLE_LOGIT, OTHER_LOGIT, OWN_LOGIT, add_date, merge
 from cfgs_jax.fusion.register import (
     RegisterConfig,
     Registration,
@@ -29,6 +29,7 @@ __all__ = [
     "OWN_LOGIT",
     "RegisterConfig",
     "Registration",
+    "add_date",
     "merge",
     "quat_multiply",
     "refine_sim3_pair",

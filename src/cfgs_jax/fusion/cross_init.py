@@ -12,8 +12,9 @@ the released code's schedule (LPIPS-weighted ε mapped into [0.15, 0.85] at the 
 the end; ``"reference"``).
 
 The LPIPS map of a view compares date p's own appearance there — its Gaussians rendered with their
-own o^p and no light change, over black — with I^q over black, once, before the optimisation: it
-says where date p's content does not look like date q. (Comparing the evolving render instead marks
+own o^p, over black, times the pair's start exposure gain (``exposure_gain``) — with I^q over black, once, before
+the optimisation: it says where date p's content does not look like date q once a global exposure
+change is accounted for. (Comparing the evolving render instead marks
 every pixel as different at the start, where o^q = δ·o^p halves the opacity, and drives persistent
 Gaussians toward the background.) It is normalised to [0, 1] as clip(map / ``lpips_scale``, 0, 1):
 LPIPS is 0 for identical patches and ≈ 0.5–1 for unrelated ones, so ε ≈ 1 marks pixels the date-p
@@ -43,7 +44,7 @@ import optax
 from cfgs_jax import metrics, splat
 from cfgs_jax.errors import InputError
 from cfgs_jax.fusion.fuse import INVISIBLE_LOGIT
-from cfgs_jax.fusion.light import REC709, light_logits, light_multiplier
+from cfgs_jax.fusion.light import REC709, gain_parameter, light_gain, light_logits, light_multiplier
 from cfgs_jax.model import Camera, Gaussians, TemporalGaussians
 from cfgs_jax.train.loop import view_order
 from cfgs_jax.train.step import over_background
@@ -67,7 +68,8 @@ class CrossInitConfig:
     lpips_scale: float = 1.0  # ε_LPIPS = clip(map / lpips_scale, 0, 1)
     background_anneal: float = 1.0  # fraction of the steps over which b's range shrinks to black
     batch_dates: int = 0  # pairs (p, q) of one p optimised together per step (vmapped); 0: all of them
-    exposure_init: bool = True  # start the gains at the pair's least-squares exposure, not 1 (README §Conventions)
+    exposure_init: bool = True  # start the gains at the pair's least-squares exposure, not 1
+    exposure_range_ev: float = 2.0  # the start exposure is clipped to ± this many stops (a dark image is not a gain of 0)
     rate_reference_steps: int = 3000  # the step count the rates are meant for; fewer steps scale them up (0: off)
     seed: int = 0
 
@@ -81,6 +83,8 @@ class CrossInitConfig:
                              fix='use "paper" or "reference"')  # fmt: skip
         if not 0 < self.ramp_fraction <= 1 or not 0 < self.background_anneal <= 1:
             raise InputError("ramp_fraction and background_anneal must be in (0, 1]", field="cross_init")
+        if self.exposure_range_ev < 0:
+            raise InputError(f"must be ≥ 0, got {self.exposure_range_ev}", field="cross_init.exposure_range_ev")
         if self.rate_reference_steps < 0:
             raise InputError(f"must be ≥ 0 (0: the rates as given), got {self.rate_reference_steps}",
                              field="cross_init.rate_reference_steps")  # fmt: skip
@@ -123,11 +127,13 @@ def own_render(g: Gaussians, o_p, camera, render_config=None):
                               statistics=False)  # fmt: skip
 
 
-def lpips_map(own, image, lpips_net, config: CrossInitConfig):
-    """[H, W] in [0, 1]: LPIPS (spatial) between ``own`` (``own_render``) and ``image`` over black,
-    clipped after dividing by ``lpips_scale``."""
+def lpips_map(own, image, lpips_net, config: CrossInitConfig, gain: float = 1.0):
+    """[H, W] in [0, 1]: LPIPS (spatial) between ``own`` (``own_render``) under the pair's start
+    exposure ``gain`` (clipped to [0, 1]) and ``image`` over black, clipped after dividing by
+    ``lpips_scale``. With the gain, a global exposure change between the dates is not a difference."""
     target = over_background(jnp.asarray(image, jnp.float32), jnp.zeros(3, jnp.float32))
-    lp = metrics.perceptual.lpips_distance(lpips_net, own.image[0], target, spatial=True)
+    lit = jnp.clip(own.image[0] * gain, 0.0, 1.0)
+    lp = metrics.perceptual.lpips_distance(lpips_net, lit, target, spatial=True)
     return jnp.clip(lp / config.lpips_scale, 0.0, 1.0)
 
 
@@ -280,13 +286,14 @@ def init_pairs(model: TemporalGaussians, p: int, qs: Sequence[int], views: Seque
     # date p's own render at each view of each q (seen from q only: the others render nothing there),
     # shared by the exposure start and the ε maps
     owns = [[own_render(g, o_p * mask[j], c, rc) for c in cameras[j]] for j in range(k)]
-    u0 = np.zeros((k, 1), np.float32)  # gain 2σ(u) = 1
-    if config.exposure_init:  # gain := the pair's exposure, inside the stored range (0, 2)
-        for j in range(k):
-            half = np.clip(exposure_gain(owns[j], images[j]) / 2.0, 0.02, 0.98)
-            u0[j] = np.log(half) - np.log1p(-half)
+    lo, hi = 2.0**-config.exposure_range_ev, 2.0**config.exposure_range_ev
+    start_gains = [float(np.clip(exposure_gain(owns[j], images[j]), lo, hi)) if config.exposure_init else 1.0
+                   for j in range(k)]  # fmt: skip
+    u0 = np.asarray([[gain_parameter(s)] for s in start_gains], np.float32)  # gain := the pair's exposure
     params = {"o_logit": o_init, "u": jnp.broadcast_to(jnp.asarray(u0), (k, m)), "w": jnp.zeros((k, m))}
-    eps_maps = [[lpips_map(own, im, lpips_net, config) for own, im in zip(owns[j], images[j])] for j in range(k)]
+    start_light = [float(light_gain(jnp.asarray(u0[j, 0]))) for j in range(k)]  # the start gain, as rendered
+    eps_maps = [[lpips_map(own, im, lpips_net, config, start_light[j]) for own, im in zip(owns[j], images[j])]
+                for j in range(k)]  # fmt: skip
     del owns
     keys = jnp.stack([jax.random.key(config.seed * 1_000_003 + p * 1009 + qs[i]) for i in active])
     losses = []
@@ -314,8 +321,8 @@ def init_pairs(model: TemporalGaussians, p: int, qs: Sequence[int], views: Seque
         reports[i] |= {
             "skipped": False, "loss_first": float(np.mean(losses[:10, j])), "loss_last": float(np.mean(losses[-10:, j])),
             "mean_o": float(np.mean(np.asarray(jax.nn.sigmoid(o_fit)))), "mean_w": float(np.mean(w)),
-            "mean_gain": float(np.mean(2 * np.asarray(jax.nn.sigmoid(u)))),
-            "start_gain": float(2 * jax.nn.sigmoid(u0[j, 0])),
+            "mean_gain": float(np.mean(np.asarray(light_gain(jnp.asarray(u))))),
+            "start_gain": float(light_gain(jnp.asarray(u0[j, 0]))),
             "mean_epsilon": float(np.mean([np.asarray(e).mean() for e in eps_maps[j]])),
         }  # fmt: skip
     new = dataclasses.replace(model, o_logits=jnp.asarray(o_logits), light_logits=jnp.asarray(l_logits))

@@ -55,25 +55,32 @@ def merge(
     )
 
 
-def add_date(model: TemporalGaussians, new: Gaussians, date: DateInfo | str, transform: Sim3 | None = None) -> TemporalGaussians:
-    """Extend a fused model by one date (the paper's incremental fusion): the new date's Gaussians
-    (moved by ``transform`` into the model's frame) are appended with o = own ≈ 1 at the new date and
-    ≈ 0 at the old dates; the existing Gaussians get o ≈ 0 at the new date (cross-timestep init of the
-    pairs involving the new date sets both) and l = 1 there. Old dates' o and l are kept."""
+def add_date(model: TemporalGaussians, new: Gaussians, date: DateInfo | str, transform: Sim3 | None = None, *,
+             position: int | None = None) -> TemporalGaussians:
+    """Extend a fused model by one date (the paper's incremental fusion), inserted as date ``position``
+    (default: last; dates are in time order, so a date captured between two others goes between
+    them): the new date's Gaussians (moved by ``transform`` into the model's frame) are appended with
+    o = own ≈ 1 at the new date and ≈ 0 at the others; the existing Gaussians get o ≈ 0 at the new
+    date (cross-timestep init of the pairs involving the new date sets both) and l = 1 there. Old
+    dates' o and l are kept; origins at or after ``position`` move up by one."""
     date = date if isinstance(date, DateInfo) else DateInfo(str(date))
     if date.name in model.date_names:
         raise InputError(f"the model already has a date named {date.name!r}", field="date", fix="use a new name")
-    moved = new if transform is None else transform_gaussians(new, transform)
     t = model.num_dates
+    k = t if position is None else int(position)
+    if not 0 <= k <= t:
+        raise InputError(f"position {k} for a model of {t} dates", field="position", fix=f"use 0 … {t}")
+    moved = new if transform is None else transform_gaussians(new, transform)
     n_old, n_new = len(model), len(moved)
     dtype = jnp.result_type(model.gaussians.means)
-    o_old = jnp.concatenate([jnp.asarray(model.o_logits, dtype), jnp.full((n_old, 1), OTHER_LOGIT, dtype)], axis=1)
-    o_new = jnp.concatenate([jnp.full((n_new, t), OTHER_LOGIT, dtype), jnp.full((n_new, 1), OWN_LOGIT, dtype)], axis=1)
-    light_old = jnp.concatenate([jnp.asarray(model.light_logits, dtype), jnp.zeros((n_old, 1, 3), dtype)], axis=1)
+    o_old = jnp.insert(jnp.asarray(model.o_logits, dtype), k, OTHER_LOGIT, axis=1)
+    o_new = jnp.full((n_new, t + 1), OTHER_LOGIT, dtype).at[:, k].set(OWN_LOGIT)
+    light_old = jnp.insert(jnp.asarray(model.light_logits, dtype), k, 0.0, axis=1)
+    origin = np.asarray(model.origin)
     return TemporalGaussians(
         concatenate([model.gaussians, jax.tree_util.tree_map(lambda x: jnp.asarray(x, dtype), moved)]),
         jnp.concatenate([o_old, o_new]),
         jnp.concatenate([light_old, jnp.zeros((n_new, t + 1, 3), dtype)]),
-        np.concatenate([np.asarray(model.origin), np.full(n_new, t, np.int32)]),
-        tuple(model.dates) + (date,),
+        np.concatenate([np.where(origin >= k, origin + 1, origin), np.full(n_new, k, np.int32)]).astype(np.int32),
+        tuple(model.dates[:k]) + (date,) + tuple(model.dates[k:]),
     )

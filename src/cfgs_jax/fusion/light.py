@@ -1,7 +1,14 @@
-"""The constrained light compensation l_i^q of Eq. 1 (DESIGN §5): a luminance gain and a cold/warm
-shift, l = 2σ(u) · (1 + tanh(w)·d), with d a fixed zero-luminance RGB direction along the Planckian
-locus. It is optimised as (u, w) during cross-timestep initialisation and stored as the general RGB
-light logits of the model (l = 2·sigmoid(logit), the reference implementation's layout).
+"""The constrained light compensation l_i^q of Eq. 1: a luminance gain and a cold/warm shift,
+
+    l = g · (1 + k·d),   g = L·σ(u),   k = tanh(w) · min(1, (L/g − 1) / |d|∞),
+
+with d a fixed zero-luminance RGB direction along the Planckian locus (|d|∞ = 0.5) and L =
+``MAX_LIGHT`` just below 2. It is optimised as (u, w) during cross-timestep initialisation and stored
+as the general RGB light logits of the model (l = 2·sigmoid(logit), the reference implementation's
+layout), whose range is (0, 2). The factor on tanh(w) shrinks the cold/warm shift only where the gain
+would otherwise push a channel past L (gains above L/1.5 ≈ 1.33), so every fitted l lies in
+(0, L] ⊂ (0, 2): what is saved is what the optimiser rendered, and a fitted light is always a gain
+times a cold/warm shift, never a clipped hue.
 """
 
 from __future__ import annotations
@@ -14,6 +21,11 @@ import numpy as np
 from jaxtyping import Array, Float
 
 REC709 = np.array([0.2126, 0.7152, 0.0722])
+#: The largest light multiplier the model fits (stored logit ln 99 ≈ 4.6, where float32 round-trips
+#: l = 2·sigmoid(logit) to ~1e-7).
+MAX_LIGHT = 1.98
+#: The smallest multiplier ``light_logits`` stores (l = 0 would be an infinite logit).
+MIN_LIGHT = 1e-12
 
 
 @functools.lru_cache(maxsize=4)
@@ -35,22 +47,39 @@ def cold_warm_direction(warm_kelvin: float = 3500.0, cold_kelvin: float = 9500.0
     return (0.5 * d / np.max(np.abs(d))).astype(np.float64)
 
 
+def light_gain(u: Float[Array, "*N"]) -> Float[Array, "*N"]:
+    """The luminance gain g = L·σ(u) ∈ (0, L) of the light model (L = ``MAX_LIGHT``)."""
+    return MAX_LIGHT * jax.nn.sigmoid(u)
+
+
+def gain_parameter(gain) -> np.ndarray:
+    """u with ``light_gain(u)`` = ``gain``, the gain clipped into [0.01·L, 0.99·L] (a start value
+    from which Adam can still move either way)."""
+    half = np.clip(np.asarray(gain, np.float64) / MAX_LIGHT, 0.01, 0.99)
+    return np.log(half) - np.log1p(-half)
+
+
 def light_multiplier(u: Float[Array, "*N"], w: Float[Array, "*N"], direction=None) -> Float[Array, "*N 3"]:
-    """l = 2σ(u) · (1 + tanh(w)·d) per Gaussian (DESIGN §5)."""
-    d = jnp.asarray(cold_warm_direction() if direction is None else direction, jnp.result_type(u))
-    gain = 2.0 * jax.nn.sigmoid(u)
-    return gain[..., None] * (1.0 + jnp.tanh(w)[..., None] * d)
+    """l = g·(1 + k·d), g = L·σ(u), k = tanh(w)·min(1, (L/g − 1)/|d|∞): every channel in (0, L]."""
+    d = np.asarray(cold_warm_direction() if direction is None else direction, np.float64)
+    reach = float(np.max(np.abs(d)))
+    gain = light_gain(u)
+    room = jnp.minimum(1.0, (MAX_LIGHT / gain - 1.0) / reach)
+    k = jnp.tanh(w) * room
+    return gain[..., None] * (1.0 + k[..., None] * jnp.asarray(d, jnp.result_type(u)))
 
 
-def light_logits(l: Float[Array, "*N 3"], eps: float = 1e-4) -> Float[Array, "*N 3"]:
-    """The stored logits of multipliers l (l = 2·sigmoid(logit)); l is clipped into (0, 2)."""
-    half = jnp.clip(l / 2.0, eps, 1.0 - eps)
+def light_logits(l: Float[Array, "*N 3"]) -> Float[Array, "*N 3"]:
+    """The stored logits of multipliers l (l = 2·sigmoid(logit)), l clipped into [``MIN_LIGHT``,
+    ``MAX_LIGHT``] (the fitted range, so a fitted l survives the round trip to float32 precision)."""
+    half = jnp.clip(l / 2.0, MIN_LIGHT / 2.0, MAX_LIGHT / 2.0)
     return jnp.log(half) - jnp.log1p(-half)
 
 
 def cold_warm_coefficient(l: Float[Array, "*N 3"], direction=None) -> np.ndarray:
-    """The fitted tanh(w) of multipliers ``l`` (the inverse of ``light_multiplier`` on its range):
-    Y(d) = 0 gives gain = Y(l), so k = (l / Y(l) − 1)·d / |d|². k > 0: colder (bluer), k < 0: warmer."""
+    """The fitted cold/warm coefficient k of multipliers ``l`` (the inverse of ``light_multiplier``:
+    tanh(w) wherever the gain leaves the shift its full range): Y(d) = 0 gives gain = Y(l), so
+    k = (l / Y(l) − 1)·d / |d|². k > 0: colder (bluer), k < 0: warmer."""
     d = cold_warm_direction() if direction is None else np.asarray(direction, np.float64)
     l = np.asarray(l, np.float64)
     return (l / (l @ REC709)[..., None] - 1.0) @ d / (d @ d)

@@ -117,7 +117,8 @@ def refine_sim3_pair(init_a: Sim3, init_b: Sim3, ref_pairs, date_pairs, extent: 
     ``ref_pairs`` = (centres, rotations) of reference images in the SfM frame and in the reference
     frame; ``date_pairs`` = the same for the date's images in the SfM frame and in the date frame.
     Residuals: A(c_sfm) − c_ref and A(c_sfm) − B(c_date) over ``extent``; R_A·R_sfm − R_ref and
-    R_A·R_sfm − R_B·R_date (world-from-camera rotations). Returns (A, B) as Sim3."""
+    R_A·R_sfm − R_B·R_date (world-from-camera rotations). Returns (A, B, converged): the two Sim3 and
+    whether optimistix reported success with finite parameters within ``max_steps``."""
     import optimistix as optx
 
     (c_rs, r_rs), (c_rr, r_rr) = ref_pairs
@@ -155,7 +156,7 @@ def refine_sim3_pair(init_a: Sim3, init_b: Sim3, ref_pairs, date_pairs, extent: 
         data = tuple(jnp.asarray(x, jnp.float64) for x in (c_rs, r_rs, c_rr, r_rr, c_ds, r_ds, c_dd, r_dd))
         y, ok = solve(jnp.asarray(np.concatenate([pack(init_a), pack(init_b)]), jnp.float64), data)
         y = np.asarray(y, np.float64)
-        ok = bool(ok)
+        ok = bool(ok) and bool(np.all(np.isfinite(y)))
 
     def to_sim3(p):
         return Sim3(float(np.exp(p[0])), np.asarray(_rotvec_to_matrix(jnp.asarray(p[1:4])), np.float64), p[4:7].copy())
@@ -178,7 +179,7 @@ def register_date(reference, date, *, config: RegisterConfig | None = None, work
     frame, both through the camera poses the datasets already have: a robust closed-form Sim(3)
     (pycolmap ``estimate_sim3d_robust`` on camera centres) initialises a joint optimistix
     Levenberg–Marquardt over centres and orientations. Fewer than ``min_registered`` images of
-    either date registered is an error."""
+    either date registered, or a fit that does not converge, is an error naming the date."""
     import tempfile
 
     import pycolmap
@@ -251,8 +252,15 @@ def register_date(reference, date, *, config: RegisterConfig | None = None, work
     a0, b_sfm = _sim3_from_pycolmap(a0["tgt_from_src"] if isinstance(a0, dict) else a0), _sim3_from_pycolmap(
         b_sfm["tgt_from_src"] if isinstance(b_sfm, dict) else b_sfm)  # fmt: skip
     b0 = a0.compose(b_sfm.inverse())  # date → reference
-    a, b, _ = refine_sim3_pair(a0, b0, ((ref[0], ref[1]), (ref[2], ref[3])), ((new[0], new[1]), (new[2], new[3])),
-                               extent, config.lm_max_steps)  # fmt: skip
+    a, b, converged = refine_sim3_pair(a0, b0, ((ref[0], ref[1]), (ref[2], ref[3])), ((new[0], new[1]), (new[2], new[3])),
+                                       extent, config.lm_max_steps)  # fmt: skip
+    if not converged:
+        raise InputError(
+            f"registering this date to the reference failed: the joint Levenberg–Marquardt fit of the Sim(3) "
+            f"(optimistix) did not converge within {config.lm_max_steps} steps ({n_ref} reference and {n_new} "
+            f"date images registered)", path=date.root, field="register.lm_max_steps",
+            fix="raise [register] lm_max_steps, check the date's COLMAP poses, or pass --transforms JSON",
+        )  # fmt: skip
     c_err = np.concatenate([a.apply(ref[0]) - ref[2], a.apply(new[0]) - b.apply(new[2])])
     r_err = [np.degrees(_angle(a.rotation @ r1, r2)) for r1, r2 in zip(ref[1], ref[3])]
     r_err += [np.degrees(_angle(a.rotation @ r1, b.rotation @ r2)) for r1, r2 in zip(new[1], new[3])]

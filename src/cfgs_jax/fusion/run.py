@@ -36,6 +36,7 @@ from cfgs_jax.fusion.fuse import merge
 from cfgs_jax.fusion.refine import RefineConfig, refine
 from cfgs_jax.fusion.register import RegisterConfig, register_date
 from cfgs_jax.io.atomic import ensure_writable_dir, read_json, write_json
+from cfgs_jax.io.captured import exif_captured, insert_position, parse_captured, time_order
 from cfgs_jax.io.colmap import Scene, read_colmap
 from cfgs_jax.io.fused import read_fused, write_fused
 from cfgs_jax.io.ply import read_ply, write_ply
@@ -135,7 +136,8 @@ def config_changes(started: dict, given: dict) -> list[str]:
 class FusionRun:
     """One run directory and its stage bookkeeping."""
 
-    def __init__(self, out: Path, dates: list[Path], raw_config: dict | None, *, resume: bool, models=None):
+    def __init__(self, out: Path, dates: list[Path], raw_config: dict | None, *, resume: bool, models=None,
+                 captured: list[str | None] | None = None):  # fmt: skip
         self.out = ensure_writable_dir(out)
         self.raw = raw_config or {}
         given = {k: v for k, v in self.raw.items() if k != "__path__"}  # what run.json stores as "config"
@@ -157,9 +159,10 @@ class FusionRun:
         if len(set(names)) != len(names) or not names:
             raise InputError(f"need dates with distinct directory names, got {names}", field="--dates",
                              fix="give each date's dataset its own directory name")  # fmt: skip
+        captured = list(captured) if captured is not None else [None] * len(names)
         self.state = state or {
-            "dates": [{"name": n, "path": str(Path(d).resolve())} for n, d in zip(names, dates)],
-            "done": [], "config": given,
+            "dates": [{"name": n, "path": str(Path(d).resolve()), "captured": c} for n, d, c in zip(names, dates, captured)],
+            "reference": names[0], "done": [], "config": given,
             "models": [str(Path(m).resolve()) for m in models] if models else None,
         }  # fmt: skip
         self.timings = read_json(self.out / "timings.json", {})
@@ -169,6 +172,14 @@ class FusionRun:
     @property
     def names(self) -> list[str]:
         return [d["name"] for d in self.state["dates"]]
+
+    @property
+    def reference(self) -> int:
+        """Index of the reference date (the frame every date is registered into)."""
+        return self.names.index(self.state.get("reference", self.names[0]))
+
+    def date_infos(self) -> list[DateInfo]:
+        return [DateInfo(d["name"], captured=d.get("captured"), sources=(d["path"],)) for d in self.state["dates"]]
 
     def scene(self, i: int) -> Scene:
         tc = section(self.raw, "train", train.TrainConfig)
@@ -227,11 +238,11 @@ def _cross_init_pairs(run: FusionRun, start: Path, pairs, views, render_config, 
 
 
 def _refine_stage(run: FusionRun, views, scenes, render_config, progress: bool, log, stage: str, snapshots=(), *,
-                  extension: bool = False) -> None:  # fmt: skip
+                  extension: bool = False, new_dates=None) -> None:  # fmt: skip
     """Eq. 3 refinement of ``RUN/cross_init`` → ``RUN/fused``, resumable mid-way from
     ``RUN/<stage>_checkpoint.npz`` (saved every ``refine.checkpoint_every`` steps); the model after each
     step count in ``snapshots`` goes to ``RUN/snapshots/refine_<k>/``. An ``extension`` refines
-    ``refine.extend_steps`` steps where that is set."""
+    ``refine.extend_steps`` steps where that is set and halves α of ``new_dates`` only."""
     release_if_near_limit()
     t0 = time.perf_counter()
     fc = section(run.raw, "refine", RefineConfig)
@@ -243,18 +254,37 @@ def _refine_stage(run: FusionRun, views, scenes, render_config, progress: bool, 
     def snapshot(k, m):
         write_fused(run.out / "snapshots" / f"refine_{k}", m, config=run.state["config"])
 
-    model, rep = refine(model, views, fc, extent=train.scene_extent(scenes[0].cameras), render_config=render_config,
-                        progress=progress, checkpoint=ckpt, snapshot_steps=tuple(snapshots), on_snapshot=snapshot)  # fmt: skip
+    model, rep = refine(model, views, fc, extent=train.scene_extent(scenes[run.reference].cameras),
+                        train_config=section(run.raw, "train", train.TrainConfig), new_dates=new_dates,
+                        render_config=render_config, progress=progress, checkpoint=ckpt, snapshot_steps=tuple(snapshots),
+                        on_snapshot=snapshot)  # fmt: skip
     write_fused(run.out / "fused", model, config=run.state["config"])
     run.finish(stage, time.perf_counter() - t0, rep)
     ckpt.unlink(missing_ok=True)
 
 
+def capture_times(scenes: list[Scene], given: list[str | None] | None) -> list[str | None]:
+    """Each date's capture time: ``given[i]`` where set (checked), else its images' EXIF, else None."""
+    if given is not None and len(given) != len(scenes):
+        raise InputError(f"{len(given)} capture times for {len(scenes)} dates", field="--captured",
+                         fix="give one ISO date per --dates entry, in the same order")  # fmt: skip
+    out = []
+    for i, sc in enumerate(scenes):
+        c = given[i] if given is not None else None
+        if c is not None:
+            parse_captured(c, field=f"--captured[{i}]")
+        out.append(c if c is not None else exif_captured(sc.image_paths))
+    return out
+
+
 def run_fusion(dates: list[Path], out: Path, raw_config: dict | None = None, *, models: list[Path] | None = None,
-               transforms: Path | None = None, resume: bool = False, progress: bool = True, evaluate: bool = True,
-               drop_invalid: bool = False, snapshots: tuple[int, ...] = (), until: str | None = None,
-               log=print) -> FusionRun:  # fmt: skip
-    """All stages of ChronoFuseGS over ``dates`` (COLMAP datasets; the first is the reference frame).
+               transforms: Path | None = None, captured: list[str | None] | None = None, resume: bool = False,
+               progress: bool = True, evaluate: bool = True, drop_invalid: bool = False,
+               snapshots: tuple[int, ...] = (), until: str | None = None, log=print) -> FusionRun:  # fmt: skip
+    """All stages of ChronoFuseGS over ``dates`` (COLMAP datasets).
+
+    Dates are put in time order first (``captured``: one ISO 8601 time per date, else each date's EXIF
+    capture time; a run without any keeps the given order), and the earliest is the reference frame.
 
     Every input (configuration, datasets with their image sizes, given models) is read and checked
     before the run directory is created, so bad input leaves no output behind. ``snapshots``: refinement
@@ -266,6 +296,15 @@ def run_fusion(dates: list[Path], out: Path, raw_config: dict | None = None, *, 
         raise InputError(f"cannot stop after {until!r}", field="until", fix='use "train", "register" or "merge"')
     test_every = max(1, section(raw_config, "train", train.TrainConfig).test_every)
     scenes = [read_colmap(d, test_every=test_every) for d in dates]
+    times = capture_times(scenes, captured)
+    order = time_order(times, [Path(d).name for d in dates])
+    if not any(times):
+        log("note: no capture times (--captured or EXIF): the dates are taken in the given order, oldest first")
+    elif order != list(range(len(dates))):
+        log("dates put in time order: " + ", ".join(f"{Path(dates[i]).name} ({times[i]})" for i in order))
+    dates, scenes, times = [dates[i] for i in order], [scenes[i] for i in order], [times[i] for i in order]
+    if models is not None and len(models) == len(order):
+        models = [models[i] for i in order]
     for sc in scenes if len(scenes) > 1 else ():
         check_lpips_size(sc, raw_config)
     if models is not None and len(models) != len(dates):
@@ -276,7 +315,7 @@ def run_fusion(dates: list[Path], out: Path, raw_config: dict | None = None, *, 
         msg = f"fusing a single date ({Path(dates[0]).name}): the result is that date's model unchanged (identity)"
         warnings.warn(msg, UserWarning, stacklevel=2)
         log(f"warning: {msg}")
-    run = FusionRun(Path(out), [Path(d) for d in dates], raw_config, resume=resume, models=models)
+    run = FusionRun(Path(out), [Path(d) for d in dates], raw_config, resume=resume, models=models, captured=times)
     raw = run.raw
     render_config = section(raw, "render", splat.RenderConfig)
     names = run.names
@@ -316,7 +355,7 @@ def run_fusion(dates: list[Path], out: Path, raw_config: dict | None = None, *, 
         run.finish("register", time.perf_counter() - t0)
     reg = read_json(run.out / "register.json")
     sims = [Sim3.from_dict(reg[n]["transform"]) for n in names]
-    dinfo = [DateInfo(n, sources=(run.state["dates"][i]["path"],)) for i, n in enumerate(names)]
+    dinfo = run.date_infos()
     if until == "register":
         return run
 
@@ -371,10 +410,13 @@ def _evaluate_stage(run: FusionRun, scenes, sims, render_config, enabled: bool, 
 
 
 def run_extend(run_dir: Path, date: Path, *, model: Path | None = None, transform: Sim3 | None = None,
-               resume: bool = False, progress: bool = True, evaluate: bool = True, log=print) -> FusionRun:  # fmt: skip
+               captured: str | None = None, resume: bool = False, progress: bool = True, evaluate: bool = True,
+               log=print) -> FusionRun:  # fmt: skip
     """Add one date to a finished fusion run in place (paper: incremental fusion): train it (unless
-    ``model``), register it to the reference date, append it (``add_date``), cross-initialise only the
-    pairs involving it, refine, export. Stages are named ``extend:<date>:<stage>`` (resumable)."""
+    ``model``), register it to the reference date, insert it at its place in time (``captured``, else
+    its EXIF capture time; last when it or an earlier date's time is unknown) with ``add_date``,
+    cross-initialise only the pairs involving it, refine (halving α of its Gaussians only), export.
+    Stages are named ``extend:<date>:<stage>`` (resumable)."""
     from cfgs_jax.fusion.fuse import add_date
 
     run_dir = Path(run_dir)
@@ -389,23 +431,36 @@ def run_extend(run_dir: Path, date: Path, *, model: Path | None = None, transfor
     if started and not resume:
         raise InputError(f"an extension by {name!r} was started here", path=run_dir, fix="pass --resume")
     tc = section(state["config"], "train", train.TrainConfig)
-    check_lpips_size(read_colmap(date, test_every=max(1, tc.test_every)), state["config"])  # fails before the run is touched
+    new_scene = read_colmap(date, test_every=max(1, tc.test_every))
+    check_lpips_size(new_scene, state["config"])  # fails before the run is touched
     if model is not None:
         read_ply(model)
-    paths = [d["path"] for d in state["dates"]]
+    if captured is not None:
+        parse_captured(captured, field="--captured")
     if not started:
-        state["dates"].append({"name": name, "path": str(Path(date).resolve())})
+        if state.get("models") and model is None:
+            raise InputError("the run was fused from given models", field="--model", fix="pass --model PLY")
+        when = captured if captured is not None else exif_captured(new_scene.image_paths)
+        existing = [d.get("captured") for d in state["dates"]]
+        k = insert_position(existing, when)
+        if when is None:
+            log(f"note: {name} has no capture time (--captured or EXIF): added as the latest date")
+        elif k == len(existing) and any(c is None for c in existing):
+            log(f"note: an earlier date has no capture time: {name} ({when}) is added as the latest date")
+        elif k < len(existing):
+            log(f"{name} ({when}) goes before {existing[k]} ({state['dates'][k]['name']}): inserted as date {k}")
+        state.setdefault("reference", state["dates"][0]["name"])
+        state["dates"].insert(k, {"name": name, "path": str(Path(date).resolve()), "captured": when})
         if state.get("models"):
-            if model is None:
-                raise InputError("the run was fused from given models", field="--model", fix="pass --model PLY")
-            state["models"].append(str(Path(model).resolve()))
+            state["models"].insert(k, str(Path(model).resolve()))
         write_json(run_dir / "run.json", state)
-        paths.append(str(Path(date).resolve()))
+    paths = [d["path"] for d in state["dates"]]
     run = FusionRun(run_dir, [Path(p) for p in paths], state["config"], resume=True)
     raw = run.raw
     render_config = section(raw, "render", splat.RenderConfig)
     names = run.names
-    k = len(names) - 1
+    k = names.index(name)
+    ref = run.reference
     scenes = [run.scene(i) for i in range(len(names))]
 
     if not run.done(prefix + "train"):
@@ -421,8 +476,8 @@ def run_extend(run_dir: Path, date: Path, *, model: Path | None = None, transfor
         if transform is not None:
             reg[name] = {"transform": transform.to_dict(), "source": "given"}
         else:
-            log(f"[extend/register] date {name} → {names[0]}")
-            r = register_date(scenes[0], scenes[k], config=section(raw, "register", RegisterConfig))
+            log(f"[extend/register] date {name} → {names[ref]}")
+            r = register_date(scenes[ref], scenes[k], config=section(raw, "register", RegisterConfig))
             reg[name] = r.to_dict() | {"source": "joint SfM"}
         write_json(run.out / "register.json", reg)
         run.finish(prefix + "register", time.perf_counter() - t0)
@@ -431,19 +486,20 @@ def run_extend(run_dir: Path, date: Path, *, model: Path | None = None, transfor
     if not run.done(prefix + "merge"):
         t0 = time.perf_counter()
         old = read_fused(run.out / "fused")
-        merged = add_date(old, read_ply(ply), DateInfo(name, sources=(paths[k],)), sims[k])
+        merged = add_date(old, read_ply(ply), run.date_infos()[k], sims[k], position=k)
         write_fused(run.out / "cross_init", merged)
         write_json(run.out / "cross_init_pairs.json", {"pairs": [], "reports": [], "seconds": 0.0})
         run.finish(prefix + "merge", time.perf_counter() - t0)
     views = [date_views(scenes[i], sims[i]) for i in range(len(names))]
 
     if not run.done(prefix + "cross_init"):
-        pairs = [(p, k) for p in range(k)] + [(k, q) for q in range(k)]  # only pairs involving the new date
+        others = [i for i in range(len(names)) if i != k]
+        pairs = [(p, k) for p in others] + [(k, q) for q in others]  # only pairs involving the new date
         _cross_init_pairs(run, run.out / "cross_init", pairs, views, render_config, log, prefix + "cross_init",
                           "extend/cross_init")  # fmt: skip
 
     if not run.done(prefix + "refine"):
-        _refine_stage(run, views, scenes, render_config, progress, log, prefix + "refine", extension=True)
+        _refine_stage(run, views, scenes, render_config, progress, log, prefix + "refine", extension=True, new_dates=[k])
         write_fused(run.out / "reference", read_fused(run.out / "fused"), layout="reference")
     _evaluate_stage(run, scenes, sims, render_config, evaluate, log, stage=prefix + "evaluate")
     run.timings[f"extend:{name}:total"] = sum(v for key, v in run.timings.items() if key.startswith(prefix))

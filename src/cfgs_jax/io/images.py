@@ -112,10 +112,11 @@ def _read_exr(p: Path) -> np.ndarray:
     return np.stack(planes, axis=-1)
 
 
-def write_image(path: str | os.PathLike, img, *, linear: bool = False) -> Path:
+def write_image(path: str | os.PathLike, img, *, linear: bool = False, captured: str | None = None) -> Path:
     """Write float [H, W, 3|4] (or [H, W]) ``img`` given in the stated encoding, atomically.
 
     PNG/JPEG get 8-bit sRGB-encoded values (clipped to [0, 1]); EXR gets float32 linear values.
+    ``captured`` (ISO 8601) is stored as the EXIF DateTimeOriginal of a PNG/JPEG.
     """
     p = Path(path)
     a = np.asarray(img, np.float32)
@@ -142,8 +143,13 @@ def write_image(path: str | os.PathLike, img, *, linear: bool = False) -> Path:
         out = np.concatenate([enc, alpha], axis=-1) if alpha.shape[-1] else enc
         u8 = np.round(np.clip(np.nan_to_num(out), 0.0, 1.0) * 255.0).astype(np.uint8)
         fmt = {".jpg": "JPEG", ".jpeg": "JPEG", ".tif": "TIFF", ".tiff": "TIFF"}.get(suffix, suffix[1:].upper())
+        extra = {}
+        if captured is not None:
+            from cfgs_jax.io.captured import exif_with_capture_time
+
+            extra["exif"] = exif_with_capture_time(captured)
         with atomic_file(p) as tmp:
-            Image.fromarray(u8).save(tmp, format=fmt)
+            Image.fromarray(u8).save(tmp, format=fmt, **extra)
     else:
         raise InputError(f"unsupported image format '{suffix}'", path=p, fix="use .png, .jpg or .exr")
     return p

@@ -224,7 +224,7 @@ def render_dataset(
                 for i, name in enumerate(names):
                     seed = int(np.random.default_rng([spec.seed, q, i]).integers(2**31))
                     img = _straight_rgba(beauty.render(i, seed), sky_radiance(spec, q)) * [*[2.0**date.exposure_ev] * 3, 1]
-                    write_image(tmp / "images" / name, img.astype(np.float32), linear=True)
+                    write_image(tmp / "images" / name, img.astype(np.float32), linear=True, captured=date.captured)
                     rgbs.append(_read_srgb(tmp / "images" / name))  # the 8-bit colours SfM would see
                     ids, pos, uv = own.aov(i, seed)
                     aovs.append((ids, pos))

@@ -122,7 +122,8 @@ def _dates(rng, names, n_images, *, lighting, coverage=None) -> tuple[DateSpec, 
             cams = orbit(n_images, radius=4.2, heights=heights, phase_deg=0.0, arc_deg=150.0, target=(0.8, 0.8, 0.3))
         else:
             cams = orbit(n_images, radius=4.6, heights=heights, phase_deg=phase, jitter=0.08, rng=rng)
-        out.append(DateSpec(name, f"2024-{3 * i + 1:02d}-15", az, el, cct, ev, cams, cov))
+        year, month = divmod(3 * i, 12)  # one date per quarter: 2024-01-15, 2024-04-15, …, 2025-01-15, …
+        out.append(DateSpec(name, f"{2024 + year}-{month + 1:02d}-15", az, el, cct, ev, cams, cov))
     return tuple(out)
 
 

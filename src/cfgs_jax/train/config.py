@@ -5,13 +5,12 @@ from __future__ import annotations
 import dataclasses
 
 from cfgs_jax.errors import InputError
-from cfgs_jax.model import SH_C0
 
 
 @dataclasses.dataclass(frozen=True)
 class TrainConfig:
-    """Learning rates are INRIA's. Colours are optimised as c = 0.5 + C0·f_dc, so the colour rate is
-    INRIA's f_dc rate 2.5e-3 times C0 (the same step in f_dc units). ``large_scale`` divides the
+    """Learning rates are INRIA's, in INRIA's units: ``color_lr`` is the f_dc rate (colours are stored
+    as RGB c = 0.5 + C0·f_dc, so the optimiser steps c by C0 times it). ``large_scale`` divides the
     position rates by 10 and ``low_opacity_lr`` halves the opacity rate (the paper's options)."""
 
     steps: int = 30_000
@@ -22,7 +21,7 @@ class TrainConfig:
     low_opacity_lr: bool = False
     scale_lr: float = 5e-3
     rotation_lr: float = 1e-3
-    color_lr: float = 2.5e-3 * SH_C0
+    color_lr: float = 2.5e-3  # f_dc units
     adam_eps: float = 1e-15
     lambda_dssim: float = 0.2
     random_background: bool = True

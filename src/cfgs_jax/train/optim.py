@@ -5,6 +5,7 @@ from __future__ import annotations
 import jax.numpy as jnp
 import optax
 
+from cfgs_jax.model import SH_C0
 from cfgs_jax.train.config import TrainConfig
 
 FIELDS = ("means", "quats", "log_scales", "opacity_logits", "colors")
@@ -23,8 +24,8 @@ def position_lr(config: TrainConfig, extent: float):
 
 
 def make_optimizer(config: TrainConfig, extent: float) -> optax.GradientTransformation:
-    """Adam (eps 1e-15) per Gaussian field, each with its own rate, over a params dict keyed by
-    ``FIELDS`` (``step.params_from_gaussians``)."""
+    """Adam (eps 1e-15) per Gaussian field, each with its own rate (the colour's converted from f_dc to
+    RGB units, × C0), over a params dict keyed by ``FIELDS`` (``step.params_from_gaussians``)."""
 
     def adam(lr):
         return optax.adam(lr, eps=config.adam_eps)
@@ -35,6 +36,6 @@ def make_optimizer(config: TrainConfig, extent: float) -> optax.GradientTransfor
         "quats": adam(config.rotation_lr),
         "log_scales": adam(config.scale_lr),
         "opacity_logits": adam(opacity_lr),
-        "colors": adam(config.color_lr),
+        "colors": adam(config.color_lr * SH_C0),  # f_dc rate → RGB
     }
     return optax.multi_transform(transforms, {f: f for f in FIELDS})
