@@ -101,6 +101,9 @@ def test_registration_recovers_the_ground_truth_sim3(two_dates):
         fusion.register_date(ref, new, config=fusion.RegisterConfig(min_registered=13))
     with pytest.raises(cj.InputError, match="no reconstruction|registered"):  # too few views to map at all
         fusion.register_date(ref, new, config=fusion.RegisterConfig(images_per_date=2))
+    with pytest.raises(cj.InputError, match="did not converge within 1 steps") as failed:  # the LM fit's result code
+        fusion.register_date(ref, new, config=fusion.RegisterConfig(lm_max_steps=1))
+    assert str(two_dates / "d1") in str(failed.value)  # names the date
 
 
 def test_cold_warm_direction_is_zero_luminance_and_bluer_when_colder():
