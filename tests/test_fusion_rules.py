@@ -12,6 +12,7 @@ import pytest
 import cfgs_jax as cj
 from cfgs_jax import fusion, splat, train
 from cfgs_jax.train import view_order
+from test_fusion import _random_gaussians  # noqa: E402  (tests/ is on sys.path: rootdir conftest)
 
 ci = importlib.import_module("cfgs_jax.fusion.cross_init")  # the package exports a function of that name
 rf = importlib.import_module("cfgs_jax.fusion.refine")
@@ -205,15 +206,6 @@ def test_epsilon_map_sees_date_p_under_the_start_exposure():
     off = dataclasses.replace(cfg, exposure_init=False)  # no exposure start: the darker date looks different
     _, rep_off = ci.init_pair(model, 0, 1, ci.DateViews(cams, tuple(images)), off)
     assert rep_off["mean_epsilon"] > 5 * max(rep["mean_epsilon"], 1e-3), (rep_off, rep)
-
-
-def _random_gaussians(n, seed=0):
-    rng = np.random.default_rng(seed)
-    return cj.Gaussians(
-        rng.uniform(-0.5, 0.5, (n, 3)).astype(np.float32), rng.normal(size=(n, 4)).astype(np.float32),
-        np.log(rng.uniform(0.02, 0.08, (n, 3))).astype(np.float32), rng.normal(0.5, 1.0, n).astype(np.float32),
-        rng.uniform(size=(n, 3)).astype(np.float32),
-    )  # fmt: skip
 
 
 def test_extension_halves_only_the_new_dates_alpha_and_freeze_alpha_keeps_the_input():

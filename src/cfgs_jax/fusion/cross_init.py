@@ -322,7 +322,7 @@ def init_pairs(model: TemporalGaussians, p: int, qs: Sequence[int], views: Seque
             "skipped": False, "loss_first": float(np.mean(losses[:10, j])), "loss_last": float(np.mean(losses[-10:, j])),
             "mean_o": float(np.mean(np.asarray(jax.nn.sigmoid(o_fit)))), "mean_w": float(np.mean(w)),
             "mean_gain": float(np.mean(np.asarray(light_gain(jnp.asarray(u))))),
-            "start_gain": float(light_gain(jnp.asarray(u0[j, 0]))),
+            "start_gain": start_light[j],
             "mean_epsilon": float(np.mean([np.asarray(e).mean() for e in eps_maps[j]])),
         }  # fmt: skip
     new = dataclasses.replace(model, o_logits=jnp.asarray(o_logits), light_logits=jnp.asarray(l_logits))

@@ -52,6 +52,7 @@ from cfgs_jax.model import SH_C0, Gaussians, TemporalGaussians
 from cfgs_jax.train.config import TrainConfig
 from cfgs_jax.train.loop import view_order
 from cfgs_jax.train.optim import position_lr as training_position_lr
+from cfgs_jax.train.optim import restart_moments
 from cfgs_jax.train.step import over_background
 
 FIELDS = ("means", "quats", "log_scales", "opacity_logits", "colors", "o_logits")
@@ -127,19 +128,6 @@ def make_optimizer(config: RefineConfig, extent: float, train_config: TrainConfi
     rates = {"means": position, "quats": config.lr_other, "log_scales": config.lr_other,
              "opacity_logits": config.lr_alpha, "colors": config.lr_color * SH_C0, "o_logits": config.lr_o}  # fmt: skip
     return optax.multi_transform({k: optax.adam(v, eps=1e-15) for k, v in rates.items()}, {f: f for f in FIELDS})
-
-
-def restart_moments(opt_state, field: str, mask: np.ndarray):
-    """``opt_state`` with Adam's first and second moments of ``params[field]`` zeroed where ``mask``."""
-    mask = jnp.asarray(mask)
-
-    def reset(path, leaf):
-        named = any(getattr(k, "key", None) == field for k in path)
-        if named and getattr(leaf, "shape", None) == mask.shape:
-            return jnp.where(mask, jnp.zeros_like(leaf), leaf)
-        return leaf
-
-    return jax.tree_util.tree_map_with_path(reset, opt_state)
 
 
 def params_of(model: TemporalGaussians) -> dict:
@@ -263,7 +251,7 @@ def refine(model: TemporalGaussians, views: Sequence[DateViews], config: RefineC
     if config.halve_alpha and new_dates:
         halve = jnp.asarray(np.isin(np.asarray(model.origin), new_dates))
         params["opacity_logits"] = jnp.where(halve, halve_alpha(params["opacity_logits"]), params["opacity_logits"])
-    o_init = np.asarray(model.o_logits).copy()
+    o_init = jnp.asarray(model.o_logits)
     light_logits = jnp.asarray(model.light_logits)
     flat = [(q, v) for q in range(t) for v in range(len(views[q].cameras))]
     images = [[jnp.asarray(im, jnp.float32) for im in dv.images] for dv in views]
@@ -298,19 +286,24 @@ def refine(model: TemporalGaussians, views: Sequence[DateViews], config: RefineC
         loaded, meta = _load_checkpoint(Path(checkpoint), state(), meta_now)
         params, opt_state = loaded["params"], loaded["opt_state"]
         key = jax.random.wrap_key_data(loaded["key"])
-        contributed, covered, zeroed, o_init = (np.asarray(loaded[k]).copy() for k in ("contributed", "covered", "zeroed", "o_init"))
+        contributed, covered, zeroed = (np.asarray(loaded[k]).copy() for k in ("contributed", "covered", "zeroed"))
+        o_init = jnp.asarray(loaded["o_init"])
         start, losses, completed = int(meta["step"]), list(meta["losses"]), int(meta["completed"])
         capacity = max(capacity_for(params, q, v) for q, v in flat)
         optimizer, step, contribution = compiled(capacity)
 
-    def contribution_of(q, v):
+    def grow(q, v):
+        """Recompile for a larger intersection buffer after view (q, v) overflowed it."""
         nonlocal capacity, optimizer, step, contribution
+        capacity = max(capacity_for(params, q, v), 2 * capacity)
+        optimizer, step, contribution = compiled(capacity)
+
+    def contribution_of(q, v):
         while True:
             seen, overflowed = contribution(params, light_logits, views[q].cameras[v], jnp.int32(q))
             if not bool(overflowed):
                 return np.asarray(seen)
-            capacity = max(capacity_for(params, q, v), 2 * capacity)
-            optimizer, step, contribution = compiled(capacity)
+            grow(q, v)
 
     from rich.progress import Progress
 
@@ -320,15 +313,13 @@ def refine(model: TemporalGaussians, views: Sequence[DateViews], config: RefineC
             key, sub = jax.random.split(key)
             drawn = view_order(config.seed, it, len(flat))
             q, v = flat[drawn]
-            o_ref = jnp.asarray(o_init)
             while True:
                 new, new_state, loss, contrib, overflowed = step(
-                    params, opt_state, light_logits, o_ref, views[q].cameras[v], images[q][v], jnp.int32(q), sub
+                    params, opt_state, light_logits, o_init, views[q].cameras[v], images[q][v], jnp.int32(q), sub
                 )
                 if not bool(overflowed):
                     break
-                capacity = max(capacity_for(params, q, v), 2 * capacity)
-                optimizer, step, contribution = compiled(capacity)
+                grow(q, v)
             params, opt_state = new, new_state
             losses.append(float(loss))
             contributed[:, q] |= np.asarray(contrib)
@@ -340,7 +331,7 @@ def refine(model: TemporalGaussians, views: Sequence[DateViews], config: RefineC
                 o_new, kill = apply_visibility(np.asarray(params["o_logits"]), contributed)
                 zeroed |= kill
                 params["o_logits"] = jnp.asarray(o_new)
-                o_init = np.where(kill, o_new, o_init)  # L_change's reference follows the rule
+                o_init = jnp.where(kill, params["o_logits"], o_init)  # L_change's reference follows the rule
                 opt_state = restart_moments(opt_state, "o_logits", kill)
                 contributed[:] = False
                 covered[:] = False

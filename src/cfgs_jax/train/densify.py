@@ -22,7 +22,7 @@ from jaxtyping import Array, Bool
 
 from cfgs_jax.model import quat_to_rotmat
 from cfgs_jax.train.config import TrainConfig
-from cfgs_jax.train.optim import FIELDS
+from cfgs_jax.train.optim import FIELDS, restart_moments
 from cfgs_jax.train.step import TrainState
 
 #: INRIA's split: N = 2 children, each scaled by 1 / (0.8·N).
@@ -163,15 +163,7 @@ def reset_opacity(state: TrainState) -> TrainState:
     ceiling = jnp.log(0.01) - jnp.log1p(-0.01)
     params = dict(state.params)
     params["opacity_logits"] = jnp.where(state.active, jnp.minimum(logits, ceiling), logits)
-
-    def zero_opacity_moments(path, x):
-        last = path[-1] if path else None
-        if isinstance(last, jax.tree_util.DictKey) and last.key == "opacity_logits" and jnp.ndim(x) >= 1:
-            return jnp.zeros_like(x)
-        return x
-
-    opt_state = jax.tree_util.tree_map_with_path(zero_opacity_moments, state.opt_state)
-    return dataclasses.replace(state, params=params, opt_state=opt_state)
+    return dataclasses.replace(state, params=params, opt_state=restart_moments(state.opt_state, "opacity_logits"))
 
 
 def densify_step(state: TrainState, config: TrainConfig, extent: float, *, prune_big: bool) -> TrainState:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
 import optax
 
@@ -39,3 +40,17 @@ def make_optimizer(config: TrainConfig, extent: float) -> optax.GradientTransfor
         "colors": adam(config.color_lr * SH_C0),  # f_dc rate → RGB
     }
     return optax.multi_transform(transforms, {f: f for f in FIELDS})
+
+
+def restart_moments(opt_state, field: str, mask=None):
+    """``opt_state`` with the optimiser's per-parameter state of ``params[field]`` (Adam's first and
+    second moments) zeroed — everywhere, or where ``mask`` (that field's shape) is true."""
+    mask = None if mask is None else jnp.asarray(mask)
+
+    def reset(path, leaf):
+        last = path[-1] if path else None
+        if isinstance(last, jax.tree_util.DictKey) and last.key == field and jnp.ndim(leaf) >= 1:
+            return jnp.zeros_like(leaf) if mask is None else jnp.where(mask, jnp.zeros_like(leaf), leaf)
+        return leaf
+
+    return jax.tree_util.tree_map_with_path(reset, opt_state)
