@@ -141,7 +141,7 @@ def test_eval_change_detection_and_resume(protocol):
     # a second call resumes: no stage runs again and the table is unchanged
     before = json.loads((out / "table.json").read_text())
     seen = []
-    again = run_protocol(str(data), out, raw, progress=False, log=seen.append)
+    again = run_protocol(str(data), out, raw, resume=True, progress=False, log=seen.append)
     assert not [m for m in seen if m.startswith("[eval]") or "steps" in m], seen
     assert [r["psnr"] for r in again["rows"]] == [r["psnr"] for r in before["rows"]]
     assert cj.io.read_fused(out / "run" / "snapshots" / "refine_60").num_dates == 2
@@ -208,5 +208,5 @@ def test_sweep_shares_training_and_resumes(protocol, tmp_path):
     md = (tmp_path / "sw" / "sweep.md").read_text()
     assert md.count("\n| 0.") == 2 and (tmp_path / "sw" / "sweep.png").stat().st_size > 1000
     seen.clear()
-    again = run_sweep(raw, tmp_path / "sw", progress=False, log=seen.append)
+    again = run_sweep(raw, tmp_path / "sw", resume=True, progress=False, log=seen.append)
     assert not [m for m in seen if "[sweep] variant" in m or "[train]" in m] and again["variants"] == summary["variants"]

@@ -563,6 +563,12 @@ def test_render_and_export_cli_on_a_fused_run(fused_run, tmp_path):
                      "--out", str(tmp_path / t), "--no-progress"]) == 0  # fmt: skip
     a, b = (read_image(tmp_path / t / "orbit_000.png") for t in ("d0", "d1"))
     assert np.abs(a - b).mean() > 1e-3 and a[:48].std() > 0.01
+    # ... and as an MP4 whose frames decode to the PNGs (H.264 is lossy: a mean error of a few levels)
+    import imageio.v2 as imageio
+
+    frames = [f for f in imageio.get_reader(str(tmp_path / "d0" / "orbit.mp4"), format="FFMPEG")]  # len() is inf
+    assert len(frames) == 2 and frames[0].shape == a.shape
+    assert np.abs(frames[0] / 255.0 - a).mean() < 0.03
     # export: a plain 3DGS PLY that renders like the in-memory selection
     assert main(["export", "--run", str(run_dir), "--t", "all", "--out", str(tmp_path / "hl.ply")]) == 0
     g = cj.io.read_ply(tmp_path / "hl.ply")

@@ -1,4 +1,5 @@
 import logging
+import re
 
 import jax
 import numpy as np
@@ -100,10 +101,30 @@ def test_full_sh_layout_drops_rest_with_note(tmp_path, caplog, text):
     _write_raw(tmp_path / "full.ply", fields, text=text)
     with caplog.at_level(logging.INFO, logger="cfgs_jax.io"):
         g = read_ply(tmp_path / "full.ply")
-    assert "dropped 45 higher-order SH coefficients (degree 3)" in caplog.text
+    assert "dropped SH degree 1..3 (45 coefficients per Gaussian)" in caplog.text
+    assert caplog.records[-1].levelno == logging.WARNING  # shown by the CLI without --verbose
     f_dc = np.stack([fields[f"f_dc_{i}"] for i in range(3)], 1).astype(np.float32).astype(np.float64)
     assert np.allclose(g.colors, 0.5 + SH_C0 * f_dc, atol=3e-7)
     assert np.array_equal(g.means[:, 2], fields["z"].astype(np.float32))
+
+
+def test_dropped_view_dependent_colour_is_measured(tmp_path, caplog):
+    """The import's note gives the RMS colour the dropped degree-1 band adds, checked against a
+    Monte-Carlo average over uniformly sampled view directions of INRIA's degree-1 evaluation
+    (C1·(−y·f₀ + z·f₁ − x·f₂) per channel)."""
+    fields = _full_layout_fields(40, seed=3, degree=1)
+    _write_raw(tmp_path / "deg1.ply", fields)
+    with caplog.at_level(logging.WARNING, logger="cfgs_jax.io"):
+        read_ply(tmp_path / "deg1.ply")
+    m = re.search(r"dropped SH degree 1\.\.1 \(9 coefficients per Gaussian\).*RMS (\d+\.\d+)", caplog.text)
+    assert m, caplog.text
+    f = np.stack([fields[f"f_rest_{i}"] for i in range(9)], 1).astype(np.float32).astype(np.float64).reshape(40, 3, 3)
+    d = np.random.default_rng(0).normal(size=(200_000, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    c1 = 0.4886025119029199
+    basis = c1 * np.stack([-d[:, 1], d[:, 2], -d[:, 0]], 1)  # [D, 3]
+    colour = np.einsum("gck,dk->gcd", f, basis)
+    assert float(m[1]) == pytest.approx(np.sqrt(np.mean(colour**2)), rel=0.01)
 
 
 def test_missing_property_names_field(tmp_path):

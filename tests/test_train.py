@@ -2,6 +2,7 @@
 
 import dataclasses
 import json
+from pathlib import Path
 
 import jax
 import jax.numpy as jnp
@@ -11,6 +12,7 @@ from scipy.spatial.transform import Rotation
 
 import cfgs_jax as cj
 from cfgs_jax import splat, synthetic, train
+from cfgs_jax import InputError
 from cfgs_jax.io import read_colmap
 from cfgs_jax.train.step import TrainState, gaussians_from_params, make_train_step
 
@@ -317,6 +319,64 @@ def test_train_cli_writes_a_model_continues_it_and_guards_the_output(corals, tmp
     report2 = json.loads((more / "train.json").read_text())
     assert len(g2) == len(g) and report2["config"]["densify"] is False  # "Individual +N": no densification
     assert not np.array_equal(np.asarray(g2.means), np.asarray(g.means))  # but it did train
+
+
+def test_train_cli_speaks_inria(corals, tmp_path):
+    """INRIA's flags (-s, -m, -r) and output layout: point_cloud/iteration_N/point_cloud.ply,
+    cameras.json (camera centre −Rᵀt and camera→world rotation Rᵀ of COLMAP's world→camera [R|t],
+    intrinsics scaled with the images) and cfg_args; --set overrides a [train] value."""
+    from cfgs_jax.pipeline import main
+
+    toml = tmp_path / "short.toml"
+    toml.write_text("[train]\nsteps = 500\ndensify = false\n")
+    out = tmp_path / "inria"
+    assert main(["train", "-s", str(corals), "-m", str(out), "-r", "2", "--config", str(toml),
+                 "--set", "train.steps=30", "--no-progress", "--no-eval"]) == 0  # fmt: skip
+    report = json.loads((out / "train.json").read_text())
+    assert report["steps"] == 30 and report["config"]["resolution"] == 2
+    g = cj.io.read_ply(out / "point_cloud" / "iteration_30" / "point_cloud.ply")
+    assert (out / "point_cloud" / "iteration_30" / "point_cloud.ply").read_bytes() == (out / "point_cloud.ply").read_bytes()
+    assert len(g) == report["gaussians"]
+    full = read_colmap(corals)
+    entries = json.loads((out / "cameras.json").read_text())
+    order = [*full.indices("test"), *full.indices("train")]
+    assert [e["id"] for e in entries] == list(range(len(full)))
+    for e, i in zip(entries, order):
+        cam = full.cameras[int(i)]
+        m = np.asarray(cam.cam_from_world, np.float64)
+        r, t = m[:3, :3], m[:3, 3]
+        assert e["img_name"] == Path(full.image_names[int(i)]).stem
+        np.testing.assert_allclose(e["position"], -r.T @ t, atol=1e-5)
+        np.testing.assert_allclose(e["rotation"], r.T, atol=1e-6)
+        assert (e["width"], e["height"]) == (32, 24)
+        assert e["fx"] == pytest.approx(float(cam.fx) / 2, rel=1e-6) and e["fy"] == pytest.approx(float(cam.fy) / 2, rel=1e-6)
+    cfg_args = (out / "cfg_args").read_text()
+    assert cfg_args.startswith("Namespace(") and f"source_path='{corals.resolve()}'" in cfg_args and "sh_degree=0" in cfg_args
+
+
+def test_downscaled_dataset_is_box_filtered_or_read_from_images_n(corals, tmp_path):
+    """resolution=2: each image is the 2×2 mean of the full one (64×48 → 32×24), the cameras' focal
+    lengths and principal point halve; a dataset that ships images_2/ is read from there."""
+    import shutil
+
+    full, half = read_colmap(corals), read_colmap(corals, resolution=2)
+    img, small = full.load_image(0), half.load_image(0)
+    np.testing.assert_allclose(small, img.reshape(24, 2, 32, 2, 3).mean(axis=(1, 3)), atol=1e-6)
+    for a, b in zip(full.cameras, half.cameras):
+        assert (b.width, b.height) == (32, 24)
+        np.testing.assert_allclose([b.fx, b.fy, b.cx, b.cy], np.asarray([a.fx, a.fy, a.cx, a.cy]) / 2, rtol=1e-6)
+    copy = tmp_path / "d0"
+    shutil.copytree(corals, copy)
+    (copy / "images_2").mkdir()
+    for name in full.image_names:
+        cj.io.write_image(copy / "images_2" / name, np.full((24, 32, 3), 0.25, np.float32))
+    shipped = read_colmap(copy, resolution=2)
+    assert shipped.image_dir == copy / "images_2" and abs(float(shipped.load_image(0).mean()) - 0.25) < 1 / 255
+    cj.io.write_image(copy / "images_2" / full.image_names[1], np.zeros((20, 30, 3), np.float32))
+    with pytest.raises(InputError, match="30x20"):
+        read_colmap(copy, resolution=2)
+    with pytest.raises(InputError, match="resolution"):
+        read_colmap(corals, resolution=0)
 
 
 @pytest.mark.slow

@@ -1,4 +1,9 @@
-"""Run configurations: TOML files (``cfgs_jax/*.toml`` at the repository root) → frozen dataclasses.
+"""Run configurations: TOML files → frozen dataclasses.
+
+The named presets (``paper``, ``fast``, ``demo``, ``eval``, ``sweep_fast``) ship inside the package
+(``cfgs_jax/presets/*.toml``, read with :mod:`importlib.resources`, so they are found from any
+directory after ``pip install``); the repository's top-level ``cfgs_jax/`` folder holds identical
+copies for users to start their own files from.
 
 A config file has one table per stage (``[render]``, ``[train]``, ``[cross_init]``, ``[refine]``,
 ``[viz]``, ...). ``section(config, "refine", RefineConfig)`` builds that stage's frozen dataclass;
@@ -7,12 +12,15 @@ unknown keys are errors that name the file, the key and the closest valid key.
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import difflib
 import os
 import re
+import importlib.resources.abc
 import tomllib
 import typing
+from importlib import resources
 from pathlib import Path
 from typing import Any, TypeVar
 
@@ -22,26 +30,30 @@ from cfgs_jax.errors import InputError
 
 T = TypeVar("T")
 
-#: Where the presets live when running from a source checkout (``cfgs_jax/`` beside ``src/``).
-PRESET_DIR = Path(__file__).resolve().parents[2] / "cfgs_jax"
+PRESET_PACKAGE = "cfgs_jax.presets"
 
 
-def find_preset(name: str) -> Path:
-    """Resolve a preset name (``paper``, ``fast``) or a path to a TOML file."""
+def preset_names() -> list[str]:
+    """The names of the presets shipped in the package, sorted."""
+    return sorted(p.name[: -len(".toml")] for p in resources.files(PRESET_PACKAGE).iterdir() if p.name.endswith(".toml"))
+
+
+def find_preset(name: str) -> Path | resources.abc.Traversable:
+    """A preset name (``paper``, ``fast``, ...) → the packaged file; anything that looks like a path
+    (a ``.toml`` suffix, a separator, or an existing file) → that path."""
     p = Path(name)
-    if p.suffix == ".toml" or p.exists():
+    if p.suffix == ".toml" or len(p.parts) > 1 or p.exists():
         return p
-    for root in (Path.cwd() / "cfgs_jax", PRESET_DIR):
-        cand = root / f"{name}.toml"
-        if cand.is_file():
-            return cand
-    known = sorted({q.stem for root in (Path.cwd() / "cfgs_jax", PRESET_DIR) if root.is_dir() for q in root.glob("*.toml")})
-    raise InputError(f"no preset named {name!r}", field="config", fix=f"use one of {known} or a path to a .toml file")
+    cand = resources.files(PRESET_PACKAGE) / f"{name}.toml"
+    if cand.is_file():
+        return cand
+    raise InputError(f"no preset named {name!r}", field="config",
+                     fix=f"use one of {preset_names()} or a path to a .toml file")
 
 
-def load_config(path: str | os.PathLike) -> dict[str, Any]:
-    """Read a TOML config into a dict of sections (tables)."""
-    p = Path(path)
+def load_config(path: str | os.PathLike | resources.abc.Traversable) -> dict[str, Any]:
+    """Read a TOML config (a file path or a packaged preset) into a dict of sections (tables)."""
+    p = path if isinstance(path, resources.abc.Traversable) and not isinstance(path, Path) else Path(path)
     if not p.is_file():
         raise InputError("config file not found", path=p, fix="check the path or use a preset name")
     try:
@@ -50,6 +62,35 @@ def load_config(path: str | os.PathLike) -> dict[str, Any]:
         raise InputError(f"not valid TOML ({exc})", path=p) from exc
     data["__path__"] = str(p)
     return data
+
+
+def apply_overrides(config: dict[str, Any], overrides: typing.Iterable[str]) -> dict[str, Any]:
+    """``config`` with each ``table.key=value`` (command line ``--set``) written in; nested tables by
+    more dots (``viz.highlight.sigma=0.2``). VALUE is read as a TOML value (``3000``, ``0.5``,
+    ``true``, ``[1, 2]``, ``"text"``), else taken as a bare string. The result is checked like a file:
+    unknown keys and wrong types raise, naming ``--set``."""
+    overrides = list(overrides)
+    if not overrides:
+        return config
+    out = copy.deepcopy(config)
+    for item in overrides:
+        key, sep, text = item.partition("=")
+        parts = key.strip().split(".")
+        if not sep or len(parts) < 2 or not all(parts):
+            raise InputError(f"cannot read --set {item!r}", field="--set",
+                             fix="write --set TABLE.KEY=VALUE, e.g. --set refine.steps=3000")
+        try:
+            value = tomllib.loads(f"v = {text.strip()}")["v"]
+        except tomllib.TOMLDecodeError:
+            value = text.strip()
+        table = out
+        for part in parts[:-1]:
+            table = table.setdefault(part, {})
+            if not isinstance(table, dict):
+                raise InputError(f"{'.'.join(parts[:-1])} is a value, not a table", field=f"--set {key}")
+        table[parts[-1]] = value
+    out["__path__"] = f"{config.get('__path__', 'defaults')} with --set {' '.join(overrides)}"
+    return out
 
 
 def _check_keys(cls: type, values: dict[str, Any], where: str, path) -> None:
@@ -101,7 +142,7 @@ def from_dict(cls: type[T], values: dict[str, Any], *, where: str = "config", pa
         if typing.get_origin(hint) is typing.Literal:
             expected = "one of " + ", ".join(repr(c) for c in typing.get_args(hint))
         raise InputError(what.lower() if what[:1].isupper() else what, path=path, field=key,
-                         fix=f"write {key} as {expected} (see the preset files in cfgs_jax/)") from exc
+                         fix=f"write {key} as {expected} (see `python -m cfgs_jax.pipeline presets`)") from exc
 
 
 def section(config: dict[str, Any] | None, name: str, cls: type[T]) -> T:

@@ -12,18 +12,21 @@ import numpy as np
 
 from cfgs_jax.config import find_preset, load_config
 from cfgs_jax.errors import InputError
-from cfgs_jax.io.atomic import atomic_file, ensure_writable_dir
+from cfgs_jax.io.atomic import atomic_file, check_resume, ensure_writable_dir
 
 
-def run_demo(out: str | Path, *, config: str = "demo", num_dates: int = 2, width: int = 160, height: int = 120,
+def run_demo(out: str | Path, *, config: str | dict = "demo", num_dates: int = 2, width: int = 160, height: int = 120,
              images_per_date: int = 12, spp: int = 16, seed: int = 0, resume: bool = False, progress: bool = True,
              log=print) -> dict:  # fmt: skip
     """Run the demo into ``out``; returns the summary (also written to ``out/summary.json`` and
-    ``out/summary.md``). ``resume=True`` continues an interrupted demo."""
+    ``out/summary.md``). ``config`` is a preset name, a TOML path or an already-read configuration;
+    an ``out`` holding an earlier demo is continued only with ``resume=True``."""
     from cfgs_jax import synthetic
     from cfgs_jax.fusion.run import run_fusion
     from cfgs_jax.render_run import SelectionStyle, open_run, render_views
 
+    raw = config if isinstance(config, dict) else load_config(find_preset(config))
+    check_resume(out, resume)
     t_start = time.perf_counter()
     out = ensure_writable_dir(out)
     scene_dir = out / "scene"
@@ -34,11 +37,10 @@ def run_demo(out: str | Path, *, config: str = "demo", num_dates: int = 2, width
     names = [d.name for d in spec.dates][:num_dates]
     log(f"scene: synthetic 'corals' {width}×{height}, dates {names}, {images_per_date} views each ({t_synth:.0f} s)")
 
-    raw = load_config(find_preset(config))
     run_dir = out / "run"
     dates = [scene_dir / n for n in names]
     try:
-        run = run_fusion(dates, run_dir, raw, resume=resume or (run_dir / "run.json").is_file(), progress=progress, log=log)
+        run = run_fusion(dates, run_dir, raw, resume=(run_dir / "run.json").is_file(), progress=progress, log=log)
     except InputError as exc:  # SfM registration of small synthetic images can fall short
         state = json.loads((run_dir / "run.json").read_text()) if (run_dir / "run.json").is_file() else {}
         if "train" not in state.get("done", ()) or "register" in state.get("done", ()):

@@ -1,21 +1,12 @@
-"""Command-line pipeline: ``python -m cfgs_jax.pipeline <command> ...``.
+"""Command-line pipeline: ``python -m cfgs_jax.pipeline <command> ...`` (or the ``cfgs-jax`` script).
 
-Commands (more arrive with their stages):
-  inspect PATH            summarise a 3DGS PLY, a fused model directory or a COLMAP dataset
-  convert SRC DST         convert between a 3DGS PLY and the fused layouts (cfgs / reference)
-  metrics A B             PSNR / SSIM / LPIPS between two images or two folders of images
-  synth --preset NAME     render a synthetic multi-date scene (Mitsuba 3) as per-date COLMAP datasets
-  train --scene D --out O train one date's 3DGS model (or --continue-from PLY: "Individual +N")
-  fuse --dates D1 D2 ...  train, register, merge, cross-init, refine: one multi-temporal model
-  extend --run R --date D add one date to a fused run (only the new date's pairs are initialised)
-  demo                    the embedded default job (see README)
-
-Errors at the file boundary print one line naming the file, field and fix, and exit with status 2.
+The grammar (flags, defaults, descriptions, examples) is :mod:`cfgs_jax.cli`; this module holds what
+each command does. ``--help`` lists the commands. Errors at the file boundary print one line naming
+the file, field and fix, and exit with status 2.
 """
 
 from __future__ import annotations
 
-import argparse
 import logging
 import sys
 from pathlib import Path
@@ -23,6 +14,13 @@ from pathlib import Path
 import numpy as np
 
 from cfgs_jax.errors import InputError, OutputError
+
+
+def _read_config(args) -> dict:
+    """The run configuration a command was given: ``--config`` (preset or file) with its ``--set`` overrides."""
+    from cfgs_jax.config import apply_overrides, find_preset, load_config
+
+    return apply_overrides(load_config(find_preset(args.config)), getattr(args, "overrides", ()))
 
 
 def _console():
@@ -207,11 +205,13 @@ def cmd_train(args) -> int:
 
     import cfgs_jax as cj
     from cfgs_jax import splat, train
-    from cfgs_jax.config import find_preset, load_config, section
-
+    from cfgs_jax.config import section
     from cfgs_jax.fusion.run import validate_config
+    from cfgs_jax.io.inria import write_inria_layout
 
-    raw = load_config(find_preset(args.config))
+    if args.resolution != 1:
+        args.overrides = [*args.overrides, f"train.resolution={args.resolution}"]
+    raw = _read_config(args)
     validate_config(raw)
     config = section(raw, "train", train.TrainConfig)
     render_config = section(raw, "render", splat.RenderConfig)
@@ -225,7 +225,7 @@ def cmd_train(args) -> int:
         config = train.continuation_config(dataclasses.replace(config, steps=args.steps or config.steps))
     elif args.steps:
         config = config.scaled(args.steps)
-    scene = cj.io.read_colmap(args.scene, test_every=max(1, config.test_every))  # inputs first: no output on bad input
+    scene = cj.io.read_colmap(args.scene, test_every=max(1, config.test_every), resolution=config.resolution)  # inputs first
     out = cj.io.ensure_writable_dir(args.out)
     ckpt = out / train.CHECKPOINT
     if ckpt.exists() and not args.resume:
@@ -245,6 +245,7 @@ def cmd_train(args) -> int:
         console.print(f"stopped at step {int(run.state.step):,}; checkpoint in {ckpt} (continue with --resume)")
         return 0
     ply = cj.io.write_ply(out / "point_cloud.ply", run.gaussians)
+    inria = write_inria_layout(out, run.gaussians, scene, config.steps)
     report = {
         "scene": str(scene.root), "steps": config.steps, "gaussians": len(run.gaussians),
         "seconds_this_session": run.seconds, "final_loss": float(np.mean(run.losses[-50:])),
@@ -253,7 +254,8 @@ def cmd_train(args) -> int:
     }  # fmt: skip
     with cj.io.atomic_file(out / "train.json") as tmp:
         tmp.write_text(json.dumps(report, indent=1))
-    console.print(f"wrote {ply} ({len(run.gaussians):,} Gaussians) and {out / 'train.json'}")
+    console.print(f"wrote {ply} ({len(run.gaussians):,} Gaussians), {out / 'train.json'} and INRIA's layout "
+                  f"({inria.relative_to(out)}, cameras.json, cfg_args)")
     if run.metrics:
         m = run.metrics
         lp = f", LPIPS {m['lpips']:.4f}" if "lpips" in m else ""
@@ -262,10 +264,11 @@ def cmd_train(args) -> int:
 
 
 def cmd_fuse(args) -> int:
-    from cfgs_jax.config import find_preset, load_config
     from cfgs_jax.fusion.run import run_fusion
 
-    raw = load_config(find_preset(args.config))
+    if args.resolution != 1:
+        args.overrides = [*args.overrides, f"train.resolution={args.resolution}"]
+    raw = _read_config(args)
     console = _console()
     run = run_fusion(
         [Path(d) for d in args.dates], Path(args.out), raw, models=args.models, resume=args.resume,
@@ -287,12 +290,12 @@ def cmd_fuse(args) -> int:
 
 
 def cmd_eval(args) -> int:
-    from cfgs_jax.config import find_preset, load_config
     from cfgs_jax.evaluation.protocol import run_protocol
 
-    raw = load_config(find_preset(args.config))
+    raw = _read_config(args)
     console = _console()
-    table = run_protocol(args.scene, Path(args.out), raw, progress=not args.no_progress, log=console.print)
+    table = run_protocol(args.scene, Path(args.out), raw, resume=args.resume, progress=not args.no_progress,
+                         log=console.print)  # fmt: skip
     from rich.table import Table
 
     t = Table(title=f"evaluation of {args.scene} ({len(table['dates'])} dates)")
@@ -315,8 +318,8 @@ def cmd_sweep(args) -> int:
     from cfgs_jax.evaluation.sweep import run_sweep
 
     console = _console()
-    summary = run_sweep(load_config(find_preset(args.config)), Path(args.out), progress=not args.no_progress,
-                        log=console.print)  # fmt: skip
+    summary = run_sweep(load_config(find_preset(args.config)), Path(args.out), overrides=args.overrides,
+                        resume=args.resume, progress=not args.no_progress, log=console.print)  # fmt: skip
     from rich.table import Table
 
     t = Table(title=f"sweep on {summary['scene']} ({len(summary['variants'])} variants)")
@@ -389,6 +392,12 @@ def cmd_render(args) -> int:
         task = bar.add_task(f"render {args.mode} t={t.astype(int).tolist()}", total=len(cams))
         paths = render_views(run, t, style, cams, args.out, background=bg, progress=lambda: bar.advance(task))
     console.print(f"wrote {len(paths)} views (PNG sRGB with legend + EXR linear) to {args.out}")
+    if args.cameras == "orbit":
+        from cfgs_jax.io import read_image
+        from cfgs_jax.io.video import write_video
+
+        video = write_video(Path(args.out) / "orbit.mp4", [read_image(p) for p in paths], fps=args.fps)
+        console.print(f"wrote {video} ({len(paths)} frames at {args.fps} fps)")
     return 0
 
 
@@ -410,17 +419,32 @@ def cmd_view(args) -> int:
     return 0
 
 
-def _selection_args(s) -> None:
-    s.add_argument("--run", required=True, help="run directory of a finished `fuse`")
-    s.add_argument("--t", default="all", help="time selection: one 0/1 per date (1,0,1), date names (d0,d2) or 'all'")
-    s.add_argument("--mode", choices=("blend", "max", "highlight"), default="highlight",
-                   help="blend: Eq. 4 mean opacity; max: max opacity; highlight: change highlight (Eq. 5)")  # fmt: skip
-    s.add_argument("--grey", action="store_true", help="highlight on a greyscale base (Rec.709 luminance)")
-    s.add_argument("--low-contrast", action="store_true", help="highlight on a reduced-contrast base")
-    s.add_argument("--max-opacity", action="store_true", help="highlight with the max-opacity blend")
-    s.add_argument("--sigma", type=float, default=0.18, help="σ of the persistence filter (Eq. 7)")
-    s.add_argument("--contrast", help="k,b of the contrast sigmoid (Eq. 8) applied to o")
-    s.add_argument("--stops", help="gradient colours 'r,g,b;r,g,b;...' (linear RGB) or 'rgb' for no remap")
+def cmd_presets(args) -> int:
+    """List the packaged presets (name and leading comment), or print / write one."""
+    from cfgs_jax.config import find_preset, preset_names
+    from cfgs_jax.io.atomic import write_text
+
+    if args.name is None:
+        from rich.table import Table
+
+        t = Table(title="packaged run configurations (--config NAME)")
+        t.add_column("name")
+        t.add_column("what it is")
+        for name in preset_names():
+            lines = find_preset(name).read_text().splitlines()
+            header = [ln.lstrip("#").strip() for ln in lines[: next((i for i, ln in enumerate(lines) if not ln.startswith("#")), len(lines))]]
+            t.add_row(name, " ".join(header))
+        _console().print(t)
+        return 0
+    if args.name.endswith(".toml") or "/" in args.name:
+        raise InputError(f"{args.name!r} is a path, not a preset name", field="name", fix=f"use one of {preset_names()}")
+    text = find_preset(args.name).read_text()
+    if args.out:
+        write_text(args.out, text)
+        _console().print(f"wrote {args.out} (preset {args.name}; pass it with --config {args.out})")
+    else:
+        sys.stdout.write(text)
+    return 0
 
 
 def cmd_demo(args) -> int:
@@ -430,7 +454,7 @@ def cmd_demo(args) -> int:
     from cfgs_jax.demo import run_demo
 
     console = _console()
-    summary = run_demo(args.out, config=args.config, num_dates=args.dates, width=args.width, height=args.height,
+    summary = run_demo(args.out, config=_read_config(args), num_dates=args.dates, width=args.width, height=args.height,
                        images_per_date=args.images_per_date, resume=args.resume, progress=not args.no_progress,
                        log=console.print)  # fmt: skip
     t = Table(title="test views: individual per-date models vs the fused model")
@@ -446,133 +470,6 @@ def cmd_demo(args) -> int:
     return 0
 
 
-def build_parser() -> argparse.ArgumentParser:
-    from cfgs_jax.synthetic.presets import PRESETS
-
-    p = argparse.ArgumentParser(
-        prog="python -m cfgs_jax.pipeline",
-        description="cfgs_jax: fuse per-date 3DGS models into one multi-temporal model and render changes.",
-    )
-    p.add_argument("-v", "--verbose", action="store_true", help="log progress and notes")
-    sub = p.add_subparsers(dest="command", required=True)
-
-    s = sub.add_parser("inspect", help="summarise a PLY, fused model or COLMAP dataset")
-    s.add_argument("path")
-    s.set_defaults(func=cmd_inspect)
-
-    s = sub.add_parser("convert", help="convert between 3DGS PLY and fused-model layouts")
-    s.add_argument("src")
-    s.add_argument("dst")
-    s.add_argument("--layout", choices=("cfgs", "reference", "ply"),
-                   help="output layout (default: ply when DST ends in .ply, else cfgs)")
-    s.add_argument("--drop-invalid", action="store_true", help="drop rows with NaN/Inf instead of failing")
-    s.set_defaults(func=cmd_convert)
-
-    s = sub.add_parser("metrics", help="PSNR / SSIM / LPIPS between two images or two folders")
-    s.add_argument("a", help="image file or folder (e.g. renders)")
-    s.add_argument("b", help="image file or folder (e.g. ground truth; matched by file name)")
-    s.add_argument("--net", choices=("alex", "vgg"), default="alex", help="LPIPS backbone")
-    s.add_argument("--json", help="also write the numbers to this JSON file")
-    s.set_defaults(func=cmd_metrics)
-
-    s = sub.add_parser("synth", help="render a synthetic multi-date scene with Mitsuba 3")
-    s.add_argument("--preset", required=True, choices=tuple(PRESETS))
-    s.add_argument("--out", required=True)
-    s.add_argument("--seed", type=int, default=0)
-    s.add_argument("--width", type=int, default=320)
-    s.add_argument("--height", type=int, default=240)
-    s.add_argument("--images-per-date", type=int, default=32)
-    s.add_argument("--spp", type=int, default=32)
-    s.set_defaults(func=cmd_synth)
-
-    s = sub.add_parser("train", help="train one date's 3DGS model from a COLMAP dataset")
-    s.add_argument("--scene", required=True, help="COLMAP dataset of one date (images/ + sparse/0)")
-    s.add_argument("--out", required=True, help="output directory (point_cloud.ply, train.json, checkpoint)")
-    s.add_argument("--config", default="paper", help="preset name (paper, fast) or TOML path; [train]/[render]")
-    s.add_argument("--steps", type=int, help="number of steps (the densification schedule is scaled to it)")
-    s.add_argument("--continue-from", metavar="PLY", help='train this model N more steps without densification')
-    s.add_argument("--resume", action="store_true", help="continue from the checkpoint in --out")
-    s.add_argument("--seed", type=int)
-    s.add_argument("--stop-after", type=int, help="stop (with a checkpoint) after this many total steps")
-    s.add_argument("--eval-every", type=int, help="also evaluate on the test split every N steps")
-    s.add_argument("--no-eval", action="store_true", help="skip the test-split evaluation at the end")
-    s.add_argument("--lpips-net", choices=("alex", "vgg"), default="alex")
-    s.add_argument("--no-progress", action="store_true")
-    s.set_defaults(func=cmd_train)
-
-    s = sub.add_parser("fuse", help="fuse per-date datasets into one multi-temporal model")
-    s.add_argument("--dates", nargs="+", required=True, help="per-date COLMAP datasets (the first is the reference)")
-    s.add_argument("--out", required=True, help="run directory")
-    s.add_argument("--config", default="paper", help="preset name (paper, fast) or TOML path")
-    s.add_argument("--models", nargs="+", help="trained per-date PLYs (default: train them in the run)")
-    s.add_argument("--transforms", help="JSON of known date → reference Sim(3)s (skips SfM registration)")
-    s.add_argument("--captured", nargs="+", metavar="DATE",
-                   help="capture time of each --dates entry (ISO 8601, same order; default: the images' EXIF); "
-                        "dates are fused in time order")  # fmt: skip
-    s.add_argument("--drop-invalid", action="store_true", help="drop --models rows with NaN/Inf instead of failing")
-    s.add_argument("--resume", action="store_true", help="continue the run in --out")
-    s.add_argument("--no-progress", action="store_true")
-    s.set_defaults(func=cmd_fuse)
-
-    s = sub.add_parser("eval", help="the paper's evaluation protocol on one scene, plus change detection")
-    s.add_argument("--scene", required=True, help="a synthetic preset (vase, corals, flood, coverage, light, reef) or a "
-                   "folder of per-date datasets")  # fmt: skip
-    s.add_argument("--config", default="fast", help="preset name or TOML ([scene], [eval] and the fusion tables)")
-    s.add_argument("--out", required=True, help="output folder (re-running it resumes)")
-    s.add_argument("--no-progress", action="store_true")
-    s.set_defaults(func=cmd_eval)
-
-    s = sub.add_parser("sweep", help="ablation sweep: a base configuration and a grid of overrides, resumable")
-    s.add_argument("--config", required=True, help="sweep TOML ([sweep] scene, base, [sweep.grid]), e.g. sweep_fast")
-    s.add_argument("--out", required=True, help="output folder (re-running it skips finished variants)")
-    s.add_argument("--no-progress", action="store_true")
-    s.set_defaults(func=cmd_sweep)
-
-    s = sub.add_parser("extend", help="add one date to a finished fusion run (incremental fusion)")
-    s.add_argument("--run", required=True, help="run directory of a finished `fuse`")
-    s.add_argument("--date", required=True, help="the new date's COLMAP dataset")
-    s.add_argument("--model", help="its trained PLY (default: train it in the run)")
-    s.add_argument("--transforms", help="JSON with the new date's date → reference Sim(3) (skips registration)")
-    s.add_argument("--captured", metavar="DATE", help="its capture time (ISO 8601; default: its images' EXIF): "
-                   "the date is inserted at its place in time")  # fmt: skip
-    s.add_argument("--resume", action="store_true")
-    s.add_argument("--no-progress", action="store_true")
-    s.set_defaults(func=cmd_extend)
-
-    s = sub.add_parser("render", help="render a time selection / change highlight of a fused run")
-    _selection_args(s)
-    s.add_argument("--cameras", choices=("test", "orbit"), default="test")
-    s.add_argument("--frames", type=int, default=24, help="number of orbit views")
-    s.add_argument("--width", type=int, help="orbit image width (default: the training cameras')")
-    s.add_argument("--height", type=int)
-    s.add_argument("--background", default="0,0,0", help="r,g,b in [0, 1]")
-    s.add_argument("--out", required=True, help="output folder (PNG + EXR per view)")
-    s.add_argument("--no-progress", action="store_true")
-    s.set_defaults(func=cmd_render)
-
-    s = sub.add_parser("export", help="bake a time selection / highlight into a standard 3DGS PLY")
-    _selection_args(s)
-    s.add_argument("--out", required=True, help="output .ply")
-    s.set_defaults(func=cmd_export)
-
-    s = sub.add_parser("view", help="browser viewer of a fused run (viser; 127.0.0.1 only)")
-    s.add_argument("--run", required=True, help="run directory of a finished `fuse`")
-    s.add_argument("--port", type=int, default=8080)
-    s.set_defaults(func=cmd_view)
-
-    s = sub.add_parser("demo", help="the embedded default job: synthesise, train, fuse, render, tabulate")
-    s.add_argument("--out", default="runs/demo")
-    s.add_argument("--config", default="demo", help="preset name or TOML (default: cfgs_jax/demo.toml)")
-    s.add_argument("--dates", type=int, default=2, help="how many dates of the corals scene to fuse (2-4)")
-    s.add_argument("--width", type=int, default=160)
-    s.add_argument("--height", type=int, default=120)
-    s.add_argument("--images-per-date", type=int, default=12)
-    s.add_argument("--resume", action="store_true", help="continue an interrupted demo in --out")
-    s.add_argument("--no-progress", action="store_true")
-    s.set_defaults(func=cmd_demo)
-    return p
-
-
 class _StderrHandler(logging.Handler):
     """The library's log records on the current stderr as ``warning: ...`` lines (e.g. how many invalid
     rows ``--drop-invalid`` dropped)."""
@@ -581,14 +478,24 @@ class _StderrHandler(logging.Handler):
         print(f"{record.levelname.lower()}: {record.getMessage()}", file=sys.stderr)
 
 
-def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+COMMANDS = {
+    "inspect": cmd_inspect, "convert": cmd_convert, "metrics": cmd_metrics, "synth": cmd_synth, "train": cmd_train,
+    "fuse": cmd_fuse, "extend": cmd_extend, "eval": cmd_eval, "sweep": cmd_sweep, "render": cmd_render,
+    "export": cmd_export, "view": cmd_view, "presets": cmd_presets, "demo": cmd_demo,
+}  # fmt: skip
+
+
+def main(argv: list[str] | None = None, *, prog: str | None = None) -> int:
+    """Run one command line; returns the exit status (2 for input/output errors, one line on stderr)."""
+    from cfgs_jax.cli import build_parser
+
+    args = build_parser(prog).parse_args(argv)
     logger = logging.getLogger("cfgs_jax")
     if not any(isinstance(h, _StderrHandler) for h in logger.handlers):
         logger.addHandler(_StderrHandler())
     logger.setLevel(logging.INFO if args.verbose else logging.WARNING)
     try:
-        return args.func(args)
+        return COMMANDS[args.command](args)
     except (InputError, OutputError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2

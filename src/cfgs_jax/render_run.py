@@ -101,11 +101,13 @@ class FusedRun:
     sims: list[Sim3]
 
     test_every: int = 8
+    resolution: int = 1
 
     @functools.cached_property
     def scenes(self) -> list[Scene]:
-        """The dates' datasets, split as the run split them (every ``test_every``-th image is a test view)."""
-        return [read_colmap(path, test_every=self.test_every) for path in self.dataset_paths]
+        """The dates' datasets, split and downscaled as the run used them (every ``test_every``-th image
+        is a test view)."""
+        return [read_colmap(path, test_every=self.test_every, resolution=self.resolution) for path in self.dataset_paths]
 
     def test_cameras(self) -> list[tuple[str, Camera]]:
         """Every date's test views posed in the model's frame, named ``<date>_<image>``."""
@@ -133,9 +135,9 @@ def open_run(run_dir: str | Path) -> FusedRun:
     names = [d["name"] for d in state["dates"]]
     if list(model.date_names) != names:
         raise InputError(f"model dates {list(model.date_names)} differ from run dates {names}", path=run_dir / "fused")
-    test_every = max(1, section(state.get("config", {}), "train", TrainConfig).test_every)
+    tc = section(state.get("config", {}), "train", TrainConfig)
     return FusedRun(run_dir, model, names, [Path(d["path"]) for d in state["dates"]],
-                    [Sim3.from_dict(reg[n]["transform"]) for n in names], test_every)  # fmt: skip
+                    [Sim3.from_dict(reg[n]["transform"]) for n in names], max(1, tc.test_every), tc.resolution)  # fmt: skip
 
 
 def orbit_geometry(training: list[Camera]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, float, float]:

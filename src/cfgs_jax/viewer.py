@@ -17,6 +17,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from cfgs_jax import viz
+from cfgs_jax.errors import InputError
 from cfgs_jax.model import covariances, opacities
 from cfgs_jax.render_run import FusedRun, SelectionStyle, open_run, orbit_geometry
 
@@ -41,8 +42,11 @@ class Viewer:
     """A running viser server showing one fused run; ``settings`` holds the current controls."""
 
     def __init__(self, run: FusedRun, *, port: int = 8080):
-        import viser
-
+        try:
+            import viser
+        except ImportError:
+            raise InputError("viser (the viewer extra) is not installed", field="view",
+                             fix='pip install "cfgs-jax[viewer]"') from None
         self.run = run
         self.server = viser.ViserServer(host="127.0.0.1", port=port, verbose=False)
         self.port = self.server.get_port()

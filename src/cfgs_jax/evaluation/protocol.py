@@ -5,7 +5,7 @@ refinement steps (snapshots of one N₃ run, as the paper evaluates "each saved 
 Individual +N (each date's model trained N more steps with its own parameters: no densification,
 position lr at its final value), and the ablations freeze-α / freeze-o (refinement of N₃ steps with
 α, or o, held at its input value: that rate 0, and for α no halving at the start). PSNR / SSIM / LPIPS on every 8th image per date, averaged over dates weighted
-by image count; Gaussian counts per row. Every stage is resumable: re-running the command skips
+by image count; Gaussian counts per row. Every stage is resumable: re-running the command with ``--resume`` skips
 finished work (the fusion run, the continuations and the ablations keep their own state).
 """
 
@@ -28,7 +28,7 @@ from cfgs_jax.fusion.fuse import INVISIBLE_LOGIT
 from cfgs_jax.fusion.light import cold_warm_coefficient
 from cfgs_jax.fusion.refine import RefineConfig, refine
 from cfgs_jax.fusion.run import CONFIG_SECTIONS, camera_in_frame, date_views, run_fusion, split_or_all, validate_config
-from cfgs_jax.io.atomic import read_json, write_json, write_text
+from cfgs_jax.io.atomic import check_resume, read_json, write_json, write_text
 from cfgs_jax.io.colmap import read_colmap
 from cfgs_jax.io.fused import read_fused
 from cfgs_jax.io.ply import read_ply, write_ply
@@ -156,11 +156,14 @@ def _ablation(run_dir: Path, key: str, overrides: dict, views, scenes, test_view
     return done
 
 
-def run_protocol(scene: str, out: str | Path, raw: dict | None = None, *, progress: bool = True, log=print) -> dict:
+def run_protocol(scene: str, out: str | Path, raw: dict | None = None, *, resume: bool = False, progress: bool = True,
+                 log=print) -> dict:  # fmt: skip
     """The whole protocol on one scene → ``out/table.json``, ``out/table.md``, ``out/figure.png``
-    (and ``out/change.json`` where ground truth exists). Returns the table dict."""
+    (and ``out/change.json`` where ground truth exists). Returns the table dict. An ``out`` holding an
+    earlier evaluation is continued (finished stages skipped) only with ``resume=True``."""
     validate_eval_config(raw)
     ec = section(raw, "eval", EvalConfig)
+    check_resume(out, resume)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     data = prepare_scene(scene, raw, out, progress=progress)
@@ -182,8 +185,8 @@ def run_protocol(scene: str, out: str | Path, raw: dict | None = None, *, progre
                transforms=transforms, snapshots=ec.steps[:-1], log=log)  # fmt: skip
     fusion_seconds = time.perf_counter() - t0
     render_config = section(fusion_raw, "render", splat.RenderConfig)
-    test_every = max(1, section(fusion_raw, "train", train.TrainConfig).test_every)
-    scenes = [read_colmap(d, test_every=test_every) for d in dirs]
+    tc = section(fusion_raw, "train", train.TrainConfig)
+    scenes = [read_colmap(d, test_every=max(1, tc.test_every), resolution=tc.resolution) for d in dirs]
     names = [d.name for d in dirs]
     reg = read_json(run_dir / "register.json")
     sims = [Sim3.from_dict(reg[n]["transform"]) for n in names]

@@ -13,7 +13,7 @@ A sweep file names a scene, a base configuration and a grid of overrides::
 Per-date training and registration do not depend on the fusion knobs, so they run once (``DIR/base``)
 and every variant reuses the trained models and Sim(3)s — unless the grid overrides ``train.*`` /
 ``register.*``, in which case each variant trains its own. Every variant is a resumable fusion run
-(``DIR/variants/<id>``): re-running the command skips finished variants and resumes an interrupted one
+(``DIR/variants/<id>``): re-running the command with ``--resume`` skips finished variants and resumes an interrupted one
 mid-stage. Results: ``DIR/sweep.json``, ``DIR/sweep.md`` (one row per variant: overrides, test PSNR /
 SSIM / LPIPS, change-detection F1 / IoU where ground truth exists, stage wall times) and
 ``DIR/sweep.png`` (wall time of cross-init + refinement against PSNR, and F1 per variant).
@@ -34,12 +34,12 @@ import time
 from pathlib import Path
 
 from cfgs_jax.compiled_code import release_if_near_limit
-from cfgs_jax.config import find_preset, load_config
+from cfgs_jax.config import apply_overrides, find_preset, load_config
 from cfgs_jax.errors import InputError
 from cfgs_jax.evaluation.protocol import (EvalConfig, SceneConfig, change_detection, date_dirs, prepare_scene,
                                          validate_eval_config)
 from cfgs_jax.fusion.run import CONFIG_SECTIONS, run_fusion, validate_config
-from cfgs_jax.io.atomic import read_json, write_json, write_text
+from cfgs_jax.io.atomic import check_resume, read_json, write_json, write_text
 
 
 @dataclasses.dataclass(frozen=True)
@@ -55,9 +55,10 @@ class Variant:
         return f"{label[:60]}_{hashlib.sha1(text.encode()).hexdigest()[:6]}" if label else "base"
 
 
-def parse_sweep(raw: dict) -> tuple[str, dict, list[Variant]]:
-    """(scene, base configuration, variants) of a sweep file; every override is checked against the
-    configuration's dataclasses before anything runs."""
+def parse_sweep(raw: dict, overrides: list[str] = ()) -> tuple[str, dict, list[Variant]]:
+    """(scene, base configuration, variants) of a sweep file; ``overrides`` (``table.key=value``, the
+    command line's ``--set``) apply to the base after the sweep file's own tables. Every variant is
+    checked against the configuration's dataclasses before anything runs."""
     where = raw.get("__path__")
     if "sweep" not in raw:
         raise InputError("no [sweep] table", path=where, field="sweep", fix="add [sweep] with scene, base and [sweep.grid]")
@@ -69,6 +70,7 @@ def parse_sweep(raw: dict) -> tuple[str, dict, list[Variant]]:
         raise InputError("missing", path=where, field="sweep.scene", fix='e.g. scene = "corals"')
     base = load_config(find_preset(sw.get("base", "eval")))
     base.update({k: v for k, v in raw.items() if k not in ("sweep", "__path__")})  # tables in the sweep file win
+    base = apply_overrides(base, overrides)
     validate_eval_config(base)  # the base's own tables (an eval base has [scene], [eval], [change])
     grid = sw.get("grid", {})
     if not isinstance(grid, dict) or any(not isinstance(v, list) or not v for v in grid.values()):
@@ -99,15 +101,18 @@ def variant_config(base: dict, variant: Variant) -> dict:
     return raw
 
 
-def run_sweep(sweep_raw: dict, out: str | Path, *, progress: bool = True, log=print) -> dict:
-    """Every variant of the sweep (resumable) → ``out/sweep.json``, ``sweep.md``, ``sweep.png``."""
+def run_sweep(sweep_raw: dict, out: str | Path, *, overrides: list[str] = (), resume: bool = False,
+              progress: bool = True, log=print) -> dict:  # fmt: skip
+    """Every variant of the sweep → ``out/sweep.json``, ``sweep.md``, ``sweep.png``. With ``resume``
+    an ``out`` holding an earlier sweep is continued (finished variants skipped); without, refused."""
     from cfgs_jax import splat, train
     from cfgs_jax.config import section
     from cfgs_jax.io.colmap import read_colmap
     from cfgs_jax.io.fused import read_fused
     from cfgs_jax.sim3 import Sim3
 
-    scene, base, variants = parse_sweep(sweep_raw)
+    scene, base, variants = parse_sweep(sweep_raw, overrides)
+    check_resume(out, resume)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     scene_raw = {"scene": base["scene"]} if "scene" in base else {}
@@ -148,7 +153,7 @@ def run_sweep(sweep_raw: dict, out: str | Path, *, progress: bool = True, log=pr
             change = None
             if (data / "ground_truth.json").is_file():
                 tc = section(raw, "train", train.TrainConfig)
-                scenes = [read_colmap(d, test_every=max(1, tc.test_every)) for d in dirs]
+                scenes = [read_colmap(d, test_every=max(1, tc.test_every), resolution=tc.resolution) for d in dirs]
                 reg = read_json(vdir / "run" / "register.json")
                 sims = [Sim3.from_dict(reg[d.name]["transform"]) for d in dirs]
                 change = change_detection(read_fused(vdir / "run" / "fused"), data, scenes, sims,

@@ -53,7 +53,7 @@ from cfgs_jax.train.step import over_background
 @dataclasses.dataclass(frozen=True)
 class CrossInitConfig:
     """The paper's values (3000 steps per pair, Adam lr 0.0075 for o, 0.00375 for l); ours where it is
-    silent: δ = 0.8 (it says δ < 1) and gains starting at the pair's exposure (README §Conventions).
+    silent: δ = 0.8 (it says δ < 1) and gains starting at the pair's exposure (the README's "Where we depart from the paper").
     Shorter schedules keep the paper's travel: with ``steps`` < ``rate_reference_steps`` both rates are
     multiplied by rate_reference_steps / steps (an Adam step moves a logit by ≈ lr, so o^q can still
     travel lr·3000 in logit; 0 uses the rates as given)."""
@@ -61,7 +61,7 @@ class CrossInitConfig:
     steps: int = 3000
     lr_o: float = 0.0075
     lr_light: float = 0.00375
-    delta: float = 0.8  # the paper gives only δ < 1; 0.8 leaves unidentified o^q on the "persistent" side (README §Conventions)
+    delta: float = 0.8  # the paper gives only δ < 1; 0.8 leaves unidentified o^q on the "persistent" side (the README's "Where we depart from the paper")
     epsilon_schedule: Literal["paper", "reference"] = "paper"
     ramp_fraction: float = 0.5
     lpips_net: Literal["alex", "vgg"] = "alex"

@@ -184,7 +184,7 @@ def register_date(reference, date, *, config: RegisterConfig | None = None, work
 
     import pycolmap
 
-    from cfgs_jax.io.images import read_image, write_image
+    from cfgs_jax.io.images import write_image
 
     config = config or RegisterConfig()
     if not logging.getLogger("cfgs_jax").isEnabledFor(logging.INFO):
@@ -196,7 +196,7 @@ def register_date(reference, date, *, config: RegisterConfig | None = None, work
             (tmp / "images" / tag).mkdir(parents=True)
             for i in _evenly(len(scene), config.images_per_date):
                 name = f"{tag}/{i:05d}.png"
-                write_image(tmp / "images" / name, read_image(scene.image_dir / scene.image_names[i]))  # RGB
+                write_image(tmp / "images" / name, scene.load_image(i))  # RGB, at the cameras' size
                 picked[name] = (tag, i)
         db = tmp / "database.db"
         for tag, scene in (("ref", reference), ("new", date)):

@@ -183,7 +183,7 @@ class FusionRun:
 
     def scene(self, i: int) -> Scene:
         tc = section(self.raw, "train", train.TrainConfig)
-        return read_colmap(self.state["dates"][i]["path"], test_every=max(1, tc.test_every))
+        return read_colmap(self.state["dates"][i]["path"], test_every=max(1, tc.test_every), resolution=tc.resolution)
 
     def _save(self):
         write_json(self.out / "run.json", self.state)
@@ -294,8 +294,8 @@ def run_fusion(dates: list[Path], out: Path, raw_config: dict | None = None, *, 
     validate_config(raw_config)
     if until not in (None, "train", "register", "merge"):
         raise InputError(f"cannot stop after {until!r}", field="until", fix='use "train", "register" or "merge"')
-    test_every = max(1, section(raw_config, "train", train.TrainConfig).test_every)
-    scenes = [read_colmap(d, test_every=test_every) for d in dates]
+    tc = section(raw_config, "train", train.TrainConfig)
+    scenes = [read_colmap(d, test_every=max(1, tc.test_every), resolution=tc.resolution) for d in dates]
     times = capture_times(scenes, captured)
     order = time_order(times, [Path(d).name for d in dates])
     if not any(times):
@@ -431,7 +431,7 @@ def run_extend(run_dir: Path, date: Path, *, model: Path | None = None, transfor
     if started and not resume:
         raise InputError(f"an extension by {name!r} was started here", path=run_dir, fix="pass --resume")
     tc = section(state["config"], "train", train.TrainConfig)
-    new_scene = read_colmap(date, test_every=max(1, tc.test_every))
+    new_scene = read_colmap(date, test_every=max(1, tc.test_every), resolution=tc.resolution)
     check_lpips_size(new_scene, state["config"])  # fails before the run is touched
     if model is not None:
         read_ply(model)

@@ -10,7 +10,7 @@ import tempfile
 from collections.abc import Iterator
 from pathlib import Path
 
-from cfgs_jax.errors import OutputError
+from cfgs_jax.errors import InputError, OutputError
 
 
 def ensure_writable_dir(directory: str | os.PathLike) -> Path:
@@ -30,6 +30,15 @@ def ensure_writable_dir(directory: str | os.PathLike) -> Path:
             f"{d}: output directory is not writable. Fix: change its permissions or choose another one."
         )
     return d
+
+
+def check_resume(directory: str | os.PathLike, resume: bool) -> None:
+    """Refuse to start a long command in a ``directory`` that already holds files unless ``resume``:
+    every long command continues earlier work only when asked (``--resume``)."""
+    d = Path(directory)
+    if not resume and d.is_dir() and any(d.iterdir()):
+        raise InputError("this output folder holds an earlier run", path=d,
+                         fix="pass --resume to continue it, or choose another --out")  # fmt: skip
 
 
 @contextlib.contextmanager

