@@ -13,9 +13,11 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
-from bench_splat import machine  # noqa: E402
+from bench_splat import machine
 
-SUMMARY = re.compile(r"^=*\s*(?P<line>(\d+ (passed|failed|error|errors|skipped|deselected|xfailed|xpassed)[, ]*)+.*?)\s*=*$")
+SUMMARY = re.compile(
+    r"^=*\s*(?P<line>(\d+ (passed|failed|error|errors|skipped|deselected|xfailed|xpassed)[, ]*)+.*?)\s*=*$"
+)
 PROPERTY = re.compile(r"^(?P<test>\S+::\S+):$")
 COUNTS = re.compile(r"- (?P<passing>\d+) passing, (?P<failing>\d+) failing, and (?P<invalid>\d+) invalid")
 
@@ -55,24 +57,46 @@ def main() -> None:
     commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True).stdout.strip()
     props = properties(stress)
     result = {
-        "date": time.strftime("%Y-%m-%d"), "commit": commit, "machine": machine(), "command": "bash .ci/nightly",
-        "slow": {"seconds": a.slow_seconds, "exit_code": a.slow_rc, "summary": summary(slow), "failures": failures(slow)},
-        "stress": {"seconds": a.stress_seconds, "exit_code": a.stress_rc, "summary": summary(stress),
-                   "failures": failures(stress), "profile": "thorough", "properties": props,
-                   "examples": sum(p["passing"] for p in props), "failing_examples": sum(p["failing"] for p in props)},
-    }  # fmt: skip
+        "date": time.strftime("%Y-%m-%d"),
+        "commit": commit,
+        "machine": machine(),
+        "command": "bash .ci/nightly",
+        "slow": {
+            "seconds": a.slow_seconds,
+            "exit_code": a.slow_rc,
+            "summary": summary(slow),
+            "failures": failures(slow),
+        },
+        "stress": {
+            "seconds": a.stress_seconds,
+            "exit_code": a.stress_rc,
+            "summary": summary(stress),
+            "failures": failures(stress),
+            "profile": "thorough",
+            "properties": props,
+            "examples": sum(p["passing"] for p in props),
+            "failing_examples": sum(p["failing"] for p in props),
+        },
+    }
     md = [
-        "# Slow tier (`bash .ci/nightly`)", "",
-        f"Date: {result['date']}. Commit: {commit}. Machine: {result['machine']}.", "",
-        "| phase | command | wall time | exit code | pytest summary |", "|---|---|---:|---:|---|",
+        "# Slow tier (`bash .ci/nightly`)",
+        "",
+        f"Date: {result['date']}. Commit: {commit}. Machine: {result['machine']}.",
+        "",
+        "| phase | command | wall time | exit code | pytest summary |",
+        "|---|---|---:|---:|---|",
         f"| slow tests | `python -m pytest -q -n 2 --dist loadfile -m slow` | {a.slow_seconds} s | {a.slow_rc} | {result['slow']['summary']} |",
         f"| stress suite | `python -m pytest -q tests/stress -m stress --hypothesis-profile=thorough` | {a.stress_seconds} s "
-        f"| {a.stress_rc} | {result['stress']['summary']} |", "",
+        f"| {a.stress_rc} | {result['stress']['summary']} |",
+        "",
         f"Hypothesis properties at the `thorough` profile: {len(props)} properties, "
-        f"{result['stress']['examples']} passing examples, {result['stress']['failing_examples']} failing.", "",
-        "| property | passing | failing | invalid |", "|---|---:|---:|---:|",
-        *(f"| `{p['test']}` | {p['passing']} | {p['failing']} | {p['invalid']} |" for p in props), "",
-    ]  # fmt: skip
+        f"{result['stress']['examples']} passing examples, {result['stress']['failing_examples']} failing.",
+        "",
+        "| property | passing | failing | invalid |",
+        "|---|---:|---:|---:|",
+        *(f"| `{p['test']}` | {p['passing']} | {p['failing']} | {p['invalid']} |" for p in props),
+        "",
+    ]
     fails = result["slow"]["failures"] + result["stress"]["failures"]
     md += ["Failures:", "", *(f"- `{f}`" for f in fails), ""] if fails else ["Failures: none.", ""]
     out = Path(a.out)

@@ -1,5 +1,5 @@
-"""Cross-timestep initialisation against ground truth, by iteration count (issue 7's checks; issue 9's
-time vs error for the cross-init iterations).
+"""Cross-timestep initialisation against ground truth, by iteration count (its identification checks,
+and time vs error for the cross-init iterations).
 
 On the synthetic ``light`` (lighting only: nothing changes) and ``corals`` (objects appear and
 disappear) presets, the first ``--dates`` dates are trained (pipeline ``fuse`` up to the merge,
@@ -33,8 +33,8 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_scene import add_scene_args, scene_dates  # noqa: E402
-from bench_splat import RESULTS, machine  # noqa: E402
+from bench_scene import add_scene_args, scene_dates
+from bench_splat import RESULTS, machine
 
 
 def _preset(preset: str, args, raw: dict) -> dict:
@@ -54,8 +54,16 @@ def _preset(preset: str, args, raw: dict) -> dict:
     data, names, transforms, sims = scene_dates(preset, sub, args.dates)
     run_dir = Path(sub.work) / "run"
     dirs = [data / n for n in names]
-    run_fusion(dirs, run_dir, raw, transforms=transforms, until="merge", resume=(run_dir / "run.json").is_file(),
-               progress=False, log=lambda *a: None)  # fmt: skip
+    run_fusion(
+        dirs,
+        run_dir,
+        raw,
+        transforms=transforms,
+        until="merge",
+        resume=(run_dir / "run.json").is_file(),
+        progress=False,
+        log=lambda *a: None,
+    )
     render_config = section(raw, "render", splat.RenderConfig)
     base = section(raw, "cross_init", CrossInitConfig)
     scenes = [read_colmap(d, test_every=max(1, section(raw, "train", TrainConfig).test_every)) for d in dirs]
@@ -80,31 +88,46 @@ def _preset(preset: str, args, raw: dict) -> dict:
         seen = np.asarray(model.o_logits) != np.float32(INVISIBLE_LOGIT)
         other = np.asarray(model.origin)[:, None] != np.arange(len(names))[None, :]
         entries = o[seen & other]
-        out["runs"].append({"steps": steps, "seconds": seconds, "pairs": len(names) * (len(names) - 1),
-                            "mean_o": float(entries.mean()), "below_0.5": float((entries < 0.5).mean()),
-                            "o_percentiles_10_50_90": np.percentile(entries, [10, 50, 90]).tolist(), **checks})  # fmt: skip
+        out["runs"].append(
+            {
+                "steps": steps,
+                "seconds": seconds,
+                "pairs": len(names) * (len(names) - 1),
+                "mean_o": float(entries.mean()),
+                "below_0.5": float((entries < 0.5).mean()),
+                "o_percentiles_10_50_90": np.percentile(entries, [10, 50, 90]).tolist(),
+                **checks,
+            }
+        )
         print(preset, steps, json.dumps(out["runs"][-1]["objects"]), f"mean o {entries.mean():.3f}", flush=True)
     return out
 
 
 def _markdown(result: dict) -> str:
     lines = [
-        "# Cross-timestep initialisation against ground truth, by iteration count", "",
+        "# Cross-timestep initialisation against ground truth, by iteration count",
+        "",
         f"Machine: {result['machine']}. Date: {result['date']}. Scenes: {result['scene']}; config "
-        f"`{result['config']}` (cross-init steps varied; the paper uses 3000 per pair), ground-truth Sim(3)s.", "",
+        f"`{result['config']}` (cross-init steps varied; the paper uses 3000 per pair), ground-truth Sim(3)s.",
+        "",
         "| preset | steps per pair | wall s (all pairs) | mean o^q | o^q < 0.5 | o^q p10 / p50 / p90 | persistent o^q > 0.6 | absent o^q < 0.2 | cold/warm sign right |",
         "|---|---:|---:|---:|---:|---|---:|---:|---:|",
-    ]  # fmt: skip
+    ]
     for preset, res in result["presets"].items():
         for r in res["runs"]:
             ob, li = r["objects"], r["light"]
             pct = " / ".join(f"{x:.2f}" for x in r["o_percentiles_10_50_90"])
             absent = f"{100 * ob['absent_below_0.2']:.1f} % ({ob['absent_entries']:,})" if ob["absent_entries"] else "–"
             sign = f"{li['sign_agrees']}/{li['pairs_with_cct_change']}" if li["pairs_with_cct_change"] else "–"
-            lines.append(f"| {preset} | {r['steps']:,} | {r['seconds']:.0f} | {r['mean_o']:.3f} | {100 * r['below_0.5']:.1f} % | "
-                         f"{pct} | {100 * ob['persistent_above_0.6']:.1f} % ({ob['persistent_entries']:,}) | {absent} | {sign} |")  # fmt: skip
-    lines += ["", "Targets (issue 7, after cross-init): `light` mean o^q > 0.6 with the cold/warm sign right; "
-              "`corals` fractions reported (persistent > 0.6, absent < 0.2)."]  # fmt: skip
+            lines.append(
+                f"| {preset} | {r['steps']:,} | {r['seconds']:.0f} | {r['mean_o']:.3f} | {100 * r['below_0.5']:.1f} % | "
+                f"{pct} | {100 * ob['persistent_above_0.6']:.1f} % ({ob['persistent_entries']:,}) | {absent} | {sign} |"
+            )
+    lines += [
+        "",
+        "Targets (after cross-init): `light` mean o^q > 0.6 with the cold/warm sign right; "
+        "`corals` fractions reported (persistent > 0.6, absent < 0.2).",
+    ]
     return "\n".join(lines) + "\n"
 
 
@@ -121,9 +144,14 @@ def main():
 
     raw = load_config(args.config)
     raw = {k: v for k, v in raw.items() if k not in ("scene", "eval")}
-    result = {"machine": machine(), "date": time.strftime("%Y-%m-%d"), "config": args.config,
-              "scene": f"{', '.join(args.presets)}: first {args.dates} dates, {args.width}x{args.height}, "
-              f"{args.images_per_date} views/date", "presets": {}}  # fmt: skip
+    result = {
+        "machine": machine(),
+        "date": time.strftime("%Y-%m-%d"),
+        "config": args.config,
+        "scene": f"{', '.join(args.presets)}: first {args.dates} dates, {args.width}x{args.height}, "
+        f"{args.images_per_date} views/date",
+        "presets": {},
+    }
     for preset in args.presets:
         result["presets"][preset] = _preset(preset, args, raw)
     RESULTS.mkdir(parents=True, exist_ok=True)

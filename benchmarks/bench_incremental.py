@@ -1,5 +1,5 @@
 """Adding dates one by one (``extend``) vs recomputing the fusion from scratch each time a date
-arrives, for T = 2..T_max on one scene (issue 9, the paper's Fig. "incremental vs from scratch";
+arrives, for T = 2..T_max on one scene (the paper's Fig. "incremental vs from scratch";
 goal: accumulated incremental time ≤ 0.25 × accumulated from-scratch time at the largest T).
 
 Scene: the synthetic ``reef`` preset (6 dates), ground-truth Sim(3)s (registration is the same on
@@ -29,8 +29,8 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_scene import add_scene_args, scene_dates  # noqa: E402
-from bench_splat import RESULTS, machine  # noqa: E402
+from bench_scene import add_scene_args, scene_dates
+from bench_splat import RESULTS, machine
 
 FUSION_STAGES = ("merge", "cross_init", "refine", "export")
 
@@ -52,8 +52,17 @@ def _scratch(work, dirs, names, raw, models, transforms, sims, max_dates) -> dic
     for t in range(2, max_dates + 1):
         run = work / f"scratch_{t}"
         if not (run / "run.json").is_file() or "export" not in json.loads((run / "run.json").read_text())["done"]:
-            run_fusion(dirs[:t], run, raw, models=models[:t], transforms=transforms, resume=(run / "run.json").is_file(),
-                       progress=False, evaluate=(t == max_dates), log=_quiet)  # fmt: skip
+            run_fusion(
+                dirs[:t],
+                run,
+                raw,
+                models=models[:t],
+                transforms=transforms,
+                resume=(run / "run.json").is_file(),
+                progress=False,
+                evaluate=(t == max_dates),
+                log=_quiet,
+            )
         each[t] = _fusion_seconds(run)
         acc += each[t]
         accumulated[t] = acc
@@ -67,16 +76,32 @@ def _incremental(work, dirs, names, raw, models, transforms, sims, max_dates) ->
     from cfgs_jax.sim3 import Sim3
 
     inc_dir = work / "incremental"
-    run_fusion(dirs[:2], inc_dir, raw, models=models[:2], transforms=transforms, resume=(inc_dir / "run.json").is_file(),
-               progress=False, evaluate=False, log=_quiet)  # fmt: skip
+    run_fusion(
+        dirs[:2],
+        inc_dir,
+        raw,
+        models=models[:2],
+        transforms=transforms,
+        resume=(inc_dir / "run.json").is_file(),
+        progress=False,
+        evaluate=False,
+        log=_quiet,
+    )
     each, accumulated = {2: _fusion_seconds(inc_dir)}, {2: _fusion_seconds(inc_dir)}
     for t in range(3, max_dates + 1):
         name = names[t - 1]
         state = json.loads((inc_dir / "run.json").read_text())
         if f"extend:{name}:export" not in state["done"]:
-            run_extend(inc_dir, dirs[t - 1], model=models[t - 1], transform=Sim3.from_dict(sims[name]),
-                       resume=any(s.startswith(f"extend:{name}:") for s in state["done"]), progress=False,
-                       evaluate=(t == max_dates), log=_quiet)  # fmt: skip
+            run_extend(
+                inc_dir,
+                dirs[t - 1],
+                model=models[t - 1],
+                transform=Sim3.from_dict(sims[name]),
+                resume=any(s.startswith(f"extend:{name}:") for s in state["done"]),
+                progress=False,
+                evaluate=(t == max_dates),
+                log=_quiet,
+            )
         each[t] = _fusion_seconds(inc_dir, f"extend:{name}:")
         accumulated[t] = accumulated[t - 1] + each[t]
         print(f"incremental T={t}: +{each[t]:.1f} s (accumulated {accumulated[t]:.1f} s)", flush=True)
@@ -87,8 +112,12 @@ def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--max-dates", type=int, default=6)
     add_scene_args(ap, width=64, height=48, images_per_date=8, spp=8, work="/tmp/bench_incremental")
-    ap.add_argument("--extend-steps", type=int, default=None,
-                    help="refinement steps of each extension (refine.extend_steps; default: the config's)")
+    ap.add_argument(
+        "--extend-steps",
+        type=int,
+        default=None,
+        help="refinement steps of each extension (refine.extend_steps; default: the config's)",
+    )
     ap.add_argument("--path", choices=("scratch", "incremental"), help=argparse.SUPPRESS)
     args = ap.parse_args()
     if not 3 <= args.max_dates <= 6:
@@ -109,18 +138,31 @@ def main():
 
     if args.path:  # child process: one path, its own compilations (no warm cache from the other path)
         models = [work / "models" / "dates" / n / "point_cloud.ply" for n in names]
-        out = (_scratch if args.path == "scratch" else _incremental)(work, dirs, names, raw, models, transforms, sims, args.max_dates)
+        out = (_scratch if args.path == "scratch" else _incremental)(
+            work, dirs, names, raw, models, transforms, sims, args.max_dates
+        )
         (work / f"{args.path}.json").write_text(json.dumps(out))
         return
-    trained = run_fusion(dirs, work / "models", raw, transforms=transforms, resume=(work / "models" / "run.json").is_file(),
-                         progress=False, evaluate=False, until="train", log=_quiet)  # fmt: skip
+    trained = run_fusion(
+        dirs,
+        work / "models",
+        raw,
+        transforms=transforms,
+        resume=(work / "models" / "run.json").is_file(),
+        progress=False,
+        evaluate=False,
+        until="train",
+        log=_quiet,
+    )
     train_s = trained.report["train"]["per_date_seconds"]
     paths = {}
     for path in ("scratch", "incremental"):
         cmd = [sys.executable, __file__, "--path", path, *sys.argv[1:]]
         if subprocess.run(cmd).returncode != 0:
             raise SystemExit(f"the {path} path failed")
-        paths[path] = {k: {int(t): v for t, v in d.items()} for k, d in json.loads((work / f"{path}.json").read_text()).items()}
+        paths[path] = {
+            k: {int(t): v for t, v in d.items()} for k, d in json.loads((work / f"{path}.json").read_text()).items()
+        }
     scratch, scratch_acc = paths["scratch"]["each"], paths["scratch"]["accumulated"]
     incremental, inc_acc = paths["incremental"]["each"], paths["incremental"]["accumulated"]
     inc_dir = work / "incremental"
@@ -131,33 +173,55 @@ def main():
     me = me_all["mean"]
     ratio = inc_acc[tmax] / scratch_acc[tmax]
     result = {
-        "machine": machine(), "date": time.strftime("%Y-%m-%d"), "config": args.config,
+        "machine": machine(),
+        "date": time.strftime("%Y-%m-%d"),
+        "config": args.config,
         "scene": f"reef {args.width}x{args.height}, {args.images_per_date} views/date, dates {names}",
-        "train_seconds_per_date": train_s, "scratch_seconds": scratch, "scratch_accumulated": scratch_acc,
-        "incremental_seconds": incremental, "incremental_accumulated": inc_acc, "accumulated_ratio": ratio,
-        "psnr_scratch": ms["psnr"], "psnr_incremental": me["psnr"], "ssim_scratch": ms.get("ssim"),
-        "ssim_incremental": me.get("ssim"), "lpips_scratch": ms.get("lpips"),
-        "lpips_incremental": me.get("lpips"), "refine_steps": refine_steps, "extend_refine_steps": extend_steps,
-    }  # fmt: skip
+        "train_seconds_per_date": train_s,
+        "scratch_seconds": scratch,
+        "scratch_accumulated": scratch_acc,
+        "incremental_seconds": incremental,
+        "incremental_accumulated": inc_acc,
+        "accumulated_ratio": ratio,
+        "psnr_scratch": ms["psnr"],
+        "psnr_incremental": me["psnr"],
+        "ssim_scratch": ms.get("ssim"),
+        "ssim_incremental": me.get("ssim"),
+        "lpips_scratch": ms.get("lpips"),
+        "lpips_incremental": me.get("lpips"),
+        "refine_steps": refine_steps,
+        "extend_refine_steps": extend_steps,
+    }
     RESULTS.mkdir(parents=True, exist_ok=True)
     (RESULTS / "incremental.json").write_text(json.dumps(result, indent=2))
-    rows = [f"| {t} | {scratch[t]:.0f} | {scratch_acc[t]:.0f} | {incremental[t]:.0f} | {inc_acc[t]:.0f} | "
-            f"{inc_acc[t] / scratch_acc[t]:.2f} |" for t in range(2, tmax + 1)]  # fmt: skip
+    rows = [
+        f"| {t} | {scratch[t]:.0f} | {scratch_acc[t]:.0f} | {incremental[t]:.0f} | {inc_acc[t]:.0f} | "
+        f"{inc_acc[t] / scratch_acc[t]:.2f} |"
+        for t in range(2, tmax + 1)
+    ]
     lines = [
-        "# Adding dates incrementally vs recomputing from scratch (bench_incremental.py)", "",
+        "# Adding dates incrementally vs recomputing from scratch (bench_incremental.py)",
+        "",
         f"Command: `python benchmarks/bench_incremental.py {' '.join(sys.argv[1:])}`. "
         f"Machine: {result['machine']}. Date: {result['date']}. Scene: {result['scene']}; config `{args.config}`; "
         "ground-truth Sim(3)s; per-date models trained once and shared (training: "
-        + ", ".join(f"{n} {s:.0f} s" for n, s in train_s.items()) + f"). Refinement: {refine_steps} steps per "
-        f"fusion from scratch, {extend_steps} per extension (`refine.extend_steps`).", "",
-        "| T | from scratch (s) | accumulated | incremental step (s) | accumulated | ratio |", "|---|---:|---:|---:|---:|---:|",
-        *rows, "",
-        f"At T = {tmax}: accumulated incremental / from scratch = **{ratio:.2f}** (goal ≤ 0.25).", "",
-        "Test views of the final model (all dates), PSNR ↑ / SSIM ↑ / LPIPS ↓:", "",
-        "| | PSNR | SSIM | LPIPS |", "|---|---:|---:|---:|",
+        + ", ".join(f"{n} {s:.0f} s" for n, s in train_s.items())
+        + f"). Refinement: {refine_steps} steps per "
+        f"fusion from scratch, {extend_steps} per extension (`refine.extend_steps`).",
+        "",
+        "| T | from scratch (s) | accumulated | incremental step (s) | accumulated | ratio |",
+        "|---|---:|---:|---:|---:|---:|",
+        *rows,
+        "",
+        f"At T = {tmax}: accumulated incremental / from scratch = **{ratio:.2f}** (goal ≤ 0.25).",
+        "",
+        "Test views of the final model (all dates), PSNR ↑ / SSIM ↑ / LPIPS ↓:",
+        "",
+        "| | PSNR | SSIM | LPIPS |",
+        "|---|---:|---:|---:|",
         f"| from scratch | {ms['psnr']:.2f} | {ms['ssim']:.4f} | {ms.get('lpips', float('nan')):.4f} |",
         f"| incremental | {me['psnr']:.2f} | {me['ssim']:.4f} | {me.get('lpips', float('nan')):.4f} |",
-    ]  # fmt: skip
+    ]
     (RESULTS / "incremental.md").write_text("\n".join(lines) + "\n")
     _plot(RESULTS / "incremental.png", scratch_acc, inc_acc)
     print("\n".join(lines))

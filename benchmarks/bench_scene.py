@@ -8,8 +8,9 @@ import json
 from pathlib import Path
 
 
-def add_scene_args(ap: argparse.ArgumentParser, *, width: int, height: int, images_per_date: int, spp: int,
-                   work: str) -> None:  # fmt: skip
+def add_scene_args(
+    ap: argparse.ArgumentParser, *, width: int, height: int, images_per_date: int, spp: int, work: str
+) -> None:
     """``--width --height --images-per-date --spp --config --work`` with this benchmark's defaults."""
     ap.add_argument("--width", type=int, default=width)
     ap.add_argument("--height", type=int, default=height)
@@ -25,8 +26,9 @@ def scene_dates(preset: str, args: argparse.Namespace, count: int) -> tuple[Path
     from cfgs_jax import synthetic
 
     data = Path(args.work) / "data"
-    spec = synthetic.make_preset(preset, seed=0, width=args.width, height=args.height,
-                                 images_per_date=args.images_per_date, spp=args.spp)  # fmt: skip
+    spec = synthetic.make_preset(
+        preset, seed=0, width=args.width, height=args.height, images_per_date=args.images_per_date, spp=args.spp
+    )
     names = [d.name for d in spec.dates][:count]
     if not (data / "ground_truth.json").is_file():
         synthetic.render_dataset(spec, data, dates=list(range(count)), progress=False)

@@ -89,7 +89,6 @@ def _timed(f, args) -> float:
 
 
 def run_case(spec: dict) -> dict:
-    import jax
     import jax.numpy as jnp
     import numpy as np
 
@@ -100,7 +99,9 @@ def run_case(spec: dict) -> dict:
     args = (g, om, cm)
     inria = int(splat.render_dates(g, cam, om, cm, config=splat.RenderConfig(tile_cull=False)).num_composited)
     compile_fwd = _timed(fwd, args)
-    res = splat.render_dates(g, cam, om, cm, config=splat.RenderConfig(tile_cull=spec.get("tile_cull", True)))  # with statistics, for the counts
+    res = splat.render_dates(
+        g, cam, om, cm, config=splat.RenderConfig(tile_cull=spec.get("tile_cull", True))
+    )  # with statistics, for the counts
     out = {
         **spec,
         "num_gaussians": len(g),
@@ -151,22 +152,50 @@ CASES = {
     "100k@640x480": {"scene": "synthetic", "n": 100_000, "width": 640, "height": 480},
     "donut@640x480": {"scene": "donut", "width": 640, "height": 480},
     "20k@320x240 T=4 fwd": {
-        "scene": "synthetic", "n": 20_000, "width": 320, "height": 240, "dates": 4, "backward": False,
+        "scene": "synthetic",
+        "n": 20_000,
+        "width": 320,
+        "height": 240,
+        "dates": 4,
+        "backward": False,
         "baseline": "20k@320x240",
     },
     "20k@320x240 images only": {"scene": "synthetic", "n": 20_000, "width": 320, "height": 240, "statistics": False},
     "20k@320x240 T=4 fwd images only": {
-        "scene": "synthetic", "n": 20_000, "width": 320, "height": 240, "dates": 4, "backward": False,
-        "statistics": False, "baseline": "20k@320x240 images only",
+        "scene": "synthetic",
+        "n": 20_000,
+        "width": 320,
+        "height": 240,
+        "dates": 4,
+        "backward": False,
+        "statistics": False,
+        "baseline": "20k@320x240 images only",
     },
     "20k@320x240 75% inactive": {
-        "scene": "synthetic", "n": 20_000, "width": 320, "height": 240, "inactive": 0.75, "baseline": "20k@320x240",
+        "scene": "synthetic",
+        "n": 20_000,
+        "width": 320,
+        "height": 240,
+        "inactive": 0.75,
+        "baseline": "20k@320x240",
     },
     "20k@320x240 tile_cull=False": {"scene": "synthetic", "n": 20_000, "width": 320, "height": 240, "tile_cull": False},
-    "100k@640x480 tile_cull=False": {"scene": "synthetic", "n": 100_000, "width": 640, "height": 480, "tile_cull": False},
+    "100k@640x480 tile_cull=False": {
+        "scene": "synthetic",
+        "n": 100_000,
+        "width": 640,
+        "height": 480,
+        "tile_cull": False,
+    },
     "donut@640x480 tile_cull=False": {"scene": "donut", "width": 640, "height": 480, "tile_cull": False},
 }
-QUICK = ["20k@320x240", "20k@320x240 T=4 fwd", "20k@320x240 T=4 fwd images only", "20k@320x240 75% inactive", "20k@320x240 tile_cull=False"]
+QUICK = [
+    "20k@320x240",
+    "20k@320x240 T=4 fwd",
+    "20k@320x240 T=4 fwd images only",
+    "20k@320x240 75% inactive",
+    "20k@320x240 tile_cull=False",
+]
 
 
 def main():
@@ -185,12 +214,21 @@ def main():
             print(r.stderr[-2000:], file=sys.stderr)
             raise SystemExit(f"case {name} failed")
         rows[name] = json.loads(r.stdout.strip().splitlines()[-1])
-        print(name, {k: (round(v, 4) if isinstance(v, float) else v) for k, v in rows[name].items() if k.endswith(("_s", "_gb", "pixel", "tile"))})
+        print(
+            name,
+            {
+                k: (round(v, 4) if isinstance(v, float) else v)
+                for k, v in rows[name].items()
+                if k.endswith(("_s", "_gb", "pixel", "tile"))
+            },
+        )
     ratios = {}  # each measured in one process against its baseline, runs interleaved (medians of 11)
     if "20k@320x240 T=4 fwd" in rows:
         ratios["T=4 in one call / T=1, forward"] = rows["20k@320x240 T=4 fwd"]["ratio_fwd"]
     if "20k@320x240 T=4 fwd images only" in rows:
-        ratios["T=4 in one call / T=1, forward, images only (statistics=False)"] = rows["20k@320x240 T=4 fwd images only"]["ratio_fwd"]
+        ratios["T=4 in one call / T=1, forward, images only (statistics=False)"] = rows[
+            "20k@320x240 T=4 fwd images only"
+        ]["ratio_fwd"]
     if "20k@320x240 75% inactive" in rows:
         ratios["75% inactive / all active, forward"] = rows["20k@320x240 75% inactive"]["ratio_fwd"]
         ratios["75% inactive / all active, fwd+bwd"] = rows["20k@320x240 75% inactive"]["ratio_fwd_bwd"]

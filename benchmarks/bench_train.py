@@ -23,7 +23,7 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_splat import RESULTS, machine  # noqa: E402
+from bench_splat import RESULTS, machine
 
 
 def _timed(f, *args):

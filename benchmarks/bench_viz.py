@@ -1,4 +1,4 @@
-"""Render cost of the change-aware views (issue 9, paper Table 3's rendering columns), as ratios
+"""Render cost of the change-aware views (paper Table 3's rendering columns), as ratios
 measured side by side in one run: C (the blend of Eq. 4 over all dates), H (the change highlight of
 Eq. 5–6 over all dates) and H₀,₁ (the highlight of the first two dates only), each a whole jitted
 frame (per-Gaussian selection terms + splatting) at 320×240.
@@ -22,7 +22,7 @@ import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_splat import RESULTS, _timed, machine, synthetic  # noqa: E402
+from bench_splat import RESULTS, _timed, machine, synthetic
 
 
 def temporal_model(n: int = 20_000, dates: int = 4, seed: int = 0):
@@ -64,8 +64,9 @@ def main():
     for name, (t, hl) in cases.items():
         colours, mult = viz.selection_terms(model, t, highlight_changes=hl)
         g = model.gaussians
-        cap = splat.required_capacity(cj.Gaussians(g.means, g.quats, g.log_scales, g.opacity_logits, colours), cam,
-                                      mult[None])  # fmt: skip
+        cap = splat.required_capacity(
+            cj.Gaussians(g.means, g.quats, g.log_scales, g.opacity_logits, colours), cam, mult[None]
+        )
         cfg = dataclasses.replace(splat.RenderConfig(), capacity=cap)
 
         def frame(m, t=t, hl=hl, cfg=cfg):
@@ -79,13 +80,27 @@ def main():
             times[name].append(_timed(f, (model,)))
     med = {k: statistics.median(v) for k, v in times.items()}
     base = med["C (blend, all 4 dates)"]
-    res = {"machine": machine(), "gaussians": len(model), "dates": 4, "image": "320x240", "repeats": args.repeats,
-           "median_seconds": med, "ratio_to_C": {k: v / base for k, v in med.items()}}  # fmt: skip
+    res = {
+        "machine": machine(),
+        "gaussians": len(model),
+        "dates": 4,
+        "image": "320x240",
+        "repeats": args.repeats,
+        "median_seconds": med,
+        "ratio_to_C": {k: v / base for k, v in med.items()},
+    }
     RESULTS.mkdir(exist_ok=True)
     (RESULTS / "viz.json").write_text(json.dumps(res, indent=1))
-    lines = ["# Render cost of blend vs highlight (bench_viz.py)", "", f"Machine: {res['machine']}.", "",
-             f"{len(model):,} Gaussians, 4 dates, 320×240, median of {args.repeats} interleaved runs per case.", "",
-             "| view | median (ms) | ratio to C |", "|---|---:|---:|"]  # fmt: skip
+    lines = [
+        "# Render cost of blend vs highlight (bench_viz.py)",
+        "",
+        f"Machine: {res['machine']}.",
+        "",
+        f"{len(model):,} Gaussians, 4 dates, 320×240, median of {args.repeats} interleaved runs per case.",
+        "",
+        "| view | median (ms) | ratio to C |",
+        "|---|---:|---:|",
+    ]
     for k in cases:
         lines.append(f"| {k} | {1000 * med[k]:.1f} | {res['ratio_to_C'][k]:.2f} |")
     (RESULTS / "viz.md").write_text("\n".join(lines) + "\n")

@@ -120,8 +120,9 @@ from hypothesis import HealthCheck, settings  # noqa: E402
 # Hypothesis profiles for the stress suite (tests/stress): "ci" is the default (bounded and
 # derandomised: same examples every run); "thorough" via --hypothesis-profile=thorough.
 _SLOW_OK = [HealthCheck.too_slow, HealthCheck.data_too_large]
-settings.register_profile("ci", max_examples=12, deadline=None, derandomize=True, suppress_health_check=_SLOW_OK,
-                          print_blob=True)  # fmt: skip
+settings.register_profile(
+    "ci", max_examples=12, deadline=None, derandomize=True, suppress_health_check=_SLOW_OK, print_blob=True
+)
 settings.register_profile("thorough", max_examples=400, deadline=None, suppress_health_check=_SLOW_OK, print_blob=True)
 settings.load_profile("ci")
 

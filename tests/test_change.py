@@ -57,9 +57,15 @@ def test_precision_recall_hand_case():
 
 
 def test_summary_gates_changes_by_observation():
-    table = {"pairs": {(0, 1): {"gt_changed": np.array([True, False, False, True, False]),
-                                "observed": np.array([True, True, False, True, True]),
-                                "o_q": np.array([0.1, 0.9, 0.05, 0.7, 0.35])}}}  # fmt: skip
+    table = {
+        "pairs": {
+            (0, 1): {
+                "gt_changed": np.array([True, False, False, True, False]),
+                "observed": np.array([True, True, False, True, True]),
+                "o_q": np.array([0.1, 0.9, 0.05, 0.7, 0.35]),
+            }
+        }
+    }
     s = change.summarise_gaussians(table)
     # observed rows 0, 1, 3, 4: predicted changed (o < τ = 0.2) only row 0 — row 4 drifted below the
     # cross-init start 0.5 but not to "absent" → P 1, R 1/2
@@ -76,8 +82,13 @@ def test_summary_gates_changes_by_observation():
 def _two_blobs():
     """Date 0: a left and a right opaque blob; the left one is gone at date 1 (o = [1, 0])."""
     means = np.array([[-0.6, 0, 0], [0.6, 0, 0]], np.float32)
-    g = cj.Gaussians(means, np.tile([1, 0, 0, 0], (2, 1)).astype(np.float32), np.full((2, 3), -1.2, np.float32),
-                     np.full(2, 4.0, np.float32), np.full((2, 3), 0.5, np.float32))  # fmt: skip
+    g = cj.Gaussians(
+        means,
+        np.tile([1, 0, 0, 0], (2, 1)).astype(np.float32),
+        np.full((2, 3), -1.2, np.float32),
+        np.full(2, 4.0, np.float32),
+        np.full((2, 3), 0.5, np.float32),
+    )
     dates = (cj.DateInfo("a"), cj.DateInfo("b"))
     o_logits = np.array([[8.0, -8.0], [8.0, 8.0]], np.float32)
     return cj.TemporalGaussians(g, o_logits, np.zeros((2, 2, 3), np.float32), np.zeros(2, np.int32), dates)
@@ -90,11 +101,21 @@ def test_observed_at_a_date_is_visibility_behind_that_dates_model():
     # A, R, and W as two layers (nearer: y −0.6, −0.7) wide enough to cover A's footprint
     means = np.array([[-0.6, 0.3, 0], [0.8, 0, 0], [-0.6, -0.6, 0], [-0.6, -0.7, 0]], np.float32)
     scales = np.array([[-2.5] * 3, [-1.5] * 3, [-0.5, -3.0, -0.5], [-0.5, -3.0, -0.5]], np.float32)
-    g = cj.Gaussians(means, np.tile([1, 0, 0, 0], (4, 1)).astype(np.float32), scales,
-                     np.array([4.0, 4.0, 8.0, 8.0], np.float32), np.full((4, 3), 0.5, np.float32))  # fmt: skip
+    g = cj.Gaussians(
+        means,
+        np.tile([1, 0, 0, 0], (4, 1)).astype(np.float32),
+        scales,
+        np.array([4.0, 4.0, 8.0, 8.0], np.float32),
+        np.full((4, 3), 0.5, np.float32),
+    )
     o_logits = np.array([[8.0, -8.0], [8.0, -8.0], [-8.0, 8.0], [-8.0, 8.0]], np.float32)
-    model = cj.TemporalGaussians(g, o_logits, np.zeros((4, 2, 3), np.float32), np.array([0, 0, 1, 1], np.int32),
-                                 (cj.DateInfo("a"), cj.DateInfo("b")))  # fmt: skip
+    model = cj.TemporalGaussians(
+        g,
+        o_logits,
+        np.zeros((4, 2, 3), np.float32),
+        np.array([0, 0, 1, 1], np.int32),
+        (cj.DateInfo("a"), cj.DateInfo("b")),
+    )
     cams = [(cj.Camera.look_at([0, -4, 0], [0, 0, 0], width=40, height=20, fov_x_deg=50),)] * 2
     fused = change.observed_matrix(model, cams, 0.01)
     alone = change.observed_matrix(model, cams, 0.01, occlusion="own date")
@@ -117,8 +138,10 @@ def test_pixel_iou_of_a_removed_blob():
     w = _weights64(model.gaussians, cam, np.ones(2))
     truth = w[0] > 0.5 * np.maximum(w.sum(0), 1e-9)  # pixels the left blob dominates
     assert truth.sum() > 20
-    masks = [change.DateMasks((cam,), (np.zeros((20, 40), np.int64),), {"b": (truth,)}),
-             change.DateMasks((cam,), (np.zeros((20, 40), np.int64),), {"a": (truth,)})]  # fmt: skip
+    masks = [
+        change.DateMasks((cam,), (np.zeros((20, 40), np.int64),), {"b": (truth,)}),
+        change.DateMasks((cam,), (np.zeros((20, 40), np.int64),), {"a": (truth,)}),
+    ]
     r = change.pixel_change_iou(model, masks, [(cam,), (cam,)])
     assert r["iou"] > 0.8, r
     assert r["per_pair"]["a→b"] > 0.8 and r["per_pair"]["b→a"] > 0.8
@@ -127,7 +150,9 @@ def test_pixel_iou_of_a_removed_blob():
     # the threshold sweep: at the default threshold it is the reported IoU; fewer pixels flagged as it rises
     c = r["curve"]
     at = c["threshold"].index(change.ChangeConfig().pixel_threshold)
-    assert np.isclose(c["iou"][at], r["iou"]) and np.isclose(c["predicted_changed_share"][at], r["predicted_changed_share"])
+    assert np.isclose(c["iou"][at], r["iou"]) and np.isclose(
+        c["predicted_changed_share"][at], r["predicted_changed_share"]
+    )
     assert np.all(np.diff(c["predicted_changed_share"]) <= 0) and c["predicted_changed_share"][0] > 0
 
 
@@ -147,11 +172,11 @@ def test_light_by_pair_hand_case():
     unseen from date 1 (INVISIBLE_LOGIT) and is left out of the means."""
     import dataclasses
 
-    from conftest import random_temporal
-
     from cfgs_jax.evaluation.protocol import light_by_pair
     from cfgs_jax.fusion.fuse import INVISIBLE_LOGIT
     from cfgs_jax.fusion.light import light_logits, light_multiplier
+
+    from conftest import random_temporal
 
     model = random_temporal(6, 2)
     origin = np.array([0, 0, 0, 1, 1, 1])
@@ -160,10 +185,12 @@ def test_light_by_pair_hand_case():
     light = np.zeros((6, 2, 3), np.float32)
     light[:3, 1] = colder  # date 0's Gaussians at date 1
     light[3:, 0] = colder  # date 1's Gaussians at date 0
-    model = dataclasses.replace(model, o_logits=jnp.asarray(o), light_logits=jnp.asarray(light), origin=jnp.asarray(origin))
+    model = dataclasses.replace(
+        model, o_logits=jnp.asarray(o), light_logits=jnp.asarray(light), origin=jnp.asarray(origin)
+    )
     gt = {"dates": [{"name": "a", "lighting": {"cct_kelvin": 4000}}, {"name": "b", "lighting": {"cct_kelvin": 6000}}]}
     out = light_by_pair(model, gt)
-    sig = lambda x: 1 / (1 + np.exp(-np.asarray(x, np.float64)))  # noqa: E731
+    sig = lambda x: 1 / (1 + np.exp(-np.asarray(x, np.float64)))
     a, b = out["pairs"]
     assert a["pair"] == ["a", "b"] and a["cct_change_kelvin"] == 2000 and a["sign_agrees"]
     assert b["pair"] == ["b", "a"] and b["cct_change_kelvin"] == -2000 and not b["sign_agrees"]
@@ -181,11 +208,17 @@ def test_surface_effect_separates_a_dropped_front_layer_from_a_removed_object():
     weights and renders) is its contrast with the black behind it, F's ≈ 0; the summary flags R only."""
     means = np.array([[-0.6, -0.3, 0], [-0.6, 0.3, 0], [0.6, 0, 0]], np.float32)
     scales = np.array([[-1.4] * 3, [-0.8] * 3, [-1.4] * 3], np.float32)  # B wider: F lies on its opaque part
-    g = cj.Gaussians(means, np.tile([1, 0, 0, 0], (3, 1)).astype(np.float32), scales,
-                     np.array([1.0, 8.0, 4.0], np.float32), np.full((3, 3), 0.5, np.float32))  # fmt: skip
+    g = cj.Gaussians(
+        means,
+        np.tile([1, 0, 0, 0], (3, 1)).astype(np.float32),
+        scales,
+        np.array([1.0, 8.0, 4.0], np.float32),
+        np.full((3, 3), 0.5, np.float32),
+    )
     o_logits = np.array([[8.0, -8.0], [8.0, 8.0], [8.0, -8.0]], np.float32)
-    model = cj.TemporalGaussians(g, o_logits, np.zeros((3, 2, 3), np.float32), np.zeros(3, np.int32),
-                                 (cj.DateInfo("a"), cj.DateInfo("b")))  # fmt: skip
+    model = cj.TemporalGaussians(
+        g, o_logits, np.zeros((3, 2, 3), np.float32), np.zeros(3, np.int32), (cj.DateInfo("a"), cj.DateInfo("b"))
+    )
     cam = cj.Camera.look_at([0, -4, 0], [0, 0, 0], width=40, height=20, fov_x_deg=50)
     got = change.surface_effect(model, [(cam,), (cam,)])
     o = 1 / (1 + np.exp(-o_logits.astype(np.float64)))
@@ -195,11 +228,21 @@ def test_surface_effect_separates_a_dropped_front_layer_from_a_removed_object():
     w = _weights64(g, cam, full)
     want = (w * d).sum((1, 2)) / w.sum((1, 2))
     assert np.allclose(got[:, 1], want, rtol=1e-3, atol=1e-4), (got[:, 1], want)
-    assert want[2] > 0.15 and want[0] < 0.05 and np.all(got[:, 0] == 0)  # R: colour 0.5 against black, weighted over its falloff
+    assert (
+        want[2] > 0.15 and want[0] < 0.05 and np.all(got[:, 0] == 0)
+    )  # R: colour 0.5 against black, weighted over its falloff
     observed = change.observed_matrix(model, [(cam,), (cam,)], 0.01)[:, 1]
     assert observed[0] and observed[2]
-    table = {"pairs": {(0, 1): {"gt_changed": np.array([False, False, True]), "observed": observed,
-                                "o_q": as_is, "surface": got[:, 1]}}}  # fmt: skip
+    table = {
+        "pairs": {
+            (0, 1): {
+                "gt_changed": np.array([False, False, True]),
+                "observed": observed,
+                "o_q": as_is,
+                "surface": got[:, 1],
+            }
+        }
+    }
     s = change.summarise_gaussians(table)
     assert np.isclose(s["flagged_changed"], 1 / 3) and np.isclose(s["precision"], 1.0) and np.isclose(s["recall"], 1.0)
     assert np.isclose(s["flagged_changed_o_only"], 2 / 3) and np.isclose(s["precision_o_only"], 0.5)

@@ -17,6 +17,7 @@ from cfgs_jax import InputError
 from cfgs_jax.cli import build_parser, program_name
 from cfgs_jax.config import apply_overrides, find_preset, load_config, preset_names, section
 from cfgs_jax.pipeline import main
+
 from conftest import REPO
 
 
@@ -31,24 +32,33 @@ def test_wheel_installs_and_runs_from_any_directory(tmp_path):
     through a .pth file) into a fresh venv outside the checkout, and run it from an empty directory:
     `--help`, `--version`, the console script's name and a preset read from inside the package."""
     wheels = tmp_path / "wheels"
-    _run([sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation", "-q", "-w", str(wheels), str(REPO)],
-         cwd=tmp_path)  # fmt: skip
+    _run(
+        [sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation", "-q", "-w", str(wheels), str(REPO)],
+        cwd=tmp_path,
+    )
     (wheel,) = wheels.glob("cfgs_jax-*.whl")
     venv = tmp_path / "venv"
     _run([sys.executable, "-m", "venv", "--without-pip", str(venv)], cwd=tmp_path)
     py = venv / "bin" / "python"
-    site = Path(_run([str(py), "-c", "import sysconfig; print(sysconfig.get_paths()['purelib'])"], cwd=tmp_path).strip())
-    # the dependencies from this environment, after the venv's own site-packages (the wheel wins)
+    site = Path(
+        _run([str(py), "-c", "import sysconfig; print(sysconfig.get_paths()['purelib'])"], cwd=tmp_path).strip()
+    )
+    _run(
+        [sys.executable, "-m", "pip", "--python", str(py), "install", "--no-deps", "--no-index", "-q", str(wheel)],
+        cwd=tmp_path,
+    )
+    # then the dependencies from this environment, after the venv's own site-packages (the wheel wins);
+    # written after the install so pip does not see this environment's cfgs-jax as already installed
     deps = {sysconfig.get_paths()["purelib"], sysconfig.get_paths()["platlib"]}
     (site / "zz_test_dependencies.pth").write_text("\n".join(sorted(deps)) + "\n")
-    _run([sys.executable, "-m", "pip", "--python", str(py), "install", "--no-deps", "--no-index", "-q", str(wheel)],
-         cwd=tmp_path)  # fmt: skip
     elsewhere = tmp_path / "elsewhere"
     elsewhere.mkdir()
     env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "VIRTUAL_ENV")}
     where = _run([str(py), "-c", "import cfgs_jax; print(cfgs_jax.__file__)"], cwd=elsewhere, env=env).strip()
     assert Path(where).is_relative_to(venv), where  # the installed wheel, not the checkout
-    assert "usage: python -m cfgs_jax.pipeline" in _run([str(py), "-m", "cfgs_jax.pipeline", "--help"], cwd=elsewhere, env=env)
+    assert "usage: python -m cfgs_jax.pipeline" in _run(
+        [str(py), "-m", "cfgs_jax.pipeline", "--help"], cwd=elsewhere, env=env
+    )
     script = venv / "bin" / "cfgs-jax"
     assert _run([str(script), "--version"], cwd=elsewhere, env=env).strip() == "cfgs-jax 0.1.0"
     assert _run([str(script), "fuse", "--help"], cwd=elsewhere, env=env).startswith("usage: cfgs-jax fuse")
@@ -112,7 +122,9 @@ def test_set_overrides_are_typed_and_checked():
     from cfgs_jax.train import TrainConfig
 
     raw = load_config(find_preset("fast"))
-    over = apply_overrides(raw, ["refine.steps=123", "train.large_scale=true", "refine.lr_alpha=0.5", "viz.base=\"grey\""])
+    over = apply_overrides(
+        raw, ["refine.steps=123", "train.large_scale=true", "refine.lr_alpha=0.5", 'viz.base="grey"']
+    )
     assert section(over, "refine", RefineConfig).steps == 123 and section(over, "refine", RefineConfig).lr_alpha == 0.5
     assert section(over, "train", TrainConfig).large_scale is True
     assert section(raw, "refine", RefineConfig).steps != 123  # the loaded file is not changed
@@ -132,9 +144,11 @@ def test_long_commands_continue_earlier_work_only_with_resume(tmp_path, capsys):
     busy = tmp_path / "busy"
     busy.mkdir()
     (busy / "run.json").write_text("{}")
-    for argv in (["eval", "--scene", "corals", "--config", "eval", "--out", str(busy)],
-                 ["sweep", "--config", "sweep_fast", "--out", str(busy)],
-                 ["demo", "--out", str(busy)]):  # fmt: skip
+    for argv in (
+        ["eval", "--scene", "corals", "--config", "eval", "--out", str(busy)],
+        ["sweep", "--config", "sweep_fast", "--out", str(busy)],
+        ["demo", "--out", str(busy)],
+    ):
         assert main(argv) == 2, argv
         err = capsys.readouterr().err
         assert err.count("\n") == 1 and str(busy) in err and "--resume" in err, err
@@ -177,7 +191,7 @@ def test_write_video_pads_odd_sizes_and_keeps_the_frames(tmp_path):
     base = rng.uniform(0.2, 0.8, size=(3, 1, 1, 3)).astype(np.float32)
     frames = [np.broadcast_to(b, (21, 31, 3)) for b in base]
     write_video(tmp_path / "v.mp4", frames, fps=4)
-    got = [f for f in imageio.get_reader(str(tmp_path / "v.mp4"), format="FFMPEG")]  # len() is inf
+    got = [f for f in imageio.get_reader(str(tmp_path / "v.mp4"), format="FFMPEG")]  # noqa: C416 - list() fails: len() is inf
     assert len(got) == 3 and got[0].shape == (22, 32, 3)  # padded to even sizes for yuv420p
     for g, b in zip(got, base):  # away from the 2×2 chroma blocks that hold padding, the colour is kept
         assert np.abs(g[:20, :30] / 255.0 - b[0, 0]).max() < 0.03

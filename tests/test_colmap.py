@@ -4,10 +4,10 @@ import numpy as np
 import pycolmap
 import pytest
 from PIL import Image
+from scipy.spatial.transform import Rotation
 
 from cfgs_jax import InputError
 from cfgs_jax.io import read_colmap
-from scipy.spatial.transform import Rotation
 
 
 def make_dataset(root, *, n=10, model="PINHOLE", params=(60.0, 62.0, 31.5, 24.5), text=False, size=(64, 48)):

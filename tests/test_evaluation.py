@@ -51,7 +51,10 @@ def protocol(tmp_path_factory):
     data = synthetic.render_dataset(spec, root / "data", dates=[0, 1], progress=False)
     (root / "tiny.toml").write_text(TOML)
     out = root / "out"
-    assert main(["eval", "--scene", str(data), "--config", str(root / "tiny.toml"), "--out", str(out), "--no-progress"]) == 0
+    assert (
+        main(["eval", "--scene", str(data), "--config", str(root / "tiny.toml"), "--out", str(out), "--no-progress"])
+        == 0
+    )
     return data, out, load_config(root / "tiny.toml")
 
 
@@ -72,8 +75,16 @@ def test_eval_rows_are_the_weighted_test_psnr_of_each_model(protocol):
     data, out, _ = protocol
     table = json.loads((out / "table.json").read_text())
     names = [r["row"] for r in table["rows"]]
-    assert names == ["Individual init", "Merged", "Ours 60", "Ours 120", "Individual +60", "Individual +120",
-                     "Ours, α frozen 120", "Ours, o frozen 120"]  # fmt: skip
+    assert names == [
+        "Individual init",
+        "Merged",
+        "Ours 60",
+        "Ours 120",
+        "Individual +60",
+        "Individual +120",
+        "Ours, α frozen 120",
+        "Ours, o frozen 120",
+    ]
     row = {r["row"]: r for r in table["rows"]}
     dates = table["dates"]
     assert dates == ["d0", "d1"]
@@ -122,7 +133,9 @@ def test_eval_change_detection_and_resume(protocol):
     change = json.loads((out / "change.json").read_text())
     g, p = change["gaussians"], change["pixels"]
     assert 0.0 < g["observed"] <= 1.0 and g["entries"] > 0 and p["evaluated_pixels"] > 0
-    assert 0.0 <= g["hidden_in_fused_absent"] <= g["hidden_in_fused"] <= 1.0 - g["observed"] + 1e-12  # two float shares of one count
+    assert (
+        0.0 <= g["hidden_in_fused_absent"] <= g["hidden_in_fused"] <= 1.0 - g["observed"] + 1e-12
+    )  # two float shares of one count
     # floors derived from the ground truth's prevalence π (share of observed entries / pixels that truly
     # changed): flagging every entry gives precision π and F1 2π/(1+π); flagging every pixel gives IoU π.
     # Detection must beat those, and beat chance precision by a wide margin.
@@ -168,8 +181,15 @@ def test_sweep_file_errors_name_the_key(tmp_path):
         parse_sweep({"sweep": {"scene": "corals", "base": "fast", "grid": {"nosuch.delta": [0.3]}}})
     with pytest.raises(InputError, match="non-empty list"):
         parse_sweep({"sweep": {"scene": "corals", "base": "fast", "grid": {"cross_init.delta": []}}})
-    scene, base, variants = parse_sweep({"sweep": {"scene": "corals", "base": "fast",
-                                                   "grid": {"cross_init.delta": [0.3, 0.6], "refine.steps": [5, 9, 11]}}})  # fmt: skip
+    scene, base, variants = parse_sweep(
+        {
+            "sweep": {
+                "scene": "corals",
+                "base": "fast",
+                "grid": {"cross_init.delta": [0.3, 0.6], "refine.steps": [5, 9, 11]},
+            }
+        }
+    )
     assert scene == "corals" and len(variants) == 6 and len({v.id for v in variants}) == 6
 
 
@@ -209,4 +229,6 @@ def test_sweep_shares_training_and_resumes(protocol, tmp_path):
     assert md.count("\n| 0.") == 2 and (tmp_path / "sw" / "sweep.png").stat().st_size > 1000
     seen.clear()
     again = run_sweep(raw, tmp_path / "sw", resume=True, progress=False, log=seen.append)
-    assert not [m for m in seen if "[sweep] variant" in m or "[train]" in m] and again["variants"] == summary["variants"]
+    assert (
+        not [m for m in seen if "[sweep] variant" in m or "[train]" in m] and again["variants"] == summary["variants"]
+    )

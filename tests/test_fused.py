@@ -4,8 +4,9 @@ import plyfile
 import pytest
 
 from cfgs_jax import InputError
-from cfgs_jax.io import read_fused, write_fused
 from cfgs_jax.io import fused as fused_io
+from cfgs_jax.io import read_fused, write_fused
+
 from conftest import bits_equal, random_temporal
 
 
@@ -21,14 +22,40 @@ def test_reference_layout_round_trip_and_exact_property_order(tmp_path):
     pc = plyfile.PlyData.read(str(out / "point_cloud.ply"))
     act = plyfile.PlyData.read(str(out / "activation.ply"))
     assert [p.name for p in pc["vertex"].properties] == (
-        "x y z nx ny nz f_dc_0 f_dc_1 f_dc_2 opacity scale_0 scale_1 scale_2 rot_0 rot_1 rot_2 rot_3".split()
+        [
+            "x",
+            "y",
+            "z",
+            "nx",
+            "ny",
+            "nz",
+            "f_dc_0",
+            "f_dc_1",
+            "f_dc_2",
+            "opacity",
+            "scale_0",
+            "scale_1",
+            "scale_2",
+            "rot_0",
+            "rot_1",
+            "rot_2",
+            "rot_3",
+        ]
     )
     assert [p.name for p in act["vertex"].properties] == [
-        "opacity_0", "opacity_1", "opacity_2",
-        "color_r_0", "color_g_0", "color_b_0",
-        "color_r_1", "color_g_1", "color_b_1",
-        "color_r_2", "color_g_2", "color_b_2",
-    ]  # fmt: skip
+        "opacity_0",
+        "opacity_1",
+        "opacity_2",
+        "color_r_0",
+        "color_g_0",
+        "color_b_0",
+        "color_r_1",
+        "color_g_1",
+        "color_b_1",
+        "color_r_2",
+        "color_g_2",
+        "color_b_2",
+    ]
     assert all(p.val_dtype in ("f4", "float32", "float") for p in act["vertex"].properties)
     a = act["vertex"].data
     assert bits_equal(a["color_g_1"], np.asarray(m.light_logits)[:, 1, 1])

@@ -17,10 +17,12 @@ from cfgs_jax.sim3 import Sim3
 def _random_gaussians(n, seed=0):
     rng = np.random.default_rng(seed)
     return cj.Gaussians(
-        rng.uniform(-0.5, 0.5, (n, 3)).astype(np.float32), rng.normal(size=(n, 4)).astype(np.float32),
-        np.log(rng.uniform(0.02, 0.08, (n, 3))).astype(np.float32), rng.normal(0.5, 1.0, n).astype(np.float32),
+        rng.uniform(-0.5, 0.5, (n, 3)).astype(np.float32),
+        rng.normal(size=(n, 4)).astype(np.float32),
+        np.log(rng.uniform(0.02, 0.08, (n, 3))).astype(np.float32),
+        rng.normal(0.5, 1.0, n).astype(np.float32),
         rng.uniform(size=(n, 3)).astype(np.float32),
-    )  # fmt: skip
+    )
 
 
 def test_sim3_moves_means_and_covariances_as_closed_forms():
@@ -137,11 +139,16 @@ def test_cross_init_keeps_what_date_q_shows_and_drops_what_it_lacks():
     group_a = means[:, 0] < 0
     colours = np.random.default_rng(0).uniform(0.3, 0.7, (n, 3)).astype(np.float32)
     g = cj.Gaussians(
-        means, np.tile(np.float32([1, 0, 0, 0]), (n, 1)), np.full((n, 3), np.log(0.06), np.float32),
-        np.full(n, 2.0, np.float32), colours,
-    )  # fmt: skip
-    cams = tuple(cj.Camera.look_at([x, -0.3, -3.0], [0, 0, 0], up=(0, -1, 0), width=128, height=96, fov_x_deg=60)
-                 for x in (-0.6, -0.2, 0.2, 0.6))  # fmt: skip
+        means,
+        np.tile(np.float32([1, 0, 0, 0]), (n, 1)),
+        np.full((n, 3), np.log(0.06), np.float32),
+        np.full(n, 2.0, np.float32),
+        colours,
+    )
+    cams = tuple(
+        cj.Camera.look_at([x, -0.3, -3.0], [0, 0, 0], up=(0, -1, 0), width=128, height=96, fov_x_deg=60)
+        for x in (-0.6, -0.2, 0.2, 0.6)
+    )
     d = cold_warm_direction()
     tint = (1 + np.tanh(-0.6) * d).astype(np.float32)  # warmer at date q
     images = []
@@ -171,7 +178,11 @@ def test_shorter_schedules_keep_the_papers_travel():
     rates, 500 steps at 6× them (so o^q can still travel 22.5 logits), the rates as given when off."""
     ci = importlib.import_module("cfgs_jax.fusion.cross_init")
     params = {"o_logit": jnp.zeros(3), "u": jnp.zeros(3), "w": jnp.zeros(3)}
-    grads = {"o_logit": jnp.array([2.0, -0.5, 1e-3]), "u": jnp.array([-1.0, 3.0, 0.2]), "w": jnp.array([1.0, -1.0, 4.0])}
+    grads = {
+        "o_logit": jnp.array([2.0, -0.5, 1e-3]),
+        "u": jnp.array([-1.0, 3.0, 0.2]),
+        "w": jnp.array([1.0, -1.0, 4.0]),
+    }
     for steps, ref, k in ((3000, 3000, 1.0), (500, 3000, 6.0), (6000, 3000, 1.0), (500, 0, 1.0)):
         cfg = ci.CrossInitConfig(steps=steps, rate_reference_steps=ref)
         assert ci.rate_scale(cfg) == k
@@ -190,8 +201,10 @@ def test_exposure_init_starts_the_gain_at_the_least_squares_exposure():
     from cfgs_jax.splat import reference
 
     g = _random_gaussians(60, seed=5)
-    cams = tuple(cj.Camera.look_at([x, -0.3, -2.5], [0, 0, 0], up=(0, -1, 0), width=40, height=32, fov_x_deg=55)
-                 for x in (-0.3, 0.3))  # fmt: skip
+    cams = tuple(
+        cj.Camera.look_at([x, -0.3, -2.5], [0, 0, 0], up=(0, -1, 0), width=40, height=32, fov_x_deg=55)
+        for x in (-0.3, 0.3)
+    )
     rng = np.random.default_rng(1)
     images, num, den = [], 0.0, 0.0
     y = np.array([0.2126, 0.7152, 0.0722])
@@ -222,7 +235,17 @@ def test_cross_init_padding_renders_nothing_and_gets_no_gradient():
     """Pairs pad their Gaussians to shared counts: the padded rows change neither the image nor the
     real rows' gradients, and get zero gradient themselves."""
     ci = importlib.import_module("cfgs_jax.fusion.cross_init")
-    assert [ci.padded_count(n) for n in (1, 64, 65, 80, 81, 100, 1000, 4096, 4097)] == [64, 64, 80, 80, 96, 112, 1024, 4096, 5120]
+    assert [ci.padded_count(n) for n in (1, 64, 65, 80, 81, 100, 1000, 4096, 4097)] == [
+        64,
+        64,
+        80,
+        80,
+        96,
+        112,
+        1024,
+        4096,
+        5120,
+    ]
     assert all(n <= ci.padded_count(n) <= 1.25 * n for n in range(64, 5000, 7))
     g = _random_gaussians(70, seed=3)
     cam = cj.Camera.look_at([0.2, -0.3, -2.5], [0, 0, 0], up=(0, -1, 0), width=40, height=32, fov_x_deg=55)
@@ -249,10 +272,14 @@ def test_batched_pairs_equal_the_pairs_one_by_one():
     ci = importlib.import_module("cfgs_jax.fusion.cross_init")
     g = _random_gaussians(90, seed=4)
     g = cj.Gaussians(g.means * np.float32([2.4, 1, 1]), g.quats, g.log_scales, g.opacity_logits, g.colors)
-    wide = tuple(cj.Camera.look_at([x, -0.3, -2.6], [0, 0, 0], up=(0, -1, 0), width=64, height=48, fov_x_deg=60)
-                 for x in (-0.3, 0.3))  # fmt: skip
-    left = tuple(cj.Camera.look_at([x, -0.2, -1.0], [x, 0, 0], up=(0, -1, 0), width=64, height=48, fov_x_deg=40)
-                 for x in (-0.9, -0.7, -0.8))  # fmt: skip
+    wide = tuple(
+        cj.Camera.look_at([x, -0.3, -2.6], [0, 0, 0], up=(0, -1, 0), width=64, height=48, fov_x_deg=60)
+        for x in (-0.3, 0.3)
+    )
+    left = tuple(
+        cj.Camera.look_at([x, -0.2, -1.0], [x, 0, 0], up=(0, -1, 0), width=64, height=48, fov_x_deg=40)
+        for x in (-0.9, -0.7, -0.8)
+    )
     rng = np.random.default_rng(2)
 
     def views(cams):
@@ -274,7 +301,9 @@ def test_batched_pairs_equal_the_pairs_one_by_one():
     assert np.all(np.asarray(both.o_logits)[:90][~seen2, 2] == fusion.INVISIBLE_LOGIT)
     for rb, ro in zip(reps, (r1, r2)):
         assert rb["pair"] == ro["pair"] and rb["visible"] == ro["visible"]
-        assert np.isclose(rb["loss_last"], ro["loss_last"], rtol=1e-4) and np.isclose(rb["mean_o"], ro["mean_o"], rtol=1e-4)
+        assert np.isclose(rb["loss_last"], ro["loss_last"], rtol=1e-4) and np.isclose(
+            rb["mean_o"], ro["mean_o"], rtol=1e-4
+        )
     # grouping: consecutive pairs of one p, one image shape, at most `batch` per group
     small = ci.DateViews(wide[:1], (np.zeros((32, 40, 3), np.float32),))
     vs = [v1, v1, small, v1]
@@ -286,7 +315,7 @@ def test_batched_pairs_equal_the_pairs_one_by_one():
 def test_change_loss_visibility_rule_and_final_prune_hand_cases():
     rf = importlib.import_module("cfgs_jax.fusion.refine")
 
-    logit = lambda p: np.log(p) - np.log1p(-np.asarray(p))  # noqa: E731
+    logit = lambda p: np.log(p) - np.log1p(-np.asarray(p))
     o0 = logit(np.array([[0.9, 0.2, 0.6], [0.5, 0.5, 0.5]]))
     o1 = logit(np.array([[0.8, 0.2, 0.6], [0.5, 0.7, 0.5]]))
     # d(õ) = [[0.7, -0.4], [0, 0]], d(o) = [[0.6, -0.4], [-0.2, 0.2]] → |diff| = [[0.1, 0], [0.2, 0.2]] → mean 0.125
@@ -315,14 +344,28 @@ def test_refine_lowers_the_loss_keeps_the_model_finite_and_resumes_exactly(tmp_p
     means = np.c_[xs.ravel(), ys.ravel(), np.zeros(xs.size)].astype(np.float32)
     n = len(means)
     rng = np.random.default_rng(1)
-    truth = cj.Gaussians(means, np.tile(np.float32([1, 0, 0, 0]), (n, 1)), np.full((n, 3), np.log(0.06), np.float32),
-                         np.full(n, 2.0, np.float32), rng.uniform(0.2, 0.8, (n, 3)).astype(np.float32))  # fmt: skip
+    truth = cj.Gaussians(
+        means,
+        np.tile(np.float32([1, 0, 0, 0]), (n, 1)),
+        np.full((n, 3), np.log(0.06), np.float32),
+        np.full(n, 2.0, np.float32),
+        rng.uniform(0.2, 0.8, (n, 3)).astype(np.float32),
+    )
     # each date's input model: the truth with perturbed colours and positions (an imperfect per-date fit)
-    noisy = [cj.Gaussians(truth.means + rng.normal(0, 0.02, (n, 3)).astype(np.float32), truth.quats, truth.log_scales,
-                          truth.opacity_logits, np.clip(truth.colors + rng.normal(0, 0.1, (n, 3)), 0, 1).astype(np.float32))
-             for _ in range(2)]  # fmt: skip
-    cams = tuple(cj.Camera.look_at([x, -0.3, -3.0], [0, 0, 0], up=(0, -1, 0), width=64, height=48, fov_x_deg=60)
-                 for x in (-0.6, -0.2, 0.2, 0.6))  # fmt: skip
+    noisy = [
+        cj.Gaussians(
+            truth.means + rng.normal(0, 0.02, (n, 3)).astype(np.float32),
+            truth.quats,
+            truth.log_scales,
+            truth.opacity_logits,
+            np.clip(truth.colors + rng.normal(0, 0.1, (n, 3)), 0, 1).astype(np.float32),
+        )
+        for _ in range(2)
+    ]
+    cams = tuple(
+        cj.Camera.look_at([x, -0.3, -3.0], [0, 0, 0], up=(0, -1, 0), width=64, height=48, fov_x_deg=60)
+        for x in (-0.6, -0.2, 0.2, 0.6)
+    )
     imgs = []
     for cam in cams:
         r = splat.render(truth, cam)
@@ -373,8 +416,19 @@ def fused_run(tiny_two_dates, tmp_path_factory):
 
     root = tiny_two_dates
     out = tmp_path_factory.mktemp("fused") / "a"
-    args = ["fuse", "--dates", str(root / "d0"), str(root / "d1"), "--out", str(out), "--config",
-            str(root / "tiny.toml"), "--transforms", str(root / "transforms.json"), "--no-progress"]  # fmt: skip
+    args = [
+        "fuse",
+        "--dates",
+        str(root / "d0"),
+        str(root / "d1"),
+        "--out",
+        str(out),
+        "--config",
+        str(root / "tiny.toml"),
+        "--transforms",
+        str(root / "transforms.json"),
+        "--no-progress",
+    ]
     assert main(args) == 0
     return out, args
 
@@ -415,8 +469,14 @@ def test_fuse_cli_runs_every_stage_and_resumes_mid_cross_init(tiny_two_dates, fu
 
     b_dir = tmp_path / "b"
     with pytest.raises(Killed):
-        run_fusion([root / "d0", root / "d1"], b_dir, load_config(root / "tiny.toml"),
-                   transforms=root / "transforms.json", progress=False, log=log)  # fmt: skip
+        run_fusion(
+            [root / "d0", root / "d1"],
+            b_dir,
+            load_config(root / "tiny.toml"),
+            transforms=root / "transforms.json",
+            progress=False,
+            log=log,
+        )
     assert json.loads((b_dir / "cross_init_pairs.json").read_text())["pairs"] == [[0, 1]]
     assert main(args[:5] + [str(b_dir)] + args[6:] + ["--resume"]) == 0
     b = cj.io.read_fused(b_dir / "fused")
@@ -465,8 +525,16 @@ def test_resume_refuses_another_configuration(tiny_two_dates, fused_run):
     changed.setdefault("cross_init", {})["lr_o"] = 0.5
     before = (a_dir / "run.json").read_text()
     with pytest.raises(InputError, match=r"cross_init\.lr_o: \(default\) → 0\.5"):
-        run_fusion([root / "d0", root / "d1"], a_dir, changed, transforms=root / "transforms.json", resume=True,
-                   progress=False, evaluate=False, log=lambda *a: None)  # fmt: skip
+        run_fusion(
+            [root / "d0", root / "d1"],
+            a_dir,
+            changed,
+            transforms=root / "transforms.json",
+            resume=True,
+            progress=False,
+            evaluate=False,
+            log=lambda *a: None,
+        )
     assert (a_dir / "run.json").read_text() == before
     assert config_changes({"a": {"b": [1, 2]}}, {"a": {"b": (1, 2)}}) == []
     assert config_changes({"a": {"b": 1}}, {"a": {"b": 2}, "c": {"d": 3}}) == ["a.b: 1 → 2", "c.d: (default) → 3"]
@@ -516,10 +584,27 @@ def test_dates_are_fused_and_extended_in_time_order(tiny_two_dates, tmp_path):
     root = tiny_two_dates
     run = tmp_path / "run"
     common = ["--transforms", str(root / "transforms.json"), "--no-progress"]
-    assert main(["fuse", "--dates", str(root / "d2"), str(root / "d0"), "--out", str(run), "--config",
-                 str(root / "tiny.toml"), *common]) == 0  # fmt: skip
+    assert (
+        main(
+            [
+                "fuse",
+                "--dates",
+                str(root / "d2"),
+                str(root / "d0"),
+                "--out",
+                str(run),
+                "--config",
+                str(root / "tiny.toml"),
+                *common,
+            ]
+        )
+        == 0
+    )
     before = cj.io.read_fused(run / "fused")
-    assert [(d.name, d.captured) for d in before.dates] == [("d0", "2024-01-15T00:00:00"), ("d2", "2024-07-15T00:00:00")]
+    assert [(d.name, d.captured) for d in before.dates] == [
+        ("d0", "2024-01-15T00:00:00"),
+        ("d2", "2024-07-15T00:00:00"),
+    ]
     state = json.loads((run / "run.json").read_text())
     assert state["reference"] == "d0"
     state["config"]["refine"]["extend_steps"] = 3
@@ -548,7 +633,10 @@ def test_render_and_export_cli_on_a_fused_run(fused_run, tmp_path):
     run_dir = fused_run[0]
     run = open_run(run_dir)
     cams = run.test_cameras()
-    assert main(["render", "--run", str(run_dir), "--t", "1,1", "--grey", "--out", str(tmp_path / "hl"), "--no-progress"]) == 0
+    assert (
+        main(["render", "--run", str(run_dir), "--t", "1,1", "--grey", "--out", str(tmp_path / "hl"), "--no-progress"])
+        == 0
+    )
     png = read_image(tmp_path / "hl" / f"{cams[0][0]}.png")
     exr = read_image(tmp_path / "hl" / f"{cams[0][0]}.exr", linear=True)
     assert png.shape == (48 + 16, 64, 3) and exr.shape == (48, 64, 3)  # legend strip below the image
@@ -559,14 +647,33 @@ def test_render_and_export_cli_on_a_fused_run(fused_run, tmp_path):
     np.testing.assert_allclose(exr, srgb_to_linear(np.asarray(ref)), atol=1e-5)
     # the two single-date selections differ; the orbit renders
     for t in ("d0", "d1"):
-        assert main(["render", "--run", str(run_dir), "--t", t, "--mode", "blend", "--cameras", "orbit", "--frames", "2",
-                     "--out", str(tmp_path / t), "--no-progress"]) == 0  # fmt: skip
+        assert (
+            main(
+                [
+                    "render",
+                    "--run",
+                    str(run_dir),
+                    "--t",
+                    t,
+                    "--mode",
+                    "blend",
+                    "--cameras",
+                    "orbit",
+                    "--frames",
+                    "2",
+                    "--out",
+                    str(tmp_path / t),
+                    "--no-progress",
+                ]
+            )
+            == 0
+        )
     a, b = (read_image(tmp_path / t / "orbit_000.png") for t in ("d0", "d1"))
     assert np.abs(a - b).mean() > 1e-3 and a[:48].std() > 0.01
     # ... and as an MP4 whose frames decode to the PNGs (H.264 is lossy: a mean error of a few levels)
     import imageio.v2 as imageio
 
-    frames = [f for f in imageio.get_reader(str(tmp_path / "d0" / "orbit.mp4"), format="FFMPEG")]  # len() is inf
+    frames = [f for f in imageio.get_reader(str(tmp_path / "d0" / "orbit.mp4"), format="FFMPEG")]  # noqa: C416 - list() fails: len() is inf
     assert len(frames) == 2 and frames[0].shape == a.shape
     assert np.abs(frames[0] / 255.0 - a).mean() < 0.03
     # export: a plain 3DGS PLY that renders like the in-memory selection
@@ -614,8 +721,13 @@ def test_viewer_in_headless_chromium(fused_run):
     chromium = shutil.which("chromium")
     assert chromium, "Debian's chromium is needed (apt-get install chromium); the README test command installs it"
     viewer = serve(fused_run[0], port=0, block=False)
-    flags = ["--no-sandbox", "--disable-background-networking", "--disable-component-update", "--use-angle=swiftshader",
-             "--enable-unsafe-swiftshader"]  # fmt: skip
+    flags = [
+        "--no-sandbox",
+        "--disable-background-networking",
+        "--disable-component-update",
+        "--use-angle=swiftshader",
+        "--enable-unsafe-swiftshader",
+    ]
 
     def shot(page):
         time.sleep(1.0)
@@ -658,24 +770,43 @@ def test_visibility_rule_leaves_persistence_out_and_zeroes_hidden_gaussians():
     Every learning rate is 0, so only the rule moves o."""
     rf = importlib.import_module("cfgs_jax.fusion.refine")
     ci = importlib.import_module("cfgs_jax.fusion.cross_init")
-    logit = lambda p: float(np.log(p) - np.log1p(-p))  # noqa: E731
+    logit = lambda p: float(np.log(p) - np.log1p(-p))
     # wall (two layers, α 0.99 each), hidden blob behind it, faint-o blob in view, blob behind the camera
     means = np.float32([[0, 0, -0.5], [0, 0, -0.45], [0, 0, 0.5], [1.2, 0.0, 0.0], [0, 0, -5.0]])
     log_scales = np.log(np.float32([[0.3, 0.3, 0.01], [0.3, 0.3, 0.01], [0.05] * 3, [0.15] * 3, [0.05] * 3]))
-    g = cj.Gaussians(means, np.tile(np.float32([1, 0, 0, 0]), (5, 1)), log_scales,
-                     np.float32([8, 8, 2, logit(0.6), 2]), np.full((5, 3), 0.5, np.float32))  # fmt: skip
+    g = cj.Gaussians(
+        means,
+        np.tile(np.float32([1, 0, 0, 0]), (5, 1)),
+        log_scales,
+        np.float32([8, 8, 2, logit(0.6), 2]),
+        np.full((5, 3), 0.5, np.float32),
+    )
     model = fusion.merge([g], ["a"])
     o = np.full((5, 2), 8.0, np.float32)
     o[3, 1] = logit(0.012)
-    model = cj.TemporalGaussians(model.gaussians, jnp.asarray(o), jnp.zeros((5, 2, 3)), jnp.zeros(5, jnp.int32),
-                                 (cj.DateInfo("a"), cj.DateInfo("b")))  # fmt: skip
+    model = cj.TemporalGaussians(
+        model.gaussians,
+        jnp.asarray(o),
+        jnp.zeros((5, 2, 3)),
+        jnp.zeros(5, jnp.int32),
+        (cj.DateInfo("a"), cj.DateInfo("b")),
+    )
     cam = cj.Camera.look_at([0, 0, -3], [0, 0, 0], up=(0, -1, 0), width=32, height=24, fov_x_deg=60)
     r = splat.render(g, cam)
     image = np.concatenate([np.asarray(r.image), np.asarray(r.alpha)[..., None]], -1)
     w = np.asarray(splat.render(g, cam, opacity_mult=jnp.asarray(jax.nn.sigmoid(o[:, 1]))).max_weight)
     assert 1 / 255 < w[3] < 0.01 and w[2] < 0.01 and w[4] == 0.0  # what the rule is tested on
-    cfg = rf.RefineConfig(steps=6, visibility_interval=6, lr_o=0.0, lr_alpha=0.0, lr_color=0.0, lr_other=0.0,
-                          position_lr_scale=0.0, halve_alpha=False, random_background=False)  # fmt: skip
+    cfg = rf.RefineConfig(
+        steps=6,
+        visibility_interval=6,
+        lr_o=0.0,
+        lr_alpha=0.0,
+        lr_color=0.0,
+        lr_other=0.0,
+        position_lr_scale=0.0,
+        halve_alpha=False,
+        random_background=False,
+    )
     views = [ci.DateViews((cam,), (image,))] * 2
     out, rep = rf.refine(model, views, cfg, extent=1.0)
     assert rep["zeroed_per_date"] == [2, 2] and len(out) == 3, rep

@@ -8,11 +8,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from test_fusion import _random_gaussians
 
 import cfgs_jax as cj
 from cfgs_jax import fusion, splat, train
 from cfgs_jax.train import view_order
-from test_fusion import _random_gaussians  # noqa: E402  (tests/ is on sys.path: rootdir conftest)
 
 ci = importlib.import_module("cfgs_jax.fusion.cross_init")  # the package exports a function of that name
 rf = importlib.import_module("cfgs_jax.fusion.refine")
@@ -27,8 +27,13 @@ def _blobs(centres, scale=0.08, alpha=0.9, colours=None):
     centres = np.asarray(centres, np.float32)
     n = len(centres)
     colours = np.full((n, 3), 0.6, np.float32) if colours is None else np.asarray(colours, np.float32)
-    return cj.Gaussians(centres, np.tile(np.float32([1, 0, 0, 0]), (n, 1)), np.full((n, 3), np.log(scale), np.float32),
-                        np.full(n, logit(alpha), np.float32), colours)  # fmt: skip
+    return cj.Gaussians(
+        centres,
+        np.tile(np.float32([1, 0, 0, 0]), (n, 1)),
+        np.full((n, 3), np.log(scale), np.float32),
+        np.full(n, logit(alpha), np.float32),
+        colours,
+    )
 
 
 def _camera(x, target_x=None, width=24, height=16):
@@ -57,8 +62,13 @@ def _many_view_scene():
     model = fusion.merge([g], ["d0"])
     n = len(g)
     o = np.full((n, 2), 8.0, np.float32)
-    model = cj.TemporalGaussians(model.gaussians, jnp.asarray(o), jnp.zeros((n, 2, 3)), jnp.zeros(n, jnp.int32),
-                                 (cj.DateInfo("d0"), cj.DateInfo("d1")))  # fmt: skip
+    model = cj.TemporalGaussians(
+        model.gaussians,
+        jnp.asarray(o),
+        jnp.zeros((n, 2, 3)),
+        jnp.zeros(n, jnp.int32),
+        (cj.DateInfo("d0"), cj.DateInfo("d1")),
+    )
     return model, [_views(g, date0), _views(g, date1)]
 
 
@@ -67,8 +77,15 @@ def _seed_missing(view: int, steps: int, num_views: int) -> int:
     return next(s for s in range(200) if view not in {view_order(s, i, num_views) for i in range(steps)})
 
 
-FROZEN = dict(lr_o=0.0, lr_alpha=0.0, lr_color=0.0, lr_other=0.0, position_lr_scale=0.0, halve_alpha=False,
-              random_background=False)  # fmt: skip
+FROZEN = dict(
+    lr_o=0.0,
+    lr_alpha=0.0,
+    lr_color=0.0,
+    lr_other=0.0,
+    position_lr_scale=0.0,
+    halve_alpha=False,
+    random_background=False,
+)
 
 
 def test_visibility_covers_every_view_of_a_date():
@@ -106,10 +123,15 @@ def test_change_loss_has_zero_subgradient_and_follows_the_visibility_rule():
     side_view = 40
     seed = _seed_missing(side_view, 40, 43)  # the side view is not drawn in 40 steps: only L_change acts on its o
     seen = {}
-    cfg = rf.RefineConfig(steps=40, visibility_interval=20, seed=seed, lambda_change=1.0,
-                          **(FROZEN | {"lr_o": 0.05}))  # fmt: skip
-    rf.refine(model, views, cfg, extent=1.0, snapshot_steps=(19, 39),
-              on_snapshot=lambda k, m: seen.__setitem__(k, np.asarray(m.o_logits)))  # fmt: skip
+    cfg = rf.RefineConfig(steps=40, visibility_interval=20, seed=seed, lambda_change=1.0, **(FROZEN | {"lr_o": 0.05}))
+    rf.refine(
+        model,
+        views,
+        cfg,
+        extent=1.0,
+        snapshot_steps=(19, 39),
+        on_snapshot=lambda k, m: seen.__setitem__(k, np.asarray(m.o_logits)),
+    )
     side = len(model) - 1
     assert seen[19][side].tolist() == [8.0, 8.0]  # no render touches it and d = d(õ): exactly its start
     assert seen[39][side, 0] == 8.0  # kept: the completion render of the side view sees it
@@ -140,7 +162,7 @@ def test_refinement_rates_follow_the_input_training():
         state = opt.init(params)
         for _ in range(100):
             upd, state = opt.update(grads, state, params)
-        last = 1.6e-4 ** 0.01 * 1.6e-6 ** 0.99  # log-linear at step 99 of 100
+        last = 1.6e-4**0.01 * 1.6e-6**0.99  # log-linear at step 99 of 100
         np.testing.assert_allclose(upd["means"], -last * extent / divide, rtol=1e-4)
     topt = train.make_optimizer(train.TrainConfig(), extent)
     tparams = {k: params[k] for k in train.optim.FIELDS}
@@ -191,8 +213,10 @@ def test_epsilon_map_sees_date_p_under_the_start_exposure():
     compares date p under the pair's start gain (0.5, fitted from the same renders), so it is ≈ 0.
     Before, it compared date p at full exposure with I^q (mean ε 0.072 here)."""
     g = _random_gaussians(80, seed=7)
-    cams = tuple(cj.Camera.look_at([x, -0.3, -2.5], [0, 0, 0], up=(0, -1, 0), width=64, height=48, fov_x_deg=55)
-                 for x in (-0.3, 0.3))  # fmt: skip
+    cams = tuple(
+        cj.Camera.look_at([x, -0.3, -2.5], [0, 0, 0], up=(0, -1, 0), width=64, height=48, fov_x_deg=55)
+        for x in (-0.3, 0.3)
+    )
     model = fusion.merge([g, g], ["p", "q"])
     o_p = jax.nn.sigmoid(model.o_logits[:80, 0])
     images = []
@@ -241,13 +265,17 @@ def test_both_observation_rules_leave_the_persistence_out():
     α·o^p·T and missed it); one behind an opaque wall of the same date is unobserved under both."""
     from cfgs_jax.evaluation import change
 
-    g = cj.Gaussians(np.float32([[0.0, 0, 0], [0.8, 0, 0.5], [0.8, 0, 0.0], [0.8, 0, 0.05]]),
-                     np.tile(np.float32([1, 0, 0, 0]), (4, 1)),
-                     np.log(np.float32([[0.1] * 3, [0.1] * 3, [0.4, 0.4, 0.01], [0.4, 0.4, 0.01]])),
-                     np.float32(logit([0.03, 0.9, 0.99, 0.99])), np.full((4, 3), 0.5, np.float32))  # two-layer wall
+    g = cj.Gaussians(
+        np.float32([[0.0, 0, 0], [0.8, 0, 0.5], [0.8, 0, 0.0], [0.8, 0, 0.05]]),
+        np.tile(np.float32([1, 0, 0, 0]), (4, 1)),
+        np.log(np.float32([[0.1] * 3, [0.1] * 3, [0.4, 0.4, 0.01], [0.4, 0.4, 0.01]])),
+        np.float32(logit([0.03, 0.9, 0.99, 0.99])),
+        np.full((4, 3), 0.5, np.float32),
+    )  # two-layer wall
     o = np.float32(logit([[0.3, 0.3]] + [[1 - 1e-6, 1 - 1e-6]] * 3))
-    model = cj.TemporalGaussians(g, jnp.asarray(o), jnp.zeros((4, 2, 3)), np.zeros(4, np.int32),
-                                 (cj.DateInfo("a"), cj.DateInfo("b")))  # fmt: skip
+    model = cj.TemporalGaussians(
+        g, jnp.asarray(o), jnp.zeros((4, 2, 3)), np.zeros(4, np.int32), (cj.DateInfo("a"), cj.DateInfo("b"))
+    )
     cams = [cj.Camera.look_at([0.4, 0, -3.0], [0.4, 0, 0], up=(0, -1, 0), width=48, height=32, fov_x_deg=60)]
     w = change.max_weight(g, jnp.asarray(jax.nn.sigmoid(o[:, 0])), cams)
     assert 1 / 255 < w[0] < 0.01 and w[1] < 0.005  # the statistic the rules divide
@@ -262,8 +290,9 @@ def test_a_gaussian_the_kernel_skips_at_a_date_is_not_rendered_there():
     every pixel, never rendered at p, the paper's wording) o^p is zeroed."""
     g = _blobs([[-0.5, 0, 0], [0.5, 0, 0]], scale=0.1, alpha=0.03)
     o = np.float32(logit([[0.2, 0.99], [0.1, 0.99]]))
-    model = cj.TemporalGaussians(g, jnp.asarray(o), jnp.zeros((2, 2, 3)), np.zeros(2, np.int32),
-                                 (cj.DateInfo("a"), cj.DateInfo("b")))  # fmt: skip
+    model = cj.TemporalGaussians(
+        g, jnp.asarray(o), jnp.zeros((2, 2, 3)), np.zeros(2, np.int32), (cj.DateInfo("a"), cj.DateInfo("b"))
+    )
     cams = (_camera(0.0, width=48, height=32),)
     v = _views(g, cams)
     out, rep = rf.refine(model, [v, v], rf.RefineConfig(steps=1, visibility_interval=1, **FROZEN), extent=1.0)
@@ -292,7 +321,9 @@ def test_registration_that_does_not_converge_is_reported():
     start_a = Sim3(1.1, Rotation.from_rotvec([0.3, 0.0, 0.0]).as_matrix() @ a.rotation, a.translation + 0.3)
     start_b = Sim3(0.9, b.rotation, b.translation - 0.2)
     got_a, got_b, ok = refine_sim3_pair(start_a, start_b, ref, date, extent=1.0, max_steps=200)
-    assert ok and np.isclose(got_b.scale, b.scale, rtol=1e-6) and np.allclose(got_b.translation, b.translation, atol=1e-6)
+    assert (
+        ok and np.isclose(got_b.scale, b.scale, rtol=1e-6) and np.allclose(got_b.translation, b.translation, atol=1e-6)
+    )
     *_, ok = refine_sim3_pair(start_a, start_b, ref, date, extent=1.0, max_steps=1)
     assert not ok
 
@@ -319,7 +350,13 @@ def test_capture_times_put_dates_in_time_order(tmp_path):
     with pytest.raises(cj.InputError, match="out of time order"):
         time_order(["2024-03-01", None, "2024-02-01"], names)
     old = ["2024-01-15", "2024-07-15"]
-    assert [insert_position(old, t) for t in ("2023-12-31", "2024-04-15", "2024-07-15", "2025-01-01", None)] == [0, 1, 2, 2, 2]
+    assert [insert_position(old, t) for t in ("2023-12-31", "2024-04-15", "2024-07-15", "2025-01-01", None)] == [
+        0,
+        1,
+        2,
+        2,
+        2,
+    ]
     assert insert_position(["2024-01-15", None], "2023-01-01") == 2  # an unknown time: appended
 
 
@@ -328,8 +365,11 @@ def test_add_date_inserts_a_date_at_its_place_in_time():
     unchanged), origins at or after 1 move up, the new Gaussians are own at 1, other dates ≈ 0."""
     a, b, c = _blobs([[0, 0, 0]]), _blobs([[1, 0, 0], [2, 0, 0]]), _blobs([[3, 0, 0]])
     m = fusion.merge([a, c], ["jan", "jul"])
-    m = dataclasses.replace(m, o_logits=jnp.asarray([[1.0, 2.0], [3.0, 4.0]]),
-                            light_logits=jnp.arange(12, dtype=jnp.float32).reshape(2, 2, 3))  # fmt: skip
+    m = dataclasses.replace(
+        m,
+        o_logits=jnp.asarray([[1.0, 2.0], [3.0, 4.0]]),
+        light_logits=jnp.arange(12, dtype=jnp.float32).reshape(2, 2, 3),
+    )
     out = fusion.add_date(m, b, cj.DateInfo("apr", captured="2024-04-15"), position=1)
     o = np.asarray(out.o_logits)
     assert [d.name for d in out.dates] == ["jan", "apr", "jul"] and out.dates[1].captured == "2024-04-15"

@@ -104,7 +104,7 @@ def test_lpips_gradient_matches_finite_differences():
     rng = np.random.default_rng(4)
     v = rng.normal(size=a.shape)
     with jax.enable_x64(True):
-        f = lambda x: metrics.lpips(x, jnp.asarray(b))  # noqa: E731
+        f = lambda x: metrics.lpips(x, jnp.asarray(b))
         x0 = jnp.asarray(a)
         g = np.asarray(jax.grad(f)(x0))
         assert g.dtype == np.float64 and np.isfinite(g).all()

@@ -7,15 +7,16 @@ from scipy.spatial.transform import Rotation
 
 import cfgs_jax
 from cfgs_jax import Camera, DateInfo, Gaussians, InputError, TemporalGaussians
+from cfgs_jax.fusion.light import light_logits
 from cfgs_jax.model import (
     covariances,
-    light_logits_from_multipliers,
     light_multipliers,
     opacities,
     opacity_multipliers,
     quat_to_rotmat,
     rgb,
 )
+
 from conftest import random_gaussians, random_temporal
 
 
@@ -76,7 +77,7 @@ def test_activations_match_closed_forms():
     assert np.allclose(light_multipliers(m), 2 / (1 + np.exp(-np.asarray(m.light_logits, np.float64))), rtol=1e-6)
     assert np.allclose(rgb(g), np.maximum(np.asarray(g.colors), 0))
     l = np.array([0.3, 1.0, 1.7])
-    assert np.allclose(2 / (1 + np.exp(-np.asarray(light_logits_from_multipliers(l), np.float64))), l, atol=1e-6)
+    assert np.allclose(2 / (1 + np.exp(-np.asarray(light_logits(l), np.float64))), l, atol=1e-6)
 
 
 def test_rotation_and_covariance_against_scipy():
@@ -133,7 +134,9 @@ def test_select_concatenate_select_dates():
     assert np.array_equal(sd.o_logits, np.asarray(m.o_logits)[keep][:, [2, 0]])
     assert set(np.unique(sd.origin)) <= {0, 1}
     assert np.array_equal(np.asarray(sd.origin), np.where(np.asarray(m.origin)[keep] == 2, 0, 1))
-    other = TemporalGaussians(m.gaussians, m.o_logits, m.light_logits, m.origin, tuple(DateInfo(f"x{i}") for i in range(3)))
+    other = TemporalGaussians(
+        m.gaussians, m.o_logits, m.light_logits, m.origin, tuple(DateInfo(f"x{i}") for i in range(3))
+    )
     with pytest.raises(InputError, match="different dates"):
         cfgs_jax.concatenate([m, other])
     assert cfgs_jax.num_dates(m) == 3

@@ -3,13 +3,13 @@ import subprocess
 import sys
 from pathlib import Path
 
-import numpy as np
 import pytest
 
 from cfgs_jax import InputError, OutputError
 from cfgs_jax.config import check_sections, from_dict, load_config, section
 from cfgs_jax.io import ensure_writable_dir, write_fused, write_ply
 from cfgs_jax.pipeline import main
+
 from conftest import REPO, random_gaussians, random_temporal
 
 
@@ -20,8 +20,11 @@ def test_config_folder_holds_only_toml_and_does_not_shadow_package():
     # run from the repository root, where ./cfgs_jax/ could shadow the installed package
     r = subprocess.run(
         [sys.executable, "-c", "import cfgs_jax, cfgs_jax.pipeline; print(cfgs_jax.__file__)"],
-        cwd=REPO, capture_output=True, text=True, check=True,
-    )  # fmt: skip
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        check=True,
+    )
     imported = Path(r.stdout.strip())
     assert imported.name == "__init__.py" and imported.parent.name == "cfgs_jax"
     assert imported.parent != folder  # the package (src/ or site-packages), not the TOML folder
@@ -98,11 +101,30 @@ def test_cli_demo_runs_the_whole_pipeline(tmp_path, capsys):
     # 40 cross-init steps at 10× the paper's rates (rate_reference_steps 400 / 40 steps): o^q may travel
     # 3 logits, enough to leave its 0.8 start where the images say so, without the random walk that
     # 75× (the default reference of 3 000 steps) gives unidentified entries on a schedule this short
-    toml.write_text("[train]\nsteps = 150\ndensify_from = 30\ndensify_until = 120\ndensify_interval = 30\n"
-                    "[cross_init]\nsteps = 40\nrate_reference_steps = 400\n[refine]\nsteps = 40\nvisibility_interval = 20\n")  # fmt: skip
+    toml.write_text(
+        "[train]\nsteps = 150\ndensify_from = 30\ndensify_until = 120\ndensify_interval = 30\n"
+        "[cross_init]\nsteps = 40\nrate_reference_steps = 400\n[refine]\nsteps = 40\nvisibility_interval = 20\n"
+    )
     out = tmp_path / "demo"
-    assert main(["demo", "--out", str(out), "--config", str(toml), "--width", "64", "--height", "48",
-                 "--images-per-date", "6", "--no-progress"]) == 0  # fmt: skip
+    assert (
+        main(
+            [
+                "demo",
+                "--out",
+                str(out),
+                "--config",
+                str(toml),
+                "--width",
+                "64",
+                "--height",
+                "48",
+                "--images-per-date",
+                "6",
+                "--no-progress",
+            ]
+        )
+        == 0
+    )
     text = " ".join(capsys.readouterr().out.split())
     assert "individual per-date models vs the fused model" in text and "total wall time" in text
     assert "registration failed" in text  # 64×48 is too small for SfM: the ground-truth Sim(3)s are used
@@ -120,4 +142,3 @@ def test_cli_demo_runs_the_whole_pipeline(tmp_path, capsys):
     assert len(hl) == 2 and read_image(hl[0]).shape == (48 + 16, 64, 3)
     md = (out / "summary.md").read_text()
     assert md.count("| d0 |") == 1 and md.count("| d1 |") == 1 and "| total |" in md
-

@@ -9,6 +9,7 @@ import pytest
 from cfgs_jax import SH_C0, InputError
 from cfgs_jax.io import read_ply, write_ply
 from cfgs_jax.io.ply import DC_ONLY_LAYOUT
+
 from conftest import bits_equal, random_gaussians
 
 

@@ -10,6 +10,7 @@ from cfgs_jax.config import load_config
 from cfgs_jax.evaluation.protocol import EVAL_SECTIONS, validate_eval_config
 from cfgs_jax.evaluation.sweep import parse_sweep
 from cfgs_jax.fusion.run import CONFIG_SECTIONS, validate_config
+
 from conftest import REPO
 
 SHIPPED = sorted([*(REPO / "cfgs_jax").glob("*.toml"), *(REPO / "benchmarks").glob("*.toml")])
@@ -42,11 +43,11 @@ def test_shipped_toml_is_key_and_type_valid(path):
 @pytest.mark.parametrize(
     ("table", "line", "message"),
     [
-        ("train", "steps = \"abc\"", r"train\.steps.*expected int, got str"),
-        ("train", "densify = \"no\"", r"train\.densify.*expected bool, got str"),
+        ("train", 'steps = "abc"', r"train\.steps.*expected int, got str"),
+        ("train", 'densify = "no"', r"train\.densify.*expected bool, got str"),
         ("train", "steps = true", r"train\.steps.*expected int, got bool"),
-        ("cross_init", "lr_o = \"fast\"", r"cross_init\.lr_o.*expected float, got str"),
-        ("cross_init", "lpips_net = \"resnet\"", r"cross_init\.lpips_net.*one of 'alex', 'vgg'"),
+        ("cross_init", 'lr_o = "fast"', r"cross_init\.lr_o.*expected float, got str"),
+        ("cross_init", 'lpips_net = "resnet"', r"cross_init\.lpips_net.*one of 'alex', 'vgg'"),
         ("refine", "stpes = 10", r"refine\.stpes.*did you mean 'steps'"),
     ],
 )
@@ -67,6 +68,6 @@ def test_range_checks_run_after_the_type_checks(tmp_path):
 
 def test_eval_steps_must_be_integers(tmp_path):
     path = tmp_path / "e.toml"
-    path.write_text("[eval]\nsteps = [6, \"x\"]\n")
+    path.write_text('[eval]\nsteps = [6, "x"]\n')
     with pytest.raises(InputError, match=r"eval\.steps\[1\].*expected int, got str"):
         validate_eval_config(load_config(path))

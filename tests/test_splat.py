@@ -45,8 +45,15 @@ def reference_image(g, cam, om, *, background=BG, config=None, depth_key=None) -
     """The float64 reference image of one date (opacity multipliers ``om`` [N], colour multipliers 1),
     composited in view-depth order or in the order of ``depth_key``."""
     n = len(g)
-    r = splat.reference.render_dates(g, cam, np.reshape(np.asarray(om, np.float64), (1, n)), np.ones((1, n, 3)),
-                                     background=background, config=config, depth_key=depth_key)  # fmt: skip
+    r = splat.reference.render_dates(
+        g,
+        cam,
+        np.reshape(np.asarray(om, np.float64), (1, n)),
+        np.ones((1, n, 3)),
+        background=background,
+        config=config,
+        depth_key=depth_key,
+    )
     return np.asarray(r.image[0])
 
 
@@ -144,7 +151,7 @@ def _ref_grads(g, om, cm, cam, w_img, w_a):
     with jax.enable_x64(True):
         g64 = jax.tree_util.tree_map(lambda x: jnp.asarray(x, jnp.float64), g)
         args = (g64, jnp.asarray(om, jnp.float64), jnp.asarray(cm, jnp.float64))
-        f = lambda *a: _loss_ref(*a, cam, jnp.asarray(w_img), jnp.asarray(w_a))  # noqa: E731
+        f = lambda *a: _loss_ref(*a, cam, jnp.asarray(w_img), jnp.asarray(w_a))
         val, grads = jax.value_and_grad(f, argnums=(0, 1, 2))(*args)
         return f, args, float(val), [np.asarray(x) for x in jax.tree_util.tree_leaves(grads)]
 
@@ -157,7 +164,7 @@ def test_custom_vjp_equals_float64_autodiff(grad_case):
         g64 = jax.tree_util.tree_map(lambda x: jnp.asarray(x, jnp.float64), g)
         om64, cm64 = jnp.asarray(om, jnp.float64), jnp.asarray(cm, jnp.float64)
         cfg = splat.RenderConfig(capacity=splat.required_capacity(g64, cam, om64))
-        f = lambda *a: _loss_fast(*a, cam, cfg, jnp.asarray(w_img), jnp.asarray(w_a), jnp.float64)  # noqa: E731
+        f = lambda *a: _loss_fast(*a, cam, cfg, jnp.asarray(w_img), jnp.asarray(w_a), jnp.float64)
         val, grads = jax.value_and_grad(f, argnums=(0, 1, 2))(g64, om64, cm64)
         fast = [np.asarray(x) for x in jax.tree_util.tree_leaves(grads)]
     assert abs(float(val) - val_ref) <= 1e-9 * abs(val_ref)
@@ -171,7 +178,7 @@ def test_float32_gradients_match_float64(grad_case):
     g, om, cm, cam, w_img, w_a = grad_case
     *_, ref = _ref_grads(g, om, cm, cam, w_img, w_a)
     cfg = splat.RenderConfig(capacity=splat.required_capacity(g, cam, om))
-    f = lambda *a: _loss_fast(*a, cam, cfg, jnp.asarray(w_img, F32), jnp.asarray(w_a, F32), jnp.float32)  # noqa: E731
+    f = lambda *a: _loss_fast(*a, cam, cfg, jnp.asarray(w_img, F32), jnp.asarray(w_a, F32), jnp.float32)
     grads = jax.grad(f, argnums=(0, 1, 2))(g, om, cm)
     for name, a, b in zip(NAMES, jax.tree_util.tree_leaves(grads), ref):
         a = np.asarray(a, np.float64)
@@ -215,10 +222,12 @@ def test_render_dates_equals_single_renders():
     alpha = np.asarray(jax.nn.sigmoid(g.opacity_logits))
     for d in range(t):
         eff = cj.Gaussians(
-            g.means, g.quats, g.log_scales,
+            g.means,
+            g.quats,
+            g.log_scales,
             _logit32(alpha * om[d]),
             np.maximum(np.asarray(g.colors), 0) * cm[d],
-        )  # fmt: skip
+        )
         single = splat.render(eff, cam, background=BG, with_depth=True)
         assert float(jnp.max(jnp.abs(single.image - res.image[d]))) <= 2e-6
         assert float(jnp.max(jnp.abs(single.alpha - res.alpha[d]))) <= 2e-6
@@ -237,7 +246,7 @@ def test_images_only_render_equals_the_full_render():
     for stats in (True, False):
         res = splat.render_dates(g, cam, om, cm, background=BG, with_depth=True, statistics=stats)
         cfg = splat.RenderConfig(capacity=res.capacity)
-        loss = lambda g, om, cm: jnp.sum(  # noqa: E731
+        loss = lambda g, om, cm: jnp.sum(
             splat.render_dates(g, cam, om, cm, background=BG, config=cfg, statistics=stats).image * w_img
         )
         outs[stats] = (res, jax.tree_util.tree_leaves(jax.grad(loss, argnums=(0, 1, 2))(g, om, cm)))

@@ -36,7 +36,7 @@ def test_points_reproject_onto_their_objects(corals):
         rec = pycolmap.Reconstruction(str(root / "sparse" / "0"))
         objects = json.loads((root / "masks" / "points3D_objects.json").read_text())
         assert len(rec.points3D) > 50
-        by_name = {n: c for n, c in zip(scene.image_names, scene.cameras)}
+        by_name = dict(zip(scene.image_names, scene.cameras))
         masks = {n: _mask(root / "masks" / "ids" / n) for n in scene.image_names}
         hits = total = 0
         for pid, p in rec.points3D.items():

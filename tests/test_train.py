@@ -11,8 +11,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 import cfgs_jax as cj
-from cfgs_jax import splat, synthetic, train
-from cfgs_jax import InputError
+from cfgs_jax import InputError, splat, synthetic, train
 from cfgs_jax.io import read_colmap
 from cfgs_jax.train.step import TrainState, gaussians_from_params, make_train_step
 
@@ -53,7 +52,13 @@ def test_optimizer_applies_each_fields_rate():
     params["opacity_logits"] = jnp.zeros(4)
     grads = jax.tree_util.tree_map(jnp.ones_like, params)
     updates, _ = opt.update(grads, opt.init(params), params)
-    want = {"means": 1.6e-4 * 2.0, "quats": 1e-3, "log_scales": 5e-3, "opacity_logits": 0.05, "colors": 2.5e-3 * cj.SH_C0}
+    want = {
+        "means": 1.6e-4 * 2.0,
+        "quats": 1e-3,
+        "log_scales": 5e-3,
+        "opacity_logits": 0.05,
+        "colors": 2.5e-3 * cj.SH_C0,
+    }
     for f, lr in want.items():
         assert np.allclose(np.asarray(updates[f]), -lr, rtol=1e-5), f
 
@@ -86,8 +91,8 @@ def test_short_training_run_reduces_the_loss(corals):
     assert last < first / 1.5, (first, last)  # stated factor: ≥ 1.5× lower after 200 steps
     g = state.gaussians()
     assert len(g) == len(g0) and np.isfinite(np.asarray(g.means)).all()
-    assert np.array_equal(np.asarray(state.params["means"][len(g0):]), np.zeros((64, 3)))  # padding untouched
-    assert np.all(np.asarray(state.params["opacity_logits"][len(g0):]) == -20.0)
+    assert np.array_equal(np.asarray(state.params["means"][len(g0) :]), np.zeros((64, 3)))  # padding untouched
+    assert np.all(np.asarray(state.params["opacity_logits"][len(g0) :]) == -20.0)
 
 
 def test_step_accumulates_the_screen_space_gradient_in_ndc_units():
@@ -96,9 +101,12 @@ def test_step_accumulates_the_screen_space_gradient_in_ndc_units():
     rng = np.random.default_rng(5)
     n = 40
     g = cj.Gaussians(
-        rng.uniform(-0.6, 0.6, (n, 3)).astype(np.float32), rng.normal(size=(n, 4)).astype(np.float32),
-        np.full((n, 3), -2.5, np.float32), np.zeros(n, np.float32), rng.uniform(size=(n, 3)).astype(np.float32),
-    )  # fmt: skip
+        rng.uniform(-0.6, 0.6, (n, 3)).astype(np.float32),
+        rng.normal(size=(n, 4)).astype(np.float32),
+        np.full((n, 3), -2.5, np.float32),
+        np.zeros(n, np.float32),
+        rng.uniform(size=(n, 3)).astype(np.float32),
+    )
     cam = cj.Camera.look_at([0, -3, 0.5], [0, 0, 0], width=40, height=30, fov_x_deg=50)
     img = jnp.asarray(rng.uniform(size=(30, 40, 3)), jnp.float32)
     cfg = train.TrainConfig(steps=10, random_background=False)
@@ -209,8 +217,13 @@ def test_split_children_sample_the_parent_gaussian():
     n = 2000
     q = np.array([0.9, 0.3, -0.2, 0.25], np.float32)
     s = np.array([0.3, 0.1, 0.05], np.float32)
-    g = cj.Gaussians(np.zeros((n, 3), np.float32), np.tile(q, (n, 1)), np.tile(np.log(s), (n, 1)),
-                     np.zeros(n, np.float32), np.zeros((n, 3), np.float32))  # fmt: skip
+    g = cj.Gaussians(
+        np.zeros((n, 3), np.float32),
+        np.tile(q, (n, 1)),
+        np.tile(np.log(s), (n, 1)),
+        np.zeros(n, np.float32),
+        np.zeros((n, 3), np.float32),
+    )
     cfg = train.TrainConfig(steps=10)
     state = TrainState.create(g, train.make_optimizer(cfg, 1.0), jax.random.key(0), capacity=n)
     state = dataclasses.replace(state, grad_accum=jnp.ones(n), grad_count=jnp.ones(n, jnp.int32))
@@ -253,8 +266,14 @@ def test_growing_the_buffer_does_not_change_a_training_step():
 
 
 def _short(steps, **kw):
-    base = dict(steps=steps, densify_from=steps // 6, densify_until=(5 * steps) // 6, densify_interval=steps // 6,
-                opacity_reset_interval=(2 * steps) // 3, checkpoint_every=steps // 3)  # fmt: skip
+    base = dict(
+        steps=steps,
+        densify_from=steps // 6,
+        densify_until=(5 * steps) // 6,
+        densify_interval=steps // 6,
+        opacity_reset_interval=(2 * steps) // 3,
+        checkpoint_every=steps // 3,
+    )
     return train.TrainConfig(**(base | kw))
 
 
@@ -305,16 +324,43 @@ def test_train_cli_writes_a_model_continues_it_and_guards_the_output(corals, tmp
     out = tmp_path / "run"
     toml = tmp_path / "short.toml"  # one densification at step 40 (the schedule scaled 1:1 by --steps)
     toml.write_text("[train]\nsteps = 60\ndensify_from = 20\ndensify_until = 50\ndensify_interval = 20\n")
-    args = ["train", "--scene", str(corals), "--out", str(out), "--config", str(toml), "--steps", "60",
-            "--no-progress", "--no-eval"]  # fmt: skip
+    args = [
+        "train",
+        "--scene",
+        str(corals),
+        "--out",
+        str(out),
+        "--config",
+        str(toml),
+        "--steps",
+        "60",
+        "--no-progress",
+        "--no-eval",
+    ]
     assert main(args) == 0
     g = cj.io.read_ply(out / "point_cloud.ply")
     report = json.loads((out / "train.json").read_text())
     assert report["gaussians"] == len(g) and report["steps"] == 60 and (out / train.CHECKPOINT).is_file()
     assert main(args) == 2 and "--resume" in capsys.readouterr().err  # will not overwrite a run
     more = tmp_path / "plus"
-    assert main(["train", "--scene", str(corals), "--out", str(more), "--continue-from", str(out / "point_cloud.ply"),
-                 "--steps", "20", "--no-progress", "--no-eval"]) == 0  # fmt: skip
+    assert (
+        main(
+            [
+                "train",
+                "--scene",
+                str(corals),
+                "--out",
+                str(more),
+                "--continue-from",
+                str(out / "point_cloud.ply"),
+                "--steps",
+                "20",
+                "--no-progress",
+                "--no-eval",
+            ]
+        )
+        == 0
+    )
     g2 = cj.io.read_ply(more / "point_cloud.ply")
     report2 = json.loads((more / "train.json").read_text())
     assert len(g2) == len(g) and report2["config"]["densify"] is False  # "Individual +N": no densification
@@ -330,12 +376,32 @@ def test_train_cli_speaks_inria(corals, tmp_path):
     toml = tmp_path / "short.toml"
     toml.write_text("[train]\nsteps = 500\ndensify = false\n")
     out = tmp_path / "inria"
-    assert main(["train", "-s", str(corals), "-m", str(out), "-r", "2", "--config", str(toml),
-                 "--set", "train.steps=30", "--no-progress", "--no-eval"]) == 0  # fmt: skip
+    assert (
+        main(
+            [
+                "train",
+                "-s",
+                str(corals),
+                "-m",
+                str(out),
+                "-r",
+                "2",
+                "--config",
+                str(toml),
+                "--set",
+                "train.steps=30",
+                "--no-progress",
+                "--no-eval",
+            ]
+        )
+        == 0
+    )
     report = json.loads((out / "train.json").read_text())
     assert report["steps"] == 30 and report["config"]["resolution"] == 2
     g = cj.io.read_ply(out / "point_cloud" / "iteration_30" / "point_cloud.ply")
-    assert (out / "point_cloud" / "iteration_30" / "point_cloud.ply").read_bytes() == (out / "point_cloud.ply").read_bytes()
+    assert (out / "point_cloud" / "iteration_30" / "point_cloud.ply").read_bytes() == (
+        out / "point_cloud.ply"
+    ).read_bytes()
     assert len(g) == report["gaussians"]
     full = read_colmap(corals)
     entries = json.loads((out / "cameras.json").read_text())
@@ -349,9 +415,15 @@ def test_train_cli_speaks_inria(corals, tmp_path):
         np.testing.assert_allclose(e["position"], -r.T @ t, atol=1e-5)
         np.testing.assert_allclose(e["rotation"], r.T, atol=1e-6)
         assert (e["width"], e["height"]) == (32, 24)
-        assert e["fx"] == pytest.approx(float(cam.fx) / 2, rel=1e-6) and e["fy"] == pytest.approx(float(cam.fy) / 2, rel=1e-6)
+        assert e["fx"] == pytest.approx(float(cam.fx) / 2, rel=1e-6) and e["fy"] == pytest.approx(
+            float(cam.fy) / 2, rel=1e-6
+        )
     cfg_args = (out / "cfg_args").read_text()
-    assert cfg_args.startswith("Namespace(") and f"source_path='{corals.resolve()}'" in cfg_args and "sh_degree=0" in cfg_args
+    assert (
+        cfg_args.startswith("Namespace(")
+        and f"source_path='{corals.resolve()}'" in cfg_args
+        and "sh_degree=0" in cfg_args
+    )
 
 
 def test_downscaled_dataset_is_box_filtered_or_read_from_images_n(corals, tmp_path):
@@ -390,12 +462,27 @@ def test_train_cli_killed_mid_run_resumes_to_the_uninterrupted_result(corals, tm
     import time
 
     toml = tmp_path / "t.toml"
-    toml.write_text("[train]\nsteps = 240\ndensify_from = 40\ndensify_until = 200\ndensify_interval = 40\n"
-                    "opacity_reset_interval = 120\ncheckpoint_every = 60\n")  # fmt: skip
+    toml.write_text(
+        "[train]\nsteps = 240\ndensify_from = 40\ndensify_until = 200\ndensify_interval = 40\n"
+        "opacity_reset_interval = 120\ncheckpoint_every = 60\n"
+    )
 
     def cmd(out, *extra):
-        return [sys.executable, "-m", "cfgs_jax.pipeline", "train", "--scene", str(corals), "--out", str(out),
-                "--config", str(toml), "--no-progress", "--no-eval", *extra]  # fmt: skip
+        return [
+            sys.executable,
+            "-m",
+            "cfgs_jax.pipeline",
+            "train",
+            "--scene",
+            str(corals),
+            "--out",
+            str(out),
+            "--config",
+            str(toml),
+            "--no-progress",
+            "--no-eval",
+            *extra,
+        ]
 
     assert subprocess.run(cmd(tmp_path / "whole"), capture_output=True).returncode == 0
     proc = subprocess.Popen(cmd(tmp_path / "killed"), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)

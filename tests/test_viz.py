@@ -9,16 +9,17 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from conftest import random_temporal
 
 import cfgs_jax as cj
 from cfgs_jax import splat, viz
+
+from conftest import random_temporal
 
 STOPS = np.asarray(viz.DEFAULT_STOPS)
 
 
 def _lambda_np(x, sigma):
-    pdf = lambda mu: np.exp(-((x - mu) ** 2) / (2 * sigma**2)) / (sigma * math.sqrt(2 * math.pi))  # noqa: E731
+    pdf = lambda mu: np.exp(-((x - mu) ** 2) / (2 * sigma**2)) / (sigma * math.sqrt(2 * math.pi))
     return np.stack([2 * pdf(0.0), pdf(0.5), 2 * pdf(1.0)], -1)
 
 
@@ -68,7 +69,9 @@ def test_lambda_integrals_match_quadrature_and_partition():
     with jax.enable_x64(True):
         for sigma in (0.1, 0.18, 0.3):
             for a, b in ((0.0, 1.0), (0.2, 0.45), (-0.3, 0.1)):
-                np.testing.assert_allclose(viz.lambda_integrals(a, b, sigma), _integral_np(a, b, sigma), rtol=1e-9, atol=1e-12)
+                np.testing.assert_allclose(
+                    viz.lambda_integrals(a, b, sigma), _integral_np(a, b, sigma), rtol=1e-9, atol=1e-12
+                )
             # the integrals over the selected intervals partition ∫_0^1 λ, for any selection
             rng = np.random.default_rng(0)
             for _ in range(5):
@@ -130,7 +133,9 @@ def test_remap_matches_colorsys_and_keeps_properties():
             np.testing.assert_allclose(got, _remap_np(S, stops), rtol=1e-9)
             np.testing.assert_allclose(got.sum(1), S.sum(1), rtol=1e-12)  # |S'|₁ = |S|₁
             for scale in (1.0, 0.37):  # persistent filters pass through unchanged
-                np.testing.assert_allclose(viz.remap_to_gradient(jnp.full((1, 3), scale), stops), np.full((1, 3), scale), rtol=1e-12)
+                np.testing.assert_allclose(
+                    viz.remap_to_gradient(jnp.full((1, 3), scale), stops), np.full((1, 3), scale), rtol=1e-12
+                )
     assert np.all(np.isfinite(viz.remap_to_gradient(jnp.zeros((2, 3)))))
 
 
@@ -141,14 +146,16 @@ def test_gradients_match_finite_differences():
         t = jnp.asarray([1.0, 1, 0, 1])
         w = jnp.asarray(rng.normal(size=(5, 3)))
         for contrast in (None, (3.0, 0.4)):
-            f = lambda o: jnp.sum(w * viz.persistence_filter(o, t, contrast=contrast))  # noqa: E731
+            f = lambda o: jnp.sum(w * viz.persistence_filter(o, t, contrast=contrast))
             _check_fd(f, o)
         S = jnp.asarray(rng.uniform(0.2, 1.5, (6, 3)))
-        f = lambda S: jnp.sum(w[:1] * viz.remap_to_gradient(S))  # noqa: E731
+        f = lambda S: jnp.sum(w[:1] * viz.remap_to_gradient(S))
         _check_fd(f, S)
         # through the whole highlight → o-logits
         model = random_temporal(12, 3, seed=5)
-        model = jax.tree_util.tree_map(lambda x: jnp.asarray(x, jnp.float64) if np.issubdtype(np.asarray(x).dtype, np.floating) else x, model)
+        model = jax.tree_util.tree_map(
+            lambda x: jnp.asarray(x, jnp.float64) if np.issubdtype(np.asarray(x).dtype, np.floating) else x, model
+        )
         wc = jnp.asarray(rng.normal(size=(12, 3)))
 
         def f(logits):
@@ -166,7 +173,10 @@ def _check_fd(f, x, h=1e-6):
     for i in range(flat.size):
         e = np.zeros_like(flat)
         e[i] = h
-        fd[i] = (float(f(jnp.asarray((flat + e).reshape(np.shape(x))))) - float(f(jnp.asarray((flat - e).reshape(np.shape(x)))))) / (2 * h)
+        fd[i] = (
+            float(f(jnp.asarray((flat + e).reshape(np.shape(x)))))
+            - float(f(jnp.asarray((flat - e).reshape(np.shape(x)))))
+        ) / (2 * h)
     np.testing.assert_allclose(grad.ravel(), fd, rtol=1e-5, atol=1e-7)
 
 
@@ -194,7 +204,9 @@ def test_blend_formulas_and_persistent_highlight_keeps_colour():
     _, op_max = viz.blend(model, t, mode="max")
     np.testing.assert_allclose(op_max, alpha * np.maximum(o[:, 0], o[:, 2]), rtol=1e-5)
     # a persistent model: the highlight (colour base) equals the blend colour, any stops
-    same = cj.TemporalGaussians(model.gaussians, jnp.repeat(model.o_logits[:, :1], 3, 1), model.light_logits, model.origin, model.dates)
+    same = cj.TemporalGaussians(
+        model.gaussians, jnp.repeat(model.o_logits[:, :1], 3, 1), model.light_logits, model.origin, model.dates
+    )
     blend_colour, _ = viz.blend(same, [1, 1, 1])
     for stops in (viz.DEFAULT_STOPS, STOPS[::-1], None):
         hl, _ = viz.highlight(same, [1, 1, 1], stops=stops)
@@ -254,7 +266,9 @@ def test_viewer_terms_are_the_viz_functions_under_jit():
     model = random_temporal(30, 3, seed=9)
     t = np.asarray([1.0, 0, 1])
     for stops in (GRADIENTS["blue-red (authors')"], None):
-        rgb, alpha = splat_terms(model, jnp.asarray(t), 0.25, 3.0, 0.4, mode="highlight", base="grey", stops=stops, use_contrast=True)
+        rgb, alpha = splat_terms(
+            model, jnp.asarray(t), 0.25, 3.0, 0.4, mode="highlight", base="grey", stops=stops, use_contrast=True
+        )
         want, want_alpha = viz.highlight(model, t, base="grey", sigma=0.25, contrast=(3.0, 0.4), stops=stops)
         np.testing.assert_allclose(rgb, np.clip(want, 0, 1), atol=1e-6)
         np.testing.assert_allclose(alpha, want_alpha, rtol=1e-6)

@@ -16,7 +16,7 @@ if "pycolmap" in _sys.modules and "zlib" not in _sys.modules:
     )
 # Load the system libz first, so pycolmap's bundled zlib cannot interpose libz's own symbols (seen:
 # "double free or corruption" in PNG writes after a Mitsuba render when pycolmap came first).
-import zlib as _zlib  # noqa: E402, F401
+import zlib as _zlib  # noqa: F401
 
 from cfgs_jax import io, viz
 from cfgs_jax.errors import InputError, OutputError

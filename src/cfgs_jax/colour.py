@@ -21,22 +21,20 @@ _SRGB_SLOPE = 12.92
 REC709_LUMA: tuple[float, float, float] = (0.2126, 0.7152, 0.0722)
 
 
-def srgb_to_linear(v: Float[Array, "..."]) -> Float[Array, "..."]:
+def srgb_to_linear(v: Float[Array, " ..."]) -> Float[Array, " ..."]:
     """Decode sRGB-encoded values to linear RGB (sRGB EOTF); values above 1 follow the power law."""
     v = jnp.asarray(v)
     safe = jnp.maximum(v, _SRGB_ENCODED_THRESHOLD)  # keeps the unused branch's gradient finite
     return jnp.where(v <= _SRGB_ENCODED_THRESHOLD, v / _SRGB_SLOPE, ((safe + _SRGB_A) / (1 + _SRGB_A)) ** _SRGB_GAMMA)
 
 
-def linear_to_srgb(x: Float[Array, "..."]) -> Float[Array, "..."]:
+def linear_to_srgb(x: Float[Array, " ..."]) -> Float[Array, " ..."]:
     """Encode linear RGB to sRGB (inverse EOTF); negative inputs stay on the linear segment."""
     x = jnp.asarray(x)
     safe = jnp.maximum(x, _SRGB_LINEAR_THRESHOLD)
-    return jnp.where(
-        x <= _SRGB_LINEAR_THRESHOLD, x * _SRGB_SLOPE, (1 + _SRGB_A) * safe ** (1 / _SRGB_GAMMA) - _SRGB_A
-    )
+    return jnp.where(x <= _SRGB_LINEAR_THRESHOLD, x * _SRGB_SLOPE, (1 + _SRGB_A) * safe ** (1 / _SRGB_GAMMA) - _SRGB_A)
 
 
-def luminance(rgb_linear: Float[Array, "... 3"]) -> Float[Array, "..."]:
+def luminance(rgb_linear: Float[Array, "... 3"]) -> Float[Array, " ..."]:
     """Relative luminance Y of linear Rec.709 RGB."""
     return jnp.tensordot(jnp.asarray(rgb_linear), jnp.asarray(REC709_LUMA, jnp.asarray(rgb_linear).dtype), axes=1)

@@ -17,10 +17,10 @@ import dataclasses
 import difflib
 import os
 import re
-import importlib.resources.abc
 import tomllib
 import typing
 from importlib import resources
+from importlib.resources.abc import Traversable
 from pathlib import Path
 from typing import Any, TypeVar
 
@@ -35,10 +35,12 @@ PRESET_PACKAGE = "cfgs_jax.presets"
 
 def preset_names() -> list[str]:
     """The names of the presets shipped in the package, sorted."""
-    return sorted(p.name[: -len(".toml")] for p in resources.files(PRESET_PACKAGE).iterdir() if p.name.endswith(".toml"))
+    return sorted(
+        p.name[: -len(".toml")] for p in resources.files(PRESET_PACKAGE).iterdir() if p.name.endswith(".toml")
+    )
 
 
-def find_preset(name: str) -> Path | resources.abc.Traversable:
+def find_preset(name: str) -> Path | Traversable:
     """A preset name (``paper``, ``fast``, ...) → the packaged file; anything that looks like a path
     (a ``.toml`` suffix, a separator, or an existing file) → that path."""
     p = Path(name)
@@ -47,13 +49,14 @@ def find_preset(name: str) -> Path | resources.abc.Traversable:
     cand = resources.files(PRESET_PACKAGE) / f"{name}.toml"
     if cand.is_file():
         return cand
-    raise InputError(f"no preset named {name!r}", field="config",
-                     fix=f"use one of {preset_names()} or a path to a .toml file")
+    raise InputError(
+        f"no preset named {name!r}", field="config", fix=f"use one of {preset_names()} or a path to a .toml file"
+    )
 
 
-def load_config(path: str | os.PathLike | resources.abc.Traversable) -> dict[str, Any]:
+def load_config(path: str | os.PathLike | Traversable) -> dict[str, Any]:
     """Read a TOML config (a file path or a packaged preset) into a dict of sections (tables)."""
-    p = path if isinstance(path, resources.abc.Traversable) and not isinstance(path, Path) else Path(path)
+    p = path if isinstance(path, Traversable) and not isinstance(path, Path) else Path(path)
     if not p.is_file():
         raise InputError("config file not found", path=p, fix="check the path or use a preset name")
     try:
@@ -77,8 +80,11 @@ def apply_overrides(config: dict[str, Any], overrides: typing.Iterable[str]) -> 
         key, sep, text = item.partition("=")
         parts = key.strip().split(".")
         if not sep or len(parts) < 2 or not all(parts):
-            raise InputError(f"cannot read --set {item!r}", field="--set",
-                             fix="write --set TABLE.KEY=VALUE, e.g. --set refine.steps=3000")
+            raise InputError(
+                f"cannot read --set {item!r}",
+                field="--set",
+                fix="write --set TABLE.KEY=VALUE, e.g. --set refine.steps=3000",
+            )
         try:
             value = tomllib.loads(f"v = {text.strip()}")["v"]
         except tomllib.TOMLDecodeError:
@@ -136,13 +142,17 @@ def from_dict(cls: type[T], values: dict[str, Any], *, where: str = "config", pa
             raise InputError(str(cause or exc), path=path, field=where) from exc
         key = where + m["where"] if m["where"] else where
         what = m["what"].replace("`", "")
-        expected = what[len("Expected "):].split(",")[0] if what.startswith("Expected ") else "a valid value"
+        expected = what[len("Expected ") :].split(",")[0] if what.startswith("Expected ") else "a valid value"
         top = re.match(r"\.(\w+)", m["where"])
         hint = typing.get_type_hints(cls).get(top[1]) if top else None
         if typing.get_origin(hint) is typing.Literal:
             expected = "one of " + ", ".join(repr(c) for c in typing.get_args(hint))
-        raise InputError(what.lower() if what[:1].isupper() else what, path=path, field=key,
-                         fix=f"write {key} as {expected} (see `python -m cfgs_jax.pipeline presets`)") from exc
+        raise InputError(
+            what.lower() if what[:1].isupper() else what,
+            path=path,
+            field=key,
+            fix=f"write {key} as {expected} (see `python -m cfgs_jax.pipeline presets`)",
+        ) from exc
 
 
 def section(config: dict[str, Any] | None, name: str, cls: type[T]) -> T:

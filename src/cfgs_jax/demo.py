@@ -15,9 +15,20 @@ from cfgs_jax.errors import InputError
 from cfgs_jax.io.atomic import atomic_file, check_resume, ensure_writable_dir
 
 
-def run_demo(out: str | Path, *, config: str | dict = "demo", num_dates: int = 2, width: int = 160, height: int = 120,
-             images_per_date: int = 12, spp: int = 16, seed: int = 0, resume: bool = False, progress: bool = True,
-             log=print) -> dict:  # fmt: skip
+def run_demo(
+    out: str | Path,
+    *,
+    config: str | dict = "demo",
+    num_dates: int = 2,
+    width: int = 160,
+    height: int = 120,
+    images_per_date: int = 12,
+    spp: int = 16,
+    seed: int = 0,
+    resume: bool = False,
+    progress: bool = True,
+    log=print,
+) -> dict:
     """Run the demo into ``out``; returns the summary (also written to ``out/summary.json`` and
     ``out/summary.md``). ``config`` is a preset name, a TOML path or an already-read configuration;
     an ``out`` holding an earlier demo is continued only with ``resume=True``."""
@@ -30,7 +41,9 @@ def run_demo(out: str | Path, *, config: str | dict = "demo", num_dates: int = 2
     t_start = time.perf_counter()
     out = ensure_writable_dir(out)
     scene_dir = out / "scene"
-    spec = synthetic.make_preset("corals", seed=seed, width=width, height=height, images_per_date=images_per_date, spp=spp)
+    spec = synthetic.make_preset(
+        "corals", seed=seed, width=width, height=height, images_per_date=images_per_date, spp=spp
+    )
     if not (scene_dir / "ground_truth.json").is_file():
         synthetic.render_dataset(spec, scene_dir, dates=list(range(num_dates)), progress=progress)
     t_synth = time.perf_counter() - t_start
@@ -49,8 +62,7 @@ def run_demo(out: str | Path, *, config: str | dict = "demo", num_dates: int = 2
         gt_path = out / "ground_truth_transforms.json"
         with atomic_file(gt_path) as tmp:
             tmp.write_text(json.dumps(synthetic.reference_transforms(scene_dir, names), indent=1))
-        run = run_fusion(dates, run_dir, raw, resume=True, transforms=gt_path,
-                         progress=progress, log=log)  # fmt: skip
+        run = run_fusion(dates, run_dir, raw, resume=True, transforms=gt_path, progress=progress, log=log)
 
     fused = open_run(run_dir)
     t0 = time.perf_counter()
@@ -59,23 +71,41 @@ def run_demo(out: str | Path, *, config: str | dict = "demo", num_dates: int = 2
         t = np.eye(len(names))[q]
         own = [(n, c) for n, c in cams if n.startswith(name + "_")]
         render_views(fused, t, SelectionStyle(mode="blend"), own, out / "renders" / name)
-    highlight = render_views(fused, np.ones(len(names)), SelectionStyle(mode="highlight", base="grey"), cams, out / "highlight")
+    highlight = render_views(
+        fused, np.ones(len(names)), SelectionStyle(mode="highlight", base="grey"), cams, out / "highlight"
+    )
     t_render = time.perf_counter() - t0
 
     metrics = json.loads((run_dir / "metrics.json").read_text())
     rows = []
     for name in names:
         indiv = json.loads((run_dir / "dates" / name / "train.json").read_text())["test"]
-        rows.append({"date": name, "individual": {k: indiv[k] for k in ("psnr", "ssim", "lpips") if k in indiv},
-                     "fused": {k: metrics["dates"][name][k] for k in ("psnr", "ssim", "lpips") if k in metrics["dates"][name]}})  # fmt: skip
+        rows.append(
+            {
+                "date": name,
+                "individual": {k: indiv[k] for k in ("psnr", "ssim", "lpips") if k in indiv},
+                "fused": {
+                    k: metrics["dates"][name][k] for k in ("psnr", "ssim", "lpips") if k in metrics["dates"][name]
+                },
+            }
+        )
     summary = {
-        "scene": {"preset": "corals", "width": width, "height": height, "images_per_date": images_per_date, "dates": names},
+        "scene": {
+            "preset": "corals",
+            "width": width,
+            "height": height,
+            "images_per_date": images_per_date,
+            "dates": names,
+        },
         "metrics": rows,
         "gaussians": run.report.get("refine", {}).get("gaussians_after_prune"),
-        "timings_s": {"synthesise": t_synth, **{k: v for k, v in run.timings.items()}, "render": t_render,
-                      "total": time.perf_counter() - t_start},
-        "outputs": {"renders": str(out / "renders"), "highlight": [str(p) for p in highlight], "model": str(run_dir / "fused")},
-    }  # fmt: skip
+        "timings_s": {"synthesise": t_synth, **run.timings, "render": t_render, "total": time.perf_counter() - t_start},
+        "outputs": {
+            "renders": str(out / "renders"),
+            "highlight": [str(p) for p in highlight],
+            "model": str(run_dir / "fused"),
+        },
+    }
     with atomic_file(out / "summary.json") as tmp:
         tmp.write_text(json.dumps(summary, indent=1))
     with atomic_file(out / "summary.md") as tmp:
@@ -85,14 +115,21 @@ def run_demo(out: str | Path, *, config: str | dict = "demo", num_dates: int = 2
 
 def summary_markdown(summary: dict) -> str:
     """The demo's metrics table and stage timings as markdown."""
-    lines = ["# cfgs_jax demo", "", f"Scene: {summary['scene']}", "",
-             "| date | PSNR individual | PSNR fused | SSIM individual | SSIM fused | LPIPS individual | LPIPS fused |",
-             "|---|---|---|---|---|---|---|"]  # fmt: skip
+    lines = [
+        "# cfgs_jax demo",
+        "",
+        f"Scene: {summary['scene']}",
+        "",
+        "| date | PSNR individual | PSNR fused | SSIM individual | SSIM fused | LPIPS individual | LPIPS fused |",
+        "|---|---|---|---|---|---|---|",
+    ]
     for r in summary["metrics"]:
         i, f = r["individual"], r["fused"]
-        lines.append(f"| {r['date']} | {i.get('psnr', float('nan')):.2f} | {f.get('psnr', float('nan')):.2f} | "
-                     f"{i.get('ssim', float('nan')):.4f} | {f.get('ssim', float('nan')):.4f} | "
-                     f"{i.get('lpips', float('nan')):.4f} | {f.get('lpips', float('nan')):.4f} |")  # fmt: skip
+        lines.append(
+            f"| {r['date']} | {i.get('psnr', float('nan')):.2f} | {f.get('psnr', float('nan')):.2f} | "
+            f"{i.get('ssim', float('nan')):.4f} | {f.get('ssim', float('nan')):.4f} | "
+            f"{i.get('lpips', float('nan')):.4f} | {f.get('lpips', float('nan')):.4f} |"
+        )
     lines += ["", "| stage | wall time (s) |", "|---|---|"]
     lines += [f"| {k} | {v:.1f} |" for k, v in summary["timings_s"].items()]
     return "\n".join(lines) + "\n"

@@ -167,7 +167,7 @@ class Gaussians(eqx.Module):
     means: Float[Array, "N 3"] = eqx.field(converter=_as_float)
     quats: Float[Array, "N 4"] = eqx.field(converter=_as_float)
     log_scales: Float[Array, "N 3"] = eqx.field(converter=_as_float)
-    opacity_logits: Float[Array, "N"] = eqx.field(converter=_as_float)
+    opacity_logits: Float[Array, " N"] = eqx.field(converter=_as_float)
     colors: Float[Array, "N 3"] = eqx.field(converter=_as_float)
 
     def __check_init__(self):
@@ -213,7 +213,7 @@ class TemporalGaussians(eqx.Module):
     gaussians: Gaussians
     o_logits: Float[Array, "N T"] = eqx.field(converter=_as_float)
     light_logits: Float[Array, "N T 3"] = eqx.field(converter=_as_float)
-    origin: Int[Array, "N"] = eqx.field(converter=lambda x: jnp.asarray(x, jnp.int32))
+    origin: Int[Array, " N"] = eqx.field(converter=lambda x: jnp.asarray(x, jnp.int32))
     dates: tuple[DateInfo, ...] = eqx.field(static=True, converter=tuple)
 
     def __check_init__(self):
@@ -282,7 +282,7 @@ def scales(g: Gaussians) -> Float[Array, "N 3"]:
     return jnp.exp(g.log_scales)
 
 
-def opacities(g: Gaussians) -> Float[Array, "N"]:
+def opacities(g: Gaussians) -> Float[Array, " N"]:
     """The paper's α = sigmoid(opacity logit)."""
     return jax.nn.sigmoid(g.opacity_logits)
 
@@ -302,15 +302,16 @@ def light_multipliers(model: TemporalGaussians) -> Float[Array, "N T 3"]:
     return 2.0 * jax.nn.sigmoid(model.light_logits)
 
 
+def is_traced(*trees) -> bool:
+    """Whether any leaf of ``trees`` is a JAX tracer (inside ``jit``/``grad``/``vmap``), where values
+    cannot be checked in Python."""
+    return any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(trees))
+
+
 def logit(p, eps: float = 0.0):
     """Inverse sigmoid; ``eps`` clips p into [eps, 1 − eps] first."""
     p = jnp.clip(p, eps, 1.0 - eps) if eps else p
     return jnp.log(p) - jnp.log1p(-p)
-
-
-def light_logits_from_multipliers(l):
-    """Inverse of ``2·sigmoid``: the logit that activates to light multiplier ``l`` ∈ (0, 2)."""
-    return logit(jnp.asarray(l) / 2.0)
 
 
 def colors_from_sh_dc(f_dc) -> np.ndarray:
@@ -345,12 +346,18 @@ def quat_to_rotmat(q: Float[Array, "... 4"]) -> Float[Array, "... 3 3"]:
     w, x, y, z = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
     r = jnp.stack(
         [
-            1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-            2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-            2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
+            1 - 2 * (y * y + z * z),
+            2 * (x * y - w * z),
+            2 * (x * z + w * y),
+            2 * (x * y + w * z),
+            1 - 2 * (x * x + z * z),
+            2 * (y * z - w * x),
+            2 * (x * z - w * y),
+            2 * (y * z + w * x),
+            1 - 2 * (x * x + y * y),
         ],
         axis=-1,
-    )  # fmt: skip
+    )
     return r.reshape(q.shape[:-1] + (3, 3))
 
 
@@ -370,9 +377,8 @@ def _index(x, idx):
 
 def select(model, idx):
     """Gaussians ``idx`` (int indices or a boolean mask over N) of a Gaussians or TemporalGaussians."""
-    if isinstance(idx, (np.ndarray, jax.Array)) and idx.dtype == bool:
-        if idx.shape != (len(model),):
-            raise InputError(f"boolean mask of shape {list(idx.shape)} for N={len(model)}", field="select.idx")
+    if isinstance(idx, (np.ndarray, jax.Array)) and idx.dtype == bool and idx.shape != (len(model),):
+        raise InputError(f"boolean mask of shape {list(idx.shape)} for N={len(model)}", field="select.idx")
     return jax.tree_util.tree_map(lambda x: _index(x, idx), model)
 
 

@@ -59,7 +59,9 @@ def describe(path: Path) -> tuple[str, list]:
     if path.is_file() and path.suffix.lower() == ".ply":
         g = cj.io.read_ply(path)
         return f"3DGS model {path} — {len(g):,} Gaussians", [_stats_table("Gaussians", _gaussian_rows(g))]
-    if path.is_dir() and any((path / f).exists() for f in ("model.json", "point_cloud.ply", "activation.ply", "point_cloud")):
+    if path.is_dir() and any(
+        (path / f).exists() for f in ("model.json", "point_cloud.ply", "activation.ply", "point_cloud")
+    ):
         m = cj.io.read_fused(path)
         rows = _gaussian_rows(m.gaussians) + [
             ("o (sigmoid)", np.asarray(cj.opacity_multipliers(m))),
@@ -131,16 +133,23 @@ def _image_pairs(a: Path, b: Path) -> list[tuple[str, Path, Path]]:
     if a.is_file() and b.is_file():
         return [(a.name, a, b)]
     if a.is_dir() and b.is_dir():
+
         def index(d):
             return {f.stem: f for f in sorted(d.iterdir()) if f.suffix.lower() in suffixes}
 
         ia, ib = index(a), index(b)
         common = sorted(set(ia) & set(ib))
         if not common:
-            raise InputError(f"no image names in common with {b}", path=a, fix="compare folders of renders and ground truth with matching file names")
+            raise InputError(
+                f"no image names in common with {b}",
+                path=a,
+                fix="compare folders of renders and ground truth with matching file names",
+            )
         missing = sorted(set(ia) ^ set(ib))
         if missing:
-            logging.getLogger(__name__).warning("%d images present in only one folder (skipped): %s", len(missing), ", ".join(missing[:5]))
+            logging.getLogger(__name__).warning(
+                "%d images present in only one folder (skipped): %s", len(missing), ", ".join(missing[:5])
+            )
         return [(k, ia[k], ib[k]) for k in common]
     raise InputError("compare a file with a file or a folder with a folder", path=a if a.is_dir() else b)
 
@@ -159,13 +168,19 @@ def cmd_metrics(args) -> int:
     for name, pa, pb in track(pairs, description="metrics", transient=True, disable=len(pairs) < 2):
         ia, ib = read_image(pa), read_image(pb)
         if ia.shape != ib.shape:
-            raise InputError(f"size {ia.shape[1]}×{ia.shape[0]} differs from {pb} ({ib.shape[1]}×{ib.shape[0]})", path=pa, fix="compare images of one size")
-        rows.append({
-            "name": name,
-            "psnr": float(metrics.psnr(ia, ib)),
-            "ssim": float(metrics.ssim(ia, ib)),
-            "lpips": float(metrics.lpips(ia, ib, net=args.net)),
-        })  # fmt: skip
+            raise InputError(
+                f"size {ia.shape[1]}×{ia.shape[0]} differs from {pb} ({ib.shape[1]}×{ib.shape[0]})",
+                path=pa,
+                fix="compare images of one size",
+            )
+        rows.append(
+            {
+                "name": name,
+                "psnr": float(metrics.psnr(ia, ib)),
+                "ssim": float(metrics.ssim(ia, ib)),
+                "lpips": float(metrics.lpips(ia, ib, net=args.net)),
+            }
+        )
     mean = {k: float(np.mean([r[k] for r in rows])) for k in ("psnr", "ssim", "lpips")}
     table = Table(title=f"{args.a} vs {args.b}")
     for col in ("image", "PSNR (dB) ↑", "SSIM ↑", f"LPIPS-{args.net} ↓"):
@@ -175,7 +190,9 @@ def cmd_metrics(args) -> int:
     _console().print(table)
     if args.json:
         with atomic_file(args.json) as tmp:
-            Path(tmp).write_text(json.dumps({"net": args.net, "ssim_padding": "same", "mean": mean, "images": rows}, indent=2))
+            Path(tmp).write_text(
+                json.dumps({"net": args.net, "ssim_padding": "same", "mean": mean, "images": rows}, indent=2)
+            )
         _console().print(f"wrote {args.json}")
     return 0
 
@@ -186,9 +203,13 @@ def cmd_synth(args) -> int:
     from cfgs_jax import synthetic
 
     spec = synthetic.make_preset(
-        args.preset, seed=args.seed, width=args.width, height=args.height,
-        images_per_date=args.images_per_date, spp=args.spp,
-    )  # fmt: skip
+        args.preset,
+        seed=args.seed,
+        width=args.width,
+        height=args.height,
+        images_per_date=args.images_per_date,
+        spp=args.spp,
+    )
     t0 = time.perf_counter()
     out = synthetic.render_dataset(spec, args.out)
     n = sum(len(d.cam_from_world) for d in spec.dates)
@@ -225,12 +246,17 @@ def cmd_train(args) -> int:
         config = train.continuation_config(dataclasses.replace(config, steps=args.steps or config.steps))
     elif args.steps:
         config = config.scaled(args.steps)
-    scene = cj.io.read_colmap(args.scene, test_every=max(1, config.test_every), resolution=config.resolution)  # inputs first
+    scene = cj.io.read_colmap(
+        args.scene, test_every=max(1, config.test_every), resolution=config.resolution
+    )  # inputs first
     out = cj.io.ensure_writable_dir(args.out)
     ckpt = out / train.CHECKPOINT
     if ckpt.exists() and not args.resume:
-        raise InputError("this output directory holds a checkpoint of an earlier run", path=ckpt,
-                         fix="pass --resume to continue it, or choose another --out")  # fmt: skip
+        raise InputError(
+            "this output directory holds a checkpoint of an earlier run",
+            path=ckpt,
+            fix="pass --resume to continue it, or choose another --out",
+        )
     console = _console()
     what = f"continuing {args.continue_from} for" if init is not None else "training"
     console.print(
@@ -238,24 +264,40 @@ def cmd_train(args) -> int:
         f"{len(scene.indices('test'))} test views, {len(scene.points):,} SfM points)"
     )
     run = train.fit(
-        scene, config, render_config, init=init, out=out, resume=args.resume, progress=not args.no_progress,
-        stop_after=args.stop_after, evaluate_at_end=not args.no_eval, lpips_net=args.lpips_net,
-    )  # fmt: skip
+        scene,
+        config,
+        render_config,
+        init=init,
+        out=out,
+        resume=args.resume,
+        progress=not args.no_progress,
+        stop_after=args.stop_after,
+        evaluate_at_end=not args.no_eval,
+        lpips_net=args.lpips_net,
+    )
     if not run.finished:
         console.print(f"stopped at step {int(run.state.step):,}; checkpoint in {ckpt} (continue with --resume)")
         return 0
     ply = cj.io.write_ply(out / "point_cloud.ply", run.gaussians)
     inria = write_inria_layout(out, run.gaussians, scene, config.steps)
     report = {
-        "scene": str(scene.root), "steps": config.steps, "gaussians": len(run.gaussians),
-        "seconds_this_session": run.seconds, "final_loss": float(np.mean(run.losses[-50:])),
-        "growth": run.counts, "test": run.metrics, "test_history": run.eval_history, "config": dataclasses.asdict(config),
+        "scene": str(scene.root),
+        "steps": config.steps,
+        "gaussians": len(run.gaussians),
+        "seconds_this_session": run.seconds,
+        "final_loss": float(np.mean(run.losses[-50:])),
+        "growth": run.counts,
+        "test": run.metrics,
+        "test_history": run.eval_history,
+        "config": dataclasses.asdict(config),
         "continued_from": str(args.continue_from) if args.continue_from else None,
-    }  # fmt: skip
+    }
     with cj.io.atomic_file(out / "train.json") as tmp:
         tmp.write_text(json.dumps(report, indent=1))
-    console.print(f"wrote {ply} ({len(run.gaussians):,} Gaussians), {out / 'train.json'} and INRIA's layout "
-                  f"({inria.relative_to(out)}, cameras.json, cfg_args)")
+    console.print(
+        f"wrote {ply} ({len(run.gaussians):,} Gaussians), {out / 'train.json'} and INRIA's layout "
+        f"({inria.relative_to(out)}, cameras.json, cfg_args)"
+    )
     if run.metrics:
         m = run.metrics
         lp = f", LPIPS {m['lpips']:.4f}" if "lpips" in m else ""
@@ -271,11 +313,17 @@ def cmd_fuse(args) -> int:
     raw = _read_config(args)
     console = _console()
     run = run_fusion(
-        [Path(d) for d in args.dates], Path(args.out), raw, models=args.models, resume=args.resume,
-        transforms=Path(args.transforms) if args.transforms else None, captured=args.captured,
+        [Path(d) for d in args.dates],
+        Path(args.out),
+        raw,
+        models=args.models,
+        resume=args.resume,
+        transforms=Path(args.transforms) if args.transforms else None,
+        captured=args.captured,
         progress=not args.no_progress,
-        drop_invalid=args.drop_invalid, log=console.print,
-    )  # fmt: skip
+        drop_invalid=args.drop_invalid,
+        log=console.print,
+    )
     from rich.table import Table
 
     t = Table(title=f"fusion run {run.out}")
@@ -285,7 +333,9 @@ def cmd_fuse(args) -> int:
         t.add_row(stage, f"{sec:.1f}")
     console.print(t)
     rep = run.report.get("refine", {})
-    console.print(f"wrote {run.out / 'fused'} ({rep.get('gaussians_after_prune', '?')} Gaussians) and {run.out / 'reference'}")
+    console.print(
+        f"wrote {run.out / 'fused'} ({rep.get('gaussians_after_prune', '?')} Gaussians) and {run.out / 'reference'}"
+    )
     return 0
 
 
@@ -294,8 +344,9 @@ def cmd_eval(args) -> int:
 
     raw = _read_config(args)
     console = _console()
-    table = run_protocol(args.scene, Path(args.out), raw, resume=args.resume, progress=not args.no_progress,
-                         log=console.print)  # fmt: skip
+    table = run_protocol(
+        args.scene, Path(args.out), raw, resume=args.resume, progress=not args.no_progress, log=console.print
+    )
     from rich.table import Table
 
     t = Table(title=f"evaluation of {args.scene} ({len(table['dates'])} dates)")
@@ -307,8 +358,10 @@ def cmd_eval(args) -> int:
     ch = table.get("change")
     if ch:
         g, p = ch["gaussians"], ch["pixels"]
-        console.print(f"change detection: Gaussians F1 {g['f1']:.3f} (P {g['precision']:.3f}, R {g['recall']:.3f}), "
-                      f"{100 * g['flagged_changed']:.1f} % flagged; pixels IoU {p['iou']:.3f}")  # fmt: skip
+        console.print(
+            f"change detection: Gaussians F1 {g['f1']:.3f} (P {g['precision']:.3f}, R {g['recall']:.3f}), "
+            f"{100 * g['flagged_changed']:.1f} % flagged; pixels IoU {p['iou']:.3f}"
+        )
     console.print(f"wrote {Path(args.out) / 'table.md'}, table.json, figure.png, change_pr.png (with ground truth)")
     return 0
 
@@ -318,8 +371,14 @@ def cmd_sweep(args) -> int:
     from cfgs_jax.evaluation.sweep import run_sweep
 
     console = _console()
-    summary = run_sweep(load_config(find_preset(args.config)), Path(args.out), overrides=args.overrides,
-                        resume=args.resume, progress=not args.no_progress, log=console.print)  # fmt: skip
+    summary = run_sweep(
+        load_config(find_preset(args.config)),
+        Path(args.out),
+        overrides=args.overrides,
+        resume=args.resume,
+        progress=not args.no_progress,
+        log=console.print,
+    )
     from rich.table import Table
 
     t = Table(title=f"sweep on {summary['scene']} ({len(summary['variants'])} variants)")
@@ -327,8 +386,14 @@ def cmd_sweep(args) -> int:
         t.add_column(c, justify="left" if c == "variant" else "right")
     for r in summary["variants"]:
         m, c, tm = r["metrics"], r["change"] or {}, r["timings"]
-        t.add_row(str(r["overrides"] or "base"), f"{m['psnr']:.2f}", f"{m['ssim']:.4f}", f"{m.get('lpips', float('nan')):.4f}",
-                  f"{c['f1']:.3f}" if c else "–", f"{(tm.get('cross_init') or 0) + (tm.get('refine') or 0):.1f}")  # fmt: skip
+        t.add_row(
+            str(r["overrides"] or "base"),
+            f"{m['psnr']:.2f}",
+            f"{m['ssim']:.4f}",
+            f"{m.get('lpips', float('nan')):.4f}",
+            f"{c['f1']:.3f}" if c else "–",
+            f"{(tm.get('cross_init') or 0) + (tm.get('refine') or 0):.1f}",
+        )
     console.print(t)
     console.print(f"wrote {Path(args.out) / 'sweep.md'}, sweep.json, sweep.png")
     return 0
@@ -348,12 +413,19 @@ def cmd_extend(args) -> int:
         except (OSError, KeyError, ValueError, TypeError) as exc:
             raise InputError(f"no usable Sim(3) for date {name!r} ({exc})", path=args.transforms, field=name) from exc
     console = _console()
-    run = run_extend(Path(args.run), Path(args.date), model=Path(args.model) if args.model else None,
-                     transform=transform, captured=args.captured, resume=args.resume, progress=not args.no_progress,
-                     log=console.print)  # fmt: skip
+    run = run_extend(
+        Path(args.run),
+        Path(args.date),
+        model=Path(args.model) if args.model else None,
+        transform=transform,
+        captured=args.captured,
+        resume=args.resume,
+        progress=not args.no_progress,
+        log=console.print,
+    )
     name = Path(args.date).name
     prefix = f"extend:{name}:"
-    stages = [(k[len(prefix):], v) for k, v in run.timings.items() if k.startswith(prefix) and not k.endswith("total")]
+    stages = [(k[len(prefix) :], v) for k, v in run.timings.items() if k.startswith(prefix) and not k.endswith("total")]
     detail = ", ".join(f"{k} {v:.1f} s" for k, v in stages)
     console.print(f"extended {run.out} by {name} in {run.timings.get(prefix + 'total', 0.0):.1f} s ({detail})")
     return 0
@@ -370,8 +442,14 @@ def _selection_style(args):
             raise InputError(f"cannot read {args.contrast!r}", field="--contrast", fix="write k,b e.g. 4,0.5") from None
         contrast = (k, b)
     base = "grey" if args.grey else ("low_contrast" if args.low_contrast else "colour")
-    return SelectionStyle(mode=args.mode, blend="max" if args.max_opacity else "mean", base=base, sigma=args.sigma,
-                          contrast=contrast, stops=parse_stops(args.stops))  # fmt: skip
+    return SelectionStyle(
+        mode=args.mode,
+        blend="max" if args.max_opacity else "mean",
+        base=base,
+        sigma=args.sigma,
+        contrast=contrast,
+        stops=parse_stops(args.stops),
+    )
 
 
 def cmd_render(args) -> int:
@@ -407,7 +485,9 @@ def cmd_export(args) -> int:
     run = open_run(args.run)
     t = parse_selection(args.t, run.names)
     path = export_selection(run, t, _selection_style(args), args.out)
-    _console().print(f"wrote {path}: {len(run.model)} Gaussians, DC-only 3DGS PLY of {args.mode} t={t.astype(int).tolist()}")
+    _console().print(
+        f"wrote {path}: {len(run.model)} Gaussians, DC-only 3DGS PLY of {args.mode} t={t.astype(int).tolist()}"
+    )
     return 0
 
 
@@ -432,12 +512,17 @@ def cmd_presets(args) -> int:
         t.add_column("what it is")
         for name in preset_names():
             lines = find_preset(name).read_text().splitlines()
-            header = [ln.lstrip("#").strip() for ln in lines[: next((i for i, ln in enumerate(lines) if not ln.startswith("#")), len(lines))]]
+            header = [
+                ln.lstrip("#").strip()
+                for ln in lines[: next((i for i, ln in enumerate(lines) if not ln.startswith("#")), len(lines))]
+            ]
             t.add_row(name, " ".join(header))
         _console().print(t)
         return 0
     if args.name.endswith(".toml") or "/" in args.name:
-        raise InputError(f"{args.name!r} is a path, not a preset name", field="name", fix=f"use one of {preset_names()}")
+        raise InputError(
+            f"{args.name!r} is a path, not a preset name", field="name", fix=f"use one of {preset_names()}"
+        )
     text = find_preset(args.name).read_text()
     if args.out:
         write_text(args.out, text)
@@ -454,18 +539,31 @@ def cmd_demo(args) -> int:
     from cfgs_jax.demo import run_demo
 
     console = _console()
-    summary = run_demo(args.out, config=_read_config(args), num_dates=args.dates, width=args.width, height=args.height,
-                       images_per_date=args.images_per_date, resume=args.resume, progress=not args.no_progress,
-                       log=console.print)  # fmt: skip
+    summary = run_demo(
+        args.out,
+        config=_read_config(args),
+        num_dates=args.dates,
+        width=args.width,
+        height=args.height,
+        images_per_date=args.images_per_date,
+        resume=args.resume,
+        progress=not args.no_progress,
+        log=console.print,
+    )
     t = Table(title="test views: individual per-date models vs the fused model")
     for col in ("date", "PSNR indiv.", "PSNR fused", "SSIM indiv.", "SSIM fused", "LPIPS indiv.", "LPIPS fused"):
         t.add_column(col, justify="right")
     for r in summary["metrics"]:
         i, f = r["individual"], r["fused"]
-        t.add_row(r["date"], *(f"{d.get(k, float('nan')):.{n}f}" for k, n in (("psnr", 2), ("ssim", 4), ("lpips", 4)) for d in (i, f)))
+        t.add_row(
+            r["date"],
+            *(f"{d.get(k, float('nan')):.{n}f}" for k, n in (("psnr", 2), ("ssim", 4), ("lpips", 4)) for d in (i, f)),
+        )
     console.print(t)
-    console.print(f"renders per date: {args.out}/renders/<date>/, change highlight: {args.out}/highlight/, "
-                  f"model: {args.out}/run/fused, table: {args.out}/summary.md")  # fmt: skip
+    console.print(
+        f"renders per date: {args.out}/renders/<date>/, change highlight: {args.out}/highlight/, "
+        f"model: {args.out}/run/fused, table: {args.out}/summary.md"
+    )
     console.print(f"total wall time {summary['timings_s']['total']:.0f} s")
     return 0
 
@@ -479,10 +577,21 @@ class _StderrHandler(logging.Handler):
 
 
 COMMANDS = {
-    "inspect": cmd_inspect, "convert": cmd_convert, "metrics": cmd_metrics, "synth": cmd_synth, "train": cmd_train,
-    "fuse": cmd_fuse, "extend": cmd_extend, "eval": cmd_eval, "sweep": cmd_sweep, "render": cmd_render,
-    "export": cmd_export, "view": cmd_view, "presets": cmd_presets, "demo": cmd_demo,
-}  # fmt: skip
+    "inspect": cmd_inspect,
+    "convert": cmd_convert,
+    "metrics": cmd_metrics,
+    "synth": cmd_synth,
+    "train": cmd_train,
+    "fuse": cmd_fuse,
+    "extend": cmd_extend,
+    "eval": cmd_eval,
+    "sweep": cmd_sweep,
+    "render": cmd_render,
+    "export": cmd_export,
+    "view": cmd_view,
+    "presets": cmd_presets,
+    "demo": cmd_demo,
+}
 
 
 def main(argv: list[str] | None = None, *, prog: str | None = None) -> int:

@@ -52,8 +52,14 @@ class SelectionStyle:
     def kwargs(self) -> dict:
         """The keyword arguments of ``viz.selection_terms`` / ``render_selection`` / ``bake``."""
         if self.mode == "highlight":
-            return {"mode": self.blend, "highlight_changes": True, "base": self.base, "sigma": self.sigma,
-                    "contrast": self.contrast, "stops": self.stops}  # fmt: skip
+            return {
+                "mode": self.blend,
+                "highlight_changes": True,
+                "base": self.base,
+                "sigma": self.sigma,
+                "contrast": self.contrast,
+                "stops": self.stops,
+            }
         return {"mode": "max" if self.mode == "max" else "mean"}
 
 
@@ -68,8 +74,11 @@ def parse_selection(text: str, names: list[str]) -> np.ndarray:
     try:
         t = np.asarray([float(p) for p in parts])
     except ValueError:
-        raise InputError(f"cannot read {text!r}", field="--t", fix=f"give one 0/1 per date ({len(names)}), 'all', "
-                         f"or date names from {names}") from None  # fmt: skip
+        raise InputError(
+            f"cannot read {text!r}",
+            field="--t",
+            fix=f"give one 0/1 per date ({len(names)}), 'all', or date names from {names}",
+        ) from None
     if len(t) != len(names):
         raise InputError(f"{len(t)} entries for {len(names)} dates {names}", field="--t", fix="give one 0/1 per date")
     viz.normalize_selection(t)  # binary, not all zero
@@ -107,14 +116,19 @@ class FusedRun:
     def scenes(self) -> list[Scene]:
         """The dates' datasets, split and downscaled as the run used them (every ``test_every``-th image
         is a test view)."""
-        return [read_colmap(path, test_every=self.test_every, resolution=self.resolution) for path in self.dataset_paths]
+        return [
+            read_colmap(path, test_every=self.test_every, resolution=self.resolution) for path in self.dataset_paths
+        ]
 
     def test_cameras(self) -> list[tuple[str, Camera]]:
         """Every date's test views posed in the model's frame, named ``<date>_<image>``."""
         from cfgs_jax.fusion.run import camera_in_frame, split_or_all
 
-        return [(f"{name}_{Path(scene.image_names[int(i)]).stem}", camera_in_frame(scene.cameras[int(i)], sim))
-                for name, scene, sim in zip(self.names, self.scenes, self.sims) for i in split_or_all(scene, "test")]  # fmt: skip
+        return [
+            (f"{name}_{Path(scene.image_names[int(i)]).stem}", camera_in_frame(scene.cameras[int(i)], sim))
+            for name, scene, sim in zip(self.names, self.scenes, self.sims)
+            for i in split_or_all(scene, "test")
+        ]
 
     def all_cameras(self) -> list[Camera]:
         from cfgs_jax.fusion.run import camera_in_frame
@@ -127,8 +141,11 @@ def open_run(run_dir: str | Path) -> FusedRun:
     run_dir = Path(run_dir)
     state_path, reg_path = run_dir / "run.json", run_dir / "register.json"
     if not (run_dir / "fused").is_dir() or not state_path.is_file() or not reg_path.is_file():
-        raise InputError("not a finished fusion run (fused/, run.json, register.json)", path=run_dir,
-                         fix="run `python -m cfgs_jax.pipeline fuse` first, or --resume it")  # fmt: skip
+        raise InputError(
+            "not a finished fusion run (fused/, run.json, register.json)",
+            path=run_dir,
+            fix="run `python -m cfgs_jax.pipeline fuse` first, or --resume it",
+        )
     state = json.loads(state_path.read_text())
     reg = json.loads(reg_path.read_text())
     model = read_fused(run_dir / "fused")
@@ -136,8 +153,15 @@ def open_run(run_dir: str | Path) -> FusedRun:
     if list(model.date_names) != names:
         raise InputError(f"model dates {list(model.date_names)} differ from run dates {names}", path=run_dir / "fused")
     tc = section(state.get("config", {}), "train", TrainConfig)
-    return FusedRun(run_dir, model, names, [Path(d["path"]) for d in state["dates"]],
-                    [Sim3.from_dict(reg[n]["transform"]) for n in names], max(1, tc.test_every), tc.resolution)  # fmt: skip
+    return FusedRun(
+        run_dir,
+        model,
+        names,
+        [Path(d["path"]) for d in state["dates"]],
+        [Sim3.from_dict(reg[n]["transform"]) for n in names],
+        max(1, tc.test_every),
+        tc.resolution,
+    )
 
 
 def orbit_geometry(training: list[Camera]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, float, float]:
@@ -160,7 +184,9 @@ def orbit_geometry(training: list[Camera]) -> tuple[np.ndarray, np.ndarray, np.n
     return target, up, e1, np.cross(up, e1), radius, float(height_along.mean())
 
 
-def orbit_cameras(training: list[Camera], n: int = 24, *, width: int | None = None, height: int | None = None) -> list[tuple[str, Camera]]:
+def orbit_cameras(
+    training: list[Camera], n: int = 24, *, width: int | None = None, height: int | None = None
+) -> list[tuple[str, Camera]]:
     """``n`` cameras on a circle through the training cameras' mean height and distance, around the
     point nearest to all their optical axes, with the mean training 'up'."""
     target, up, e1, e2, radius, h = orbit_geometry(training)
@@ -199,8 +225,17 @@ def legend_strip(names: list[str], t, width: int, *, highlight: bool, stops=viz.
     return np.asarray(img, np.float32) / 255.0
 
 
-def render_views(run: FusedRun, t, style: SelectionStyle, cameras: list[tuple[str, Camera]], out: str | Path, *,
-                 background=(0.0, 0.0, 0.0), legend: bool = True, progress=None) -> list[Path]:  # fmt: skip
+def render_views(
+    run: FusedRun,
+    t,
+    style: SelectionStyle,
+    cameras: list[tuple[str, Camera]],
+    out: str | Path,
+    *,
+    background=(0.0, 0.0, 0.0),
+    legend: bool = True,
+    progress=None,
+) -> list[Path]:
     """Render the selection at every camera: ``<name>.png`` (sRGB, legend below) and ``<name>.exr``
     (linear) under ``out``. Returns the PNG paths."""
     from cfgs_jax import splat
@@ -217,7 +252,13 @@ def render_views(run: FusedRun, t, style: SelectionStyle, cameras: list[tuple[st
         write_image(out / f"{name}.exr", img)
         if legend:
             if strip is None or strip.shape[1] != img.shape[1]:
-                strip = legend_strip(run.names, t, img.shape[1], highlight=style.mode == "highlight", stops=style.stops or viz.DEFAULT_STOPS)
+                strip = legend_strip(
+                    run.names,
+                    t,
+                    img.shape[1],
+                    highlight=style.mode == "highlight",
+                    stops=style.stops or viz.DEFAULT_STOPS,
+                )
             img = np.concatenate([img, strip], axis=0)
         written.append(write_image(out / f"{name}.png", img))
         if progress is not None:

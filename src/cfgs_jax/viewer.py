@@ -38,6 +38,7 @@ def splat_terms(model, t, sigma, k, b, *, mode: str, base: str, stops, use_contr
     colours, mult = style.terms(model, t)
     return jnp.clip(colours, 0.0, 1.0), opacities(model.gaussians) * mult
 
+
 class Viewer:
     """A running viser server showing one fused run; ``settings`` holds the current controls."""
 
@@ -45,8 +46,9 @@ class Viewer:
         try:
             import viser
         except ImportError:
-            raise InputError("viser (the viewer extra) is not installed", field="view",
-                             fix='pip install "cfgs-jax[viewer]"') from None
+            raise InputError(
+                "viser (the viewer extra) is not installed", field="view", fix='pip install "cfgs-jax[viewer]"'
+            ) from None
         self.run = run
         self.server = viser.ViserServer(host="127.0.0.1", port=port, verbose=False)
         self.port = self.server.get_port()
@@ -70,10 +72,22 @@ class Viewer:
         self.status = gui.add_markdown("")
         rgb, alpha = self._terms()
         self.splats = self.server.scene.add_gaussian_splats(
-            "/model", centers=np.asarray(g.means, np.float32), covariances=np.asarray(covariances(g), np.float32),
-            rgbs=rgb, opacities=alpha[:, None],
-        )  # fmt: skip
-        for control in (*self.date_boxes, self.mode, self.grey, self.sigma, self.use_contrast, self.k, self.b, self.gradient):
+            "/model",
+            centers=np.asarray(g.means, np.float32),
+            covariances=np.asarray(covariances(g), np.float32),
+            rgbs=rgb,
+            opacities=alpha[:, None],
+        )
+        for control in (
+            *self.date_boxes,
+            self.mode,
+            self.grey,
+            self.sigma,
+            self.use_contrast,
+            self.k,
+            self.b,
+            self.gradient,
+        ):
             control.on_update(lambda _event: self.update())
 
         @self.server.on_client_connect
@@ -92,9 +106,17 @@ class Viewer:
             self.status.content = "*No date selected: nothing to show.*"
             return np.zeros((n, 3), np.float32), np.zeros(n, np.float32)
         self.status.content = "Selection: " + ", ".join(nm for nm, s in zip(self.run.names, t) if s)
-        rgb, alpha = splat_terms(self.run.model, jnp.asarray(t, jnp.float32), float(self.sigma.value), float(self.k.value),
-                                 float(self.b.value), mode=self.mode.value, base="grey" if self.grey.value else "colour",
-                                 stops=GRADIENTS[self.gradient.value], use_contrast=bool(self.use_contrast.value))  # fmt: skip
+        rgb, alpha = splat_terms(
+            self.run.model,
+            jnp.asarray(t, jnp.float32),
+            float(self.sigma.value),
+            float(self.k.value),
+            float(self.b.value),
+            mode=self.mode.value,
+            base="grey" if self.grey.value else "colour",
+            stops=GRADIENTS[self.gradient.value],
+            use_contrast=bool(self.use_contrast.value),
+        )
         return np.asarray(rgb, np.float32), np.asarray(alpha, np.float32)
 
     def update(self) -> None:

@@ -6,7 +6,7 @@ standard DC-only 3DGS PLY (``bake``). All of it is differentiable (``jax.grad`` 
 and the kernel w.r.t. the opacity multipliers o works) and jit-able; ``o`` and ``S`` are plain arrays
 (last axis dates / RGB), so research code can call the math without a model.
 
-Conventions (DESIGN §6):
+Conventions:
 - ``t`` is a binary time selection [T]; t̂ = t / Σt. ``normalize_selection`` rejects an all-zero or
   non-binary ``t`` with a ``ValueError`` when it is concrete; inside ``jit`` (a traced ``t``) nothing
   can be checked, and an all-zero selection yields t̂ = 0 — every opacity 0, S = 0, the background —
@@ -31,9 +31,18 @@ from jaxtyping import Array, Float
 
 from cfgs_jax import colour
 from cfgs_jax.errors import InputError
-from cfgs_jax.model import Gaussians, TemporalGaussians, light_multipliers, logit, opacities, opacity_multipliers, rgb
+from cfgs_jax.model import (
+    Gaussians,
+    TemporalGaussians,
+    is_traced,
+    light_multipliers,
+    logit,
+    opacities,
+    opacity_multipliers,
+    rgb,
+)
 
-#: The authors' "blue-red" gradient (linear RGB): blue → magenta → orange (DESIGN §6).
+#: The authors' "blue-red" gradient (linear RGB): blue → magenta → orange.
 DEFAULT_STOPS: tuple[tuple[float, float, float], ...] = ((0.10, 0.074, 1.0), (1.0, 0.347, 0.731), (1.0, 0.347, 0.0))
 #: σ of the λ filter functions (Eq. 7) used in the authors' renderer.
 DEFAULT_SIGMA = 0.18
@@ -44,20 +53,22 @@ Mode = Literal["mean", "max"]
 Base = Literal["colour", "grey", "low_contrast"]
 
 
-def _is_traced(x) -> bool:
-    return isinstance(x, jax.core.Tracer)
-
-
-def normalize_selection(t: Float[Array, "T"]) -> Float[Array, "T"]:
+def normalize_selection(t: Float[Array, " T"]) -> Float[Array, " T"]:
     """t̂ = t / Σt (§Multi-Temporal Rendering); a concrete all-zero or non-binary t raises ValueError."""
-    if not _is_traced(t):
+    if not is_traced(t):
         arr = np.asarray(t, np.float64)
         if arr.ndim != 1 or arr.size == 0:
-            raise InputError(f"expected a 1-D vector with one entry per date, got shape {list(arr.shape)}", field="t",
-                             fix="pass e.g. t=[1, 0, 1]")  # fmt: skip
+            raise InputError(
+                f"expected a 1-D vector with one entry per date, got shape {list(arr.shape)}",
+                field="t",
+                fix="pass e.g. t=[1, 0, 1]",
+            )
         if not np.all((arr == 0) | (arr == 1)):
-            raise InputError(f"must be binary (0 or 1 per date), got {arr.tolist()}", field="t",
-                             fix="select dates with 1 and leave the others 0")  # fmt: skip
+            raise InputError(
+                f"must be binary (0 or 1 per date), got {arr.tolist()}",
+                field="t",
+                fix="select dates with 1 and leave the others 0",
+            )
         if not arr.any():
             raise InputError("selects no date (all zero)", field="t", fix="set at least one entry to 1")
     t = jnp.asarray(t)
@@ -67,11 +78,14 @@ def normalize_selection(t: Float[Array, "T"]) -> Float[Array, "T"]:
 
 def _check_dates(o, t_hat):
     if o.shape[-1] != t_hat.shape[-1]:
-        raise InputError(f"o has {o.shape[-1]} dates but t has {t_hat.shape[-1]}", field="t",
-                         fix="give one selection entry per date of the model")  # fmt: skip
+        raise InputError(
+            f"o has {o.shape[-1]} dates but t has {t_hat.shape[-1]}",
+            field="t",
+            fix="give one selection entry per date of the model",
+        )
 
 
-def selection_opacity(o: Float[Array, "N T"], t: Float[Array, "T"], mode: Mode = "mean") -> Float[Array, "N"]:
+def selection_opacity(o: Float[Array, "N T"], t: Float[Array, " T"], mode: Mode = "mean") -> Float[Array, " N"]:
     """The opacity multiplier of a selection: o·t̂ (Eq. 4) or max(o ⊙ t) (its max variant)."""
     t_hat = normalize_selection(t)
     o = jnp.asarray(o)
@@ -83,7 +97,9 @@ def selection_opacity(o: Float[Array, "N T"], t: Float[Array, "T"], mode: Mode =
     raise InputError(f"unknown mode {mode!r}", field="mode", fix='use "mean" or "max"')
 
 
-def blend(model: TemporalGaussians, t: Float[Array, "T"], mode: Mode = "mean") -> tuple[Float[Array, "N 3"], Float[Array, "N"]]:
+def blend(
+    model: TemporalGaussians, t: Float[Array, " T"], mode: Mode = "mean"
+) -> tuple[Float[Array, "N 3"], Float[Array, " N"]]:
     """Per-Gaussian (colour, opacity) of a time selection (Eq. 4): ((l·t̂) ⊙ c, α·(o·t̂)) or, for
     ``mode="max"``, opacity α·max(o ⊙ t)."""
     t_hat = normalize_selection(t)
@@ -93,7 +109,9 @@ def blend(model: TemporalGaussians, t: Float[Array, "T"], mode: Mode = "mean") -
     return light * rgb(model.gaussians), opacities(model.gaussians) * selection_opacity(o, t, mode)
 
 
-def lambda_integrals(a: Float[Array, "..."], b: Float[Array, "..."], sigma: float = DEFAULT_SIGMA) -> Float[Array, "... 3"]:
+def lambda_integrals(
+    a: Float[Array, " ..."], b: Float[Array, " ..."], sigma: float = DEFAULT_SIGMA
+) -> Float[Array, "... 3"]:
     """∫_a^b λ(x) dx of Eq. 7 in closed form: λ = [2·N(0, σ), N(0.5, σ), 2·N(1, σ)] (N a normal pdf)."""
     a, b = jnp.asarray(a), jnp.asarray(b)
     dtype = jnp.result_type(a, b, float)
@@ -105,7 +123,7 @@ def lambda_integrals(a: Float[Array, "..."], b: Float[Array, "..."], sigma: floa
     return 0.5 * weights * (upper - lower)
 
 
-def contrast_sigmoid(x: Float[Array, "..."], k: float, b: float) -> Float[Array, "..."]:
+def contrast_sigmoid(x: Float[Array, " ..."], k: float, b: float) -> Float[Array, " ..."]:
     """φ(x) = x^k / (x^k + ((1 − b)/b · (1 − x))^k) (Eq. 8), evaluated in logit form; φ(1 − b) = 0.5."""
     x = jnp.asarray(x)
     eps = jnp.finfo(jnp.result_type(x, float)).eps
@@ -113,8 +131,14 @@ def contrast_sigmoid(x: Float[Array, "..."], k: float, b: float) -> Float[Array,
     return jax.nn.sigmoid(k * (jnp.log(xc) - jnp.log1p(-xc) - jnp.log((1 - b) / b)))
 
 
-def persistence_filter(o: Float[Array, "N T"], t: Float[Array, "T"], *, sigma: float = DEFAULT_SIGMA, normalize: bool = True,
-                       contrast: tuple[float, float] | None = None) -> Float[Array, "N 3"]:  # fmt: skip
+def persistence_filter(
+    o: Float[Array, "N T"],
+    t: Float[Array, " T"],
+    *,
+    sigma: float = DEFAULT_SIGMA,
+    normalize: bool = True,
+    contrast: tuple[float, float] | None = None,
+) -> Float[Array, "N 3"]:
     """S_i = Σ_p t_p (o_i^p + 1 − max(o_i ⊙ t)) ∫_{T_p}^{T_{p+1}} λ (Eq. 6), T_p = Σ_{k<p} t̂_k.
 
     ``o`` are activated opacity multipliers; ``contrast=(k, b)`` applies φ (Eq. 8) to o first;
@@ -123,15 +147,18 @@ def persistence_filter(o: Float[Array, "N T"], t: Float[Array, "T"], *, sigma: f
     t_hat = normalize_selection(t)
     o = jnp.asarray(o)
     _check_dates(o, t_hat)
-    if not _is_traced(sigma) and not (np.isfinite(sigma) and sigma > 0):
-        raise InputError(f"sigma must be a positive finite number, got {sigma}", field="sigma",
-                         fix=f"use e.g. the authors' {DEFAULT_SIGMA}")  # fmt: skip
+    if not is_traced(sigma) and not (np.isfinite(sigma) and sigma > 0):
+        raise InputError(
+            f"sigma must be a positive finite number, got {sigma}",
+            field="sigma",
+            fix=f"use e.g. the authors' {DEFAULT_SIGMA}",
+        )
     dtype = jnp.result_type(o, float)
     o = o.astype(dtype)
     t_hat = t_hat.astype(dtype)
     if contrast is not None:
         k, b = contrast
-        if not (_is_traced(k) or _is_traced(b)) and not (np.isfinite(k) and k > 0 and 0 < b < 1):
+        if not (is_traced(k) or is_traced(b)) and not (np.isfinite(k) and k > 0 and 0 < b < 1):
             raise InputError(f"contrast=(k, b) needs a finite k > 0 and 0 < b < 1, got {contrast}", field="contrast")
         o = contrast_sigmoid(o, k, b)
     selected = (t_hat > 0).astype(dtype)
@@ -144,13 +171,13 @@ def persistence_filter(o: Float[Array, "N T"], t: Float[Array, "T"], *, sigma: f
     return shifted @ integrals
 
 
-def _hsv_saturation(x: Float[Array, "... 3"]) -> Float[Array, "..."]:
+def _hsv_saturation(x: Float[Array, "... 3"]) -> Float[Array, " ..."]:
     hi = jnp.max(x, axis=-1)
     return jnp.where(hi > 0, (hi - jnp.min(x, axis=-1)) / jnp.where(hi > 0, hi, 1), 0)
 
 
 def _validate_stops(stops) -> jnp.ndarray:
-    if _is_traced(stops):
+    if is_traced(stops):
         return stops
     arr = np.asarray(stops, np.float64)
     if arr.ndim != 2 or arr.shape[1] != 3 or arr.shape[0] < 2:
@@ -160,7 +187,9 @@ def _validate_stops(stops) -> jnp.ndarray:
     return jnp.asarray(stops)
 
 
-def remap_to_gradient(S: Float[Array, "... 3"], stops: Sequence[Sequence[float]] = DEFAULT_STOPS) -> Float[Array, "... 3"]:
+def remap_to_gradient(
+    S: Float[Array, "... 3"], stops: Sequence[Sequence[float]] = DEFAULT_STOPS
+) -> Float[Array, "... 3"]:
     """Re-express the direction of S in a colour gradient (Eq. 9, §Custom Highlight Colors).
 
     Ŝ = S/|S|₁, ρ = (Ŝ₂/2 + Ŝ₃)(N − 1), γ̃ = the stops linearly interpolated at ρ; γ̃'s HSV
@@ -188,10 +217,18 @@ def remap_to_gradient(S: Float[Array, "... 3"], stops: Sequence[Sequence[float]]
     return desaturated * norm / jnp.sum(desaturated, axis=-1, keepdims=True)
 
 
-def highlight(model: TemporalGaussians, t: Float[Array, "T"], *, mode: Mode = "mean", base: Base = "colour",
-              sigma: float = DEFAULT_SIGMA, normalize: bool = True, contrast: tuple[float, float] | None = None,
-              stops: Sequence[Sequence[float]] | None = DEFAULT_STOPS,
-              low_contrast_scale: float = 0.5) -> tuple[Float[Array, "N 3"], Float[Array, "N"]]:  # fmt: skip
+def highlight(
+    model: TemporalGaussians,
+    t: Float[Array, " T"],
+    *,
+    mode: Mode = "mean",
+    base: Base = "colour",
+    sigma: float = DEFAULT_SIGMA,
+    normalize: bool = True,
+    contrast: tuple[float, float] | None = None,
+    stops: Sequence[Sequence[float]] | None = DEFAULT_STOPS,
+    low_contrast_scale: float = 0.5,
+) -> tuple[Float[Array, "N 3"], Float[Array, " N"]]:
     """Per-Gaussian (colour, opacity) of the change highlight H(t) (Eq. 5): colour B ⊙ S' in linear RGB,
     B the blend colour (Eq. 4; or its Rec.709 grey, or a reduced-contrast version), S' the persistence
     filter (Eq. 6) remapped to ``stops`` (Eq. 9; ``stops=None`` keeps the full-RGB filter)."""
@@ -218,7 +255,9 @@ def date_colours(num_dates: int, stops: Sequence[Sequence[float]] = DEFAULT_STOP
     return np.asarray(colour.linear_to_srgb(S))
 
 
-def selection_terms(model: TemporalGaussians, t, *, mode: Mode = "mean", highlight_changes: bool = False, **highlight_kwargs):
+def selection_terms(
+    model: TemporalGaussians, t, *, mode: Mode = "mean", highlight_changes: bool = False, **highlight_kwargs
+):
     """(colours [N,3], opacity multipliers [N]) to render a selection with the kernel: the colours replace
     the Gaussians' own, the multiplier scales their α (Eq. 4 / Eq. 5)."""
     if highlight_changes:
@@ -228,8 +267,17 @@ def selection_terms(model: TemporalGaussians, t, *, mode: Mode = "mean", highlig
     return colours, selection_opacity(opacity_multipliers(model), t, mode)
 
 
-def render_selection(model: TemporalGaussians, camera, t, *, mode: Mode = "mean", highlight_changes: bool = False,
-                     background=(0.0, 0.0, 0.0), config=None, **highlight_kwargs):  # fmt: skip
+def render_selection(
+    model: TemporalGaussians,
+    camera,
+    t,
+    *,
+    mode: Mode = "mean",
+    highlight_changes: bool = False,
+    background=(0.0, 0.0, 0.0),
+    config=None,
+    **highlight_kwargs,
+):
     """Render a time selection (Eq. 4) or its change highlight (Eq. 5) with the splatting kernel.
 
     Gaussians whose selected opacity is 0 (dates with t_p = 0) are culled before binning, so they cost
@@ -242,11 +290,13 @@ def render_selection(model: TemporalGaussians, camera, t, *, mode: Mode = "mean"
     return splat.render(g, camera, opacity_mult=mult, background=background, config=config, statistics=False)
 
 
-def bake(model: TemporalGaussians, t, *, mode: Mode = "mean", highlight_changes: bool = False, **highlight_kwargs) -> Gaussians:
+def bake(
+    model: TemporalGaussians, t, *, mode: Mode = "mean", highlight_changes: bool = False, **highlight_kwargs
+) -> Gaussians:
     """A standard single-date ``Gaussians`` showing the selection/highlight: colours replaced, α·m baked
-    into the opacity logit (α·m clipped into [1e-7, 1 − 1e-7]: below the kernel's 1/255 skip and above
-its 0.99 clamp, so nothing visible changes). Writing it with
-    ``io.write_ply`` gives a DC-only 3DGS PLY any viewer opens."""
+        into the opacity logit (α·m clipped into [1e-7, 1 − 1e-7]: below the kernel's 1/255 skip and above
+    its 0.99 clamp, so nothing visible changes). Writing it with
+        ``io.write_ply`` gives a DC-only 3DGS PLY any viewer opens."""
     colours, mult = selection_terms(model, t, mode=mode, highlight_changes=highlight_changes, **highlight_kwargs)
     alpha = opacities(model.gaussians) * mult
     g = model.gaussians

@@ -11,11 +11,10 @@ import jax.numpy as jnp
 import numpy as np
 from hypothesis import example, given
 from hypothesis import strategies as st
+from test_splat import BG, _loss_fast, assert_matches_reference, reference_image
 
 import cfgs_jax as cj
 from cfgs_jax import splat
-
-from test_splat import BG, _loss_fast, assert_matches_reference, reference_image  # noqa: E402  (tests/ is on sys.path: rootdir conftest)
 
 N = 48
 W, H = 24, 20
@@ -53,7 +52,9 @@ def extreme_scenes(draw, n=N):
     tan_x = W / (2.0 * float(cam.fx))
     tan_y = H / (2.0 * float(cam.fy))
     side = rng.choice([-1.0, 1.0], (c - b, 2))
-    means[b:c] = eye + fwd * d + (right * side[:, :1] * tan_x + up * side[:, 1:] * tan_y * rng.uniform(0, 1, (c - b, 1))) * d
+    means[b:c] = (
+        eye + fwd * d + (right * side[:, :1] * tan_x + up * side[:, 1:] * tan_y * rng.uniform(0, 1, (c - b, 1))) * d
+    )
     base = rng.uniform(lo, hi, (n, 1))
     logs = np.clip(base + rng.uniform(-0.5, 0.5, (n, 3)) * anisotropy, LOG_1E_6, LOG_1E4)
     quats = rng.normal(size=(n, 4))
@@ -100,10 +101,19 @@ def test_extreme_scenes_are_finite_and_match_the_float64_reference(scene):
     _assert_finite_result(res)
     assert not bool(res.overflowed)
     for d in range(T):
-        one = splat.render(cj.Gaussians(g.means, g.quats, g.log_scales, g.opacity_logits, g.colors * cm[d]), cam,
-                           background=BG, opacity_mult=om[d])  # fmt: skip
-        assert_matches_reference(one.image, cj.Gaussians(g.means, g.quats, g.log_scales, g.opacity_logits,
-                                                         g.colors * cm[d]), cam, om=om[d], max_tie_fraction=1.0)  # fmt: skip
+        one = splat.render(
+            cj.Gaussians(g.means, g.quats, g.log_scales, g.opacity_logits, g.colors * cm[d]),
+            cam,
+            background=BG,
+            opacity_mult=om[d],
+        )
+        assert_matches_reference(
+            one.image,
+            cj.Gaussians(g.means, g.quats, g.log_scales, g.opacity_logits, g.colors * cm[d]),
+            cam,
+            om=om[d],
+            max_tie_fraction=1.0,
+        )
         np.testing.assert_allclose(np.asarray(res.image[d]), np.asarray(one.image), atol=2e-6)
     _assert_finite_gradients(_all_gradients(g, om, cm, cam))
 
@@ -119,10 +129,14 @@ def test_coincident_identical_gaussians(copies, log_scale, logit, seed):
     float32 tie (explained by the nudged-threshold reference), not a kernel error, so ties may cover
     any number of pixels here; each one must still be explained."""
     rng = np.random.default_rng(seed)
-    one = np.concatenate([rng.uniform(-0.3, 0.3, 3), rng.normal(size=4), np.full(3, log_scale), [logit], rng.uniform(0, 1, 3)])
+    one = np.concatenate(
+        [rng.uniform(-0.3, 0.3, 3), rng.normal(size=4), np.full(3, log_scale), [logit], rng.uniform(0, 1, 3)]
+    )
     rows = np.repeat(one[None], N, 0)
     rows[copies:, :3] = [0.0, -10.0, 0.0]  # the unused rows sit behind the camera
-    g = cj.Gaussians(*(np.asarray(x, np.float32) for x in (rows[:, :3], rows[:, 3:7], rows[:, 7:10], rows[:, 10], rows[:, 11:])))
+    g = cj.Gaussians(
+        *(np.asarray(x, np.float32) for x in (rows[:, :3], rows[:, 3:7], rows[:, 7:10], rows[:, 10], rows[:, 11:]))
+    )
     cam = _camera()
     r = splat.render(g, cam, background=BG)
     _assert_finite_result(r)
@@ -157,17 +171,24 @@ def test_huge_n_tiny_image_and_tiny_n_large_image():
     rng = np.random.default_rng(4)
     n = 20_000
     g = cj.Gaussians(
-        rng.uniform(-1, 1, (n, 3)).astype(np.float32), rng.normal(size=(n, 4)).astype(np.float32),
-        rng.normal(-3.0, 1.0, (n, 3)).astype(np.float32), rng.normal(0, 3, n).astype(np.float32),
+        rng.uniform(-1, 1, (n, 3)).astype(np.float32),
+        rng.normal(size=(n, 4)).astype(np.float32),
+        rng.normal(-3.0, 1.0, (n, 3)).astype(np.float32),
+        rng.normal(0, 3, n).astype(np.float32),
         rng.uniform(0, 1, (n, 3)).astype(np.float32),
-    )  # fmt: skip
+    )
     tiny = _camera(3, 2)
     r = splat.render(g, tiny, background=BG)
     _assert_finite_result(r)
     assert_matches_reference(r.image, g, tiny)
     _assert_finite_gradients(_all_gradients(g, np.ones((1, n), np.float32), np.ones((1, n, 3), np.float32), tiny))
 
-    single = cj.Gaussians(*(np.asarray(x, np.float32)[None] for x in ([0.1, 0.0, 0.2], [0.9, 0.1, 0.3, 0.2], [-1.5, -2.0, -1.0], 2.0, [0.9, 0.4, 0.1])))
+    single = cj.Gaussians(
+        *(
+            np.asarray(x, np.float32)[None]
+            for x in ([0.1, 0.0, 0.2], [0.9, 0.1, 0.3, 0.2], [-1.5, -2.0, -1.0], 2.0, [0.9, 0.4, 0.1])
+        )
+    )
     big = _camera(640, 480)
     r = splat.render(single, big, background=BG)
     _assert_finite_result(r)
@@ -181,10 +202,12 @@ def test_huge_n_tiny_image_and_tiny_n_large_image():
 def test_up_to_sixteen_dates_equal_single_renders(dates, seed):
     rng = np.random.default_rng(seed)
     g = cj.Gaussians(
-        rng.uniform(-1, 1, (N, 3)).astype(np.float32), rng.normal(size=(N, 4)).astype(np.float32),
-        rng.normal(-2.0, 0.5, (N, 3)).astype(np.float32), rng.normal(0, 2, N).astype(np.float32),
+        rng.uniform(-1, 1, (N, 3)).astype(np.float32),
+        rng.normal(size=(N, 4)).astype(np.float32),
+        rng.normal(-2.0, 0.5, (N, 3)).astype(np.float32),
+        rng.normal(0, 2, N).astype(np.float32),
         rng.uniform(0, 1, (N, 3)).astype(np.float32),
-    )  # fmt: skip
+    )
     om = rng.uniform(0, 1, (dates, N)).astype(np.float32)
     om[rng.uniform(size=(dates, N)) < 0.3] = 0.0  # some Gaussians absent at some dates
     cm = rng.uniform(0.3, 2.0, (dates, N, 3)).astype(np.float32)
@@ -192,8 +215,12 @@ def test_up_to_sixteen_dates_equal_single_renders(dates, seed):
     res = splat.render_dates(g, cam, om, cm, background=BG)
     _assert_finite_result(res)
     for d in range(dates):
-        one = splat.render(cj.Gaussians(g.means, g.quats, g.log_scales, g.opacity_logits, g.colors * cm[d]), cam,
-                           background=BG, opacity_mult=om[d])  # fmt: skip
+        one = splat.render(
+            cj.Gaussians(g.means, g.quats, g.log_scales, g.opacity_logits, g.colors * cm[d]),
+            cam,
+            background=BG,
+            opacity_mult=om[d],
+        )
         np.testing.assert_allclose(np.asarray(res.image[d]), np.asarray(one.image), atol=2e-6)
     _assert_finite_gradients(_all_gradients(g, om, cm, cam))
 
@@ -205,8 +232,13 @@ def test_a_float32_depth_tie_is_composited_in_float32_order():
     everywhere both cover — a tie, not an error (the case the thorough profile found)."""
     cam = cj.Camera.look_at([0, -4, 0], [0, 0, 0], width=W, height=H, fov_x_deg=50)
     means = np.float32([[0.0, 1e-8, 0.0], [0.0, 0.0, 0.0]])  # row 0 is farther in float64 only
-    g = cj.Gaussians(means, np.float32([[1, 0, 0, 0]] * 2), np.zeros((2, 3), np.float32), np.full(2, 4.0, np.float32),
-                     np.float32([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]))  # fmt: skip
+    g = cj.Gaussians(
+        means,
+        np.float32([[1, 0, 0, 0]] * 2),
+        np.zeros((2, 3), np.float32),
+        np.full(2, 4.0, np.float32),
+        np.float32([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]),
+    )
     z32 = np.asarray(splat.project(g.means, g.quats, g.log_scales, cam, splat.RenderConfig()).depths)
     assert z32[0] == z32[1]
     fast = np.asarray(splat.render(g, cam, background=BG).image, np.float64)

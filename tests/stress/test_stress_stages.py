@@ -9,14 +9,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from test_colmap import make_dataset
+from test_ply import _full_layout_fields, _write_raw
 
 import cfgs_jax as cj
 from cfgs_jax import InputError, fusion, splat
 from cfgs_jax.fusion.fuse import INVISIBLE_LOGIT
 from cfgs_jax.io import read_colmap, read_ply
-
-from test_colmap import make_dataset  # noqa: E402  (tests/ is on sys.path: rootdir conftest)
-from test_ply import _full_layout_fields, _write_raw  # noqa: E402
 
 ci = importlib.import_module("cfgs_jax.fusion.cross_init")  # the package exports a function of that name
 
@@ -26,13 +25,20 @@ def _blobs(n_side=5, z=0.0, seed=0):
     means = np.c_[xs.ravel(), ys.ravel(), np.full(xs.size, z)].astype(np.float32)
     n = len(means)
     colours = np.random.default_rng(seed).uniform(0.3, 0.8, (n, 3)).astype(np.float32)
-    return cj.Gaussians(means, np.tile(np.float32([1, 0, 0, 0]), (n, 1)), np.full((n, 3), np.log(0.08), np.float32),
-                        np.full(n, 2.0, np.float32), colours)  # fmt: skip
+    return cj.Gaussians(
+        means,
+        np.tile(np.float32([1, 0, 0, 0]), (n, 1)),
+        np.full((n, 3), np.log(0.08), np.float32),
+        np.full(n, 2.0, np.float32),
+        colours,
+    )
 
 
 def _cameras():
-    return tuple(cj.Camera.look_at([x, -0.2, -3.0], [0, 0, 0], up=(0, -1, 0), width=48, height=32, fov_x_deg=60)
-                 for x in (-0.4, 0.4))  # fmt: skip
+    return tuple(
+        cj.Camera.look_at([x, -0.2, -3.0], [0, 0, 0], up=(0, -1, 0), width=48, height=32, fov_x_deg=60)
+        for x in (-0.4, 0.4)
+    )
 
 
 def test_a_date_with_no_registered_image_is_a_clear_error(tmp_path):
@@ -52,7 +58,9 @@ def test_a_date_with_no_registered_image_is_a_clear_error(tmp_path):
 
 def test_a_date_invisible_from_every_camera_of_the_other_is_skipped():
     g = _blobs()
-    behind = cj.Gaussians(g.means + np.float32([0, 0, -6.0]), g.quats, g.log_scales, g.opacity_logits, g.colors)  # behind the cameras
+    behind = cj.Gaussians(
+        g.means + np.float32([0, 0, -6.0]), g.quats, g.log_scales, g.opacity_logits, g.colors
+    )  # behind the cameras
     model = fusion.merge([behind, g], ["p", "q"])
     cams = _cameras()
     images = tuple(np.asarray(splat.render(g, c).image) for c in cams)
@@ -83,7 +91,9 @@ def test_all_black_images_give_finite_parameters_and_are_explained():
     off, rep_off = ci.init_pair(model, 0, 1, ci.DateViews(cams, black), dataclasses.replace(cfg, exposure_range_ev=0.0))
     assert np.asarray(cj.opacity_multipliers(off))[:n, 1].mean() < cfg.delta  # at gain 1 only "absent" explains black
     views = [ci.DateViews(cams, black), ci.DateViews(cams, black)]
-    refined, rep = fusion.refine(out, views, fusion.RefineConfig(steps=8, visibility_interval=4, checkpoint_every=4), extent=1.0)
+    refined, rep = fusion.refine(
+        out, views, fusion.RefineConfig(steps=8, visibility_interval=4, checkpoint_every=4), extent=1.0
+    )
     for leaf in jax.tree_util.tree_leaves(refined):
         if hasattr(leaf, "dtype") and jnp.issubdtype(leaf.dtype, jnp.floating):
             assert np.isfinite(np.asarray(leaf)).all()
@@ -98,7 +108,18 @@ def test_fusing_one_date_is_the_identity_with_a_warning(tmp_path, capsys):
     _write_raw(tmp_path / "m.ply", fields)
     out = tmp_path / "run"
     with pytest.warns(UserWarning, match="single date"):
-        rc = main(["fuse", "--dates", str(tmp_path / "d0"), "--models", str(tmp_path / "m.ply"), "--out", str(out), "--no-progress"])
+        rc = main(
+            [
+                "fuse",
+                "--dates",
+                str(tmp_path / "d0"),
+                "--models",
+                str(tmp_path / "m.ply"),
+                "--out",
+                str(out),
+                "--no-progress",
+            ]
+        )
     assert rc == 0
     assert "single date" in capsys.readouterr().out
     given = read_ply(tmp_path / "m.ply")
@@ -112,5 +133,7 @@ def test_fusing_one_date_is_the_identity_with_a_warning(tmp_path, capsys):
     assert report["cross_init"]["skipped"] and report["refine"]["skipped"]
     cam = read_colmap(tmp_path / "d0").cameras[0]
     a = splat.render(given, cam).image
-    b = splat.render_dates(fused.gaussians, cam, cj.opacity_multipliers(fused).T, jnp.moveaxis(cj.light_multipliers(fused), 1, 0)).image[0]
+    b = splat.render_dates(
+        fused.gaussians, cam, cj.opacity_multipliers(fused).T, jnp.moveaxis(cj.light_multipliers(fused), 1, 0)
+    ).image[0]
     assert np.array_equal(np.asarray(a), np.asarray(b))

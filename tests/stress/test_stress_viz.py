@@ -19,7 +19,7 @@ from hypothesis import strategies as st
 import cfgs_jax as cj
 from cfgs_jax import InputError, viz
 
-from conftest import random_temporal  # noqa: E402  (tests/conftest.py)
+from conftest import random_temporal
 
 N = 16
 
@@ -65,7 +65,9 @@ def _model_with(o):
     return cj.TemporalGaussians(m.gaussians, jnp.asarray(logits, jnp.float32), m.light_logits, m.origin, m.dates)
 
 
-@given(st.integers(1, 6).flatmap(lambda t: st.tuples(opacity_regimes(t), selections(t))), sigmas, contrasts, stops_strategy)
+@given(
+    st.integers(1, 6).flatmap(lambda t: st.tuples(opacity_regimes(t), selections(t))), sigmas, contrasts, stops_strategy
+)
 def test_filter_remap_and_highlight_are_finite_with_defined_edge_behaviour(case, sigma, contrast, stops):
     (o, regime), t = case
     S = np.asarray(viz.persistence_filter(jnp.asarray(o), t, sigma=sigma, contrast=contrast))

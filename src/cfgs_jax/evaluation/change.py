@@ -1,4 +1,4 @@
-"""Change detection against ground truth (beyond the paper; DESIGN §7).
+"""Change detection against ground truth (beyond the paper).
 
 Per Gaussian: which ground-truth label (object id, or "changed vs date q") a Gaussian belongs to is
 decided by its *dominant contribution* in its own date's training views: the sum over pixels of its
@@ -49,7 +49,7 @@ from cfgs_jax.model import Camera, Gaussians, TemporalGaussians, light_multiplie
 class ChangeConfig:
     """Thresholds: τ on o^q (absent below), the per-pixel |S − 1| score, and the visibility rule.
 
-    τ = 0.2 is issue 7's "absent" bound, and lies well below the cross-init's uninformed start
+    τ = 0.2 is the "absent" bound of the cross-init checks (``benchmarks/bench_cross_init.py``), and lies well below the cross-init's uninformed start
     δ·o^p (δ = 0.8 by default): a Gaussian counts as absent only where the images moved o^q away from
     that start, not where it got no signal and drifted around it. The pixel threshold 0.8 is the same decision
     for a Gaussian present at p (o^p = 1): for the selection {p, q}, S ≈ [1, (1 + o^q)/2, o^q], so
@@ -71,7 +71,9 @@ class ChangeConfig:
 
 
 @functools.partial(jax.jit, static_argnames=("config",))
-def _weights_on_masks(g: Gaussians, camera: Camera, opacity: Float[Array, "N"], masks: Float[Array, "M H W 3"], config):
+def _weights_on_masks(
+    g: Gaussians, camera: Camera, opacity: Float[Array, " N"], masks: Float[Array, "M H W 3"], config
+):
     n = len(g)
     ones = dataclasses.replace(g, colors=jnp.ones_like(g.colors))
     m = masks.shape[0]
@@ -83,9 +85,15 @@ def _weights_on_masks(g: Gaussians, camera: Camera, opacity: Float[Array, "N"], 
     return jax.grad(weighted)(jnp.ones((m, n, 3), masks.dtype))  # [M, N, 3]: Σ_pixels w_i·mask
 
 
-def contribution_per_label(g: Gaussians, opacity: Float[Array, "N"], cameras: Sequence[Camera],
-                           label_images: Sequence[np.ndarray], num_labels: int, *,
-                           render_config: splat.RenderConfig | None = None) -> np.ndarray:  # fmt: skip
+def contribution_per_label(
+    g: Gaussians,
+    opacity: Float[Array, " N"],
+    cameras: Sequence[Camera],
+    label_images: Sequence[np.ndarray],
+    num_labels: int,
+    *,
+    render_config: splat.RenderConfig | None = None,
+) -> np.ndarray:
     """[N, K] float64: Σ over views and pixels of w_i = α_i·opacity_i·T_i on pixels whose label is k.
 
     ``label_images[v]`` is an [H, W] integer image in 0..K−1 for ``cameras[v]`` (other values ignored).
@@ -96,8 +104,11 @@ def contribution_per_label(g: Gaussians, opacity: Float[Array, "N"], cameras: Se
     for cam, labels in zip(cameras, label_images):
         labels = np.asarray(labels)
         if labels.shape != (int(cam.height), int(cam.width)):
-            raise InputError(f"label image {labels.shape} for a {int(cam.width)}×{int(cam.height)} camera",
-                             field="label_images", fix="give one [H, W] label image per camera")  # fmt: skip
+            raise InputError(
+                f"label image {labels.shape} for a {int(cam.width)}×{int(cam.height)} camera",
+                field="label_images",
+                fix="give one [H, W] label image per camera",
+            )
         onehot = (labels[None, ..., None] == np.arange(groups * 3).reshape(groups, 1, 1, 3)).astype(np.float32)
         cap = splat.required_capacity(g, cam, jnp.broadcast_to(opacity, (1, len(g))), config=rc)  # bucketed
         cfg = dataclasses.replace(rc, capacity=cap)
@@ -106,16 +117,21 @@ def contribution_per_label(g: Gaussians, opacity: Float[Array, "N"], cameras: Se
     return total[:, :num_labels]
 
 
-def max_weight(g: Gaussians, opacity: Float[Array, "N"], cameras: Sequence[Camera], *, render_config=None) -> np.ndarray:
+def max_weight(
+    g: Gaussians, opacity: Float[Array, " N"], cameras: Sequence[Camera], *, render_config=None
+) -> np.ndarray:
     """[N] max over the pixels of ``cameras`` of α·opacity·T (the kernel's per-Gaussian statistic)."""
     best = np.zeros(len(g), np.float32)
     for cam in cameras:
-        best = np.maximum(best, np.asarray(splat.render(g, cam, opacity_mult=jnp.asarray(opacity), config=render_config).max_weight))
+        best = np.maximum(
+            best, np.asarray(splat.render(g, cam, opacity_mult=jnp.asarray(opacity), config=render_config).max_weight)
+        )
     return best
 
 
-def observed_from(g: Gaussians, opacity: Float[Array, "N"], cameras: Sequence[Camera], threshold: float, *,
-                  render_config=None) -> np.ndarray:  # fmt: skip
+def observed_from(
+    g: Gaussians, opacity: Float[Array, " N"], cameras: Sequence[Camera], threshold: float, *, render_config=None
+) -> np.ndarray:
     """[N] bool: the refinement's visibility rule — α·T ≥ ``threshold`` at some pixel of some camera,
     α the Gaussian's own opacity (times its falloff), T from the render at ``opacity`` (the kernel's
     α·opacity·T divided by the opacity)."""
@@ -134,15 +150,20 @@ class DateMasks:
     changed_vs: dict[str, tuple[np.ndarray, ...]]
 
 
-def read_date_masks(root: str | Path, image_names: Sequence[str], cameras: Sequence[Camera], other_dates: Sequence[str]) -> DateMasks:
+def read_date_masks(
+    root: str | Path, image_names: Sequence[str], cameras: Sequence[Camera], other_dates: Sequence[str]
+) -> DateMasks:
     """The synthetic dataset's ``masks/ids`` and ``masks/changed_vs_<date>`` PNGs of ``image_names``."""
     root = Path(root)
 
     def load(sub, name):
         path = root / "masks" / sub / name
         if not path.is_file():
-            raise InputError(f"missing ground-truth mask {path}", field="masks",
-                             fix="change detection needs a synthetic dataset (python -m cfgs_jax.pipeline synth)")  # fmt: skip
+            raise InputError(
+                f"missing ground-truth mask {path}",
+                field="masks",
+                fix="change detection needs a synthetic dataset (python -m cfgs_jax.pipeline synth)",
+            )
         with Image.open(path) as im:
             return np.asarray(im)
 
@@ -151,7 +172,9 @@ def read_date_masks(root: str | Path, image_names: Sequence[str], cameras: Seque
     return DateMasks(tuple(cameras), ids, changed)
 
 
-def object_labels(model: TemporalGaussians, masks: Sequence[DateMasks], num_objects: int, *, render_config=None) -> np.ndarray:
+def object_labels(
+    model: TemporalGaussians, masks: Sequence[DateMasks], num_objects: int, *, render_config=None
+) -> np.ndarray:
     """[N] int: the ground-truth object id (0 = background) holding most of each Gaussian's weight in
     its own date's views, −1 for a Gaussian with no weight there."""
     o = np.asarray(opacity_multipliers(model))
@@ -161,14 +184,21 @@ def object_labels(model: TemporalGaussians, masks: Sequence[DateMasks], num_obje
         rows = np.nonzero(origin == p)[0]
         if len(rows):
             g = jax.tree_util.tree_map(lambda x: jnp.asarray(x)[rows], model.gaussians)
-            w = contribution_per_label(g, jnp.asarray(o[rows, p]), dm.cameras, dm.object_ids, num_objects + 1,
-                                       render_config=render_config)  # fmt: skip
+            w = contribution_per_label(
+                g, jnp.asarray(o[rows, p]), dm.cameras, dm.object_ids, num_objects + 1, render_config=render_config
+            )
             labels[rows] = np.where(w.sum(1) > 0, w.argmax(1), -1)
     return labels
 
 
-def observed_matrix(model: TemporalGaussians, observing: Sequence[Sequence[Camera]], threshold: float, *,
-                    occlusion: str = "fused", render_config=None) -> np.ndarray:  # fmt: skip
+def observed_matrix(
+    model: TemporalGaussians,
+    observing: Sequence[Sequence[Camera]],
+    threshold: float,
+    *,
+    occlusion: str = "fused",
+    render_config=None,
+) -> np.ndarray:
     """[N, T] bool: column q says whether each Gaussian is observed at date q (``observing[q]``: date
     q's training cameras). ``occlusion="fused"``: the whole model rendered at q, the Gaussians of the
     evaluated date p at opacity o^p and all others at o^q (so column q of date q's own Gaussians is
@@ -193,7 +223,9 @@ def observed_matrix(model: TemporalGaussians, observing: Sequence[Sequence[Camer
     return seen
 
 
-def surface_effect(model: TemporalGaussians, observing: Sequence[Sequence[Camera]], *, render_config=None) -> np.ndarray:
+def surface_effect(
+    model: TemporalGaussians, observing: Sequence[Sequence[Camera]], *, render_config=None
+) -> np.ndarray:
     """[N, T]: for a Gaussian i of date p and a date q ≠ p, how much date p's o^q change what date q
     shows where i would be: Σ_px w_i·d / Σ_px w_i over date q's training views, d = mean |F − F'| over
     channels with F the fused render at q (light l^q) with date p's Gaussians at o^p and F' the same at
@@ -231,9 +263,16 @@ def surface_effect(model: TemporalGaussians, observing: Sequence[Sequence[Camera
     return out
 
 
-def gaussian_change_table(model: TemporalGaussians, masks: Sequence[DateMasks], observing: Sequence[Sequence[Camera]],
-                          num_objects: int, config: ChangeConfig = ChangeConfig(), *,
-                          render_config=None, observed: np.ndarray | None = None) -> dict:  # fmt: skip
+def gaussian_change_table(
+    model: TemporalGaussians,
+    masks: Sequence[DateMasks],
+    observing: Sequence[Sequence[Camera]],
+    num_objects: int,
+    config: ChangeConfig = ChangeConfig(),
+    *,
+    render_config=None,
+    observed: np.ndarray | None = None,
+) -> dict:
     """Per ordered pair (p, q): ground-truth label and prediction of every Gaussian of date p.
 
     ``masks[p]``: date p's training views with their ground truth; ``observing[q]``: date q's training
@@ -258,12 +297,17 @@ def gaussian_change_table(model: TemporalGaussians, masks: Sequence[DateMasks], 
         for q, qn in enumerate(names):
             if q == p:
                 continue
-            w_ch = contribution_per_label(g, own, dm.cameras, [m.astype(np.int64) for m in dm.changed_vs[qn]], 2,
-                                          render_config=render_config)  # fmt: skip
+            w_ch = contribution_per_label(
+                g, own, dm.cameras, [m.astype(np.int64) for m in dm.changed_vs[qn]], 2, render_config=render_config
+            )
             share = w_ch[:, 1] / np.maximum(w_ch.sum(1), 1e-30)
-            pairs[(p, q)] = {"rows": rows[keep], "gt_changed": (share > config.majority)[keep],
-                             "observed": observed[rows, q][keep], "o_q": o[rows[keep], q],
-                             "weight": w_ch.sum(1)[keep]}  # fmt: skip
+            pairs[(p, q)] = {
+                "rows": rows[keep],
+                "gt_changed": (share > config.majority)[keep],
+                "observed": observed[rows, q][keep],
+                "o_q": o[rows[keep], q],
+                "weight": w_ch.sum(1)[keep],
+            }
             if surface is not None:
                 pairs[(p, q)]["surface"] = surface[rows[keep], q]
     return {"pairs": pairs, "objects": objects}
@@ -295,7 +339,11 @@ def summarise_gaussians(table: dict, config: ChangeConfig = ChangeConfig(), thre
     cat = {k: np.concatenate([np.asarray(v[k]) for v in pairs]) for k in ("gt_changed", "observed", "o_q") + optional}
     obs = cat["observed"]
     # the surface rule: an absent Gaussian counts as changed only where its absence shows at q
-    shows = cat["surface"] > config.surface_threshold if "surface" in cat and config.surface_threshold > 0 else np.ones_like(obs)
+    shows = (
+        cat["surface"] > config.surface_threshold
+        if "surface" in cat and config.surface_threshold > 0
+        else np.ones_like(obs)
+    )
     o_only = precision_recall(1.0 - cat["o_q"][obs], cat["gt_changed"][obs], [1.0 - config.absent_below])
     score = np.where(shows, 1.0 - cat["o_q"], 0.0)
     curve = precision_recall(score[obs], cat["gt_changed"][obs], 1.0 - thresholds[::-1])
@@ -315,13 +363,17 @@ def summarise_gaussians(table: dict, config: ChangeConfig = ChangeConfig(), thre
         "gt_changed": float(cat["gt_changed"][obs].mean()) if obs.any() else 0.0,
         "flagged_changed": float((absent & obs).mean()),
         "flagged_changed_o_only": float((absent_o & obs).mean()),  # without the surface rule
-        "f1_o_only": float(o_only["f1"][0]), "precision_o_only": float(o_only["precision"][0]),
-        "recall_o_only": float(o_only["recall"][0]), "surface_threshold": config.surface_threshold,
+        "f1_o_only": float(o_only["f1"][0]),
+        "precision_o_only": float(o_only["precision"][0]),
+        "recall_o_only": float(o_only["recall"][0]),
+        "surface_threshold": config.surface_threshold,
         "unobserved_marked_absent": float(absent_o[~obs].mean()) if (~obs).any() else float("nan"),
         "unobserved_flagged_changed": 0.0,  # by definition: a change needs an observation
-        "precision": float(at["precision"][0]), "recall": float(at["recall"][0]), "f1": float(at["f1"][0]),
+        "precision": float(at["precision"][0]),
+        "recall": float(at["recall"][0]),
+        "f1": float(at["f1"][0]),
         "curve": {k: v.tolist() for k, v in curve.items()},
-    }  # fmt: skip
+    }
 
 
 @functools.partial(jax.jit, static_argnames=("config",))
@@ -334,9 +386,16 @@ def _pixel_scores(g: Gaussians, camera: Camera, opacity, score, observed, config
     return res.image[0, ..., 0] / safe, res.image[0, ..., 1] / safe, alpha
 
 
-def pixel_change_iou(model: TemporalGaussians, masks: Sequence[DateMasks], observing: Sequence[Sequence[Camera]],
-                     config: ChangeConfig = ChangeConfig(), *, render_config=None,
-                     observed: np.ndarray | None = None, thresholds=None) -> dict:  # fmt: skip
+def pixel_change_iou(
+    model: TemporalGaussians,
+    masks: Sequence[DateMasks],
+    observing: Sequence[Sequence[Camera]],
+    config: ChangeConfig = ChangeConfig(),
+    *,
+    render_config=None,
+    observed: np.ndarray | None = None,
+    thresholds=None,
+) -> dict:
     """IoU of the rendered highlight's change mask (|S − 1|_∞ > threshold for the selection {p, q})
     with the ground-truth changed mask, on ``masks[p]``'s views, over pixels covered (alpha ≥ 0.5)
     and observed at both dates (``observed``: the ``observed_matrix`` of ``observing``, computed when
@@ -382,10 +441,16 @@ def pixel_change_iou(model: TemporalGaussians, masks: Sequence[DateMasks], obser
                 valid_total += int(valid.sum())
             per_pair[f"{names[p]}→{names[q]}"] = i_pq / u_pq if u_pq else float("nan")
             inter, union = inter + i_pq, union + u_pq
-    share = (lambda k: k / valid_total if valid_total else float("nan"))  # noqa: E731
-    return {"iou": inter / union if union else float("nan"), "per_pair": per_pair,
-            "predicted_changed_share": share(predicted), "gt_changed_share": share(truth_total),
-            "evaluated_pixels": valid_total,
-            "curve": {"threshold": thresholds.tolist(),
-                      "iou": np.where(sweep_union > 0, sweep_inter / np.maximum(sweep_union, 1), np.nan).tolist(),
-                      "predicted_changed_share": (sweep_pred / max(valid_total, 1)).tolist()}}  # fmt: skip
+    share = lambda k: k / valid_total if valid_total else float("nan")
+    return {
+        "iou": inter / union if union else float("nan"),
+        "per_pair": per_pair,
+        "predicted_changed_share": share(predicted),
+        "gt_changed_share": share(truth_total),
+        "evaluated_pixels": valid_total,
+        "curve": {
+            "threshold": thresholds.tolist(),
+            "iou": np.where(sweep_union > 0, sweep_inter / np.maximum(sweep_union, 1), np.nan).tolist(),
+            "predicted_changed_share": (sweep_pred / max(valid_total, 1)).tolist(),
+        },
+    }

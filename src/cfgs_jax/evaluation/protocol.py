@@ -86,14 +86,18 @@ def prepare_scene(scene: str, raw: dict | None, out: Path, *, progress: bool = T
         data = out / "data"
         if not (data / "ground_truth.json").is_file():
             sc = section(raw, "scene", SceneConfig)
-            spec = synthetic.make_preset(scene, seed=sc.seed, width=sc.width, height=sc.height,
-                                         images_per_date=sc.images_per_date, spp=sc.spp)  # fmt: skip
+            spec = synthetic.make_preset(
+                scene, seed=sc.seed, width=sc.width, height=sc.height, images_per_date=sc.images_per_date, spp=sc.spp
+            )
             synthetic.render_dataset(spec, data, progress=progress)
         return data
     root = Path(scene)
     if not root.is_dir():
-        raise InputError(f"{scene!r} is neither a preset nor a directory", field="--scene",
-                         fix=f"use one of {', '.join(synthetic.PRESETS)} or a folder of per-date datasets")  # fmt: skip
+        raise InputError(
+            f"{scene!r} is neither a preset nor a directory",
+            field="--scene",
+            fix=f"use one of {', '.join(synthetic.PRESETS)} or a folder of per-date datasets",
+        )
     return root
 
 
@@ -105,17 +109,28 @@ def date_dirs(root: Path) -> list[Path]:
     else:
         names = sorted(p.name for p in root.iterdir() if (p / "sparse").is_dir())
     if len(names) < 2:
-        raise InputError(f"found {len(names)} date datasets", path=root, field="--scene",
-                         fix="give a folder with ≥ 2 COLMAP datasets (<date>/images, <date>/sparse/0)")  # fmt: skip
+        raise InputError(
+            f"found {len(names)} date datasets",
+            path=root,
+            field="--scene",
+            fix="give a folder with ≥ 2 COLMAP datasets (<date>/images, <date>/sparse/0)",
+        )
     return [root / n for n in names]
 
 
 def _row(name: str, metrics: dict, gaussians: int, **extra) -> dict:
-    return {"row": name, "psnr": metrics["psnr"], "ssim": metrics["ssim"], "lpips": metrics.get("lpips", float("nan")),
-            "gaussians": int(gaussians)} | extra  # fmt: skip
+    return {
+        "row": name,
+        "psnr": metrics["psnr"],
+        "ssim": metrics["ssim"],
+        "lpips": metrics.get("lpips", float("nan")),
+        "gaussians": int(gaussians),
+    } | extra
 
 
-def _individual_plus(run_dir: Path, scenes, raw, steps: tuple[int, ...], render_config, lpips_net, progress, log) -> dict:
+def _individual_plus(
+    run_dir: Path, scenes, raw, steps: tuple[int, ...], render_config, lpips_net, progress, log
+) -> dict:
     """Each date's model trained ``max(steps)`` more steps (``continuation_config``), evaluated after
     every count in ``steps``; resumable per date (``RUN/individual_plus/<date>/``)."""
     tc = train.continuation_config(dataclasses.replace(section(raw, "train", train.TrainConfig), steps=max(steps)))
@@ -128,27 +143,48 @@ def _individual_plus(run_dir: Path, scenes, raw, steps: tuple[int, ...], render_
             log(f"[eval] Individual +{max(steps):,}: date {name}")
             g = read_ply(run_dir / "dates" / name / "point_cloud.ply")
             t0 = time.perf_counter()
-            r = train.fit(sc, tc, render_config, init=g, out=d, resume=True, progress=progress, eval_steps=steps,
-                          lpips_net=lpips_net)  # fmt: skip
+            r = train.fit(
+                sc,
+                tc,
+                render_config,
+                init=g,
+                out=d,
+                resume=True,
+                progress=progress,
+                eval_steps=steps,
+                lpips_net=lpips_net,
+            )
             write_ply(d / "point_cloud.ply", r.gaussians)
             hist = {int(h["step"]): h for h in r.eval_history}
-            done = {"steps": {str(s): hist[s] for s in steps}, "gaussians": len(r.gaussians),
-                    "views": len(sc.indices("test")), "seconds": time.perf_counter() - t0}  # fmt: skip
+            done = {
+                "steps": {str(s): hist[s] for s in steps},
+                "gaussians": len(r.gaussians),
+                "views": len(sc.indices("test")),
+                "seconds": time.perf_counter() - t0,
+            }
             write_json(d / "result.json", done)
         results[name] = done
     return results
 
 
-def _ablation(run_dir: Path, key: str, overrides: dict, views, scenes, test_views, raw, render_config, lpips_net, log) -> dict:
+def _ablation(
+    run_dir: Path, key: str, overrides: dict, views, scenes, test_views, raw, render_config, lpips_net, log
+) -> dict:
     path = run_dir / "ablations" / f"{key}.json"
     done = read_json(path)
     if done is None:
         fc = dataclasses.replace(section(raw, "refine", RefineConfig), **overrides)
         log(f"[eval] ablation {key}: {fc.steps:,} refinement steps")
         t0 = time.perf_counter()
-        model, _ = refine(read_fused(run_dir / "cross_init"), views, fc, extent=train.scene_extent(scenes[0].cameras),
-                          train_config=section(raw, "train", train.TrainConfig), render_config=render_config,
-                          checkpoint=run_dir / "ablations" / f"{key}_checkpoint.npz")  # fmt: skip
+        model, _ = refine(
+            read_fused(run_dir / "cross_init"),
+            views,
+            fc,
+            extent=train.scene_extent(scenes[0].cameras),
+            train_config=section(raw, "train", train.TrainConfig),
+            render_config=render_config,
+            checkpoint=run_dir / "ablations" / f"{key}_checkpoint.npz",
+        )
         m = evaluate_fused(model, test_views, render_config=render_config, lpips_net=lpips_net)
         done = {"metrics": m["mean"], "gaussians": len(model), "seconds": time.perf_counter() - t0}
         write_json(path, done)
@@ -156,8 +192,9 @@ def _ablation(run_dir: Path, key: str, overrides: dict, views, scenes, test_view
     return done
 
 
-def run_protocol(scene: str, out: str | Path, raw: dict | None = None, *, resume: bool = False, progress: bool = True,
-                 log=print) -> dict:  # fmt: skip
+def run_protocol(
+    scene: str, out: str | Path, raw: dict | None = None, *, resume: bool = False, progress: bool = True, log=print
+) -> dict:
     """The whole protocol on one scene → ``out/table.json``, ``out/table.md``, ``out/figure.png``
     (and ``out/change.json`` where ground truth exists). Returns the table dict. An ``out`` holding an
     earlier evaluation is continued (finished stages skipped) only with ``resume=True``."""
@@ -177,12 +214,25 @@ def run_protocol(scene: str, out: str | Path, raw: dict | None = None, *, resume
         from cfgs_jax import synthetic
 
         if not (data / "ground_truth.json").is_file():
-            raise InputError("known_transforms needs a synthetic scene's ground_truth.json", path=data,
-                             field="eval.known_transforms", fix="set it to false (register with SfM)")  # fmt: skip
+            raise InputError(
+                "known_transforms needs a synthetic scene's ground_truth.json",
+                path=data,
+                field="eval.known_transforms",
+                fix="set it to false (register with SfM)",
+            )
         transforms = out / "transforms.json"
         write_json(transforms, synthetic.reference_transforms(data, [d.name for d in dirs]))
-    run_fusion(dirs, run_dir, fusion_raw, resume=(run_dir / "run.json").is_file(), progress=progress, evaluate=False,
-               transforms=transforms, snapshots=ec.steps[:-1], log=log)  # fmt: skip
+    run_fusion(
+        dirs,
+        run_dir,
+        fusion_raw,
+        resume=(run_dir / "run.json").is_file(),
+        progress=progress,
+        evaluate=False,
+        transforms=transforms,
+        snapshots=ec.steps[:-1],
+        log=log,
+    )
     fusion_seconds = time.perf_counter() - t0
     render_config = section(fusion_raw, "render", splat.RenderConfig)
     tc = section(fusion_raw, "train", train.TrainConfig)
@@ -209,8 +259,13 @@ def run_protocol(scene: str, out: str | Path, raw: dict | None = None, *, resume
     rows.append(_row("Individual init", init, sum(p["gaussians"] for p in per_date), group="input"))
     rows.append(fused_row("merged", "Merged", run_dir / "merged") | {"group": "ours"})
     for k in ec.steps[:-1]:
-        rows.append(fused_row(f"ours_{k}", f"Ours {k:,}", run_dir / "snapshots" / f"refine_{k}") | {"group": "ours", "steps": k})
-    rows.append(fused_row(f"ours_{ec.steps[-1]}", f"Ours {ec.steps[-1]:,}", run_dir / "fused") | {"group": "ours", "steps": ec.steps[-1]})
+        rows.append(
+            fused_row(f"ours_{k}", f"Ours {k:,}", run_dir / "snapshots" / f"refine_{k}") | {"group": "ours", "steps": k}
+        )
+    rows.append(
+        fused_row(f"ours_{ec.steps[-1]}", f"Ours {ec.steps[-1]:,}", run_dir / "fused")
+        | {"group": "ours", "steps": ec.steps[-1]}
+    )
     release_if_near_limit()
     plus = _individual_plus(run_dir, scenes, fusion_raw, ec.steps, render_config, ec.lpips_net, progress, log)
     for k in ec.steps:
@@ -221,27 +276,50 @@ def run_protocol(scene: str, out: str | Path, raw: dict | None = None, *, resume
         release_if_near_limit()
         views = [date_views(sc, sm) for sc, sm in zip(scenes, sims)]
         for key, (label, over) in ABLATIONS.items():
-            a = _ablation(run_dir, key, over | {"steps": ec.steps[-1]}, views, scenes, test_views, fusion_raw,
-                          render_config, ec.lpips_net, log)  # fmt: skip
+            a = _ablation(
+                run_dir,
+                key,
+                over | {"steps": ec.steps[-1]},
+                views,
+                scenes,
+                test_views,
+                fusion_raw,
+                render_config,
+                ec.lpips_net,
+                log,
+            )
             ablations[key] = a
-            rows.append(_row(f"{label} {ec.steps[-1]:,}", a["metrics"], a["gaussians"], group="ablation", steps=ec.steps[-1]))
+            rows.append(
+                _row(f"{label} {ec.steps[-1]:,}", a["metrics"], a["gaussians"], group="ablation", steps=ec.steps[-1])
+            )
     change = None
     if ec.change_detection and (data / "ground_truth.json").is_file():
         change = read_json(out / "change.json")
         if change is None:
             log("[eval] change detection against ground truth")
-            change = change_detection(read_fused(run_dir / "fused"), data, scenes, sims, render_config,
-                                      cross_init=read_fused(run_dir / "cross_init"),
-                                      config=section(raw, "change", ChangeConfig))  # fmt: skip
+            change = change_detection(
+                read_fused(run_dir / "fused"),
+                data,
+                scenes,
+                sims,
+                render_config,
+                cross_init=read_fused(run_dir / "cross_init"),
+                config=section(raw, "change", ChangeConfig),
+            )
             write_json(out / "change.json", change)
         pr_curve_plot(out / "change_pr.png", change, scene)
     timings = read_json(run_dir / "timings.json", {})
     table = {
-        "scene": scene, "dates": names, "test_views": dict(zip(names, weights)), "steps": list(ec.steps),
-        "rows": rows, "timings": {k: timings.get(k) for k in ("train", "register", "merge", "cross_init", "refine")},
-        "fusion_wall_seconds_this_call": fusion_seconds, "change": change,
+        "scene": scene,
+        "dates": names,
+        "test_views": dict(zip(names, weights)),
+        "steps": list(ec.steps),
+        "rows": rows,
+        "timings": {k: timings.get(k) for k in ("train", "register", "merge", "cross_init", "refine")},
+        "fusion_wall_seconds_this_call": fusion_seconds,
+        "change": change,
         "margins": margins(rows, ec.steps[-1]),
-    }  # fmt: skip
+    }
     write_json(out / "table.json", table)
     write_text(out / "table.md", table_markdown(table))
     figure_grid(out / "figure.png", run_dir, scenes, sims, names, render_config)
@@ -252,8 +330,12 @@ def margins(rows: list[dict], n: int) -> dict:
     """Ours N − Individual +N at the largest N (PSNR dB, SSIM; LPIPS as Individual − Ours: > 0 is better)."""
     ours = next(r for r in rows if r["row"] == f"Ours {n:,}")
     ind = next(r for r in rows if r["row"] == f"Individual +{n:,}")
-    return {"steps": n, "psnr": ours["psnr"] - ind["psnr"], "ssim": ours["ssim"] - ind["ssim"],
-            "lpips": ind["lpips"] - ours["lpips"]}  # fmt: skip
+    return {
+        "steps": n,
+        "psnr": ours["psnr"] - ind["psnr"],
+        "ssim": ours["ssim"] - ind["ssim"],
+        "lpips": ind["lpips"] - ours["lpips"],
+    }
 
 
 def _share(x) -> str:
@@ -288,7 +370,9 @@ def cross_init_checks(model, data: Path, scenes, sims, render_config, masks=None
     return {"objects": objects, "light": light_by_pair(model, gt)}
 
 
-def change_detection(model, data: Path, scenes, sims, render_config, cross_init=None, config: ChangeConfig | None = None) -> dict:
+def change_detection(
+    model, data: Path, scenes, sims, render_config, cross_init=None, config: ChangeConfig | None = None
+) -> dict:
     """Per-Gaussian and per-pixel change detection of the fused model against the synthetic ground truth
     (``config``: the eval's ``[change]`` table)."""
     from cfgs_jax.evaluation import change
@@ -300,13 +384,15 @@ def change_detection(model, data: Path, scenes, sims, render_config, cross_init=
     observing = [m.cameras for m in masks]
     cfg = config or ChangeConfig()
     observed = change.observed_matrix(model, observing, cfg.contribution_threshold, render_config=render_config)
-    table = change.gaussian_change_table(model, masks, observing, len(gt["objects"]), cfg, render_config=render_config,
-                                         observed=observed)  # fmt: skip
+    table = change.gaussian_change_table(
+        model, masks, observing, len(gt["objects"]), cfg, render_config=render_config, observed=observed
+    )
     summary = change.summarise_gaussians(table, cfg)
     # how much the fused occlusion rule matters: entries seen with their own date's Gaussians alone but
     # hidden in the fused model at q, and how many of those are absent (would count as changed otherwise)
-    alone = change.observed_matrix(model, observing, cfg.contribution_threshold, occlusion="own date",
-                                   render_config=render_config)  # fmt: skip
+    alone = change.observed_matrix(
+        model, observing, cfg.contribution_threshold, occlusion="own date", render_config=render_config
+    )
     seen_alone = np.concatenate([alone[v["rows"], q] for (_, q), v in table["pairs"].items()])
     seen_fused = np.concatenate([v["observed"] for v in table["pairs"].values()])
     o_q = np.concatenate([v["o_q"] for v in table["pairs"].values()])
@@ -341,12 +427,23 @@ def light_by_pair(model, gt: dict) -> dict:
                 continue
             k = float(np.median(cold_warm_coefficient(light[rows, q])))
             dcct = dq["lighting"]["cct_kelvin"] - dp["lighting"]["cct_kelvin"]
-            pairs.append({"pair": [dp["name"], dq["name"]], "mean_o": float(o[rows, q].mean()), "median_k": k,
-                          "cct_change_kelvin": dcct, "sign_agrees": bool(dcct == 0 or np.sign(k) == np.sign(dcct))})  # fmt: skip
+            pairs.append(
+                {
+                    "pair": [dp["name"], dq["name"]],
+                    "mean_o": float(o[rows, q].mean()),
+                    "median_k": k,
+                    "cct_change_kelvin": dcct,
+                    "sign_agrees": bool(dcct == 0 or np.sign(k) == np.sign(dcct)),
+                }
+            )
             o_all.append(o[rows, q])
     changed = [x for x in pairs if x["cct_change_kelvin"] != 0]
-    return {"pairs": pairs, "mean_o": float(np.concatenate(o_all).mean()) if o_all else float("nan"),
-            "sign_agrees": sum(x["sign_agrees"] for x in changed), "pairs_with_cct_change": len(changed)}  # fmt: skip
+    return {
+        "pairs": pairs,
+        "mean_o": float(np.concatenate(o_all).mean()) if o_all else float("nan"),
+        "sign_agrees": sum(x["sign_agrees"] for x in changed),
+        "pairs_with_cct_change": len(changed),
+    }
 
 
 def object_persistence(model, objects: np.ndarray, gt: dict) -> dict:
@@ -375,78 +472,127 @@ def object_persistence(model, objects: np.ndarray, gt: dict) -> dict:
                 elif dp["present"][on] and dq["present"][on] and dp["variant"][on] == dq["variant"][on]:
                     persist_ok += int(np.sum(o[rows, q] > 0.6))
                     persist_n += int(rows.sum())
-    return {"absent_below_0.2": absent_ok / absent_n if absent_n else float("nan"), "absent_entries": absent_n,
-            "persistent_above_0.6": persist_ok / persist_n if persist_n else float("nan"),
-            "persistent_entries": persist_n, "absent_by_object": by_object}  # fmt: skip
+    return {
+        "absent_below_0.2": absent_ok / absent_n if absent_n else float("nan"),
+        "absent_entries": absent_n,
+        "persistent_above_0.6": persist_ok / persist_n if persist_n else float("nan"),
+        "persistent_entries": persist_n,
+        "absent_by_object": by_object,
+    }
 
 
 def table_markdown(table: dict) -> str:
     """The protocol table as markdown (best per column in bold)."""
     rows = table["rows"]
-    best = {k: (max if k in ("psnr", "ssim") else min)(r[k] for r in rows if np.isfinite(r[k])) for k in ("psnr", "ssim", "lpips")}
+    best = {
+        k: (max if k in ("psnr", "ssim") else min)(r[k] for r in rows if np.isfinite(r[k]))
+        for k in ("psnr", "ssim", "lpips")
+    }
     fmt = {"psnr": "{:.2f}", "ssim": "{:.4f}", "lpips": "{:.4f}"}
 
     def cell(r, k):
         s = fmt[k].format(r[k])
         return f"**{s}**" if np.isclose(r[k], best[k]) else s
 
-    lines = [f"# Evaluation: `{table['scene']}` ({len(table['dates'])} dates, test views "
-             + ", ".join(f"{n} {v}" for n, v in table["test_views"].items()) + ")", "",
-             "| Method | PSNR ↑ | SSIM ↑ | LPIPS ↓ | Gaussians |", "|---|---:|---:|---:|---:|"]  # fmt: skip
+    lines = [
+        f"# Evaluation: `{table['scene']}` ({len(table['dates'])} dates, test views "
+        + ", ".join(f"{n} {v}" for n, v in table["test_views"].items())
+        + ")",
+        "",
+        "| Method | PSNR ↑ | SSIM ↑ | LPIPS ↓ | Gaussians |",
+        "|---|---:|---:|---:|---:|",
+    ]
     for r in rows:
-        lines.append(f"| {r['row']} | {cell(r, 'psnr')} | {cell(r, 'ssim')} | {cell(r, 'lpips')} | {r['gaussians']:,} |")
+        lines.append(
+            f"| {r['row']} | {cell(r, 'psnr')} | {cell(r, 'ssim')} | {cell(r, 'lpips')} | {r['gaussians']:,} |"
+        )
     m = table["margins"]
-    lines += ["", f"Ours − Individual at N = {m['steps']:,}: PSNR {m['psnr']:+.2f} dB, SSIM {m['ssim']:+.4f}, "
-              f"LPIPS {m['lpips']:+.4f} (positive: ours better).", "",
-              "Stage wall times (s): " + ", ".join(f"{k} {v:.1f}" for k, v in table["timings"].items() if v is not None)]  # fmt: skip
+    lines += [
+        "",
+        f"Ours − Individual at N = {m['steps']:,}: PSNR {m['psnr']:+.2f} dB, SSIM {m['ssim']:+.4f}, "
+        f"LPIPS {m['lpips']:+.4f} (positive: ours better).",
+        "",
+        "Stage wall times (s): " + ", ".join(f"{k} {v:.1f}" for k, v in table["timings"].items() if v is not None),
+    ]
     ch = table.get("change")
     if ch:
         g, p = ch["gaussians"], ch["pixels"]
-        lines += ["", "## Change detection against ground truth", "",
-                  "| Level | Precision | Recall | F1 | IoU | flagged changed | ground truth changed |",
-                  "|---|---:|---:|---:|---:|---:|---:|",
-                  f"| Gaussians (o^q < {ch['config']['absent_below']}, observed"
-                  + (f", surface effect > {g['surface_threshold']}" if g.get("surface_threshold") else "")
-                  + f") | {g['precision']:.3f} | {g['recall']:.3f} | "
-                  f"{g['f1']:.3f} | – | {100 * g['flagged_changed']:.1f} % | {100 * g['gt_changed']:.1f} % |",
-                  *([f"| … o^q alone (no surface rule) | {g['precision_o_only']:.3f} | {g['recall_o_only']:.3f} | "
-                     f"{g['f1_o_only']:.3f} | – | {100 * g['flagged_changed_o_only']:.1f} % | – |"]
-                    if g.get("surface_threshold") else []),
-                  *([f"| … weighted by compositing weight | {g['weighted_precision']:.3f} | {g['weighted_recall']:.3f} | "
-                     f"{g['weighted_f1']:.3f} | – | {_share(g.get('weighted_flagged_changed'))} | – |"]
-                    if "weighted_f1" in g else []),
-                  f"| Pixels (highlight |S−1| > {ch['config']['pixel_threshold']}) | – | – | – | {p['iou']:.3f} | "
-                  f"{100 * p['predicted_changed_share']:.1f} % | {100 * p['gt_changed_share']:.1f} % |", "",
-                  f"Gaussians not observed at a date: {100 * (1 - g['observed']):.1f} % of (Gaussian, date) entries, "
-                  f"{100 * g['unobserved_marked_absent']:.1f} % of them absent (o < {ch['config']['absent_below']}), none flagged changed."]  # fmt: skip
+        lines += [
+            "",
+            "## Change detection against ground truth",
+            "",
+            "| Level | Precision | Recall | F1 | IoU | flagged changed | ground truth changed |",
+            "|---|---:|---:|---:|---:|---:|---:|",
+            f"| Gaussians (o^q < {ch['config']['absent_below']}, observed"
+            + (f", surface effect > {g['surface_threshold']}" if g.get("surface_threshold") else "")
+            + f") | {g['precision']:.3f} | {g['recall']:.3f} | "
+            f"{g['f1']:.3f} | – | {100 * g['flagged_changed']:.1f} % | {100 * g['gt_changed']:.1f} % |",
+            *(
+                [
+                    f"| … o^q alone (no surface rule) | {g['precision_o_only']:.3f} | {g['recall_o_only']:.3f} | "
+                    f"{g['f1_o_only']:.3f} | – | {100 * g['flagged_changed_o_only']:.1f} % | – |"
+                ]
+                if g.get("surface_threshold")
+                else []
+            ),
+            *(
+                [
+                    f"| … weighted by compositing weight | {g['weighted_precision']:.3f} | {g['weighted_recall']:.3f} | "
+                    f"{g['weighted_f1']:.3f} | – | {_share(g.get('weighted_flagged_changed'))} | – |"
+                ]
+                if "weighted_f1" in g
+                else []
+            ),
+            f"| Pixels (highlight |S−1| > {ch['config']['pixel_threshold']}) | – | – | – | {p['iou']:.3f} | "
+            f"{100 * p['predicted_changed_share']:.1f} % | {100 * p['gt_changed_share']:.1f} % |",
+            "",
+            f"Gaussians not observed at a date: {100 * (1 - g['observed']):.1f} % of (Gaussian, date) entries, "
+            f"{100 * g['unobserved_marked_absent']:.1f} % of them absent (o < {ch['config']['absent_below']}), none flagged changed.",
+        ]
         if "hidden_in_fused" in g:
-            lines.append(f"\nObserved = visible at q were it there, behind what the fused model shows at q (the refinement's "
-                         f"visibility rule). {100 * g['hidden_in_fused']:.1f} % of the entries are visible with their own "
-                         f"date's Gaussians alone but hidden in the fused model ({100 * g['hidden_in_fused_absent']:.1f} % "
-                         f"hidden and absent); with the own-date rule {100 * g['flagged_changed_own_date_rule']:.1f} % "
-                         "would be flagged changed.")  # fmt: skip
+            lines.append(
+                f"\nObserved = visible at q were it there, behind what the fused model shows at q (the refinement's "
+                f"visibility rule). {100 * g['hidden_in_fused']:.1f} % of the entries are visible with their own "
+                f"date's Gaussians alone but hidden in the fused model ({100 * g['hidden_in_fused_absent']:.1f} % "
+                f"hidden and absent); with the own-date rule {100 * g['flagged_changed_own_date_rule']:.1f} % "
+                "would be flagged changed."
+            )
         if "curve" in p:
             c = p["curve"]
             best = int(np.argmax(np.nan_to_num(c["iou"], nan=-1.0)))
-            lines.append("\nPixels over the threshold on |S−1|: " + ", ".join(
-                f"{t:.2f}: IoU {i:.3f} ({100 * f:.1f} % flagged)" for t, i, f in
-                zip(c["threshold"], c["iou"], c["predicted_changed_share"]) if round(t * 20) % 2 == 0)
-                + f"; best IoU {c['iou'][best]:.3f} at {c['threshold'][best]:.2f}.")  # fmt: skip
+            lines.append(
+                "\nPixels over the threshold on |S−1|: "
+                + ", ".join(
+                    f"{t:.2f}: IoU {i:.3f} ({100 * f:.1f} % flagged)"
+                    for t, i, f in zip(c["threshold"], c["iou"], c["predicted_changed_share"])
+                    if round(t * 20) % 2 == 0
+                )
+                + f"; best IoU {c['iou'][best]:.3f} at {c['threshold'][best]:.2f}."
+            )
         for key, when in (("objects_cross_init", "after cross-init"), ("objects_fused", "after refinement")):
             ob = ch.get(key)
             if ob:
-                lines.append(f"\nBy ground-truth object, {when}: {100 * ob['absent_below_0.2']:.1f} % of the Gaussians of "
-                             f"objects absent at a date have o < 0.2 there ({ob['absent_entries']:,} entries), "
-                             f"{100 * ob['persistent_above_0.6']:.1f} % of those of persistent objects o > 0.6 "
-                             f"({ob['persistent_entries']:,}).")  # fmt: skip
+                lines.append(
+                    f"\nBy ground-truth object, {when}: {100 * ob['absent_below_0.2']:.1f} % of the Gaussians of "
+                    f"objects absent at a date have o < 0.2 there ({ob['absent_entries']:,} entries), "
+                    f"{100 * ob['persistent_above_0.6']:.1f} % of those of persistent objects o > 0.6 "
+                    f"({ob['persistent_entries']:,})."
+                )
         li = ch.get("light_cross_init")
         if li:
-            lines += [f"\nAfter cross-init: mean o^q over all seen (Gaussian, other date) entries {li['mean_o']:.3f}; the "
-                      f"fitted cold/warm shift has the sign of the true colour-temperature change in {li['sign_agrees']} "
-                      f"of {li['pairs_with_cct_change']} pairs with one.", "",
-                      "| pair p→q | mean o^q | median k (>0 colder) | CCT_q − CCT_p (K) |", "|---|---:|---:|---:|",
-                      *[f"| {a}→{b} | {x['mean_o']:.3f} | {x['median_k']:+.3f} | {x['cct_change_kelvin']:+.0f} |"
-                        for x in li["pairs"] for a, b in [x["pair"]]]]  # fmt: skip
+            lines += [
+                f"\nAfter cross-init: mean o^q over all seen (Gaussian, other date) entries {li['mean_o']:.3f}; the "
+                f"fitted cold/warm shift has the sign of the true colour-temperature change in {li['sign_agrees']} "
+                f"of {li['pairs_with_cct_change']} pairs with one.",
+                "",
+                "| pair p→q | mean o^q | median k (>0 colder) | CCT_q − CCT_p (K) |",
+                "|---|---:|---:|---:|",
+                *[
+                    f"| {a}→{b} | {x['mean_o']:.3f} | {x['median_k']:+.3f} | {x['cct_change_kelvin']:+.0f} |"
+                    for x in li["pairs"]
+                    for a, b in [x["pair"]]
+                ],
+            ]
     return "\n".join(lines) + "\n"
 
 
@@ -480,8 +626,13 @@ def pr_curve_plot(path: Path, change: dict, scene: str) -> None:
     c = g["curve"]
     fig, ax = plt.subplots(figsize=(4.6, 4.2))
     ax.plot(c["recall"], c["precision"], marker=".", lw=1)
-    ax.scatter([g["recall"]], [g["precision"]], color="C3", zorder=3,
-               label=f"o^q < {change['config']['absent_below']}: F1 {g['f1']:.3f}")  # fmt: skip
+    ax.scatter(
+        [g["recall"]],
+        [g["precision"]],
+        color="C3",
+        zorder=3,
+        label=f"o^q < {change['config']['absent_below']}: F1 {g['f1']:.3f}",
+    )
     ax.set_xlabel("recall (changed Gaussians found)")
     ax.set_ylabel("precision")
     ax.set_xlim(0, 1.02)

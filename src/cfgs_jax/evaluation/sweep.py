@@ -36,8 +36,14 @@ from pathlib import Path
 from cfgs_jax.compiled_code import release_if_near_limit
 from cfgs_jax.config import apply_overrides, find_preset, load_config
 from cfgs_jax.errors import InputError
-from cfgs_jax.evaluation.protocol import (EvalConfig, SceneConfig, change_detection, date_dirs, prepare_scene,
-                                         validate_eval_config)
+from cfgs_jax.evaluation.protocol import (
+    EvalConfig,
+    SceneConfig,
+    change_detection,
+    date_dirs,
+    prepare_scene,
+    validate_eval_config,
+)
 from cfgs_jax.fusion.run import CONFIG_SECTIONS, run_fusion, validate_config
 from cfgs_jax.io.atomic import check_resume, read_json, write_json, write_text
 
@@ -61,7 +67,9 @@ def parse_sweep(raw: dict, overrides: list[str] = ()) -> tuple[str, dict, list[V
     checked against the configuration's dataclasses before anything runs."""
     where = raw.get("__path__")
     if "sweep" not in raw:
-        raise InputError("no [sweep] table", path=where, field="sweep", fix="add [sweep] with scene, base and [sweep.grid]")
+        raise InputError(
+            "no [sweep] table", path=where, field="sweep", fix="add [sweep] with scene, base and [sweep.grid]"
+        )
     sw = dict(raw["sweep"])
     unknown = set(sw) - {"scene", "base", "grid"}
     if unknown:
@@ -74,12 +82,18 @@ def parse_sweep(raw: dict, overrides: list[str] = ()) -> tuple[str, dict, list[V
     validate_eval_config(base)  # the base's own tables (an eval base has [scene], [eval], [change])
     grid = sw.get("grid", {})
     if not isinstance(grid, dict) or any(not isinstance(v, list) or not v for v in grid.values()):
-        raise InputError("each grid entry must be a non-empty list", path=where, field="sweep.grid",
-                         fix='e.g. "cross_init.delta" = [0.3, 0.5]')  # fmt: skip
+        raise InputError(
+            "each grid entry must be a non-empty list",
+            path=where,
+            field="sweep.grid",
+            fix='e.g. "cross_init.delta" = [0.3, 0.5]',
+        )
     for key in grid:
         table, _, field = key.partition(".")
         if table not in CONFIG_SECTIONS or not field:
-            raise InputError(f"{key!r} is not a table.key of {sorted(CONFIG_SECTIONS)}", path=where, field=f"sweep.grid.{key}")
+            raise InputError(
+                f"{key!r} is not a table.key of {sorted(CONFIG_SECTIONS)}", path=where, field=f"sweep.grid.{key}"
+            )
     variants = [Variant(tuple(zip(grid, values))) for values in itertools.product(*grid.values())]
     for v in variants:
         validate_config(variant_config(base, v))
@@ -101,8 +115,15 @@ def variant_config(base: dict, variant: Variant) -> dict:
     return raw
 
 
-def run_sweep(sweep_raw: dict, out: str | Path, *, overrides: list[str] = (), resume: bool = False,
-              progress: bool = True, log=print) -> dict:  # fmt: skip
+def run_sweep(
+    sweep_raw: dict,
+    out: str | Path,
+    *,
+    overrides: list[str] = (),
+    resume: bool = False,
+    progress: bool = True,
+    log=print,
+) -> dict:
     """Every variant of the sweep → ``out/sweep.json``, ``sweep.md``, ``sweep.png``. With ``resume``
     an ``out`` holding an earlier sweep is continued (finished variants skipped); without, refused."""
     from cfgs_jax import splat, train
@@ -131,8 +152,17 @@ def run_sweep(sweep_raw: dict, out: str | Path, *, overrides: list[str] = (), re
         write_json(transforms, synthetic.reference_transforms(data, [d.name for d in dirs]))
     if any(shares):
         log(f"[sweep] shared per-date training and registration → {out / 'base'}")
-        run_fusion(dirs, out / "base", variant_config(base, Variant(())), resume=(out / "base" / "run.json").is_file(),
-                   transforms=transforms, progress=progress, evaluate=False, until="register", log=log)  # fmt: skip
+        run_fusion(
+            dirs,
+            out / "base",
+            variant_config(base, Variant(())),
+            resume=(out / "base" / "run.json").is_file(),
+            transforms=transforms,
+            progress=progress,
+            evaluate=False,
+            until="register",
+            log=log,
+        )
         models = [out / "base" / "dates" / d.name / "point_cloud.ply" for d in dirs]
         reg = read_json(out / "base" / "register.json")
         transforms = out / "base" / "transforms.json"
@@ -146,9 +176,16 @@ def run_sweep(sweep_raw: dict, out: str | Path, *, overrides: list[str] = (), re
             log(f"[sweep] variant {i + 1}/{len(variants)}: {dict(v.overrides) or 'base'}")
             raw = variant_config(base, v)
             t0 = time.perf_counter()
-            run = run_fusion(dirs, vdir / "run", raw, models=models if shared else None,
-                             transforms=transforms if (shared or known) else None, resume=(vdir / "run" / "run.json").is_file(),
-                             progress=progress, log=log)  # fmt: skip
+            run = run_fusion(
+                dirs,
+                vdir / "run",
+                raw,
+                models=models if shared else None,
+                transforms=transforms if (shared or known) else None,
+                resume=(vdir / "run" / "run.json").is_file(),
+                progress=progress,
+                log=log,
+            )
             metrics = read_json(vdir / "run" / "metrics.json")
             change = None
             if (data / "ground_truth.json").is_file():
@@ -156,18 +193,31 @@ def run_sweep(sweep_raw: dict, out: str | Path, *, overrides: list[str] = (), re
                 scenes = [read_colmap(d, test_every=max(1, tc.test_every), resolution=tc.resolution) for d in dirs]
                 reg = read_json(vdir / "run" / "register.json")
                 sims = [Sim3.from_dict(reg[d.name]["transform"]) for d in dirs]
-                change = change_detection(read_fused(vdir / "run" / "fused"), data, scenes, sims,
-                                          section(raw, "render", splat.RenderConfig))  # fmt: skip
-            res = {"id": v.id, "overrides": dict(v.overrides), "metrics": metrics["mean"],
-                   "gaussians": run.report.get("refine", {}).get("gaussians_after_prune"),
-                   "timings": {k: run.timings.get(k) for k in ("train", "register", "merge", "cross_init", "refine")},
-                   "change": None if change is None else {"f1": change["gaussians"]["f1"], "iou": change["pixels"]["iou"],
-                                                          "flagged_changed": change["gaussians"]["flagged_changed"]},
-                   "wall_seconds": time.perf_counter() - t0}  # fmt: skip
+                change = change_detection(
+                    read_fused(vdir / "run" / "fused"), data, scenes, sims, section(raw, "render", splat.RenderConfig)
+                )
+            res = {
+                "id": v.id,
+                "overrides": dict(v.overrides),
+                "metrics": metrics["mean"],
+                "gaussians": run.report.get("refine", {}).get("gaussians_after_prune"),
+                "timings": {k: run.timings.get(k) for k in ("train", "register", "merge", "cross_init", "refine")},
+                "change": None
+                if change is None
+                else {
+                    "f1": change["gaussians"]["f1"],
+                    "iou": change["pixels"]["iou"],
+                    "flagged_changed": change["gaussians"]["flagged_changed"],
+                },
+                "wall_seconds": time.perf_counter() - t0,
+            }
             write_json(vdir / "result.json", res)
         results.append(res)
-    summary = {"scene": scene, "grid": {k: list(vals) for k, vals in sweep_raw["sweep"].get("grid", {}).items()},
-               "variants": results}  # fmt: skip
+    summary = {
+        "scene": scene,
+        "grid": {k: list(vals) for k, vals in sweep_raw["sweep"].get("grid", {}).items()},
+        "variants": results,
+    }
     write_json(out / "sweep.json", summary)
     write_text(out / "sweep.md", sweep_markdown(summary))
     sweep_plot(out / "sweep.png", summary)
@@ -176,17 +226,41 @@ def run_sweep(sweep_raw: dict, out: str | Path, *, overrides: list[str] = (), re
 
 def sweep_markdown(summary: dict) -> str:
     keys = list(summary["grid"])
-    head = "| " + " | ".join(keys + ["PSNR ↑", "SSIM ↑", "LPIPS ↓", "change F1", "pixel IoU", "cross-init + refine (s)", "Gaussians"]) + " |"
-    lines = [f"# Sweep on `{summary['scene']}` ({len(summary['variants'])} variants)", "", head,
-             "|" + "---|" * len(keys) + "---:|" * 7]  # fmt: skip
+    head = (
+        "| "
+        + " | ".join(
+            keys + ["PSNR ↑", "SSIM ↑", "LPIPS ↓", "change F1", "pixel IoU", "cross-init + refine (s)", "Gaussians"]
+        )
+        + " |"
+    )
+    lines = [
+        f"# Sweep on `{summary['scene']}` ({len(summary['variants'])} variants)",
+        "",
+        head,
+        "|" + "---|" * len(keys) + "---:|" * 7,
+    ]
     for r in summary["variants"]:
         m, c, t = r["metrics"], r["change"] or {}, r["timings"]
         cost = (t.get("cross_init") or 0.0) + (t.get("refine") or 0.0)
         f1 = f"{c['f1']:.3f}" if c else "–"
         iou = f"{c['iou']:.3f}" if c else "–"
         vals = [str(r["overrides"].get(k, "")) for k in keys]
-        lines.append("| " + " | ".join(vals + [f"{m['psnr']:.2f}", f"{m['ssim']:.4f}", f"{m.get('lpips', float('nan')):.4f}",
-                                            f1, iou, f"{cost:.1f}", f"{r['gaussians'] or 0:,}"]) + " |")  # fmt: skip
+        lines.append(
+            "| "
+            + " | ".join(
+                vals
+                + [
+                    f"{m['psnr']:.2f}",
+                    f"{m['ssim']:.4f}",
+                    f"{m.get('lpips', float('nan')):.4f}",
+                    f1,
+                    iou,
+                    f"{cost:.1f}",
+                    f"{r['gaussians'] or 0:,}",
+                ]
+            )
+            + " |"
+        )
     return "\n".join(lines) + "\n"
 
 

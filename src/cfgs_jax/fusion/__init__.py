@@ -3,9 +3,8 @@ initialisation (Eq. 2), combined refinement (Eq. 3) and the final prune; ``fusio
 into the pipeline commands ``fuse`` and ``extend``."""
 
 from cfgs_jax.fusion.cross_init import CrossInitConfig, DateViews, cross_init, init_pair, init_pairs
-from cfgs_jax.fusion.refine import RefineConfig, final_prune, refine
-
 from cfgs_jax.fusion.fuse import INVISIBLE_LOGIT, OTHER_LOGIT, OWN_LOGIT, add_date, merge
+from cfgs_jax.fusion.refine import RefineConfig, final_prune, refine
 from cfgs_jax.fusion.register import (
     RegisterConfig,
     Registration,

@@ -69,7 +69,9 @@ class CrossInitConfig:
     background_anneal: float = 1.0  # fraction of the steps over which b's range shrinks to black
     batch_dates: int = 0  # pairs (p, q) of one p optimised together per step (vmapped); 0: all of them
     exposure_init: bool = True  # start the gains at the pair's least-squares exposure, not 1
-    exposure_range_ev: float = 2.0  # the start exposure is clipped to ± this many stops (a dark image is not a gain of 0)
+    exposure_range_ev: float = (
+        2.0  # the start exposure is clipped to ± this many stops (a dark image is not a gain of 0)
+    )
     rate_reference_steps: int = 3000  # the step count the rates are meant for; fewer steps scale them up (0: off)
     seed: int = 0
 
@@ -79,18 +81,26 @@ class CrossInitConfig:
         if not 0 < self.delta <= 1:
             raise InputError(f"must be in (0, 1], got {self.delta}", field="cross_init.delta")
         if self.epsilon_schedule not in ("paper", "reference"):
-            raise InputError(f"unknown schedule {self.epsilon_schedule!r}", field="cross_init.epsilon_schedule",
-                             fix='use "paper" or "reference"')  # fmt: skip
+            raise InputError(
+                f"unknown schedule {self.epsilon_schedule!r}",
+                field="cross_init.epsilon_schedule",
+                fix='use "paper" or "reference"',
+            )
         if not 0 < self.ramp_fraction <= 1 or not 0 < self.background_anneal <= 1:
             raise InputError("ramp_fraction and background_anneal must be in (0, 1]", field="cross_init")
         if self.exposure_range_ev < 0:
             raise InputError(f"must be ≥ 0, got {self.exposure_range_ev}", field="cross_init.exposure_range_ev")
         if self.rate_reference_steps < 0:
-            raise InputError(f"must be ≥ 0 (0: the rates as given), got {self.rate_reference_steps}",
-                             field="cross_init.rate_reference_steps")  # fmt: skip
+            raise InputError(
+                f"must be ≥ 0 (0: the rates as given), got {self.rate_reference_steps}",
+                field="cross_init.rate_reference_steps",
+            )
         if self.batch_dates < 0:
-            raise InputError(f"must be ≥ 0 (0: all dates q of one p at once), got {self.batch_dates}",
-                             field="cross_init.batch_dates", fix="lower it (e.g. 1) when memory is short")  # fmt: skip
+            raise InputError(
+                f"must be ≥ 0 (0: all dates q of one p at once), got {self.batch_dates}",
+                field="cross_init.batch_dates",
+                fix="lower it (e.g. 1) when memory is short",
+            )
 
 
 @dataclasses.dataclass(frozen=True)
@@ -123,8 +133,9 @@ def own_render(g: Gaussians, o_p, camera, render_config=None):
     """Date p's own appearance at ``camera``: its Gaussians at opacity α·o^p, no light change, over
     black (the render both the exposure gain and the LPIPS map compare with I^q)."""
     n = len(g)
-    return splat.render_dates(g, camera, o_p[None], jnp.ones((1, n, 3), jnp.float32), config=render_config,
-                              statistics=False)  # fmt: skip
+    return splat.render_dates(
+        g, camera, o_p[None], jnp.ones((1, n, 3), jnp.float32), config=render_config, statistics=False
+    )
 
 
 def lpips_map(own, image, lpips_net, config: CrossInitConfig, gain: float = 1.0):
@@ -197,7 +208,7 @@ def _compiled_step(config: CrossInitConfig, render_config: splat.RenderConfig):
 
     @jax.jit
     def step(params, opt_state, g, cameras, images, eps_maps, keys, it):
-        stack = lambda *xs: jnp.stack(xs)  # noqa: E731
+        stack = lambda *xs: jnp.stack(xs)
         cams = jax.tree_util.tree_map(stack, *cameras)
         batched = jax.vmap(one, in_axes=(0, 0, None, 0, 0, 0, 0, None))
         return batched(params, opt_state, g, cams, jnp.stack(images), jnp.stack(eps_maps), keys, it)
@@ -241,8 +252,17 @@ def _image_shape(views: DateViews) -> tuple | None:
     return shapes.pop() if len(shapes) == 1 else None
 
 
-def init_pairs(model: TemporalGaussians, p: int, qs: Sequence[int], views: Sequence[DateViews], config: CrossInitConfig, *,
-               render_config: splat.RenderConfig | None = None, lpips_net=None, progress=None) -> tuple[TemporalGaussians, list[dict]]:  # fmt: skip
+def init_pairs(
+    model: TemporalGaussians,
+    p: int,
+    qs: Sequence[int],
+    views: Sequence[DateViews],
+    config: CrossInitConfig,
+    *,
+    render_config: splat.RenderConfig | None = None,
+    lpips_net=None,
+    progress=None,
+) -> tuple[TemporalGaussians, list[dict]]:
     """Optimise o^q and l^q of the Gaussians from date p against date q's views (Eq. 2) for every q in
     ``qs`` at once (``views[i]`` the views of ``qs[i]``; all of one image shape): each step renders one
     view of every q, vmapped, each pair with its own parameters, Adam state, view sequence and
@@ -250,8 +270,11 @@ def init_pairs(model: TemporalGaussians, p: int, qs: Sequence[int], views: Seque
     and one report per pair (visible count, first/last loss, mean o^q, light, ε)."""
     qs = list(qs)
     if len(views) != len(qs) or len({_image_shape(v) for v in views}) != 1 or _image_shape(views[0]) is None:
-        raise InputError("init_pairs needs one DateViews per q, all views of one image shape", field="cross_init.pairs",
-                         fix="run dates with other image sizes separately (cross_init groups them itself)")  # fmt: skip
+        raise InputError(
+            "init_pairs needs one DateViews per q, all views of one image shape",
+            field="cross_init.pairs",
+            fix="run dates with other image sizes separately (cross_init groups them itself)",
+        )
     render_config = render_config or splat.RenderConfig()
     lpips_net = lpips_net if lpips_net is not None else metrics.load_lpips(config.lpips_net)
     rows = np.nonzero(np.asarray(model.origin) == p)[0]
@@ -287,13 +310,15 @@ def init_pairs(model: TemporalGaussians, p: int, qs: Sequence[int], views: Seque
     # shared by the exposure start and the ε maps
     owns = [[own_render(g, o_p * mask[j], c, rc) for c in cameras[j]] for j in range(k)]
     lo, hi = 2.0**-config.exposure_range_ev, 2.0**config.exposure_range_ev
-    start_gains = [float(np.clip(exposure_gain(owns[j], images[j]), lo, hi)) if config.exposure_init else 1.0
-                   for j in range(k)]  # fmt: skip
+    start_gains = [
+        float(np.clip(exposure_gain(owns[j], images[j]), lo, hi)) if config.exposure_init else 1.0 for j in range(k)
+    ]
     u0 = np.asarray([[gain_parameter(s)] for s in start_gains], np.float32)  # gain := the pair's exposure
     params = {"o_logit": o_init, "u": jnp.broadcast_to(jnp.asarray(u0), (k, m)), "w": jnp.zeros((k, m))}
     start_light = [float(light_gain(jnp.asarray(u0[j, 0]))) for j in range(k)]  # the start gain, as rendered
-    eps_maps = [[lpips_map(own, im, lpips_net, config, start_light[j]) for own, im in zip(owns[j], images[j])]
-                for j in range(k)]  # fmt: skip
+    eps_maps = [
+        [lpips_map(own, im, lpips_net, config, start_light[j]) for own, im in zip(owns[j], images[j])] for j in range(k)
+    ]
     del owns
     keys = jnp.stack([jax.random.key(config.seed * 1_000_003 + p * 1009 + qs[i]) for i in active])
     losses = []
@@ -305,8 +330,15 @@ def init_pairs(model: TemporalGaussians, p: int, qs: Sequence[int], views: Seque
         keys, k_bg = both[:, 0], both[:, 1]
         v = [view_order((config.seed, p, qs[i]), it, len(images[j])) for j, i in enumerate(active)]
         params, opt_state, loss, overflowed = step(
-            params, opt_state, g, tuple(cameras[j][v[j]] for j in range(k)), tuple(images[j][v[j]] for j in range(k)),
-            tuple(eps_maps[j][v[j]] for j in range(k)), k_bg, jnp.float32(it))  # fmt: skip
+            params,
+            opt_state,
+            g,
+            tuple(cameras[j][v[j]] for j in range(k)),
+            tuple(images[j][v[j]] for j in range(k)),
+            tuple(eps_maps[j][v[j]] for j in range(k)),
+            k_bg,
+            jnp.float32(it),
+        )
         if bool(jnp.any(overflowed)):  # cannot happen with capacities from o = 1 (o^q ≤ 1), but never silently
             raise RuntimeError("cross-init render overflowed its intersection buffer")
         losses.append(np.asarray(loss))
@@ -319,41 +351,68 @@ def init_pairs(model: TemporalGaussians, p: int, qs: Sequence[int], views: Seque
         o_logits[idx[sel], q] = o_fit
         l_logits[idx[sel], q] = np.asarray(light_logits(light_multiplier(jnp.asarray(u), jnp.asarray(w))))
         reports[i] |= {
-            "skipped": False, "loss_first": float(np.mean(losses[:10, j])), "loss_last": float(np.mean(losses[-10:, j])),
-            "mean_o": float(np.mean(np.asarray(jax.nn.sigmoid(o_fit)))), "mean_w": float(np.mean(w)),
+            "skipped": False,
+            "loss_first": float(np.mean(losses[:10, j])),
+            "loss_last": float(np.mean(losses[-10:, j])),
+            "mean_o": float(np.mean(np.asarray(jax.nn.sigmoid(o_fit)))),
+            "mean_w": float(np.mean(w)),
             "mean_gain": float(np.mean(np.asarray(light_gain(jnp.asarray(u))))),
             "start_gain": start_light[j],
             "mean_epsilon": float(np.mean([np.asarray(e).mean() for e in eps_maps[j]])),
-        }  # fmt: skip
+        }
     new = dataclasses.replace(model, o_logits=jnp.asarray(o_logits), light_logits=jnp.asarray(l_logits))
     return new, reports
 
 
-def init_pair(model: TemporalGaussians, p: int, q: int, views: DateViews, config: CrossInitConfig, *,
-              render_config: splat.RenderConfig | None = None, lpips_net=None, progress=None) -> tuple[TemporalGaussians, dict]:  # fmt: skip
+def init_pair(
+    model: TemporalGaussians,
+    p: int,
+    q: int,
+    views: DateViews,
+    config: CrossInitConfig,
+    *,
+    render_config: splat.RenderConfig | None = None,
+    lpips_net=None,
+    progress=None,
+) -> tuple[TemporalGaussians, dict]:
     """``init_pairs`` for the one pair (p, q): the updated model and its report."""
-    model, reports = init_pairs(model, p, [q], [views], config, render_config=render_config, lpips_net=lpips_net,
-                                progress=progress)  # fmt: skip
+    model, reports = init_pairs(
+        model, p, [q], [views], config, render_config=render_config, lpips_net=lpips_net, progress=progress
+    )
     return model, reports[0]
 
 
-def pair_groups(pairs: Sequence[tuple[int, int]], views: Sequence[DateViews], batch: int) -> list[tuple[int, list[int]]]:
+def pair_groups(
+    pairs: Sequence[tuple[int, int]], views: Sequence[DateViews], batch: int
+) -> list[tuple[int, list[int]]]:
     """``pairs`` as (p, [q, …]) groups run together by ``init_pairs``: the same p, dates q of one image
     shape, at most ``batch`` (0: no limit) per group, in the order of ``pairs``."""
     shapes = [_image_shape(v) for v in views]
     groups: list[tuple[int, list[int]]] = []
     for p, q in pairs:
         last = groups[-1] if groups else None
-        if (last is not None and last[0] == p and shapes[q] is not None and shapes[last[1][0]] == shapes[q]
-                and (batch == 0 or len(last[1]) < batch)):  # fmt: skip
+        if (
+            last is not None
+            and last[0] == p
+            and shapes[q] is not None
+            and shapes[last[1][0]] == shapes[q]
+            and (batch == 0 or len(last[1]) < batch)
+        ):
             last[1].append(q)
         else:
             groups.append((p, [q]))
     return groups
 
 
-def cross_init(model: TemporalGaussians, views: Sequence[DateViews], config: CrossInitConfig | None = None, *,
-               pairs: Sequence[tuple[int, int]] | None = None, render_config=None, progress: bool = False):  # fmt: skip
+def cross_init(
+    model: TemporalGaussians,
+    views: Sequence[DateViews],
+    config: CrossInitConfig | None = None,
+    *,
+    pairs: Sequence[tuple[int, int]] | None = None,
+    render_config=None,
+    progress: bool = False,
+):
     """Eq. 2 for every ordered pair p ≠ q (or the given ``pairs``, e.g. only those that involve a new
     date when extending), the pairs of one p run together (``pair_groups``, ``init_pairs``: vmapped,
     up to ``config.batch_dates`` at a time); returns the model and the per-pair reports."""
@@ -373,11 +432,13 @@ def cross_init(model: TemporalGaussians, views: Sequence[DateViews], config: Cro
         task = bar.add_task("cross-timestep init", total=len(pairs) * config.steps)
         done = 0
         for p, qs in pair_groups(pairs, views, config.batch_dates):
+
             def tick(k, base=done, width=len(qs)):
                 bar.update(task, completed=base + width * k)
 
-            model, reps = init_pairs(model, p, qs, [views[q] for q in qs], config, render_config=render_config,
-                                     lpips_net=net, progress=tick)  # fmt: skip
+            model, reps = init_pairs(
+                model, p, qs, [views[q] for q in qs], config, render_config=render_config, lpips_net=net, progress=tick
+            )
             reports.extend(reps)
             done += len(qs) * config.steps
     return model, reports

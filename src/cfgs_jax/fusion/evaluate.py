@@ -18,12 +18,19 @@ def render_date(model: TemporalGaussians, q: int, camera, *, background=(0.0, 0.
     """Date ``q`` of the model (Eq. 1: opacity α·o^q, colour l^q ⊙ c) at ``camera``."""
     o = opacity_multipliers(model)[:, q]
     light = light_multipliers(model)[:, q]
-    return splat.render_dates(model.gaussians, camera, o[None], light[None], background=background, config=config,
-                              statistics=False)
+    return splat.render_dates(
+        model.gaussians, camera, o[None], light[None], background=background, config=config, statistics=False
+    )
 
 
-def evaluate_fused(model: TemporalGaussians, views: Sequence, *, background=(0.0, 0.0, 0.0), render_config=None,
-                   lpips_net: str | None = "alex") -> dict:  # fmt: skip
+def evaluate_fused(
+    model: TemporalGaussians,
+    views: Sequence,
+    *,
+    background=(0.0, 0.0, 0.0),
+    render_config=None,
+    lpips_net: str | None = "alex",
+) -> dict:
     """``views[q]``: a ``DateViews`` of date q's test views in the model's frame."""
     net = metrics.load_lpips(lpips_net) if lpips_net else None
     bg = np.asarray(background, np.float32)

@@ -2,7 +2,7 @@
 
 Each date's Gaussians are moved into the reference frame by their Sim(3) and concatenated; the
 per-date opacity multipliers start as "own date on, other dates off" and the light compensation as
-identity. Logit values follow the released reference code (DESIGN §5): ±2e (o ≈ 0.996 / 0.004) and
+identity. Logit values follow the released reference code: ±2e (o ≈ 0.996 / 0.004) and
 −4e for a Gaussian known to be invisible at a date.
 """
 
@@ -37,7 +37,9 @@ def merge(
     models = list(models)
     dates = tuple(d if isinstance(d, DateInfo) else DateInfo(str(d)) for d in dates)
     if len(models) != len(dates) or not models:
-        raise InputError(f"{len(models)} models for {len(dates)} dates", field="merge.dates", fix="give one model per date")
+        raise InputError(
+            f"{len(models)} models for {len(dates)} dates", field="merge.dates", fix="give one model per date"
+        )
     transforms = list(transforms) if transforms is not None else [None] * len(models)
     if len(transforms) != len(models):
         raise InputError(f"{len(transforms)} transforms for {len(models)} models", field="merge.transforms")
@@ -55,8 +57,14 @@ def merge(
     )
 
 
-def add_date(model: TemporalGaussians, new: Gaussians, date: DateInfo | str, transform: Sim3 | None = None, *,
-             position: int | None = None) -> TemporalGaussians:
+def add_date(
+    model: TemporalGaussians,
+    new: Gaussians,
+    date: DateInfo | str,
+    transform: Sim3 | None = None,
+    *,
+    position: int | None = None,
+) -> TemporalGaussians:
     """Extend a fused model by one date (the paper's incremental fusion), inserted as date ``position``
     (default: last; dates are in time order, so a date captured between two others goes between
     them): the new date's Gaussians (moved by ``transform`` into the model's frame) are appended with
@@ -71,7 +79,7 @@ def add_date(model: TemporalGaussians, new: Gaussians, date: DateInfo | str, tra
     if not 0 <= k <= t:
         raise InputError(f"position {k} for a model of {t} dates", field="position", fix=f"use 0 … {t}")
     moved = new if transform is None else transform_gaussians(new, transform)
-    n_old, n_new = len(model), len(moved)
+    n_new = len(moved)
     dtype = jnp.result_type(model.gaussians.means)
     o_old = jnp.insert(jnp.asarray(model.o_logits, dtype), k, OTHER_LOGIT, axis=1)
     o_new = jnp.full((n_new, t + 1), OTHER_LOGIT, dtype).at[:, k].set(OWN_LOGIT)

@@ -20,7 +20,9 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-REC709 = np.array([0.2126, 0.7152, 0.0722])
+from cfgs_jax.colour import REC709_LUMA
+
+REC709 = np.asarray(REC709_LUMA)  # Rec.709 luma weights (linear RGB)
 #: The largest light multiplier the model fits (stored logit ln 99 ≈ 4.6, where float32 round-trips
 #: l = 2·sigmoid(logit) to ~1e-7).
 MAX_LIGHT = 1.98

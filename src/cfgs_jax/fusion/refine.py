@@ -53,7 +53,7 @@ from cfgs_jax.train.config import TrainConfig
 from cfgs_jax.train.loop import view_order
 from cfgs_jax.train.optim import position_lr as training_position_lr
 from cfgs_jax.train.optim import restart_moments
-from cfgs_jax.train.step import over_background
+from cfgs_jax.train.step import gaussians_from_params, over_background, params_from_gaussians
 
 FIELDS = ("means", "quats", "log_scales", "opacity_logits", "colors", "o_logits")
 
@@ -116,7 +116,9 @@ def halve_alpha(opacity_logits):
     return jnp.log(a) - jnp.log1p(-a)
 
 
-def make_optimizer(config: RefineConfig, extent: float, train_config: TrainConfig | None = None) -> optax.GradientTransformation:
+def make_optimizer(
+    config: RefineConfig, extent: float, train_config: TrainConfig | None = None
+) -> optax.GradientTransformation:
     """Adam (eps 1e-15) per field: the paper's rates, the colour's converted from f_dc to RGB (× C0), the
     position's the input training's schedule (``train_config``) restarted over ``config.steps``."""
     tc = dataclasses.replace(train_config or TrainConfig(), steps=max(config.steps, 1))
@@ -125,25 +127,30 @@ def make_optimizer(config: RefineConfig, extent: float, train_config: TrainConfi
     def position(step):
         return config.position_lr_scale * schedule(step)
 
-    rates = {"means": position, "quats": config.lr_other, "log_scales": config.lr_other,
-             "opacity_logits": config.lr_alpha, "colors": config.lr_color * SH_C0, "o_logits": config.lr_o}  # fmt: skip
+    rates = {
+        "means": position,
+        "quats": config.lr_other,
+        "log_scales": config.lr_other,
+        "opacity_logits": config.lr_alpha,
+        "colors": config.lr_color * SH_C0,
+        "o_logits": config.lr_o,
+    }
     return optax.multi_transform({k: optax.adam(v, eps=1e-15) for k, v in rates.items()}, {f: f for f in FIELDS})
 
 
 def params_of(model: TemporalGaussians) -> dict:
-    g = model.gaussians
-    return {"means": g.means, "quats": g.quats, "log_scales": g.log_scales, "opacity_logits": g.opacity_logits,
-            "colors": g.colors, "o_logits": model.o_logits}  # fmt: skip
+    """Refinement's trainable leaves: the Gaussians' fields (as in training) and the o-logits."""
+    return params_from_gaussians(model.gaussians) | {"o_logits": model.o_logits}
 
 
 def model_from(params: dict, like: TemporalGaussians) -> TemporalGaussians:
-    g = Gaussians(params["means"], params["quats"], params["log_scales"], params["opacity_logits"], params["colors"])
-    return dataclasses.replace(like, gaussians=g, o_logits=params["o_logits"])
+    """``like`` with the trainable leaves ``params`` (the inverse of ``params_of``)."""
+    return dataclasses.replace(like, gaussians=gaussians_from_params(params), o_logits=params["o_logits"])
 
 
 def _date_render(params, light_logits, camera, date, background, render_config):
     """Date ``date``'s render of the model ``params`` (opacity α·o^date, colour l^date ⊙ c)."""
-    g = Gaussians(params["means"], params["quats"], params["log_scales"], params["opacity_logits"], params["colors"])
+    g = gaussians_from_params(params)
     o = jax.nn.sigmoid(params["o_logits"][:, date])
     light = 2.0 * jax.nn.sigmoid(light_logits[:, date])
     return splat.render_dates(g, camera, o[None], light[None], background=background, config=render_config)
@@ -177,12 +184,14 @@ def _compiled_step(config: RefineConfig, extent: float, render_config: splat.Ren
     def contribution(params, light_logits, camera, date):
         """The visibility test of one view from a forward-only render (no step)."""
         res = _date_render(params, light_logits, camera, date, jnp.zeros(3, jnp.float32), render_config)
-        return visible_weight(res.max_weight[0], params["o_logits"][:, date]) >= config.contribution_threshold, res.overflowed
+        return visible_weight(
+            res.max_weight[0], params["o_logits"][:, date]
+        ) >= config.contribution_threshold, res.overflowed
 
     return optimizer, step, contribution
 
 
-def visible_weight(max_weight: Float[Array, "N"], o_logits: Float[Array, "N"]) -> Float[Array, "N"]:
+def visible_weight(max_weight: Float[Array, " N"], o_logits: Float[Array, " N"]) -> Float[Array, " N"]:
     """The kernel's max over pixels of min(0.99, α·o·G)·T divided by o: α·G·T where the Gaussian is
     composited (α·o·G ≥ 1/255), 0 where the kernel skips it."""
     return max_weight / jax.nn.sigmoid(o_logits)
@@ -214,16 +223,29 @@ def _load_checkpoint(path: Path, template: dict, meta_now: dict) -> tuple[dict, 
     meta, arrays = read_meta(path, format=CHECKPOINT_FORMAT)
     bad = [k for k, v in meta_now.items() if meta.get(k) != v]
     if bad:
-        raise InputError(f"the checkpoint belongs to another refinement (differs in {', '.join(bad)})", path=path,
-                         fix="resume with the original model and settings, or delete it to restart the stage")  # fmt: skip
+        raise InputError(
+            f"the checkpoint belongs to another refinement (differs in {', '.join(bad)})",
+            path=path,
+            fix="resume with the original model and settings, or delete it to restart the stage",
+        )
     return restore_tree(path, arrays, template), meta
 
 
-def refine(model: TemporalGaussians, views: Sequence[DateViews], config: RefineConfig | None = None, *,
-           extent: float, train_config: TrainConfig | None = None, new_dates: Sequence[int] | None = None,
-           render_config: splat.RenderConfig | None = None, progress: bool = False,
-           checkpoint: str | Path | None = None, stop_after: int | None = None,
-           snapshot_steps: Sequence[int] = (), on_snapshot=None):  # fmt: skip
+def refine(
+    model: TemporalGaussians,
+    views: Sequence[DateViews],
+    config: RefineConfig | None = None,
+    *,
+    extent: float,
+    train_config: TrainConfig | None = None,
+    new_dates: Sequence[int] | None = None,
+    render_config: splat.RenderConfig | None = None,
+    progress: bool = False,
+    checkpoint: str | Path | None = None,
+    stop_after: int | None = None,
+    snapshot_steps: Sequence[int] = (),
+    on_snapshot=None,
+):
     """Eq. 3 refinement of a cross-initialised model on all dates' training views, the visibility
     rule every ``visibility_interval`` steps and at the end, then the final prune. Returns the model
     and a report (losses, Gaussians zeroed per date, views completed by forward-only renders, pruned
@@ -257,12 +279,16 @@ def refine(model: TemporalGaussians, views: Sequence[DateViews], config: RefineC
     images = [[jnp.asarray(im, jnp.float32) for im in dv.images] for dv in views]
 
     def capacity_for(params, q, v):
-        g = Gaussians(params["means"], params["quats"], params["log_scales"], params["opacity_logits"], params["colors"])
+        g = Gaussians(
+            params["means"], params["quats"], params["log_scales"], params["opacity_logits"], params["colors"]
+        )
         o = jax.nn.sigmoid(params["o_logits"][:, q])[None]
         return splat.required_capacity(g, views[q].cameras[v], o, config=render_config)
 
     def compiled(capacity):
-        return _compiled_step(config, float(extent), dataclasses.replace(render_config, capacity=capacity), train_config)
+        return _compiled_step(
+            config, float(extent), dataclasses.replace(render_config, capacity=capacity), train_config
+        )
 
     capacity = max(capacity_for(params, q, v) for q, v in flat)
     optimizer, step, contribution = compiled(capacity)
@@ -275,12 +301,25 @@ def refine(model: TemporalGaussians, views: Sequence[DateViews], config: RefineC
     losses = []
     key = jax.random.key(config.seed)
     start = 0
-    meta_now = {"config": dataclasses.asdict(config), "train": dataclasses.asdict(train_config), "gaussians": n,
-                "dates": t, "extent": float(extent), "new_dates": new_dates}  # fmt: skip
+    meta_now = {
+        "config": dataclasses.asdict(config),
+        "train": dataclasses.asdict(train_config),
+        "gaussians": n,
+        "dates": t,
+        "extent": float(extent),
+        "new_dates": new_dates,
+    }
 
     def state():
-        return {"params": params, "opt_state": opt_state, "key": jax.random.key_data(key), "contributed": contributed,
-                "covered": covered, "zeroed": zeroed, "o_init": o_init}  # fmt: skip
+        return {
+            "params": params,
+            "opt_state": opt_state,
+            "key": jax.random.key_data(key),
+            "contributed": contributed,
+            "covered": covered,
+            "zeroed": zeroed,
+            "o_init": o_init,
+        }
 
     if checkpoint is not None and Path(checkpoint).is_file():
         loaded, meta = _load_checkpoint(Path(checkpoint), state(), meta_now)
@@ -337,9 +376,17 @@ def refine(model: TemporalGaussians, views: Sequence[DateViews], config: RefineC
                 covered[:] = False
             bar.update(task, completed=it + 1)
             done = it + 1
-            if checkpoint is not None and done < config.steps and (done % config.checkpoint_every == 0 or done == stop_after):
-                save_tree(checkpoint, state(), meta_now | {"step": done, "losses": losses, "completed": completed},
-                          format=CHECKPOINT_FORMAT)  # fmt: skip
+            if (
+                checkpoint is not None
+                and done < config.steps
+                and (done % config.checkpoint_every == 0 or done == stop_after)
+            ):
+                save_tree(
+                    checkpoint,
+                    state(),
+                    meta_now | {"step": done, "losses": losses, "completed": completed},
+                    format=CHECKPOINT_FORMAT,
+                )
             if on_snapshot is not None and done in snapshot_steps and done < config.steps:
                 on_snapshot(done, final_prune(model_from(params, model), config.prune_threshold))
             if stop_after is not None and done == stop_after:
@@ -347,9 +394,13 @@ def refine(model: TemporalGaussians, views: Sequence[DateViews], config: RefineC
     refined = model_from(params, model)
     pruned = final_prune(refined, config.prune_threshold)
     report = {
-        "steps": config.steps, "loss_first": float(np.mean(losses[:20])) if losses else None,
-        "loss_last": float(np.mean(losses[-20:])) if losses else None, "zeroed_per_date": zeroed.sum(axis=0).tolist(),
-        "views_completed": completed, "halved_dates": new_dates if config.halve_alpha else [],
-        "gaussians_before_prune": n, "gaussians_after_prune": len(pruned),
-    }  # fmt: skip
+        "steps": config.steps,
+        "loss_first": float(np.mean(losses[:20])) if losses else None,
+        "loss_last": float(np.mean(losses[-20:])) if losses else None,
+        "zeroed_per_date": zeroed.sum(axis=0).tolist(),
+        "views_completed": completed,
+        "halved_dates": new_dates if config.halve_alpha else [],
+        "gaussians_before_prune": n,
+        "gaussians_after_prune": len(pruned),
+    }
     return pruned, report

@@ -15,7 +15,6 @@ import jax.numpy as jnp
 import numpy as np
 
 from cfgs_jax.errors import InputError
-
 from cfgs_jax.model import Gaussians
 from cfgs_jax.sim3 import Sim3, matrix_to_quat
 
@@ -85,10 +84,12 @@ class Registration:
 
     def to_dict(self) -> dict:
         return {
-            "transform": self.transform.to_dict(), "registered_reference": self.registered_reference,
-            "registered_date": self.registered_date, "centre_residual_rel": self.centre_residual,
+            "transform": self.transform.to_dict(),
+            "registered_reference": self.registered_reference,
+            "registered_date": self.registered_date,
+            "centre_residual_rel": self.centre_residual,
             "rotation_residual_deg": self.rotation_residual_deg,
-        }  # fmt: skip
+        }
 
 
 def _evenly(n: int, k: int) -> list[int]:
@@ -123,6 +124,7 @@ def refine_sim3_pair(init_a: Sim3, init_b: Sim3, ref_pairs, date_pairs, extent: 
 
     (c_rs, r_rs), (c_rr, r_rr) = ref_pairs
     (c_ds, r_ds), (c_dd, r_dd) = date_pairs
+
     def unpack(y):
         return y[0], _rotvec_to_matrix(y[1:4]), y[4:7]
 
@@ -130,7 +132,7 @@ def refine_sim3_pair(init_a: Sim3, init_b: Sim3, ref_pairs, date_pairs, extent: 
         c_rs, r_rs, c_rr, r_rr, c_ds, r_ds, c_dd, r_dd = args
         la, ra, ta = unpack(y[:7])
         lb, rb, tb = unpack(y[7:])
-        a_c = lambda c: jnp.exp(la) * c @ ra.T + ta  # noqa: E731
+        a_c = lambda c: jnp.exp(la) * c @ ra.T + ta
         out = [
             ((a_c(c_rs) - c_rr) / extent).ravel(),
             ((a_c(c_ds) - (jnp.exp(lb) * c_dd @ rb.T + tb)) / extent).ravel(),
@@ -147,9 +149,13 @@ def refine_sim3_pair(init_a: Sim3, init_b: Sim3, ref_pairs, date_pairs, extent: 
     @jax.jit
     def solve(y0, args):
         sol = optx.least_squares(
-            residuals, optx.LevenbergMarquardt(rtol=1e-10, atol=1e-12), y0, args=args,
-            max_steps=max_steps, throw=False,
-        )  # fmt: skip
+            residuals,
+            optx.LevenbergMarquardt(rtol=1e-10, atol=1e-12),
+            y0,
+            args=args,
+            max_steps=max_steps,
+            throw=False,
+        )
         return sol.value, sol.result == optx.RESULTS.successful
 
     with jax.enable_x64(True):
@@ -170,7 +176,9 @@ def _sim3_from_pycolmap(s) -> Sim3:
     return Sim3(scale, m[:, :3] / scale, m[:, 3].copy())
 
 
-def register_date(reference, date, *, config: RegisterConfig | None = None, workdir=None, progress=None) -> Registration:
+def register_date(
+    reference, date, *, config: RegisterConfig | None = None, workdir=None, progress=None
+) -> Registration:
     """The Sim(3) that brings ``date`` (a ``Scene``) into ``reference``'s frame.
 
     A subset of both dates' images goes through one joint SfM (pycolmap: SIFT, exhaustive matching,
@@ -201,24 +209,40 @@ def register_date(reference, date, *, config: RegisterConfig | None = None, work
         db = tmp / "database.db"
         for tag, scene in (("ref", reference), ("new", date)):
             cam = scene.cameras[0]
-            reader = pycolmap.ImageReaderOptions(camera_model="PINHOLE", camera_params=",".join(
-                str(float(x)) for x in (cam.fx, cam.fy, cam.cx, cam.cy)))  # fmt: skip
+            reader = pycolmap.ImageReaderOptions(
+                camera_model="PINHOLE", camera_params=",".join(str(float(x)) for x in (cam.fx, cam.fy, cam.cx, cam.cy))
+            )
             names = [n for n, (t, _) in picked.items() if t == tag]
             extraction = pycolmap.FeatureExtractionOptions()
             extraction.sift.peak_threshold = config.sift_peak_threshold
-            pycolmap.extract_features(db, tmp / "images", image_names=names, camera_mode=pycolmap.CameraMode.SINGLE,
-                                      reader_options=reader, extraction_options=extraction, device=pycolmap.Device.cpu)  # fmt: skip
+            pycolmap.extract_features(
+                db,
+                tmp / "images",
+                image_names=names,
+                camera_mode=pycolmap.CameraMode.SINGLE,
+                reader_options=reader,
+                extraction_options=extraction,
+                device=pycolmap.Device.cpu,
+            )
         pycolmap.match_exhaustive(db, device=pycolmap.Device.cpu)
-        opts = pycolmap.IncrementalPipelineOptions(random_seed=config.seed, ba_refine_focal_length=False,
-                                                   ba_refine_principal_point=False, ba_refine_extra_params=False,
-                                                   min_num_matches=config.min_num_matches)  # fmt: skip
+        opts = pycolmap.IncrementalPipelineOptions(
+            random_seed=config.seed,
+            ba_refine_focal_length=False,
+            ba_refine_principal_point=False,
+            ba_refine_extra_params=False,
+            min_num_matches=config.min_num_matches,
+        )
         opts.mapper.init_min_num_inliers = config.init_min_num_inliers
         opts.mapper.abs_pose_min_num_inliers = config.abs_pose_min_num_inliers
         opts.mapper.init_min_tri_angle = config.init_min_tri_angle
         maps = pycolmap.incremental_mapping(db, tmp / "images", tmp / "sfm", options=opts)
     if not maps:
-        raise InputError("joint SfM of the two dates found no reconstruction", path=date.root, field="images",
-                         fix="the dates share too little; pass known transforms with --transforms JSON")  # fmt: skip
+        raise InputError(
+            "joint SfM of the two dates found no reconstruction",
+            path=date.root,
+            field="images",
+            fix="the dates share too little; pass known transforms with --transforms JSON",
+        )
     rec = max(maps.values(), key=lambda r: r.num_reg_images())
     pairs = {"ref": ([], [], [], []), "new": ([], [], [], [])}
     for img in rec.images.values():
@@ -235,9 +259,10 @@ def register_date(reference, date, *, config: RegisterConfig | None = None, work
         raise InputError(
             f"only {n_new} of {len([t for t, _ in picked.values() if t == 'new'])} images of this date and "
             f"{n_ref} reference images registered in the joint SfM (need ≥ {config.min_registered} each)",
-            path=date.root, field="images",
+            path=date.root,
+            field="images",
             fix="use more overlapping images (RegisterConfig.images_per_date) or pass --transforms JSON",
-        )  # fmt: skip
+        )
     ref = [np.asarray(x) for x in pairs["ref"]]
     new = [np.asarray(x) for x in pairs["new"]]
     ransac = pycolmap.RANSACOptions(random_seed=config.seed)
@@ -247,25 +272,37 @@ def register_date(reference, date, *, config: RegisterConfig | None = None, work
     a0 = pycolmap.estimate_sim3d_robust(ref[0], ref[2], ransac)  # SfM → reference
     b_sfm = pycolmap.estimate_sim3d_robust(new[0], new[2], ransac)  # SfM → date
     if a0 is None or b_sfm is None:
-        raise InputError("no consistent Sim(3) between the SfM and the dates' cameras", path=date.root,
-                         fix="check the dates' COLMAP poses, or pass --transforms JSON")  # fmt: skip
-    a0, b_sfm = _sim3_from_pycolmap(a0["tgt_from_src"] if isinstance(a0, dict) else a0), _sim3_from_pycolmap(
-        b_sfm["tgt_from_src"] if isinstance(b_sfm, dict) else b_sfm)  # fmt: skip
+        raise InputError(
+            "no consistent Sim(3) between the SfM and the dates' cameras",
+            path=date.root,
+            fix="check the dates' COLMAP poses, or pass --transforms JSON",
+        )
+    a0, b_sfm = (
+        _sim3_from_pycolmap(a0["tgt_from_src"] if isinstance(a0, dict) else a0),
+        _sim3_from_pycolmap(b_sfm["tgt_from_src"] if isinstance(b_sfm, dict) else b_sfm),
+    )
     b0 = a0.compose(b_sfm.inverse())  # date → reference
-    a, b, converged = refine_sim3_pair(a0, b0, ((ref[0], ref[1]), (ref[2], ref[3])), ((new[0], new[1]), (new[2], new[3])),
-                                       extent, config.lm_max_steps)  # fmt: skip
+    a, b, converged = refine_sim3_pair(
+        a0, b0, ((ref[0], ref[1]), (ref[2], ref[3])), ((new[0], new[1]), (new[2], new[3])), extent, config.lm_max_steps
+    )
     if not converged:
         raise InputError(
             f"registering this date to the reference failed: the joint Levenberg–Marquardt fit of the Sim(3) "
             f"(optimistix) did not converge within {config.lm_max_steps} steps ({n_ref} reference and {n_new} "
-            f"date images registered)", path=date.root, field="register.lm_max_steps",
+            f"date images registered)",
+            path=date.root,
+            field="register.lm_max_steps",
             fix="raise [register] lm_max_steps, check the date's COLMAP poses, or pass --transforms JSON",
-        )  # fmt: skip
+        )
     c_err = np.concatenate([a.apply(ref[0]) - ref[2], a.apply(new[0]) - b.apply(new[2])])
     r_err = [np.degrees(_angle(a.rotation @ r1, r2)) for r1, r2 in zip(ref[1], ref[3])]
     r_err += [np.degrees(_angle(a.rotation @ r1, b.rotation @ r2)) for r1, r2 in zip(new[1], new[3])]
     return Registration(
-        b, n_ref, n_new, float(np.sqrt(np.mean(np.sum(c_err**2, axis=1))) / extent), float(np.sqrt(np.mean(np.square(r_err))))
+        b,
+        n_ref,
+        n_new,
+        float(np.sqrt(np.mean(np.sum(c_err**2, axis=1))) / extent),
+        float(np.sqrt(np.mean(np.square(r_err)))),
     )
 
 

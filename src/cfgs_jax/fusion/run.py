@@ -22,6 +22,7 @@ import dataclasses
 import json
 import time
 import warnings
+from collections.abc import Callable
 from pathlib import Path
 
 import jax.numpy as jnp
@@ -45,8 +46,13 @@ from cfgs_jax.sim3 import Sim3
 
 STAGES = ("train", "register", "merge", "cross_init", "refine", "export", "evaluate")
 #: The tables a run configuration may hold, and the dataclass each one builds.
-CONFIG_SECTIONS = {"render": splat.RenderConfig, "train": train.TrainConfig, "register": RegisterConfig,
-                   "cross_init": CrossInitConfig, "refine": RefineConfig}  # fmt: skip
+CONFIG_SECTIONS = {
+    "render": splat.RenderConfig,
+    "train": train.TrainConfig,
+    "register": RegisterConfig,
+    "cross_init": CrossInitConfig,
+    "refine": RefineConfig,
+}
 #: o-logit of every Gaussian of a one-date "fusion": σ(30) rounds to exactly 1.0 in float32, so the
 #: fused model renders bit-identically to its input.
 IDENTITY_LOGIT = 30.0
@@ -94,9 +100,12 @@ def check_lpips_size(scene: Scene, raw: dict | None) -> None:
     side = minimum_side(net)
     small = [(c.width, c.height) for c in scene.cameras if min(c.width, c.height) < side]
     if small:
-        raise InputError(f"{len(small)} images as small as {small[0][0]}×{small[0][1]} pixels; cross-init's LPIPS "
-                         f"({net}) needs both sides ≥ {side}", path=scene.root,
-                         fix=f"use images of at least {side}×{side} pixels")  # fmt: skip
+        raise InputError(
+            f"{len(small)} images as small as {small[0][0]}×{small[0][1]} pixels; cross-init's LPIPS "
+            f"({net}) needs both sides ≥ {side}",
+            path=scene.root,
+            fix=f"use images of at least {side}×{side} pixels",
+        )
 
 
 def load_transforms(path: Path, names: list[str]) -> dict[str, Sim3]:
@@ -109,8 +118,12 @@ def load_transforms(path: Path, names: list[str]) -> dict[str, Sim3]:
     out = {names[0]: Sim3.identity()}
     for name in names[1:]:
         if name not in data:
-            raise InputError(f"no transform for date {name!r}", path=path, field=name,
-                             fix='add {"scale": s, "rotation_wxyz": [w, x, y, z], "translation": [x, y, z]}')  # fmt: skip
+            raise InputError(
+                f"no transform for date {name!r}",
+                path=path,
+                field=name,
+                fix='add {"scale": s, "rotation_wxyz": [w, x, y, z], "translation": [x, y, z]}',
+            )
         try:
             out[name] = Sim3.from_dict(data[name])
         except (KeyError, TypeError, ValueError) as exc:
@@ -136,35 +149,60 @@ def config_changes(started: dict, given: dict) -> list[str]:
 class FusionRun:
     """One run directory and its stage bookkeeping."""
 
-    def __init__(self, out: Path, dates: list[Path], raw_config: dict | None, *, resume: bool, models=None,
-                 captured: list[str | None] | None = None):  # fmt: skip
+    def __init__(
+        self,
+        out: Path,
+        dates: list[Path],
+        raw_config: dict | None,
+        *,
+        resume: bool,
+        models=None,
+        captured: list[str | None] | None = None,
+    ):
         self.out = ensure_writable_dir(out)
         self.raw = raw_config or {}
         given = {k: v for k, v in self.raw.items() if k != "__path__"}  # what run.json stores as "config"
         state = read_json(self.out / "run.json")
         if state is not None and not resume:
-            raise InputError("this run directory holds an earlier run", path=self.out / "run.json",
-                             fix="pass --resume to continue it, or choose another --out")  # fmt: skip
+            raise InputError(
+                "this run directory holds an earlier run",
+                path=self.out / "run.json",
+                fix="pass --resume to continue it, or choose another --out",
+            )
         if state is not None:
             if [str(Path(d).resolve()) for d in dates] != [d["path"] for d in state["dates"]]:
-                raise InputError("the run was started with other dates", path=self.out / "run.json", field="--dates",
-                                 fix=f"use {[d['path'] for d in state['dates']]}")  # fmt: skip
+                raise InputError(
+                    "the run was started with other dates",
+                    path=self.out / "run.json",
+                    field="--dates",
+                    fix=f"use {[d['path'] for d in state['dates']]}",
+                )
             changed = config_changes(state["config"], given)
             if changed:
-                raise InputError(f"the run was started with another configuration ({'; '.join(changed[:6])})",
-                                 path=self.out / "run.json", field="--config",
-                                 fix="resume with the configuration it was started with (its values are in run.json "
-                                     "under \"config\"), or choose another --out")  # fmt: skip
+                raise InputError(
+                    f"the run was started with another configuration ({'; '.join(changed[:6])})",
+                    path=self.out / "run.json",
+                    field="--config",
+                    fix="resume with the configuration it was started with (its values are in run.json "
+                    'under "config"), or choose another --out',
+                )
         names = [Path(d).name for d in dates]
         if len(set(names)) != len(names) or not names:
-            raise InputError(f"need dates with distinct directory names, got {names}", field="--dates",
-                             fix="give each date's dataset its own directory name")  # fmt: skip
+            raise InputError(
+                f"need dates with distinct directory names, got {names}",
+                field="--dates",
+                fix="give each date's dataset its own directory name",
+            )
         captured = list(captured) if captured is not None else [None] * len(names)
         self.state = state or {
-            "dates": [{"name": n, "path": str(Path(d).resolve()), "captured": c} for n, d, c in zip(names, dates, captured)],
-            "reference": names[0], "done": [], "config": given,
+            "dates": [
+                {"name": n, "path": str(Path(d).resolve()), "captured": c} for n, d, c in zip(names, dates, captured)
+            ],
+            "reference": names[0],
+            "done": [],
+            "config": given,
             "models": [str(Path(m).resolve()) for m in models] if models else None,
-        }  # fmt: skip
+        }
         self.timings = read_json(self.out / "timings.json", {})
         self.report = read_json(self.out / "report.json", {})
         self._save()
@@ -200,6 +238,15 @@ class FusionRun:
     def done(self, stage: str) -> bool:
         return stage in self.state["done"]
 
+    def stage(self, name: str, work: Callable[[], dict | None]) -> None:
+        """Run one stage unless it is done: call ``work`` (which writes the stage's outputs and returns
+        its report, or None), then record the stage as done with its wall time and report."""
+        if self.done(name):
+            return
+        t0 = time.perf_counter()
+        report = work()
+        self.finish(name, time.perf_counter() - t0, report)
+
 
 def _train_date(run: FusionRun, scene: Scene, name: str, render_config, progress: bool, log, tag: str) -> None:
     """Train one date into ``RUN/dates/<name>/`` (resuming its checkpoint): PLY and train.json."""
@@ -210,6 +257,17 @@ def _train_date(run: FusionRun, scene: Scene, name: str, render_config, progress
     r = train.fit(scene, tc, render_config, out=d, resume=True, progress=progress)
     write_ply(d / "point_cloud.ply", r.gaussians)
     write_json(d / "train.json", {"gaussians": len(r.gaussians), "test": r.metrics, "growth": r.counts})
+
+
+def _register(run: FusionRun, reference: Scene, date: Scene, name: str, ref_name: str, log, tag: str) -> dict:
+    """Register one date to the reference by joint SfM (``register_date``); its register.json entry."""
+    log(f"[{tag}] date {name} → {ref_name}")
+    r = register_date(reference, date, config=section(run.raw, "register", RegisterConfig))
+    log(
+        f"  {r.registered_reference} + {r.registered_date} images registered; centre residual "
+        f"{100 * r.centre_residual:.2f} % of the extent, rotation {r.rotation_residual_deg:.2f}°"
+    )
+    return r.to_dict() | {"source": "joint SfM"}
 
 
 def _cross_init_pairs(run: FusionRun, start: Path, pairs, views, render_config, log, stage: str, tag: str) -> None:
@@ -237,8 +295,19 @@ def _cross_init_pairs(run: FusionRun, start: Path, pairs, views, render_config, 
     run.finish(stage, finished["seconds"], finished["reports"])
 
 
-def _refine_stage(run: FusionRun, views, scenes, render_config, progress: bool, log, stage: str, snapshots=(), *,
-                  extension: bool = False, new_dates=None) -> None:  # fmt: skip
+def _refine_stage(
+    run: FusionRun,
+    views,
+    scenes,
+    render_config,
+    progress: bool,
+    log,
+    stage: str,
+    snapshots=(),
+    *,
+    extension: bool = False,
+    new_dates=None,
+) -> None:
     """Eq. 3 refinement of ``RUN/cross_init`` → ``RUN/fused``, resumable mid-way from
     ``RUN/<stage>_checkpoint.npz`` (saved every ``refine.checkpoint_every`` steps); the model after each
     step count in ``snapshots`` goes to ``RUN/snapshots/refine_<k>/``. An ``extension`` refines
@@ -251,13 +320,23 @@ def _refine_stage(run: FusionRun, views, scenes, render_config, progress: bool, 
     model = read_fused(run.out / "cross_init")
     log(f"[{stage}] {len(model):,} Gaussians, {fc.steps:,} steps over all dates")
     ckpt = run.out / f"{stage.replace(':', '_')}_checkpoint.npz"
+
     def snapshot(k, m):
         write_fused(run.out / "snapshots" / f"refine_{k}", m, config=run.state["config"])
 
-    model, rep = refine(model, views, fc, extent=train.scene_extent(scenes[run.reference].cameras),
-                        train_config=section(run.raw, "train", train.TrainConfig), new_dates=new_dates,
-                        render_config=render_config, progress=progress, checkpoint=ckpt, snapshot_steps=tuple(snapshots),
-                        on_snapshot=snapshot)  # fmt: skip
+    model, rep = refine(
+        model,
+        views,
+        fc,
+        extent=train.scene_extent(scenes[run.reference].cameras),
+        train_config=section(run.raw, "train", train.TrainConfig),
+        new_dates=new_dates,
+        render_config=render_config,
+        progress=progress,
+        checkpoint=ckpt,
+        snapshot_steps=tuple(snapshots),
+        on_snapshot=snapshot,
+    )
     write_fused(run.out / "fused", model, config=run.state["config"])
     run.finish(stage, time.perf_counter() - t0, rep)
     ckpt.unlink(missing_ok=True)
@@ -266,8 +345,11 @@ def _refine_stage(run: FusionRun, views, scenes, render_config, progress: bool, 
 def capture_times(scenes: list[Scene], given: list[str | None] | None) -> list[str | None]:
     """Each date's capture time: ``given[i]`` where set (checked), else its images' EXIF, else None."""
     if given is not None and len(given) != len(scenes):
-        raise InputError(f"{len(given)} capture times for {len(scenes)} dates", field="--captured",
-                         fix="give one ISO date per --dates entry, in the same order")  # fmt: skip
+        raise InputError(
+            f"{len(given)} capture times for {len(scenes)} dates",
+            field="--captured",
+            fix="give one ISO date per --dates entry, in the same order",
+        )
     out = []
     for i, sc in enumerate(scenes):
         c = given[i] if given is not None else None
@@ -277,10 +359,22 @@ def capture_times(scenes: list[Scene], given: list[str | None] | None) -> list[s
     return out
 
 
-def run_fusion(dates: list[Path], out: Path, raw_config: dict | None = None, *, models: list[Path] | None = None,
-               transforms: Path | None = None, captured: list[str | None] | None = None, resume: bool = False,
-               progress: bool = True, evaluate: bool = True, drop_invalid: bool = False,
-               snapshots: tuple[int, ...] = (), until: str | None = None, log=print) -> FusionRun:  # fmt: skip
+def run_fusion(
+    dates: list[Path],
+    out: Path,
+    raw_config: dict | None = None,
+    *,
+    models: list[Path] | None = None,
+    transforms: Path | None = None,
+    captured: list[str | None] | None = None,
+    resume: bool = False,
+    progress: bool = True,
+    evaluate: bool = True,
+    drop_invalid: bool = False,
+    snapshots: tuple[int, ...] = (),
+    until: str | None = None,
+    log=print,
+) -> FusionRun:
     """All stages of ChronoFuseGS over ``dates`` (COLMAP datasets).
 
     Dates are put in time order first (``captured``: one ISO 8601 time per date, else each date's EXIF
@@ -308,8 +402,11 @@ def run_fusion(dates: list[Path], out: Path, raw_config: dict | None = None, *, 
     for sc in scenes if len(scenes) > 1 else ():
         check_lpips_size(sc, raw_config)
     if models is not None and len(models) != len(dates):
-        raise InputError(f"{len(models)} models for {len(dates)} dates", field="--models",
-                         fix="give one PLY per date, in the order of --dates")  # fmt: skip
+        raise InputError(
+            f"{len(models)} models for {len(dates)} dates",
+            field="--models",
+            fix="give one PLY per date, in the order of --dates",
+        )
     given = [read_ply(m, drop_invalid=drop_invalid) for m in models or ()]  # checked now, merged below
     if len(dates) == 1:
         msg = f"fusing a single date ({Path(dates[0]).name}): the result is that date's model unchanged (identity)"
@@ -320,9 +417,7 @@ def run_fusion(dates: list[Path], out: Path, raw_config: dict | None = None, *, 
     render_config = section(raw, "render", splat.RenderConfig)
     names = run.names
 
-    # 1. per-date models
-    if not run.done("train"):
-        t0 = time.perf_counter()
+    def train_dates():
         per_date = {}
         for i, name in enumerate(names):
             if run.state["models"] or (run.out / "dates" / name / "point_cloud.ply").is_file():
@@ -330,29 +425,32 @@ def run_fusion(dates: list[Path], out: Path, raw_config: dict | None = None, *, 
             s = time.perf_counter()
             _train_date(run, scenes[i], name, render_config, progress, log, "train")
             per_date[name] = time.perf_counter() - s
-        run.finish("train", time.perf_counter() - t0, {"per_date_seconds": per_date})
+        return {"per_date_seconds": per_date}
+
+    def register():
+        if transforms is not None:
+            sims = load_transforms(transforms, names)
+            reg = {n: {"transform": sims[n].to_dict(), "source": str(transforms)} for n in names}
+        else:
+            reg = {names[0]: {"transform": Sim3.identity().to_dict(), "source": "reference"}}
+            for i in range(1, len(names)):
+                reg[names[i]] = _register(run, scenes[0], scenes[i], names[i], names[0], log, "register")
+        write_json(run.out / "register.json", reg)
+
+    def merge_dates():
+        merged = merge(given or [read_ply(p, drop_invalid=drop_invalid) for p in model_paths], dinfo, sims)
+        write_fused(run.out / "merged", merged)
+        return {"gaussians": len(merged)}
+
+    # 1. per-date models
+    run.stage("train", train_dates)
     model_paths = run.state["models"] or [str(run.out / "dates" / n / "point_cloud.ply") for n in names]
 
     if until == "train":
         return run
 
     # 2. registration
-    if not run.done("register"):
-        t0 = time.perf_counter()
-        if transforms is not None:
-            sims = load_transforms(transforms, names)
-            reg = {n: {"transform": sims[n].to_dict(), "source": str(transforms)} for n in names}
-        else:
-            rc = section(raw, "register", RegisterConfig)
-            reg = {names[0]: {"transform": Sim3.identity().to_dict(), "source": "reference"}}
-            for i in range(1, len(names)):
-                log(f"[register] date {names[i]} → {names[0]}")
-                r = register_date(scenes[0], scenes[i], config=rc)
-                reg[names[i]] = r.to_dict() | {"source": "joint SfM"}
-                log(f"  {r.registered_reference} + {r.registered_date} images registered; centre residual "
-                    f"{100 * r.centre_residual:.2f} % of the extent, rotation {r.rotation_residual_deg:.2f}°")  # fmt: skip
-        write_json(run.out / "register.json", reg)
-        run.finish("register", time.perf_counter() - t0)
+    run.stage("register", register)
     reg = read_json(run.out / "register.json")
     sims = [Sim3.from_dict(reg[n]["transform"]) for n in names]
     dinfo = run.date_infos()
@@ -360,11 +458,7 @@ def run_fusion(dates: list[Path], out: Path, raw_config: dict | None = None, *, 
         return run
 
     # 3. merge
-    if not run.done("merge"):
-        t0 = time.perf_counter()
-        merged = merge(given or [read_ply(p, drop_invalid=drop_invalid) for p in model_paths], dinfo, sims)
-        write_fused(run.out / "merged", merged)
-        run.finish("merge", time.perf_counter() - t0, {"gaussians": len(merged)})
+    run.stage("merge", merge_dates)
     if until == "merge":
         return run
     if len(names) == 1 and not run.done("refine"):
@@ -385,33 +479,50 @@ def run_fusion(dates: list[Path], out: Path, raw_config: dict | None = None, *, 
         _refine_stage(run, views, scenes, render_config, progress, log, "refine", snapshots)
 
     # 6. export in the authors' layout too
-    if not run.done("export"):
-        t0 = time.perf_counter()
-        write_fused(run.out / "reference", read_fused(run.out / "fused"), layout="reference")
-        run.finish("export", time.perf_counter() - t0)
+    run.stage("export", lambda: _export_reference(run))
     _evaluate_stage(run, scenes, sims, render_config, evaluate, log)
     return run
 
 
+def _export_reference(run: FusionRun) -> None:
+    """The fused model also in the authors' layout (``RUN/reference``)."""
+    write_fused(run.out / "reference", read_fused(run.out / "fused"), layout="reference")
+
+
 def _evaluate_stage(run: FusionRun, scenes, sims, render_config, enabled: bool, log, stage="evaluate"):
     """Test-split PSNR / SSIM / LPIPS of the fused model per date → RUN/metrics.json."""
-    if run.done(stage) or not enabled:
+    if not enabled:
         return
     from cfgs_jax.fusion.evaluate import evaluate_fused
 
-    t0 = time.perf_counter()
-    model = read_fused(run.out / "fused")
-    test_views = [date_views(sc, sm, "test") for sc, sm in zip(scenes, sims)]
-    m = evaluate_fused(model, test_views, render_config=render_config)
-    write_json(run.out / "metrics.json", m)
-    log("test views: " + ", ".join(f"{n} {v['psnr']:.2f} dB" for n, v in m["dates"].items())
-        + f"; mean PSNR {m['mean']['psnr']:.2f} dB, SSIM {m['mean']['ssim']:.4f}, LPIPS {m['mean'].get('lpips', float('nan')):.4f}")  # fmt: skip
-    run.finish(stage, time.perf_counter() - t0, m["mean"])
+    def evaluate():
+        model = read_fused(run.out / "fused")
+        test_views = [date_views(sc, sm, "test") for sc, sm in zip(scenes, sims)]
+        m = evaluate_fused(model, test_views, render_config=render_config)
+        write_json(run.out / "metrics.json", m)
+        mean = m["mean"]
+        log(
+            "test views: "
+            + ", ".join(f"{n} {v['psnr']:.2f} dB" for n, v in m["dates"].items())
+            + f"; mean PSNR {mean['psnr']:.2f} dB, SSIM {mean['ssim']:.4f}, LPIPS {mean.get('lpips', float('nan')):.4f}"
+        )
+        return mean
+
+    run.stage(stage, evaluate)
 
 
-def run_extend(run_dir: Path, date: Path, *, model: Path | None = None, transform: Sim3 | None = None,
-               captured: str | None = None, resume: bool = False, progress: bool = True, evaluate: bool = True,
-               log=print) -> FusionRun:  # fmt: skip
+def run_extend(
+    run_dir: Path,
+    date: Path,
+    *,
+    model: Path | None = None,
+    transform: Sim3 | None = None,
+    captured: str | None = None,
+    resume: bool = False,
+    progress: bool = True,
+    evaluate: bool = True,
+    log=print,
+) -> FusionRun:
     """Add one date to a finished fusion run in place (paper: incremental fusion): train it (unless
     ``model``), register it to the reference date, insert it at its place in time (``captured``, else
     its EXIF capture time; last when it or an earlier date's time is unknown) with ``add_date``,
@@ -463,44 +574,44 @@ def run_extend(run_dir: Path, date: Path, *, model: Path | None = None, transfor
     ref = run.reference
     scenes = [run.scene(i) for i in range(len(names))]
 
-    if not run.done(prefix + "train"):
-        t0 = time.perf_counter()
-        if model is None and not (run.out / "dates" / name / "point_cloud.ply").is_file():
-            _train_date(run, scenes[k], name, render_config, progress, log, "extend/train")
-        run.finish(prefix + "train", time.perf_counter() - t0)
     ply = Path(model) if model is not None else run.out / "dates" / name / "point_cloud.ply"
 
-    reg = read_json(run.out / "register.json")
-    if not run.done(prefix + "register"):
-        t0 = time.perf_counter()
+    def train_date():
+        if model is None and not ply.is_file():
+            _train_date(run, scenes[k], name, render_config, progress, log, "extend/train")
+
+    def register():
+        reg = read_json(run.out / "register.json")
         if transform is not None:
             reg[name] = {"transform": transform.to_dict(), "source": "given"}
         else:
-            log(f"[extend/register] date {name} → {names[ref]}")
-            r = register_date(scenes[ref], scenes[k], config=section(raw, "register", RegisterConfig))
-            reg[name] = r.to_dict() | {"source": "joint SfM"}
+            reg[name] = _register(run, scenes[ref], scenes[k], name, names[ref], log, "extend/register")
         write_json(run.out / "register.json", reg)
-        run.finish(prefix + "register", time.perf_counter() - t0)
-    sims = [Sim3.from_dict(reg[n]["transform"]) for n in names]
 
-    if not run.done(prefix + "merge"):
-        t0 = time.perf_counter()
-        old = read_fused(run.out / "fused")
-        merged = add_date(old, read_ply(ply), run.date_infos()[k], sims[k], position=k)
+    def insert_date():
+        merged = add_date(read_fused(run.out / "fused"), read_ply(ply), run.date_infos()[k], sims[k], position=k)
         write_fused(run.out / "cross_init", merged)
         write_json(run.out / "cross_init_pairs.json", {"pairs": [], "reports": [], "seconds": 0.0})
-        run.finish(prefix + "merge", time.perf_counter() - t0)
+
+    run.stage(prefix + "train", train_date)
+    run.stage(prefix + "register", register)
+    reg = read_json(run.out / "register.json")
+    sims = [Sim3.from_dict(reg[n]["transform"]) for n in names]
+    run.stage(prefix + "merge", insert_date)
     views = [date_views(scenes[i], sims[i]) for i in range(len(names))]
 
     if not run.done(prefix + "cross_init"):
         others = [i for i in range(len(names)) if i != k]
         pairs = [(p, k) for p in others] + [(k, q) for q in others]  # only pairs involving the new date
-        _cross_init_pairs(run, run.out / "cross_init", pairs, views, render_config, log, prefix + "cross_init",
-                          "extend/cross_init")  # fmt: skip
+        _cross_init_pairs(
+            run, run.out / "cross_init", pairs, views, render_config, log, prefix + "cross_init", "extend/cross_init"
+        )
 
     if not run.done(prefix + "refine"):
-        _refine_stage(run, views, scenes, render_config, progress, log, prefix + "refine", extension=True, new_dates=[k])
-        write_fused(run.out / "reference", read_fused(run.out / "fused"), layout="reference")
+        _refine_stage(
+            run, views, scenes, render_config, progress, log, prefix + "refine", extension=True, new_dates=[k]
+        )
+        _export_reference(run)
     _evaluate_stage(run, scenes, sims, render_config, evaluate, log, stage=prefix + "evaluate")
     run.timings[f"extend:{name}:total"] = sum(v for key, v in run.timings.items() if key.startswith(prefix))
     run._save()

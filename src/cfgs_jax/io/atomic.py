@@ -26,9 +26,7 @@ def ensure_writable_dir(directory: str | os.PathLike) -> Path:
     if not d.is_dir():
         raise OutputError(f"{d}: exists and is not a directory. Fix: choose another output path.")
     if not os.access(d, os.W_OK | os.X_OK):
-        raise OutputError(
-            f"{d}: output directory is not writable. Fix: change its permissions or choose another one."
-        )
+        raise OutputError(f"{d}: output directory is not writable. Fix: change its permissions or choose another one.")
     return d
 
 
@@ -37,8 +35,11 @@ def check_resume(directory: str | os.PathLike, resume: bool) -> None:
     every long command continues earlier work only when asked (``--resume``)."""
     d = Path(directory)
     if not resume and d.is_dir() and any(d.iterdir()):
-        raise InputError("this output folder holds an earlier run", path=d,
-                         fix="pass --resume to continue it, or choose another --out")  # fmt: skip
+        raise InputError(
+            "this output folder holds an earlier run",
+            path=d,
+            fix="pass --resume to continue it, or choose another --out",
+        )
 
 
 @contextlib.contextmanager

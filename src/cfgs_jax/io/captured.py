@@ -27,9 +27,10 @@ def parse_captured(text: str, *, field: str = "captured") -> dt.datetime:
     try:
         t = dt.datetime.fromisoformat(s)
     except ValueError as exc:
-        raise InputError(f"not a date: {text!r}", field=field,
-                         fix='write it as ISO 8601, e.g. "2023-06-01" or "2023-06-01T14:30:00"') from exc  # fmt: skip
-    return t if t.tzinfo else t.replace(tzinfo=dt.timezone.utc)
+        raise InputError(
+            f"not a date: {text!r}", field=field, fix='write it as ISO 8601, e.g. "2023-06-01" or "2023-06-01T14:30:00"'
+        ) from exc
+    return t if t.tzinfo else t.replace(tzinfo=dt.UTC)
 
 
 def exif_with_capture_time(captured: str):
@@ -37,7 +38,7 @@ def exif_with_capture_time(captured: str):
     ("YYYY:MM:DD HH:MM:SS", UTC)."""
     from PIL import Image
 
-    stamp = parse_captured(captured).astimezone(dt.timezone.utc).strftime("%Y:%m:%d %H:%M:%S")
+    stamp = parse_captured(captured).astimezone(dt.UTC).strftime("%Y:%m:%d %H:%M:%S")
     exif = Image.Exif()
     exif[_DATETIME] = stamp  # IFD0 (an Exif with an empty IFD0 is not written at all)
     exif.get_ifd(_EXIF_IFD)[_DATETIME_ORIGINAL] = stamp
@@ -76,10 +77,11 @@ def time_order(captured: Sequence[str | None], names: Sequence[str]) -> list[int
     if times != sorted(times):
         listed = ", ".join(f"{names[i]} {captured[i]}" for _, i in known)
         missing = ", ".join(n for n, c in zip(names, captured) if not c)
-        raise InputError(f"the dates with a capture time are out of time order ({listed}) and {missing} has none",
-                         field="--captured",
-                         fix="give every date's capture time with --captured (then they are sorted), or list "
-                             "--dates oldest first")  # fmt: skip
+        raise InputError(
+            f"the dates with a capture time are out of time order ({listed}) and {missing} has none",
+            field="--captured",
+            fix="give every date's capture time with --captured (then they are sorted), or list --dates oldest first",
+        )
     return list(range(len(names)))
 
 

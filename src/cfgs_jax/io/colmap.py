@@ -88,16 +88,29 @@ def downscale_image(img: np.ndarray, size: tuple[int, int]) -> np.ndarray:
 
     if (img.shape[1], img.shape[0]) == tuple(size):
         return img
-    chans = [np.asarray(Image.fromarray(np.ascontiguousarray(img[..., c], np.float32), mode="F")
-                        .resize(tuple(size), Image.Resampling.BOX)) for c in range(img.shape[-1])]  # fmt: skip
+    chans = [
+        np.asarray(
+            Image.fromarray(np.ascontiguousarray(img[..., c], np.float32), mode="F").resize(
+                tuple(size), Image.Resampling.BOX
+            )
+        )
+        for c in range(img.shape[-1])
+    ]
     return np.stack(chans, axis=-1).astype(np.float32)
 
 
 def scale_camera(cam: Camera, size: tuple[int, int]) -> Camera:
     """``cam`` for an image resized to ``size`` = (width, height): intrinsics × new / old size."""
     sx, sy = size[0] / cam.width, size[1] / cam.height
-    return Camera(float(cam.fx) * sx, float(cam.fy) * sy, float(cam.cx) * sx, float(cam.cy) * sy,
-                  int(size[0]), int(size[1]), np.asarray(cam.cam_from_world))  # fmt: skip
+    return Camera(
+        float(cam.fx) * sx,
+        float(cam.fy) * sy,
+        float(cam.cx) * sx,
+        float(cam.cy) * sy,
+        int(size[0]),
+        int(size[1]),
+        np.asarray(cam.cam_from_world),
+    )
 
 
 def check_image_size(path: Path, size: tuple[int, int], camera: Camera) -> None:
@@ -189,23 +202,31 @@ def _split_from_camera_info(path: Path, names: list[str]) -> tuple[str, ...]:
             name, typ = None, None
         if name is None or typ is None:
             raise InputError(
-                f"entry {key!r} has no image name or no 'type'", path=path, field="type",
+                f"entry {key!r} has no image name or no 'type'",
+                path=path,
+                field="type",
                 fix='give every entry {"name": <image file name>, "type": "train" | "test"}',
-            )  # fmt: skip
+            )
         if typ not in ("train", "test"):
             raise InputError(f"entry {name!r} has type {typ!r}", path=path, field="type", fix='use "train" or "test"')
         types[Path(str(name)).name] = typ
     missing = [n for n in names if Path(n).name not in types]
     if missing:
         raise InputError(
-            f"{len(missing)} image(s) have no entry (e.g. {missing[:3]})", path=path, field="type",
+            f"{len(missing)} image(s) have no entry (e.g. {missing[:3]})",
+            path=path,
+            field="type",
             fix="list every image of the COLMAP model, or delete camera_info.json to use every-8th-image split",
-        )  # fmt: skip
+        )
     return tuple(types[Path(n).name] for n in names)
 
 
 def read_colmap(
-    path: str | os.PathLike, *, images: str = "images", test_every: int = 8, check_images: bool = True,
+    path: str | os.PathLike,
+    *,
+    images: str = "images",
+    test_every: int = 8,
+    check_images: bool = True,
     resolution: int = 1,
 ) -> Scene:
     """Load a COLMAP dataset into a ``Scene`` (see the module docstring for the layout, the split and
@@ -216,14 +237,17 @@ def read_colmap(
     if not p.exists():
         raise InputError("dataset directory not found", path=p, fix="check the path")
     if isinstance(resolution, bool) or not isinstance(resolution, (int, np.integer)) or resolution < 1:
-        raise InputError(f"must be an integer >= 1, got {resolution!r}", field="resolution",
-                         fix="use 1 (full size), 2, 4 or 8")  # fmt: skip
+        raise InputError(
+            f"must be an integer >= 1, got {resolution!r}", field="resolution", fix="use 1 (full size), 2, 4 or 8"
+        )
     root, model_dir = _find_model_dir(p)
     _check_model_files(model_dir)
     try:
         rec = pycolmap.Reconstruction(str(model_dir))
     except Exception as exc:
-        raise InputError(f"pycolmap cannot read the model ({exc})", path=model_dir, fix="the model files are corrupt: re-export them") from exc
+        raise InputError(
+            f"pycolmap cannot read the model ({exc})", path=model_dir, fix="the model files are corrupt: re-export them"
+        ) from exc
     posed = sorted((img for img in rec.images.values() if img.has_pose), key=lambda img: img.name)
     if not posed:
         raise InputError("the model has no registered (posed) images", path=model_dir, field="images")
@@ -247,8 +271,10 @@ def read_colmap(
         if missing:
             raise InputError(
                 f"{len(missing)} image(s) of the COLMAP model are missing (e.g. {missing[:3]})",
-                path=image_dir, field="images", fix="copy the missing images or re-run SfM",
-            )  # fmt: skip
+                path=image_dir,
+                field="images",
+                fix="copy the missing images or re-run SfM",
+            )
         for name, cam in zip(names, cameras):  # headers only: a wrong size fails now, not mid-training
             check_image_size(image_dir / name, image_size(image_dir / name), cam)
     pts = list(rec.points3D.values())
@@ -263,8 +289,11 @@ def read_colmap(
             if check_images:
                 for name, cam in zip(names, cameras):
                     if not (image_dir / name).is_file():
-                        raise InputError("image missing from the downscaled folder", path=image_dir / name,
-                                         fix=f"complete {image_dir} or remove it (images are then downscaled on load)")  # fmt: skip
+                        raise InputError(
+                            "image missing from the downscaled folder",
+                            path=image_dir / name,
+                            fix=f"complete {image_dir} or remove it (images are then downscaled on load)",
+                        )
                     check_image_size(image_dir / name, image_size(image_dir / name), cam)
         else:
             on_load = True

@@ -46,15 +46,11 @@ REF_PLY, REF_ACT, REF_SIDECAR = "point_cloud.ply", "activation.ply", "cfgs_dates
 
 def reference_activation_names(num_dates: int) -> list[str]:
     """Property names of the reference ``activation.ply``, in order."""
-    return [f"opacity_{t}" for t in range(num_dates)] + [
-        f"color_{c}_{t}" for t in range(num_dates) for c in "rgb"
-    ]
+    return [f"opacity_{t}" for t in range(num_dates)] + [f"color_{c}_{t}" for t in range(num_dates) for c in "rgb"]
 
 
 def cfgs_extra_names(num_dates: int) -> list[str]:
-    return [f"o_logit_{t}" for t in range(num_dates)] + [
-        f"light_{c}_{t}" for t in range(num_dates) for c in "rgb"
-    ]
+    return [f"o_logit_{t}" for t in range(num_dates)] + [f"light_{c}_{t}" for t in range(num_dates) for c in "rgb"]
 
 
 def config_hash(config) -> str | None:
@@ -96,9 +92,7 @@ def _model_arrays(model: TemporalGaussians):
     return o, light.reshape(n, t * 3), np.asarray(model.origin, np.int32)
 
 
-def write_fused(
-    path: str | os.PathLike, model: TemporalGaussians, layout: str = "cfgs", *, config=None
-) -> Path:
+def write_fused(path: str | os.PathLike, model: TemporalGaussians, layout: str = "cfgs", *, config=None) -> Path:
     """Write a fused model directory in ``layout`` "cfgs" (ours) or "reference" (the authors')."""
     if layout not in ("cfgs", "reference"):
         raise InputError(f"unknown layout {layout!r}", field="layout", fix='use "cfgs" or "reference"')
@@ -196,7 +190,9 @@ def _read_cfgs(root: Path, drop_invalid: bool) -> TemporalGaussians:
             raise InputError(f"missing {name} of a cfgs-layout model", path=root / name, fix="re-export the model")
     meta = _load_json(root / CFGS_JSON)
     if meta.get("format") != FORMAT_NAME:
-        raise InputError(f"format is {meta.get('format')!r}, expected {FORMAT_NAME!r}", path=root / CFGS_JSON, field="format")
+        raise InputError(
+            f"format is {meta.get('format')!r}, expected {FORMAT_NAME!r}", path=root / CFGS_JSON, field="format"
+        )
     if int(meta.get("format_version", -1)) > FORMAT_VERSION:
         raise InputError(
             f"format_version {meta.get('format_version')} is newer than this cfgs_jax supports ({FORMAT_VERSION})",
@@ -236,7 +232,9 @@ def _read_reference(root: Path, drop_invalid: bool) -> TemporalGaussians:
         )
     t = _count_dates(act.dtype.names, "opacity_", path=act_path)
     if t == 0:
-        raise InputError("no opacity_<t> properties", path=act_path, field="opacity_0", fix="check the file is an activation.ply")
+        raise InputError(
+            "no opacity_<t> properties", path=act_path, field="opacity_0", fix="check the file is an activation.ply"
+        )
     names = reference_activation_names(t)
     o = columns(act, names[:t], path=act_path)
     light = columns(act, names[t:], path=act_path)

@@ -41,7 +41,9 @@ def read_image(path: str | os.PathLike, *, linear: bool = False, with_alpha: boo
         img, encoded = _read_pil(p), True
     else:
         raise InputError(
-            f"unsupported image format '{suffix}'", path=p, fix="use PNG, JPEG or EXR (" + ", ".join(sorted(PIL_SUFFIXES | EXR_SUFFIXES)) + ")"
+            f"unsupported image format '{suffix}'",
+            path=p,
+            fix="use PNG, JPEG or EXR (" + ", ".join(sorted(PIL_SUFFIXES | EXR_SUFFIXES)) + ")",
         )
     rgb, alpha = img[..., :3], img[..., 3:]
     if encoded and linear:
@@ -74,7 +76,9 @@ def image_size(path: str | os.PathLike) -> tuple[int, int]:
         with Image.open(p) as im:
             return im.size
     except (UnidentifiedImageError, OSError, SyntaxError) as exc:
-        raise InputError(f"unreadable image ({exc})", path=p, fix="the file is corrupt or not an image: replace it") from exc
+        raise InputError(
+            f"unreadable image ({exc})", path=p, fix="the file is corrupt or not an image: replace it"
+        ) from exc
 
 
 def _read_pil(p: Path) -> np.ndarray:
@@ -91,7 +95,9 @@ def _read_pil(p: Path) -> np.ndarray:
                 im = im.convert("RGBA" if has_alpha else "RGB")
                 arr = np.asarray(im, np.float32) / 255.0
     except (UnidentifiedImageError, OSError, SyntaxError) as exc:
-        raise InputError(f"unreadable image ({exc})", path=p, fix="the file is corrupt or not an image: replace it") from exc
+        raise InputError(
+            f"unreadable image ({exc})", path=p, fix="the file is corrupt or not an image: replace it"
+        ) from exc
     return arr
 
 

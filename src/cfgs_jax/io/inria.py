@@ -54,11 +54,15 @@ def write_inria_layout(model_path: str | os.PathLike, gaussians: Gaussians, scen
     with atomic_file(root / "cameras.json") as tmp:
         tmp.write_text(json.dumps(entries))
     args = argparse.Namespace(
-        data_device="cuda", eval=bool(len(scene.indices("test"))), images=scene.image_dir.name,
-        model_path=str(root.resolve()), resolution=-1 if scene.resolution == 1 else scene.resolution,
-        sh_degree=0, source_path=str(Path(scene.root).resolve()), white_background=False,
-    )  # fmt: skip
+        data_device="cuda",
+        eval=bool(len(scene.indices("test"))),
+        images=scene.image_dir.name,
+        model_path=str(root.resolve()),
+        resolution=-1 if scene.resolution == 1 else scene.resolution,
+        sh_degree=0,
+        source_path=str(Path(scene.root).resolve()),
+        white_background=False,
+    )
     with atomic_file(root / "cfg_args") as tmp:
         tmp.write_text(str(args))
     return ply
-

@@ -58,9 +58,7 @@ def read_vertex_table(path: str | os.PathLike, *, element: str = "vertex") -> np
         ) from exc
     names = [e.name for e in ply.elements]
     if element not in names:
-        raise InputError(
-            f"no '{element}' element (elements present: {names})", path=p, field=element, fix=_FIX_LAYOUT
-        )
+        raise InputError(f"no '{element}' element (elements present: {names})", path=p, field=element, fix=_FIX_LAYOUT)
     data = ply[element].data
     if data.dtype.names is None:
         raise InputError(f"element '{element}' has no scalar properties", path=p, field=element)
@@ -93,9 +91,7 @@ def columns(
     return out
 
 
-def check_finite(
-    fields: dict[str, np.ndarray], *, path: str | os.PathLike, drop_invalid: bool
-) -> np.ndarray | None:
+def check_finite(fields: dict[str, np.ndarray], *, path: str | os.PathLike, drop_invalid: bool) -> np.ndarray | None:
     """Return a row mask of finite rows, or raise naming the first bad field and row indices.
 
     With ``drop_invalid`` the rows are dropped instead, with a logged count; returns None when all
@@ -139,9 +135,11 @@ def dropped_sh_note(table: np.ndarray, rest: Sequence[str], *, path) -> str:
     order = sorted(rest, key=lambda n: int(n.rsplit("_", 1)[1]))
     bands = int(round(np.sqrt(len(order) // 3 + 1))) - 1
     rms = view_dependent_rms(np.stack([np.asarray(table[n], np.float64) for n in order], axis=1))
-    return (f"{path}: dropped SH degree 1..{bands} ({len(order)} coefficients per Gaussian); the view-dependent "
-            f"colour they held has RMS {rms:.4f} (in [0, 1] colour units, over view directions and Gaussians); "
-            "colours are the DC term only")  # fmt: skip
+    return (
+        f"{path}: dropped SH degree 1..{bands} ({len(order)} coefficients per Gaussian); the view-dependent "
+        f"colour they held has RMS {rms:.4f} (in [0, 1] colour units, over view directions and Gaussians); "
+        "colours are the DC term only"
+    )
 
 
 def gaussians_from_table(table: np.ndarray, *, path: str | os.PathLike, drop_invalid: bool = False):

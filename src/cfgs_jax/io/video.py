@@ -28,10 +28,9 @@ def write_video(path: str | os.PathLike, frames: Sequence[np.ndarray], *, fps: i
         raise InputError("frames differ in size", path=path, fix="render every frame at one size")
     h, w = shape[:2]
     pad = ((0, h % 2), (0, w % 2), (0, 0))
-    with atomic_file(path) as tmp:
-        with imageio.get_writer(tmp, format="FFMPEG", fps=fps, codec="libx264", pixelformat="yuv420p",
-                                macro_block_size=1, quality=8) as writer:  # fmt: skip
-            for f in frames:
-                u8 = np.round(np.clip(np.asarray(f, np.float32)[..., :3], 0.0, 1.0) * 255.0).astype(np.uint8)
-                writer.append_data(np.pad(u8, pad))
+    options = dict(format="FFMPEG", fps=fps, codec="libx264", pixelformat="yuv420p", macro_block_size=1, quality=8)
+    with atomic_file(path) as tmp, imageio.get_writer(tmp, **options) as writer:
+        for f in frames:
+            u8 = np.round(np.clip(np.asarray(f, np.float32)[..., :3], 0.0, 1.0) * 255.0).astype(np.uint8)
+            writer.append_data(np.pad(u8, pad))
     return Path(path)

@@ -84,9 +84,16 @@ def ssim(
     if padding == "valid" and min(a.shape[-3:-1]) < window:
         raise InputError(f"images of {a.shape[-3:-1]} are smaller than the {window}-pixel window", field="ssim")
     out = dm_pix.ssim(
-        a4, b4, max_val=max_val, filter_size=window, filter_sigma=sigma, k1=k1, k2=k2, return_map=return_map,
+        a4,
+        b4,
+        max_val=max_val,
+        filter_size=window,
+        filter_sigma=sigma,
+        k1=k1,
+        k2=k2,
+        return_map=return_map,
         filter_fn=_same_filter(window, sigma) if padding == "same" else None,
-    )  # fmt: skip
+    )
     return out.reshape(lead + out.shape[1:])
 
 

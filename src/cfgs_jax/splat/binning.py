@@ -28,19 +28,19 @@ from cfgs_jax.splat.project import Projection
 
 
 class Bins(NamedTuple):
-    gaussian_ids: Int[Array, "C"]  # Gaussian index of each sorted intersection
-    tile_start: Int[Array, "tiles+1"]  # per-tile range into gaussian_ids (+1 dummy empty tile)
-    tile_end: Int[Array, "tiles+1"]
+    gaussian_ids: Int[Array, " C"]  # Gaussian index of each sorted intersection
+    tile_start: Int[Array, "tiles+1"]  # noqa: F821 - per-tile range into gaussian_ids (+1 dummy empty tile)
+    tile_end: Int[Array, "tiles+1"]  # noqa: F821
     num_intersections: Int[Array, ""]  # true count, may exceed the capacity C
 
 
-def cull_level(max_opacity: Float[Array, "N"], min_alpha: float) -> Float[Array, "N"]:
+def cull_level(max_opacity: Float[Array, " N"], min_alpha: float) -> Float[Array, " N"]:
     """Largest Mahalanobis q = dᵀΣ⁻¹d at which α = o·exp(−q/2) can still reach ``min_alpha``, with margin."""
     level = 2.0 * jnp.log(jnp.maximum(max_opacity, min_alpha) / min_alpha)
     return level * (1.0 + 1e-3) + 1e-2
 
 
-def tile_rects(proj: Projection, max_opacity: Float[Array, "N"], tile_size: int, min_alpha: float, cull: bool):
+def tile_rects(proj: Projection, max_opacity: Float[Array, " N"], tile_size: int, min_alpha: float, cull: bool):
     """Tile rectangles [lo, hi): INRIA's 3σ squares, shrunk to the α ≥ min_alpha ellipse's box if ``cull``."""
     if not cull:
         return proj.rect_min, proj.rect_max
@@ -54,7 +54,7 @@ def tile_rects(proj: Projection, max_opacity: Float[Array, "N"], tile_size: int,
     return lo, jnp.maximum(hi, lo)
 
 
-def listed_tiles(proj: Projection, max_opacity: Float[Array, "N"], *, tile_size: int, min_alpha: float, cull: bool):
+def listed_tiles(proj: Projection, max_opacity: Float[Array, " N"], *, tile_size: int, min_alpha: float, cull: bool):
     """Each Gaussian's tile rectangle [lo, hi) and how many tiles it is listed in (0 if invalid or
     below ``min_alpha`` at every date): the one rule shared by binning and the capacity count."""
     lo, hi = tile_rects(proj, max_opacity, tile_size, min_alpha, cull)
@@ -76,7 +76,7 @@ def _min_quadratic(conic, x0, x1, y0, y1):
     return jnp.where(inside, 0.0, jnp.minimum(jnp.minimum(edges[0], edges[1]), jnp.minimum(edges[2], edges[3])))
 
 
-def _sort_by_tile(tile: Int[Array, "C"], gid: Int[Array, "C"], num_tiles: int):
+def _sort_by_tile(tile: Int[Array, " C"], gid: Int[Array, " C"], num_tiles: int):
     """Stable sort of the intersections by tile. When (tile, slot) packs into 32 bits the sort is one
     uint32 key (several times faster than a two-operand stable sort on CPU); slots are unique, so
     the order within a tile is the generation (depth) order either way."""
@@ -92,7 +92,7 @@ def _sort_by_tile(tile: Int[Array, "C"], gid: Int[Array, "C"], num_tiles: int):
 
 def bin_gaussians(
     proj: Projection,
-    max_opacity: Float[Array, "N"],
+    max_opacity: Float[Array, " N"],
     grid: tuple[int, int],
     capacity: int,
     *,

@@ -237,7 +237,9 @@ def _forward(layout: Layout, means2d, conics, opac, feats, ids, tile_start, tile
             r, t, done, fg, maxw, hits = c
             ch = _chunk(layout, r, start, end, ids, means2d, conics, opac, feats, px, py, t, done)
             # Σ_k w_k f_k per feature plane, sliced per Gaussian so nothing [K, ...]-sized is materialised
-            fg = jnp.stack([fg[i] + _sum_leading_of(lambda j, i=i: ch.w[j] * ch.ft[i, j, ..., None], k) for i in range(f)])
+            fg = jnp.stack(
+                [fg[i] + _sum_leading_of(lambda j, i=i: ch.w[j] * ch.ft[i, j, ..., None], k) for i in range(f)]
+            )
             if layout.statistics:
                 maxw = maxw.at[:, ch.gid].max(jnp.moveaxis(_reduce_last(ch.w, jnp.maximum), 1, 0))
                 hits = hits.at[:, ch.gid].add(jnp.moveaxis(_reduce_last((ch.w > 0).astype(jnp.int32)), 1, 0))

@@ -17,12 +17,12 @@ class Projection(NamedTuple):
 
     means2d: Float[Array, "N 2"]
     conics: Float[Array, "N 3"]  # inverse 2D covariance (a, b, c) of [[a, b], [b, c]]
-    depths: Float[Array, "N"]  # view-space z
-    radii: Float[Array, "N"]  # ceil(3·sqrt(λ_max)), pixels
+    depths: Float[Array, " N"]  # view-space z
+    radii: Float[Array, " N"]  # ceil(3·sqrt(λ_max)), pixels
     cov_diag: Float[Array, "N 2"]  # (Σ2D_xx, Σ2D_yy) incl. the low-pass, pixels²
     rect_min: Int[Array, "N 2"]  # first tile (x, y) touched, inclusive
     rect_max: Int[Array, "N 2"]  # last tile (x, y) touched, exclusive
-    valid: Bool[Array, "N"]
+    valid: Bool[Array, " N"]
 
 
 def tile_grid(camera: Camera, config: RenderConfig) -> tuple[int, int]:

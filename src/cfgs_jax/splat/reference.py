@@ -33,7 +33,11 @@ def _rotation(q):
     w, v = q[:, 0], q[:, 1:]
     zero = jnp.zeros_like(w)
     vx = jnp.stack(
-        [jnp.stack([zero, -v[:, 2], v[:, 1]], -1), jnp.stack([v[:, 2], zero, -v[:, 0]], -1), jnp.stack([-v[:, 1], v[:, 0], zero], -1)],
+        [
+            jnp.stack([zero, -v[:, 2], v[:, 1]], -1),
+            jnp.stack([v[:, 2], zero, -v[:, 0]], -1),
+            jnp.stack([-v[:, 1], v[:, 0], zero], -1),
+        ],
         -2,
     )
     eye = jnp.eye(3, dtype=q.dtype)
@@ -89,10 +93,7 @@ def _render64(g: Gaussians, camera: Camera, opacity_mult, color_mult, background
 
     def step(carry, i):
         t, col, dep, done = carry
-        member = (
-            visible[i]
-            & (tile_x >= lo[i, 0]) & (tile_x < hi[i, 0]) & (tile_y >= lo[i, 1]) & (tile_y < hi[i, 1])
-        )  # fmt: skip
+        member = visible[i] & (tile_x >= lo[i, 0]) & (tile_x < hi[i, 0]) & (tile_y >= lo[i, 1]) & (tile_y < hi[i, 1])
         dx = mean2d[i, 0] - (px + 0.5)
         dy = mean2d[i, 1] - (py + 0.5)
         power = -0.5 * (inv[i, 0, 0] * dx * dx + inv[i, 1, 1] * dy * dy) - inv[i, 0, 1] * dx * dy
@@ -133,9 +134,14 @@ def render_dates(
     config = config or RenderConfig()
     with jax.enable_x64(True):
         return _render64_jit(
-            gaussians, camera, jnp.asarray(opacity_mult), jnp.asarray(color_mult), jnp.asarray(background),
-            config=config, depth_key=None if depth_key is None else jnp.asarray(depth_key, jnp.float64),
-        )  # fmt: skip
+            gaussians,
+            camera,
+            jnp.asarray(opacity_mult),
+            jnp.asarray(color_mult),
+            jnp.asarray(background),
+            config=config,
+            depth_key=None if depth_key is None else jnp.asarray(depth_key, jnp.float64),
+        )
 
 
 def render(gaussians, camera, *, background=(0.0, 0.0, 0.0), config=None, depth_key=None):
@@ -143,7 +149,12 @@ def render(gaussians, camera, *, background=(0.0, 0.0, 0.0), config=None, depth_
     n = gaussians.num_gaussians
     with jax.enable_x64(True):
         r = render_dates(
-            gaussians, camera, jnp.ones((1, n)), jnp.ones((1, n, 3)), background=background, config=config,
+            gaussians,
+            camera,
+            jnp.ones((1, n)),
+            jnp.ones((1, n, 3)),
+            background=background,
+            config=config,
             depth_key=depth_key,
-        )  # fmt: skip
+        )
         return ReferenceResult(*(x[0] for x in r))

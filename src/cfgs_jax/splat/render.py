@@ -19,7 +19,7 @@ import numpy as np
 from jaxtyping import Array, Float, Int
 
 from cfgs_jax.errors import InputError
-from cfgs_jax.model import Camera, Gaussians, opacities, rgb
+from cfgs_jax.model import Camera, Gaussians, is_traced, opacities, rgb
 from cfgs_jax.splat.binning import bin_gaussians, listed_tiles
 from cfgs_jax.splat.composite import Layout, composite
 from cfgs_jax.splat.config import RenderConfig
@@ -37,7 +37,7 @@ class RenderResult(eqx.Module):
     max_weight: Float[Array, "*T N"] | None  # max over pixels of α·T (the visibility statistic)
     hits: Int[Array, "*T N"] | None  # pixels each Gaussian contributed to (both None: statistics=False)
     means2d: Float[Array, "N 2"]  # projected centres (pixels, centres at +0.5)
-    radii: Float[Array, "N"]  # 0 where culled
+    radii: Float[Array, " N"]  # 0 where culled
     num_intersections: Int[Array, ""]  # entries the intersection buffer needed (overflow if > capacity)
     num_composited: Int[Array, ""]  # (Gaussian, tile) pairs composited, after exact tile culling
     capacity: int = eqx.field(static=True)
@@ -57,9 +57,18 @@ def _layout(camera: Camera, config: RenderConfig, dates: int, statistics: bool) 
     batch = config.tile_batch or (cpu_batch if jax.default_backend() == "cpu" else gx * gy)
     chunk = config.chunk or (32 if dates == 1 else 16)
     return Layout(
-        camera.width, camera.height, config.tile_size, gx, gy, min(batch, gx * gy), chunk,
-        config.min_alpha, config.max_alpha, config.min_transmittance, statistics,
-    )  # fmt: skip
+        camera.width,
+        camera.height,
+        config.tile_size,
+        gx,
+        gy,
+        min(batch, gx * gy),
+        chunk,
+        config.min_alpha,
+        config.max_alpha,
+        config.min_transmittance,
+        statistics,
+    )
 
 
 def _bucket(n: int) -> int:
@@ -73,7 +82,9 @@ def _effective_opacity(gaussians: Gaussians, opacity_mult, config: RenderConfig)
     return opac, jax.lax.stop_gradient(jnp.max(opac, axis=0))
 
 
-def _render_impl(gaussians, camera, opacity_mult, color_mult, background, means2d_offset, *, config, capacity, with_depth, statistics):
+def _render_impl(
+    gaussians, camera, opacity_mult, color_mult, background, means2d_offset, *, config, capacity, with_depth, statistics
+):
     proj = project(gaussians.means, gaussians.quats, gaussians.log_scales, camera, config)
     opac, max_opacity = _effective_opacity(gaussians, opacity_mult, config)
     feats = rgb(gaussians)[None] * color_mult
@@ -81,9 +92,14 @@ def _render_impl(gaussians, camera, opacity_mult, color_mult, background, means2
         feats = jnp.concatenate([feats, jnp.broadcast_to(proj.depths[None, :, None], feats.shape[:2] + (1,))], -1)
     layout = _layout(camera, config, opac.shape[0], statistics)
     bins = bin_gaussians(
-        proj, max_opacity, (layout.grid_x, layout.grid_y), capacity,
-        tile_size=config.tile_size, min_alpha=config.min_alpha, cull=config.tile_cull,
-    )  # fmt: skip
+        proj,
+        max_opacity,
+        (layout.grid_x, layout.grid_y),
+        capacity,
+        tile_size=config.tile_size,
+        min_alpha=config.min_alpha,
+        cull=config.tile_cull,
+    )
     means2d = proj.means2d if means2d_offset is None else proj.means2d + means2d_offset
     fg, t, maxw, hits = composite(
         layout, means2d, proj.conics, opac, feats, bins.gaussian_ids, bins.tile_start, bins.tile_end
@@ -104,32 +120,41 @@ def _render_impl(gaussians, camera, opacity_mult, color_mult, background, means2
 
 
 @functools.partial(jax.jit, static_argnames=("config", "capacity", "with_depth", "statistics"))
-def _render_jit(gaussians, camera, opacity_mult, color_mult, background, means2d_offset, *, config, capacity, with_depth,
-                statistics):  # fmt: skip
+def _render_jit(
+    gaussians, camera, opacity_mult, color_mult, background, means2d_offset, *, config, capacity, with_depth, statistics
+):
     return _render_impl(
-        gaussians, camera, opacity_mult, color_mult, background, means2d_offset,
-        config=config, capacity=capacity, with_depth=with_depth, statistics=statistics,
-    )  # fmt: skip
+        gaussians,
+        camera,
+        opacity_mult,
+        color_mult,
+        background,
+        means2d_offset,
+        config=config,
+        capacity=capacity,
+        with_depth=with_depth,
+        statistics=statistics,
+    )
 
 
 @functools.partial(jax.jit, static_argnames=("config",))
 def _count_jit(gaussians, camera, opacity_mult, *, config):
     proj = project(gaussians.means, gaussians.quats, gaussians.log_scales, camera, config)
     _, max_opacity = _effective_opacity(gaussians, opacity_mult, config)
-    _, counts = listed_tiles(proj, max_opacity, tile_size=config.tile_size, min_alpha=config.min_alpha, cull=config.tile_cull)
+    _, counts = listed_tiles(
+        proj, max_opacity, tile_size=config.tile_size, min_alpha=config.min_alpha, cull=config.tile_cull
+    )
     return jnp.sum(counts)
 
 
-def required_capacity(gaussians: Gaussians, camera: Camera, opacity_mult=None, *, config: RenderConfig | None = None) -> int:
+def required_capacity(
+    gaussians: Gaussians, camera: Camera, opacity_mult=None, *, config: RenderConfig | None = None
+) -> int:
     """The bucketed intersection capacity this view needs (call outside jit; pass to RenderConfig)."""
     config = config or RenderConfig()
     if opacity_mult is None:
         opacity_mult = jnp.ones((1, len(gaussians)), jnp.result_type(gaussians.means))
     return _bucket(int(_count_jit(gaussians, camera, jnp.asarray(opacity_mult), config=config)))
-
-
-def _is_traced(*trees) -> bool:
-    return any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(trees))
 
 
 def _validate(gaussians, camera, opacity_mult, color_mult):
@@ -168,7 +193,13 @@ def render_dates(
     config = config or RenderConfig()
     _validate(gaussians, camera, opacity_mult, color_mult)
     if len(gaussians) == 0:  # one invisible Gaussian keeps every array non-empty
-        gaussians = Gaussians(jnp.asarray([[0.0, 0.0, -1.0]]), jnp.asarray([[1.0, 0, 0, 0]]), jnp.zeros((1, 3)), jnp.zeros(1), jnp.zeros((1, 3)))
+        gaussians = Gaussians(
+            jnp.asarray([[0.0, 0.0, -1.0]]),
+            jnp.asarray([[1.0, 0, 0, 0]]),
+            jnp.zeros((1, 3)),
+            jnp.zeros(1),
+            jnp.zeros((1, 3)),
+        )
         opacity_mult = jnp.zeros((np.shape(opacity_mult)[0], 1))
         color_mult = jnp.zeros((np.shape(opacity_mult)[0], 1, 3))
         means2d_offset = None if means2d_offset is None else jnp.zeros((1, 2))
@@ -177,7 +208,7 @@ def render_dates(
     opacity_mult = jnp.asarray(opacity_mult, dtype)
     color_mult = jnp.asarray(color_mult, dtype)
     args = (gaussians, camera, opacity_mult, color_mult, background, means2d_offset)
-    if _is_traced(args):
+    if is_traced(args):
         if config.capacity is None:
             raise InputError(
                 "render was called under a JAX trace (jit/grad/vmap) without an intersection capacity",
@@ -185,7 +216,9 @@ def render_dates(
                 fix="pass config=RenderConfig(capacity=cfgs_jax.splat.required_capacity(gaussians, camera, "
                 "opacity_mult)) computed outside the trace, and check result.overflowed",
             )
-        return _render_impl(*args, config=config, capacity=config.capacity, with_depth=with_depth, statistics=statistics)
+        return _render_impl(
+            *args, config=config, capacity=config.capacity, with_depth=with_depth, statistics=statistics
+        )
     capacity = config.capacity or required_capacity(gaussians, camera, opacity_mult, config=config)
     while True:
         result = _render_jit(*args, config=config, capacity=capacity, with_depth=with_depth, statistics=statistics)
@@ -203,23 +236,37 @@ def render(
     config: RenderConfig | None = None,
     with_depth: bool = False,
     means2d_offset: Float[Array, "N 2"] | None = None,
-    opacity_mult: Float[Array, "N"] | None = None,
+    opacity_mult: Float[Array, " N"] | None = None,
     statistics: bool = True,
 ) -> RenderResult:
     """Render one image of a plain 3DGS model (``render_dates`` with T = 1 and unit colour multipliers;
     ``opacity_mult`` scales each α, default 1; ``statistics`` as in ``render_dates``)."""
     n = len(gaussians)
     dtype = jnp.result_type(gaussians.means)
-    opacity_mult = jnp.ones((1, n), dtype) if opacity_mult is None else jnp.reshape(jnp.asarray(opacity_mult, dtype), (1, n))
+    opacity_mult = (
+        jnp.ones((1, n), dtype) if opacity_mult is None else jnp.reshape(jnp.asarray(opacity_mult, dtype), (1, n))
+    )
     res = render_dates(
-        gaussians, camera, opacity_mult, jnp.ones((1, n, 3), dtype),
-        background=background, config=config, with_depth=with_depth, means2d_offset=means2d_offset,
+        gaussians,
+        camera,
+        opacity_mult,
+        jnp.ones((1, n, 3), dtype),
+        background=background,
+        config=config,
+        with_depth=with_depth,
+        means2d_offset=means2d_offset,
         statistics=statistics,
-    )  # fmt: skip
-    first = lambda x: None if x is None else x[0]  # noqa: E731
+    )
+    first = lambda x: None if x is None else x[0]
     return RenderResult(
-        image=res.image[0], alpha=res.alpha[0], depth=first(res.depth), max_weight=first(res.max_weight),
-        hits=first(res.hits), means2d=res.means2d, radii=res.radii, num_intersections=res.num_intersections,
+        image=res.image[0],
+        alpha=res.alpha[0],
+        depth=first(res.depth),
+        max_weight=first(res.max_weight),
+        hits=first(res.hits),
+        means2d=res.means2d,
+        radii=res.radii,
+        num_intersections=res.num_intersections,
         num_composited=res.num_composited,
         capacity=res.capacity,
-    )  # fmt: skip
+    )

@@ -8,4 +8,13 @@ date in its own random Sim(3) frame, object-id and change masks, and ``ground_tr
 from cfgs_jax.synthetic.dataset import reference_transforms, render_dataset, sun_rgb
 from cfgs_jax.synthetic.presets import PRESETS, DateSpec, ObjectSpec, SceneSpec, make_preset
 
-__all__ = ["PRESETS", "DateSpec", "ObjectSpec", "SceneSpec", "make_preset", "reference_transforms", "render_dataset", "sun_rgb"]
+__all__ = [
+    "PRESETS",
+    "DateSpec",
+    "ObjectSpec",
+    "SceneSpec",
+    "make_preset",
+    "reference_transforms",
+    "render_dataset",
+    "sun_rgb",
+]

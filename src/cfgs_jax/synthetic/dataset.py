@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
+from cfgs_jax.colour import REC709_LUMA
 from cfgs_jax.errors import InputError
 from cfgs_jax.io.atomic import atomic_directory, atomic_file, ensure_writable_dir
 from cfgs_jax.io.images import write_image
@@ -33,8 +34,9 @@ def _mitsuba():
     try:
         import mitsuba as mi
     except ImportError:
-        raise InputError("Mitsuba 3 (the synth extra) is not installed", field="synth",
-                         fix='pip install "cfgs-jax[synth]"') from None
+        raise InputError(
+            "Mitsuba 3 (the synth extra) is not installed", field="synth", fix='pip install "cfgs-jax[synth]"'
+        ) from None
     if mi.variant() != "scalar_rgb":
         mi.set_variant("scalar_rgb")
     return mi
@@ -55,7 +57,7 @@ def sun_rgb(cct_kelvin: float) -> np.ndarray:
     xy = colour.temperature.CCT_to_xy(cct_kelvin, method="Kang 2002")
     rgb = colour.XYZ_to_RGB(colour.xy_to_XYZ(xy), colour.RGB_COLOURSPACES["sRGB"], chromatic_adaptation_transform=None)
     rgb = np.clip(np.asarray(rgb, np.float64), 1e-3, None)
-    return rgb / float(np.dot(rgb, [0.2126, 0.7152, 0.0722]))
+    return rgb / float(np.dot(rgb, REC709_LUMA))
 
 
 def _shape(mi, obj, m):
@@ -102,24 +104,39 @@ def scene_dict(spec: SceneSpec, state: int, cam_date: int, *, aov: bool) -> dict
         az, el = np.radians(d.sun_azimuth_deg), np.radians(d.sun_elevation_deg)
         towards_sun = np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
         sun = sun_rgb(d.cct_kelvin)
-        out["sun"] = {"type": "directional", "direction": (-towards_sun).tolist(), "irradiance": {"type": "rgb", "value": (2.6 * sun).tolist()}}
+        out["sun"] = {
+            "type": "directional",
+            "direction": (-towards_sun).tolist(),
+            "irradiance": {"type": "rgb", "value": (2.6 * sun).tolist()},
+        }
         out["sky"] = {"type": "constant", "radiance": {"type": "rgb", "value": sky_radiance(spec, state).tolist()}}
     fov = spec.fov_x_deg
     for i, m in enumerate(spec.dates[cam_date].cam_from_world):
         world_from_cam = np.linalg.inv(np.asarray(m)) @ _FLIP
         out[f"camera_{i:03d}"] = {
-            "type": "perspective", "fov": fov, "fov_axis": "x",
+            "type": "perspective",
+            "fov": fov,
+            "fov_axis": "x",
             "to_world": mi.ScalarTransform4f(world_from_cam.tolist()),
-            "film": {"type": "hdrfilm", "width": spec.width, "height": spec.height, "rfilter": {"type": "box"},
-                     "pixel_format": "rgb" if aov else "rgba", "component_format": "float32"},
+            "film": {
+                "type": "hdrfilm",
+                "width": spec.width,
+                "height": spec.height,
+                "rfilter": {"type": "box"},
+                "pixel_format": "rgb" if aov else "rgba",
+                "component_format": "float32",
+            },
             "sampler": {"type": "independent" if aov else "ldsampler", "sample_count": 1 if aov else spec.spp},
-        }  # fmt: skip
+        }
     for k, o in enumerate(spec.objects):
         if not o.present[state]:
             continue
         shape = _shape(mi, o, o.to_world[state])
         tex = mi.Bitmap(texture(spec, k, state))
-        shape["bsdf"] = {"type": "diffuse", "reflectance": {"type": "bitmap", "bitmap": tex, "raw": True, "filter_type": "bilinear"}}
+        shape["bsdf"] = {
+            "type": "diffuse",
+            "reflectance": {"type": "bitmap", "bitmap": tex, "raw": True, "filter_type": "bilinear"},
+        }
         out[f"obj_{k:03d}_{o.name}"] = shape
     return out
 
@@ -203,7 +220,7 @@ def render_dataset(
             textures[key] = texture(spec, k, date)
         return textures[key]
 
-    todo = list(range(nd)) if dates is None else sorted(set(int(d) for d in dates))
+    todo = list(range(nd)) if dates is None else sorted({int(d) for d in dates})
     if not todo or todo[0] < 0 or todo[-1] >= nd:
         raise InputError(f"date indices {dates} outside 0..{nd - 1}", field="dates")
     total = sum(len(spec.dates[q].cam_from_world) for q in todo)
@@ -218,13 +235,21 @@ def render_dataset(
             others = {p: _Loaded(spec, p, q, aov=True) for p in range(nd) if p != q}
             with atomic_directory(out / date.name) as tmp:
                 tmp = Path(tmp)
-                for sub in ("images", "sparse/0", "masks/ids", *(f"masks/changed_vs_{spec.dates[p].name}" for p in others)):
+                for sub in (
+                    "images",
+                    "sparse/0",
+                    "masks/ids",
+                    *(f"masks/changed_vs_{spec.dates[p].name}" for p in others),
+                ):
                     (tmp / sub).mkdir(parents=True, exist_ok=True)
                 names = [f"img_{i:03d}.png" for i in range(n_img)]
                 rgbs, aovs = [], []
                 for i, name in enumerate(names):
                     seed = int(np.random.default_rng([spec.seed, q, i]).integers(2**31))
-                    img = _straight_rgba(beauty.render(i, seed), sky_radiance(spec, q)) * [*[2.0**date.exposure_ev] * 3, 1]
+                    img = _straight_rgba(beauty.render(i, seed), sky_radiance(spec, q)) * [
+                        *[2.0**date.exposure_ev] * 3,
+                        1,
+                    ]
                     write_image(tmp / "images" / name, img.astype(np.float32), linear=True, captured=date.captured)
                     rgbs.append(_read_srgb(tmp / "images" / name))  # the 8-bit colours SfM would see
                     ids, pos, uv = own.aov(i, seed)
@@ -237,27 +262,39 @@ def render_dataset(
                         bar.advance(task)
                     bar.advance(task)
                 obs, xyz, colors, objects = _sample_points(spec, q, rgbs, aovs, fx, cx, cy, n_points)
-                point_ids = _write_colmap(pycolmap, tmp / "sparse/0", spec, q, names, frames[q], obs, xyz, colors, fx, cx, cy)
+                point_ids = _write_colmap(
+                    pycolmap, tmp / "sparse/0", spec, q, names, frames[q], obs, xyz, colors, fx, cx, cy
+                )
                 (tmp / "masks/points3D_objects.json").write_text(json.dumps(dict(zip(map(str, point_ids), objects))))
-            gt_dates.append({
-                "name": date.name,
-                "captured": date.captured,
-                "coverage": date.coverage,
-                "present": {o.name: bool(o.present[q]) for o in spec.objects},
-                "variant": {o.name: int(o.variant[q]) for o in spec.objects},
-                "lighting": {"sun_azimuth_deg": date.sun_azimuth_deg, "sun_elevation_deg": date.sun_elevation_deg,
-                             "cct_kelvin": date.cct_kelvin, "exposure_ev": date.exposure_ev},
-                "date_from_world": frames[q].to_dict(),
-                "world_from_date": frames[q].inverse().to_dict(),
-                "cameras_world": {n: np.asarray(m).tolist() for n, m in zip(names, date.cam_from_world)},
-            })  # fmt: skip
+            gt_dates.append(
+                {
+                    "name": date.name,
+                    "captured": date.captured,
+                    "coverage": date.coverage,
+                    "present": {o.name: bool(o.present[q]) for o in spec.objects},
+                    "variant": {o.name: int(o.variant[q]) for o in spec.objects},
+                    "lighting": {
+                        "sun_azimuth_deg": date.sun_azimuth_deg,
+                        "sun_elevation_deg": date.sun_elevation_deg,
+                        "cct_kelvin": date.cct_kelvin,
+                        "exposure_ev": date.exposure_ev,
+                    },
+                    "date_from_world": frames[q].to_dict(),
+                    "world_from_date": frames[q].inverse().to_dict(),
+                    "cameras_world": {n: np.asarray(m).tolist() for n, m in zip(names, date.cam_from_world)},
+                }
+            )
     gt = {
         "format": FORMAT,
-        "preset": spec.preset, "seed": spec.seed, "width": spec.width, "height": spec.height, "spp": spec.spp,
+        "preset": spec.preset,
+        "seed": spec.seed,
+        "width": spec.width,
+        "height": spec.height,
+        "spp": spec.spp,
         "fov_x_deg": spec.fov_x_deg,
         "objects": [{"id": k + 1, "name": o.name, "shape": o.shape} for k, o in enumerate(spec.objects)],
         "dates": gt_dates,
-    }  # fmt: skip
+    }
     with atomic_file(out / "ground_truth.json") as tmp:
         tmp.write_text(json.dumps(gt, indent=1))
     return out

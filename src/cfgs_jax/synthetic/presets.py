@@ -71,8 +71,17 @@ def _look_at(eye, target) -> np.ndarray:
     return np.asarray(Camera.look_at(eye, target, up=(0, 0, 1), width=2, height=2).cam_from_world, np.float64)
 
 
-def orbit(n: int, *, radius: float, heights: tuple[float, ...], phase_deg: float, arc_deg: float = 360.0,
-          target=(0.0, 0.0, 0.4), jitter: float = 0.0, rng=None) -> tuple:
+def orbit(
+    n: int,
+    *,
+    radius: float,
+    heights: tuple[float, ...],
+    phase_deg: float,
+    arc_deg: float = 360.0,
+    target=(0.0, 0.0, 0.4),
+    jitter: float = 0.0,
+    rng=None,
+) -> tuple:
     """``n`` cameras on an arc around ``target``, alternating between ring ``heights``."""
     out = []
     for i in range(n):
@@ -127,8 +136,9 @@ def _dates(rng, names, n_images, *, lighting, coverage=None) -> tuple[DateSpec, 
     return tuple(out)
 
 
-def make_preset(name: str, *, seed: int = 0, width: int = 320, height: int = 240,
-                images_per_date: int = 32, spp: int = 32) -> SceneSpec:
+def make_preset(
+    name: str, *, seed: int = 0, width: int = 320, height: int = 240, images_per_date: int = 32, spp: int = 32
+) -> SceneSpec:
     """The named preset (vase, corals, flood, coverage, light, reef) at the given size and quality
     (``spp`` is rounded up to a power of two for the low-discrepancy sampler)."""
     if name not in PRESETS:
@@ -156,7 +166,13 @@ def _corals(rng, seed, k):
     d = 4
     objs = [_ground(d, seed * 100 + 1)]
     presence = [
-        (1, 1, 1, 1), (1, 1, 0, 0), (1, 0, 0, 1), (0, 1, 1, 1), (0, 0, 1, 1), (1, 1, 1, 0), (0, 1, 1, 0),
+        (1, 1, 1, 1),
+        (1, 1, 0, 0),
+        (1, 0, 0, 1),
+        (0, 1, 1, 1),
+        (0, 0, 1, 1),
+        (1, 1, 1, 0),
+        (0, 1, 1, 0),
     ]
     for i, xy in enumerate(_placements(rng, len(presence))):
         objs.append(_thing(rng, f"coral_{i}", xy, d, [bool(p) for p in presence[i]], seed * 100 + 10 + i))
@@ -200,9 +216,14 @@ def _reef(rng, seed, k):
     d = 6
     objs = [_ground(d, seed * 100 + 1)]
     presence = [
-        (1, 1, 1, 1, 1, 1), (1, 1, 0, 0, 1, 1), (1, 0, 0, 1, 1, 0), (0, 1, 1, 1, 0, 0), (0, 0, 1, 1, 1, 1),
-        (1, 1, 1, 0, 0, 1), (0, 1, 1, 0, 1, 1),
-    ]  # fmt: skip
+        (1, 1, 1, 1, 1, 1),
+        (1, 1, 0, 0, 1, 1),
+        (1, 0, 0, 1, 1, 0),
+        (0, 1, 1, 1, 0, 0),
+        (0, 0, 1, 1, 1, 1),
+        (1, 1, 1, 0, 0, 1),
+        (0, 1, 1, 0, 1, 1),
+    ]
     for i, xy in enumerate(_placements(rng, len(presence))):
         objs.append(_thing(rng, f"coral_{i}", xy, d, [bool(p) for p in presence[i]], seed * 100 + 10 + i))
     light = [(30 + 25 * i, 55 + 3 * (i % 2), 5400 + 100 * i, 0.0) for i in range(d)]

@@ -53,9 +53,13 @@ class TrainConfig:
             return max(1, round(n * f))
 
         return dataclasses.replace(
-            self, steps=steps, densify_from=s(self.densify_from), densify_until=s(self.densify_until),
-            densify_interval=s(self.densify_interval), opacity_reset_interval=s(self.opacity_reset_interval),
-        )  # fmt: skip
+            self,
+            steps=steps,
+            densify_from=s(self.densify_from),
+            densify_until=s(self.densify_until),
+            densify_interval=s(self.densify_interval),
+            opacity_reset_interval=s(self.opacity_reset_interval),
+        )
 
     def __post_init__(self):
         if self.steps <= 0:

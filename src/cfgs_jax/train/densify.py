@@ -87,9 +87,7 @@ def _scatter(blocks, valid, out_capacity: int, fill):
 
 
 @functools.partial(jax.jit, static_argnames=("config", "out_capacity"))
-def densify_and_prune(
-    state: TrainState, config: TrainConfig, extent, prune_big, *, out_capacity: int
-) -> TrainState:
+def densify_and_prune(state: TrainState, config: TrainConfig, extent, prune_big, *, out_capacity: int) -> TrainState:
     """One INRIA densify-and-prune round into a buffer of ``out_capacity`` rows (≥ ``densify_count``).
 
     Clones are exact copies; a split Gaussian is replaced by two children at positions drawn from
@@ -129,10 +127,15 @@ def densify_and_prune(
     opt_state = jax.tree_util.tree_map(moments, state.opt_state)
     dtype = state.grad_accum.dtype
     return dataclasses.replace(
-        state, params=params, active=active, opt_state=opt_state, key=key,
-        grad_accum=jnp.zeros(out_capacity, dtype), grad_count=jnp.zeros(out_capacity, jnp.int32),
+        state,
+        params=params,
+        active=active,
+        opt_state=opt_state,
+        key=key,
+        grad_accum=jnp.zeros(out_capacity, dtype),
+        grad_count=jnp.zeros(out_capacity, jnp.int32),
         max_radius=jnp.zeros(out_capacity, dtype),
-    )  # fmt: skip
+    )
 
 
 @functools.partial(jax.jit, static_argnames=("out_capacity",))
@@ -150,10 +153,14 @@ def grow_capacity(state: TrainState, *, out_capacity: int) -> TrainState:
     params = {f: grow(v, INERT.get(f, 0.0)) for f, v in state.params.items()}
     params["quats"] = params["quats"].at[capacity:, 0].set(1.0)
     return dataclasses.replace(
-        state, params=params, active=grow(state.active, False),
+        state,
+        params=params,
+        active=grow(state.active, False),
         opt_state=jax.tree_util.tree_map(lambda x: grow(x) if is_row(x) else x, state.opt_state),
-        grad_accum=grow(state.grad_accum), grad_count=grow(state.grad_count), max_radius=grow(state.max_radius),
-    )  # fmt: skip
+        grad_accum=grow(state.grad_accum),
+        grad_count=grow(state.grad_count),
+        max_radius=grow(state.max_radius),
+    )
 
 
 @jax.jit
@@ -173,4 +180,3 @@ def densify_step(state: TrainState, config: TrainConfig, extent: float, *, prune
     capacity = state.active.shape[0]
     out = capacity if needed <= capacity else capacity_bucket(needed)
     return densify_and_prune(state, config, extent, prune_big, out_capacity=out)
-

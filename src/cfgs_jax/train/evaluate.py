@@ -34,7 +34,9 @@ def evaluate(
     rows = []
     for i in np.asarray(indices, np.int64):
         gt = np.asarray(over_background(scene.load_image(int(i), with_alpha=True), np.asarray(background, np.float32)))
-        pred = splat.render(gaussians, scene.cameras[int(i)], background=background, config=render_config, statistics=False).image
+        pred = splat.render(
+            gaussians, scene.cameras[int(i)], background=background, config=render_config, statistics=False
+        ).image
         rows.append({"image": scene.image_names[int(i)]} | image_metrics(pred, gt, net))
     out = {k: float(np.mean([r[k] for r in rows])) for k in ("psnr", "ssim", "lpips") if rows and k in rows[0]}
     return out | {"views": rows, "background": list(map(float, background))}

@@ -16,7 +16,9 @@ def init_from_points(points, colors, *, opacity: float = 0.1) -> Gaussians:
     pts = np.asarray(points, np.float64)
     cols = np.asarray(colors, np.float32)
     if pts.ndim != 2 or pts.shape[1] != 3 or len(pts) < 4:
-        raise InputError(f"need ≥ 4 points [P, 3], got shape {pts.shape}", field="points3D", fix="run SfM with more images")
+        raise InputError(
+            f"need ≥ 4 points [P, 3], got shape {pts.shape}", field="points3D", fix="run SfM with more images"
+        )
     if cols.shape != pts.shape:
         raise InputError(f"colours {cols.shape} do not match points {pts.shape}", field="points3D colours")
     dist, _ = cKDTree(pts).query(pts, k=4)

@@ -73,15 +73,29 @@ def _config_dict(config: TrainConfig) -> dict:
     return dataclasses.asdict(config)
 
 
-def save_checkpoint(path: Path, state: TrainState, *, config: TrainConfig, extent: float, render_capacity: int,
-                    losses: list[float], counts: list, eval_history: list | None = None) -> Path:  # fmt: skip
+def save_checkpoint(
+    path: Path,
+    state: TrainState,
+    *,
+    config: TrainConfig,
+    extent: float,
+    render_capacity: int,
+    losses: list[float],
+    counts: list,
+    eval_history: list | None = None,
+) -> Path:
     """Parameters, optimiser state, statistics, step and RNG key, written atomically (npz)."""
     keyed = dataclasses.replace(state, key=jax.random.key_data(state.key))
     meta = {
-        "step": int(state.step), "capacity": int(state.active.shape[0]),
-        "render_capacity": int(render_capacity), "extent": extent, "config": _config_dict(config),
-        "losses": losses, "counts": counts, "eval_history": eval_history or [],
-    }  # fmt: skip
+        "step": int(state.step),
+        "capacity": int(state.active.shape[0]),
+        "render_capacity": int(render_capacity),
+        "extent": extent,
+        "config": _config_dict(config),
+        "losses": losses,
+        "counts": counts,
+        "eval_history": eval_history or [],
+    }
     save_tree(path, keyed, meta, format=FORMAT)
     return path
 
@@ -95,8 +109,10 @@ def load_checkpoint(path: Path, optimizer, config: TrainConfig):
     if diff:
         raise InputError(
             f"the run was started with a different configuration ({', '.join(f'{k}: {saved.get(k)} → {now.get(k)}' for k in diff)})",
-            path=path, field=f"train.{diff[0]}", fix="resume with the original settings or start a new --out",
-        )  # fmt: skip
+            path=path,
+            field=f"train.{diff[0]}",
+            fix="resume with the original settings or start a new --out",
+        )
     template = TrainState.create(_dummy(1), optimizer, jax.random.key(0), capacity=meta["capacity"])
     state = restore_tree(path, arrays, dataclasses.replace(template, key=jax.random.key_data(template.key)))
     state = dataclasses.replace(state, key=jax.random.wrap_key_data(state.key))
@@ -163,7 +179,11 @@ def fit(
         counts = [tuple(c) for c in meta["counts"]]
         eval_history = meta.get("eval_history", [])
     else:
-        g0 = init if init is not None else init_from_points(scene.points, scene.point_colors, opacity=config.init_opacity)
+        g0 = (
+            init
+            if init is not None
+            else init_from_points(scene.points, scene.point_colors, opacity=config.init_opacity)
+        )
         state = TrainState.create(g0, optimizer, jax.random.key(config.seed), capacity=capacity_bucket(len(g0)))
         render_capacity = _render_capacity(state, cameras, render_config)
         counts = [(0, len(g0))]
@@ -175,8 +195,16 @@ def fit(
 
     def checkpoint():
         if ckpt is not None:
-            save_checkpoint(ckpt, state, config=config, extent=extent, render_capacity=render_capacity,
-                            losses=losses, counts=counts, eval_history=eval_history)  # fmt: skip
+            save_checkpoint(
+                ckpt,
+                state,
+                config=config,
+                extent=extent,
+                render_capacity=render_capacity,
+                losses=losses,
+                counts=counts,
+                eval_history=eval_history,
+            )
 
     last = config.steps if stop_after is None else min(config.steps, stop_after)
     start = int(state.step)
@@ -230,9 +258,12 @@ class _Progress:
         from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
         self.bar = Progress(
-            TextColumn("train"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn(),
+            TextColumn("train"),
+            BarColumn(),
+            MofNCompleteColumn(),
+            TimeRemainingColumn(),
             TextColumn("{task.fields[info]}"),
-        )  # fmt: skip
+        )
         self.bar.start()
         self.task = self.bar.add_task("train", total=total, completed=completed, info="")
 

@@ -17,10 +17,12 @@ from cfgs_jax.train.optim import FIELDS
 
 
 def params_from_gaussians(g: Gaussians) -> dict[str, Array]:
+    """The trainable leaves of ``g`` by field name (the optimiser's parameter dict)."""
     return {f: getattr(g, f) for f in FIELDS}
 
 
 def gaussians_from_params(params: dict[str, Array]) -> Gaussians:
+    """The Gaussians whose fields are ``params`` (extra keys, e.g. o-logits, are ignored)."""
     return Gaussians(*(params[f] for f in FIELDS))
 
 
@@ -33,16 +35,18 @@ class TrainState(eqx.Module):
     ``max_radius``: the largest projected radius seen (pixels)."""
 
     params: dict[str, Array]
-    active: Bool[Array, "C"]
+    active: Bool[Array, " C"]
     opt_state: optax.OptState
     step: Int[Array, ""]
     key: Array
-    grad_accum: Float[Array, "C"]
-    grad_count: Int[Array, "C"]
-    max_radius: Float[Array, "C"]
+    grad_accum: Float[Array, " C"]
+    grad_count: Int[Array, " C"]
+    max_radius: Float[Array, " C"]
 
     @staticmethod
-    def create(g: Gaussians, optimizer: optax.GradientTransformation, key, *, capacity: int | None = None) -> TrainState:
+    def create(
+        g: Gaussians, optimizer: optax.GradientTransformation, key, *, capacity: int | None = None
+    ) -> TrainState:
         n = len(g)
         capacity = max(capacity or n, n)
         pad = capacity - n
@@ -58,9 +62,15 @@ class TrainState(eqx.Module):
         active = jnp.arange(capacity) < n
         dtype = params["means"].dtype
         return TrainState(
-            params, active, optimizer.init(params), jnp.int32(0), key,
-            jnp.zeros(capacity, dtype), jnp.zeros(capacity, jnp.int32), jnp.zeros(capacity, dtype),
-        )  # fmt: skip
+            params,
+            active,
+            optimizer.init(params),
+            jnp.int32(0),
+            key,
+            jnp.zeros(capacity, dtype),
+            jnp.zeros(capacity, jnp.int32),
+            jnp.zeros(capacity, dtype),
+        )
 
     def gaussians(self) -> Gaussians:
         """The live Gaussians (outside jit)."""
@@ -80,9 +90,15 @@ def over_background(image: Float[Array, "H W C"], background: Float[Array, "3"])
 
 
 def loss_fn(
-    params, active, camera: Camera, image: Float[Array, "H W C"], background, config: TrainConfig,
-    render_config: splat.RenderConfig, means2d_offset=None,
-):  # fmt: skip
+    params,
+    active,
+    camera: Camera,
+    image: Float[Array, "H W C"],
+    background,
+    config: TrainConfig,
+    render_config: splat.RenderConfig,
+    means2d_offset=None,
+):
     """(1 − λ)·L1 + λ·D-SSIM of the render of the active Gaussians over ``background``; also the render.
     ``means2d_offset`` (zeros) exposes the screen-space positional gradient for densification.
     ``image`` is RGB or RGBA (composited over ``background``: ``over_background``)."""
@@ -90,9 +106,15 @@ def loss_fn(
     image = over_background(image, background)
     n = active.shape[0]
     res = splat.render_dates(
-        g, camera, active.astype(image.dtype)[None], jnp.ones((1, n, 3), image.dtype),
-        background=background, config=render_config, means2d_offset=means2d_offset, statistics=False,
-    )  # fmt: skip
+        g,
+        camera,
+        active.astype(image.dtype)[None],
+        jnp.ones((1, n, 3), image.dtype),
+        background=background,
+        config=render_config,
+        means2d_offset=means2d_offset,
+        statistics=False,
+    )
     pred = res.image[0]
     l1 = jnp.mean(jnp.abs(pred - image))
     d_ssim = metrics.d_ssim(pred, image)
@@ -118,21 +140,26 @@ def make_train_step(optimizer: optax.GradientTransformation, config: TrainConfig
         def objective(params, offset):
             return loss_fn(params, state.active, camera, image, background, config, render_config, offset)
 
-        (loss, res), (grads, d_offset) = jax.value_and_grad(objective, argnums=(0, 1), has_aux=True)(state.params, offset)
+        (loss, res), (grads, d_offset) = jax.value_and_grad(objective, argnums=(0, 1), has_aux=True)(
+            state.params, offset
+        )
         updates, opt_state = optimizer.update(grads, state.opt_state, state.params)
         params = optax.apply_updates(state.params, updates)
         # INRIA accumulates |∂L/∂mean2D| in NDC units (pixel gradient × half the image size) where visible
         ndc = d_offset * (0.5 * jnp.asarray([camera.width, camera.height], d_offset.dtype))
         visible = state.active & (res.radii > 0)
         new = dataclasses.replace(
-            state, params=params, opt_state=opt_state, step=state.step + 1, key=key,
+            state,
+            params=params,
+            opt_state=opt_state,
+            step=state.step + 1,
+            key=key,
             grad_accum=state.grad_accum + jnp.where(visible, jnp.linalg.norm(ndc, axis=-1), 0.0),
             grad_count=state.grad_count + visible.astype(jnp.int32),
             max_radius=jnp.where(visible, jnp.maximum(state.max_radius, res.radii), state.max_radius),
-        )  # fmt: skip
+        )
         target = over_background(image, background)
         stats = {"loss": loss, "psnr": metrics.psnr(res.image[0], target), "overflowed": res.overflowed}
         return new, stats | {"visible": jnp.sum(visible)}
 
     return step
-
