@@ -105,26 +105,7 @@ def _selection_args(s) -> None:
     )
 
 
-def build_parser(prog: str | None = None) -> argparse.ArgumentParser:
-    """The full parser; ``prog`` defaults to how the program was called."""
-    from cfgs_jax.synthetic.presets import PRESETS
-
-    prog = prog or program_name()
-    p = argparse.ArgumentParser(
-        prog=prog,
-        formatter_class=_Formatter,
-        description="cfgs_jax: fuse per-date 3D Gaussian Splatting models into one multi-temporal model "
-        "(ChronoFuseGS) and render any time selection with change highlighting.",
-        epilog=f"quick start:\n  {prog} demo --out runs/demo\n"
-        f"  {prog} synth --preset corals --out data/corals\n"
-        f"  {prog} fuse --dates data/corals/d0 data/corals/d1 --out runs/corals --config fast\n"
-        f"  {prog} render --run runs/corals --t d0,d1 --mode highlight --out renders/\n"
-        f"run `{prog} COMMAND --help` for a command's flags and an example.",
-    )
-    p.add_argument("--version", action="version", version=f"%(prog)s {version()}")
-    p.add_argument("-v", "--verbose", action="store_true", help="log progress and notes")
-    sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
-
+def _add_inspect(sub, prog: str) -> None:
     s = _command(
         sub,
         "inspect",
@@ -137,6 +118,8 @@ def build_parser(prog: str | None = None) -> argparse.ArgumentParser:
     )
     s.add_argument("path", help="a .ply file, a fused-model directory or a COLMAP dataset (images/ + sparse/0)")
 
+
+def _add_convert(sub, prog: str) -> None:
     s = _command(
         sub,
         "convert",
@@ -156,6 +139,8 @@ def build_parser(prog: str | None = None) -> argparse.ArgumentParser:
     )
     s.add_argument("--drop-invalid", action="store_true", help="drop rows with NaN/Inf instead of failing")
 
+
+def _add_metrics(sub, prog: str) -> None:
     s = _command(
         sub,
         "metrics",
@@ -169,6 +154,10 @@ def build_parser(prog: str | None = None) -> argparse.ArgumentParser:
     s.add_argument("b", help="image file or folder (e.g. ground truth; matched by file name)")
     s.add_argument("--net", choices=("alex", "vgg"), default="alex", help="LPIPS backbone")
     s.add_argument("--json", metavar="FILE", help="also write the numbers to this JSON file")
+
+
+def _add_synth(sub, prog: str) -> None:
+    from cfgs_jax.synthetic.presets import PRESETS
 
     s = _command(
         sub,
@@ -188,6 +177,8 @@ def build_parser(prog: str | None = None) -> argparse.ArgumentParser:
     s.add_argument("--images-per-date", type=int, default=32, help="views rendered per date")
     s.add_argument("--spp", type=int, default=32, help="Mitsuba samples per pixel")
 
+
+def _add_train(sub, prog: str) -> None:
     s = _command(
         sub,
         "train",
@@ -236,6 +227,8 @@ def build_parser(prog: str | None = None) -> argparse.ArgumentParser:
     s.add_argument("--lpips-net", choices=("alex", "vgg"), default="alex", help="LPIPS backbone of the evaluation")
     _progress_arg(s)
 
+
+def _add_fuse(sub, prog: str) -> None:
     s = _command(
         sub,
         "fuse",
@@ -279,6 +272,8 @@ def build_parser(prog: str | None = None) -> argparse.ArgumentParser:
     _resume_arg(s, "fusion run")
     _progress_arg(s)
 
+
+def _add_extend(sub, prog: str) -> None:
     s = _command(
         sub,
         "extend",
@@ -296,6 +291,10 @@ def build_parser(prog: str | None = None) -> argparse.ArgumentParser:
     s.add_argument("--captured", metavar="DATE", help="its capture time (ISO 8601; default: its images' EXIF)")
     s.add_argument("--resume", action="store_true", help="continue an interrupted extension of --run by this date")
     _progress_arg(s)
+
+
+def _add_eval(sub, prog: str) -> None:
+    from cfgs_jax.synthetic.presets import PRESETS
 
     s = _command(
         sub,
@@ -318,6 +317,8 @@ def build_parser(prog: str | None = None) -> argparse.ArgumentParser:
     _resume_arg(s, "evaluation")
     _progress_arg(s)
 
+
+def _add_sweep(sub, prog: str) -> None:
     s = _command(
         sub,
         "sweep",
@@ -345,6 +346,8 @@ def build_parser(prog: str | None = None) -> argparse.ArgumentParser:
     _resume_arg(s, "sweep (finished variants are skipped)")
     _progress_arg(s)
 
+
+def _add_render(sub, prog: str) -> None:
     s = _command(
         sub,
         "render",
@@ -368,6 +371,8 @@ def build_parser(prog: str | None = None) -> argparse.ArgumentParser:
     s.add_argument("--out", required=True, help="output folder")
     _progress_arg(s)
 
+
+def _add_export(sub, prog: str) -> None:
     s = _command(
         sub,
         "export",
@@ -379,6 +384,8 @@ def build_parser(prog: str | None = None) -> argparse.ArgumentParser:
     _selection_args(s)
     s.add_argument("--out", required=True, help="output .ply")
 
+
+def _add_view(sub, prog: str) -> None:
     s = _command(
         sub,
         "view",
@@ -391,6 +398,8 @@ def build_parser(prog: str | None = None) -> argparse.ArgumentParser:
     s.add_argument("--run", required=True, help="run directory of a finished `fuse`")
     s.add_argument("--port", type=int, default=8080, help="port on 127.0.0.1")
 
+
+def _add_presets(sub, prog: str) -> None:
     s = _command(
         sub,
         "presets",
@@ -403,6 +412,8 @@ def build_parser(prog: str | None = None) -> argparse.ArgumentParser:
     s.add_argument("name", nargs="?", help="preset to print")
     s.add_argument("--out", help="write the preset to this file instead of printing it")
 
+
+def _add_demo(sub, prog: str) -> None:
     s = _command(
         sub,
         "demo",
@@ -421,4 +432,41 @@ def build_parser(prog: str | None = None) -> argparse.ArgumentParser:
     s.add_argument("--images-per-date", type=int, default=12, help="views rendered per date")
     _resume_arg(s, "demo")
     _progress_arg(s)
+
+
+def build_parser(prog: str | None = None) -> argparse.ArgumentParser:
+    """The full parser; ``prog`` defaults to how the program was called."""
+    prog = prog or program_name()
+    p = argparse.ArgumentParser(
+        prog=prog,
+        formatter_class=_Formatter,
+        description="cfgs_jax: fuse per-date 3D Gaussian Splatting models into one multi-temporal model "
+        "(ChronoFuseGS) and render any time selection with change highlighting.",
+        epilog=f"quick start:\n  {prog} demo --out runs/demo\n"
+        f"  {prog} synth --preset corals --out data/corals\n"
+        f"  {prog} fuse --dates data/corals/d0 data/corals/d1 --out runs/corals --config fast\n"
+        f"  {prog} render --run runs/corals --t d0,d1 --mode highlight --out renders/\n"
+        f"run `{prog} COMMAND --help` for a command's flags and an example.",
+    )
+    p.add_argument("--version", action="version", version=f"%(prog)s {version()}")
+    p.add_argument("-v", "--verbose", action="store_true", help="log progress and notes")
+    sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    for add in (
+        _add_inspect,
+        _add_convert,
+        _add_metrics,
+        _add_synth,
+        _add_train,
+        _add_fuse,
+        _add_extend,
+        _add_eval,
+        _add_sweep,
+        _add_render,
+        _add_export,
+        _add_view,
+        _add_presets,
+        _add_demo,
+    ):
+        add(sub, prog)
     return p
