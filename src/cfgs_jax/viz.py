@@ -128,7 +128,7 @@ def contrast_sigmoid(x: Float[Array, " ..."], k: float, b: float) -> Float[Array
     x = jnp.asarray(x)
     eps = jnp.finfo(jnp.result_type(x, float)).eps
     xc = jnp.clip(x, eps, 1 - eps)
-    return jax.nn.sigmoid(k * (jnp.log(xc) - jnp.log1p(-xc) - jnp.log((1 - b) / b)))
+    return jax.nn.sigmoid(k * (logit(xc) - jnp.log((1 - b) / b)))
 
 
 def persistence_filter(

@@ -45,7 +45,7 @@ from cfgs_jax import metrics, splat
 from cfgs_jax.errors import InputError
 from cfgs_jax.fusion.fuse import INVISIBLE_LOGIT
 from cfgs_jax.fusion.light import REC709, gain_parameter, light_gain, light_logits, light_multiplier
-from cfgs_jax.model import Camera, Gaussians, TemporalGaussians
+from cfgs_jax.model import Camera, Gaussians, TemporalGaussians, logit
 from cfgs_jax.train.loop import view_order
 from cfgs_jax.train.step import over_background
 
@@ -300,7 +300,7 @@ def init_pairs(
     o_p = jnp.pad(jax.nn.sigmoid(jnp.asarray(o_logits[idx, p])), (0, m - n), constant_values=1.0)
     o_q = jnp.clip(config.delta * o_p, 1e-4, 1 - 1e-4)
     k = len(active)
-    o_init = jnp.where(mask > 0, jnp.log(o_q) - jnp.log1p(-o_q), -100.0)  # unseen from q: off (culled), no gradient
+    o_init = jnp.where(mask > 0, logit(o_q), -100.0)  # unseen from q: off (culled), no gradient
     ones = jnp.ones((1, m), jnp.float32)
     cameras = [views[i].cameras for i in active]
     capacity = max(splat.required_capacity(g, c, ones, config=render_config) for cs in cameras for c in cs)

@@ -21,6 +21,7 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from cfgs_jax.colour import REC709_LUMA
+from cfgs_jax.model import logit
 
 REC709 = np.asarray(REC709_LUMA)  # Rec.709 luma weights (linear RGB)
 #: The largest light multiplier the model fits (stored logit ln 99 ≈ 4.6, where float32 round-trips
@@ -74,8 +75,7 @@ def light_multiplier(u: Float[Array, "*N"], w: Float[Array, "*N"], direction=Non
 def light_logits(l: Float[Array, "*N 3"]) -> Float[Array, "*N 3"]:
     """The stored logits of multipliers l (l = 2·sigmoid(logit)), l clipped into [``MIN_LIGHT``,
     ``MAX_LIGHT``] (the fitted range, so a fitted l survives the round trip to float32 precision)."""
-    half = jnp.clip(l / 2.0, MIN_LIGHT / 2.0, MAX_LIGHT / 2.0)
-    return jnp.log(half) - jnp.log1p(-half)
+    return logit(jnp.clip(l / 2.0, MIN_LIGHT / 2.0, MAX_LIGHT / 2.0))
 
 
 def cold_warm_coefficient(l: Float[Array, "*N 3"], direction=None) -> np.ndarray:

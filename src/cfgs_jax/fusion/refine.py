@@ -48,7 +48,7 @@ from cfgs_jax.errors import InputError
 from cfgs_jax.fusion.cross_init import DateViews
 from cfgs_jax.fusion.fuse import INVISIBLE_LOGIT
 from cfgs_jax.io.checkpoint import read_meta, restore_tree, save_tree
-from cfgs_jax.model import SH_C0, Gaussians, TemporalGaussians
+from cfgs_jax.model import SH_C0, Gaussians, TemporalGaussians, logit
 from cfgs_jax.train.config import TrainConfig
 from cfgs_jax.train.loop import view_order
 from cfgs_jax.train.optim import position_lr as training_position_lr
@@ -112,8 +112,7 @@ def change_loss(o_logits, o_logits_init) -> jnp.ndarray:
 
 def halve_alpha(opacity_logits):
     """logit(σ(x)/2)."""
-    a = 0.5 * jax.nn.sigmoid(opacity_logits)
-    return jnp.log(a) - jnp.log1p(-a)
+    return logit(0.5 * jax.nn.sigmoid(opacity_logits))
 
 
 def make_optimizer(

@@ -20,7 +20,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool
 
-from cfgs_jax.model import quat_to_rotmat
+from cfgs_jax.model import logit, quat_to_rotmat
 from cfgs_jax.train.config import TrainConfig
 from cfgs_jax.train.optim import FIELDS, restart_moments
 from cfgs_jax.train.step import TrainState
@@ -167,7 +167,7 @@ def grow_capacity(state: TrainState, *, out_capacity: int) -> TrainState:
 def reset_opacity(state: TrainState) -> TrainState:
     """INRIA's ``reset_opacity``: α := min(α, 0.01) and the opacity Adam moments restart from zero."""
     logits = state.params["opacity_logits"]
-    ceiling = jnp.log(0.01) - jnp.log1p(-0.01)
+    ceiling = logit(0.01)
     params = dict(state.params)
     params["opacity_logits"] = jnp.where(state.active, jnp.minimum(logits, ceiling), logits)
     return dataclasses.replace(state, params=params, opt_state=restart_moments(state.opt_state, "opacity_logits"))
