@@ -13,6 +13,10 @@ import sys
 from importlib import metadata
 from pathlib import Path
 
+import numpy as np
+
+from cfgs_jax.errors import InputError
+
 
 def version() -> str:
     """The installed distribution's version (``cfgs-jax``), or ``unknown`` outside an install."""
@@ -470,3 +474,45 @@ def build_parser(prog: str | None = None) -> argparse.ArgumentParser:
     ):
         add(sub, prog)
     return p
+
+
+def parse_selection(text: str, names: list[str]) -> np.ndarray:
+    """``"1,0,1"`` (one 0/1 per date), ``"all"`` or date names ``"d0,d2"`` → binary t."""
+    text = text.strip()
+    if text == "all":
+        return np.ones(len(names))
+    parts = [p.strip() for p in text.split(",") if p.strip()]
+    if parts and all(p in names for p in parts):
+        return np.asarray([float(n in parts) for n in names])
+    try:
+        t = np.asarray([float(p) for p in parts])
+    except ValueError:
+        raise InputError(
+            f"cannot read {text!r}",
+            field="--t",
+            fix=f"give one 0/1 per date ({len(names)}), 'all', or date names from {names}",
+        ) from None
+    if len(t) != len(names):
+        raise InputError(f"{len(t)} entries for {len(names)} dates {names}", field="--t", fix="give one 0/1 per date")
+    from cfgs_jax import viz
+
+    viz.normalize_selection(t)  # binary, not all zero
+    return t
+
+
+def parse_stops(text: str | None):
+    """``"r,g,b;r,g,b;..."`` (linear RGB), ``"rgb"`` for the full-RGB filter, or None for the default."""
+    import jax.numpy as jnp
+
+    from cfgs_jax import viz
+
+    if text is None:
+        return viz.DEFAULT_STOPS
+    if text.strip().lower() == "rgb":
+        return None
+    try:
+        stops = tuple(tuple(float(v) for v in s.split(",")) for s in text.split(";"))
+    except ValueError:
+        raise InputError(f"cannot read {text!r}", field="--stops", fix="write colours as r,g,b;r,g,b;...") from None
+    viz.remap_to_gradient(jnp.ones(3), stops)  # validates
+    return stops

@@ -432,7 +432,8 @@ def cmd_extend(args) -> int:
 
 
 def _selection_style(args):
-    from cfgs_jax.render_run import SelectionStyle, parse_stops
+    from cfgs_jax.cli import parse_stops
+    from cfgs_jax.render_run import SelectionStyle
 
     contrast = None
     if args.contrast:
@@ -455,7 +456,9 @@ def _selection_style(args):
 def cmd_render(args) -> int:
     from rich.progress import Progress
 
-    from cfgs_jax.render_run import open_run, orbit_cameras, parse_selection, render_views
+    from cfgs_jax.cli import parse_selection
+    from cfgs_jax.orbit import orbit_cameras
+    from cfgs_jax.render_run import open_run, render_views
 
     run = open_run(args.run)
     t = parse_selection(args.t, run.names)
@@ -480,7 +483,8 @@ def cmd_render(args) -> int:
 
 
 def cmd_export(args) -> int:
-    from cfgs_jax.render_run import export_selection, open_run, parse_selection
+    from cfgs_jax.cli import parse_selection
+    from cfgs_jax.render_run import export_selection, open_run
 
     run = open_run(args.run)
     t = parse_selection(args.t, run.names)

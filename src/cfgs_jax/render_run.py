@@ -13,7 +13,6 @@ import functools
 import json
 from pathlib import Path
 
-import jax.numpy as jnp
 import numpy as np
 
 from cfgs_jax import viz
@@ -24,6 +23,7 @@ from cfgs_jax.io.colmap import Scene, read_colmap
 from cfgs_jax.io.fused import read_fused
 from cfgs_jax.io.images import write_image
 from cfgs_jax.io.ply import write_ply
+from cfgs_jax.legend import legend_strip
 from cfgs_jax.model import Camera, TemporalGaussians
 from cfgs_jax.sim3 import Sim3
 from cfgs_jax.train.config import TrainConfig
@@ -61,42 +61,6 @@ class SelectionStyle:
                 "stops": self.stops,
             }
         return {"mode": "max" if self.mode == "max" else "mean"}
-
-
-def parse_selection(text: str, names: list[str]) -> np.ndarray:
-    """``"1,0,1"`` (one 0/1 per date), ``"all"`` or date names ``"d0,d2"`` → binary t."""
-    text = text.strip()
-    if text == "all":
-        return np.ones(len(names))
-    parts = [p.strip() for p in text.split(",") if p.strip()]
-    if parts and all(p in names for p in parts):
-        return np.asarray([float(n in parts) for n in names])
-    try:
-        t = np.asarray([float(p) for p in parts])
-    except ValueError:
-        raise InputError(
-            f"cannot read {text!r}",
-            field="--t",
-            fix=f"give one 0/1 per date ({len(names)}), 'all', or date names from {names}",
-        ) from None
-    if len(t) != len(names):
-        raise InputError(f"{len(t)} entries for {len(names)} dates {names}", field="--t", fix="give one 0/1 per date")
-    viz.normalize_selection(t)  # binary, not all zero
-    return t
-
-
-def parse_stops(text: str | None):
-    """``"r,g,b;r,g,b;..."`` (linear RGB), ``"rgb"`` for the full-RGB filter, or None for the default."""
-    if text is None:
-        return viz.DEFAULT_STOPS
-    if text.strip().lower() == "rgb":
-        return None
-    try:
-        stops = tuple(tuple(float(v) for v in s.split(",")) for s in text.split(";"))
-    except ValueError:
-        raise InputError(f"cannot read {text!r}", field="--stops", fix="write colours as r,g,b;r,g,b;...") from None
-    viz.remap_to_gradient(jnp.ones(3), stops)  # validates
-    return stops
 
 
 @dataclasses.dataclass(frozen=True)
@@ -162,67 +126,6 @@ def open_run(run_dir: str | Path) -> FusedRun:
         max(1, tc.test_every),
         tc.resolution,
     )
-
-
-def orbit_geometry(training: list[Camera]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, float, float]:
-    """(target, up, e1, e2, radius, height) of the circle through the training cameras: the target is
-    the point nearest to all their optical axes, ``up`` their mean up, e1/e2 span the orbit plane."""
-    centres = np.stack([np.asarray(c.center, np.float64) for c in training])
-    rots = np.stack([np.asarray(c.cam_from_world, np.float64)[:3, :3] for c in training])
-    axes, ups = rots[:, 2], -rots[:, 1]  # camera +z (viewing direction) and −y (up) in world
-    proj = np.eye(3)[None] - axes[:, :, None] * axes[:, None, :]
-    target = np.linalg.solve(proj.sum(0) + 1e-9 * np.eye(3), np.einsum("nij,nj->i", proj, centres))
-    up = ups.mean(0)
-    up /= np.linalg.norm(up)
-    rel = centres - target
-    height_along = rel @ up
-    radial = rel - height_along[:, None] * up
-    radius = float(np.linalg.norm(radial, axis=1).mean())
-    e1 = radial.mean(0) if np.linalg.norm(radial.mean(0)) > 1e-6 * radius else radial[0]
-    e1 = e1 - (e1 @ up) * up
-    e1 /= np.linalg.norm(e1)
-    return target, up, e1, np.cross(up, e1), radius, float(height_along.mean())
-
-
-def orbit_cameras(
-    training: list[Camera], n: int = 24, *, width: int | None = None, height: int | None = None
-) -> list[tuple[str, Camera]]:
-    """``n`` cameras on a circle through the training cameras' mean height and distance, around the
-    point nearest to all their optical axes, with the mean training 'up'."""
-    target, up, e1, e2, radius, h = orbit_geometry(training)
-    ref = training[0]
-    w, hh = width or int(ref.width), height or int(ref.height)
-    fov = float(np.degrees(2 * np.arctan(0.5 * int(ref.width) / float(ref.fx))))
-    out = []
-    for k in range(n):
-        a = 2 * np.pi * k / n
-        eye = target + h * up + radius * (np.cos(a) * e1 + np.sin(a) * e2)
-        out.append((f"orbit_{k:03d}", Camera.look_at(eye, target, width=w, height=hh, fov_x_deg=fov, up=up)))
-    return out
-
-
-def legend_strip(names: list[str], t, width: int, *, highlight: bool, stops=viz.DEFAULT_STOPS) -> np.ndarray:
-    """[h, width, 3] sRGB strip: the date names coloured by their highlight colour (white for plain
-    blends); unselected dates grey and struck through."""
-    from PIL import Image, ImageDraw, ImageFont
-
-    font = ImageFont.load_default()
-    height = 16
-    img = Image.new("RGB", (width, height), (24, 24, 24))
-    draw = ImageDraw.Draw(img)
-    cols = viz.date_colours(len(names), stops) if highlight else np.ones((len(names), 3))
-    x = 4
-    for name, sel, c in zip(names, np.asarray(t), cols):
-        fill = tuple(int(round(255 * v)) for v in (c if sel else (0.45, 0.45, 0.45)))
-        box = (x, 4, x + 8, 12)
-        draw.rectangle(box, fill=fill if sel else None, outline=fill)
-        x += 12
-        draw.text((x, 2), name, fill=fill, font=font)
-        w = draw.textlength(name, font=font)
-        if not sel:
-            draw.line((x, height // 2, x + w, height // 2), fill=fill, width=1)
-        x += int(w) + 10
-    return np.asarray(img, np.float32) / 255.0
 
 
 def render_views(
