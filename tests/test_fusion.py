@@ -13,6 +13,18 @@ import cfgs_jax as cj
 from cfgs_jax import fusion, splat
 from cfgs_jax.sim3 import Sim3
 
+#: Refinement settings that change nothing but o (the visibility rule): every rate 0, no halving,
+#: a fixed background.
+FROZEN = dict(
+    lr_o=0.0,
+    lr_alpha=0.0,
+    lr_color=0.0,
+    lr_other=0.0,
+    position_lr_scale=0.0,
+    halve_alpha=False,
+    random_background=False,
+)
+
 
 def _random_gaussians(n, seed=0):
     rng = np.random.default_rng(seed)
@@ -796,17 +808,7 @@ def test_visibility_rule_leaves_persistence_out_and_zeroes_hidden_gaussians():
     image = np.concatenate([np.asarray(r.image), np.asarray(r.alpha)[..., None]], -1)
     w = np.asarray(splat.render(g, cam, opacity_mult=jnp.asarray(jax.nn.sigmoid(o[:, 1]))).max_weight)
     assert 1 / 255 < w[3] < 0.01 and w[2] < 0.01 and w[4] == 0.0  # what the rule is tested on
-    cfg = rf.RefineConfig(
-        steps=6,
-        visibility_interval=6,
-        lr_o=0.0,
-        lr_alpha=0.0,
-        lr_color=0.0,
-        lr_other=0.0,
-        position_lr_scale=0.0,
-        halve_alpha=False,
-        random_background=False,
-    )
+    cfg = rf.RefineConfig(steps=6, visibility_interval=6, **FROZEN)
     views = [ci.DateViews((cam,), (image,))] * 2
     out, rep = rf.refine(model, views, cfg, extent=1.0)
     assert rep["zeroed_per_date"] == [2, 2] and len(out) == 3, rep

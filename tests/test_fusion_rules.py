@@ -8,7 +8,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from test_fusion import _random_gaussians
+from test_fusion import FROZEN, _random_gaussians
 
 import cfgs_jax as cj
 from cfgs_jax import fusion, splat, train
@@ -75,17 +75,6 @@ def _many_view_scene():
 def _seed_missing(view: int, steps: int, num_views: int) -> int:
     """The first refinement seed whose first ``steps`` draws miss flat view ``view``."""
     return next(s for s in range(200) if view not in {view_order(s, i, num_views) for i in range(steps)})
-
-
-FROZEN = dict(
-    lr_o=0.0,
-    lr_alpha=0.0,
-    lr_color=0.0,
-    lr_other=0.0,
-    position_lr_scale=0.0,
-    halve_alpha=False,
-    random_background=False,
-)
 
 
 def test_visibility_covers_every_view_of_a_date():
