@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import warnings
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -29,8 +30,12 @@ def write_video(path: str | os.PathLike, frames: Sequence[np.ndarray], *, fps: i
     h, w = shape[:2]
     pad = ((0, h % 2), (0, w % 2), (0, 0))
     options = dict(format="FFMPEG", fps=fps, codec="libx264", pixelformat="yuv420p", macro_block_size=1, quality=8)
-    with atomic_file(path) as tmp, imageio.get_writer(tmp, **options) as writer:
-        for f in frames:
-            u8 = np.round(np.clip(np.asarray(f, np.float32)[..., :3], 0.0, 1.0) * 255.0).astype(np.uint8)
-            writer.append_data(np.pad(u8, pad))
+    with warnings.catch_warnings():
+        # the encoder is the ffmpeg binary, started by subprocess: fork then exec at once, which JAX's
+        # "os.fork() is incompatible with multithreaded code" warning does not concern
+        warnings.filterwarnings("ignore", message=r"os\.fork\(\) was called", category=RuntimeWarning)
+        with atomic_file(path) as tmp, imageio.get_writer(tmp, **options) as writer:
+            for f in frames:
+                u8 = np.round(np.clip(np.asarray(f, np.float32)[..., :3], 0.0, 1.0) * 255.0).astype(np.uint8)
+                writer.append_data(np.pad(u8, pad))
     return Path(path)
