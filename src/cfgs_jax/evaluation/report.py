@@ -31,7 +31,16 @@ def _share(x) -> str:
 
 
 def table_markdown(table: dict) -> str:
-    """The protocol table as markdown (best per column in bold)."""
+    """The protocol table as markdown (best per column in bold), then the change-detection block."""
+    lines = _method_table(table)
+    ch = table.get("change")
+    if ch:
+        lines += _change_table(ch) + _change_notes(ch)
+    return "\n".join(lines) + "\n"
+
+
+def _method_table(table: dict) -> list[str]:
+    """The method rows (PSNR / SSIM / LPIPS / Gaussians), the margin at the largest N, stage times."""
     rows = table["rows"]
     best = {
         k: (max if k in ("psnr", "ssim") else min)(r[k] for r in rows if np.isfinite(r[k]))
@@ -56,93 +65,98 @@ def table_markdown(table: dict) -> str:
             f"| {r['row']} | {cell(r, 'psnr')} | {cell(r, 'ssim')} | {cell(r, 'lpips')} | {r['gaussians']:,} |"
         )
     m = table["margins"]
-    lines += [
+    return lines + [
         "",
         f"Ours − Individual at N = {m['steps']:,}: PSNR {m['psnr']:+.2f} dB, SSIM {m['ssim']:+.4f}, "
         f"LPIPS {m['lpips']:+.4f} (positive: ours better).",
         "",
         "Stage wall times (s): " + ", ".join(f"{k} {v:.1f}" for k, v in table["timings"].items() if v is not None),
     ]
-    ch = table.get("change")
-    if ch:
-        g, p = ch["gaussians"], ch["pixels"]
+
+
+def _change_table(ch: dict) -> list[str]:
+    """Precision / recall / F1 per Gaussian (with and without the surface rule, weighted) and pixel IoU."""
+    g, p = ch["gaussians"], ch["pixels"]
+    lines = [
+        "",
+        "## Change detection against ground truth",
+        "",
+        "| Level | Precision | Recall | F1 | IoU | flagged changed | ground truth changed |",
+        "|---|---:|---:|---:|---:|---:|---:|",
+        f"| Gaussians (o^q < {ch['config']['absent_below']}, observed"
+        + (f", surface effect > {g['surface_threshold']}" if g.get("surface_threshold") else "")
+        + f") | {g['precision']:.3f} | {g['recall']:.3f} | "
+        f"{g['f1']:.3f} | – | {100 * g['flagged_changed']:.1f} % | {100 * g['gt_changed']:.1f} % |",
+    ]
+    if g.get("surface_threshold"):
+        lines.append(
+            f"| … o^q alone (no surface rule) | {g['precision_o_only']:.3f} | {g['recall_o_only']:.3f} | "
+            f"{g['f1_o_only']:.3f} | – | {100 * g['flagged_changed_o_only']:.1f} % | – |"
+        )
+    if "weighted_f1" in g:
+        lines.append(
+            f"| … weighted by compositing weight | {g['weighted_precision']:.3f} | {g['weighted_recall']:.3f} | "
+            f"{g['weighted_f1']:.3f} | – | {_share(g.get('weighted_flagged_changed'))} | – |"
+        )
+    return lines + [
+        f"| Pixels (highlight |S−1| > {ch['config']['pixel_threshold']}) | – | – | – | {p['iou']:.3f} | "
+        f"{100 * p['predicted_changed_share']:.1f} % | {100 * p['gt_changed_share']:.1f} % |",
+        "",
+        f"Gaussians not observed at a date: {100 * (1 - g['observed']):.1f} % of (Gaussian, date) entries, "
+        f"{100 * g['unobserved_marked_absent']:.1f} % of them absent (o < {ch['config']['absent_below']}), "
+        "none flagged changed.",
+    ]
+
+
+def _change_notes(ch: dict) -> list[str]:
+    """The observation rule, the pixel threshold sweep, o by ground-truth object, and the light fit."""
+    g, p = ch["gaussians"], ch["pixels"]
+    lines = []
+    if "hidden_in_fused" in g:
+        lines.append(
+            f"\nObserved = visible at q were it there, behind what the fused model shows at q (the refinement's "
+            f"visibility rule). {100 * g['hidden_in_fused']:.1f} % of the entries are visible with their own "
+            f"date's Gaussians alone but hidden in the fused model ({100 * g['hidden_in_fused_absent']:.1f} % "
+            f"hidden and absent); with the own-date rule {100 * g['flagged_changed_own_date_rule']:.1f} % "
+            "would be flagged changed."
+        )
+    if "curve" in p:
+        c = p["curve"]
+        best = int(np.argmax(np.nan_to_num(c["iou"], nan=-1.0)))
+        lines.append(
+            "\nPixels over the threshold on |S−1|: "
+            + ", ".join(
+                f"{t:.2f}: IoU {i:.3f} ({100 * f:.1f} % flagged)"
+                for t, i, f in zip(c["threshold"], c["iou"], c["predicted_changed_share"])
+                if round(t * 20) % 2 == 0
+            )
+            + f"; best IoU {c['iou'][best]:.3f} at {c['threshold'][best]:.2f}."
+        )
+    for key, when in (("objects_cross_init", "after cross-init"), ("objects_fused", "after refinement")):
+        ob = ch.get(key)
+        if ob:
+            lines.append(
+                f"\nBy ground-truth object, {when}: {100 * ob['absent_below_0.2']:.1f} % of the Gaussians of "
+                f"objects absent at a date have o < 0.2 there ({ob['absent_entries']:,} entries), "
+                f"{100 * ob['persistent_above_0.6']:.1f} % of those of persistent objects o > 0.6 "
+                f"({ob['persistent_entries']:,})."
+            )
+    li = ch.get("light_cross_init")
+    if li:
         lines += [
+            f"\nAfter cross-init: mean o^q over all seen (Gaussian, other date) entries {li['mean_o']:.3f}; the "
+            f"fitted cold/warm shift has the sign of the true colour-temperature change in {li['sign_agrees']} "
+            f"of {li['pairs_with_cct_change']} pairs with one.",
             "",
-            "## Change detection against ground truth",
-            "",
-            "| Level | Precision | Recall | F1 | IoU | flagged changed | ground truth changed |",
-            "|---|---:|---:|---:|---:|---:|---:|",
-            f"| Gaussians (o^q < {ch['config']['absent_below']}, observed"
-            + (f", surface effect > {g['surface_threshold']}" if g.get("surface_threshold") else "")
-            + f") | {g['precision']:.3f} | {g['recall']:.3f} | "
-            f"{g['f1']:.3f} | – | {100 * g['flagged_changed']:.1f} % | {100 * g['gt_changed']:.1f} % |",
-            *(
-                [
-                    f"| … o^q alone (no surface rule) | {g['precision_o_only']:.3f} | {g['recall_o_only']:.3f} | "
-                    f"{g['f1_o_only']:.3f} | – | {100 * g['flagged_changed_o_only']:.1f} % | – |"
-                ]
-                if g.get("surface_threshold")
-                else []
-            ),
-            *(
-                [
-                    f"| … weighted by compositing weight | {g['weighted_precision']:.3f} | {g['weighted_recall']:.3f} | "
-                    f"{g['weighted_f1']:.3f} | – | {_share(g.get('weighted_flagged_changed'))} | – |"
-                ]
-                if "weighted_f1" in g
-                else []
-            ),
-            f"| Pixels (highlight |S−1| > {ch['config']['pixel_threshold']}) | – | – | – | {p['iou']:.3f} | "
-            f"{100 * p['predicted_changed_share']:.1f} % | {100 * p['gt_changed_share']:.1f} % |",
-            "",
-            f"Gaussians not observed at a date: {100 * (1 - g['observed']):.1f} % of (Gaussian, date) entries, "
-            f"{100 * g['unobserved_marked_absent']:.1f} % of them absent (o < {ch['config']['absent_below']}), none flagged changed.",
+            "| pair p→q | mean o^q | median k (>0 colder) | CCT_q − CCT_p (K) |",
+            "|---|---:|---:|---:|",
+            *[
+                f"| {a}→{b} | {x['mean_o']:.3f} | {x['median_k']:+.3f} | {x['cct_change_kelvin']:+.0f} |"
+                for x in li["pairs"]
+                for a, b in [x["pair"]]
+            ],
         ]
-        if "hidden_in_fused" in g:
-            lines.append(
-                f"\nObserved = visible at q were it there, behind what the fused model shows at q (the refinement's "
-                f"visibility rule). {100 * g['hidden_in_fused']:.1f} % of the entries are visible with their own "
-                f"date's Gaussians alone but hidden in the fused model ({100 * g['hidden_in_fused_absent']:.1f} % "
-                f"hidden and absent); with the own-date rule {100 * g['flagged_changed_own_date_rule']:.1f} % "
-                "would be flagged changed."
-            )
-        if "curve" in p:
-            c = p["curve"]
-            best = int(np.argmax(np.nan_to_num(c["iou"], nan=-1.0)))
-            lines.append(
-                "\nPixels over the threshold on |S−1|: "
-                + ", ".join(
-                    f"{t:.2f}: IoU {i:.3f} ({100 * f:.1f} % flagged)"
-                    for t, i, f in zip(c["threshold"], c["iou"], c["predicted_changed_share"])
-                    if round(t * 20) % 2 == 0
-                )
-                + f"; best IoU {c['iou'][best]:.3f} at {c['threshold'][best]:.2f}."
-            )
-        for key, when in (("objects_cross_init", "after cross-init"), ("objects_fused", "after refinement")):
-            ob = ch.get(key)
-            if ob:
-                lines.append(
-                    f"\nBy ground-truth object, {when}: {100 * ob['absent_below_0.2']:.1f} % of the Gaussians of "
-                    f"objects absent at a date have o < 0.2 there ({ob['absent_entries']:,} entries), "
-                    f"{100 * ob['persistent_above_0.6']:.1f} % of those of persistent objects o > 0.6 "
-                    f"({ob['persistent_entries']:,})."
-                )
-        li = ch.get("light_cross_init")
-        if li:
-            lines += [
-                f"\nAfter cross-init: mean o^q over all seen (Gaussian, other date) entries {li['mean_o']:.3f}; the "
-                f"fitted cold/warm shift has the sign of the true colour-temperature change in {li['sign_agrees']} "
-                f"of {li['pairs_with_cct_change']} pairs with one.",
-                "",
-                "| pair p→q | mean o^q | median k (>0 colder) | CCT_q − CCT_p (K) |",
-                "|---|---:|---:|---:|",
-                *[
-                    f"| {a}→{b} | {x['mean_o']:.3f} | {x['median_k']:+.3f} | {x['cct_change_kelvin']:+.0f} |"
-                    for x in li["pairs"]
-                    for a, b in [x["pair"]]
-                ],
-            ]
-    return "\n".join(lines) + "\n"
+    return lines
 
 
 def figure_grid(path: Path, run_dir: Path, scenes, sims, names, render_config) -> None:
