@@ -388,6 +388,56 @@ def run_fusion(
     validate_config(raw_config)
     if until not in (None, "train", "register", "merge"):
         raise InputError(f"cannot stop after {until!r}", field="until", fix='use "train", "register" or "merge"')
+    dates, scenes, times, models, given = _read_inputs(dates, raw_config, models, captured, drop_invalid, log)
+    run = FusionRun(Path(out), [Path(d) for d in dates], raw_config, resume=resume, models=models, captured=times)
+    render_config = section(run.raw, "render", splat.RenderConfig)
+    names = run.names
+
+    # 1. per-date models
+    run.stage("train", lambda: _train_dates(run, scenes, render_config, progress, log))
+    model_paths = run.state["models"] or [str(run.out / "dates" / n / "point_cloud.ply") for n in names]
+    if until == "train":
+        return run
+
+    # 2. registration
+    run.stage("register", lambda: _register_dates(run, scenes, transforms, log))
+    reg = read_json(run.out / "register.json")
+    sims = [Sim3.from_dict(reg[n]["transform"]) for n in names]
+    if until == "register":
+        return run
+
+    # 3. merge
+    def merge_dates():
+        merged = merge(given or [read_ply(m, drop_invalid=drop_invalid) for m in model_paths], run.date_infos(), sims)
+        write_fused(run.out / "merged", merged)
+        return {"gaussians": len(merged)}
+
+    run.stage("merge", merge_dates)
+    if until == "merge":
+        return run
+    if len(names) == 1 and not run.done("refine"):
+        _identity_for_one_date(run)
+    views = [date_views(scenes[i], sims[i]) for i in range(len(names))]
+
+    # 4. cross-timestep initialisation, resumable per pair
+    if not run.done("cross_init"):
+        pairs = [(p, q) for p in range(len(names)) for q in range(len(names)) if p != q]
+        _cross_init_pairs(run, run.out / "merged", pairs, views, render_config, log, "cross_init", "cross_init")
+
+    # 5. refinement and final prune
+    if not run.done("refine"):
+        _refine_stage(run, views, scenes, render_config, progress, log, "refine", snapshots)
+
+    # 6. export in the authors' layout too
+    run.stage("export", lambda: _export_reference(run))
+    _evaluate_stage(run, scenes, sims, render_config, evaluate, log)
+    return run
+
+
+def _read_inputs(dates, raw_config, models, captured, drop_invalid: bool, log):
+    """Every input of a fusion run, read and checked before anything is written: the datasets (in
+    capture-time order), their capture times, the given models (same order) → (dates, scenes, times,
+    model paths, models read)."""
     tc = section(raw_config, "train", train.TrainConfig)
     scenes = [read_colmap(d, test_every=max(1, tc.test_every), resolution=tc.resolution) for d in dates]
     times = capture_times(scenes, captured)
@@ -407,81 +457,46 @@ def run_fusion(
             field="--models",
             fix="give one PLY per date, in the order of --dates",
         )
-    given = [read_ply(m, drop_invalid=drop_invalid) for m in models or ()]  # checked now, merged below
+    given = [read_ply(m, drop_invalid=drop_invalid) for m in models or ()]
     if len(dates) == 1:
         msg = f"fusing a single date ({Path(dates[0]).name}): the result is that date's model unchanged (identity)"
-        warnings.warn(msg, UserWarning, stacklevel=2)
+        warnings.warn(msg, UserWarning, stacklevel=3)
         log(f"warning: {msg}")
-    run = FusionRun(Path(out), [Path(d) for d in dates], raw_config, resume=resume, models=models, captured=times)
-    raw = run.raw
-    render_config = section(raw, "render", splat.RenderConfig)
+    return dates, scenes, times, models, given
+
+
+def _train_dates(run: FusionRun, scenes, render_config, progress: bool, log) -> dict:
+    """Train every date that has no model yet (none when the run was given models)."""
+    per_date = {}
+    for i, name in enumerate(run.names):
+        if run.state["models"] or (run.out / "dates" / name / "point_cloud.ply").is_file():
+            continue
+        s = time.perf_counter()
+        _train_date(run, scenes[i], name, render_config, progress, log, "train")
+        per_date[name] = time.perf_counter() - s
+    return {"per_date_seconds": per_date}
+
+
+def _register_dates(run: FusionRun, scenes, transforms: Path | None, log) -> None:
+    """Every date → reference Sim(3): from ``transforms`` when given, else by joint SfM → register.json."""
     names = run.names
+    if transforms is not None:
+        sims = load_transforms(transforms, names)
+        reg = {n: {"transform": sims[n].to_dict(), "source": str(transforms)} for n in names}
+    else:
+        reg = {names[0]: {"transform": Sim3.identity().to_dict(), "source": "reference"}}
+        for i in range(1, len(names)):
+            reg[names[i]] = _register(run, scenes[0], scenes[i], names[i], names[0], log, "register")
+    write_json(run.out / "register.json", reg)
 
-    def train_dates():
-        per_date = {}
-        for i, name in enumerate(names):
-            if run.state["models"] or (run.out / "dates" / name / "point_cloud.ply").is_file():
-                continue
-            s = time.perf_counter()
-            _train_date(run, scenes[i], name, render_config, progress, log, "train")
-            per_date[name] = time.perf_counter() - s
-        return {"per_date_seconds": per_date}
 
-    def register():
-        if transforms is not None:
-            sims = load_transforms(transforms, names)
-            reg = {n: {"transform": sims[n].to_dict(), "source": str(transforms)} for n in names}
-        else:
-            reg = {names[0]: {"transform": Sim3.identity().to_dict(), "source": "reference"}}
-            for i in range(1, len(names)):
-                reg[names[i]] = _register(run, scenes[0], scenes[i], names[i], names[0], log, "register")
-        write_json(run.out / "register.json", reg)
-
-    def merge_dates():
-        merged = merge(given or [read_ply(p, drop_invalid=drop_invalid) for p in model_paths], dinfo, sims)
-        write_fused(run.out / "merged", merged)
-        return {"gaussians": len(merged)}
-
-    # 1. per-date models
-    run.stage("train", train_dates)
-    model_paths = run.state["models"] or [str(run.out / "dates" / n / "point_cloud.ply") for n in names]
-
-    if until == "train":
-        return run
-
-    # 2. registration
-    run.stage("register", register)
-    reg = read_json(run.out / "register.json")
-    sims = [Sim3.from_dict(reg[n]["transform"]) for n in names]
-    dinfo = run.date_infos()
-    if until == "register":
-        return run
-
-    # 3. merge
-    run.stage("merge", merge_dates)
-    if until == "merge":
-        return run
-    if len(names) == 1 and not run.done("refine"):
-        merged = read_fused(run.out / "merged")
-        identity = dataclasses.replace(merged, o_logits=jnp.full_like(jnp.asarray(merged.o_logits), IDENTITY_LOGIT))
-        for stage, folder in (("cross_init", "cross_init"), ("refine", "fused")):
-            write_fused(run.out / folder, identity, config=run.state["config"])
-            run.finish(stage, 0.0, {"skipped": "one date: identity", "gaussians_after_prune": len(identity)})
-    views = [date_views(scenes[i], sims[i]) for i in range(len(names))]
-
-    # 4. cross-timestep initialisation, resumable per pair
-    if not run.done("cross_init"):
-        pairs = [(p, q) for p in range(len(names)) for q in range(len(names)) if p != q]
-        _cross_init_pairs(run, run.out / "merged", pairs, views, render_config, log, "cross_init", "cross_init")
-
-    # 5. refinement and final prune
-    if not run.done("refine"):
-        _refine_stage(run, views, scenes, render_config, progress, log, "refine", snapshots)
-
-    # 6. export in the authors' layout too
-    run.stage("export", lambda: _export_reference(run))
-    _evaluate_stage(run, scenes, sims, render_config, evaluate, log)
-    return run
+def _identity_for_one_date(run: FusionRun) -> None:
+    """A one-date "fusion": the merged model with o = 1 exactly, as cross-init and refinement results."""
+    merged = read_fused(run.out / "merged")
+    identity = dataclasses.replace(merged, o_logits=jnp.full_like(jnp.asarray(merged.o_logits), IDENTITY_LOGIT))
+    for stage, folder in (("cross_init", "cross_init"), ("refine", "fused")):
+        write_fused(run.out / folder, identity, config=run.state["config"])
+        run.finish(stage, 0.0, {"skipped": "one date: identity", "gaussians_after_prune": len(identity)})
 
 
 def _export_reference(run: FusionRun) -> None:
