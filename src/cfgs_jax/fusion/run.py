@@ -526,6 +526,50 @@ def _evaluate_stage(run: FusionRun, scenes, sims, render_config, enabled: bool, 
     run.stage(stage, evaluate)
 
 
+def _check_extension(run_dir: Path, date: Path, model, captured, resume: bool) -> tuple[dict, Scene]:
+    """(state of the finished run ``run_dir`` that ``date`` is to extend, the new date's dataset), once
+    every input of the extension (the dataset, its model, its capture time) has been read and checked."""
+    state = read_json(run_dir / "run.json")
+    if state is None or "refine" not in state["done"]:
+        raise InputError("not a finished fusion run", path=run_dir, fix="run `fuse` first (or --resume it)")
+    name = Path(date).name
+    started = any(s.startswith(f"extend:{name}:") for s in state["done"])
+    if name in [d["name"] for d in state["dates"]] and not started:
+        raise InputError(f"the run already has a date named {name!r}", path=run_dir, field="--date")
+    if started and not resume:
+        raise InputError(f"an extension by {name!r} was started here", path=run_dir, fix="pass --resume")
+    tc = section(state["config"], "train", train.TrainConfig)
+    new_scene = read_colmap(date, test_every=max(1, tc.test_every), resolution=tc.resolution)
+    check_lpips_size(new_scene, state["config"])  # fails before the run is touched
+    if model is not None:
+        read_ply(model)
+    if captured is not None:
+        parse_captured(captured, field="--captured")
+    if not started and state.get("models") and model is None:
+        raise InputError("the run was fused from given models", field="--model", fix="pass --model PLY")
+    return state, new_scene
+
+
+def _insert_date(run_dir: Path, state: dict, date: Path, new_scene: Scene, model, captured, log) -> None:
+    """Record ``date`` in the run's state at its place in time (``captured``, else its EXIF capture
+    time; last when it or an earlier date's time is unknown) and save it."""
+    name = Path(date).name
+    when = captured if captured is not None else exif_captured(new_scene.image_paths)
+    existing = [d.get("captured") for d in state["dates"]]
+    k = insert_position(existing, when)
+    if when is None:
+        log(f"note: {name} has no capture time (--captured or EXIF): added as the latest date")
+    elif k == len(existing) and any(c is None for c in existing):
+        log(f"note: an earlier date has no capture time: {name} ({when}) is added as the latest date")
+    elif k < len(existing):
+        log(f"{name} ({when}) goes before {existing[k]} ({state['dates'][k]['name']}): inserted as date {k}")
+    state.setdefault("reference", state["dates"][0]["name"])
+    state["dates"].insert(k, {"name": name, "path": str(Path(date).resolve()), "captured": when})
+    if state.get("models"):
+        state["models"].insert(k, str(Path(model).resolve()))
+    write_json(run_dir / "run.json", state)
+
+
 def run_extend(
     run_dir: Path,
     date: Path,
@@ -546,40 +590,11 @@ def run_extend(
     from cfgs_jax.fusion.fuse import add_date
 
     run_dir = Path(run_dir)
-    state = read_json(run_dir / "run.json")
-    if state is None or "refine" not in state["done"]:
-        raise InputError("not a finished fusion run", path=run_dir, fix="run `fuse` first (or --resume it)")
     name = Path(date).name
     prefix = f"extend:{name}:"
-    if name in [d["name"] for d in state["dates"]] and not any(s.startswith(prefix) for s in state["done"]):
-        raise InputError(f"the run already has a date named {name!r}", path=run_dir, field="--date")
-    started = any(s.startswith(prefix) for s in state["done"])
-    if started and not resume:
-        raise InputError(f"an extension by {name!r} was started here", path=run_dir, fix="pass --resume")
-    tc = section(state["config"], "train", train.TrainConfig)
-    new_scene = read_colmap(date, test_every=max(1, tc.test_every), resolution=tc.resolution)
-    check_lpips_size(new_scene, state["config"])  # fails before the run is touched
-    if model is not None:
-        read_ply(model)
-    if captured is not None:
-        parse_captured(captured, field="--captured")
-    if not started:
-        if state.get("models") and model is None:
-            raise InputError("the run was fused from given models", field="--model", fix="pass --model PLY")
-        when = captured if captured is not None else exif_captured(new_scene.image_paths)
-        existing = [d.get("captured") for d in state["dates"]]
-        k = insert_position(existing, when)
-        if when is None:
-            log(f"note: {name} has no capture time (--captured or EXIF): added as the latest date")
-        elif k == len(existing) and any(c is None for c in existing):
-            log(f"note: an earlier date has no capture time: {name} ({when}) is added as the latest date")
-        elif k < len(existing):
-            log(f"{name} ({when}) goes before {existing[k]} ({state['dates'][k]['name']}): inserted as date {k}")
-        state.setdefault("reference", state["dates"][0]["name"])
-        state["dates"].insert(k, {"name": name, "path": str(Path(date).resolve()), "captured": when})
-        if state.get("models"):
-            state["models"].insert(k, str(Path(model).resolve()))
-        write_json(run_dir / "run.json", state)
+    state, new_scene = _check_extension(run_dir, date, model, captured, resume)
+    if not any(s.startswith(prefix) for s in state["done"]):
+        _insert_date(run_dir, state, date, new_scene, model, captured, log)
     paths = [d["path"] for d in state["dates"]]
     run = FusionRun(run_dir, [Path(p) for p in paths], state["config"], resume=True)
     raw = run.raw
