@@ -17,10 +17,14 @@ from cfgs_jax.errors import InputError, OutputError
 
 
 def _read_config(args) -> dict:
-    """The run configuration a command was given: ``--config`` (preset or file) with its ``--set`` overrides."""
+    """The run configuration a command was given: ``--config`` (preset or file) with its ``--set``
+    overrides, and ``-r N`` as the override ``train.resolution=N`` it stands for."""
     from cfgs_jax.config import apply_overrides, find_preset, load_config
 
-    return apply_overrides(load_config(find_preset(args.config)), getattr(args, "overrides", ()))
+    overrides = list(getattr(args, "overrides", ()))
+    if getattr(args, "resolution", 1) != 1:
+        overrides.append(f"train.resolution={args.resolution}")
+    return apply_overrides(load_config(find_preset(args.config)), overrides)
 
 
 def _console():
@@ -230,8 +234,6 @@ def cmd_train(args) -> int:
     from cfgs_jax.fusion.run import validate_config
     from cfgs_jax.io.inria import write_inria_layout
 
-    if args.resolution != 1:
-        args.overrides = [*args.overrides, f"train.resolution={args.resolution}"]
     raw = _read_config(args)
     validate_config(raw)
     config = section(raw, "train", train.TrainConfig)
@@ -308,8 +310,6 @@ def cmd_train(args) -> int:
 def cmd_fuse(args) -> int:
     from cfgs_jax.fusion.run import run_fusion
 
-    if args.resolution != 1:
-        args.overrides = [*args.overrides, f"train.resolution={args.resolution}"]
     raw = _read_config(args)
     console = _console()
     run = run_fusion(

@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from cfgs_jax.io.atomic import atomic_file, ensure_writable_dir
+from cfgs_jax.io.atomic import ensure_writable_dir, write_text
 from cfgs_jax.io.ply import write_ply
 from cfgs_jax.model import Camera, Gaussians
 
@@ -51,8 +51,7 @@ def write_inria_layout(model_path: str | os.PathLike, gaussians: Gaussians, scen
     ply = write_ply(root / "point_cloud" / f"iteration_{int(iteration)}" / "point_cloud.ply", gaussians)
     order = [*scene.indices("test"), *scene.indices("train")]
     entries = [camera_entry(k, scene.image_names[int(i)], scene.cameras[int(i)]) for k, i in enumerate(order)]
-    with atomic_file(root / "cameras.json") as tmp:
-        tmp.write_text(json.dumps(entries))
+    write_text(root / "cameras.json", json.dumps(entries))
     args = argparse.Namespace(
         data_device="cuda",
         eval=bool(len(scene.indices("test"))),
@@ -63,6 +62,5 @@ def write_inria_layout(model_path: str | os.PathLike, gaussians: Gaussians, scen
         source_path=str(Path(scene.root).resolve()),
         white_background=False,
     )
-    with atomic_file(root / "cfg_args") as tmp:
-        tmp.write_text(str(args))
+    write_text(root / "cfg_args", str(args))
     return ply
