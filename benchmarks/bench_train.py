@@ -49,7 +49,8 @@ def main():
 
     import cfgs_jax as cj
     from cfgs_jax import splat, synthetic, train
-    from cfgs_jax.train.step import TrainState, gaussians_from_params
+    from cfgs_jax.model import gaussians_of
+    from cfgs_jax.train.step import TrainState
 
     with tempfile.TemporaryDirectory() as tmp:
         spec = synthetic.make_preset("corals", seed=0, width=320, height=240, images_per_date=args.views, spp=16)
@@ -70,7 +71,7 @@ def main():
     extent = train.scene_extent(scene.cameras)
     opt = train.make_optimizer(config, extent)
     state = TrainState.create(g0, opt, jax.random.key(0), capacity=train.capacity_bucket(len(g0)))
-    g_buf = gaussians_from_params(state.params)
+    g_buf = gaussians_of(state.params)
     mult = state.active.astype(jnp.float32)[None]
     cap = max(splat.required_capacity(g_buf, c, mult) for c in scene.cameras)
     rc = splat.RenderConfig(capacity=cap)
@@ -81,7 +82,7 @@ def main():
 
         def image(p):
             mult = active.astype(jnp.float32)[None]
-            return splat.render_dates(gaussians_from_params(p), camera, mult, jnp.ones((1, n, 3)), config=rc).image
+            return splat.render_dates(gaussians_of(p), camera, mult, jnp.ones((1, n, 3)), config=rc).image
 
         out, vjp = jax.vjp(image, params)
         return vjp(jnp.ones_like(out))

@@ -11,6 +11,7 @@ from scipy.spatial.transform import Rotation
 
 import cfgs_jax as cj
 from cfgs_jax import fusion, splat
+from cfgs_jax.fusion import updates
 from cfgs_jax.sim3 import Sim3
 
 #: Refinement settings that change nothing but o (the visibility rule): every rate 0, no halving,
@@ -197,8 +198,8 @@ def test_shorter_schedules_keep_the_papers_travel():
     }
     for steps, ref, k in ((3000, 3000, 1.0), (500, 3000, 6.0), (6000, 3000, 1.0), (500, 0, 1.0)):
         cfg = ci.CrossInitConfig(steps=steps, rate_reference_steps=ref)
-        assert ci.rate_scale(cfg) == k
-        opt = ci.make_optimizer(cfg)
+        assert updates.cross_init_rate_scale(cfg) == k
+        opt = updates.cross_init_optimizer(cfg)
         upd, _ = opt.update(grads, opt.init(params), params)
         for name, lr in (("o_logit", 0.0075), ("u", 0.00375), ("w", 0.00375)):
             np.testing.assert_allclose(upd[name], -k * lr * np.sign(grads[name]), rtol=1e-4)
@@ -335,7 +336,7 @@ def test_change_loss_visibility_rule_and_final_prune_hand_cases():
     assert float(rf.change_loss(jnp.asarray(o0[:, :1]), jnp.asarray(o0[:, :1]))) == 0.0
     contributed = np.array([[True, False, True], [False, False, True]])
     o0[1, 1] = fusion.INVISIBLE_LOGIT - 1.0  # already below the rule's value: left as it is
-    out, kill = rf.apply_visibility(o0, contributed)
+    out, kill = updates.apply_visibility(o0, contributed)
     assert out[0, 0] == o0[0, 0] and out[0, 1] == fusion.INVISIBLE_LOGIT and out[0, 2] == o0[0, 2]
     assert out[1, 0] == fusion.INVISIBLE_LOGIT and out[1, 1] == o0[1, 1] and out[1, 2] == o0[1, 2]
     assert kill.tolist() == [[False, True, False], [True, False, False]]
@@ -345,7 +346,7 @@ def test_change_loss_visibility_rule_and_final_prune_hand_cases():
     m = m.__class__(m.gaussians, jnp.asarray(logit([[0.9], [0.006], [0.9]])), m.light_logits, m.origin, m.dates)
     kept = rf.final_prune(m)  # α·o: 0.45 (keep), 0.003 ≤ 1/255 (drop), 0.0036 (drop)
     assert len(kept) == 1 and np.allclose(np.asarray(kept.gaussians.means), np.asarray(a.means[:1]))
-    assert np.isclose(float(jax.nn.sigmoid(rf.halve_alpha(jnp.float32(1.2)))), 0.5 / (1 + np.exp(-1.2)), atol=1e-6)
+    assert np.isclose(float(jax.nn.sigmoid(updates.halve_alpha(jnp.float32(1.2)))), 0.5 / (1 + np.exp(-1.2)), atol=1e-6)
 
 
 def test_refine_lowers_the_loss_keeps_the_model_finite_and_resumes_exactly(tmp_path):
@@ -716,6 +717,14 @@ def test_readme_jax_snippet_runs_and_its_gradient_matches_finite_differences(fus
     h = 1e-2
     fd = (float(loss(o + h * direction)) - float(loss(o - h * direction))) / (2 * h)
     assert fd == pytest.approx(float(jnp.sum(grad * direction)), rel=0.05, abs=1e-7)
+    # the optax snippet continues in the same namespace: Eq. 3 by hand lowers the loss on the same views
+    code = re.search(r"<!-- optax-snippet -->\n```python\n(.*?)```", text, re.S).group(1)
+    exec(compile(code, "README.md", "exec"), ns)
+    losses, n = ns["losses"], len(ns["views"].cameras)
+    assert np.all(np.isfinite(losses)) and np.mean(losses[-n:]) < np.mean(losses[:n])
+    zeroed = ns["zeroed"]
+    assert not zeroed[:, [p for p in range(zeroed.shape[1]) if p != 1]].any()  # only the checked date
+    assert isinstance(ns["refined"], cj.TemporalGaussians) and len(ns["refined"]) <= len(ns["model"])
 
 
 def test_viewer_in_headless_chromium(fused_run):

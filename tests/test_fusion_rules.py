@@ -12,6 +12,7 @@ from test_fusion import FROZEN, _random_gaussians
 
 import cfgs_jax as cj
 from cfgs_jax import fusion, splat, train
+from cfgs_jax.fusion import updates
 from cfgs_jax.train import view_order
 
 ci = importlib.import_module("cfgs_jax.fusion.cross_init")  # the package exports a function of that name
@@ -142,7 +143,7 @@ def test_refinement_rates_follow_the_input_training():
     extent = 2.5
     for large, divide in ((False, 1.0), (True, 10.0)):
         tc = train.TrainConfig(large_scale=large)
-        opt = rf.make_optimizer(rf.RefineConfig(steps=100), extent, tc)
+        opt = updates.refinement_optimizer(rf.RefineConfig(steps=100), extent, tc)
         upd, _ = opt.update(grads, opt.init(params), params)
         np.testing.assert_allclose(upd["means"], -1.6e-4 * extent / divide, rtol=1e-5)
         np.testing.assert_allclose(upd["colors"], -2e-5 * c0, rtol=1e-5)

@@ -13,7 +13,8 @@ from scipy.spatial.transform import Rotation
 import cfgs_jax as cj
 from cfgs_jax import InputError, splat, synthetic, train
 from cfgs_jax.io import read_colmap
-from cfgs_jax.train.step import TrainState, gaussians_from_params, make_train_step
+from cfgs_jax.model import gaussians_of
+from cfgs_jax.train.step import TrainState, make_train_step
 
 
 def test_init_from_points_matches_brute_force_knn():
@@ -77,7 +78,7 @@ def test_short_training_run_reduces_the_loss(corals):
     cfg = train.TrainConfig(steps=200, random_background=False)
     opt = train.make_optimizer(cfg, train.scene_extent(scene.cameras))
     state = TrainState.create(g0, opt, jax.random.key(0), capacity=len(g0) + 64)
-    cap = max(splat.required_capacity(gaussians_from_params(state.params), c) for c in scene.cameras)
+    cap = max(splat.required_capacity(gaussians_of(state.params), c) for c in scene.cameras)
     step = make_train_step(opt, cfg, splat.RenderConfig(capacity=4 * cap))
     images = [jnp.asarray(scene.load_image(i)) for i in range(len(scene))]
     losses = []
@@ -120,7 +121,7 @@ def test_step_accumulates_the_screen_space_gradient_in_ndc_units():
 
     d = jax.grad(by_offset)(jnp.zeros((n + 8, 2)))
     want = np.linalg.norm(np.asarray(d) * [20.0, 15.0], axis=-1)
-    radii = np.asarray(splat.render(gaussians_from_params(state.params), cam, config=rc).radii)
+    radii = np.asarray(splat.render(gaussians_of(state.params), cam, config=rc).radii)
     vis = (np.arange(n + 8) < n) & (radii > 0)
     assert vis.sum() > 10 and int(stats["visible"]) == vis.sum()
     assert np.allclose(np.asarray(new.grad_accum), np.where(vis, want, 0.0), rtol=1e-5, atol=1e-9)

@@ -269,6 +269,34 @@ class TemporalGaussians(eqx.Module):
 
 
 # --------------------------------------------------------------------------------------------------
+# Trainable leaves: the dict of arrays an optimiser updates, and back
+
+#: The fields of ``Gaussians`` in order: the leaves per-date training optimises.
+GAUSSIAN_FIELDS = ("means", "quats", "log_scales", "opacity_logits", "colors")
+
+
+def trainable(model: Gaussians | TemporalGaussians) -> dict[str, Array]:
+    """The leaves an optimiser updates, by field name: a ``Gaussians``' five fields; a
+    ``TemporalGaussians``' Gaussian fields and ``o_logits`` (its light ``l``, origin and dates stay fixed)."""
+    if isinstance(model, TemporalGaussians):
+        return trainable(model.gaussians) | {"o_logits": model.o_logits}
+    return {f: getattr(model, f) for f in GAUSSIAN_FIELDS}
+
+
+def gaussians_of(params: dict[str, Array]) -> Gaussians:
+    """The ``Gaussians`` whose fields are ``params[GAUSSIAN_FIELDS]`` (other keys, such as o-logits, are
+    ignored): the model a loss renders from an optimiser's parameters."""
+    return Gaussians(*(params[f] for f in GAUSSIAN_FIELDS))
+
+
+def with_trainable(like: Gaussians | TemporalGaussians, params: dict[str, Array]):
+    """``like`` with its trainable leaves replaced by ``params``: the inverse of ``trainable``."""
+    if isinstance(like, TemporalGaussians):
+        return dataclasses.replace(like, gaussians=gaussians_of(params), o_logits=params["o_logits"])
+    return gaussians_of(params)
+
+
+# --------------------------------------------------------------------------------------------------
 # Activations (pure jnp; differentiable)
 
 

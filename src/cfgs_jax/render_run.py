@@ -94,6 +94,13 @@ class FusedRun:
             for i in split_or_all(scene, "test")
         ]
 
+    def date_views(self, date: int, split: str = "train"):
+        """Date ``date``'s ``split`` views (cameras posed in the model's frame, RGBA images): a
+        ``fusion.DateViews``, what cross-init and refinement optimise against."""
+        from cfgs_jax.fusion.run import date_views
+
+        return date_views(self.scenes[date], self.sims[date], split)
+
     def all_cameras(self) -> list[Camera]:
         from cfgs_jax.fusion.run import camera_in_frame
 

@@ -2,9 +2,10 @@
 initialisation (Eq. 2), combined refinement (Eq. 3) and the final prune; ``fusion.run`` composes them
 into the pipeline commands ``fuse`` and ``extend``."""
 
+from cfgs_jax.fusion import updates
 from cfgs_jax.fusion.cross_init import CrossInitConfig, DateViews, cross_init, init_pair, init_pairs
 from cfgs_jax.fusion.fuse import INVISIBLE_LOGIT, OTHER_LOGIT, OWN_LOGIT, add_date, merge
-from cfgs_jax.fusion.refine import RefineConfig, final_prune, refine
+from cfgs_jax.fusion.refine import RefineConfig, final_prune, refine, refine_loss, visible_weight
 from cfgs_jax.fusion.register import (
     RegisterConfig,
     Registration,
@@ -15,6 +16,7 @@ from cfgs_jax.fusion.register import (
 )
 
 __all__ = [
+    "updates",
     "CrossInitConfig",
     "DateViews",
     "RefineConfig",
@@ -23,6 +25,8 @@ __all__ = [
     "init_pair",
     "init_pairs",
     "refine",
+    "refine_loss",
+    "visible_weight",
     "INVISIBLE_LOGIT",
     "OTHER_LOGIT",
     "OWN_LOGIT",

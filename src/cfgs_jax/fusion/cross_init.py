@@ -45,8 +45,9 @@ from cfgs_jax import metrics, splat
 from cfgs_jax.errors import InputError
 from cfgs_jax.fusion.fuse import INVISIBLE_LOGIT
 from cfgs_jax.fusion.light import REC709, gain_parameter, light_gain, light_logits, light_multiplier
+from cfgs_jax.fusion.updates import cross_init_optimizer
+from cfgs_jax.loop import run_steps, view_order
 from cfgs_jax.model import Camera, Gaussians, TemporalGaussians, logit
-from cfgs_jax.train.loop import view_order
 from cfgs_jax.train.step import over_background
 
 
@@ -177,26 +178,12 @@ def pair_loss(params, g: Gaussians, camera, image, eps_map, b, step, config: Cro
     return loss, res
 
 
-def rate_scale(config: CrossInitConfig) -> float:
-    """The factor on both learning rates: rate_reference_steps / steps when the schedule is shorter, else 1."""
-    return max(1.0, config.rate_reference_steps / config.steps) if config.rate_reference_steps else 1.0
-
-
-def make_optimizer(config: CrossInitConfig) -> optax.GradientTransformation:
-    """Adam on the o^q logits and on the light parameters (Eq. 2's rates, scaled by ``rate_scale``)."""
-    k = rate_scale(config)
-    return optax.multi_transform(
-        {"o": optax.adam(config.lr_o * k), "light": optax.adam(config.lr_light * k)},
-        {"o_logit": "o", "u": "light", "w": "light"},
-    )
-
-
 @functools.lru_cache(maxsize=16)
 def _compiled_step(config: CrossInitConfig, render_config: splat.RenderConfig):
     """One optimisation step of several pairs (p, q₁), (p, q₂), … at once: ``jax.vmap`` over the pairs'
     parameters, optimiser states, cameras, images, ε maps and keys (the Gaussians are shared); the
     per-pair inputs arrive as tuples and are stacked inside the jit."""
-    optimizer = make_optimizer(config)
+    optimizer = cross_init_optimizer(config)
 
     def one(params, opt_state, g, camera, image, eps_map, key, it):
         b = background_colour(key, it, config, image.dtype)
@@ -252,6 +239,59 @@ def _image_shape(views: DateViews) -> tuple | None:
     return shapes.pop() if len(shapes) == 1 else None
 
 
+@dataclasses.dataclass
+class _Pairs:
+    """The pairs (p, q) of one date p that ``init_pairs`` optimises together: the date-p Gaussians seen
+    from some q (padded to ``padded_count``), and per pair its seen-mask, views, start o^q and gains."""
+
+    idx: np.ndarray  # rows of the model optimised (seen from at least one q)
+    g: Gaussians  # those Gaussians, padded
+    mask: jax.Array  # [k, m] 1 where seen from the pair's q
+    o_p: jax.Array  # [m] o^p (padding 1)
+    cameras: list
+    images: list
+    render_config: splat.RenderConfig  # with the intersection capacity of every view at o = 1
+
+
+def _gather(model: TemporalGaussians, p: int, rows, seen, views, render_config) -> _Pairs:
+    union = seen.any(axis=0)
+    idx = rows[union]
+    n, m = len(idx), padded_count(len(idx))  # padded rows: zero opacity, never rendered (shared compilations)
+    g = pad_gaussians(jax.tree_util.tree_map(lambda x: jnp.asarray(x)[idx], model.gaussians), m)
+    mask = jnp.asarray(np.pad(seen[:, union], ((0, 0), (0, m - n))), jnp.float32)
+    o_p = jnp.pad(jax.nn.sigmoid(jnp.asarray(np.asarray(model.o_logits)[idx, p])), (0, m - n), constant_values=1.0)
+    cameras = [v.cameras for v in views]
+    ones = jnp.ones((1, m), jnp.float32)
+    capacity = max(splat.required_capacity(g, c, ones, config=render_config) for cs in cameras for c in cs)
+    images = [[jnp.asarray(im, jnp.float32) for im in v.images] for v in views]
+    return _Pairs(idx, g, mask, o_p, cameras, images, dataclasses.replace(render_config, capacity=capacity))
+
+
+def _start_values(pairs: _Pairs, config: CrossInitConfig, lpips_net) -> tuple[dict, list[float], list[list]]:
+    """The pairs' start parameters (o^q = δ·o^p, gain at the pair's exposure, no cold/warm shift), the
+    start gains and the ε maps of every view."""
+    k, m = pairs.mask.shape
+    o_q = jnp.clip(config.delta * pairs.o_p, 1e-4, 1 - 1e-4)
+    o_init = jnp.where(pairs.mask > 0, logit(o_q), -100.0)  # unseen from q: off (culled), no gradient
+    # date p's own render at each view of each q (seen from q only: the others render nothing there),
+    # shared by the exposure start and the ε maps
+    rc = pairs.render_config
+    owns = [[own_render(pairs.g, pairs.o_p * pairs.mask[j], c, rc) for c in pairs.cameras[j]] for j in range(k)]
+    lo, hi = 2.0**-config.exposure_range_ev, 2.0**config.exposure_range_ev
+    start_gains = [
+        float(np.clip(exposure_gain(owns[j], pairs.images[j]), lo, hi)) if config.exposure_init else 1.0
+        for j in range(k)
+    ]
+    u0 = np.asarray([[gain_parameter(s)] for s in start_gains], np.float32)  # gain := the pair's exposure
+    params = {"o_logit": o_init, "u": jnp.broadcast_to(jnp.asarray(u0), (k, m)), "w": jnp.zeros((k, m))}
+    start_light = [float(light_gain(jnp.asarray(u0[j, 0]))) for j in range(k)]  # the start gain, as rendered
+    eps_maps = [
+        [lpips_map(own, im, lpips_net, config, start_light[j]) for own, im in zip(owns[j], pairs.images[j])]
+        for j in range(k)
+    ]
+    return params, start_light, eps_maps
+
+
 def init_pairs(
     model: TemporalGaussians,
     p: int,
@@ -278,79 +318,72 @@ def init_pairs(
     render_config = render_config or splat.RenderConfig()
     lpips_net = lpips_net if lpips_net is not None else metrics.load_lpips(config.lpips_net)
     rows = np.nonzero(np.asarray(model.origin) == p)[0]
-    g_all = model.gaussians
-    g_p = jax.tree_util.tree_map(lambda x: jnp.asarray(x)[rows], g_all)
+    g_p = jax.tree_util.tree_map(lambda x: jnp.asarray(x)[rows], model.gaussians)
     seen = np.stack([visible_from(g_p, v.cameras, render_config) for v in views])  # [Q, N_p]
     o_logits = np.asarray(model.o_logits).copy()
-    l_logits = np.asarray(model.light_logits).copy()
     reports = []
     for i, q in enumerate(qs):
         o_logits[rows[~seen[i]], q] = INVISIBLE_LOGIT
         reports.append({"pair": [p, q], "gaussians": int(len(rows)), "visible": int(seen[i].sum())})
         if not seen[i].any():
             reports[i]["skipped"] = True
+    model = dataclasses.replace(model, o_logits=jnp.asarray(o_logits))
     active = [i for i in range(len(qs)) if seen[i].any()]
     if not active:
-        return dataclasses.replace(model, o_logits=jnp.asarray(o_logits), light_logits=jnp.asarray(l_logits)), reports
-    union = seen[active].any(axis=0)
-    idx = rows[union]
-    n, m = len(idx), padded_count(len(idx))  # padded rows: zero opacity, never rendered (shared compilations)
-    g = pad_gaussians(jax.tree_util.tree_map(lambda x: jnp.asarray(x)[idx], g_all), m)
-    mask = jnp.asarray(np.pad(seen[active][:, union], ((0, 0), (0, m - n))), jnp.float32)  # [Q, m] seen from q
-    o_p = jnp.pad(jax.nn.sigmoid(jnp.asarray(o_logits[idx, p])), (0, m - n), constant_values=1.0)
-    o_q = jnp.clip(config.delta * o_p, 1e-4, 1 - 1e-4)
-    k = len(active)
-    o_init = jnp.where(mask > 0, logit(o_q), -100.0)  # unseen from q: off (culled), no gradient
-    ones = jnp.ones((1, m), jnp.float32)
-    cameras = [views[i].cameras for i in active]
-    capacity = max(splat.required_capacity(g, c, ones, config=render_config) for cs in cameras for c in cs)
-    images = [[jnp.asarray(im, jnp.float32) for im in views[i].images] for i in active]
-    rc = dataclasses.replace(render_config, capacity=capacity)
-    # date p's own render at each view of each q (seen from q only: the others render nothing there),
-    # shared by the exposure start and the ε maps
-    owns = [[own_render(g, o_p * mask[j], c, rc) for c in cameras[j]] for j in range(k)]
-    lo, hi = 2.0**-config.exposure_range_ev, 2.0**config.exposure_range_ev
-    start_gains = [
-        float(np.clip(exposure_gain(owns[j], images[j]), lo, hi)) if config.exposure_init else 1.0 for j in range(k)
-    ]
-    u0 = np.asarray([[gain_parameter(s)] for s in start_gains], np.float32)  # gain := the pair's exposure
-    params = {"o_logit": o_init, "u": jnp.broadcast_to(jnp.asarray(u0), (k, m)), "w": jnp.zeros((k, m))}
-    start_light = [float(light_gain(jnp.asarray(u0[j, 0]))) for j in range(k)]  # the start gain, as rendered
-    eps_maps = [
-        [lpips_map(own, im, lpips_net, config, start_light[j]) for own, im in zip(owns[j], images[j])] for j in range(k)
-    ]
-    del owns
+        return model, reports
+    pairs = _gather(model, p, rows, seen[active], [views[i] for i in active], render_config)
+    params, start_light, eps_maps = _start_values(pairs, config, lpips_net)
+    seeds = [(config.seed, p, qs[i]) for i in active]
     keys = jnp.stack([jax.random.key(config.seed * 1_000_003 + p * 1009 + qs[i]) for i in active])
-    losses = []
-    optimizer, step = _compiled_step(config, rc)
-    opt_state = jax.vmap(optimizer.init)(params)
-    split = jax.vmap(jax.random.split)
-    for it in range(config.steps):
-        both = split(keys)
-        keys, k_bg = both[:, 0], both[:, 1]
-        v = [view_order((config.seed, p, qs[i]), it, len(images[j])) for j, i in enumerate(active)]
+    optimizer, step = _compiled_step(config, pairs.render_config)
+
+    def body(carry, it):
+        params, opt_state, keys, losses = carry
+        both = jax.vmap(jax.random.split)(keys)
+        v = [view_order(s, it, len(ims)) for s, ims in zip(seeds, pairs.images)]
         params, opt_state, loss, overflowed = step(
             params,
             opt_state,
-            g,
-            tuple(cameras[j][v[j]] for j in range(k)),
-            tuple(images[j][v[j]] for j in range(k)),
-            tuple(eps_maps[j][v[j]] for j in range(k)),
-            k_bg,
+            pairs.g,
+            tuple(cs[i] for cs, i in zip(pairs.cameras, v)),
+            tuple(ims[i] for ims, i in zip(pairs.images, v)),
+            tuple(e[i] for e, i in zip(eps_maps, v)),
+            both[:, 1],
             jnp.float32(it),
         )
         if bool(jnp.any(overflowed)):  # cannot happen with capacities from o = 1 (o^q ≤ 1), but never silently
             raise RuntimeError("cross-init render overflowed its intersection buffer")
-        losses.append(np.asarray(loss))
         if progress is not None:
             progress(it + 1)
-    losses = np.stack(losses)  # [steps, k]
-    for j, i in enumerate(active):
-        q, sel = qs[i], np.asarray(mask[j, :n]) > 0
+        losses.append(np.asarray(loss))
+        return params, opt_state, both[:, 0], losses
+
+    carry = (params, jax.vmap(optimizer.init)(params), keys, [])
+    (params, _, _, losses), _ = run_steps(body, carry, start=0, steps=config.steps)
+    return _write_back(
+        model,
+        [qs[i] for i in active],
+        pairs,
+        params,
+        np.stack(losses),
+        start_light,
+        eps_maps,
+        [reports[i] for i in active],
+    ), reports
+
+
+def _write_back(model, qs, pairs: _Pairs, params, losses, start_light, eps_maps, reports) -> TemporalGaussians:
+    """The model with the fitted o^q and l^q of each pair written into its rows, and each pair's report
+    completed (in place)."""
+    o_logits = np.asarray(model.o_logits).copy()
+    l_logits = np.asarray(model.light_logits).copy()
+    n = len(pairs.idx)
+    for j, q in enumerate(qs):
+        sel = np.asarray(pairs.mask[j, :n]) > 0
         o_fit, u, w = (np.asarray(params[name][j, :n])[sel] for name in ("o_logit", "u", "w"))
-        o_logits[idx[sel], q] = o_fit
-        l_logits[idx[sel], q] = np.asarray(light_logits(light_multiplier(jnp.asarray(u), jnp.asarray(w))))
-        reports[i] |= {
+        o_logits[pairs.idx[sel], q] = o_fit
+        l_logits[pairs.idx[sel], q] = np.asarray(light_logits(light_multiplier(jnp.asarray(u), jnp.asarray(w))))
+        reports[j] |= {
             "skipped": False,
             "loss_first": float(np.mean(losses[:10, j])),
             "loss_last": float(np.mean(losses[-10:, j])),
@@ -360,8 +393,7 @@ def init_pairs(
             "start_gain": start_light[j],
             "mean_epsilon": float(np.mean([np.asarray(e).mean() for e in eps_maps[j]])),
         }
-    new = dataclasses.replace(model, o_logits=jnp.asarray(o_logits), light_logits=jnp.asarray(l_logits))
-    return new, reports
+    return dataclasses.replace(model, o_logits=jnp.asarray(o_logits), light_logits=jnp.asarray(l_logits))
 
 
 def init_pair(

@@ -46,16 +46,12 @@ from jaxtyping import Array, Float
 from cfgs_jax import metrics, splat
 from cfgs_jax.errors import InputError
 from cfgs_jax.fusion.cross_init import DateViews
-from cfgs_jax.fusion.fuse import INVISIBLE_LOGIT
+from cfgs_jax.fusion.updates import halve_alpha_of, refinement_optimizer, zero_invisible
 from cfgs_jax.io.checkpoint import read_meta, restore_tree, save_tree
-from cfgs_jax.model import SH_C0, Gaussians, TemporalGaussians, logit
+from cfgs_jax.loop import Progress, run_steps, step_with_capacity, view_order
+from cfgs_jax.model import TemporalGaussians, gaussians_of, trainable, with_trainable
 from cfgs_jax.train.config import TrainConfig
-from cfgs_jax.train.loop import view_order
-from cfgs_jax.train.optim import position_lr as training_position_lr
-from cfgs_jax.train.optim import restart_moments
-from cfgs_jax.train.step import gaussians_from_params, over_background, params_from_gaussians
-
-FIELDS = ("means", "quats", "log_scales", "opacity_logits", "colors", "o_logits")
+from cfgs_jax.train.step import over_background
 
 
 @dataclasses.dataclass(frozen=True)
@@ -110,46 +106,9 @@ def change_loss(o_logits, o_logits_init) -> jnp.ndarray:
     return jnp.mean(absolute(d0 - d))
 
 
-def halve_alpha(opacity_logits):
-    """logit(σ(x)/2)."""
-    return logit(0.5 * jax.nn.sigmoid(opacity_logits))
-
-
-def make_optimizer(
-    config: RefineConfig, extent: float, train_config: TrainConfig | None = None
-) -> optax.GradientTransformation:
-    """Adam (eps 1e-15) per field: the paper's rates, the colour's converted from f_dc to RGB (× C0), the
-    position's the input training's schedule (``train_config``) restarted over ``config.steps``."""
-    tc = dataclasses.replace(train_config or TrainConfig(), steps=max(config.steps, 1))
-    schedule = training_position_lr(tc, extent)
-
-    def position(step):
-        return config.position_lr_scale * schedule(step)
-
-    rates = {
-        "means": position,
-        "quats": config.lr_other,
-        "log_scales": config.lr_other,
-        "opacity_logits": config.lr_alpha,
-        "colors": config.lr_color * SH_C0,
-        "o_logits": config.lr_o,
-    }
-    return optax.multi_transform({k: optax.adam(v, eps=1e-15) for k, v in rates.items()}, {f: f for f in FIELDS})
-
-
-def params_of(model: TemporalGaussians) -> dict:
-    """Refinement's trainable leaves: the Gaussians' fields (as in training) and the o-logits."""
-    return params_from_gaussians(model.gaussians) | {"o_logits": model.o_logits}
-
-
-def model_from(params: dict, like: TemporalGaussians) -> TemporalGaussians:
-    """``like`` with the trainable leaves ``params`` (the inverse of ``params_of``)."""
-    return dataclasses.replace(like, gaussians=gaussians_from_params(params), o_logits=params["o_logits"])
-
-
 def _date_render(params, light_logits, camera, date, background, render_config):
     """Date ``date``'s render of the model ``params`` (opacity α·o^date, colour l^date ⊙ c)."""
-    g = gaussians_from_params(params)
+    g = gaussians_of(params)
     o = jax.nn.sigmoid(params["o_logits"][:, date])
     light = 2.0 * jax.nn.sigmoid(light_logits[:, date])
     return splat.render_dates(g, camera, o[None], light[None], background=background, config=render_config)
@@ -167,7 +126,7 @@ def refine_loss(params, light_logits, o_init, camera, image, date, background, c
 
 @functools.lru_cache(maxsize=16)
 def _compiled_step(config: RefineConfig, extent: float, render_config: splat.RenderConfig, train_config: TrainConfig):
-    optimizer = make_optimizer(config, extent, train_config)
+    optimizer = refinement_optimizer(config, extent, train_config)
 
     @jax.jit
     def step(params, opt_state, light_logits, o_init, camera, image, date, key):
@@ -196,16 +155,6 @@ def visible_weight(max_weight: Float[Array, " N"], o_logits: Float[Array, " N"])
     return max_weight / jax.nn.sigmoid(o_logits)
 
 
-def apply_visibility(o_logits: np.ndarray, contributed: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """o^p := 0 (``INVISIBLE_LOGIT``) for the Gaussians that contributed to no view of date p
-    (``contributed`` [N, T] over all of each date's views); returns the logits and the [N, T] mask of
-    entries this lowered."""
-    o_logits = np.asarray(o_logits)
-    invisible = np.asarray(INVISIBLE_LOGIT, o_logits.dtype)  # in the logits' precision, so a zeroed entry stays zeroed
-    kill = ~np.asarray(contributed) & (o_logits > invisible)
-    return np.where(kill, invisible, o_logits), kill
-
-
 def final_prune(model: TemporalGaussians, threshold: float = 1.0 / 255.0) -> TemporalGaussians:
     """Drop Gaussians with α·o^p ≤ ``threshold`` at every date p."""
     alpha = np.asarray(jax.nn.sigmoid(model.gaussians.opacity_logits))
@@ -228,6 +177,78 @@ def _load_checkpoint(path: Path, template: dict, meta_now: dict) -> tuple[dict, 
             fix="resume with the original model and settings, or delete it to restart the stage",
         )
     return restore_tree(path, arrays, template), meta
+
+
+@dataclasses.dataclass
+class _Carry:
+    """What the refinement loop carries from step to step (and a checkpoint holds): parameters, Adam
+    state, RNG key, L_change's reference õ, the visibility bookkeeping since the last check, and the
+    records."""
+
+    params: dict
+    opt_state: optax.OptState
+    key: jax.Array
+    o_init: jax.Array
+    contributed: np.ndarray  # [N, T] contributed to a view of date p since the last check
+    covered: np.ndarray  # [views] drawn since the last check
+    zeroed: np.ndarray  # [N, T] zeroed by the rule at some check
+    losses: list
+    completed: int = 0  # views completed by forward-only renders
+    capacity: int = 0
+
+    ARRAYS = ("params", "opt_state", "key", "contributed", "covered", "zeroed", "o_init")
+
+    def arrays(self) -> dict:
+        return {k: jax.random.key_data(self.key) if k == "key" else getattr(self, k) for k in self.ARRAYS}
+
+
+def _check_inputs(model: TemporalGaussians, views, new_dates) -> list[int]:
+    t = model.num_dates
+    if len(views) != t:
+        raise InputError(f"{len(views)} date views for a model of {t} dates", field="refine.views")
+    new_dates = list(range(t)) if new_dates is None else sorted({int(d) for d in new_dates})
+    if any(not 0 <= d < t for d in new_dates):
+        raise InputError(f"dates {new_dates} for a model of {t} dates", field="refine.new_dates")
+    return new_dates
+
+
+def _start(model, config: RefineConfig, new_dates, checkpoint, meta_now) -> tuple[_Carry, int]:
+    """The carry at the start (α halved on ``new_dates``' Gaussians), or as the checkpoint left it;
+    and the step to start from."""
+    params = trainable(model)
+    if config.halve_alpha and new_dates:
+        params = halve_alpha_of(params, np.isin(np.asarray(model.origin), new_dates))
+    n, t = len(model), model.num_dates
+    views = meta_now["views"]
+    carry = _Carry(
+        params,
+        None,
+        jax.random.key(config.seed),
+        jnp.asarray(model.o_logits),
+        np.zeros((n, t), bool),
+        np.zeros(views, bool),
+        np.zeros((n, t), bool),
+        [],
+    )
+    carry.opt_state = refinement_optimizer(config, meta_now["extent"], meta_now["train_config"]).init(params)
+    if checkpoint is None or not Path(checkpoint).is_file():
+        return carry, 0
+    loaded, meta = _load_checkpoint(Path(checkpoint), carry.arrays(), _comparable(meta_now))
+    carry = _Carry(
+        loaded["params"],
+        loaded["opt_state"],
+        jax.random.wrap_key_data(loaded["key"]),
+        jnp.asarray(loaded["o_init"]),
+        *(np.asarray(loaded[k]).copy() for k in ("contributed", "covered", "zeroed")),
+        list(meta["losses"]),
+        int(meta["completed"]),
+    )
+    return carry, int(meta["step"])
+
+
+def _comparable(meta_now: dict) -> dict:
+    """The part of a checkpoint's metadata that must match for it to be resumed."""
+    return {k: v for k, v in meta_now.items() if k not in ("views", "train_config")}
 
 
 def refine(
@@ -262,44 +283,11 @@ def refine(
     config = config or RefineConfig()
     train_config = train_config or TrainConfig()
     render_config = render_config or splat.RenderConfig()
-    t = model.num_dates
-    if len(views) != t:
-        raise InputError(f"{len(views)} date views for a model of {t} dates", field="refine.views")
-    new_dates = list(range(t)) if new_dates is None else sorted({int(d) for d in new_dates})
-    if any(not 0 <= d < t for d in new_dates):
-        raise InputError(f"dates {new_dates} for a model of {t} dates", field="refine.new_dates")
-    params = params_of(model)
-    if config.halve_alpha and new_dates:
-        halve = jnp.asarray(np.isin(np.asarray(model.origin), new_dates))
-        params["opacity_logits"] = jnp.where(halve, halve_alpha(params["opacity_logits"]), params["opacity_logits"])
-    o_init = jnp.asarray(model.o_logits)
+    new_dates = _check_inputs(model, views, new_dates)
+    t, n = model.num_dates, len(model)
     light_logits = jnp.asarray(model.light_logits)
     flat = [(q, v) for q in range(t) for v in range(len(views[q].cameras))]
     images = [[jnp.asarray(im, jnp.float32) for im in dv.images] for dv in views]
-
-    def capacity_for(params, q, v):
-        g = Gaussians(
-            params["means"], params["quats"], params["log_scales"], params["opacity_logits"], params["colors"]
-        )
-        o = jax.nn.sigmoid(params["o_logits"][:, q])[None]
-        return splat.required_capacity(g, views[q].cameras[v], o, config=render_config)
-
-    def compiled(capacity):
-        return _compiled_step(
-            config, float(extent), dataclasses.replace(render_config, capacity=capacity), train_config
-        )
-
-    capacity = max(capacity_for(params, q, v) for q, v in flat)
-    optimizer, step, contribution = compiled(capacity)
-    opt_state = optimizer.init(params)
-    n = len(model)
-    contributed = np.zeros((n, t), bool)
-    covered = np.zeros(len(flat), bool)  # views drawn since the last visibility check
-    zeroed = np.zeros((n, t), bool)  # entries the rule has zeroed at some check
-    completed = 0
-    losses = []
-    key = jax.random.key(config.seed)
-    start = 0
     meta_now = {
         "config": dataclasses.asdict(config),
         "train": dataclasses.asdict(train_config),
@@ -307,99 +295,96 @@ def refine(
         "dates": t,
         "extent": float(extent),
         "new_dates": new_dates,
+        "views": len(flat),
+        "train_config": train_config,
     }
+    carry, start = _start(model, config, new_dates, checkpoint, meta_now)
 
-    def state():
-        return {
-            "params": params,
-            "opt_state": opt_state,
-            "key": jax.random.key_data(key),
-            "contributed": contributed,
-            "covered": covered,
-            "zeroed": zeroed,
-            "o_init": o_init,
-        }
+    def capacity_for(params, q, v):
+        o = jax.nn.sigmoid(params["o_logits"][:, q])[None]
+        return splat.required_capacity(gaussians_of(params), views[q].cameras[v], o, config=render_config)
 
-    if checkpoint is not None and Path(checkpoint).is_file():
-        loaded, meta = _load_checkpoint(Path(checkpoint), state(), meta_now)
-        params, opt_state = loaded["params"], loaded["opt_state"]
-        key = jax.random.wrap_key_data(loaded["key"])
-        contributed, covered, zeroed = (np.asarray(loaded[k]).copy() for k in ("contributed", "covered", "zeroed"))
-        o_init = jnp.asarray(loaded["o_init"])
-        start, losses, completed = int(meta["step"]), list(meta["losses"]), int(meta["completed"])
-        capacity = max(capacity_for(params, q, v) for q, v in flat)
-        optimizer, step, contribution = compiled(capacity)
+    def compiled(capacity):
+        rc = dataclasses.replace(render_config, capacity=capacity)
+        return _compiled_step(config, float(extent), rc, train_config)
 
-    def grow(q, v):
-        """Recompile for a larger intersection buffer after view (q, v) overflowed it."""
-        nonlocal capacity, optimizer, step, contribution
-        capacity = max(capacity_for(params, q, v), 2 * capacity)
-        optimizer, step, contribution = compiled(capacity)
+    carry.capacity = max(capacity_for(carry.params, q, v) for q, v in flat)
 
-    def contribution_of(q, v):
-        while True:
-            seen, overflowed = contribution(params, light_logits, views[q].cameras[v], jnp.int32(q))
-            if not bool(overflowed):
-                return np.asarray(seen)
-            grow(q, v)
+    def contribution_of(c: _Carry, q: int, v: int) -> np.ndarray:
+        """The visibility test of view (q, v) from a forward-only render."""
+        (seen, _), c.capacity = step_with_capacity(
+            lambda cap: compiled(cap)[2],
+            c.capacity,
+            (c.params, light_logits, views[q].cameras[v], jnp.int32(q)),
+            required=lambda: capacity_for(c.params, q, v),
+            overflowed=lambda out: out[1],
+        )
+        return np.asarray(seen)
 
-    from rich.progress import Progress
+    def check_visibility(c: _Carry) -> _Carry:
+        for idx in np.nonzero(~c.covered)[0]:  # the views this interval did not draw
+            c.contributed[:, flat[idx][0]] |= contribution_of(c, *flat[idx])
+            c.completed += 1
+        c.params, c.opt_state, c.o_init, kill = zero_invisible(c.params, c.opt_state, c.o_init, c.contributed)
+        c.zeroed |= kill
+        c.contributed[:] = False
+        c.covered[:] = False
+        return c
 
-    with Progress(disable=not progress, transient=True) as bar:
-        task = bar.add_task("refine", total=config.steps, completed=start)
-        for it in range(start, config.steps):
-            key, sub = jax.random.split(key)
-            drawn = view_order(config.seed, it, len(flat))
-            q, v = flat[drawn]
-            while True:
-                new, new_state, loss, contrib, overflowed = step(
-                    params, opt_state, light_logits, o_init, views[q].cameras[v], images[q][v], jnp.int32(q), sub
-                )
-                if not bool(overflowed):
-                    break
-                grow(q, v)
-            params, opt_state = new, new_state
-            losses.append(float(loss))
-            contributed[:, q] |= np.asarray(contrib)
-            covered[drawn] = True
-            if (it + 1) % config.visibility_interval == 0 or it + 1 == config.steps:
-                for idx in np.nonzero(~covered)[0]:  # the views this interval did not draw
-                    contributed[:, flat[idx][0]] |= contribution_of(*flat[idx])
-                    completed += 1
-                o_new, kill = apply_visibility(np.asarray(params["o_logits"]), contributed)
-                zeroed |= kill
-                params["o_logits"] = jnp.asarray(o_new)
-                o_init = jnp.where(kill, params["o_logits"], o_init)  # L_change's reference follows the rule
-                opt_state = restart_moments(opt_state, "o_logits", kill)
-                contributed[:] = False
-                covered[:] = False
-            bar.update(task, completed=it + 1)
-            done = it + 1
-            if (
-                checkpoint is not None
-                and done < config.steps
-                and (done % config.checkpoint_every == 0 or done == stop_after)
-            ):
-                save_tree(
-                    checkpoint,
-                    state(),
-                    meta_now | {"step": done, "losses": losses, "completed": completed},
-                    format=CHECKPOINT_FORMAT,
-                )
-            if on_snapshot is not None and done in snapshot_steps and done < config.steps:
-                on_snapshot(done, final_prune(model_from(params, model), config.prune_threshold))
-            if stop_after is not None and done == stop_after:
-                return None, {"stopped_at": done}
-    refined = model_from(params, model)
-    pruned = final_prune(refined, config.prune_threshold)
+    def body(c: _Carry, it: int) -> _Carry:
+        c.key, sub = jax.random.split(c.key)
+        drawn = view_order(config.seed, it, len(flat))
+        q, v = flat[drawn]
+        (params, opt_state, loss, contrib, _), c.capacity = step_with_capacity(
+            lambda cap: compiled(cap)[1],
+            c.capacity,
+            (c.params, c.opt_state, light_logits, c.o_init, views[q].cameras[v], images[q][v], jnp.int32(q), sub),
+            required=lambda: capacity_for(c.params, q, v),
+            overflowed=lambda out: out[-1],
+        )
+        c.params, c.opt_state = params, opt_state
+        c.losses.append(float(loss))
+        c.contributed[:, q] |= np.asarray(contrib)
+        c.covered[drawn] = True
+        done = it + 1
+        if done % config.visibility_interval == 0 or done == config.steps:
+            c = check_visibility(c)
+        if on_snapshot is not None and done in snapshot_steps and done < config.steps:
+            on_snapshot(done, final_prune(with_trainable(model, c.params), config.prune_threshold))
+        return c
+
+    def save(c: _Carry, done: int):
+        meta = _comparable(meta_now) | {"step": done, "losses": c.losses, "completed": c.completed}
+        save_tree(checkpoint, c.arrays(), meta, format=CHECKPOINT_FORMAT)
+
+    with Progress("refine", total=config.steps, completed=start, enabled=progress, transient=True) as bar:
+        carry, done = run_steps(
+            body,
+            carry,
+            start=start,
+            steps=config.steps,
+            stop_after=stop_after,
+            checkpoint_every=config.checkpoint_every,
+            save=save if checkpoint is not None else None,
+            progress=bar,
+        )
+    if done < config.steps:
+        return None, {"stopped_at": done}
+    return _finish(model, carry, config, new_dates)
+
+
+def _finish(model, carry: _Carry, config: RefineConfig, new_dates) -> tuple[TemporalGaussians, dict]:
+    """The refined model finally pruned, and the report."""
+    pruned = final_prune(with_trainable(model, carry.params), config.prune_threshold)
+    losses = carry.losses
     report = {
         "steps": config.steps,
         "loss_first": float(np.mean(losses[:20])) if losses else None,
         "loss_last": float(np.mean(losses[-20:])) if losses else None,
-        "zeroed_per_date": zeroed.sum(axis=0).tolist(),
-        "views_completed": completed,
+        "zeroed_per_date": carry.zeroed.sum(axis=0).tolist(),
+        "views_completed": carry.completed,
         "halved_dates": new_dates if config.halve_alpha else [],
-        "gaussians_before_prune": n,
+        "gaussians_before_prune": len(model),
         "gaussians_after_prune": len(pruned),
     }
     return pruned, report

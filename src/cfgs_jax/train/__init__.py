@@ -14,7 +14,8 @@ from cfgs_jax.train.densify import (
 )
 from cfgs_jax.train.evaluate import evaluate
 from cfgs_jax.train.init import init_from_points, scene_extent
-from cfgs_jax.train.loop import (
+from cfgs_jax.train.optim import make_optimizer, position_lr
+from cfgs_jax.train.run import (
     CHECKPOINT,
     TrainRun,
     continuation_config,
@@ -23,7 +24,6 @@ from cfgs_jax.train.loop import (
     save_checkpoint,
     view_order,
 )
-from cfgs_jax.train.optim import make_optimizer, position_lr
 from cfgs_jax.train.step import TrainState, loss_fn, make_train_step
 
 __all__ = [

@@ -1,15 +1,19 @@
-"""Per-parameter Adam (optax ``multi_transform``) with INRIA's learning rates and position decay."""
+"""Per-parameter Adam as optax pipelines: INRIA's training rates and position decay, the helper every
+stage builds its optimiser with (``per_field_adam``), and restarting Adam's moments of chosen rows."""
 
 from __future__ import annotations
+
+from collections.abc import Callable, Mapping
 
 import jax
 import jax.numpy as jnp
 import optax
 
-from cfgs_jax.model import SH_C0
+from cfgs_jax.model import GAUSSIAN_FIELDS, SH_C0
 from cfgs_jax.train.config import TrainConfig
 
-FIELDS = ("means", "quats", "log_scales", "opacity_logits", "colors")
+#: The trainable fields of per-date training (``model.trainable`` of a ``Gaussians``).
+FIELDS = GAUSSIAN_FIELDS
 
 
 def position_lr(config: TrainConfig, extent: float):
@@ -24,22 +28,34 @@ def position_lr(config: TrainConfig, extent: float):
     return schedule
 
 
+def per_field_adam(
+    rates: Mapping[str, float | Callable], *, eps: float = 1e-8, labels: Mapping[str, str] | None = None
+) -> optax.GradientTransformation:
+    """``optax.multi_transform`` of one Adam per entry of ``rates`` (a constant or an optax schedule),
+    over a params dict whose keys are ``labels``' keys (default: ``rates``' keys, each its own label).
+    A rate of exactly 0 freezes its leaves (``optax.set_to_zero``: no update, no Adam state)."""
+
+    def transform(rate):
+        frozen = not callable(rate) and rate == 0.0
+        return optax.set_to_zero() if frozen else optax.adam(rate, eps=eps)
+
+    labels = dict(labels) if labels is not None else {name: name for name in rates}
+    return optax.multi_transform({name: transform(rate) for name, rate in rates.items()}, labels)
+
+
 def make_optimizer(config: TrainConfig, extent: float) -> optax.GradientTransformation:
-    """Adam (eps 1e-15) per Gaussian field, each with its own rate (the colour's converted from f_dc to
-    RGB units, × C0), over a params dict keyed by ``FIELDS`` (``step.params_from_gaussians``)."""
-
-    def adam(lr):
-        return optax.adam(lr, eps=config.adam_eps)
-
+    """Adam (eps ``adam_eps``) per Gaussian field with INRIA's rates: the position's decayed by
+    ``position_lr``, the opacity's halved with ``low_opacity_lr``, the colour's converted from f_dc to
+    RGB units (× C0)."""
     opacity_lr = config.opacity_lr * (0.5 if config.low_opacity_lr else 1.0)
-    transforms = {
-        "means": adam(position_lr(config, extent)),
-        "quats": adam(config.rotation_lr),
-        "log_scales": adam(config.scale_lr),
-        "opacity_logits": adam(opacity_lr),
-        "colors": adam(config.color_lr * SH_C0),  # f_dc rate → RGB
+    rates = {
+        "means": position_lr(config, extent),
+        "quats": config.rotation_lr,
+        "log_scales": config.scale_lr,
+        "opacity_logits": opacity_lr,
+        "colors": config.color_lr * SH_C0,  # f_dc rate → RGB
     }
-    return optax.multi_transform(transforms, {f: f for f in FIELDS})
+    return per_field_adam(rates, eps=config.adam_eps)
 
 
 def restart_moments(opt_state, field: str, mask=None):

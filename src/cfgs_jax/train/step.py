@@ -11,19 +11,8 @@ import optax
 from jaxtyping import Array, Bool, Float, Int
 
 from cfgs_jax import metrics, splat
-from cfgs_jax.model import Camera, Gaussians
+from cfgs_jax.model import Camera, Gaussians, gaussians_of, trainable
 from cfgs_jax.train.config import TrainConfig
-from cfgs_jax.train.optim import FIELDS
-
-
-def params_from_gaussians(g: Gaussians) -> dict[str, Array]:
-    """The trainable leaves of ``g`` by field name (the optimiser's parameter dict)."""
-    return {f: getattr(g, f) for f in FIELDS}
-
-
-def gaussians_from_params(params: dict[str, Array]) -> Gaussians:
-    """The Gaussians whose fields are ``params`` (extra keys, e.g. o-logits, are ignored)."""
-    return Gaussians(*(params[f] for f in FIELDS))
 
 
 class TrainState(eqx.Module):
@@ -54,7 +43,7 @@ class TrainState(eqx.Module):
         def grow(x):
             return jnp.concatenate([jnp.asarray(x), jnp.zeros((pad,) + jnp.shape(x)[1:], jnp.result_type(x))])
 
-        params = {f: grow(v) for f, v in params_from_gaussians(g).items()}
+        params = {f: grow(v) for f, v in trainable(g).items()}
         # padding rows are valid but inert Gaussians (unit quaternion, tiny, transparent) until used
         params["quats"] = params["quats"].at[n:, 0].set(1.0)
         params["log_scales"] = params["log_scales"].at[n:].set(-10.0)
@@ -77,7 +66,7 @@ class TrainState(eqx.Module):
         import numpy as np
 
         idx = np.nonzero(np.asarray(self.active))[0]
-        return Gaussians(*(np.asarray(self.params[f])[idx] for f in FIELDS))
+        return gaussians_of({f: np.asarray(v)[idx] for f, v in self.params.items()})
 
 
 def over_background(image: Float[Array, "H W C"], background: Float[Array, "3"]) -> Float[Array, "H W 3"]:
@@ -102,7 +91,7 @@ def loss_fn(
     """(1 − λ)·L1 + λ·D-SSIM of the render of the active Gaussians over ``background``; also the render.
     ``means2d_offset`` (zeros) exposes the screen-space positional gradient for densification.
     ``image`` is RGB or RGBA (composited over ``background``: ``over_background``)."""
-    g = gaussians_from_params(params)
+    g = gaussians_of(params)
     image = over_background(image, background)
     n = active.shape[0]
     res = splat.render_dates(

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-import logging
 import time
 from collections.abc import Sequence
 from pathlib import Path
@@ -24,13 +23,14 @@ from cfgs_jax.errors import InputError
 from cfgs_jax.io.atomic import ensure_writable_dir
 from cfgs_jax.io.checkpoint import read_meta, restore_tree, save_tree
 from cfgs_jax.io.colmap import Scene
-from cfgs_jax.model import Gaussians
+from cfgs_jax.loop import Progress, run_steps, step_with_capacity, view_order
+from cfgs_jax.model import Gaussians, gaussians_of
 from cfgs_jax.train.config import TrainConfig
 from cfgs_jax.train.densify import capacity_bucket, densify_step, reset_opacity
 from cfgs_jax.train.evaluate import evaluate
 from cfgs_jax.train.init import init_from_points, scene_extent
 from cfgs_jax.train.optim import make_optimizer
-from cfgs_jax.train.step import TrainState, gaussians_from_params, make_train_step
+from cfgs_jax.train.step import TrainState, make_train_step
 
 CHECKPOINT = "checkpoint.npz"
 FORMAT = "cfgs_jax.train/1"
@@ -50,14 +50,6 @@ class TrainRun:
     eval_history: list[dict]  # {"step", "psnr", "ssim"[, "lpips"]} every ``config.eval_every`` steps
     seconds: float
     finished: bool
-
-
-def view_order(seed: int | tuple[int, ...], step: int, num_views: int) -> int:
-    """The training view at 0-based ``step``: INRIA's refilled random stack, as a pure function of
-    (seed, step) so a resumed run sees the same sequence. ``seed`` may be a tuple (e.g. seed, p, q)."""
-    epoch, k = divmod(step, num_views)
-    seeds = list(seed) if isinstance(seed, tuple) else [seed]
-    return int(np.random.default_rng(seeds + [epoch]).permutation(num_views)[k])
 
 
 def continuation_config(config: TrainConfig) -> TrainConfig:
@@ -134,9 +126,58 @@ def _compiled_step(config: TrainConfig, extent: float, render_config: splat.Rend
 
 
 def _render_capacity(state: TrainState, cameras, render_config: splat.RenderConfig) -> int:
-    g = gaussians_from_params(state.params)
+    g = gaussians_of(state.params)
     mult = state.active.astype(g.means.dtype)[None]
     return max(splat.required_capacity(g, c, mult, config=render_config) for c in cameras)
+
+
+@dataclasses.dataclass
+class _Carry:
+    """What the training loop carries from step to step: the state, the intersection capacity its
+    step is compiled for, and the run's records."""
+
+    state: TrainState
+    capacity: int
+    losses: list[float]
+    counts: list  # (step, live Gaussians) at the start and after each densification
+    eval_history: list[dict]
+    psnr: float = float("nan")  # the last step's training-view PSNR (progress bar)
+
+
+def _splits(scene: Scene, config: TrainConfig) -> tuple[np.ndarray, np.ndarray]:
+    """(train, test) image indices: every image trains when ``test_every`` is 0."""
+    if config.test_every == 0:
+        return np.arange(len(scene)), np.zeros(0, np.int64)
+    train_idx, test_idx = scene.indices("train"), scene.indices("test")
+    if len(train_idx) == 0:
+        raise InputError("the training split is empty", path=scene.root, fix="use more images or test_every = 0")
+    return train_idx, test_idx
+
+
+def _start(scene, config, init, ckpt, optimizer, cameras, render_config) -> _Carry:
+    """The carry from the checkpoint ``ckpt`` (when given and present), else a fresh start from ``init``
+    or the SfM points."""
+    if ckpt is not None and ckpt.is_file():
+        state, meta = load_checkpoint(ckpt, optimizer, config)
+        counts = [tuple(c) for c in meta["counts"]]
+        return _Carry(state, meta["render_capacity"], meta["losses"], counts, meta.get("eval_history", []))
+    g0 = init if init is not None else init_from_points(scene.points, scene.point_colors, opacity=config.init_opacity)
+    state = TrainState.create(g0, optimizer, jax.random.key(config.seed), capacity=capacity_bucket(len(g0)))
+    return _Carry(state, _render_capacity(state, cameras, render_config), [], [(0, len(g0))], [])
+
+
+def _adapt_density(c: _Carry, it: int, config: TrainConfig, extent: float) -> _Carry:
+    """INRIA's schedule after step ``it``: densify and prune every ``densify_interval`` steps in
+    (densify_from, densify_until), reset the opacities every ``opacity_reset_interval``."""
+    if not config.densify or it >= config.densify_until:
+        return c
+    state = c.state
+    if it > config.densify_from and it % config.densify_interval == 0:
+        state = densify_step(state, config, extent, prune_big=it > config.opacity_reset_interval)
+        c.counts.append((it, int(jnp.sum(state.active))))
+    if it % config.opacity_reset_interval == 0:
+        state = reset_opacity(state)
+    return dataclasses.replace(c, state=state)
 
 
 def fit(
@@ -161,123 +202,79 @@ def fit(
     steps (as if killed there; checkpoints first). ``eval_steps``: also evaluate the test split after these
     steps (into ``eval_history``, like ``config.eval_every``)."""
     render_config = render_config or splat.RenderConfig()
-    train_idx = np.arange(len(scene)) if config.test_every == 0 else scene.indices("train")
-    test_idx = np.zeros(0, np.int64) if config.test_every == 0 else scene.indices("test")
-    if len(train_idx) == 0:
-        raise InputError("the training split is empty", path=scene.root, fix="use more images or test_every = 0")
+    train_idx, test_idx = _splits(scene, config)
     cameras = [scene.cameras[i] for i in train_idx]
     images = [jnp.asarray(scene.load_image(int(i), with_alpha=True)) for i in train_idx]  # alpha 1 if none
     extent = scene_extent(scene.cameras)
-    optimizer = make_optimizer(config, extent)
     ckpt = Path(out) / CHECKPOINT if out is not None else None
-    losses: list[float] = []
-    counts: list = []
-    eval_history: list[dict] = []
-    if resume and ckpt is not None and ckpt.is_file():
-        state, meta = load_checkpoint(ckpt, optimizer, config)
-        render_capacity, losses = meta["render_capacity"], meta["losses"]
-        counts = [tuple(c) for c in meta["counts"]]
-        eval_history = meta.get("eval_history", [])
-    else:
-        g0 = (
-            init
-            if init is not None
-            else init_from_points(scene.points, scene.point_colors, opacity=config.init_opacity)
-        )
-        state = TrainState.create(g0, optimizer, jax.random.key(config.seed), capacity=capacity_bucket(len(g0)))
-        render_capacity = _render_capacity(state, cameras, render_config)
-        counts = [(0, len(g0))]
+    carry = _start(
+        scene, config, init, ckpt if resume else None, make_optimizer(config, extent), cameras, render_config
+    )
     if ckpt is not None:
         ensure_writable_dir(ckpt.parent)
 
-    def step_fn(cap):
-        return _compiled_step(config, extent, dataclasses.replace(render_config, capacity=cap))
+    def evaluate_test(c: _Carry, it: int, bar: Progress):
+        m = evaluate(c.state.gaussians(), scene, test_idx, render_config=render_config, lpips_net=lpips_net)
+        c.eval_history.append({"step": it} | {k: v for k, v in m.items() if k in ("psnr", "ssim", "lpips")})
+        bar.note(f"step {it:,}: test PSNR {m['psnr']:.2f} dB, SSIM {m['ssim']:.4f}")
 
-    def checkpoint():
-        if ckpt is not None:
-            save_checkpoint(
-                ckpt,
-                state,
-                config=config,
-                extent=extent,
-                render_capacity=render_capacity,
-                losses=losses,
-                counts=counts,
-                eval_history=eval_history,
-            )
+    def body(c: _Carry, k: int, bar: Progress) -> _Carry:
+        it, v = k + 1, view_order(config.seed, k, len(cameras))  # ``it`` 1-based like INRIA's loop
+        (state, stats), capacity = step_with_capacity(
+            lambda cap: _compiled_step(config, extent, dataclasses.replace(render_config, capacity=cap)),
+            c.capacity,
+            (c.state, cameras[v], images[v]),
+            required=lambda: _render_capacity(c.state, [cameras[v]], render_config),
+            overflowed=lambda out: out[1]["overflowed"],
+        )
+        c = dataclasses.replace(c, state=state, capacity=capacity, psnr=float(stats["psnr"]))
+        c.losses.append(float(stats["loss"]))
+        # like INRIA's training_report: evaluated before this step's densification / reset
+        if ((config.eval_every and it % config.eval_every == 0) or it in eval_steps) and len(test_idx):
+            evaluate_test(c, it, bar)
+        return _adapt_density(c, it, config, extent)
 
-    last = config.steps if stop_after is None else min(config.steps, stop_after)
-    start = int(state.step)
+    def save(c: _Carry, done: int):
+        save_checkpoint(
+            ckpt,
+            c.state,
+            config=config,
+            extent=extent,
+            render_capacity=c.capacity,
+            losses=c.losses,
+            counts=c.counts,
+            eval_history=c.eval_history,
+        )
+
     t0 = time.perf_counter()
-    bar = _Progress(progress, total=config.steps, completed=start)
-    try:
-        for it in range(start + 1, last + 1):  # 1-based like INRIA's loop
-            v = view_order(config.seed, it - 1, len(cameras))
-            while True:
-                new, stats = step_fn(render_capacity)(state, cameras[v], images[v])
-                if not bool(stats["overflowed"]):
-                    break
-                # the intersection buffer was too small for this view: grow it and redo the step
-                need = _render_capacity(state, [cameras[v]], render_config)
-                render_capacity = max(need, 2 * render_capacity)
-            state = new
-            losses.append(float(stats["loss"]))
-            # like INRIA's training_report: evaluated before this step's densification / reset
-            if ((config.eval_every and it % config.eval_every == 0) or it in eval_steps) and len(test_idx):
-                m = evaluate(state.gaussians(), scene, test_idx, render_config=render_config, lpips_net=lpips_net)
-                eval_history.append({"step": it} | {k: v for k, v in m.items() if k in ("psnr", "ssim", "lpips")})
-                bar.note(f"step {it:,}: test PSNR {m['psnr']:.2f} dB, SSIM {m['ssim']:.4f}")
-            if config.densify and it < config.densify_until:
-                if it > config.densify_from and it % config.densify_interval == 0:
-                    state = densify_step(state, config, extent, prune_big=it > config.opacity_reset_interval)
-                    counts.append((it, int(jnp.sum(state.active))))
-                if it % config.opacity_reset_interval == 0:
-                    state = reset_opacity(state)
-            if it % config.checkpoint_every == 0:
-                checkpoint()
-            bar.update(it, loss=losses[-1], psnr=float(stats["psnr"]), count=counts[-1][1])
-    finally:
-        bar.close()
-    finished = int(state.step) >= config.steps
-    checkpoint()
-    gaussians = state.gaussians()
+    with Progress("train", total=config.steps, completed=int(carry.state.step), enabled=progress) as bar:
+        carry, _ = run_steps(
+            functools.partial(body, bar=bar),
+            carry,
+            start=int(carry.state.step),
+            steps=config.steps,
+            stop_after=stop_after,
+            checkpoint_every=config.checkpoint_every,
+            save=save if ckpt is not None else None,
+            save_at_end=True,
+            progress=bar,
+            info=lambda c: f"loss {c.losses[-1]:.4f}  PSNR {c.psnr:.2f} dB  {c.counts[-1][1]:,} Gaussians",
+        )
+    finished = int(carry.state.step) >= config.steps
+    gaussians = carry.state.gaussians()
     metrics: dict = {}
     if finished and evaluate_at_end and len(test_idx):
         metrics = evaluate(gaussians, scene, test_idx, render_config=render_config, lpips_net=lpips_net)
     seconds = time.perf_counter() - t0
-    return TrainRun(state, gaussians, config, extent, losses, counts, metrics, eval_history, seconds, finished)
-
-
-class _Progress:
-    """A rich progress bar with loss, training-view PSNR and the live Gaussian count (or nothing)."""
-
-    def __init__(self, enabled: bool, *, total: int, completed: int):
-        self.bar = None
-        if not enabled:
-            return
-        from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
-
-        self.bar = Progress(
-            TextColumn("train"),
-            BarColumn(),
-            MofNCompleteColumn(),
-            TimeRemainingColumn(),
-            TextColumn("{task.fields[info]}"),
-        )
-        self.bar.start()
-        self.task = self.bar.add_task("train", total=total, completed=completed, info="")
-
-    def update(self, step: int, *, loss: float, psnr: float, count: int):
-        if self.bar is not None and (step % 10 == 0 or step == self.bar.tasks[0].total):
-            info = f"loss {loss:.4f}  PSNR {psnr:.2f} dB  {count:,} Gaussians"
-            self.bar.update(self.task, completed=step, info=info)
-
-    def note(self, text: str):
-        if self.bar is not None:
-            self.bar.console.print(text)
-        else:
-            logging.getLogger("cfgs_jax.train").info(text)
-
-    def close(self):
-        if self.bar is not None:
-            self.bar.stop()
+    return TrainRun(
+        carry.state,
+        gaussians,
+        config,
+        extent,
+        carry.losses,
+        carry.counts,
+        metrics,
+        carry.eval_history,
+        seconds,
+        finished,
+    )

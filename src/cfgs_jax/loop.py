@@ -1,0 +1,120 @@
+"""The optimisation loop shared by training, cross-timestep initialisation and refinement.
+
+Each stage supplies a step ``body(carry, k) → carry`` (k the 0-based step); ``run_steps`` calls it for
+the steps left, saves a checkpoint every ``checkpoint_every`` steps and where a ``stop_after`` cuts the
+run short, and drives a progress bar. ``step_with_capacity`` runs a step compiled for an
+intersection-buffer capacity and recompiles it larger when a view overflows the buffer; ``view_order``
+is the view sequence every stage draws from. Nothing here holds state between calls: a resumed run
+passes the step it stopped at as ``start``.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable
+from typing import Any, TypeVar
+
+import numpy as np
+
+Carry = TypeVar("Carry")
+
+
+def view_order(seed: int | tuple[int, ...], step: int, num_views: int) -> int:
+    """The view drawn at 0-based ``step``: INRIA's refilled random stack (a permutation of the views per
+    epoch), as a pure function of (seed, step) so a resumed run sees the same sequence. ``seed`` may
+    be a tuple (e.g. seed, p, q)."""
+    epoch, k = divmod(step, num_views)
+    seeds = list(seed) if isinstance(seed, tuple) else [seed]
+    return int(np.random.default_rng(seeds + [epoch]).permutation(num_views)[k])
+
+
+def step_with_capacity(
+    compiled: Callable[[int], Callable],
+    capacity: int,
+    args: tuple,
+    *,
+    required: Callable[[], int],
+    overflowed: Callable[[Any], Any],
+) -> tuple[Any, int]:
+    """``compiled(capacity)(*args)``, redone with a larger buffer while ``overflowed(out)`` is true: the
+    new capacity is max(``required()``, 2·capacity). Returns (out, the capacity that sufficed)."""
+    while True:
+        out = compiled(capacity)(*args)
+        if not bool(overflowed(out)):
+            return out, capacity
+        capacity = max(int(required()), 2 * capacity)
+
+
+def run_steps(
+    body: Callable[[Carry, int], Carry],
+    carry: Carry,
+    *,
+    start: int,
+    steps: int,
+    stop_after: int | None = None,
+    checkpoint_every: int = 0,
+    save: Callable[[Carry, int], None] | None = None,
+    save_at_end: bool = False,
+    progress: Progress | None = None,
+    info: Callable[[Carry], str] | None = None,
+) -> tuple[Carry, int]:
+    """Steps ``start`` … ``last − 1`` of ``body``, last = ``steps`` or ``stop_after`` when that is
+    earlier (never before ``start``). ``save(carry, done)`` runs after every ``checkpoint_every``-th
+    step short of the last, at the last when the run stops early or ``save_at_end``. Returns the carry
+    and the number of steps done."""
+    last = steps if stop_after is None else max(start, min(steps, stop_after))
+    for k in range(start, last):
+        carry = body(carry, k)
+        done = k + 1
+        if save is not None and checkpoint_every and done < last and done % checkpoint_every == 0:
+            save(carry, done)
+        if progress is not None:
+            progress.update(done, info(carry) if info is not None else "")
+    if save is not None and (last < steps or save_at_end):
+        save(carry, last)
+    return carry, last
+
+
+class Progress:
+    """A rich progress bar (label, count, time left, one line of ``info``), or nothing when disabled; a
+    context manager. ``every``: redraw every that many steps (and at the last)."""
+
+    def __init__(self, label: str, *, total: int, completed: int = 0, enabled: bool = True, transient=False, every=10):
+        self.bar, self.total, self.every, self.label = None, total, every, label
+        if not enabled:
+            return
+        from rich.progress import BarColumn, MofNCompleteColumn, TextColumn, TimeRemainingColumn
+        from rich.progress import Progress as RichProgress
+
+        self.bar = RichProgress(
+            TextColumn(label),
+            BarColumn(),
+            MofNCompleteColumn(),
+            TimeRemainingColumn(),
+            TextColumn("{task.fields[info]}"),
+            transient=transient,
+        )
+        self.bar.start()
+        self.task = self.bar.add_task(label, total=total, completed=completed, info="")
+
+    def update(self, completed: int, info: str = ""):
+        if self.bar is not None and (completed % self.every == 0 or completed == self.total):
+            self.bar.update(self.task, completed=completed, info=info)
+
+    def note(self, text: str):
+        """Print ``text`` above the bar (or log it when there is none)."""
+        if self.bar is not None:
+            self.bar.console.print(text)
+        else:
+            logging.getLogger(f"cfgs_jax.{self.label}").info(text)
+
+    def close(self):
+        if self.bar is not None:
+            self.bar.stop()
+            self.bar = None
+
+    def __enter__(self) -> Progress:
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
