@@ -71,6 +71,13 @@ class TrainConfig:
         for name in ("densify_interval", "opacity_reset_interval", "checkpoint_every", "resolution"):
             if getattr(self, name) <= 0:
                 raise InputError(f"must be positive, got {getattr(self, name)}", field=f"train.{name}")
+        for name in ("position_lr_init", "position_lr_final"):
+            if getattr(self, name) <= 0:
+                raise InputError(
+                    f"must be positive (the rate decays log-linearly), got {getattr(self, name)}",
+                    field=f"train.{name}",
+                    fix="freeze positions in refinement with refine.position_lr_scale = 0",
+                )
         for name in ("densify_from", "densify_until", "eval_every", "test_every"):
             if getattr(self, name) < 0:
                 raise InputError(f"must be ≥ 0, got {getattr(self, name)}", field=f"train.{name}")

@@ -16,8 +16,11 @@ from cfgs_jax.train.config import TrainConfig
 FIELDS = GAUSSIAN_FIELDS
 
 
-def position_lr(config: TrainConfig, extent: float):
-    """INRIA's ``get_expon_lr_func``: log-linear from init to final over ``steps``, times the extent."""
+def position_lr(config: TrainConfig, extent: float) -> optax.Schedule:
+    """INRIA's ``get_expon_lr_func`` as an optax schedule: exp((1 − t)·log(init) + t·log(final)),
+    t = clip(step / ``steps``, 0, 1), times the extent (÷10 with ``large_scale``). The same curve as
+    ``optax.exponential_decay`` but not the same float32 rounding, which would change every trained
+    model in its last bits."""
     scale = extent / (10.0 if config.large_scale else 1.0)
     lo, hi = jnp.log(config.position_lr_final * scale), jnp.log(config.position_lr_init * scale)
 
