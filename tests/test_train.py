@@ -445,6 +445,11 @@ def test_downscaled_dataset_is_box_filtered_or_read_from_images_n(corals, tmp_pa
         cj.io.write_image(copy / "images_2" / name, np.full((24, 32, 3), 0.25, np.float32))
     shipped = read_colmap(copy, resolution=2)
     assert shipped.image_dir == copy / "images_2" and abs(float(shipped.load_image(0).mean()) - 0.25) < 1 / 255
+    # the full-size images are not needed (nor checked) when images_2/ is there
+    (copy / "images" / full.image_names[2]).write_bytes(b"not an image")
+    assert read_colmap(copy, resolution=2).image_dir == copy / "images_2"
+    with pytest.raises(InputError):
+        read_colmap(copy)  # at full size they are
     cj.io.write_image(copy / "images_2" / full.image_names[1], np.zeros((20, 30, 3), np.float32))
     with pytest.raises(InputError, match="30x20"):
         read_colmap(copy, resolution=2)

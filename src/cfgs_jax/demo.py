@@ -15,6 +15,58 @@ from cfgs_jax.errors import InputError
 from cfgs_jax.io.atomic import atomic_file, check_resume, ensure_writable_dir
 
 
+def _fuse(scene_dir: Path, names: list[str], out: Path, raw: dict, progress: bool, log):
+    """``run_fusion`` of the scene's dates into ``out/run``; when SfM registration of the small
+    synthetic images falls short, continue with the scene's ground-truth Sim(3)s."""
+    from cfgs_jax import synthetic
+    from cfgs_jax.fusion.run import run_fusion
+
+    run_dir = out / "run"
+    dates = [scene_dir / n for n in names]
+    try:
+        return run_fusion(dates, run_dir, raw, resume=(run_dir / "run.json").is_file(), progress=progress, log=log)
+    except InputError as exc:
+        state = json.loads((run_dir / "run.json").read_text()) if (run_dir / "run.json").is_file() else {}
+        if "train" not in state.get("done", ()) or "register" in state.get("done", ()):
+            raise
+        log(f"registration failed ({exc}); continuing with the scene's ground-truth Sim(3)s")
+        gt_path = out / "ground_truth_transforms.json"
+        with atomic_file(gt_path) as tmp:
+            tmp.write_text(json.dumps(synthetic.reference_transforms(scene_dir, names), indent=1))
+        return run_fusion(dates, run_dir, raw, resume=True, transforms=gt_path, progress=progress, log=log)
+
+
+def _render(run_dir: Path, names: list[str], out: Path) -> list[Path]:
+    """Each date's test views (``out/renders/<date>``) and the change highlight of all dates over grey
+    (``out/highlight``); returns the highlight images."""
+    from cfgs_jax.render_run import SelectionStyle, open_run, render_views
+
+    fused = open_run(run_dir)
+    cams = fused.test_cameras()
+    for q, name in enumerate(names):
+        own = [(n, c) for n, c in cams if n.startswith(name + "_")]
+        render_views(fused, np.eye(len(names))[q], SelectionStyle(mode="blend"), own, out / "renders" / name)
+    style = SelectionStyle(mode="highlight", base="grey")
+    return render_views(fused, np.ones(len(names)), style, cams, out / "highlight")
+
+
+def _metric_rows(run_dir: Path, names: list[str]) -> list[dict]:
+    """Per date: the individual model's and the fused model's test PSNR / SSIM / LPIPS."""
+    metrics = json.loads((run_dir / "metrics.json").read_text())
+    rows = []
+    for name in names:
+        indiv = json.loads((run_dir / "dates" / name / "train.json").read_text())["test"]
+        fused = metrics["dates"][name]
+        rows.append(
+            {
+                "date": name,
+                "individual": {k: indiv[k] for k in ("psnr", "ssim", "lpips") if k in indiv},
+                "fused": {k: fused[k] for k in ("psnr", "ssim", "lpips") if k in fused},
+            }
+        )
+    return rows
+
+
 def run_demo(
     out: str | Path,
     *,
@@ -33,8 +85,6 @@ def run_demo(
     ``out/summary.md``). ``config`` is a preset name, a TOML path or an already-read configuration;
     an ``out`` holding an earlier demo is continued only with ``resume=True``."""
     from cfgs_jax import synthetic
-    from cfgs_jax.fusion.run import run_fusion
-    from cfgs_jax.render_run import SelectionStyle, open_run, render_views
 
     raw = config if isinstance(config, dict) else load_config(find_preset(config))
     check_resume(out, resume)
@@ -49,61 +99,20 @@ def run_demo(
     t_synth = time.perf_counter() - t_start
     names = [d.name for d in spec.dates][:num_dates]
     log(f"scene: synthetic 'corals' {width}×{height}, dates {names}, {images_per_date} views each ({t_synth:.0f} s)")
-
-    run_dir = out / "run"
-    dates = [scene_dir / n for n in names]
-    try:
-        run = run_fusion(dates, run_dir, raw, resume=(run_dir / "run.json").is_file(), progress=progress, log=log)
-    except InputError as exc:  # SfM registration of small synthetic images can fall short
-        state = json.loads((run_dir / "run.json").read_text()) if (run_dir / "run.json").is_file() else {}
-        if "train" not in state.get("done", ()) or "register" in state.get("done", ()):
-            raise
-        log(f"registration failed ({exc}); continuing with the scene's ground-truth Sim(3)s")
-        gt_path = out / "ground_truth_transforms.json"
-        with atomic_file(gt_path) as tmp:
-            tmp.write_text(json.dumps(synthetic.reference_transforms(scene_dir, names), indent=1))
-        run = run_fusion(dates, run_dir, raw, resume=True, transforms=gt_path, progress=progress, log=log)
-
-    fused = open_run(run_dir)
+    run = _fuse(scene_dir, names, out, raw, progress, log)
     t0 = time.perf_counter()
-    cams = fused.test_cameras()
-    for q, name in enumerate(names):
-        t = np.eye(len(names))[q]
-        own = [(n, c) for n, c in cams if n.startswith(name + "_")]
-        render_views(fused, t, SelectionStyle(mode="blend"), own, out / "renders" / name)
-    highlight = render_views(
-        fused, np.ones(len(names)), SelectionStyle(mode="highlight", base="grey"), cams, out / "highlight"
-    )
+    highlight = _render(out / "run", names, out)
     t_render = time.perf_counter() - t0
-
-    metrics = json.loads((run_dir / "metrics.json").read_text())
-    rows = []
-    for name in names:
-        indiv = json.loads((run_dir / "dates" / name / "train.json").read_text())["test"]
-        rows.append(
-            {
-                "date": name,
-                "individual": {k: indiv[k] for k in ("psnr", "ssim", "lpips") if k in indiv},
-                "fused": {
-                    k: metrics["dates"][name][k] for k in ("psnr", "ssim", "lpips") if k in metrics["dates"][name]
-                },
-            }
-        )
+    scene = {"preset": "corals", "width": width, "height": height, "images_per_date": images_per_date, "dates": names}
     summary = {
-        "scene": {
-            "preset": "corals",
-            "width": width,
-            "height": height,
-            "images_per_date": images_per_date,
-            "dates": names,
-        },
-        "metrics": rows,
+        "scene": scene,
+        "metrics": _metric_rows(out / "run", names),
         "gaussians": run.report.get("refine", {}).get("gaussians_after_prune"),
         "timings_s": {"synthesise": t_synth, **run.timings, "render": t_render, "total": time.perf_counter() - t_start},
         "outputs": {
             "renders": str(out / "renders"),
             "highlight": [str(p) for p in highlight],
-            "model": str(run_dir / "fused"),
+            "model": str(out / "run" / "fused"),
         },
     }
     with atomic_file(out / "summary.json") as tmp:

@@ -224,62 +224,34 @@ def cmd_synth(args) -> int:
     return 0
 
 
-def cmd_train(args) -> int:
+def _train_settings(args, raw: dict):
+    """The run's ``TrainConfig`` (``--seed``, ``--eval-every``, ``--steps`` applied; the continuation
+    baseline's with ``--continue-from``) and the Gaussians it starts from (None: the SfM points)."""
     import dataclasses
-    import json
 
     import cfgs_jax as cj
-    from cfgs_jax import splat, train
+    from cfgs_jax import train
     from cfgs_jax.config import section
-    from cfgs_jax.fusion.run import validate_config
-    from cfgs_jax.io.inria import write_inria_layout
 
-    raw = _read_config(args)
-    validate_config(raw)
     config = section(raw, "train", train.TrainConfig)
-    render_config = section(raw, "render", splat.RenderConfig)
     if args.seed is not None:
         config = dataclasses.replace(config, seed=args.seed)
     if args.eval_every is not None:
         config = dataclasses.replace(config, eval_every=args.eval_every)
-    init = None
     if args.continue_from:
         init = cj.io.read_ply(args.continue_from)
-        config = train.continuation_config(dataclasses.replace(config, steps=args.steps or config.steps))
-    elif args.steps:
-        config = config.scaled(args.steps)
-    scene = cj.io.read_colmap(
-        args.scene, test_every=max(1, config.test_every), resolution=config.resolution
-    )  # inputs first
-    out = cj.io.ensure_writable_dir(args.out)
-    ckpt = out / train.CHECKPOINT
-    if ckpt.exists() and not args.resume:
-        raise InputError(
-            "this output directory holds a checkpoint of an earlier run",
-            path=ckpt,
-            fix="pass --resume to continue it, or choose another --out",
-        )
-    console = _console()
-    what = f"continuing {args.continue_from} for" if init is not None else "training"
-    console.print(
-        f"{what} {config.steps:,} steps on {scene.root} ({len(scene.indices('train'))} training / "
-        f"{len(scene.indices('test'))} test views, {len(scene.points):,} SfM points)"
-    )
-    run = train.fit(
-        scene,
-        config,
-        render_config,
-        init=init,
-        out=out,
-        resume=args.resume,
-        progress=not args.no_progress,
-        stop_after=args.stop_after,
-        evaluate_at_end=not args.no_eval,
-        lpips_net=args.lpips_net,
-    )
-    if not run.finished:
-        console.print(f"stopped at step {int(run.state.step):,}; checkpoint in {ckpt} (continue with --resume)")
-        return 0
+        return train.continuation_config(dataclasses.replace(config, steps=args.steps or config.steps)), init
+    return (config.scaled(args.steps) if args.steps else config), None
+
+
+def _write_train_outputs(args, out: Path, run, scene, config) -> None:
+    """The trained model (``point_cloud.ply``, INRIA's layout) and ``train.json``; prints a summary."""
+    import dataclasses
+    import json
+
+    import cfgs_jax as cj
+    from cfgs_jax.io.inria import write_inria_layout
+
     ply = cj.io.write_ply(out / "point_cloud.ply", run.gaussians)
     inria = write_inria_layout(out, run.gaussians, scene, config.steps)
     report = {
@@ -296,6 +268,7 @@ def cmd_train(args) -> int:
     }
     with cj.io.atomic_file(out / "train.json") as tmp:
         tmp.write_text(json.dumps(report, indent=1))
+    console = _console()
     console.print(
         f"wrote {ply} ({len(run.gaussians):,} Gaussians), {out / 'train.json'} and INRIA's layout "
         f"({inria.relative_to(out)}, cameras.json, cfg_args)"
@@ -304,6 +277,49 @@ def cmd_train(args) -> int:
         m = run.metrics
         lp = f", LPIPS {m['lpips']:.4f}" if "lpips" in m else ""
         console.print(f"test views: PSNR {m['psnr']:.2f} dB, SSIM {m['ssim']:.4f}{lp}")
+
+
+def cmd_train(args) -> int:
+    import cfgs_jax as cj
+    from cfgs_jax import splat, train
+    from cfgs_jax.config import section
+    from cfgs_jax.fusion.run import validate_config
+
+    raw = _read_config(args)
+    validate_config(raw)
+    config, init = _train_settings(args, raw)
+    render_config = section(raw, "render", splat.RenderConfig)
+    # the inputs are read (and checked) before anything is written
+    scene = cj.io.read_colmap(args.scene, test_every=max(1, config.test_every), resolution=config.resolution)
+    out = cj.io.ensure_writable_dir(args.out)
+    ckpt = out / train.CHECKPOINT
+    if ckpt.exists() and not args.resume:
+        raise InputError(
+            "this output directory holds a checkpoint of an earlier run",
+            path=ckpt,
+            fix="pass --resume to continue it, or choose another --out",
+        )
+    what = f"continuing {args.continue_from} for" if init is not None else "training"
+    _console().print(
+        f"{what} {config.steps:,} steps on {scene.root} ({len(scene.indices('train'))} training / "
+        f"{len(scene.indices('test'))} test views, {len(scene.points):,} SfM points)"
+    )
+    run = train.fit(
+        scene,
+        config,
+        render_config,
+        init=init,
+        out=out,
+        resume=args.resume,
+        progress=not args.no_progress,
+        stop_after=args.stop_after,
+        evaluate_at_end=not args.no_eval,
+        lpips_net=args.lpips_net,
+    )
+    if not run.finished:
+        _console().print(f"stopped at step {int(run.state.step):,}; checkpoint in {ckpt} (continue with --resume)")
+        return 0
+    _write_train_outputs(args, out, run, scene, config)
     return 0
 
 

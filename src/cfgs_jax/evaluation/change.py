@@ -386,6 +386,26 @@ def _pixel_scores(g: Gaussians, camera: Camera, opacity, score, observed, config
     return res.image[0, ..., 0] / safe, res.image[0, ..., 1] / safe, alpha
 
 
+def _view_counts(s, seen, alpha, gt, threshold: float, thresholds: np.ndarray) -> dict:
+    """Pixel counts of one view over the pixels covered (alpha ≥ 0.5) and observed at both dates: the
+    change mask s > ``threshold`` against the truth ``gt`` (intersection, union, predicted, true,
+    evaluated), and intersection / union / predicted at each of ``thresholds``."""
+    valid = (alpha >= 0.5) & (seen >= 0.5)
+    pred = (s > threshold) & valid
+    truth = gt & valid
+    sweep = (s[None] > thresholds[:, None, None]) & valid[None]
+    return {
+        "inter": int((pred & truth).sum()),
+        "union": int((pred | truth).sum()),
+        "predicted": int(pred.sum()),
+        "truth": int(truth.sum()),
+        "valid": int(valid.sum()),
+        "sweep_inter": (sweep & truth[None]).sum((1, 2)),
+        "sweep_union": (sweep | truth[None]).sum((1, 2)),
+        "sweep_pred": sweep.sum((1, 2)),
+    }
+
+
 def pixel_change_iou(
     model: TemporalGaussians,
     masks: Sequence[DateMasks],
@@ -402,55 +422,44 @@ def pixel_change_iou(
     not given); micro-averaged over all ordered pairs, and per pair, at ``config.pixel_threshold``;
     ``curve``: IoU and flagged share at each of ``thresholds`` (default 0.05, 0.10, …, 0.95)."""
     thresholds = np.round(np.arange(1, 20) * 0.05, 2) if thresholds is None else np.asarray(thresholds, np.float64)
-    sweep_inter = np.zeros(len(thresholds), np.int64)
-    sweep_union = np.zeros(len(thresholds), np.int64)
-    sweep_pred = np.zeros(len(thresholds), np.int64)
     names = [d.name for d in model.dates]
     o = opacity_multipliers(model)
     rc = render_config or splat.RenderConfig()
     g = model.gaussians
     if observed is None:
         observed = observed_matrix(model, observing, config.contribution_threshold, render_config=rc)
-    inter = union = predicted = truth_total = valid_total = 0
+    total: dict = {}
     per_pair = {}
     for p, dm in enumerate(masks):
-        for q in range(len(names)):
-            if q == p:
-                continue
-            t = np.zeros(len(names), np.float32)
-            t[[p, q]] = 1.0
-            S = viz.persistence_filter(o, jnp.asarray(t))
-            score = jnp.max(jnp.abs(S - 1.0), axis=-1)
-            opacity = viz.selection_opacity(o, jnp.asarray(t), "max")  # a removed object renders solid
+        for q in (q for q in range(len(names)) if q != p):
+            t = jnp.asarray(np.isin(np.arange(len(names)), [p, q]).astype(np.float32))
+            score = jnp.max(jnp.abs(viz.persistence_filter(o, t) - 1.0), axis=-1)
+            opacity = viz.selection_opacity(o, t, "max")  # a removed object renders solid
             both = jnp.asarray((observed[:, p] & observed[:, q]).astype(np.float32))
-            i_pq = u_pq = 0
+            pair: dict = {}
             for cam, gt in zip(dm.cameras, dm.changed_vs[names[q]]):
                 cfg = dataclasses.replace(rc, capacity=splat.required_capacity(g, cam, opacity[None], config=rc))
                 s, seen, alpha = (np.asarray(x) for x in _pixel_scores(g, cam, opacity, score, both, cfg))
-                valid = (alpha >= 0.5) & (seen >= 0.5)
-                pred = (s > config.pixel_threshold) & valid
-                truth = gt & valid
-                sweep = (s[None] > thresholds[:, None, None]) & valid[None]
-                sweep_inter += (sweep & truth[None]).sum((1, 2))
-                sweep_union += (sweep | truth[None]).sum((1, 2))
-                sweep_pred += sweep.sum((1, 2))
-                i_pq += int((pred & truth).sum())
-                u_pq += int((pred | truth).sum())
-                predicted += int(pred.sum())
-                truth_total += int(truth.sum())
-                valid_total += int(valid.sum())
-            per_pair[f"{names[p]}→{names[q]}"] = i_pq / u_pq if u_pq else float("nan")
-            inter, union = inter + i_pq, union + u_pq
-    share = lambda k: k / valid_total if valid_total else float("nan")
+                for key, value in _view_counts(s, seen, alpha, gt, config.pixel_threshold, thresholds).items():
+                    pair[key] = pair.get(key, 0) + value
+            per_pair[f"{names[p]}→{names[q]}"] = pair["inter"] / pair["union"] if pair.get("union") else float("nan")
+            for key, value in pair.items():
+                total[key] = total.get(key, 0) + value
+    valid = total.get("valid", 0)
+    share = lambda k: total.get(k, 0) / valid if valid else float("nan")
+    sweep_union = np.asarray(total.get("sweep_union", np.zeros(len(thresholds))))
+    sweep_inter = np.asarray(total.get("sweep_inter", np.zeros(len(thresholds))))
     return {
-        "iou": inter / union if union else float("nan"),
+        "iou": total["inter"] / total["union"] if total.get("union") else float("nan"),
         "per_pair": per_pair,
-        "predicted_changed_share": share(predicted),
-        "gt_changed_share": share(truth_total),
-        "evaluated_pixels": valid_total,
+        "predicted_changed_share": share("predicted"),
+        "gt_changed_share": share("truth"),
+        "evaluated_pixels": valid,
         "curve": {
             "threshold": thresholds.tolist(),
             "iou": np.where(sweep_union > 0, sweep_inter / np.maximum(sweep_union, 1), np.nan).tolist(),
-            "predicted_changed_share": (sweep_pred / max(valid_total, 1)).tolist(),
+            "predicted_changed_share": (
+                np.asarray(total.get("sweep_pred", np.zeros(len(thresholds)))) / max(valid, 1)
+            ).tolist(),
         },
     }

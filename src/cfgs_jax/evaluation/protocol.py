@@ -193,6 +193,141 @@ def _ablation(
     return done
 
 
+@dataclasses.dataclass
+class _Evaluation:
+    """What the protocol's rows share once the fusion has run: the run, the dates' scenes, frames and
+    test views, the render settings and the row cache ``rows.json``."""
+
+    out: Path
+    run_dir: Path
+    raw: dict
+    fusion_raw: dict
+    ec: EvalConfig
+    names: list[str]
+    scenes: list
+    sims: list
+    log: object
+
+    def __post_init__(self):
+        self.render_config = section(self.fusion_raw, "render", splat.RenderConfig)
+        self.test_views = [date_views(sc, sm, "test") for sc, sm in zip(self.scenes, self.sims)]
+        self.weights = [len(v.cameras) for v in self.test_views]
+        self.evals = read_json(self.out / "rows.json", {})
+
+    def fused_row(self, key: str, label: str, path: Path, **extra) -> dict:
+        """The row of the fused model at ``path`` (evaluated once, then read from ``rows.json``)."""
+        if key not in self.evals:
+            model = read_fused(path)
+            self.log(f"[eval] {label}")
+            m = evaluate_fused(model, self.test_views, render_config=self.render_config, lpips_net=self.ec.lpips_net)
+            self.evals[key] = _row(label, m["mean"], len(model), **extra) | {"per_date": m["dates"]}
+            write_json(self.out / "rows.json", self.evals)
+        return self.evals[key]
+
+    def ours_rows(self) -> list[dict]:
+        """Individual init (the per-date models), Merged, and Ours at every snapshot step."""
+        per_date = [json.loads((self.run_dir / "dates" / n / "train.json").read_text()) for n in self.names]
+        init = weighted_mean([p["test"] for p in per_date], self.weights)
+        rows = [_row("Individual init", init, sum(p["gaussians"] for p in per_date), group="input")]
+        rows.append(self.fused_row("merged", "Merged", self.run_dir / "merged") | {"group": "ours"})
+        steps = self.ec.steps
+        for k in steps:
+            path = self.run_dir / "fused" if k == steps[-1] else self.run_dir / "snapshots" / f"refine_{k}"
+            rows.append(self.fused_row(f"ours_{k}", f"Ours {k:,}", path) | {"group": "ours", "steps": k})
+        return rows
+
+    def baseline_rows(self, progress: bool) -> list[dict]:
+        """Individual +N: each date's model trained N more steps alone."""
+        ec = self.ec
+        plus = _individual_plus(
+            self.run_dir, self.scenes, self.fusion_raw, ec.steps, self.render_config, ec.lpips_net, progress, self.log
+        )
+        rows = []
+        for k in ec.steps:
+            m = weighted_mean([plus[n]["steps"][str(k)] for n in self.names], self.weights)
+            gaussians = sum(plus[n]["gaussians"] for n in self.names)
+            rows.append(_row(f"Individual +{k:,}", m, gaussians, group="baseline", steps=k))
+        return rows
+
+    def ablation_rows(self) -> list[dict]:
+        """The refinement ablations (``ABLATIONS``) at the last step count."""
+        last = self.ec.steps[-1]
+        views = [date_views(sc, sm) for sc, sm in zip(self.scenes, self.sims)]
+        rows = []
+        for key, (label, over) in ABLATIONS.items():
+            a = _ablation(
+                self.run_dir,
+                key,
+                over | {"steps": last},
+                views,
+                self.scenes,
+                self.test_views,
+                self.fusion_raw,
+                self.render_config,
+                self.ec.lpips_net,
+                self.log,
+            )
+            rows.append(_row(f"{label} {last:,}", a["metrics"], a["gaussians"], group="ablation", steps=last))
+        return rows
+
+    def change(self, data: Path, scene: str) -> dict:
+        """Change detection against the synthetic scene's ground truth (``change.json``), and its PR plot."""
+        change = read_json(self.out / "change.json")
+        if change is None:
+            self.log("[eval] change detection against ground truth")
+            change = change_detection(
+                read_fused(self.run_dir / "fused"),
+                data,
+                self.scenes,
+                self.sims,
+                self.render_config,
+                cross_init=read_fused(self.run_dir / "cross_init"),
+                config=section(self.raw, "change", ChangeConfig),
+            )
+            write_json(self.out / "change.json", change)
+        pr_curve_plot(self.out / "change_pr.png", change, scene)
+        return change
+
+
+def _known_transforms(data: Path, dirs, out: Path) -> Path:
+    """The ground-truth Sim(3)s of a synthetic scene, written to ``out/transforms.json``."""
+    from cfgs_jax import synthetic
+
+    if not (data / "ground_truth.json").is_file():
+        raise InputError(
+            "known_transforms needs a synthetic scene's ground_truth.json",
+            path=data,
+            field="eval.known_transforms",
+            fix="set it to false (register with SfM)",
+        )
+    transforms = out / "transforms.json"
+    write_json(transforms, synthetic.reference_transforms(data, [d.name for d in dirs]))
+    return transforms
+
+
+def _fuse(scene, raw, out: Path, ec: EvalConfig, progress: bool, log) -> tuple[Path, list, dict, float]:
+    """Prepare the scene and run (or continue) its fusion with snapshots at the evaluation steps.
+    Returns the data directory, the date directories, the fusion configuration and the wall time."""
+    data = prepare_scene(scene, raw, out, progress=progress)
+    dirs = date_dirs(data)
+    fusion_raw = {k: v for k, v in (raw or {}).items() if k in CONFIG_SECTIONS or k == "__path__"}
+    fusion_raw["refine"] = dict(fusion_raw.get("refine", {})) | {"steps": max(ec.steps)}
+    run_dir = out / "run"
+    t0 = time.perf_counter()
+    run_fusion(
+        dirs,
+        run_dir,
+        fusion_raw,
+        resume=(run_dir / "run.json").is_file(),
+        progress=progress,
+        evaluate=False,
+        transforms=_known_transforms(data, dirs, out) if ec.known_transforms else None,
+        snapshots=ec.steps[:-1],
+        log=log,
+    )
+    return data, dirs, fusion_raw, time.perf_counter() - t0
+
+
 def run_protocol(
     scene: str, out: str | Path, raw: dict | None = None, *, resume: bool = False, progress: bool = True, log=print
 ) -> dict:
@@ -204,116 +339,26 @@ def run_protocol(
     check_resume(out, resume)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    data = prepare_scene(scene, raw, out, progress=progress)
-    dirs = date_dirs(data)
-    fusion_raw = {k: v for k, v in (raw or {}).items() if k in CONFIG_SECTIONS or k == "__path__"}
-    fusion_raw["refine"] = dict(fusion_raw.get("refine", {})) | {"steps": max(ec.steps)}
+    data, dirs, fusion_raw, fusion_seconds = _fuse(scene, raw, out, ec, progress, log)
     run_dir = out / "run"
-    t0 = time.perf_counter()
-    transforms = None
-    if ec.known_transforms:
-        from cfgs_jax import synthetic
-
-        if not (data / "ground_truth.json").is_file():
-            raise InputError(
-                "known_transforms needs a synthetic scene's ground_truth.json",
-                path=data,
-                field="eval.known_transforms",
-                fix="set it to false (register with SfM)",
-            )
-        transforms = out / "transforms.json"
-        write_json(transforms, synthetic.reference_transforms(data, [d.name for d in dirs]))
-    run_fusion(
-        dirs,
-        run_dir,
-        fusion_raw,
-        resume=(run_dir / "run.json").is_file(),
-        progress=progress,
-        evaluate=False,
-        transforms=transforms,
-        snapshots=ec.steps[:-1],
-        log=log,
-    )
-    fusion_seconds = time.perf_counter() - t0
-    render_config = section(fusion_raw, "render", splat.RenderConfig)
     tc = section(fusion_raw, "train", train.TrainConfig)
     scenes = [read_colmap(d, test_every=max(1, tc.test_every), resolution=tc.resolution) for d in dirs]
     names = [d.name for d in dirs]
     reg = read_json(run_dir / "register.json")
     sims = [Sim3.from_dict(reg[n]["transform"]) for n in names]
-    test_views = [date_views(sc, sm, "test") for sc, sm in zip(scenes, sims)]
-    weights = [len(v.cameras) for v in test_views]
-    evals = read_json(out / "rows.json", {})
-
-    def fused_row(key: str, label: str, path: Path, **extra):
-        if key not in evals:
-            model = read_fused(path)
-            log(f"[eval] {label}")
-            m = evaluate_fused(model, test_views, render_config=render_config, lpips_net=ec.lpips_net)
-            evals[key] = _row(label, m["mean"], len(model), **extra) | {"per_date": m["dates"]}
-            write_json(out / "rows.json", evals)
-        return evals[key]
-
-    rows = []
-    per_date = [json.loads((run_dir / "dates" / n / "train.json").read_text()) for n in names]
-    init = weighted_mean([p["test"] for p in per_date], weights)
-    rows.append(_row("Individual init", init, sum(p["gaussians"] for p in per_date), group="input"))
-    rows.append(fused_row("merged", "Merged", run_dir / "merged") | {"group": "ours"})
-    for k in ec.steps[:-1]:
-        rows.append(
-            fused_row(f"ours_{k}", f"Ours {k:,}", run_dir / "snapshots" / f"refine_{k}") | {"group": "ours", "steps": k}
-        )
-    rows.append(
-        fused_row(f"ours_{ec.steps[-1]}", f"Ours {ec.steps[-1]:,}", run_dir / "fused")
-        | {"group": "ours", "steps": ec.steps[-1]}
-    )
+    ev = _Evaluation(out, run_dir, raw, fusion_raw, ec, names, scenes, sims, log)
+    rows = ev.ours_rows()
     release_if_near_limit()
-    plus = _individual_plus(run_dir, scenes, fusion_raw, ec.steps, render_config, ec.lpips_net, progress, log)
-    for k in ec.steps:
-        m = weighted_mean([plus[n]["steps"][str(k)] for n in names], weights)
-        rows.append(_row(f"Individual +{k:,}", m, sum(plus[n]["gaussians"] for n in names), group="baseline", steps=k))
-    ablations = {}
+    rows += ev.baseline_rows(progress)
     if ec.ablations:
         release_if_near_limit()
-        views = [date_views(sc, sm) for sc, sm in zip(scenes, sims)]
-        for key, (label, over) in ABLATIONS.items():
-            a = _ablation(
-                run_dir,
-                key,
-                over | {"steps": ec.steps[-1]},
-                views,
-                scenes,
-                test_views,
-                fusion_raw,
-                render_config,
-                ec.lpips_net,
-                log,
-            )
-            ablations[key] = a
-            rows.append(
-                _row(f"{label} {ec.steps[-1]:,}", a["metrics"], a["gaussians"], group="ablation", steps=ec.steps[-1])
-            )
-    change = None
-    if ec.change_detection and (data / "ground_truth.json").is_file():
-        change = read_json(out / "change.json")
-        if change is None:
-            log("[eval] change detection against ground truth")
-            change = change_detection(
-                read_fused(run_dir / "fused"),
-                data,
-                scenes,
-                sims,
-                render_config,
-                cross_init=read_fused(run_dir / "cross_init"),
-                config=section(raw, "change", ChangeConfig),
-            )
-            write_json(out / "change.json", change)
-        pr_curve_plot(out / "change_pr.png", change, scene)
+        rows += ev.ablation_rows()
+    change = ev.change(data, scene) if ec.change_detection and (data / "ground_truth.json").is_file() else None
     timings = read_json(run_dir / "timings.json", {})
     table = {
         "scene": scene,
         "dates": names,
-        "test_views": dict(zip(names, weights)),
+        "test_views": dict(zip(names, ev.weights)),
         "steps": list(ec.steps),
         "rows": rows,
         "timings": {k: timings.get(k) for k in ("train", "register", "merge", "cross_init", "refine")},
@@ -323,7 +368,7 @@ def run_protocol(
     }
     write_json(out / "table.json", table)
     write_text(out / "table.md", table_markdown(table))
-    figure_grid(out / "figure.png", run_dir, scenes, sims, names, render_config)
+    figure_grid(out / "figure.png", run_dir, scenes, sims, names, ev.render_config)
     return table
 
 

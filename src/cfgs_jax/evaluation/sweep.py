@@ -115,6 +115,75 @@ def variant_config(base: dict, variant: Variant) -> dict:
     return raw
 
 
+def _shared_base(out: Path, dirs, base: dict, transforms, progress: bool, log) -> tuple[list[Path], Path]:
+    """Per-date training and registration once for every variant that does not change them: the
+    per-date models and the transforms (``out/base``)."""
+    log(f"[sweep] shared per-date training and registration → {out / 'base'}")
+    run_fusion(
+        dirs,
+        out / "base",
+        variant_config(base, Variant(())),
+        resume=(out / "base" / "run.json").is_file(),
+        transforms=transforms,
+        progress=progress,
+        evaluate=False,
+        until="register",
+        log=log,
+    )
+    reg = read_json(out / "base" / "register.json")
+    write_json(out / "base" / "transforms.json", {n: r["transform"] for n, r in reg.items()})
+    return [out / "base" / "dates" / d.name / "point_cloud.ply" for d in dirs], out / "base" / "transforms.json"
+
+
+def _variant_change(run_dir: Path, data: Path, dirs, raw: dict) -> dict:
+    """Change detection of a variant's fused model against the synthetic ground truth (F1, IoU)."""
+    from cfgs_jax import splat, train
+    from cfgs_jax.config import section
+    from cfgs_jax.io.colmap import read_colmap
+    from cfgs_jax.io.fused import read_fused
+    from cfgs_jax.sim3 import Sim3
+
+    tc = section(raw, "train", train.TrainConfig)
+    scenes = [read_colmap(d, test_every=max(1, tc.test_every), resolution=tc.resolution) for d in dirs]
+    reg = read_json(run_dir / "register.json")
+    sims = [Sim3.from_dict(reg[d.name]["transform"]) for d in dirs]
+    change = change_detection(
+        read_fused(run_dir / "fused"), data, scenes, sims, section(raw, "render", splat.RenderConfig)
+    )
+    g = change["gaussians"]
+    return {"f1": g["f1"], "iou": change["pixels"]["iou"], "flagged_changed": g["flagged_changed"]}
+
+
+def _run_variant(v: Variant, vdir: Path, base: dict, dirs, data: Path, *, models, transforms, progress, log) -> dict:
+    """One variant's fusion (from the shared per-date models when ``models``), its metrics, Gaussian
+    count, stage times and change detection → ``vdir/result.json``."""
+    raw = variant_config(base, v)
+    t0 = time.perf_counter()
+    run = run_fusion(
+        dirs,
+        vdir / "run",
+        raw,
+        models=models,
+        transforms=transforms,
+        resume=(vdir / "run" / "run.json").is_file(),
+        progress=progress,
+        log=log,
+    )
+    metrics = read_json(vdir / "run" / "metrics.json")
+    has_truth = (data / "ground_truth.json").is_file()
+    res = {
+        "id": v.id,
+        "overrides": dict(v.overrides),
+        "metrics": metrics["mean"],
+        "gaussians": run.report.get("refine", {}).get("gaussians_after_prune"),
+        "timings": {k: run.timings.get(k) for k in ("train", "register", "merge", "cross_init", "refine")},
+        "change": _variant_change(vdir / "run", data, dirs, raw) if has_truth else None,
+        "wall_seconds": time.perf_counter() - t0,
+    }
+    write_json(vdir / "result.json", res)
+    return res
+
+
 def run_sweep(
     sweep_raw: dict,
     out: str | Path,
@@ -126,11 +195,7 @@ def run_sweep(
 ) -> dict:
     """Every variant of the sweep → ``out/sweep.json``, ``sweep.md``, ``sweep.png``. With ``resume``
     an ``out`` holding an earlier sweep is continued (finished variants skipped); without, refused."""
-    from cfgs_jax import splat, train
     from cfgs_jax.config import section
-    from cfgs_jax.io.colmap import read_colmap
-    from cfgs_jax.io.fused import read_fused
-    from cfgs_jax.sim3 import Sim3
 
     scene, base, variants = parse_sweep(sweep_raw, overrides)
     check_resume(out, resume)
@@ -151,22 +216,7 @@ def run_sweep(
         transforms = out / "transforms.json"
         write_json(transforms, synthetic.reference_transforms(data, [d.name for d in dirs]))
     if any(shares):
-        log(f"[sweep] shared per-date training and registration → {out / 'base'}")
-        run_fusion(
-            dirs,
-            out / "base",
-            variant_config(base, Variant(())),
-            resume=(out / "base" / "run.json").is_file(),
-            transforms=transforms,
-            progress=progress,
-            evaluate=False,
-            until="register",
-            log=log,
-        )
-        models = [out / "base" / "dates" / d.name / "point_cloud.ply" for d in dirs]
-        reg = read_json(out / "base" / "register.json")
-        transforms = out / "base" / "transforms.json"
-        write_json(transforms, {n: r["transform"] for n, r in reg.items()})
+        models, transforms = _shared_base(out, dirs, base, transforms, progress, log)
     results = []
     for i, (v, shared) in enumerate(zip(variants, shares)):
         vdir = out / "variants" / v.id
@@ -174,50 +224,20 @@ def run_sweep(
         if res is None:
             release_if_near_limit()
             log(f"[sweep] variant {i + 1}/{len(variants)}: {dict(v.overrides) or 'base'}")
-            raw = variant_config(base, v)
-            t0 = time.perf_counter()
-            run = run_fusion(
+            res = _run_variant(
+                v,
+                vdir,
+                base,
                 dirs,
-                vdir / "run",
-                raw,
+                data,
                 models=models if shared else None,
                 transforms=transforms if (shared or known) else None,
-                resume=(vdir / "run" / "run.json").is_file(),
                 progress=progress,
                 log=log,
             )
-            metrics = read_json(vdir / "run" / "metrics.json")
-            change = None
-            if (data / "ground_truth.json").is_file():
-                tc = section(raw, "train", train.TrainConfig)
-                scenes = [read_colmap(d, test_every=max(1, tc.test_every), resolution=tc.resolution) for d in dirs]
-                reg = read_json(vdir / "run" / "register.json")
-                sims = [Sim3.from_dict(reg[d.name]["transform"]) for d in dirs]
-                change = change_detection(
-                    read_fused(vdir / "run" / "fused"), data, scenes, sims, section(raw, "render", splat.RenderConfig)
-                )
-            res = {
-                "id": v.id,
-                "overrides": dict(v.overrides),
-                "metrics": metrics["mean"],
-                "gaussians": run.report.get("refine", {}).get("gaussians_after_prune"),
-                "timings": {k: run.timings.get(k) for k in ("train", "register", "merge", "cross_init", "refine")},
-                "change": None
-                if change is None
-                else {
-                    "f1": change["gaussians"]["f1"],
-                    "iou": change["pixels"]["iou"],
-                    "flagged_changed": change["gaussians"]["flagged_changed"],
-                },
-                "wall_seconds": time.perf_counter() - t0,
-            }
-            write_json(vdir / "result.json", res)
         results.append(res)
-    summary = {
-        "scene": scene,
-        "grid": {k: list(vals) for k, vals in sweep_raw["sweep"].get("grid", {}).items()},
-        "variants": results,
-    }
+    grid = {k: list(vals) for k, vals in sweep_raw["sweep"].get("grid", {}).items()}
+    summary = {"scene": scene, "grid": grid, "variants": results}
     write_json(out / "sweep.json", summary)
     write_text(out / "sweep.md", sweep_markdown(summary))
     sweep_plot(out / "sweep.png", summary)

@@ -320,6 +320,20 @@ def init_pairs(
     rows = np.nonzero(np.asarray(model.origin) == p)[0]
     g_p = jax.tree_util.tree_map(lambda x: jnp.asarray(x)[rows], model.gaussians)
     seen = np.stack([visible_from(g_p, v.cameras, render_config) for v in views])  # [Q, N_p]
+    model, reports = _mark_unseen(model, p, qs, rows, seen)
+    active = [i for i in range(len(qs)) if seen[i].any()]
+    if not active:
+        return model, reports
+    pairs = _gather(model, p, rows, seen[active], [views[i] for i in active], render_config)
+    params, start_light, eps_maps = _start_values(pairs, config, lpips_net)
+    params, losses = _optimise(pairs, params, eps_maps, config, p, [qs[i] for i in active], progress)
+    fitted = [reports[i] for i in active]
+    return _write_back(model, [qs[i] for i in active], pairs, params, losses, start_light, eps_maps, fitted), reports
+
+
+def _mark_unseen(model: TemporalGaussians, p: int, qs, rows, seen) -> tuple[TemporalGaussians, list[dict]]:
+    """o^q := ``INVISIBLE_LOGIT`` for date p's Gaussians that project into no view of q, and one report
+    per pair (a pair with none visible is marked skipped)."""
     o_logits = np.asarray(model.o_logits).copy()
     reports = []
     for i, q in enumerate(qs):
@@ -327,14 +341,16 @@ def init_pairs(
         reports.append({"pair": [p, q], "gaussians": int(len(rows)), "visible": int(seen[i].sum())})
         if not seen[i].any():
             reports[i]["skipped"] = True
-    model = dataclasses.replace(model, o_logits=jnp.asarray(o_logits))
-    active = [i for i in range(len(qs)) if seen[i].any()]
-    if not active:
-        return model, reports
-    pairs = _gather(model, p, rows, seen[active], [views[i] for i in active], render_config)
-    params, start_light, eps_maps = _start_values(pairs, config, lpips_net)
-    seeds = [(config.seed, p, qs[i]) for i in active]
-    keys = jnp.stack([jax.random.key(config.seed * 1_000_003 + p * 1009 + qs[i]) for i in active])
+    return dataclasses.replace(model, o_logits=jnp.asarray(o_logits)), reports
+
+
+def _optimise(
+    pairs: _Pairs, params, eps_maps, config: CrossInitConfig, p: int, qs, progress
+) -> tuple[dict, np.ndarray]:
+    """Eq. 2's ``config.steps`` Adam steps of the pairs (p, q) for q in ``qs``, vmapped: each pair with
+    its own view sequence and background key. Returns the parameters and the [steps, pairs] losses."""
+    seeds = [(config.seed, p, q) for q in qs]
+    keys = jnp.stack([jax.random.key(config.seed * 1_000_003 + p * 1009 + q) for q in qs])
     optimizer, step = _compiled_step(config, pairs.render_config)
 
     def body(carry, it):
@@ -360,16 +376,7 @@ def init_pairs(
 
     carry = (params, jax.vmap(optimizer.init)(params), keys, [])
     (params, _, _, losses), _ = run_steps(body, carry, start=0, steps=config.steps)
-    return _write_back(
-        model,
-        [qs[i] for i in active],
-        pairs,
-        params,
-        np.stack(losses),
-        start_light,
-        eps_maps,
-        [reports[i] for i in active],
-    ), reports
+    return params, np.stack(losses)
 
 
 def _write_back(model, qs, pairs: _Pairs, params, losses, start_light, eps_maps, reports) -> TemporalGaussians:

@@ -246,9 +246,99 @@ def _start(model, config: RefineConfig, new_dates, checkpoint, meta_now) -> tupl
     return carry, int(meta["step"])
 
 
+def _meta(model, config: RefineConfig, train_config: TrainConfig, extent: float, new_dates, views: int) -> dict:
+    """What identifies a refinement (a checkpoint must match it), plus the view count and training
+    configuration its start needs."""
+    return {
+        "config": dataclasses.asdict(config),
+        "train": dataclasses.asdict(train_config),
+        "gaussians": len(model),
+        "dates": model.num_dates,
+        "extent": extent,
+        "new_dates": new_dates,
+        "views": views,
+        "train_config": train_config,
+    }
+
+
 def _comparable(meta_now: dict) -> dict:
     """The part of a checkpoint's metadata that must match for it to be resumed."""
     return {k: v for k, v in meta_now.items() if k not in ("views", "train_config")}
+
+
+@dataclasses.dataclass
+class _Refinement:
+    """One refinement's fixed inputs and the pieces of its loop: the jitted step for an intersection
+    capacity, the loop body (a step on one drawn view; the visibility rule every
+    ``visibility_interval`` steps) and the checkpoint."""
+
+    model: TemporalGaussians
+    views: Sequence[DateViews]
+    config: RefineConfig
+    train_config: TrainConfig
+    render_config: splat.RenderConfig
+    extent: float
+    snapshot_steps: Sequence[int] = ()
+    on_snapshot: object = None
+
+    def __post_init__(self):
+        self.light_logits = jnp.asarray(self.model.light_logits)
+        self.flat = [(q, v) for q in range(len(self.views)) for v in range(len(self.views[q].cameras))]
+        self.images = [[jnp.asarray(im, jnp.float32) for im in dv.images] for dv in self.views]
+
+    def capacity_for(self, params, q: int, v: int) -> int:
+        o = jax.nn.sigmoid(params["o_logits"][:, q])[None]
+        return splat.required_capacity(gaussians_of(params), self.views[q].cameras[v], o, config=self.render_config)
+
+    def compiled(self, capacity: int):
+        rc = dataclasses.replace(self.render_config, capacity=capacity)
+        return _compiled_step(self.config, float(self.extent), rc, self.train_config)
+
+    def contribution_of(self, c: _Carry, q: int, v: int) -> np.ndarray:
+        """The visibility test of view (q, v) from a forward-only render."""
+        (seen, _), c.capacity = step_with_capacity(
+            lambda cap: self.compiled(cap)[2],
+            c.capacity,
+            (c.params, self.light_logits, self.views[q].cameras[v], jnp.int32(q)),
+            required=lambda: self.capacity_for(c.params, q, v),
+            overflowed=lambda out: out[1],
+        )
+        return np.asarray(seen)
+
+    def check_visibility(self, c: _Carry) -> _Carry:
+        """Complete the views this interval did not draw, then apply the visibility rule."""
+        for idx in np.nonzero(~c.covered)[0]:
+            c.contributed[:, self.flat[idx][0]] |= self.contribution_of(c, *self.flat[idx])
+            c.completed += 1
+        c.params, c.opt_state, c.o_init, kill = zero_invisible(c.params, c.opt_state, c.o_init, c.contributed)
+        c.zeroed |= kill
+        c.contributed[:] = False
+        c.covered[:] = False
+        return c
+
+    def body(self, c: _Carry, it: int) -> _Carry:
+        config = self.config
+        c.key, sub = jax.random.split(c.key)
+        drawn = view_order(config.seed, it, len(self.flat))
+        q, v = self.flat[drawn]
+        args = (c.params, c.opt_state, self.light_logits, c.o_init, self.views[q].cameras[v], self.images[q][v])
+        (params, opt_state, loss, contrib, _), c.capacity = step_with_capacity(
+            lambda cap: self.compiled(cap)[1],
+            c.capacity,
+            (*args, jnp.int32(q), sub),
+            required=lambda: self.capacity_for(c.params, q, v),
+            overflowed=lambda out: out[-1],
+        )
+        c.params, c.opt_state = params, opt_state
+        c.losses.append(float(loss))
+        c.contributed[:, q] |= np.asarray(contrib)
+        c.covered[drawn] = True
+        done = it + 1
+        if done % config.visibility_interval == 0 or done == config.steps:
+            c = self.check_visibility(c)
+        if self.on_snapshot is not None and done in self.snapshot_steps and done < config.steps:
+            self.on_snapshot(done, final_prune(with_trainable(self.model, c.params), config.prune_threshold))
+        return c
 
 
 def refine(
@@ -282,76 +372,13 @@ def refine(
     checkpoints"."""
     config = config or RefineConfig()
     train_config = train_config or TrainConfig()
-    render_config = render_config or splat.RenderConfig()
     new_dates = _check_inputs(model, views, new_dates)
-    t, n = model.num_dates, len(model)
-    light_logits = jnp.asarray(model.light_logits)
-    flat = [(q, v) for q in range(t) for v in range(len(views[q].cameras))]
-    images = [[jnp.asarray(im, jnp.float32) for im in dv.images] for dv in views]
-    meta_now = {
-        "config": dataclasses.asdict(config),
-        "train": dataclasses.asdict(train_config),
-        "gaussians": n,
-        "dates": t,
-        "extent": float(extent),
-        "new_dates": new_dates,
-        "views": len(flat),
-        "train_config": train_config,
-    }
+    run = _Refinement(
+        model, views, config, train_config, render_config or splat.RenderConfig(), extent, snapshot_steps, on_snapshot
+    )
+    meta_now = _meta(model, config, train_config, float(extent), new_dates, len(run.flat))
     carry, start = _start(model, config, new_dates, checkpoint, meta_now)
-
-    def capacity_for(params, q, v):
-        o = jax.nn.sigmoid(params["o_logits"][:, q])[None]
-        return splat.required_capacity(gaussians_of(params), views[q].cameras[v], o, config=render_config)
-
-    def compiled(capacity):
-        rc = dataclasses.replace(render_config, capacity=capacity)
-        return _compiled_step(config, float(extent), rc, train_config)
-
-    carry.capacity = max(capacity_for(carry.params, q, v) for q, v in flat)
-
-    def contribution_of(c: _Carry, q: int, v: int) -> np.ndarray:
-        """The visibility test of view (q, v) from a forward-only render."""
-        (seen, _), c.capacity = step_with_capacity(
-            lambda cap: compiled(cap)[2],
-            c.capacity,
-            (c.params, light_logits, views[q].cameras[v], jnp.int32(q)),
-            required=lambda: capacity_for(c.params, q, v),
-            overflowed=lambda out: out[1],
-        )
-        return np.asarray(seen)
-
-    def check_visibility(c: _Carry) -> _Carry:
-        for idx in np.nonzero(~c.covered)[0]:  # the views this interval did not draw
-            c.contributed[:, flat[idx][0]] |= contribution_of(c, *flat[idx])
-            c.completed += 1
-        c.params, c.opt_state, c.o_init, kill = zero_invisible(c.params, c.opt_state, c.o_init, c.contributed)
-        c.zeroed |= kill
-        c.contributed[:] = False
-        c.covered[:] = False
-        return c
-
-    def body(c: _Carry, it: int) -> _Carry:
-        c.key, sub = jax.random.split(c.key)
-        drawn = view_order(config.seed, it, len(flat))
-        q, v = flat[drawn]
-        (params, opt_state, loss, contrib, _), c.capacity = step_with_capacity(
-            lambda cap: compiled(cap)[1],
-            c.capacity,
-            (c.params, c.opt_state, light_logits, c.o_init, views[q].cameras[v], images[q][v], jnp.int32(q), sub),
-            required=lambda: capacity_for(c.params, q, v),
-            overflowed=lambda out: out[-1],
-        )
-        c.params, c.opt_state = params, opt_state
-        c.losses.append(float(loss))
-        c.contributed[:, q] |= np.asarray(contrib)
-        c.covered[drawn] = True
-        done = it + 1
-        if done % config.visibility_interval == 0 or done == config.steps:
-            c = check_visibility(c)
-        if on_snapshot is not None and done in snapshot_steps and done < config.steps:
-            on_snapshot(done, final_prune(with_trainable(model, c.params), config.prune_threshold))
-        return c
+    carry.capacity = max(run.capacity_for(carry.params, q, v) for q, v in run.flat)
 
     def save(c: _Carry, done: int):
         meta = _comparable(meta_now) | {"step": done, "losses": c.losses, "completed": c.completed}
@@ -359,7 +386,7 @@ def refine(
 
     with Progress("refine", total=config.steps, completed=start, enabled=progress, transient=True) as bar:
         carry, done = run_steps(
-            body,
+            run.body,
             carry,
             start=start,
             steps=config.steps,

@@ -176,27 +176,16 @@ def _sim3_from_pycolmap(s) -> Sim3:
     return Sim3(scale, m[:, :3] / scale, m[:, 3].copy())
 
 
-def register_date(
-    reference, date, *, config: RegisterConfig | None = None, workdir=None, progress=None
-) -> Registration:
-    """The Sim(3) that brings ``date`` (a ``Scene``) into ``reference``'s frame.
-
-    A subset of both dates' images goes through one joint SfM (pycolmap: SIFT, exhaustive matching,
-    incremental mapping with the dates' own pinhole intrinsics held fixed). Registered reference
-    images tie the SfM frame to the reference frame and registered date images tie it to the date's
-    frame, both through the camera poses the datasets already have: a robust closed-form Sim(3)
-    (pycolmap ``estimate_sim3d_robust`` on camera centres) initialises a joint optimistix
-    Levenberg–Marquardt over centres and orientations. Fewer than ``min_registered`` images of
-    either date registered, or a fit that does not converge, is an error naming the date."""
+def _joint_sfm(reference, date, config: RegisterConfig, workdir) -> tuple:
+    """One pycolmap SfM (SIFT, exhaustive matching, incremental mapping with the dates' pinhole
+    intrinsics fixed) of ``images_per_date`` evenly spaced images of each date. Returns the largest
+    reconstruction and {SfM image name: ("ref" | "new", image index)}."""
     import tempfile
 
     import pycolmap
 
     from cfgs_jax.io.images import write_image
 
-    config = config or RegisterConfig()
-    if not logging.getLogger("cfgs_jax").isEnabledFor(logging.INFO):
-        pycolmap.logging.minloglevel = 2  # COLMAP's per-image INFO lines only with --verbose
     with tempfile.TemporaryDirectory(dir=workdir) as tmp:
         tmp = Path(tmp)
         picked = {}
@@ -212,13 +201,12 @@ def register_date(
             reader = pycolmap.ImageReaderOptions(
                 camera_model="PINHOLE", camera_params=",".join(str(float(x)) for x in (cam.fx, cam.fy, cam.cx, cam.cy))
             )
-            names = [n for n, (t, _) in picked.items() if t == tag]
             extraction = pycolmap.FeatureExtractionOptions()
             extraction.sift.peak_threshold = config.sift_peak_threshold
             pycolmap.extract_features(
                 db,
                 tmp / "images",
-                image_names=names,
+                image_names=[n for n, (t, _) in picked.items() if t == tag],
                 camera_mode=pycolmap.CameraMode.SINGLE,
                 reader_options=reader,
                 extraction_options=extraction,
@@ -243,7 +231,12 @@ def register_date(
             field="images",
             fix="the dates share too little; pass known transforms with --transforms JSON",
         )
-    rec = max(maps.values(), key=lambda r: r.num_reg_images())
+    return max(maps.values(), key=lambda r: r.num_reg_images()), picked
+
+
+def _registered_poses(rec, picked: dict, reference, date, config: RegisterConfig) -> tuple[list, list]:
+    """For the registered images of each date: [SfM centres, SfM rotations, own centres, own
+    rotations] (world-from-camera), the reference's then the date's; too few registered is an error."""
     pairs = {"ref": ([], [], [], []), "new": ([], [], [], [])}
     for img in rec.images.values():
         if not img.has_pose or img.name not in picked:
@@ -263,11 +256,15 @@ def register_date(
             field="images",
             fix="use more overlapping images (RegisterConfig.images_per_date) or pass --transforms JSON",
         )
-    ref = [np.asarray(x) for x in pairs["ref"]]
-    new = [np.asarray(x) for x in pairs["new"]]
+    return [np.asarray(x) for x in pairs["ref"]], [np.asarray(x) for x in pairs["new"]]
+
+
+def _robust_start(ref, new, date, config: RegisterConfig, extent: float) -> tuple[Sim3, Sim3]:
+    """Closed-form robust Sim(3)s on camera centres (pycolmap ``estimate_sim3d_robust``, inlier
+    threshold 5 % of the extent): SfM → reference, and date → reference through the SfM."""
+    import pycolmap
+
     ransac = pycolmap.RANSACOptions(random_seed=config.seed)
-    centres = np.stack([np.asarray(c.center, np.float64) for c in reference.cameras])
-    extent = float(np.max(np.linalg.norm(centres - centres.mean(0), axis=1)))
     ransac.max_error = 0.05 * extent
     a0 = pycolmap.estimate_sim3d_robust(ref[0], ref[2], ransac)  # SfM → reference
     b_sfm = pycolmap.estimate_sim3d_robust(new[0], new[2], ransac)  # SfM → date
@@ -281,7 +278,32 @@ def register_date(
         _sim3_from_pycolmap(a0["tgt_from_src"] if isinstance(a0, dict) else a0),
         _sim3_from_pycolmap(b_sfm["tgt_from_src"] if isinstance(b_sfm, dict) else b_sfm),
     )
-    b0 = a0.compose(b_sfm.inverse())  # date → reference
+    return a0, a0.compose(b_sfm.inverse())
+
+
+def register_date(
+    reference, date, *, config: RegisterConfig | None = None, workdir=None, progress=None
+) -> Registration:
+    """The Sim(3) that brings ``date`` (a ``Scene``) into ``reference``'s frame.
+
+    A subset of both dates' images goes through one joint SfM (pycolmap: SIFT, exhaustive matching,
+    incremental mapping with the dates' own pinhole intrinsics held fixed). Registered reference
+    images tie the SfM frame to the reference frame and registered date images tie it to the date's
+    frame, both through the camera poses the datasets already have: a robust closed-form Sim(3)
+    (pycolmap ``estimate_sim3d_robust`` on camera centres) initialises a joint optimistix
+    Levenberg–Marquardt over centres and orientations. Fewer than ``min_registered`` images of
+    either date registered, or a fit that does not converge, is an error naming the date."""
+    import pycolmap
+
+    config = config or RegisterConfig()
+    if not logging.getLogger("cfgs_jax").isEnabledFor(logging.INFO):
+        pycolmap.logging.minloglevel = 2  # COLMAP's per-image INFO lines only with --verbose
+    rec, picked = _joint_sfm(reference, date, config, workdir)
+    ref, new = _registered_poses(rec, picked, reference, date, config)
+    n_ref, n_new = len(ref[0]), len(new[0])
+    centres = np.stack([np.asarray(c.center, np.float64) for c in reference.cameras])
+    extent = float(np.max(np.linalg.norm(centres - centres.mean(0), axis=1)))
+    a0, b0 = _robust_start(ref, new, date, config, extent)
     a, b, converged = refine_sim3_pair(
         a0, b0, ((ref[0], ref[1]), (ref[2], ref[3])), ((new[0], new[1]), (new[2], new[3])), extent, config.lm_max_steps
     )
@@ -297,13 +319,8 @@ def register_date(
     c_err = np.concatenate([a.apply(ref[0]) - ref[2], a.apply(new[0]) - b.apply(new[2])])
     r_err = [np.degrees(_angle(a.rotation @ r1, r2)) for r1, r2 in zip(ref[1], ref[3])]
     r_err += [np.degrees(_angle(a.rotation @ r1, b.rotation @ r2)) for r1, r2 in zip(new[1], new[3])]
-    return Registration(
-        b,
-        n_ref,
-        n_new,
-        float(np.sqrt(np.mean(np.sum(c_err**2, axis=1))) / extent),
-        float(np.sqrt(np.mean(np.square(r_err)))),
-    )
+    rms_centre = float(np.sqrt(np.mean(np.sum(c_err**2, axis=1))) / extent)
+    return Registration(b, n_ref, n_new, rms_centre, float(np.sqrt(np.mean(np.square(r_err)))))
 
 
 def _angle(r1, r2) -> float:

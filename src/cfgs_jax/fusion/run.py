@@ -407,12 +407,7 @@ def run_fusion(
         return run
 
     # 3. merge
-    def merge_dates():
-        merged = merge(given or [read_ply(m, drop_invalid=drop_invalid) for m in model_paths], run.date_infos(), sims)
-        write_fused(run.out / "merged", merged)
-        return {"gaussians": len(merged)}
-
-    run.stage("merge", merge_dates)
+    run.stage("merge", lambda: _merge_dates(run, given, model_paths, sims, drop_invalid))
     if until == "merge":
         return run
     if len(names) == 1 and not run.done("refine"):
@@ -432,6 +427,15 @@ def run_fusion(
     run.stage("export", lambda: _export_reference(run))
     _evaluate_stage(run, scenes, sims, render_config, evaluate, log)
     return run
+
+
+def _merge_dates(run: FusionRun, given, model_paths, sims, drop_invalid: bool) -> dict:
+    """The per-date models (``given``, else read from ``model_paths``) in the reference frame, merged
+    → ``RUN/merged``."""
+    models = given or [read_ply(m, drop_invalid=drop_invalid) for m in model_paths]
+    merged = merge(models, run.date_infos(), sims)
+    write_fused(run.out / "merged", merged)
+    return {"gaussians": len(merged)}
 
 
 def _read_inputs(dates, raw_config, models, captured, drop_invalid: bool, log):
@@ -570,6 +574,27 @@ def _insert_date(run_dir: Path, state: dict, date: Path, new_scene: Scene, model
     write_json(run_dir / "run.json", state)
 
 
+def _register_added(run: FusionRun, scenes, k: int, transform: Sim3 | None, log) -> None:
+    """The added date k's Sim(3) to the reference (given, or by joint SfM) → ``register.json``."""
+    name, ref = run.names[k], run.reference
+    reg = read_json(run.out / "register.json")
+    if transform is not None:
+        reg[name] = {"transform": transform.to_dict(), "source": "given"}
+    else:
+        reg[name] = _register(run, scenes[ref], scenes[k], name, run.names[ref], log, "extend/register")
+    write_json(run.out / "register.json", reg)
+
+
+def _add_to_fused(run: FusionRun, ply: Path, k: int, sim: Sim3) -> None:
+    """The fused model with the added date's Gaussians inserted as date k (``add_date``) →
+    ``RUN/cross_init``, the start of the extension's cross-init."""
+    from cfgs_jax.fusion.fuse import add_date
+
+    merged = add_date(read_fused(run.out / "fused"), read_ply(ply), run.date_infos()[k], sim, position=k)
+    write_fused(run.out / "cross_init", merged)
+    write_json(run.out / "cross_init_pairs.json", {"pairs": [], "reports": [], "seconds": 0.0})
+
+
 def run_extend(
     run_dir: Path,
     date: Path,
@@ -587,8 +612,6 @@ def run_extend(
     its EXIF capture time; last when it or an earlier date's time is unknown) with ``add_date``,
     cross-initialise only the pairs involving it, refine (halving α of its Gaussians only), export.
     Stages are named ``extend:<date>:<stage>`` (resumable)."""
-    from cfgs_jax.fusion.fuse import add_date
-
     run_dir = Path(run_dir)
     name = Path(date).name
     prefix = f"extend:{name}:"
@@ -597,37 +620,19 @@ def run_extend(
         _insert_date(run_dir, state, date, new_scene, model, captured, log)
     paths = [d["path"] for d in state["dates"]]
     run = FusionRun(run_dir, [Path(p) for p in paths], state["config"], resume=True)
-    raw = run.raw
-    render_config = section(raw, "render", splat.RenderConfig)
+    render_config = section(run.raw, "render", splat.RenderConfig)
     names = run.names
     k = names.index(name)
-    ref = run.reference
     scenes = [run.scene(i) for i in range(len(names))]
 
     ply = Path(model) if model is not None else run.out / "dates" / name / "point_cloud.ply"
-
-    def train_date():
-        if model is None and not ply.is_file():
-            _train_date(run, scenes[k], name, render_config, progress, log, "extend/train")
-
-    def register():
-        reg = read_json(run.out / "register.json")
-        if transform is not None:
-            reg[name] = {"transform": transform.to_dict(), "source": "given"}
-        else:
-            reg[name] = _register(run, scenes[ref], scenes[k], name, names[ref], log, "extend/register")
-        write_json(run.out / "register.json", reg)
-
-    def insert_date():
-        merged = add_date(read_fused(run.out / "fused"), read_ply(ply), run.date_infos()[k], sims[k], position=k)
-        write_fused(run.out / "cross_init", merged)
-        write_json(run.out / "cross_init_pairs.json", {"pairs": [], "reports": [], "seconds": 0.0})
-
-    run.stage(prefix + "train", train_date)
-    run.stage(prefix + "register", register)
+    trained = model is not None or ply.is_file()  # a given model, or the PLY of an interrupted attempt
+    train_args = (run, scenes[k], name, render_config, progress, log, "extend/train")
+    run.stage(prefix + "train", lambda: None if trained else _train_date(*train_args))
+    run.stage(prefix + "register", lambda: _register_added(run, scenes, k, transform, log))
     reg = read_json(run.out / "register.json")
     sims = [Sim3.from_dict(reg[n]["transform"]) for n in names]
-    run.stage(prefix + "merge", insert_date)
+    run.stage(prefix + "merge", lambda: _add_to_fused(run, ply, k, sims[k]))
     views = [date_views(scenes[i], sims[i]) for i in range(len(names))]
 
     if not run.done(prefix + "cross_init"):

@@ -221,6 +221,65 @@ def _split_from_camera_info(path: Path, names: list[str]) -> tuple[str, ...]:
     return tuple(types[Path(n).name] for n in names)
 
 
+def _check_images(image_dir: Path, names, cameras) -> None:
+    """Every image of the model is in ``image_dir`` at its camera's size (headers only: a wrong size
+    fails now, not mid-training)."""
+    if not image_dir.is_dir():
+        raise InputError("image directory not found", path=image_dir, fix=f"put the images in {image_dir}")
+    missing = [n for n in names if not (image_dir / n).is_file()]
+    if missing:
+        raise InputError(
+            f"{len(missing)} image(s) of the COLMAP model are missing (e.g. {missing[:3]})",
+            path=image_dir,
+            field="images",
+            fix="copy the missing images, re-run SfM, or remove an incomplete downscaled folder",
+        )
+    for name, cam in zip(names, cameras):
+        check_image_size(image_dir / name, image_size(image_dir / name), cam)
+
+
+def _image_source(root: Path, images: str, names, cameras, resolution: int, check: bool) -> tuple:
+    """(image folder, cameras at ``resolution``, downscale on load?): ``<images>_<resolution>/`` when
+    the dataset has it, else the full-size ``<images>/`` box-filtered on load. The folder used is
+    checked (``check``) against the cameras it must match."""
+    if resolution > 1:
+        scaled = tuple(scale_camera(c, downscaled_size(c.width, c.height, resolution)) for c in cameras)
+        scaled_dir = root / f"{images}_{resolution}"
+        if scaled_dir.is_dir():
+            if check:
+                _check_images(scaled_dir, names, scaled)
+            return scaled_dir, scaled, False
+    if check:
+        _check_images(root / images, names, cameras)
+    if resolution > 1:
+        return root / images, scaled, True
+    return root / images, cameras, False
+
+
+def _read_model(model_dir: Path) -> tuple:
+    """pycolmap's reconstruction of ``model_dir``: (posed image names sorted, their cameras, the
+    SfM points [P, 3], their colours in [0, 1])."""
+    import pycolmap
+
+    try:
+        rec = pycolmap.Reconstruction(str(model_dir))
+    except Exception as exc:
+        raise InputError(
+            f"pycolmap cannot read the model ({exc})", path=model_dir, fix="the model files are corrupt: re-export them"
+        ) from exc
+    posed = sorted((img for img in rec.images.values() if img.has_pose), key=lambda img: img.name)
+    if not posed:
+        raise InputError("the model has no registered (posed) images", path=model_dir, field="images")
+    cameras = tuple(
+        camera_from_colmap(rec.cameras[img.camera_id], img.cam_from_world().matrix(), where=str(model_dir))
+        for img in posed
+    )
+    pts = list(rec.points3D.values())
+    xyz = np.array([pt.xyz for pt in pts], np.float32).reshape(-1, 3)
+    rgb = np.array([pt.color for pt in pts], np.float32).reshape(-1, 3) / 255.0
+    return [img.name for img in posed], cameras, xyz, rgb
+
+
 def read_colmap(
     path: str | os.PathLike,
     *,
@@ -231,8 +290,6 @@ def read_colmap(
 ) -> Scene:
     """Load a COLMAP dataset into a ``Scene`` (see the module docstring for the layout, the split and
     ``resolution``)."""
-    import pycolmap
-
     p = Path(path)
     if not p.exists():
         raise InputError("dataset directory not found", path=p, fix="check the path")
@@ -242,20 +299,7 @@ def read_colmap(
         )
     root, model_dir = _find_model_dir(p)
     _check_model_files(model_dir)
-    try:
-        rec = pycolmap.Reconstruction(str(model_dir))
-    except Exception as exc:
-        raise InputError(
-            f"pycolmap cannot read the model ({exc})", path=model_dir, fix="the model files are corrupt: re-export them"
-        ) from exc
-    posed = sorted((img for img in rec.images.values() if img.has_pose), key=lambda img: img.name)
-    if not posed:
-        raise InputError("the model has no registered (posed) images", path=model_dir, field="images")
-    names = [img.name for img in posed]
-    cameras = tuple(
-        camera_from_colmap(rec.cameras[img.camera_id], img.cam_from_world().matrix(), where=str(model_dir))
-        for img in posed
-    )
+    names, cameras, xyz, rgb = _read_model(model_dir)
     info = root / "camera_info.json"
     if info.is_file():
         split = _split_from_camera_info(info, names)
@@ -263,38 +307,5 @@ def read_colmap(
         if test_every < 1:
             raise InputError(f"test_every must be >= 1, got {test_every}", field="test_every")
         split = tuple("test" if i % test_every == 0 else "train" for i in range(len(names)))
-    image_dir = root / images
-    if check_images:
-        if not image_dir.is_dir():
-            raise InputError("image directory not found", path=image_dir, fix=f"put the images in {image_dir}")
-        missing = [n for n in names if not (image_dir / n).is_file()]
-        if missing:
-            raise InputError(
-                f"{len(missing)} image(s) of the COLMAP model are missing (e.g. {missing[:3]})",
-                path=image_dir,
-                field="images",
-                fix="copy the missing images or re-run SfM",
-            )
-        for name, cam in zip(names, cameras):  # headers only: a wrong size fails now, not mid-training
-            check_image_size(image_dir / name, image_size(image_dir / name), cam)
-    pts = list(rec.points3D.values())
-    xyz = np.array([pt.xyz for pt in pts], np.float32).reshape(-1, 3)
-    rgb = np.array([pt.color for pt in pts], np.float32).reshape(-1, 3) / 255.0
-    on_load = False
-    if resolution > 1:
-        cameras = tuple(scale_camera(c, downscaled_size(c.width, c.height, resolution)) for c in cameras)
-        scaled_dir = root / f"{images}_{resolution}"
-        if scaled_dir.is_dir():
-            image_dir = scaled_dir
-            if check_images:
-                for name, cam in zip(names, cameras):
-                    if not (image_dir / name).is_file():
-                        raise InputError(
-                            "image missing from the downscaled folder",
-                            path=image_dir / name,
-                            fix=f"complete {image_dir} or remove it (images are then downscaled on load)",
-                        )
-                    check_image_size(image_dir / name, image_size(image_dir / name), cam)
-        else:
-            on_load = True
+    image_dir, cameras, on_load = _image_source(root, images, names, cameras, resolution, check_images)
     return Scene(root, image_dir, tuple(names), cameras, split, xyz, rgb, resolution, on_load)

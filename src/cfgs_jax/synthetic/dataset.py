@@ -11,6 +11,7 @@ presence/variants, lighting and the world-frame camera poses.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 from pathlib import Path
@@ -197,12 +198,82 @@ def _changed(spec, q, p, ids_q, pos_q, uv_q, ids_p, pos_p, uv_p, tex_cache) -> n
     return changed
 
 
+@dataclasses.dataclass
+class _Camera:
+    """The synthetic datasets' pinhole intrinsics and the SfM point budget per date."""
+
+    fx: float
+    cx: float
+    cy: float
+    n_points: int
+
+
+def _render_date(spec: SceneSpec, q: int, out: Path, frame: Sim3, cam: _Camera, tex_cache, advance) -> list[str]:
+    """Date ``q``'s dataset under ``out/<name>``, written atomically: the images, the object-id masks,
+    the changed masks against every other date, and the COLMAP model of its SfM points. Returns the
+    image names."""
+    import pycolmap
+
+    nd = len(spec.dates)
+    date = spec.dates[q]
+    beauty = _Loaded(spec, q, q, aov=False)
+    own = _Loaded(spec, q, q, aov=True)
+    others = {p: _Loaded(spec, p, q, aov=True) for p in range(nd) if p != q}
+    names = [f"img_{i:03d}.png" for i in range(len(date.cam_from_world))]
+    with atomic_directory(out / date.name) as tmp:
+        tmp = Path(tmp)
+        for sub in ("images", "sparse/0", "masks/ids", *(f"masks/changed_vs_{spec.dates[p].name}" for p in others)):
+            (tmp / sub).mkdir(parents=True, exist_ok=True)
+        rgbs, aovs = [], []
+        for i, name in enumerate(names):
+            seed = int(np.random.default_rng([spec.seed, q, i]).integers(2**31))
+            exposure = [*[2.0**date.exposure_ev] * 3, 1]
+            img = _straight_rgba(beauty.render(i, seed), sky_radiance(spec, q)) * exposure
+            write_image(tmp / "images" / name, img.astype(np.float32), linear=True, captured=date.captured)
+            rgbs.append(_read_srgb(tmp / "images" / name))  # the 8-bit colours SfM would see
+            ids, pos, uv = own.aov(i, seed)
+            aovs.append((ids, pos))
+            _write_mask(tmp / "masks/ids" / name, ids)
+            for p, loaded in others.items():
+                ids_p, pos_p, uv_p = loaded.aov(i, seed)
+                ch = _changed(spec, q, p, ids, pos, uv, ids_p, pos_p, uv_p, tex_cache)
+                _write_mask(tmp / f"masks/changed_vs_{spec.dates[p].name}" / name, ch.astype(np.int32) * 255)
+                advance()
+            advance()
+        obs, xyz, colors, objects = _sample_points(spec, q, rgbs, aovs, cam.fx, cam.cx, cam.cy, cam.n_points)
+        point_ids = _write_colmap(
+            pycolmap, tmp / "sparse/0", spec, q, names, frame, obs, xyz, colors, cam.fx, cam.cx, cam.cy
+        )
+        (tmp / "masks/points3D_objects.json").write_text(json.dumps(dict(zip(map(str, point_ids), objects))))
+    return names
+
+
+def _date_truth(spec: SceneSpec, q: int, names: list[str], frame: Sim3) -> dict:
+    """Date ``q``'s entry of ``ground_truth.json``: objects present, variants, lighting, frame, cameras."""
+    date = spec.dates[q]
+    return {
+        "name": date.name,
+        "captured": date.captured,
+        "coverage": date.coverage,
+        "present": {o.name: bool(o.present[q]) for o in spec.objects},
+        "variant": {o.name: int(o.variant[q]) for o in spec.objects},
+        "lighting": {
+            "sun_azimuth_deg": date.sun_azimuth_deg,
+            "sun_elevation_deg": date.sun_elevation_deg,
+            "cct_kelvin": date.cct_kelvin,
+            "exposure_ev": date.exposure_ev,
+        },
+        "date_from_world": frame.to_dict(),
+        "world_from_date": frame.inverse().to_dict(),
+        "cameras_world": {n: np.asarray(m).tolist() for n, m in zip(names, date.cam_from_world)},
+    }
+
+
 def render_dataset(
     spec: SceneSpec, out: str | Path, *, dates=None, points_per_image: int | None = None, progress: bool = True
 ) -> Path:
     """Render the dates of ``spec`` (all, or the indices in ``dates``) and write their datasets and
     the ground truth under ``out``."""
-    import pycolmap
     from rich.progress import Progress
 
     out = ensure_writable_dir(out)
@@ -210,8 +281,7 @@ def render_dataset(
     rng = np.random.default_rng([spec.seed, 99])
     frames = [Sim3.random(rng) for _ in range(nd)]  # date_from_world
     fx = 0.5 * spec.width / np.tan(np.radians(spec.fov_x_deg) / 2)
-    cx, cy = spec.width / 2, spec.height / 2
-    n_points = points_per_image or max(40, spec.width * spec.height // 250)
+    cam = _Camera(fx, spec.width / 2, spec.height / 2, points_per_image or max(40, spec.width * spec.height // 250))
     textures: dict = {}
 
     def tex_cache(k, date):
@@ -228,62 +298,8 @@ def render_dataset(
     with Progress(disable=not progress, transient=True) as bar:
         task = bar.add_task(f"rendering {spec.preset}", total=total * (1 + nd))
         for q in todo:
-            date = spec.dates[q]
-            n_img = len(date.cam_from_world)
-            beauty = _Loaded(spec, q, q, aov=False)
-            own = _Loaded(spec, q, q, aov=True)
-            others = {p: _Loaded(spec, p, q, aov=True) for p in range(nd) if p != q}
-            with atomic_directory(out / date.name) as tmp:
-                tmp = Path(tmp)
-                for sub in (
-                    "images",
-                    "sparse/0",
-                    "masks/ids",
-                    *(f"masks/changed_vs_{spec.dates[p].name}" for p in others),
-                ):
-                    (tmp / sub).mkdir(parents=True, exist_ok=True)
-                names = [f"img_{i:03d}.png" for i in range(n_img)]
-                rgbs, aovs = [], []
-                for i, name in enumerate(names):
-                    seed = int(np.random.default_rng([spec.seed, q, i]).integers(2**31))
-                    img = _straight_rgba(beauty.render(i, seed), sky_radiance(spec, q)) * [
-                        *[2.0**date.exposure_ev] * 3,
-                        1,
-                    ]
-                    write_image(tmp / "images" / name, img.astype(np.float32), linear=True, captured=date.captured)
-                    rgbs.append(_read_srgb(tmp / "images" / name))  # the 8-bit colours SfM would see
-                    ids, pos, uv = own.aov(i, seed)
-                    aovs.append((ids, pos))
-                    _write_mask(tmp / "masks/ids" / name, ids)
-                    for p, loaded in others.items():
-                        ids_p, pos_p, uv_p = loaded.aov(i, seed)
-                        ch = _changed(spec, q, p, ids, pos, uv, ids_p, pos_p, uv_p, tex_cache)
-                        _write_mask(tmp / f"masks/changed_vs_{spec.dates[p].name}" / name, ch.astype(np.int32) * 255)
-                        bar.advance(task)
-                    bar.advance(task)
-                obs, xyz, colors, objects = _sample_points(spec, q, rgbs, aovs, fx, cx, cy, n_points)
-                point_ids = _write_colmap(
-                    pycolmap, tmp / "sparse/0", spec, q, names, frames[q], obs, xyz, colors, fx, cx, cy
-                )
-                (tmp / "masks/points3D_objects.json").write_text(json.dumps(dict(zip(map(str, point_ids), objects))))
-            gt_dates.append(
-                {
-                    "name": date.name,
-                    "captured": date.captured,
-                    "coverage": date.coverage,
-                    "present": {o.name: bool(o.present[q]) for o in spec.objects},
-                    "variant": {o.name: int(o.variant[q]) for o in spec.objects},
-                    "lighting": {
-                        "sun_azimuth_deg": date.sun_azimuth_deg,
-                        "sun_elevation_deg": date.sun_elevation_deg,
-                        "cct_kelvin": date.cct_kelvin,
-                        "exposure_ev": date.exposure_ev,
-                    },
-                    "date_from_world": frames[q].to_dict(),
-                    "world_from_date": frames[q].inverse().to_dict(),
-                    "cameras_world": {n: np.asarray(m).tolist() for n, m in zip(names, date.cam_from_world)},
-                }
-            )
+            names = _render_date(spec, q, out, frames[q], cam, tex_cache, lambda: bar.advance(task))
+            gt_dates.append(_date_truth(spec, q, names, frames[q]))
     gt = {
         "format": FORMAT,
         "preset": spec.preset,

@@ -180,6 +180,67 @@ def _adapt_density(c: _Carry, it: int, config: TrainConfig, extent: float) -> _C
     return dataclasses.replace(c, state=state)
 
 
+@dataclasses.dataclass
+class _Training:
+    """One training run's fixed inputs and the pieces of its loop: the step on one drawn view (with
+    INRIA's evaluation and density schedule after it) and the checkpoint."""
+
+    scene: Scene
+    config: TrainConfig
+    render_config: splat.RenderConfig
+    train_idx: np.ndarray
+    test_idx: np.ndarray
+    lpips_net: str | None
+    eval_steps: Sequence[int]
+    ckpt: Path | None
+
+    def __post_init__(self):
+        self.cameras = [self.scene.cameras[i] for i in self.train_idx]
+        # RGBA when the dataset has alpha, else alpha 1
+        self.images = [jnp.asarray(self.scene.load_image(int(i), with_alpha=True)) for i in self.train_idx]
+        self.extent = scene_extent(self.scene.cameras)
+
+    def compiled(self, capacity: int):
+        rc = dataclasses.replace(self.render_config, capacity=capacity)
+        return _compiled_step(self.config, self.extent, rc)
+
+    def evaluate(self, gaussians: Gaussians) -> dict:
+        return evaluate(
+            gaussians, self.scene, self.test_idx, render_config=self.render_config, lpips_net=self.lpips_net
+        )
+
+    def body(self, c: _Carry, k: int, bar: Progress) -> _Carry:
+        config = self.config
+        it, v = k + 1, view_order(config.seed, k, len(self.cameras))  # ``it`` 1-based like INRIA's loop
+        (state, stats), capacity = step_with_capacity(
+            self.compiled,
+            c.capacity,
+            (c.state, self.cameras[v], self.images[v]),
+            required=lambda: _render_capacity(c.state, [self.cameras[v]], self.render_config),
+            overflowed=lambda out: out[1]["overflowed"],
+        )
+        c = dataclasses.replace(c, state=state, capacity=capacity, psnr=float(stats["psnr"]))
+        c.losses.append(float(stats["loss"]))
+        # like INRIA's training_report: evaluated before this step's densification / reset
+        if ((config.eval_every and it % config.eval_every == 0) or it in self.eval_steps) and len(self.test_idx):
+            m = self.evaluate(c.state.gaussians())
+            c.eval_history.append({"step": it} | {k: v for k, v in m.items() if k in ("psnr", "ssim", "lpips")})
+            bar.note(f"step {it:,}: test PSNR {m['psnr']:.2f} dB, SSIM {m['ssim']:.4f}")
+        return _adapt_density(c, it, config, self.extent)
+
+    def save(self, c: _Carry, done: int):
+        save_checkpoint(
+            self.ckpt,
+            c.state,
+            config=self.config,
+            extent=self.extent,
+            render_capacity=c.capacity,
+            losses=c.losses,
+            counts=c.counts,
+            eval_history=c.eval_history,
+        )
+
+
 def fit(
     scene: Scene,
     config: TrainConfig,
@@ -202,75 +263,35 @@ def fit(
     steps (as if killed there; checkpoints first). ``eval_steps``: also evaluate the test split after these
     steps (into ``eval_history``, like ``config.eval_every``)."""
     render_config = render_config or splat.RenderConfig()
-    train_idx, test_idx = _splits(scene, config)
-    cameras = [scene.cameras[i] for i in train_idx]
-    images = [jnp.asarray(scene.load_image(int(i), with_alpha=True)) for i in train_idx]  # alpha 1 if none
-    extent = scene_extent(scene.cameras)
     ckpt = Path(out) / CHECKPOINT if out is not None else None
-    carry = _start(
-        scene, config, init, ckpt if resume else None, make_optimizer(config, extent), cameras, render_config
-    )
+    run = _Training(scene, config, render_config, *_splits(scene, config), lpips_net, eval_steps, ckpt)
+    optimizer = make_optimizer(config, run.extent)
+    carry = _start(scene, config, init, ckpt if resume else None, optimizer, run.cameras, render_config)
     if ckpt is not None:
         ensure_writable_dir(ckpt.parent)
-
-    def evaluate_test(c: _Carry, it: int, bar: Progress):
-        m = evaluate(c.state.gaussians(), scene, test_idx, render_config=render_config, lpips_net=lpips_net)
-        c.eval_history.append({"step": it} | {k: v for k, v in m.items() if k in ("psnr", "ssim", "lpips")})
-        bar.note(f"step {it:,}: test PSNR {m['psnr']:.2f} dB, SSIM {m['ssim']:.4f}")
-
-    def body(c: _Carry, k: int, bar: Progress) -> _Carry:
-        it, v = k + 1, view_order(config.seed, k, len(cameras))  # ``it`` 1-based like INRIA's loop
-        (state, stats), capacity = step_with_capacity(
-            lambda cap: _compiled_step(config, extent, dataclasses.replace(render_config, capacity=cap)),
-            c.capacity,
-            (c.state, cameras[v], images[v]),
-            required=lambda: _render_capacity(c.state, [cameras[v]], render_config),
-            overflowed=lambda out: out[1]["overflowed"],
-        )
-        c = dataclasses.replace(c, state=state, capacity=capacity, psnr=float(stats["psnr"]))
-        c.losses.append(float(stats["loss"]))
-        # like INRIA's training_report: evaluated before this step's densification / reset
-        if ((config.eval_every and it % config.eval_every == 0) or it in eval_steps) and len(test_idx):
-            evaluate_test(c, it, bar)
-        return _adapt_density(c, it, config, extent)
-
-    def save(c: _Carry, done: int):
-        save_checkpoint(
-            ckpt,
-            c.state,
-            config=config,
-            extent=extent,
-            render_capacity=c.capacity,
-            losses=c.losses,
-            counts=c.counts,
-            eval_history=c.eval_history,
-        )
-
     t0 = time.perf_counter()
     with Progress("train", total=config.steps, completed=int(carry.state.step), enabled=progress) as bar:
         carry, _ = run_steps(
-            functools.partial(body, bar=bar),
+            functools.partial(run.body, bar=bar),
             carry,
             start=int(carry.state.step),
             steps=config.steps,
             stop_after=stop_after,
             checkpoint_every=config.checkpoint_every,
-            save=save if ckpt is not None else None,
+            save=run.save if ckpt is not None else None,
             save_at_end=True,
             progress=bar,
             info=lambda c: f"loss {c.losses[-1]:.4f}  PSNR {c.psnr:.2f} dB  {c.counts[-1][1]:,} Gaussians",
         )
     finished = int(carry.state.step) >= config.steps
     gaussians = carry.state.gaussians()
-    metrics: dict = {}
-    if finished and evaluate_at_end and len(test_idx):
-        metrics = evaluate(gaussians, scene, test_idx, render_config=render_config, lpips_net=lpips_net)
+    metrics = run.evaluate(gaussians) if finished and evaluate_at_end and len(run.test_idx) else {}
     seconds = time.perf_counter() - t0
     return TrainRun(
         carry.state,
         gaussians,
         config,
-        extent,
+        run.extent,
         carry.losses,
         carry.counts,
         metrics,
