@@ -5,37 +5,17 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 
 def quat_to_matrix(q_wxyz) -> np.ndarray:
-    w, x, y, z = np.asarray(q_wxyz, np.float64) / np.linalg.norm(q_wxyz)
-    return np.array(
-        [
-            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-        ]
-    )
+    """Unit-normalised wxyz quaternion → rotation matrix (float64; scipy's ``Rotation``)."""
+    return Rotation.from_quat(np.asarray(q_wxyz, np.float64), scalar_first=True).as_matrix()
 
 
 def matrix_to_quat(r: np.ndarray) -> np.ndarray:
-    """Rotation matrix → unit quaternion (w, x, y, z) with w ≥ 0 (Shepperd's method)."""
-    r = np.asarray(r, np.float64)
-    t = np.trace(r)
-    if t > 0:
-        s = 2.0 * np.sqrt(1.0 + t)
-        q = [0.25 * s, (r[2, 1] - r[1, 2]) / s, (r[0, 2] - r[2, 0]) / s, (r[1, 0] - r[0, 1]) / s]
-    else:
-        i = int(np.argmax(np.diag(r)))
-        j, k = (i + 1) % 3, (i + 2) % 3
-        s = 2.0 * np.sqrt(1.0 + r[i, i] - r[j, j] - r[k, k])
-        q = np.zeros(4)
-        q[0] = (r[k, j] - r[j, k]) / s
-        q[1 + i] = 0.25 * s
-        q[1 + j] = (r[j, i] + r[i, j]) / s
-        q[1 + k] = (r[k, i] + r[i, k]) / s
-    q = np.asarray(q, np.float64)
-    return q * (1 if q[0] >= 0 else -1)
+    """Rotation matrix → unit quaternion (w, x, y, z) with w ≥ 0 (float64; scipy's ``Rotation``)."""
+    return Rotation.from_matrix(np.asarray(r, np.float64)).as_quat(canonical=True, scalar_first=True)
 
 
 @dataclasses.dataclass(frozen=True)
