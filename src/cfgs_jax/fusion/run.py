@@ -412,21 +412,24 @@ def run_fusion(
         return run
     if len(names) == 1 and not run.done("refine"):
         _identity_for_one_date(run)
-    views = [date_views(scenes[i], sims[i]) for i in range(len(names))]
 
-    # 4. cross-timestep initialisation, resumable per pair
+    # 4.–6. cross-timestep initialisation, refinement and final prune, export (and evaluation)
+    _fuse_merged(run, scenes, sims, render_config, snapshots, evaluate, progress, log)
+    return run
+
+
+def _fuse_merged(run: FusionRun, scenes, sims, render_config, snapshots, evaluate: bool, progress: bool, log) -> None:
+    """The stages after the merge: cross-timestep initialisation of every ordered pair (resumable per
+    pair), refinement and final prune, the export in the authors' layout, and the evaluation."""
+    t = len(run.names)
+    views = [date_views(scenes[i], sims[i]) for i in range(t)]
     if not run.done("cross_init"):
-        pairs = [(p, q) for p in range(len(names)) for q in range(len(names)) if p != q]
+        pairs = [(p, q) for p in range(t) for q in range(t) if p != q]
         _cross_init_pairs(run, run.out / "merged", pairs, views, render_config, log, "cross_init", "cross_init")
-
-    # 5. refinement and final prune
     if not run.done("refine"):
         _refine_stage(run, views, scenes, render_config, progress, log, "refine", snapshots)
-
-    # 6. export in the authors' layout too
     run.stage("export", lambda: _export_reference(run))
     _evaluate_stage(run, scenes, sims, render_config, evaluate, log)
-    return run
 
 
 def _merge_dates(run: FusionRun, given, model_paths, sims, drop_invalid: bool) -> dict:

@@ -44,13 +44,12 @@ def _rotation(q):
     return eye + 2 * w[:, None, None] * vx + 2 * vx @ vx
 
 
-def _render64(g: Gaussians, camera: Camera, opacity_mult, color_mult, background, config: RenderConfig, depth_key=None):
+def _project64(g: Gaussians, camera: Camera, opac, config: RenderConfig) -> dict:
+    """EWA projection in float64: camera-space depth z, 2D means, inverse 2D covariances (with the
+    ``eps2d`` dilation), the tile rectangles [lo, hi) of the 3σ radius, and which Gaussians are
+    visible (in front of ``near``, finite footprint, some date with opacity ≥ ``min_alpha``)."""
     f64 = jnp.float64
     means, quats, log_scales = g.means.astype(f64), g.quats.astype(f64), g.log_scales.astype(f64)
-    alpha0 = jax.nn.sigmoid(g.opacity_logits.astype(f64))
-    colors = jnp.maximum(g.colors.astype(f64), 0.0)
-    opac = alpha0[None] * opacity_mult.astype(f64)  # [T, N]
-    feats = colors[None] * color_mult.astype(f64)  # [T, N, 3]
     view = camera.cam_from_world.astype(f64)
     fx, fy, cx, cy = (jnp.asarray(v, f64) for v in (camera.fx, camera.fy, camera.cx, camera.cy))
     w_, h_ = camera.width, camera.height
@@ -71,7 +70,6 @@ def _render64(g: Gaussians, camera: Camera, opacity_mult, color_mult, background
     det = jnp.linalg.det(sigma2)
     visible &= det > 0
     safe = jnp.where(visible[:, None, None], sigma2, jnp.eye(2, dtype=f64))
-    inv = jnp.linalg.inv(safe)
     a, b, c = safe[:, 0, 0], safe[:, 0, 1], safe[:, 1, 1]
     d = a * c - b * b
     mid = (a + c) / 2
@@ -84,7 +82,19 @@ def _render64(g: Gaussians, camera: Camera, opacity_mult, color_mult, background
     hi = jnp.clip(jnp.floor((centre + radius[:, None] + ts - 1) / ts), 0, grid)
     visible &= (radius > 0) & jnp.all(hi > lo, axis=-1)
     visible &= jnp.any(opac >= config.min_alpha, axis=0)
+    return {"z": z, "mean2d": mean2d, "inv": jnp.linalg.inv(safe), "lo": lo, "hi": hi, "visible": visible}
 
+
+def _render64(g: Gaussians, camera: Camera, opacity_mult, color_mult, background, config: RenderConfig, depth_key=None):
+    """Front-to-back alpha compositing of every date in float64, one Gaussian at a time in depth order
+    (``jax.lax.scan``): the same rules as the kernel, without tiles' intersection lists."""
+    f64 = jnp.float64
+    alpha0 = jax.nn.sigmoid(g.opacity_logits.astype(f64))
+    opac = alpha0[None] * opacity_mult.astype(f64)  # [T, N]
+    feats = jnp.maximum(g.colors.astype(f64), 0.0)[None] * color_mult.astype(f64)  # [T, N, 3]
+    p = _project64(g, camera, opac, config)
+    z, mean2d, inv, lo, hi, visible = (p[k] for k in ("z", "mean2d", "inv", "lo", "hi", "visible"))
+    w_, h_, ts = camera.width, camera.height, config.tile_size
     py, px = jnp.meshgrid(jnp.arange(h_, dtype=f64), jnp.arange(w_, dtype=f64), indexing="ij")
     tile_x, tile_y = jnp.floor(px / ts), jnp.floor(py / ts)
     key = z if depth_key is None else jnp.asarray(depth_key, f64)  # depth_key: compositing order override
@@ -115,8 +125,9 @@ def _render64(g: Gaussians, camera: Camera, opacity_mult, color_mult, background
         jnp.zeros((n_t, h_, w_), bool),
     )
     (t, col, dep, _), (maxw_sorted, hits_sorted) = jax.lax.scan(step, init, order)
-    maxw = jnp.zeros((n_t, means.shape[0]), f64).at[:, order].set(maxw_sorted.T)
-    hits = jnp.zeros((n_t, means.shape[0]), jnp.int32).at[:, order].set(hits_sorted.T.astype(jnp.int32))
+    n = g.means.shape[0]
+    maxw = jnp.zeros((n_t, n), f64).at[:, order].set(maxw_sorted.T)
+    hits = jnp.zeros((n_t, n), jnp.int32).at[:, order].set(hits_sorted.T.astype(jnp.int32))
     image = col + t[..., None] * jnp.asarray(background, f64)
     return ReferenceResult(image, 1 - t, dep, maxw, hits)
 
