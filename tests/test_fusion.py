@@ -824,3 +824,30 @@ def test_visibility_rule_leaves_persistence_out_and_zeroes_hidden_gaussians():
     kept = np.asarray(out.o_logits)
     np.testing.assert_allclose(np.asarray(out.gaussians.means), means[[0, 1, 3]], atol=1e-6)
     assert np.isclose(kept[2, 1], logit(0.012), atol=1e-6)  # faint o, in view: kept
+
+
+def test_compact_cli_merges_in_place_reports_and_refuses_twice(fused_run, tmp_path):
+    """`compact --run`: the model before is kept, the fused model and the authors' layout hold the
+    compacted one (its count as reported), the report has every date's test metrics before and after,
+    and a second compaction is refused. Loose criteria make sure some Gaussians do merge here."""
+    import json
+    import shutil
+
+    from cfgs_jax.io import read_fused
+    from cfgs_jax.pipeline import main
+
+    run = tmp_path / "run"
+    shutil.copytree(fused_run[0], run)
+    loose = ["--set", "compact.max_distance=3.0", "--set", "compact.max_colour_difference=0.3"]
+    args = ["compact", "--run", str(run), "--set", "compact.refine_steps=4", *loose, "--no-progress"]
+    assert main(args) == 0
+    report = json.loads((run / "compact.json").read_text())
+    before, after = read_fused(run / "before_compact"), read_fused(run / "fused")
+    assert report["gaussians_before"] == len(before) and report["gaussians_after"] == len(after) < len(before)
+    assert sum(report["per_date_after"].values()) == len(before) - (len(before) - len(after))
+    assert len(read_fused(run / "reference")) == len(after)
+    assert set(report["test_before"]) == set(report["test_after"]) == set(after.date_names)
+    metrics = json.loads((run / "metrics.json").read_text())
+    assert metrics["mean"]["psnr"] == pytest.approx(report["test_mean_after"]["psnr"])
+    assert main(args) != 0  # "this run is compacted already"
+    assert len(read_fused(run / "fused")) == len(after)

@@ -297,6 +297,31 @@ def _add_extend(sub, prog: str) -> None:
     _progress_arg(s)
 
 
+def _add_compact(sub, prog: str) -> None:
+    s = _command(
+        sub,
+        "compact",
+        "merge the copies of persistent surfaces in a fused run (cross-timestep pruning)",
+        "Finds Gaussians of different dates that draw the same unchanged surface (overlapping, alike, "
+        "present at the same dates), merges each group into one, and refines briefly to recover. The "
+        "run is updated in place; the model before is kept in RUN/before_compact and the report "
+        "(Gaussians and test PSNR/SSIM/LPIPS before and after, per date) is RUN/compact.json. The "
+        "criteria are the [compact] table of the run's configuration.",
+        ["--run runs/corals", "--run runs/corals --set compact.max_distance=0.3 --set compact.refine_steps=1000"],
+        prog,
+    )
+    s.add_argument("--run", required=True, help="run directory of a finished `fuse` (updated in place)")
+    s.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="compact.KEY=VALUE",
+        dest="overrides",
+        help="override one [compact] value of the run's configuration (repeatable)",
+    )
+    _progress_arg(s)
+
+
 def _add_eval(sub, prog: str) -> None:
     from cfgs_jax.synthetic.presets import PRESETS
 
@@ -464,6 +489,7 @@ def build_parser(prog: str | None = None) -> argparse.ArgumentParser:
         _add_train,
         _add_fuse,
         _add_extend,
+        _add_compact,
         _add_eval,
         _add_sweep,
         _add_render,

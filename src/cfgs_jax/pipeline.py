@@ -447,6 +447,33 @@ def cmd_extend(args) -> int:
     return 0
 
 
+def cmd_compact(args) -> int:
+    from cfgs_jax.config import apply_overrides, section
+    from cfgs_jax.fusion.compact import CompactConfig
+    from cfgs_jax.fusion.run import run_compact
+    from cfgs_jax.io.atomic import read_json
+
+    bad = [o for o in args.overrides if not o.startswith("compact.")]
+    if bad:
+        raise InputError(
+            f"only [compact] values can be set here, got {bad}", field="--set", fix="use --set compact.KEY=VALUE"
+        )
+    state = read_json(Path(args.run) / "run.json") or {}
+    raw = apply_overrides({"compact": dict((state.get("config") or {}).get("compact", {}))}, args.overrides)
+    console = _console()
+    config = section(raw, "compact", CompactConfig)
+    run = run_compact(Path(args.run), config, progress=not args.no_progress, log=console.print)
+    rep = run.report["compact"]
+    before, after = rep["test_mean_before"], rep["test_mean_after"]
+    console.print(
+        f"compacted {run.out}: {rep['gaussians_before']:,} → {rep['gaussians_after']:,} Gaussians; test PSNR "
+        f"{before['psnr']:.2f} → {after['psnr']:.2f} dB, SSIM {before['ssim']:.4f} → {after['ssim']:.4f}, "
+        f"LPIPS {before.get('lpips', float('nan')):.4f} → {after.get('lpips', float('nan')):.4f} "
+        "(per date: compact.json)"
+    )
+    return 0
+
+
 def _selection_style(args):
     from cfgs_jax.cli import parse_stops
     from cfgs_jax.render_run import SelectionStyle
@@ -604,6 +631,7 @@ COMMANDS = {
     "train": cmd_train,
     "fuse": cmd_fuse,
     "extend": cmd_extend,
+    "compact": cmd_compact,
     "eval": cmd_eval,
     "sweep": cmd_sweep,
     "render": cmd_render,

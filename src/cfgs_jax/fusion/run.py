@@ -32,6 +32,7 @@ from cfgs_jax import splat, train
 from cfgs_jax.compiled_code import release_if_near_limit
 from cfgs_jax.config import check_sections, section
 from cfgs_jax.errors import InputError
+from cfgs_jax.fusion.compact import CompactConfig, compact
 from cfgs_jax.fusion.cross_init import CrossInitConfig, DateViews, init_pairs, pair_groups
 from cfgs_jax.fusion.fuse import merge
 from cfgs_jax.fusion.refine import RefineConfig, refine
@@ -52,6 +53,7 @@ CONFIG_SECTIONS = {
     "register": RegisterConfig,
     "cross_init": CrossInitConfig,
     "refine": RefineConfig,
+    "compact": CompactConfig,
 }
 #: o-logit of every Gaussian of a one-date "fusion": σ(30) rounds to exactly 1.0 in float32, so the
 #: fused model renders bit-identically to its input.
@@ -428,6 +430,11 @@ def _fuse_merged(run: FusionRun, scenes, sims, render_config, snapshots, evaluat
         _cross_init_pairs(run, run.out / "merged", pairs, views, render_config, log, "cross_init", "cross_init")
     if not run.done("refine"):
         _refine_stage(run, views, scenes, render_config, progress, log, "refine", snapshots)
+    compact_config = section(run.raw, "compact", CompactConfig)
+    if compact_config.enabled and t > 1:
+        run.stage(
+            "compact", lambda: compact_stage(run, compact_config, views, scenes, sims, render_config, progress, log)
+        )
     run.stage("export", lambda: _export_reference(run))
     _evaluate_stage(run, scenes, sims, render_config, evaluate, log)
 
@@ -504,6 +511,68 @@ def _identity_for_one_date(run: FusionRun) -> None:
     for stage, folder in (("cross_init", "cross_init"), ("refine", "fused")):
         write_fused(run.out / folder, identity, config=run.state["config"])
         run.finish(stage, 0.0, {"skipped": "one date: identity", "gaussians_after_prune": len(identity)})
+
+
+def compact_stage(run: FusionRun, config: CompactConfig, views, scenes, sims, render_config, progress, log) -> dict:
+    """Cross-timestep compaction of ``RUN/fused`` (``fusion.compact``), then ``config.refine_steps`` of
+    refinement (α not halved) to recover what the merge moved → ``RUN/fused``; the model before is kept
+    in ``RUN/before_compact``. Returns the report: Gaussians before/after per date and in all, and
+    each date's test PSNR / SSIM / LPIPS before and after."""
+    from cfgs_jax.fusion.evaluate import evaluate_fused
+
+    model = read_fused(run.out / "fused")
+    test_views = [date_views(sc, sm, "test") for sc, sm in zip(scenes, sims)]
+    before = evaluate_fused(model, test_views, render_config=render_config)
+    write_fused(run.out / "before_compact", model, config=run.state["config"])
+    compacted, report = compact(model, config)
+    log(
+        f"[compact] {report['gaussians_before']:,} → {report['gaussians_after']:,} Gaussians "
+        f"({report['groups_merged']:,} groups merged); {config.refine_steps:,} refinement steps"
+    )
+    if config.refine_steps:
+        rc = dataclasses.replace(section(run.raw, "refine", RefineConfig), steps=config.refine_steps, halve_alpha=False)
+        extent = train.scene_extent(scenes[run.reference].cameras)
+        tc = section(run.raw, "train", train.TrainConfig)
+        compacted, refined = refine(
+            compacted,
+            views,
+            rc,
+            extent=extent,
+            train_config=tc,
+            new_dates=[],
+            render_config=render_config,
+            progress=progress,
+        )
+        report["refine"] = refined
+        report["gaussians_after"] = len(compacted)
+    write_fused(run.out / "fused", compacted, config=run.state["config"])
+    after = evaluate_fused(compacted, test_views, render_config=render_config)
+    report["test_before"], report["test_after"] = before["dates"], after["dates"]
+    report["test_mean_before"], report["test_mean_after"] = before["mean"], after["mean"]
+    write_json(run.out / "compact.json", report)
+    write_json(run.out / "metrics.json", after)
+    return report
+
+
+def run_compact(run_dir: Path, config: CompactConfig, *, progress: bool = True, log=print) -> FusionRun:
+    """Compact a finished fusion run in place (``compact_stage``), then export and evaluate it again."""
+    run_dir = Path(run_dir)
+    state = read_json(run_dir / "run.json")
+    if state is None or not (run_dir / "fused").is_dir() or "refine" not in state.get("done", ()):
+        raise InputError("not a finished fusion run", path=run_dir, fix="run `fuse` first (or --resume it)")
+    if "compact" in state["done"]:
+        raise InputError(
+            "this run is compacted already", path=run_dir / "compact.json", fix="compact a copy of the run before it"
+        )
+    run = FusionRun(run_dir, [Path(d["path"]) for d in state["dates"]], state["config"], resume=True)
+    render_config = section(run.raw, "render", splat.RenderConfig)
+    reg = read_json(run.out / "register.json")
+    sims = [Sim3.from_dict(reg[n]["transform"]) for n in run.names]
+    scenes = [run.scene(i) for i in range(len(run.names))]
+    views = [date_views(scenes[i], sims[i]) for i in range(len(run.names))]
+    run.stage("compact", lambda: compact_stage(run, config, views, scenes, sims, render_config, progress, log))
+    _export_reference(run)
+    return run
 
 
 def _export_reference(run: FusionRun) -> None:

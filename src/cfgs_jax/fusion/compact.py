@@ -1,0 +1,196 @@
+"""Cross-timestep compaction: one Gaussian for a surface that persists, not one per date.
+
+A fused model keeps every date's Gaussians, so a surface that never changed is drawn by T stacked
+copies, one per date. Two Gaussians i (trained on date p) and j (trained on date q ≠ p) are taken as
+copies of one persistent surface when all of these hold:
+
+- each is shown at the other's date: o_i^q ≥ ``present`` and o_j^p ≥ ``present``;
+- they agree on every date's presence: max_r |o_i^r − o_j^r| ≤ ``max_o_difference`` (so a Gaussian
+  that marks a change is never merged with one that does not);
+- they overlap: |μ_i − μ_j| ≤ ``max_distance`` · (s̄_i + s̄_j)/2, with s̄ the geometric mean of a
+  Gaussian's three scales, and |log s̄_i − log s̄_j| ≤ ``max_log_scale_ratio``;
+- they look alike: max over RGB of |c_i − c_j| ≤ ``max_colour_difference`` and
+  |α_i − α_j| ≤ ``max_opacity_difference``;
+- they are mutual nearest neighbours (by centre) among date p's and date q's candidates.
+
+Pairs join into groups (connected components over all date pairs). A group becomes one Gaussian:
+centre, colour and light the α-weighted means, covariance the α-weighted moment match
+Σ = Σ_k w_k (Σ_k + (μ_k − μ)(μ_k − μ)ᵀ), opacity the stack's coverage 1 − Π_k (1 − α_k) (at most
+``max_alpha``), o^r the largest of the group's at each date r, and the origin of its most opaque
+member. A short refinement afterwards (``CompactConfig.refine_steps``) recovers what the merge moved.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+from scipy.spatial import cKDTree
+from scipy.spatial.transform import Rotation
+
+from cfgs_jax.errors import InputError
+from cfgs_jax.fusion.light import light_logits
+from cfgs_jax.model import Gaussians, TemporalGaussians, logit, rgb, select
+
+
+@dataclasses.dataclass(frozen=True)
+class CompactConfig:
+    """When two dates' Gaussians count as one persistent surface (the module docstring), and the
+    refinement that follows. ``enabled``: run the stage in ``fuse``/``extend`` after refinement."""
+
+    enabled: bool = False
+    present: float = 0.5
+    max_o_difference: float = 0.2
+    max_distance: float = 0.5
+    max_log_scale_ratio: float = 0.7
+    max_colour_difference: float = 0.1
+    max_opacity_difference: float = 0.3
+    max_alpha: float = 0.99
+    refine_steps: int = 500
+
+    def __post_init__(self):
+        for name in ("present", "max_o_difference", "max_colour_difference", "max_opacity_difference"):
+            if not 0 <= getattr(self, name) <= 1:
+                raise InputError(f"must be in [0, 1], got {getattr(self, name)}", field=f"compact.{name}")
+        for name in ("max_distance", "max_log_scale_ratio"):
+            if getattr(self, name) < 0:
+                raise InputError(f"must be ≥ 0, got {getattr(self, name)}", field=f"compact.{name}")
+        if not 0 < self.max_alpha < 1:
+            raise InputError(f"must be in (0, 1), got {self.max_alpha}", field="compact.max_alpha")
+        if self.refine_steps < 0:
+            raise InputError(f"must be ≥ 0, got {self.refine_steps}", field="compact.refine_steps")
+
+
+def _attributes(model: TemporalGaussians) -> dict:
+    g = model.gaussians
+    return {
+        "mean": np.asarray(g.means, np.float64),
+        "size": np.exp(np.mean(np.asarray(g.log_scales, np.float64), axis=-1)),
+        "alpha": np.asarray(jax.nn.sigmoid(g.opacity_logits), np.float64),
+        "colour": np.asarray(rgb(g), np.float64),
+        "o": np.asarray(jax.nn.sigmoid(model.o_logits), np.float64),
+        "origin": np.asarray(model.origin),
+    }
+
+
+def _pair_edges(a: dict, p: int, q: int, config: CompactConfig) -> np.ndarray:
+    """[E, 2] row indices (i from date p, j from date q) of the pairs that meet every criterion."""
+    cand_p = np.nonzero((a["origin"] == p) & (a["o"][:, q] >= config.present))[0]
+    cand_q = np.nonzero((a["origin"] == q) & (a["o"][:, p] >= config.present))[0]
+    if not len(cand_p) or not len(cand_q):
+        return np.zeros((0, 2), np.int64)
+    _, near_q = cKDTree(a["mean"][cand_q]).query(a["mean"][cand_p])
+    _, near_p = cKDTree(a["mean"][cand_p]).query(a["mean"][cand_q])
+    mutual = near_p[near_q] == np.arange(len(cand_p))
+    i, j = cand_p[mutual], cand_q[near_q[mutual]]
+    dist = np.linalg.norm(a["mean"][i] - a["mean"][j], axis=-1)
+    ok = dist <= config.max_distance * 0.5 * (a["size"][i] + a["size"][j])
+    ok &= np.abs(np.log(a["size"][i] / a["size"][j])) <= config.max_log_scale_ratio
+    ok &= np.max(np.abs(a["o"][i] - a["o"][j]), axis=-1) <= config.max_o_difference
+    ok &= np.max(np.abs(a["colour"][i] - a["colour"][j]), axis=-1) <= config.max_colour_difference
+    ok &= np.abs(a["alpha"][i] - a["alpha"][j]) <= config.max_opacity_difference
+    return np.stack([i[ok], j[ok]], axis=-1)
+
+
+def duplicate_groups(model: TemporalGaussians, config: CompactConfig | None = None) -> np.ndarray:
+    """[N] group label per Gaussian: Gaussians with the same label are copies of one persistent surface
+    (labels of Gaussians without a copy are their own and unique)."""
+    config = config or CompactConfig()
+    a = _attributes(model)
+    t, n = model.num_dates, len(model)
+    edges = [_pair_edges(a, p, q, config) for p in range(t) for q in range(p + 1, t)]
+    edges = np.concatenate(edges) if edges else np.zeros((0, 2), np.int64)
+    graph = coo_matrix((np.ones(len(edges)), (edges[:, 0], edges[:, 1])), shape=(n, n))
+    return connected_components(graph, directed=False)[1]
+
+
+def _covariances(g: Gaussians) -> np.ndarray:
+    rot = Rotation.from_quat(np.asarray(g.quats, np.float64), scalar_first=True).as_matrix()
+    var = np.exp(2.0 * np.asarray(g.log_scales, np.float64))
+    return np.einsum("nij,nj,nkj->nik", rot, var, rot)
+
+
+def merge_groups(model: TemporalGaussians, labels: np.ndarray, config: CompactConfig | None = None):
+    """One Gaussian per group of ``labels`` (the module docstring's merge), in the place of the group's
+    most opaque member; returns the model and the [N] mask of the rows kept."""
+    config = config or CompactConfig()
+    a = _attributes(model)
+    n = len(model)
+    _, group, size = np.unique(labels, return_inverse=True, return_counts=True)
+    keeper = np.zeros(len(size), np.int64)
+    order = np.lexsort((-a["alpha"], group))  # by group, most opaque first
+    first = np.ones(n, bool)
+    first[1:] = group[order][1:] != group[order][:-1]
+    keeper[group[order][first]] = order[first]
+    kept = np.zeros(n, bool)
+    kept[keeper] = True
+    multi = size[group] > 1  # rows in a group of two or more
+    if not multi.any():
+        return model, kept
+
+    def group_sum(x):
+        out = np.zeros((len(size),) + x.shape[1:], np.float64)
+        np.add.at(out, group, x)
+        return out
+
+    w = group_sum(a["alpha"])
+    weight = a["alpha"] / w[group]
+    mean = group_sum(weight[:, None] * a["mean"])
+    d = a["mean"] - mean[group]
+    cov = group_sum(weight[:, None, None] * (_covariances(model.gaussians) + d[:, :, None] * d[:, None, :]))
+    var, vec = np.linalg.eigh(cov)
+    vec = vec * np.where(np.linalg.det(vec) < 0, -1.0, 1.0)[:, None, None]  # a proper rotation
+    coverage = np.minimum(1.0 - np.exp(group_sum(np.log1p(-np.minimum(a["alpha"], 1 - 1e-12)))), config.max_alpha)
+    colour = group_sum(weight[:, None] * np.asarray(model.gaussians.colors, np.float64))
+    light = group_sum(weight[:, None, None] * np.asarray(2.0 * jax.nn.sigmoid(model.light_logits), np.float64))
+    o_logits = np.full((len(size), model.num_dates), -np.inf)
+    np.maximum.at(o_logits, group, np.asarray(model.o_logits, np.float64))  # max σ(x) = σ(max x)
+    rows = keeper[size > 1]
+    groups = np.nonzero(size > 1)[0]
+    g = model.gaussians
+    dtype = np.asarray(g.means).dtype
+
+    def put(field, values):
+        x = np.asarray(field).copy()
+        x[rows] = values[groups]
+        return jnp.asarray(x.astype(dtype))
+
+    quats = Rotation.from_matrix(vec[groups]).as_quat(canonical=True, scalar_first=True)
+    quats_all = np.zeros((len(size), 4))
+    quats_all[groups] = quats
+    merged = dataclasses.replace(
+        model,
+        gaussians=Gaussians(
+            put(g.means, mean),
+            put(g.quats, quats_all),
+            put(g.log_scales, 0.5 * np.log(np.maximum(var, 1e-30))),
+            put(g.opacity_logits, np.asarray(logit(coverage))),
+            put(g.colors, colour),
+        ),
+        o_logits=put(model.o_logits, o_logits),
+        light_logits=put(model.light_logits, np.asarray(light_logits(jnp.asarray(light)))),
+    )
+    return merged, kept
+
+
+def compact(model: TemporalGaussians, config: CompactConfig | None = None) -> tuple[TemporalGaussians, dict]:
+    """The model with every group of ``duplicate_groups`` merged into one Gaussian (``merge_groups``)
+    and the others unchanged; and a report (Gaussians before/after per origin date and in all)."""
+    config = config or CompactConfig()
+    labels = duplicate_groups(model, config)
+    merged, kept = merge_groups(model, labels, config)
+    out = select(merged, np.nonzero(kept)[0])
+    origin = np.asarray(model.origin)
+    names = model.date_names
+    report = {
+        "gaussians_before": len(model),
+        "gaussians_after": len(out),
+        "groups_merged": int(np.sum(np.bincount(labels) > 1)),
+        "per_date_before": {names[d]: int(np.sum(origin == d)) for d in range(model.num_dates)},
+        "per_date_after": {names[d]: int(np.sum(origin[kept] == d)) for d in range(model.num_dates)},
+    }
+    return out, report
