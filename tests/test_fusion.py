@@ -851,3 +851,25 @@ def test_compact_cli_merges_in_place_reports_and_refuses_twice(fused_run, tmp_pa
     assert metrics["mean"]["psnr"] == pytest.approx(report["test_mean_after"]["psnr"])
     assert main(args) != 0  # "this run is compacted already"
     assert len(read_fused(run / "fused")) == len(after)
+
+
+def test_fuse_with_compact_enabled_runs_the_stage_before_the_export(tiny_two_dates, tmp_path):
+    """`[compact] enabled = true`: fuse records the compact stage after refinement, and the exported
+    authors' layout and the evaluated model are the compacted one."""
+    import json
+
+    from cfgs_jax.io import read_fused
+    from cfgs_jax.pipeline import main
+
+    root = tiny_two_dates
+    config = tmp_path / "compact.toml"
+    loose = "max_distance = 3.0\nmax_colour_difference = 0.3\nrefine_steps = 2\n"
+    config.write_text((root / "tiny.toml").read_text() + f"\n[compact]\nenabled = true\n{loose}")
+    out = tmp_path / "run"
+    args = ["fuse", "--dates", str(root / "d0"), str(root / "d1"), "--out", str(out), "--config", str(config)]
+    assert main([*args, "--transforms", str(root / "transforms.json"), "--no-progress"]) == 0
+    state = json.loads((out / "run.json").read_text())
+    assert state["done"].index("refine") < state["done"].index("compact") < state["done"].index("export")
+    report = json.loads((out / "compact.json").read_text())
+    assert len(read_fused(out / "fused")) == len(read_fused(out / "reference")) == report["gaussians_after"]
+    assert report["gaussians_after"] < report["gaussians_before"] == len(read_fused(out / "before_compact"))

@@ -114,22 +114,28 @@ def _covariances(g: Gaussians) -> np.ndarray:
     return np.einsum("nij,nj,nkj->nik", rot, var, rot)
 
 
+def _most_opaque(group: np.ndarray, alpha: np.ndarray) -> np.ndarray:
+    """Per group (labels 0 … G−1), the row of its most opaque member."""
+    if not len(group):
+        return np.zeros(0, np.int64)
+    order = np.lexsort((-alpha, group))  # by group, most opaque first
+    first = np.ones(len(group), bool)
+    first[1:] = group[order][1:] != group[order][:-1]
+    keeper = np.zeros(group.max() + 1, np.int64)
+    keeper[group[order][first]] = order[first]
+    return keeper
+
+
 def merge_groups(model: TemporalGaussians, labels: np.ndarray, config: CompactConfig | None = None):
     """One Gaussian per group of ``labels`` (the module docstring's merge), in the place of the group's
     most opaque member; returns the model and the [N] mask of the rows kept."""
     config = config or CompactConfig()
     a = _attributes(model)
-    n = len(model)
     _, group, size = np.unique(labels, return_inverse=True, return_counts=True)
-    keeper = np.zeros(len(size), np.int64)
-    order = np.lexsort((-a["alpha"], group))  # by group, most opaque first
-    first = np.ones(n, bool)
-    first[1:] = group[order][1:] != group[order][:-1]
-    keeper[group[order][first]] = order[first]
-    kept = np.zeros(n, bool)
+    keeper = _most_opaque(group, a["alpha"])
+    kept = np.zeros(len(model), bool)
     kept[keeper] = True
-    multi = size[group] > 1  # rows in a group of two or more
-    if not multi.any():
+    if not np.any(size > 1):
         return model, kept
 
     def group_sum(x):

@@ -430,11 +430,8 @@ def _fuse_merged(run: FusionRun, scenes, sims, render_config, snapshots, evaluat
         _cross_init_pairs(run, run.out / "merged", pairs, views, render_config, log, "cross_init", "cross_init")
     if not run.done("refine"):
         _refine_stage(run, views, scenes, render_config, progress, log, "refine", snapshots)
-    compact_config = section(run.raw, "compact", CompactConfig)
-    if compact_config.enabled and t > 1:
-        run.stage(
-            "compact", lambda: compact_stage(run, compact_config, views, scenes, sims, render_config, progress, log)
-        )
+    if t > 1:
+        _compact_if_enabled(run, "compact", views, scenes, sims, render_config, progress, log)
     run.stage("export", lambda: _export_reference(run))
     _evaluate_stage(run, scenes, sims, render_config, evaluate, log)
 
@@ -552,6 +549,20 @@ def compact_stage(run: FusionRun, config: CompactConfig, views, scenes, sims, re
     write_json(run.out / "compact.json", report)
     write_json(run.out / "metrics.json", after)
     return report
+
+
+def _compact_if_enabled(run: FusionRun, stage: str, views, scenes, sims, render_config, progress, log) -> None:
+    """The compaction stage (and a fresh export of the compacted model) when ``[compact] enabled``."""
+    config = section(run.raw, "compact", CompactConfig)
+    if not config.enabled:
+        return
+
+    def work():
+        report = compact_stage(run, config, views, scenes, sims, render_config, progress, log)
+        _export_reference(run)
+        return report
+
+    run.stage(stage, work)
 
 
 def run_compact(run_dir: Path, config: CompactConfig, *, progress: bool = True, log=print) -> FusionRun:
@@ -719,6 +730,7 @@ def run_extend(
             run, views, scenes, render_config, progress, log, prefix + "refine", extension=True, new_dates=[k]
         )
         _export_reference(run)
+    _compact_if_enabled(run, prefix + "compact", views, scenes, sims, render_config, progress, log)
     _evaluate_stage(run, scenes, sims, render_config, evaluate, log, stage=prefix + "evaluate")
     run.timings[f"extend:{name}:total"] = sum(v for key, v in run.timings.items() if key.startswith(prefix))
     run._save()
