@@ -99,3 +99,30 @@ def test_merge_is_the_alpha_weighted_moment_match():
     np.testing.assert_allclose(np.asarray(got.means)[1], mu, atol=1e-7)
     np.testing.assert_allclose(np.asarray(cj.covariances(got))[1], sigma, rtol=1e-4, atol=1e-9)
     np.testing.assert_allclose(np.asarray(cj.opacities(got))[1], 1 - 0.5 * 0.2, rtol=1e-5)
+
+
+def test_hidden_persistent_copies_are_dropped_and_changed_ones_kept():
+    """A large near-opaque blob (α 0.99) in front hides small blobs behind it, inside its footprint:
+    they keep compositing weights near (1 − 0.99·G_front)·0.9 ≈ 0.02 (checked < 0.05 below; the front
+    one > 0.9). With hidden_threshold 0.05 the hidden copy that is shown at both dates goes; the
+    hidden blob that marks a change (gone at date 1) stays, and so does the front one."""
+    from cfgs_jax.fusion import DateViews
+    from cfgs_jax.fusion.compact import hidden_persistent, max_contribution
+
+    model = _model(
+        means=[[0, 0, 0], [0, 0.3, 0], [0, 0.3, 0.01]],
+        log_scales=np.log([[0.15] * 3, [0.03] * 3, [0.03] * 3]),
+        alphas=[0.99, 0.9, 0.9],
+        colours=[[0.8, 0.4, 0.2], [0.8, 0.4, 0.2], [0.2, 0.7, 0.3]],
+        o=[[0.995, 0.995], [0.995, 0.995], [0.995, 0.01]],
+        origin=[0, 1, 0],
+    )
+    camera = cj.Camera.look_at([0, -2.0, 0], [0, 0, 0], width=40, height=30, fov_x_deg=40)
+    views = [DateViews((camera,), (np.zeros((30, 40, 3), np.float32),))] * 2
+    weight = max_contribution(model, views)
+    assert weight[0].min() > 0.9 and weight[1].max() < 0.05 and weight[2, 0] < 0.05
+    config = CompactConfig(hidden_threshold=0.05)
+    assert hidden_persistent(model, weight, config).tolist() == [False, True, False]
+    out, report = compact(model, config, weight)
+    assert report["hidden_pruned"] == 1 and len(out) == 2
+    np.testing.assert_array_equal(np.asarray(out.gaussians.means), np.asarray(model.gaussians.means)[[0, 2]])

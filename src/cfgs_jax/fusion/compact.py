@@ -50,10 +50,17 @@ class CompactConfig:
     max_colour_difference: float = 0.1
     max_opacity_difference: float = 0.3
     max_alpha: float = 0.99
+    hidden_threshold: float = 0.0  # also drop persistent Gaussians whose largest compositing weight is below (0: off)
     refine_steps: int = 500
 
     def __post_init__(self):
-        for name in ("present", "max_o_difference", "max_colour_difference", "max_opacity_difference"):
+        for name in (
+            "present",
+            "max_o_difference",
+            "max_colour_difference",
+            "max_opacity_difference",
+            "hidden_threshold",
+        ):
             if not 0 <= getattr(self, name) <= 1:
                 raise InputError(f"must be in [0, 1], got {getattr(self, name)}", field=f"compact.{name}")
         for name in ("max_distance", "max_log_scale_ratio"):
@@ -183,20 +190,58 @@ def merge_groups(model: TemporalGaussians, labels: np.ndarray, config: CompactCo
     return merged, kept
 
 
-def compact(model: TemporalGaussians, config: CompactConfig | None = None) -> tuple[TemporalGaussians, dict]:
-    """The model with every group of ``duplicate_groups`` merged into one Gaussian (``merge_groups``)
-    and the others unchanged; and a report (Gaussians before/after per origin date and in all)."""
+def max_contribution(model: TemporalGaussians, views, render_config=None) -> np.ndarray:
+    """[N, T]: per Gaussian and date q, the largest compositing weight min(0.99, α·o^q·G)·T over the
+    pixels of date q's views (``views[q]``, a ``DateViews``), from the kernel's ``max_weight``."""
+    from cfgs_jax import splat
+    from cfgs_jax.model import light_multipliers, opacity_multipliers
+
+    o, light = opacity_multipliers(model), light_multipliers(model)
+    rc = render_config or splat.RenderConfig()
+    out = np.zeros((len(model), model.num_dates))
+    for q, dv in enumerate(views):
+        for cam in dv.cameras:
+            cfg = dataclasses.replace(
+                rc, capacity=splat.required_capacity(model.gaussians, cam, o[:, q][None], config=rc)
+            )
+            res = splat.render_dates(model.gaussians, cam, o[:, q][None], light[:, q][None], config=cfg)
+            out[:, q] = np.maximum(out[:, q], np.asarray(res.max_weight[0]))
+    return out
+
+
+def hidden_persistent(model: TemporalGaussians, contribution: np.ndarray, config: CompactConfig) -> np.ndarray:
+    """[N] mask of the Gaussians shown at every date (o ≥ ``present``) whose largest compositing weight
+    over every view of every date (``max_contribution``) stays below ``hidden_threshold``: copies of a
+    persistent surface that the other copies in front of them hide."""
+    o = np.asarray(jax.nn.sigmoid(model.o_logits))
+    return np.all(o >= config.present, axis=1) & (np.max(contribution, axis=1) < config.hidden_threshold)
+
+
+def compact(
+    model: TemporalGaussians, config: CompactConfig | None = None, contribution: np.ndarray | None = None
+) -> tuple[TemporalGaussians, dict]:
+    """The model without its hidden persistent copies (``hidden_persistent``, when ``hidden_threshold``
+    > 0; ``contribution`` from ``max_contribution``) and with every group of ``duplicate_groups``
+    merged into one Gaussian (``merge_groups``), the others unchanged; and a report (Gaussians
+    before/after per origin date and in all)."""
     config = config or CompactConfig()
+    hidden = np.zeros(len(model), bool)
+    if config.hidden_threshold > 0:
+        if contribution is None:
+            raise InputError("hidden_threshold needs the Gaussians' contributions", field="compact.contribution")
+        hidden = hidden_persistent(model, contribution, config)
+    full = model
+    model = select(model, np.nonzero(~hidden)[0])
     labels = duplicate_groups(model, config)
     merged, kept = merge_groups(model, labels, config)
     out = select(merged, np.nonzero(kept)[0])
-    origin = np.asarray(model.origin)
-    names = model.date_names
+    names, before, after = model.date_names, np.asarray(full.origin), np.asarray(out.origin)
     report = {
-        "gaussians_before": len(model),
+        "gaussians_before": len(full),
         "gaussians_after": len(out),
+        "hidden_pruned": int(hidden.sum()),
         "groups_merged": int(np.sum(np.bincount(labels) > 1)),
-        "per_date_before": {names[d]: int(np.sum(origin == d)) for d in range(model.num_dates)},
-        "per_date_after": {names[d]: int(np.sum(origin[kept] == d)) for d in range(model.num_dates)},
+        "per_date_before": {names[d]: int(np.sum(before == d)) for d in range(model.num_dates)},
+        "per_date_after": {names[d]: int(np.sum(after == d)) for d in range(model.num_dates)},
     }
     return out, report

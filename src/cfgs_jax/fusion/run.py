@@ -521,7 +521,12 @@ def compact_stage(run: FusionRun, config: CompactConfig, views, scenes, sims, re
     test_views = [date_views(sc, sm, "test") for sc, sm in zip(scenes, sims)]
     before = evaluate_fused(model, test_views, render_config=render_config)
     write_fused(run.out / "before_compact", model, config=run.state["config"])
-    compacted, report = compact(model, config)
+    contribution = None
+    if config.hidden_threshold > 0:
+        from cfgs_jax.fusion.compact import max_contribution
+
+        contribution = max_contribution(model, views, render_config)
+    compacted, report = compact(model, config, contribution)
     log(
         f"[compact] {report['gaussians_before']:,} → {report['gaussians_after']:,} Gaussians "
         f"({report['groups_merged']:,} groups merged); {config.refine_steps:,} refinement steps"
