@@ -1,0 +1,139 @@
+"""Cross-timestep compaction against its price in error: for each ``hidden_threshold``, a copy of a
+finished fusion run is compacted (``compact --run``) and refined ``--refine-steps`` more steps; the
+reference row is the same refinement without compaction (threshold 0, which still merges the few
+mutual-nearest copies). Reports Gaussians, test PSNR / SSIM / LPIPS (mean over dates and per date),
+the stage's wall time and the render time of a full selection (all dates, highlight) of the test
+views, compacted against the reference, as ratios measured in one process.
+
+    python benchmarks/bench_compact.py --run RUN [--thresholds 0 0.02 0.05 0.1] [--refine-steps 200]
+
+RUN: a finished ``fuse`` (e.g. the ``run/`` of ``python -m cfgs_jax.pipeline eval --scene coverage
+--config benchmarks/eval_small.toml --out DIR``). Writes benchmarks/results/compact.json and compact.md.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import json
+import shutil
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bench_splat import RESULTS, _timed, machine
+
+
+def render_seconds(run_dir: Path, repeats: int = 5) -> float:
+    """Median time of one full-selection highlight frame over the run's test cameras (compiled first)."""
+    import dataclasses
+
+    import jax.numpy as jnp
+    import numpy as np
+
+    from cfgs_jax import splat, viz
+    from cfgs_jax.render_run import open_run
+
+    run = open_run(run_dir)
+    model = run.model
+    t = jnp.ones(model.num_dates)
+    times = []
+    for _, cam in run.test_cameras():
+        rc = splat.RenderConfig()
+        rc = dataclasses.replace(rc, capacity=splat.required_capacity(model.gaussians, cam, jnp.ones((1, len(model)))))
+
+        def frame(m=model, c=cam, cfg=rc):
+            return viz.render_selection(m, c, t, highlight_changes=True, config=cfg).image
+
+        frame()
+        times.append(statistics.median(_timed(lambda: frame(), ()) for _ in range(repeats)))
+    return float(np.sum(times))
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--run", required=True, help="a finished fusion run (copied, never changed)")
+    ap.add_argument("--thresholds", type=float, nargs="+", default=[0.0, 0.02, 0.05, 0.1])
+    ap.add_argument("--refine-steps", type=int, default=200)
+    args = ap.parse_args()
+
+    from cfgs_jax.config import section
+    from cfgs_jax.fusion.compact import CompactConfig
+    from cfgs_jax.fusion.run import run_compact
+    from cfgs_jax.io.atomic import read_json
+
+    base = dict((read_json(Path(args.run) / "run.json")["config"] or {}).get("compact", {}))
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for th in sorted({0.0, *args.thresholds}):
+            copy = Path(tmp) / f"run_{th}"
+            shutil.copytree(args.run, copy, ignore=shutil.ignore_patterns("snapshots", "ablations", "*.npz"))
+            config = section(
+                {"compact": base | {"hidden_threshold": th, "refine_steps": args.refine_steps}},
+                "compact",
+                CompactConfig,
+            )
+            t0 = time.perf_counter()
+            run = run_compact(copy, config, progress=False, log=lambda *a: None)
+            seconds = time.perf_counter() - t0
+            rep = run.report["compact"]
+            rows.append(
+                {
+                    "hidden_threshold": th,
+                    "gaussians_before": rep["gaussians_before"],
+                    "gaussians_after": rep["gaussians_after"],
+                    "hidden_pruned": rep["hidden_pruned"],
+                    "groups_merged": rep["groups_merged"],
+                    "test": rep["test_mean_after"],
+                    "test_per_date": rep["test_after"],
+                    "stage_seconds": seconds,
+                    "render_seconds": render_seconds(copy),
+                }
+            )
+            print(json.dumps(rows[-1]["test"]), rows[-1]["gaussians_after"], flush=True)
+    result = {
+        "machine": machine(),
+        "date": datetime.date.today().isoformat(),
+        "command": " ".join(["python benchmarks/bench_compact.py", *sys.argv[1:]]),
+        "run": str(args.run),
+        "refine_steps": args.refine_steps,
+        "rows": rows,
+    }
+    RESULTS.mkdir(exist_ok=True)
+    (RESULTS / "compact.json").write_text(json.dumps(result, indent=1))
+    (RESULTS / "compact.md").write_text(markdown(result))
+    print(markdown(result))
+
+
+def markdown(result: dict) -> str:
+    ref = next(r for r in result["rows"] if r["hidden_threshold"] == 0.0)
+    lines = [
+        "# Cross-timestep compaction: Gaussians against error",
+        "",
+        f"Machine: {result['machine']}. Date: {result['date']}. Command: `{result['command']}`.",
+        f"Every row: a copy of the run compacted, then refined {result['refine_steps']} steps (α not halved);",
+        "the reference row (threshold 0) is the same refinement without the hidden-copy rule. Δ against it;",
+        "render: one full-selection highlight frame per test view, summed, compacted / reference.",
+        "",
+        "| hidden_threshold | Gaussians | removed | PSNR | Δ dB | SSIM | Δ | LPIPS | Δ | worst date Δ dB | render ratio | stage (s) |",
+        "|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
+    ]
+    for r in result["rows"]:
+        t, rt = r["test"], ref["test"]
+        worst = min(r["test_per_date"][d]["psnr"] - ref["test_per_date"][d]["psnr"] for d in r["test_per_date"])
+        removed = 1 - r["gaussians_after"] / ref["gaussians_after"]
+        lines.append(
+            f"| {r['hidden_threshold']:g} | {r['gaussians_after']:,} | {removed:.1%} | {t['psnr']:.2f} | "
+            f"{t['psnr'] - rt['psnr']:+.2f} | {t['ssim']:.4f} | {t['ssim'] - rt['ssim']:+.4f} | {t['lpips']:.4f} | "
+            f"{t['lpips'] - rt['lpips']:+.4f} | {worst:+.2f} | {r['render_seconds'] / ref['render_seconds']:.2f} | "
+            f"{r['stage_seconds']:.0f} |"
+        )
+    lines += ["", "Positive Δ PSNR / SSIM and negative Δ LPIPS: better than the reference row."]
+    return "\n".join(lines) + "\n"
+
+
+if __name__ == "__main__":
+    main()
