@@ -17,7 +17,15 @@ Pairs join into groups (connected components over all date pairs). A group becom
 centre, colour and light the α-weighted means, covariance the α-weighted moment match
 Σ = Σ_k w_k (Σ_k + (μ_k − μ)(μ_k − μ)ᵀ), opacity the stack's coverage 1 − Π_k (1 − α_k) (at most
 ``max_alpha``), o^r the largest of the group's at each date r, and the origin of its most opaque
-member. A short refinement afterwards (``CompactConfig.refine_steps``) recovers what the merge moved.
+member.
+
+With ``hidden_threshold`` > 0, Gaussians shown at every date (o ≥ ``present`` everywhere) whose
+largest compositing weight min(0.99, α·o^q·G)·T over every training view of every date stays below
+the threshold are dropped first: the copies of a persistent surface hidden behind other copies. A
+Gaussian that marks a change (o low at some date) is never dropped by this rule.
+
+A short refinement afterwards (``CompactConfig.refine_steps``) recovers what the merge and the drop
+moved.
 """
 
 from __future__ import annotations

@@ -529,7 +529,8 @@ def compact_stage(run: FusionRun, config: CompactConfig, views, scenes, sims, re
     compacted, report = compact(model, config, contribution)
     log(
         f"[compact] {report['gaussians_before']:,} → {report['gaussians_after']:,} Gaussians "
-        f"({report['groups_merged']:,} groups merged); {config.refine_steps:,} refinement steps"
+        f"({report['hidden_pruned']:,} hidden copies dropped, {report['groups_merged']:,} groups merged); "
+        f"{config.refine_steps:,} refinement steps"
     )
     if config.refine_steps:
         rc = dataclasses.replace(section(run.raw, "refine", RefineConfig), steps=config.refine_steps, halve_alpha=False)
