@@ -8,7 +8,8 @@ views over the reference's, timed alternately in one process.
     python benchmarks/bench_compact.py --run RUN [--thresholds 0 0.02 0.05 0.1] [--refine-steps 200]
 
 RUN: a finished ``fuse`` (e.g. the ``run/`` of ``python -m cfgs_jax.pipeline eval --scene coverage
---config benchmarks/eval_small.toml --out DIR``). Writes benchmarks/results/compact.json and compact.md.
+--config benchmarks/eval_small.toml --out DIR``). Writes benchmarks/results/NAME.json and NAME.md
+(``--name``, default ``compact``).
 """
 
 from __future__ import annotations
@@ -69,6 +70,7 @@ def main():
     ap.add_argument("--run", required=True, help="a finished fusion run (copied, never changed)")
     ap.add_argument("--thresholds", type=float, nargs="+", default=[0.0, 0.02, 0.05, 0.1])
     ap.add_argument("--refine-steps", type=int, default=200)
+    ap.add_argument("--name", default="compact", help="results file stem (results/NAME.md and .json)")
     args = ap.parse_args()
 
     from cfgs_jax.config import section
@@ -116,8 +118,8 @@ def main():
         "rows": rows,
     }
     RESULTS.mkdir(exist_ok=True)
-    (RESULTS / "compact.json").write_text(json.dumps(result, indent=1))
-    (RESULTS / "compact.md").write_text(markdown(result))
+    (RESULTS / f"{args.name}.json").write_text(json.dumps(result, indent=1))
+    (RESULTS / f"{args.name}.md").write_text(markdown(result))
     print(markdown(result))
 
 
