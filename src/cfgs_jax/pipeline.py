@@ -253,7 +253,7 @@ def _write_train_outputs(args, out: Path, run, scene, config) -> None:
     from cfgs_jax.io.inria import write_inria_layout
 
     ply = cj.io.write_ply(out / "point_cloud.ply", run.gaussians)
-    inria = write_inria_layout(out, run.gaussians, scene, config.steps)
+    inria = write_inria_layout(out, run.gaussians, scene, config.steps, ply_of_gaussians=ply)
     report = {
         "scene": str(scene.root),
         "steps": config.steps,

@@ -19,11 +19,12 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import shutil
 from pathlib import Path
 
 import numpy as np
 
-from cfgs_jax.io.atomic import ensure_writable_dir, write_text
+from cfgs_jax.io.atomic import atomic_file, ensure_writable_dir, write_text
 from cfgs_jax.io.ply import write_ply
 from cfgs_jax.model import Camera, Gaussians
 
@@ -44,11 +45,19 @@ def camera_entry(index: int, name: str, camera: Camera) -> dict:
     }
 
 
-def write_inria_layout(model_path: str | os.PathLike, gaussians: Gaussians, scene, iteration: int) -> Path:
+def write_inria_layout(
+    model_path: str | os.PathLike, gaussians: Gaussians, scene, iteration: int, *, ply_of_gaussians=None
+) -> Path:
     """Write ``point_cloud/iteration_<iteration>/point_cloud.ply``, ``cameras.json`` and ``cfg_args``
-    of a model trained on ``scene`` (a :class:`cfgs_jax.io.Scene`) into ``model_path``; returns the PLY."""
+    of a model trained on ``scene`` (a :class:`cfgs_jax.io.Scene`) into ``model_path``; returns the PLY.
+    ``ply_of_gaussians``: a PLY already written from ``gaussians``, copied instead of encoded again."""
     root = ensure_writable_dir(model_path)
-    ply = write_ply(root / "point_cloud" / f"iteration_{int(iteration)}" / "point_cloud.ply", gaussians)
+    ply = root / "point_cloud" / f"iteration_{int(iteration)}" / "point_cloud.ply"
+    if ply_of_gaussians is None:
+        write_ply(ply, gaussians)
+    else:
+        with atomic_file(ply) as tmp:
+            shutil.copyfile(ply_of_gaussians, tmp)
     order = [*scene.indices("test"), *scene.indices("train")]
     entries = [camera_entry(k, scene.image_names[int(i)], scene.cameras[int(i)]) for k, i in enumerate(order)]
     write_text(root / "cameras.json", json.dumps(entries))
