@@ -65,15 +65,17 @@ def _config_args(s, default: str) -> None:
         metavar="PRESET|TOML",
         help="run configuration: a packaged preset (see the `presets` command) or a TOML file",
     )
-    s.add_argument(
-        "--set",
-        action="append",
-        default=[],
-        metavar="TABLE.KEY=VALUE",
-        dest="overrides",
-        help="override one configuration value, e.g. --set refine.steps=3000 (repeatable; "
+    _set_arg(
+        s,
+        "TABLE.KEY=VALUE",
+        "override one configuration value, e.g. --set refine.steps=3000 (repeatable; "
         "VALUE is read as TOML, else as a string)",
     )
+
+
+def _set_arg(s, metavar: str, help: str) -> None:
+    """``--set KEY=VALUE`` (repeatable) into ``args.overrides``."""
+    s.add_argument("--set", action="append", default=[], metavar=metavar, dest="overrides", help=help)
 
 
 def _progress_arg(s) -> None:
@@ -311,14 +313,7 @@ def _add_compact(sub, prog: str) -> None:
         prog,
     )
     s.add_argument("--run", required=True, help="run directory of a finished `fuse` (updated in place)")
-    s.add_argument(
-        "--set",
-        action="append",
-        default=[],
-        metavar="compact.KEY=VALUE",
-        dest="overrides",
-        help="override one [compact] value of the run's configuration (repeatable)",
-    )
+    _set_arg(s, "compact.KEY=VALUE", "override one [compact] value of the run's configuration (repeatable)")
     _progress_arg(s)
 
 

@@ -12,7 +12,7 @@ import numpy as np
 
 from cfgs_jax.config import find_preset, load_config
 from cfgs_jax.errors import InputError
-from cfgs_jax.io.atomic import atomic_file, check_resume, ensure_writable_dir
+from cfgs_jax.io.atomic import check_resume, ensure_writable_dir, write_json, write_text
 
 
 def _fuse(scene_dir: Path, names: list[str], out: Path, raw: dict, progress: bool, log):
@@ -31,8 +31,7 @@ def _fuse(scene_dir: Path, names: list[str], out: Path, raw: dict, progress: boo
             raise
         log(f"registration failed ({exc}); continuing with the scene's ground-truth Sim(3)s")
         gt_path = out / "ground_truth_transforms.json"
-        with atomic_file(gt_path) as tmp:
-            tmp.write_text(json.dumps(synthetic.reference_transforms(scene_dir, names), indent=1))
+        write_json(gt_path, synthetic.reference_transforms(scene_dir, names))
         return run_fusion(dates, run_dir, raw, resume=True, transforms=gt_path, progress=progress, log=log)
 
 
@@ -115,10 +114,8 @@ def run_demo(
             "model": str(out / "run" / "fused"),
         },
     }
-    with atomic_file(out / "summary.json") as tmp:
-        tmp.write_text(json.dumps(summary, indent=1))
-    with atomic_file(out / "summary.md") as tmp:
-        tmp.write_text(summary_markdown(summary))
+    write_json(out / "summary.json", summary)
+    write_text(out / "summary.md", summary_markdown(summary))
     return summary
 
 

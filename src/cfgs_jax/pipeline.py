@@ -247,9 +247,9 @@ def _train_settings(args, raw: dict):
 def _write_train_outputs(args, out: Path, run, scene, config) -> None:
     """The trained model (``point_cloud.ply``, INRIA's layout) and ``train.json``; prints a summary."""
     import dataclasses
-    import json
 
     import cfgs_jax as cj
+    from cfgs_jax.io.atomic import write_json
     from cfgs_jax.io.inria import write_inria_layout
 
     ply = cj.io.write_ply(out / "point_cloud.ply", run.gaussians)
@@ -266,8 +266,7 @@ def _write_train_outputs(args, out: Path, run, scene, config) -> None:
         "config": dataclasses.asdict(config),
         "continued_from": str(args.continue_from) if args.continue_from else None,
     }
-    with cj.io.atomic_file(out / "train.json") as tmp:
-        tmp.write_text(json.dumps(report, indent=1))
+    write_json(out / "train.json", report)
     console = _console()
     console.print(
         f"wrote {ply} ({len(run.gaussians):,} Gaussians), {out / 'train.json'} and INRIA's layout "

@@ -212,28 +212,27 @@ def _check_inputs(model: TemporalGaussians, views, new_dates) -> list[int]:
     return new_dates
 
 
-def _start(model, config: RefineConfig, new_dates, checkpoint, meta_now) -> tuple[_Carry, int]:
-    """The carry at the start (α halved on ``new_dates``' Gaussians), or as the checkpoint left it;
-    and the step to start from."""
+def _start(run: _Refinement, new_dates, checkpoint, identity: dict) -> tuple[_Carry, int]:
+    """The carry at the start (α halved on ``new_dates``' Gaussians), or as the checkpoint left it
+    (refused unless its ``identity`` matches); and the step to start from."""
+    model, config = run.model, run.config
     params = trainable(model)
     if config.halve_alpha and new_dates:
         params = halve_alpha_of(params, np.isin(np.asarray(model.origin), new_dates))
     n, t = len(model), model.num_dates
-    views = meta_now["views"]
     carry = _Carry(
         params,
-        None,
+        refinement_optimizer(config, run.extent, run.train_config).init(params),
         jax.random.key(config.seed),
         jnp.asarray(model.o_logits),
         np.zeros((n, t), bool),
-        np.zeros(views, bool),
+        np.zeros(len(run.flat), bool),
         np.zeros((n, t), bool),
         [],
     )
-    carry.opt_state = refinement_optimizer(config, meta_now["extent"], meta_now["train_config"]).init(params)
     if checkpoint is None or not Path(checkpoint).is_file():
         return carry, 0
-    loaded, meta = _load_checkpoint(Path(checkpoint), carry.arrays(), _comparable(meta_now))
+    loaded, meta = _load_checkpoint(Path(checkpoint), carry.arrays(), identity)
     carry = _Carry(
         loaded["params"],
         loaded["opt_state"],
@@ -246,24 +245,16 @@ def _start(model, config: RefineConfig, new_dates, checkpoint, meta_now) -> tupl
     return carry, int(meta["step"])
 
 
-def _meta(model, config: RefineConfig, train_config: TrainConfig, extent: float, new_dates, views: int) -> dict:
-    """What identifies a refinement (a checkpoint must match it), plus the view count and training
-    configuration its start needs."""
+def _identity(run: _Refinement, new_dates) -> dict:
+    """What identifies a refinement: a checkpoint must match it to be resumed."""
     return {
-        "config": dataclasses.asdict(config),
-        "train": dataclasses.asdict(train_config),
-        "gaussians": len(model),
-        "dates": model.num_dates,
-        "extent": extent,
+        "config": dataclasses.asdict(run.config),
+        "train": dataclasses.asdict(run.train_config),
+        "gaussians": len(run.model),
+        "dates": run.model.num_dates,
+        "extent": float(run.extent),
         "new_dates": new_dates,
-        "views": views,
-        "train_config": train_config,
     }
-
-
-def _comparable(meta_now: dict) -> dict:
-    """The part of a checkpoint's metadata that must match for it to be resumed."""
-    return {k: v for k, v in meta_now.items() if k not in ("views", "train_config")}
 
 
 @dataclasses.dataclass
@@ -376,12 +367,12 @@ def refine(
     run = _Refinement(
         model, views, config, train_config, render_config or splat.RenderConfig(), extent, snapshot_steps, on_snapshot
     )
-    meta_now = _meta(model, config, train_config, float(extent), new_dates, len(run.flat))
-    carry, start = _start(model, config, new_dates, checkpoint, meta_now)
+    identity = _identity(run, new_dates)
+    carry, start = _start(run, new_dates, checkpoint, identity)
     carry.capacity = max(run.capacity_for(carry.params, q, v) for q, v in run.flat)
 
     def save(c: _Carry, done: int):
-        meta = _comparable(meta_now) | {"step": done, "losses": c.losses, "completed": c.completed}
+        meta = identity | {"step": done, "losses": c.losses, "completed": c.completed}
         save_tree(checkpoint, c.arrays(), meta, format=CHECKPOINT_FORMAT)
 
     with Progress("refine", total=config.steps, completed=start, enabled=progress, transient=True) as bar:

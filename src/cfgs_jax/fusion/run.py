@@ -32,7 +32,7 @@ from cfgs_jax import splat, train
 from cfgs_jax.compiled_code import release_if_near_limit
 from cfgs_jax.config import check_sections, section
 from cfgs_jax.errors import InputError
-from cfgs_jax.fusion.compact import CompactConfig, compact
+from cfgs_jax.fusion.compact import CompactConfig, compact, max_contribution
 from cfgs_jax.fusion.cross_init import CrossInitConfig, DateViews, init_pairs, pair_groups
 from cfgs_jax.fusion.fuse import merge
 from cfgs_jax.fusion.refine import RefineConfig, refine
@@ -221,6 +221,11 @@ class FusionRun:
     def date_infos(self) -> list[DateInfo]:
         return [DateInfo(d["name"], captured=d.get("captured"), sources=(d["path"],)) for d in self.state["dates"]]
 
+    def sims(self) -> list[Sim3]:
+        """Each date's date → reference Sim(3), from ``register.json``."""
+        reg = read_json(self.out / "register.json")
+        return [Sim3.from_dict(reg[n]["transform"]) for n in self.names]
+
     def scene(self, i: int) -> Scene:
         tc = section(self.raw, "train", train.TrainConfig)
         return read_colmap(self.state["dates"][i]["path"], test_every=max(1, tc.test_every), resolution=tc.resolution)
@@ -403,8 +408,7 @@ def run_fusion(
 
     # 2. registration
     run.stage("register", lambda: _register_dates(run, scenes, transforms, log))
-    reg = read_json(run.out / "register.json")
-    sims = [Sim3.from_dict(reg[n]["transform"]) for n in names]
+    sims = run.sims()
     if until == "register":
         return run
 
@@ -523,8 +527,6 @@ def compact_stage(run: FusionRun, config: CompactConfig, views, scenes, sims, re
     write_fused(run.out / "before_compact", model, config=run.state["config"])
     contribution = None
     if config.hidden_threshold > 0:
-        from cfgs_jax.fusion.compact import max_contribution
-
         contribution = max_contribution(model, views, render_config)
     compacted, report = compact(model, config, contribution)
     log(
@@ -583,8 +585,7 @@ def run_compact(run_dir: Path, config: CompactConfig, *, progress: bool = True, 
         )
     run = FusionRun(run_dir, [Path(d["path"]) for d in state["dates"]], state["config"], resume=True)
     render_config = section(run.raw, "render", splat.RenderConfig)
-    reg = read_json(run.out / "register.json")
-    sims = [Sim3.from_dict(reg[n]["transform"]) for n in run.names]
+    sims = run.sims()
     scenes = [run.scene(i) for i in range(len(run.names))]
     views = [date_views(scenes[i], sims[i]) for i in range(len(run.names))]
     run.stage("compact", lambda: compact_stage(run, config, views, scenes, sims, render_config, progress, log))
@@ -719,8 +720,7 @@ def run_extend(
     train_args = (run, scenes[k], name, render_config, progress, log, "extend/train")
     run.stage(prefix + "train", lambda: None if trained else _train_date(*train_args))
     run.stage(prefix + "register", lambda: _register_added(run, scenes, k, transform, log))
-    reg = read_json(run.out / "register.json")
-    sims = [Sim3.from_dict(reg[n]["transform"]) for n in names]
+    sims = run.sims()
     run.stage(prefix + "merge", lambda: _add_to_fused(run, ply, k, sims[k]))
     views = [date_views(scenes[i], sims[i]) for i in range(len(names))]
 
