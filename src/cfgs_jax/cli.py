@@ -78,6 +78,17 @@ def _set_arg(s, metavar: str, help: str) -> None:
     s.add_argument("--set", action="append", default=[], metavar=metavar, dest="overrides", help=help)
 
 
+def _devices_arg(s) -> None:
+    s.add_argument(
+        "--devices",
+        default="all",
+        metavar="N|all",
+        help="devices the batched stages split their work over (pairs of cross-timestep init, views of a "
+        "step with view_batch > 1, rendered views): the first N, or all of every process "
+        "(see the README, 'Several devices and hosts')",
+    )
+
+
 def _progress_arg(s) -> None:
     s.add_argument("--no-progress", action="store_true", help="no progress bars (for logs and batch jobs)")
 
@@ -232,6 +243,7 @@ def _add_train(sub, prog: str) -> None:
     s.add_argument("--no-eval", action="store_true", help="skip the test-split evaluation at the end")
     s.add_argument("--lpips-net", choices=("alex", "vgg"), default="alex", help="LPIPS backbone of the evaluation")
     _progress_arg(s)
+    _devices_arg(s)
 
 
 def _add_fuse(sub, prog: str) -> None:
@@ -277,6 +289,7 @@ def _add_fuse(sub, prog: str) -> None:
     s.add_argument("--drop-invalid", action="store_true", help="drop --models rows with NaN/Inf instead of failing")
     _resume_arg(s, "fusion run")
     _progress_arg(s)
+    _devices_arg(s)
 
 
 def _add_extend(sub, prog: str) -> None:
@@ -297,6 +310,7 @@ def _add_extend(sub, prog: str) -> None:
     s.add_argument("--captured", metavar="DATE", help="its capture time (ISO 8601; default: its images' EXIF)")
     s.add_argument("--resume", action="store_true", help="continue an interrupted extension of --run by this date")
     _progress_arg(s)
+    _devices_arg(s)
 
 
 def _add_compact(sub, prog: str) -> None:
@@ -340,6 +354,7 @@ def _add_eval(sub, prog: str) -> None:
     s.add_argument("--out", required=True, help="output folder")
     _resume_arg(s, "evaluation")
     _progress_arg(s)
+    _devices_arg(s)
 
 
 def _add_sweep(sub, prog: str) -> None:
@@ -394,6 +409,7 @@ def _add_render(sub, prog: str) -> None:
     s.add_argument("--background", default="0,0,0", help="r,g,b in [0, 1]")
     s.add_argument("--out", required=True, help="output folder")
     _progress_arg(s)
+    _devices_arg(s)
 
 
 def _add_export(sub, prog: str) -> None:

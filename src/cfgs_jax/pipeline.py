@@ -314,6 +314,7 @@ def cmd_train(args) -> int:
         stop_after=args.stop_after,
         evaluate_at_end=not args.no_eval,
         lpips_net=args.lpips_net,
+        mesh=_mesh(args),
     )
     if not run.finished:
         _console().print(f"stopped at step {int(run.state.step):,}; checkpoint in {ckpt} (continue with --resume)")
@@ -338,6 +339,7 @@ def cmd_fuse(args) -> int:
         progress=not args.no_progress,
         drop_invalid=args.drop_invalid,
         log=console.print,
+        mesh=_mesh(args),
     )
     from rich.table import Table
 
@@ -360,7 +362,13 @@ def cmd_eval(args) -> int:
     raw = _read_config(args)
     console = _console()
     table = run_protocol(
-        args.scene, Path(args.out), raw, resume=args.resume, progress=not args.no_progress, log=console.print
+        args.scene,
+        Path(args.out),
+        raw,
+        resume=args.resume,
+        progress=not args.no_progress,
+        log=console.print,
+        mesh=_mesh(args),
     )
     from rich.table import Table
 
@@ -437,6 +445,7 @@ def cmd_extend(args) -> int:
         resume=args.resume,
         progress=not args.no_progress,
         log=console.print,
+        mesh=_mesh(args),
     )
     name = Path(args.date).name
     prefix = f"extend:{name}:"
@@ -513,7 +522,9 @@ def cmd_render(args) -> int:
     console = _console()
     with Progress(console=console, disable=args.no_progress) as bar:
         task = bar.add_task(f"render {args.mode} t={t.astype(int).tolist()}", total=len(cams))
-        paths = render_views(run, t, style, cams, args.out, background=bg, progress=lambda: bar.advance(task))
+        paths = render_views(
+            run, t, style, cams, args.out, background=bg, progress=lambda: bar.advance(task), mesh=_mesh(args)
+        )
     console.print(f"wrote {len(paths)} views (PNG sRGB with legend + EXR linear) to {args.out}")
     if args.cameras == "orbit":
         from cfgs_jax.io import read_image
@@ -641,6 +652,38 @@ COMMANDS = {
 }
 
 
+def _mesh(args):
+    """The one-axis device mesh of ``--devices``."""
+    from cfgs_jax import parallel
+
+    return parallel.device_mesh(args.devices)
+
+
+def _start_processes(args) -> None:
+    """Join a multi-process run when its environment says so (``parallel.initialize_from_environment``).
+    Every process runs the same command on the same inputs; process k > 0 writes its (identical) copy
+    of the outputs to ``OUT.process-k`` — and ``extend`` works on ``RUN.process-k``, copied from RUN
+    before the processes meet (so before process 0 changes RUN) — so that no two processes write one
+    file and each resumes from its own."""
+    import os
+
+    from cfgs_jax import parallel
+
+    k = os.environ.get("JAX_PROCESS_ID", "0")
+    if k not in ("", "0") and os.environ.get("JAX_NUM_PROCESSES"):
+        for name in ("out", "run"):
+            path = getattr(args, name, None)
+            if path is None or (name == "run" and args.command != "extend"):
+                continue
+            mine = Path(f"{path}.process-{k}")
+            if name == "run" and not mine.exists():
+                import shutil
+
+                shutil.copytree(path, mine)
+            setattr(args, name, str(mine))
+    parallel.initialize_from_environment()
+
+
 def main(argv: list[str] | None = None, *, prog: str | None = None) -> int:
     """Run one command line; returns the exit status (2 for input/output errors, one line on stderr)."""
     from cfgs_jax.cli import build_parser
@@ -651,6 +694,8 @@ def main(argv: list[str] | None = None, *, prog: str | None = None) -> int:
         logger.addHandler(_StderrHandler())
     logger.setLevel(logging.INFO if args.verbose else logging.WARNING)
     try:
+        if hasattr(args, "devices"):
+            _start_processes(args)
         return COMMANDS[args.command](args)
     except (InputError, OutputError) as exc:
         print(f"error: {exc}", file=sys.stderr)

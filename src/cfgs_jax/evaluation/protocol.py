@@ -207,6 +207,7 @@ class _Evaluation:
     scenes: list
     sims: list
     log: object
+    mesh: object = None
 
     def __post_init__(self):
         self.render_config = section(self.fusion_raw, "render", splat.RenderConfig)
@@ -219,7 +220,9 @@ class _Evaluation:
         if key not in self.evals:
             model = read_fused(path)
             self.log(f"[eval] {label}")
-            m = evaluate_fused(model, self.test_views, render_config=self.render_config, lpips_net=self.ec.lpips_net)
+            m = evaluate_fused(
+                model, self.test_views, render_config=self.render_config, lpips_net=self.ec.lpips_net, mesh=self.mesh
+            )
             self.evals[key] = _row(label, m["mean"], len(model), **extra) | {"per_date": m["dates"]}
             write_json(self.out / "rows.json", self.evals)
         return self.evals[key]
@@ -305,7 +308,7 @@ def _known_transforms(data: Path, dirs, out: Path) -> Path:
     return transforms
 
 
-def _fuse(scene, raw, out: Path, ec: EvalConfig, progress: bool, log) -> tuple[Path, list, dict, float]:
+def _fuse(scene, raw, out: Path, ec: EvalConfig, progress: bool, log, mesh=None) -> tuple[Path, list, dict, float]:
     """Prepare the scene and run (or continue) its fusion with snapshots at the evaluation steps.
     Returns the data directory, the date directories, the fusion configuration and the wall time."""
     data = prepare_scene(scene, raw, out, progress=progress)
@@ -324,29 +327,38 @@ def _fuse(scene, raw, out: Path, ec: EvalConfig, progress: bool, log) -> tuple[P
         transforms=_known_transforms(data, dirs, out) if ec.known_transforms else None,
         snapshots=ec.steps[:-1],
         log=log,
+        mesh=mesh,
     )
     return data, dirs, fusion_raw, time.perf_counter() - t0
 
 
 def run_protocol(
-    scene: str, out: str | Path, raw: dict | None = None, *, resume: bool = False, progress: bool = True, log=print
+    scene: str,
+    out: str | Path,
+    raw: dict | None = None,
+    *,
+    resume: bool = False,
+    progress: bool = True,
+    log=print,
+    mesh=None,
 ) -> dict:
     """The whole protocol on one scene → ``out/table.json``, ``out/table.md``, ``out/figure.png``
     (and ``out/change.json`` where ground truth exists). Returns the table dict. An ``out`` holding an
-    earlier evaluation is continued (finished stages skipped) only with ``resume=True``."""
+    earlier evaluation is continued (finished stages skipped) only with ``resume=True``. ``mesh``: the
+    devices the fusion and the evaluation of its rows split their batches over."""
     validate_eval_config(raw)
     ec = section(raw, "eval", EvalConfig)
     check_resume(out, resume)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    data, dirs, fusion_raw, fusion_seconds = _fuse(scene, raw, out, ec, progress, log)
+    data, dirs, fusion_raw, fusion_seconds = _fuse(scene, raw, out, ec, progress, log, mesh)
     run_dir = out / "run"
     tc = section(fusion_raw, "train", train.TrainConfig)
     scenes = [read_colmap(d, test_every=max(1, tc.test_every), resolution=tc.resolution) for d in dirs]
     names = [d.name for d in dirs]
     reg = read_json(run_dir / "register.json")
     sims = [Sim3.from_dict(reg[n]["transform"]) for n in names]
-    ev = _Evaluation(out, run_dir, raw, fusion_raw, ec, names, scenes, sims, log)
+    ev = _Evaluation(out, run_dir, raw, fusion_raw, ec, names, scenes, sims, log, mesh)
     rows = ev.ours_rows()
     release_if_near_limit()
     rows += ev.baseline_rows(progress)

@@ -41,7 +41,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from cfgs_jax import metrics, splat
+from cfgs_jax import metrics, parallel, splat
 from cfgs_jax.errors import InputError
 from cfgs_jax.fusion.fuse import INVISIBLE_LOGIT
 from cfgs_jax.fusion.light import REC709, gain_parameter, light_gain, light_logits, light_multiplier
@@ -181,8 +181,9 @@ def pair_loss(params, g: Gaussians, camera, image, eps_map, b, step, config: Cro
 @functools.lru_cache(maxsize=16)
 def _compiled_step(config: CrossInitConfig, render_config: splat.RenderConfig):
     """One optimisation step of several pairs (p, q₁), (p, q₂), … at once: ``jax.vmap`` over the pairs'
-    parameters, optimiser states, cameras, images, ε maps and keys (the Gaussians are shared); the
-    per-pair inputs arrive as tuples and are stacked inside the jit."""
+    parameters, optimiser states, views, ε maps and keys (the Gaussians are shared). Each pair's views
+    arrive stacked ([pairs, views, …]) with the index of the one it draws this step, so the inputs
+    stay on their devices from step to step and a pair axis split over devices stays split."""
     optimizer = cross_init_optimizer(config)
 
     def one(params, opt_state, g, camera, image, eps_map, key, it):
@@ -194,11 +195,14 @@ def _compiled_step(config: CrossInitConfig, render_config: splat.RenderConfig):
         return optax.apply_updates(params, updates), opt_state, loss, res.overflowed
 
     @jax.jit
-    def step(params, opt_state, g, cameras, images, eps_maps, keys, it):
-        stack = lambda *xs: jnp.stack(xs)
-        cams = jax.tree_util.tree_map(stack, *cameras)
+    def step(params, opt_state, g, cameras, images, eps_maps, drawn, keys, it):
+        pick = lambda x: jax.vmap(lambda rows, i: rows[i])(x, drawn)
+        cams = jax.tree_util.tree_map(pick, cameras)
         batched = jax.vmap(one, in_axes=(0, 0, None, 0, 0, 0, 0, None))
-        return batched(params, opt_state, g, cams, jnp.stack(images), jnp.stack(eps_maps), keys, it)
+        params, opt_state, loss, overflowed = batched(
+            params, opt_state, g, cams, pick(images), pick(eps_maps), keys, it
+        )
+        return params, opt_state, loss, jnp.any(overflowed)
 
     return optimizer, step
 
@@ -302,12 +306,14 @@ def init_pairs(
     render_config: splat.RenderConfig | None = None,
     lpips_net=None,
     progress=None,
+    mesh=None,
 ) -> tuple[TemporalGaussians, list[dict]]:
     """Optimise o^q and l^q of the Gaussians from date p against date q's views (Eq. 2) for every q in
     ``qs`` at once (``views[i]`` the views of ``qs[i]``; all of one image shape): each step renders one
     view of every q, vmapped, each pair with its own parameters, Adam state, view sequence and
-    background colours — the same result as running the pairs one by one. Returns the updated model
-    and one report per pair (visible count, first/last loss, mean o^q, light, ε)."""
+    background colours — the same result as running the pairs one by one. ``mesh``
+    (``parallel.device_mesh``): split the pairs over its devices. Returns the updated model and one
+    report per pair (visible count, first/last loss, mean o^q, light, ε)."""
     qs = list(qs)
     if len(views) != len(qs) or len({_image_shape(v) for v in views}) != 1 or _image_shape(views[0]) is None:
         raise InputError(
@@ -326,7 +332,7 @@ def init_pairs(
         return model, reports
     pairs = _gather(model, p, rows, seen[active], [views[i] for i in active], render_config)
     params, start_light, eps_maps = _start_values(pairs, config, lpips_net)
-    params, losses = _optimise(pairs, params, eps_maps, config, p, [qs[i] for i in active], progress)
+    params, losses = _optimise(pairs, params, eps_maps, config, p, [qs[i] for i in active], progress, mesh)
     fitted = [reports[i] for i in active]
     return _write_back(model, [qs[i] for i in active], pairs, params, losses, start_light, eps_maps, fitted), reports
 
@@ -344,39 +350,60 @@ def _mark_unseen(model: TemporalGaussians, p: int, qs, rows, seen) -> tuple[Temp
     return dataclasses.replace(model, o_logits=jnp.asarray(o_logits)), reports
 
 
+def _stacked_inputs(pairs: _Pairs, eps_maps) -> tuple:
+    """Each pair's views as stacked arrays: cameras and images [pairs, views, …], ε maps [pairs, views,
+    H, W] (a date with fewer views is padded with copies of its first; they are never drawn)."""
+    v = max(len(cs) for cs in pairs.cameras)
+    fill = lambda xs: list(xs) + [xs[0]] * (v - len(xs))
+    stack = lambda *xs: np.stack([np.asarray(x) for x in xs])
+    cameras = jax.tree_util.tree_map(stack, *[jax.tree_util.tree_map(stack, *fill(cs)) for cs in pairs.cameras])
+    images = np.stack([np.stack([np.asarray(im) for im in fill(ims)]) for ims in pairs.images])
+    eps = np.stack([np.stack([np.asarray(e) for e in fill(es)]) for es in eps_maps])
+    return cameras, images, eps
+
+
 def _optimise(
-    pairs: _Pairs, params, eps_maps, config: CrossInitConfig, p: int, qs, progress
+    pairs: _Pairs, params, eps_maps, config: CrossInitConfig, p: int, qs, progress, mesh=None
 ) -> tuple[dict, np.ndarray]:
     """Eq. 2's ``config.steps`` Adam steps of the pairs (p, q) for q in ``qs``, vmapped: each pair with
-    its own view sequence and background key. Returns the parameters and the [steps, pairs] losses."""
+    its own view sequence and background key. With a ``mesh`` of several devices the pair axis is
+    split over them (padded to a multiple of the device count with copies of the first pair, whose
+    results are dropped). Returns the parameters and the [steps, pairs] losses."""
+    k = len(qs)
     seeds = [(config.seed, p, q) for q in qs]
-    keys = jnp.stack([jax.random.key(config.seed * 1_000_003 + p * 1009 + q) for q in qs])
+    counts = [len(ims) for ims in pairs.images]
+    keys = np.stack([jax.random.key_data(jax.random.key(config.seed * 1_000_003 + p * 1009 + q)) for q in qs])
     optimizer, step = _compiled_step(config, pairs.render_config)
+    cameras, images, eps = _stacked_inputs(pairs, eps_maps)
+    batch = (params, jax.vmap(optimizer.init)(params), cameras, images, eps, keys)
+    if parallel.is_parallel(mesh):
+        width = parallel.padded(k, mesh)
+        batch = parallel.shard_batch(jax.tree_util.tree_map(lambda x: parallel.pad_rows(x, width), batch), mesh)
+        g = parallel.replicate(pairs.g, mesh)
+    else:
+        batch, g = jax.tree_util.tree_map(jnp.asarray, batch), pairs.g
+    params, opt_state, cameras, images, eps, keys = batch
+    keys = jax.random.wrap_key_data(keys)
+    width = len(keys)
 
     def body(carry, it):
         params, opt_state, keys, losses = carry
         both = jax.vmap(jax.random.split)(keys)
-        v = [view_order(s, it, len(ims)) for s, ims in zip(seeds, pairs.images)]
+        drawn = [view_order(s, it, n) for s, n in zip(seeds, counts)]
+        drawn = np.asarray(drawn + drawn[:1] * (width - k), np.int32)
         params, opt_state, loss, overflowed = step(
-            params,
-            opt_state,
-            pairs.g,
-            tuple(cs[i] for cs, i in zip(pairs.cameras, v)),
-            tuple(ims[i] for ims, i in zip(pairs.images, v)),
-            tuple(e[i] for e, i in zip(eps_maps, v)),
-            both[:, 1],
-            jnp.float32(it),
+            params, opt_state, g, cameras, images, eps, drawn, both[:, 1], jnp.float32(it)
         )
-        if bool(jnp.any(overflowed)):  # cannot happen with capacities from o = 1 (o^q ≤ 1), but never silently
+        if bool(overflowed):  # cannot happen with capacities from o = 1 (o^q ≤ 1), but never silently
             raise RuntimeError("cross-init render overflowed its intersection buffer")
         if progress is not None:
             progress(it + 1)
-        losses.append(np.asarray(loss))
+        losses.append(loss)
         return params, opt_state, both[:, 0], losses
 
-    carry = (params, jax.vmap(optimizer.init)(params), keys, [])
-    (params, _, _, losses), _ = run_steps(body, carry, start=0, steps=config.steps)
-    return params, np.stack(losses)
+    (params, _, _, losses), _ = run_steps(body, (params, opt_state, keys, []), start=0, steps=config.steps)
+    params, losses = parallel.to_host((params, jnp.stack(losses)))
+    return jax.tree_util.tree_map(lambda x: x[:k], params), losses[:, :k]
 
 
 def _write_back(model, qs, pairs: _Pairs, params, losses, start_light, eps_maps, reports) -> TemporalGaussians:
@@ -451,10 +478,12 @@ def cross_init(
     pairs: Sequence[tuple[int, int]] | None = None,
     render_config=None,
     progress: bool = False,
+    mesh=None,
 ):
     """Eq. 2 for every ordered pair p ≠ q (or the given ``pairs``, e.g. only those that involve a new
     date when extending), the pairs of one p run together (``pair_groups``, ``init_pairs``: vmapped,
-    up to ``config.batch_dates`` at a time); returns the model and the per-pair reports."""
+    up to ``config.batch_dates`` at a time, split over the devices of ``mesh`` when it has several);
+    returns the model and the per-pair reports."""
     config = config or CrossInitConfig()
     t = model.num_dates
     if len(views) != t:
@@ -476,7 +505,15 @@ def cross_init(
                 bar.update(task, completed=base + width * k)
 
             model, reps = init_pairs(
-                model, p, qs, [views[q] for q in qs], config, render_config=render_config, lpips_net=net, progress=tick
+                model,
+                p,
+                qs,
+                [views[q] for q in qs],
+                config,
+                render_config=render_config,
+                lpips_net=net,
+                progress=tick,
+                mesh=mesh,
             )
             reports.extend(reps)
             done += len(qs) * config.steps

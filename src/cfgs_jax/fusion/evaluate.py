@@ -8,7 +8,7 @@ from collections.abc import Sequence
 import jax.numpy as jnp
 import numpy as np
 
-from cfgs_jax import metrics, splat
+from cfgs_jax import metrics, parallel, splat
 from cfgs_jax.model import TemporalGaussians, light_multipliers, opacity_multipliers
 from cfgs_jax.train.evaluate import image_metrics
 from cfgs_jax.train.step import over_background
@@ -23,6 +23,20 @@ def render_date(model: TemporalGaussians, q: int, camera, *, background=(0.0, 0.
     )
 
 
+def date_images(model: TemporalGaussians, q: int, cameras, background, render_config=None, mesh=None):
+    """Date ``q``'s render at each camera: one at a time, or with a mesh of several devices split over
+    them (``splat.render_views``)."""
+    if not parallel.is_parallel(mesh):
+        for cam in cameras:
+            yield render_date(model, q, cam, background=background, config=render_config).image[0]
+        return
+    o, light = opacity_multipliers(model)[:, q], light_multipliers(model)[:, q]
+    for im in splat.render_views(
+        model.gaussians, cameras, o[None], light[None], background=background, config=render_config, mesh=mesh
+    ):
+        yield jnp.asarray(im[0])
+
+
 def evaluate_fused(
     model: TemporalGaussians,
     views: Sequence,
@@ -30,15 +44,16 @@ def evaluate_fused(
     background=(0.0, 0.0, 0.0),
     render_config=None,
     lpips_net: str | None = "alex",
+    mesh=None,
 ) -> dict:
-    """``views[q]``: a ``DateViews`` of date q's test views in the model's frame."""
+    """``views[q]``: a ``DateViews`` of date q's test views in the model's frame. ``mesh``
+    (``parallel.device_mesh``): render each date's views split over its devices."""
     net = metrics.load_lpips(lpips_net) if lpips_net else None
     bg = np.asarray(background, np.float32)
     out, weights = {}, []
     for q, dv in enumerate(views):
         rows = []
-        for cam, img in zip(dv.cameras, dv.images):
-            pred = render_date(model, q, cam, background=bg, config=render_config).image[0]
+        for img, pred in zip(dv.images, date_images(model, q, dv.cameras, bg, render_config, mesh)):
             gt = over_background(jnp.asarray(img, jnp.float32), bg)
             rows.append(image_metrics(pred, gt, net))
         out[model.dates[q].name] = {k: float(np.mean([r[k] for r in rows])) for k in rows[0]} | {"views": len(rows)}

@@ -43,7 +43,7 @@ import numpy as np
 import optax
 from jaxtyping import Array, Float
 
-from cfgs_jax import metrics, splat
+from cfgs_jax import metrics, parallel, splat
 from cfgs_jax.errors import InputError
 from cfgs_jax.fusion.cross_init import DateViews
 from cfgs_jax.fusion.updates import halve_alpha_of, refinement_optimizer, zero_invisible
@@ -74,11 +74,14 @@ class RefineConfig:
     random_background: bool = True
     prune_threshold: float = 1.0 / 255.0
     checkpoint_every: int = 500
+    view_batch: int = 1  # training views per step (their mean loss; split over the devices of a mesh)
     seed: int = 0
 
     def __post_init__(self):
         if self.steps < 0:
             raise InputError(f"must be ≥ 0, got {self.steps}", field="refine.steps")
+        if self.view_batch < 1:
+            raise InputError(f"must be ≥ 1, got {self.view_batch}", field="refine.view_batch")
         if self.extend_steps < 0:
             raise InputError(f"must be ≥ 0 (0: refine.steps), got {self.extend_steps}", field="refine.extend_steps")
         if self.visibility_interval <= 0:
@@ -147,6 +150,43 @@ def _compiled_step(config: RefineConfig, extent: float, render_config: splat.Ren
         ) >= config.contribution_threshold, res.overflowed
 
     return optimizer, step, contribution
+
+
+def batch_refine_loss(
+    params, light_logits, o_init, cameras, images, dates, backgrounds, config: RefineConfig, render_config
+):
+    """Eq. 3 averaged over a batch of training images (cameras, images, dates and backgrounds stacked
+    along a leading axis); also the batch of renders."""
+    losses, res = jax.vmap(refine_loss, in_axes=(None, None, None, 0, 0, 0, 0, None, None))(
+        params, light_logits, o_init, cameras, images, dates, backgrounds, config, render_config
+    )
+    return jnp.mean(losses), res
+
+
+@functools.lru_cache(maxsize=16)
+def _compiled_batch_step(
+    config: RefineConfig, extent: float, render_config: splat.RenderConfig, train_config: TrainConfig
+):
+    """The step of ``view_batch`` > 1 views: one Adam update on the mean loss of the batch. Given a
+    batch split over devices (and everything else replicated), XLA computes each device's views there
+    and all-reduces the gradient."""
+    optimizer = refinement_optimizer(config, extent, train_config)
+
+    @jax.jit
+    def step(params, opt_state, light_logits, o_init, cameras, images, dates, keys):
+        if config.random_background:
+            bg = jax.vmap(lambda k: jax.random.uniform(k, (3,), images.dtype))(keys)
+        else:
+            bg = jnp.zeros((len(dates), 3), images.dtype)
+        (loss, res), grads = jax.value_and_grad(batch_refine_loss, has_aux=True)(
+            params, light_logits, o_init, cameras, images, dates, bg, config, render_config
+        )
+        updates, opt_state = optimizer.update(grads, opt_state, params)
+        o_logits = jnp.take(params["o_logits"], dates, axis=1).T  # [B, N]
+        contributed = visible_weight(res.max_weight[:, 0], o_logits) >= config.contribution_threshold
+        return optax.apply_updates(params, updates), opt_state, loss, contributed, jnp.any(res.overflowed)
+
+    return step
 
 
 def visible_weight(max_weight: Float[Array, " N"], o_logits: Float[Array, " N"]) -> Float[Array, " N"]:
@@ -271,11 +311,27 @@ class _Refinement:
     extent: float
     snapshot_steps: Sequence[int] = ()
     on_snapshot: object = None
+    mesh: object = None
 
     def __post_init__(self):
         self.light_logits = jnp.asarray(self.model.light_logits)
         self.flat = [(q, v) for q in range(len(self.views)) for v in range(len(self.views[q].cameras))]
         self.images = [[jnp.asarray(im, jnp.float32) for im in dv.images] for dv in self.views]
+        batch = self.config.view_batch
+        if batch > 1 and len({tuple(im.shape) for ims in self.images for im in ims}) > 1:
+            raise InputError(
+                "a batch of views needs one image size across all dates",
+                field="refine.view_batch",
+                fix="set refine.view_batch = 1, or train the dates at one resolution",
+            )
+        if parallel.is_parallel(self.mesh) and batch % parallel.mesh_size(self.mesh):
+            raise InputError(
+                f"{batch} views per step do not split over {parallel.mesh_size(self.mesh)} devices",
+                field="refine.view_batch",
+                fix="use a multiple of the device count, or fewer devices (--devices)",
+            )
+        if parallel.is_parallel(self.mesh) and batch > 1:
+            self.light_logits = parallel.replicate(self.light_logits, self.mesh)
 
     def capacity_for(self, params, q: int, v: int) -> int:
         o = jax.nn.sigmoid(params["o_logits"][:, q])[None]
@@ -307,7 +363,71 @@ class _Refinement:
         c.covered[:] = False
         return c
 
+    def drawn(self, it: int) -> list[int]:
+        """The flat indices of the views step ``it`` trains on: entries it·B … it·B + B − 1 of the view
+        sequence (B = ``view_batch``): S steps see S·B views, so equal epochs take S/B steps."""
+        b = self.config.view_batch
+        return [view_order(self.config.seed, it * b + j, len(self.flat)) for j in range(b)]
+
+    def batch_body(self, c: _Carry, it: int) -> _Carry:
+        """A step on ``view_batch`` views at once (their mean loss)."""
+        keys = jax.random.split(c.key, self.config.view_batch + 1)
+        c.key, subs = keys[0], jax.random.key_data(keys[1:])
+        drawn = self.drawn(it)
+        qs = [self.flat[i][0] for i in drawn]
+        stack = lambda *xs: np.stack([np.asarray(x) for x in xs])
+        cameras = jax.tree_util.tree_map(
+            stack, *[self.views[q].cameras[v] for q, v in map(self.flat.__getitem__, drawn)]
+        )
+        images = np.stack([np.asarray(self.images[q][v]) for q, v in map(self.flat.__getitem__, drawn)])
+        batch = (cameras, images, np.asarray(qs, np.int32), subs)
+        batch = parallel.shard_batch(batch, self.mesh) if parallel.is_parallel(self.mesh) else batch
+        cameras, images, dates, subs = batch
+        need = lambda: max(self.capacity_for(c.params, *self.flat[i]) for i in drawn)
+        (params, opt_state, loss, contrib, _), c.capacity = step_with_capacity(
+            lambda cap: _compiled_batch_step(
+                self.config,
+                float(self.extent),
+                dataclasses.replace(self.render_config, capacity=cap),
+                self.train_config,
+            ),
+            c.capacity,
+            (
+                c.params,
+                c.opt_state,
+                self.light_logits,
+                c.o_init,
+                cameras,
+                images,
+                dates,
+                jax.random.wrap_key_data(subs),
+            ),
+            required=need,
+            overflowed=lambda out: out[-1],
+        )
+        c.params, c.opt_state = params, opt_state
+        c.losses.append(float(loss))
+        contrib = parallel.to_host(contrib)
+        for j, i in enumerate(drawn):
+            c.contributed[:, self.flat[i][0]] |= contrib[j]
+            c.covered[i] = True
+        return self.after_step(c, it)
+
+    def after_step(self, c: _Carry, it: int) -> _Carry:
+        """The visibility rule every ``visibility_interval`` steps and at the end; snapshots."""
+        config = self.config
+        done = it + 1
+        if done % config.visibility_interval == 0 or done == config.steps:
+            c = self.check_visibility(c)
+            if parallel.is_parallel(self.mesh) and config.view_batch > 1:
+                c.params, c.opt_state, c.o_init = parallel.replicate((c.params, c.opt_state, c.o_init), self.mesh)
+        if self.on_snapshot is not None and done in self.snapshot_steps and done < config.steps:
+            self.on_snapshot(done, final_prune(with_trainable(self.model, c.params), config.prune_threshold))
+        return c
+
     def body(self, c: _Carry, it: int) -> _Carry:
+        if self.config.view_batch > 1:
+            return self.batch_body(c, it)
         config = self.config
         c.key, sub = jax.random.split(c.key)
         drawn = view_order(config.seed, it, len(self.flat))
@@ -324,12 +444,7 @@ class _Refinement:
         c.losses.append(float(loss))
         c.contributed[:, q] |= np.asarray(contrib)
         c.covered[drawn] = True
-        done = it + 1
-        if done % config.visibility_interval == 0 or done == config.steps:
-            c = self.check_visibility(c)
-        if self.on_snapshot is not None and done in self.snapshot_steps and done < config.steps:
-            self.on_snapshot(done, final_prune(with_trainable(self.model, c.params), config.prune_threshold))
-        return c
+        return self.after_step(c, it)
 
 
 def refine(
@@ -346,6 +461,7 @@ def refine(
     stop_after: int | None = None,
     snapshot_steps: Sequence[int] = (),
     on_snapshot=None,
+    mesh=None,
 ):
     """Eq. 3 refinement of a cross-initialised model on all dates' training views, the visibility
     rule every ``visibility_interval`` steps and at the end, then the final prune. Returns the model
@@ -360,15 +476,28 @@ def refine(
     ``stop_after=k`` saves at step k and returns ``(None, {"stopped_at": k})``. ``on_snapshot(k, model)``
     is called after each step k in ``snapshot_steps`` (< ``config.steps``) with the model as it stands,
     finally pruned (the visibility rule is left to its interval) — the paper's "saved iteration
-    checkpoints"."""
+    checkpoints". ``mesh`` (``parallel.device_mesh``): split each step's ``config.view_batch`` views
+    over its devices (the parameters replicated, the gradient all-reduced)."""
     config = config or RefineConfig()
     train_config = train_config or TrainConfig()
     new_dates = _check_inputs(model, views, new_dates)
     run = _Refinement(
-        model, views, config, train_config, render_config or splat.RenderConfig(), extent, snapshot_steps, on_snapshot
+        model,
+        views,
+        config,
+        train_config,
+        render_config or splat.RenderConfig(),
+        extent,
+        snapshot_steps,
+        on_snapshot,
+        mesh,
     )
     identity = _identity(run, new_dates)
     carry, start = _start(run, new_dates, checkpoint, identity)
+    if parallel.is_parallel(mesh) and config.view_batch > 1:
+        carry.params, carry.opt_state, carry.o_init = parallel.replicate(
+            (carry.params, carry.opt_state, carry.o_init), mesh
+        )
     carry.capacity = max(run.capacity_for(carry.params, q, v) for q, v in run.flat)
 
     def save(c: _Carry, done: int):

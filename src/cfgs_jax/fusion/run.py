@@ -160,7 +160,9 @@ class FusionRun:
         resume: bool,
         models=None,
         captured: list[str | None] | None = None,
+        mesh=None,
     ):
+        self.mesh = mesh  # the devices the sharded stages split their batches over (None: one)
         self.out = ensure_writable_dir(out)
         self.raw = raw_config or {}
         given = {k: v for k, v in self.raw.items() if k != "__path__"}  # what run.json stores as "config"
@@ -261,7 +263,7 @@ def _train_date(run: FusionRun, scene: Scene, name: str, render_config, progress
     d = run.out / "dates" / name
     tc = section(run.raw, "train", train.TrainConfig)
     log(f"[{tag}] date {name}: {tc.steps:,} steps")
-    r = train.fit(scene, tc, render_config, out=d, resume=True, progress=progress)
+    r = train.fit(scene, tc, render_config, out=d, resume=True, progress=progress, mesh=run.mesh)
     write_ply(d / "point_cloud.ply", r.gaussians)
     write_json(d / "train.json", {"gaussians": len(r.gaussians), "test": r.metrics, "growth": r.counts})
 
@@ -292,7 +294,7 @@ def _cross_init_pairs(run: FusionRun, start: Path, pairs, views, render_config, 
         release_if_near_limit()  # each group compiles for its own Gaussian count
         log(f"[{tag}] Gaussians of {names[p]} against images of {', '.join(names[q] for q in qs)}: {cc.steps:,} steps")
         s = time.perf_counter()
-        model, reps = init_pairs(model, p, qs, [views[q] for q in qs], cc, render_config=render_config)
+        model, reps = init_pairs(model, p, qs, [views[q] for q in qs], cc, render_config=render_config, mesh=run.mesh)
         write_fused(partial, model)
         seconds = time.perf_counter() - s
         finished["pairs"].extend([p, q] for q in qs)
@@ -343,6 +345,7 @@ def _refine_stage(
         checkpoint=ckpt,
         snapshot_steps=tuple(snapshots),
         on_snapshot=snapshot,
+        mesh=run.mesh,
     )
     write_fused(run.out / "fused", model, config=run.state["config"])
     run.finish(stage, time.perf_counter() - t0, rep)
@@ -381,6 +384,7 @@ def run_fusion(
     snapshots: tuple[int, ...] = (),
     until: str | None = None,
     log=print,
+    mesh=None,
 ) -> FusionRun:
     """All stages of ChronoFuseGS over ``dates`` (COLMAP datasets).
 
@@ -390,13 +394,17 @@ def run_fusion(
     Every input (configuration, datasets with their image sizes, given models) is read and checked
     before the run directory is created, so bad input leaves no output behind. ``snapshots``: refinement
     step counts whose models are also kept (``RUN/snapshots/refine_<k>/``); ``until``: stop after that
-    stage ("train", "register", "merge": e.g. shared inputs of a sweep). One date is allowed,
-    with a warning: its "fusion" is the identity (o = 1 exactly, no cross-init, no refinement)."""
+    stage ("train", "register", "merge": e.g. shared inputs of a sweep). ``mesh``
+    (``parallel.device_mesh``): the devices training, cross-timestep init, refinement and evaluation
+    split their batches over. One date is allowed, with a warning: its "fusion" is the identity (o = 1
+    exactly, no cross-init, no refinement)."""
     validate_config(raw_config)
     if until not in (None, "train", "register", "merge"):
         raise InputError(f"cannot stop after {until!r}", field="until", fix='use "train", "register" or "merge"')
     dates, scenes, times, models, given = _read_inputs(dates, raw_config, models, captured, drop_invalid, log)
-    run = FusionRun(Path(out), [Path(d) for d in dates], raw_config, resume=resume, models=models, captured=times)
+    run = FusionRun(
+        Path(out), [Path(d) for d in dates], raw_config, resume=resume, models=models, captured=times, mesh=mesh
+    )
     render_config = section(run.raw, "render", splat.RenderConfig)
     names = run.names
 
@@ -523,7 +531,7 @@ def compact_stage(run: FusionRun, config: CompactConfig, views, scenes, sims, re
 
     model = read_fused(run.out / "fused")
     test_views = [date_views(sc, sm, "test") for sc, sm in zip(scenes, sims)]
-    before = evaluate_fused(model, test_views, render_config=render_config)
+    before = evaluate_fused(model, test_views, render_config=render_config, mesh=run.mesh)
     write_fused(run.out / "before_compact", model, config=run.state["config"])
     contribution = None
     if config.hidden_threshold > 0:
@@ -547,11 +555,12 @@ def compact_stage(run: FusionRun, config: CompactConfig, views, scenes, sims, re
             new_dates=[],
             render_config=render_config,
             progress=progress,
+            mesh=run.mesh,
         )
         report["refine"] = refined
         report["gaussians_after"] = len(compacted)
     write_fused(run.out / "fused", compacted, config=run.state["config"])
-    after = evaluate_fused(compacted, test_views, render_config=render_config)
+    after = evaluate_fused(compacted, test_views, render_config=render_config, mesh=run.mesh)
     report["test_before"], report["test_after"] = before["dates"], after["dates"]
     report["test_mean_before"], report["test_mean_after"] = before["mean"], after["mean"]
     write_json(run.out / "compact.json", report)
@@ -607,7 +616,7 @@ def _evaluate_stage(run: FusionRun, scenes, sims, render_config, enabled: bool, 
     def evaluate():
         model = read_fused(run.out / "fused")
         test_views = [date_views(sc, sm, "test") for sc, sm in zip(scenes, sims)]
-        m = evaluate_fused(model, test_views, render_config=render_config)
+        m = evaluate_fused(model, test_views, render_config=render_config, mesh=run.mesh)
         write_json(run.out / "metrics.json", m)
         mean = m["mean"]
         log(
@@ -696,6 +705,7 @@ def run_extend(
     progress: bool = True,
     evaluate: bool = True,
     log=print,
+    mesh=None,
 ) -> FusionRun:
     """Add one date to a finished fusion run in place (paper: incremental fusion): train it (unless
     ``model``), register it to the reference date, insert it at its place in time (``captured``, else
@@ -709,7 +719,7 @@ def run_extend(
     if not any(s.startswith(prefix) for s in state["done"]):
         _insert_date(run_dir, state, date, new_scene, model, captured, log)
     paths = [d["path"] for d in state["dates"]]
-    run = FusionRun(run_dir, [Path(p) for p in paths], state["config"], resume=True)
+    run = FusionRun(run_dir, [Path(p) for p in paths], state["config"], resume=True, mesh=mesh)
     render_config = section(run.raw, "render", splat.RenderConfig)
     names = run.names
     k = names.index(name)

@@ -8,7 +8,7 @@ from cfgs_jax.splat import reference
 from cfgs_jax.splat.binning import Bins, bin_gaussians
 from cfgs_jax.splat.config import RenderConfig
 from cfgs_jax.splat.project import Projection, project, tile_grid
-from cfgs_jax.splat.render import RenderResult, render, render_dates, required_capacity
+from cfgs_jax.splat.render import RenderResult, render, render_dates, render_views, required_capacity
 
 __all__ = [
     "Bins",
@@ -20,6 +20,7 @@ __all__ = [
     "reference",
     "render",
     "render_dates",
+    "render_views",
     "required_capacity",
     "tile_grid",
 ]

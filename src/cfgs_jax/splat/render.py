@@ -270,3 +270,74 @@ def render(
         num_composited=res.num_composited,
         capacity=res.capacity,
     )
+
+
+@functools.partial(jax.jit, static_argnames=("config", "capacity"))
+def _render_views_jit(gaussians, cameras, opacity_mult, color_mult, background, *, config, capacity):
+    one = lambda camera: _render_impl(
+        gaussians,
+        camera,
+        opacity_mult,
+        color_mult,
+        background,
+        None,
+        config=config,
+        capacity=capacity,
+        with_depth=False,
+        statistics=False,
+    )
+    res = jax.vmap(one)(cameras)
+    return res.image, jnp.max(res.num_intersections)
+
+
+def render_views(
+    gaussians: Gaussians,
+    cameras: list[Camera],
+    opacity_mult: Float[Array, "T N"],
+    color_mult: Float[Array, "T N 3"],
+    *,
+    background=(0.0, 0.0, 0.0),
+    config: RenderConfig | None = None,
+    mesh=None,
+) -> list[np.ndarray]:
+    """``render_dates`` images ([T, H, W, 3] each) at every camera, ``jax.vmap``-ed over as many views
+    at once as the ``mesh`` (``cfgs_jax.parallel.device_mesh``; None: one device) has devices, split
+    over them with the Gaussians replicated. Cameras of one image size render together. The same
+    images as rendering the views one by one."""
+    from cfgs_jax import parallel
+
+    config = config or RenderConfig()
+    dtype = jnp.result_type(gaussians.means)
+    opacity_mult, color_mult = jnp.asarray(opacity_mult, dtype), jnp.asarray(color_mult, dtype)
+    for c in cameras:
+        _validate(gaussians, c, opacity_mult, color_mult)
+    shared = (gaussians, opacity_mult, color_mult, np.asarray(background, dtype))
+    width = parallel.mesh_size(mesh)
+    if parallel.is_parallel(mesh):
+        shared = parallel.replicate(shared, mesh)
+    images: list = [None] * len(cameras)
+    sizes = [(c.width, c.height) for c in cameras]
+    for size in dict.fromkeys(sizes):
+        group = [i for i, s in enumerate(sizes) if s == size]
+        for start in range(0, len(group), width):
+            idx = group[start : start + width]
+            for i, im in zip(idx, _render_chunk(shared, [cameras[i] for i in idx], width, config, mesh)):
+                images[i] = im
+    return images
+
+
+def _render_chunk(shared, cameras: list[Camera], width: int, config: RenderConfig, mesh) -> np.ndarray:
+    """Up to ``width`` views of one size at once (padded to ``width`` with the first)."""
+    from cfgs_jax import parallel
+
+    g, om, cm, bg = shared
+    stack = lambda *xs: np.stack([np.asarray(x) for x in xs])
+    stacked = jax.tree_util.tree_map(stack, *(cameras + [cameras[0]] * (width - len(cameras))))
+    if parallel.is_parallel(mesh):
+        stacked = parallel.shard_batch(stacked, mesh)
+    capacity = config.capacity or max(required_capacity(g, c, om, config=config) for c in cameras)
+    while True:
+        images, needed = _render_views_jit(g, stacked, om, cm, bg, config=config, capacity=capacity)
+        if int(needed) <= capacity:
+            return parallel.to_host(images)[: len(cameras)]
+        capacity = _bucket(int(needed))

@@ -43,6 +43,7 @@ class TrainConfig:
     test_every: int = 8
     checkpoint_every: int = 1000
     eval_every: int = 0
+    view_batch: int = 1  # training views per step (their mean loss; split over the devices of a mesh)
 
     def scaled(self, steps: int) -> TrainConfig:
         """This schedule with every iteration count scaled by ``steps / self.steps`` (for short runs):
@@ -68,7 +69,7 @@ class TrainConfig:
             raise InputError(f"must be in (0, 1), got {self.init_opacity}", field="train.init_opacity")
         if not 0 <= self.lambda_dssim <= 1:
             raise InputError(f"must be in [0, 1], got {self.lambda_dssim}", field="train.lambda_dssim")
-        for name in ("densify_interval", "opacity_reset_interval", "checkpoint_every", "resolution"):
+        for name in ("densify_interval", "opacity_reset_interval", "checkpoint_every", "resolution", "view_batch"):
             if getattr(self, name) <= 0:
                 raise InputError(f"must be positive, got {getattr(self, name)}", field=f"train.{name}")
         for name in ("position_lr_init", "position_lr_final"):

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from cfgs_jax import metrics, splat
+from cfgs_jax import metrics, parallel, splat
 from cfgs_jax.io.colmap import Scene
 from cfgs_jax.model import Gaussians
 from cfgs_jax.train.step import over_background
@@ -26,17 +26,32 @@ def evaluate(
     render_config: splat.RenderConfig | None = None,
     background=(0.0, 0.0, 0.0),
     lpips_net: str | None = "alex",
+    mesh=None,
 ) -> dict:
     """Render ``gaussians`` at ``scene``'s views ``indices`` over a fixed ``background`` and compare with
-    the images (RGBA images composited over the same background): mean PSNR (dB), SSIM, LPIPS (``lpips_net``; None skips it) and the per-view values."""
+    the images (RGBA images composited over the same background): mean PSNR (dB), SSIM, LPIPS (``lpips_net``; None skips it) and the per-view values. ``mesh``
+    (``parallel.device_mesh``): render the views split over its devices."""
     render_config = render_config or splat.RenderConfig()
     net = metrics.load_lpips(lpips_net) if lpips_net else None
     rows = []
-    for i in np.asarray(indices, np.int64):
+    indices = [int(i) for i in np.asarray(indices, np.int64)]
+    preds = _renders(gaussians, [scene.cameras[i] for i in indices], background, render_config, mesh)
+    for i, pred in zip(indices, preds):
         gt = np.asarray(over_background(scene.load_image(int(i), with_alpha=True), np.asarray(background, np.float32)))
-        pred = splat.render(
-            gaussians, scene.cameras[int(i)], background=background, config=render_config, statistics=False
-        ).image
         rows.append({"image": scene.image_names[int(i)]} | image_metrics(pred, gt, net))
     out = {k: float(np.mean([r[k] for r in rows])) for k in ("psnr", "ssim", "lpips") if rows and k in rows[0]}
     return out | {"views": rows, "background": list(map(float, background))}
+
+
+def _renders(gaussians: Gaussians, cameras, background, render_config, mesh):
+    """The images at ``cameras``: one by one, or split over the devices of a mesh."""
+    if not parallel.is_parallel(mesh):
+        for cam in cameras:
+            yield splat.render(gaussians, cam, background=background, config=render_config, statistics=False).image
+        return
+    n = len(gaussians)
+    ones = np.ones((1, n), np.float32)
+    for im in splat.render_views(
+        gaussians, cameras, ones, np.ones((1, n, 3), np.float32), background=background, config=render_config, mesh=mesh
+    ):
+        yield im[0]

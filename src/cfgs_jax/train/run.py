@@ -18,7 +18,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from cfgs_jax import splat
+from cfgs_jax import parallel, splat
 from cfgs_jax.errors import InputError
 from cfgs_jax.io.atomic import ensure_writable_dir
 from cfgs_jax.io.checkpoint import read_meta, restore_tree, save_tree
@@ -30,7 +30,7 @@ from cfgs_jax.train.densify import capacity_bucket, densify_step, reset_opacity
 from cfgs_jax.train.evaluate import evaluate
 from cfgs_jax.train.init import init_from_points, scene_extent
 from cfgs_jax.train.optim import make_optimizer
-from cfgs_jax.train.step import TrainState, make_train_step
+from cfgs_jax.train.step import TrainState, make_batch_train_step, make_train_step
 
 CHECKPOINT = "checkpoint.npz"
 FORMAT = "cfgs_jax.train/1"
@@ -122,7 +122,8 @@ def _dummy(n: int) -> Gaussians:
 @functools.lru_cache(maxsize=32)
 def _compiled_step(config: TrainConfig, extent: float, render_config: splat.RenderConfig):
     """One jitted step per (config, extent, intersection capacity): runs in one process share them."""
-    return make_train_step(make_optimizer(config, extent), config, render_config)
+    make = make_batch_train_step if config.view_batch > 1 else make_train_step
+    return make(make_optimizer(config, extent), config, render_config)
 
 
 def _render_capacity(state: TrainState, cameras, render_config: splat.RenderConfig) -> int:
@@ -193,12 +194,47 @@ class _Training:
     lpips_net: str | None
     eval_steps: Sequence[int]
     ckpt: Path | None
+    mesh: object = None
 
     def __post_init__(self):
         self.cameras = [self.scene.cameras[i] for i in self.train_idx]
         # RGBA when the dataset has alpha, else alpha 1
         self.images = [jnp.asarray(self.scene.load_image(int(i), with_alpha=True)) for i in self.train_idx]
         self.extent = scene_extent(self.scene.cameras)
+        batch = self.config.view_batch
+        if batch > 1 and len({tuple(im.shape) for im in self.images}) > 1:
+            raise InputError(
+                "a batch of views needs one image size", path=self.scene.root, fix="set train.view_batch = 1"
+            )
+        if parallel.is_parallel(self.mesh) and batch % parallel.mesh_size(self.mesh):
+            raise InputError(
+                f"{batch} views per step do not split over {parallel.mesh_size(self.mesh)} devices",
+                field="train.view_batch",
+                fix="use a multiple of the device count, or fewer devices (--devices)",
+            )
+
+    def drawn(self, k: int) -> list[int]:
+        """The training views of 0-based step ``k``: entries k·B … k·B + B − 1 of the view sequence."""
+        b = self.config.view_batch
+        return [view_order(self.config.seed, k * b + j, len(self.cameras)) for j in range(b)]
+
+    def placed(self, state: TrainState) -> TrainState:
+        """The state replicated over the mesh when a batch is split over it (else as it is)."""
+        if parallel.is_parallel(self.mesh) and self.config.view_batch > 1:
+            return parallel.replicate(state, self.mesh)
+        return state
+
+    def step_inputs(self, k: int) -> tuple:
+        """(camera, image) of step ``k``, or its batch stacked (and split over the mesh)."""
+        drawn = self.drawn(k)
+        if self.config.view_batch == 1:
+            return self.cameras[drawn[0]], self.images[drawn[0]]
+        stack = lambda *xs: np.stack([np.asarray(x) for x in xs])
+        batch = (
+            jax.tree_util.tree_map(stack, *[self.cameras[v] for v in drawn]),
+            np.stack([np.asarray(self.images[v]) for v in drawn]),
+        )
+        return parallel.shard_batch(batch, self.mesh) if parallel.is_parallel(self.mesh) else batch
 
     def compiled(self, capacity: int):
         rc = dataclasses.replace(self.render_config, capacity=capacity)
@@ -211,12 +247,13 @@ class _Training:
 
     def body(self, c: _Carry, k: int, bar: Progress) -> _Carry:
         config = self.config
-        it, v = k + 1, view_order(config.seed, k, len(self.cameras))  # ``it`` 1-based like INRIA's loop
+        it = k + 1  # 1-based like INRIA's loop
+        views = [self.cameras[v] for v in self.drawn(k)]
         (state, stats), capacity = step_with_capacity(
             self.compiled,
             c.capacity,
-            (c.state, self.cameras[v], self.images[v]),
-            required=lambda: _render_capacity(c.state, [self.cameras[v]], self.render_config),
+            (c.state, *self.step_inputs(k)),
+            required=lambda: _render_capacity(c.state, views, self.render_config),
             overflowed=lambda out: out[1]["overflowed"],
         )
         c = dataclasses.replace(c, state=state, capacity=capacity, psnr=float(stats["psnr"]))
@@ -226,7 +263,8 @@ class _Training:
             m = self.evaluate(c.state.gaussians())
             c.eval_history.append({"step": it} | {k: v for k, v in m.items() if k in ("psnr", "ssim", "lpips")})
             bar.note(f"step {it:,}: test PSNR {m['psnr']:.2f} dB, SSIM {m['ssim']:.4f}")
-        return _adapt_density(c, it, config, self.extent)
+        c = _adapt_density(c, it, config, self.extent)
+        return dataclasses.replace(c, state=self.placed(c.state)) if c.state is not state else c
 
     def save(self, c: _Carry, done: int):
         save_checkpoint(
@@ -254,6 +292,7 @@ def fit(
     evaluate_at_end: bool = True,
     lpips_net: str | None = "alex",
     eval_steps: Sequence[int] = (),
+    mesh=None,
 ) -> TrainRun:
     """Train one date's model on ``scene``'s training split for ``config.steps`` steps.
 
@@ -261,12 +300,14 @@ def fit(
     the "Individual +N" baseline). ``out``: checkpoints every ``config.checkpoint_every`` steps go to
     ``out/checkpoint.npz``; ``resume`` continues from it. ``stop_after``: return after that many total
     steps (as if killed there; checkpoints first). ``eval_steps``: also evaluate the test split after these
-    steps (into ``eval_history``, like ``config.eval_every``)."""
+    steps (into ``eval_history``, like ``config.eval_every``). ``mesh`` (``parallel.device_mesh``): split
+    each step's ``config.view_batch`` views over its devices."""
     render_config = render_config or splat.RenderConfig()
     ckpt = Path(out) / CHECKPOINT if out is not None else None
-    run = _Training(scene, config, render_config, *_splits(scene, config), lpips_net, eval_steps, ckpt)
+    run = _Training(scene, config, render_config, *_splits(scene, config), lpips_net, eval_steps, ckpt, mesh)
     optimizer = make_optimizer(config, run.extent)
     carry = _start(scene, config, init, ckpt if resume else None, optimizer, run.cameras, render_config)
+    carry = dataclasses.replace(carry, state=run.placed(carry.state))
     if ckpt is not None:
         ensure_writable_dir(ckpt.parent)
     t0 = time.perf_counter()

@@ -1,0 +1,267 @@
+"""Scale-out benchmark: cross-timestep init and a refinement epoch on 1 vs 2 devices and 1 vs 2
+processes, and a projection to a paper-sized capture.
+
+The scene is three dates of random Gaussians (``--gaussians`` per date) seen by ``--views`` cameras per
+date at ``--width``×``--height`` (images: each date's own render plus noise), which is all the timing
+needs. Each configuration runs in a subprocess of its own:
+
+- ``devices=1`` / ``devices=2``: one process with ``XLA_FLAGS=--xla_force_host_platform_device_count=2``,
+  the stage on a mesh of one or both host devices;
+- ``processes=2``: two processes on 127.0.0.1 (``jax.distributed``, one device each).
+
+Cross-init: the two pairs (0, 1), (0, 2) run together, one per device on a 2-device mesh; the time per
+step is measured between the first and the last step (compilation excluded). Refinement: one epoch of
+``view_batch`` = 2 (both views of a step on one device, or one per device), its time per step taken as
+the difference of two runs of different lengths (compilation and the final visibility pass cancel);
+B = 1 is the reference. The projection scales the measured per-pair step time to an NWM-sized capture
+(9 dates, ~2 000 views, ~10⁷ Gaussians) and states each assumption. Writes
+benchmarks/results/scale_out.json and scale_out.md.
+
+    python benchmarks/bench_scale_out.py [--gaussians 20000] [--views 6] [--steps 30]
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import importlib
+import json
+import os
+import resource
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bench_splat import RESULTS, machine
+
+HERE = Path(__file__).resolve()
+
+
+def _scene(n: int, views: int, width: int, height: int):
+    import numpy as np
+
+    import cfgs_jax as cj
+    from cfgs_jax import fusion, splat
+
+    ci = importlib.import_module("cfgs_jax.fusion.cross_init")
+    rng = np.random.default_rng(0)
+    dates = []
+    for seed in range(3):
+        r = np.random.default_rng(seed + 1)
+        dates.append(
+            cj.Gaussians(
+                r.uniform(-0.6, 0.6, (n, 3)).astype(np.float32),
+                r.normal(size=(n, 4)).astype(np.float32),
+                np.log(r.uniform(0.005, 0.03, (n, 3))).astype(np.float32),
+                r.normal(0.0, 1.0, n).astype(np.float32),
+                r.uniform(size=(n, 3)).astype(np.float32),
+            )
+        )
+    model = fusion.merge(dates, ["d0", "d1", "d2"])
+    out = []
+    for q in range(3):
+        cams = tuple(
+            cj.Camera.look_at(
+                [2.4 * np.sin(a), -0.4, -2.4 * np.cos(a)],
+                [0, 0, 0],
+                up=(0, -1, 0),
+                width=width,
+                height=height,
+                fov_x_deg=55,
+            )
+            for a in np.linspace(-0.6, 0.6, views) + 0.05 * q
+        )
+        ims = tuple(
+            np.float32(
+                np.clip(np.asarray(splat.render(dates[q], c).image) + 0.05 * rng.normal(size=(height, width, 3)), 0, 1)
+            )
+            for c in cams
+        )
+        out.append(ci.DateViews(cams, ims))
+    return model, out
+
+
+def _cross_init(model, views, steps: int, mesh) -> dict:
+    ci = importlib.import_module("cfgs_jax.fusion.cross_init")
+    stamps = {}
+
+    def tick(k):
+        stamps[k] = time.perf_counter()
+
+    cfg = ci.CrossInitConfig(steps=steps)
+    t0 = time.perf_counter()
+    ci.init_pairs(model, 0, [1, 2], [views[1], views[2]], cfg, mesh=mesh, progress=tick)
+    total = time.perf_counter() - t0
+    return {"step_s": (stamps[steps] - stamps[1]) / (steps - 1), "total_s": total}
+
+
+def _refine_step(model, views, batch: int, steps: int, mesh) -> float:
+    rf = importlib.import_module("cfgs_jax.fusion.refine")
+    walls = []
+    for s in (steps, 2 * steps):
+        cfg = rf.RefineConfig(steps=s, view_batch=batch, visibility_interval=10**6, checkpoint_every=0)
+        t0 = time.perf_counter()
+        rf.refine(model, views, cfg, extent=1.0, mesh=mesh)
+        walls.append(time.perf_counter() - t0)
+    return (walls[1] - walls[0]) / steps
+
+
+def worker(args) -> None:
+    """One configuration, in this process; prints (process 0) one JSON line."""
+    from cfgs_jax import parallel
+
+    parallel.initialize_from_environment()
+    import jax
+
+    model, views = _scene(args.gaussians, args.views, args.width, args.height)
+    mesh = parallel.device_mesh(args.devices)
+    epoch = (3 * args.views) // 2  # steps of two views per epoch
+    row = {"devices": parallel.mesh_size(mesh), "processes": jax.process_count()}
+    row["cross_init"] = _cross_init(model, views, args.steps, mesh)
+    row["refine_b2_step_s"] = _refine_step(model, views, 2, epoch, mesh)
+    if parallel.mesh_size(mesh) == 1:
+        row["refine_b1_step_s"] = _refine_step(model, views, 1, 2 * epoch, mesh)
+    row["peak_rss_gb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024**2
+    if parallel.is_primary():
+        print("RESULT " + json.dumps(row), flush=True)
+
+
+def _run(argv: list[str], env: dict) -> dict:
+    done = subprocess.run([sys.executable, str(HERE), "--worker", *argv], env=env, capture_output=True, text=True)
+    if done.returncode != 0:
+        raise SystemExit(done.stderr[-3000:])
+    return json.loads(next(line for line in done.stdout.splitlines() if line.startswith("RESULT "))[7:])
+
+
+def _two_processes(argv: list[str], env: dict) -> dict:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    procs = [
+        subprocess.Popen(
+            [sys.executable, str(HERE), "--worker", *argv],
+            env=env
+            | {"JAX_COORDINATOR_ADDRESS": f"127.0.0.1:{port}", "JAX_NUM_PROCESSES": "2", "JAX_PROCESS_ID": str(i)},
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+        for i in range(2)
+    ]
+    outs = [p.communicate() for p in procs]
+    if any(p.returncode for p in procs):
+        raise SystemExit("\n".join(err[-2000:] for _, err in outs))
+    return json.loads(next(line for line in outs[0][0].splitlines() if line.startswith("RESULT "))[7:])
+
+
+def projection(per_pair_step_s: float, args) -> dict:
+    """NWM-sized capture from the measured per-pair cross-init step: the step cost scaled by
+    Gaussians × pixels relative to the benchmark (an upper-bound model: the kernel's work grows with
+    both), memory per device from the per-pair arrays."""
+    dates, views_total, gaussians_total = 9, 2000, 10_000_000
+    width, height = 1000, 667
+    per_date = gaussians_total // dates
+    pairs = dates * (dates - 1)
+    scale = (per_date / args.gaussians) * ((width * height) / (args.width * args.height)) ** 0.5
+    pair_step = per_pair_step_s * scale
+    views_per_date = views_total // dates
+    # per device: its date p's Gaussians (14 floats), the pair's o, u, w with Adam moments (9 floats),
+    # date q's images (RGB float32) and ε maps, one view's intersection buffer (~30 per Gaussian, 8 B)
+    gaussian_bytes = per_date * (14 + 9) * 4
+    image_bytes = views_per_date * width * height * 4 * 4
+    buffer_bytes = per_date * 30 * 8
+    mem = (gaussian_bytes + image_bytes + buffer_bytes) / 1024**3
+    rows = []
+    for n in (1, 8, 64, 72):
+        rounds = -(-pairs // n)  # pairs of one step in parallel; the T−1 pairs of a p share a group
+        rows.append({"devices": n, "cross_init_hours": rounds * 3000 * pair_step / 3600})
+    return {
+        "dates": dates,
+        "views": views_total,
+        "gaussians": gaussians_total,
+        "image": f"{width}x{height}",
+        "pair_step_s": pair_step,
+        "memory_per_device_gb": mem,
+        "cross_init": rows,
+    }
+
+
+def main():
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--gaussians", type=int, default=20_000)
+    ap.add_argument("--views", type=int, default=6)
+    ap.add_argument("--width", type=int, default=160)
+    ap.add_argument("--height", type=int, default=120)
+    ap.add_argument("--steps", type=int, default=30)
+    ap.add_argument("--devices", default="1")
+    ap.add_argument("--worker", action="store_true")
+    args = ap.parse_args()
+    if args.worker:
+        return worker(args)
+    common = [f"--{k}={getattr(args, k)}" for k in ("gaussians", "views", "width", "height", "steps")]
+    env = dict(os.environ)
+    flags = (env.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=2").strip()
+    t0 = time.perf_counter()
+    one = _run([*common, "--devices=1"], env | {"XLA_FLAGS": flags})
+    two = _run([*common, "--devices=2"], env | {"XLA_FLAGS": flags})
+    procs = _two_processes([*common, "--devices=all"], env)
+    result = {
+        "date": datetime.date.today().isoformat(),
+        "machine": machine(),
+        "command": "python benchmarks/bench_scale_out.py " + " ".join(common),
+        "rows": {"1 device": one, "2 host devices": two, "2 processes": procs},
+        "projection": projection(one["cross_init"]["step_s"] / 2, args),
+        "wall_s": time.perf_counter() - t0,
+    }
+    RESULTS.mkdir(exist_ok=True)
+    (RESULTS / "scale_out.json").write_text(json.dumps(result, indent=1))
+    (RESULTS / "scale_out.md").write_text(markdown(result))
+    print(markdown(result))
+
+
+def markdown(r: dict) -> str:
+    rows = r["rows"]
+    base = rows["1 device"]
+    lines = [
+        "# Scale-out: 1 vs 2 devices and processes",
+        "",
+        f"`{r['command']}` — {r['date']}, {r['machine']}. Total {r['wall_s']:.0f} s.",
+        "",
+        "| configuration | cross-init step (2 pairs) | speed-up | refinement step, B = 2 | speed-up | peak RSS (GB) |",
+        "|---|---|---|---|---|---|",
+    ]
+    for name, row in rows.items():
+        ci, rb = row["cross_init"]["step_s"], row["refine_b2_step_s"]
+        lines.append(
+            f"| {name} | {1000 * ci:.1f} ms | {base['cross_init']['step_s'] / ci:.2f}× | {1000 * rb:.1f} ms | "
+            f"{base['refine_b2_step_s'] / rb:.2f}× | {row['peak_rss_gb']:.2f} |"
+        )
+    b1 = base["refine_b1_step_s"]
+    lines += [
+        "",
+        f"Refinement with B = 1 on one device: {1000 * b1:.1f} ms per step, so an epoch at B = 2 costs "
+        f"{base['refine_b2_step_s'] / (2 * b1):.2f}× the B = 1 epoch on one device.",
+        "",
+        "## Projection to an NWM-sized capture",
+        "",
+    ]
+    p = r["projection"]
+    lines += [
+        f"{p['dates']} dates, {p['views']:,} views ({p['image']}), {p['gaussians']:,} Gaussians in all. The measured "
+        f"per-pair cross-init step ({1000 * base['cross_init']['step_s'] / 2:.1f} ms on this machine) scaled by Gaussians "
+        f"× √pixels gives {p['pair_step_s']:.2f} s per pair step here; each device holds one date's Gaussians, a "
+        f"pair's parameters and moments, date q's images and one intersection buffer: "
+        f"**{p['memory_per_device_gb']:.1f} GB per device**.",
+        "",
+        "| devices | cross-init (72 pairs × 3 000 steps), hours at this machine's per-device speed |",
+        "|---|---|",
+    ]
+    lines += [f"| {row['devices']} | {row['cross_init_hours']:.0f} |" for row in p["cross_init"]]
+    return "\n".join(lines) + "\n"
+
+
+if __name__ == "__main__":
+    main()
