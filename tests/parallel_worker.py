@@ -69,7 +69,7 @@ def devices(out: str) -> None:
     assert len(jax.devices()) == 2, jax.devices()
     model, views = scene()
     one, two = parallel.device_mesh(1), parallel.device_mesh(2)
-    saved = {}
+    saved = {"start_means": np.asarray(model.gaussians.means)}
     for name, mesh in (("one", one), ("two", two)):
         for k, v in cross_init(model, views, mesh).items():
             saved[f"cross_{name}_{k}"] = v

@@ -1,10 +1,11 @@
 """Sharding over devices and processes: the same numbers as one device.
 
 The multi-device cases run in subprocesses (``tests/parallel_worker.py``): two host devices need
-``XLA_FLAGS`` before JAX starts, and two processes need ``jax.distributed``. Tolerances: rendering is
-exact; a refinement step with a view batch sums the per-device gradients in another order (≤ 1e-9 on
-positions after three steps); cross-timestep init compiles the per-device pair batch at another width
-and differs by float32 rounding (≤ 1e-4 in logits after six steps at rate 0.05).
+``XLA_FLAGS`` before JAX starts, and two processes need ``jax.distributed``. Rendering and refinement
+with a view batch are bit-identical on one and two devices (each view's gradient is computed alone
+and the mean over the batch has two terms); cross-timestep init compiles the per-device run of pairs
+at another length and differs by float32 rounding (measured 2.4e-7 in logits after six steps at rate
+0.05; tested at 1e-5).
 """
 
 from __future__ import annotations
@@ -58,16 +59,16 @@ def two_devices(tmp_path_factory) -> dict:
 def test_cross_init_on_two_devices_equals_one(two_devices):
     for name in ("o_logits", "light_logits"):
         one, two = two_devices[f"cross_one_{name}"], two_devices[f"cross_two_{name}"]
-        np.testing.assert_allclose(two, one, atol=1e-4, rtol=0)
+        np.testing.assert_allclose(two, one, atol=1e-5, rtol=0)
     # something was fitted: the pairs' o^q moved away from the merged model's start
     assert np.std(two_devices["cross_one_o_logits"][:90, 1:]) > 0
 
 
 def test_refinement_with_two_views_per_step_on_two_devices_equals_one(two_devices):
     np.testing.assert_array_equal(two_devices["refine_devices"], [1, 2])
-    np.testing.assert_allclose(two_devices["refine_two_means"], two_devices["refine_one_means"], atol=1e-9, rtol=0)
-    np.testing.assert_allclose(two_devices["refine_two_o_logits"], two_devices["refine_one_o_logits"], atol=1e-9)
-    assert np.isclose(two_devices["refine_two_loss"], two_devices["refine_one_loss"], rtol=1e-6)
+    for name in ("means", "o_logits", "loss"):
+        np.testing.assert_array_equal(two_devices[f"refine_two_{name}"], two_devices[f"refine_one_{name}"])
+    assert np.any(two_devices["refine_one_means"] != two_devices["start_means"])  # the steps moved something
 
 
 def test_rendering_views_on_two_devices_equals_one_and_the_single_view_path(two_devices):
@@ -106,7 +107,7 @@ def test_two_processes_run_a_sharded_cross_init_that_agrees_with_one(two_devices
     got = np.load(out)
     assert int(got["processes"]) == 2 and int(got["devices"]) == 2 and bool(got["distributed"])
     for name in ("o_logits", "light_logits"):
-        np.testing.assert_allclose(got[name], two_devices[f"cross_one_{name}"], atol=1e-4, rtol=0)
+        np.testing.assert_allclose(got[name], two_devices[f"cross_one_{name}"], atol=1e-5, rtol=0)
 
 
 def test_batch_train_step_is_the_mean_of_its_views():

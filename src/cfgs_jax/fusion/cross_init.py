@@ -22,11 +22,12 @@ Gaussians cannot explain. α, geometry and colour stay frozen. o^q
 starts at δ·o^p. Gaussians of date p that project into no training view of date q get o^q = −4e
 (``INVISIBLE_LOGIT``) and are left out of that pair; a pair with none visible is skipped.
 
-The pairs of one date p run together (``init_pairs``): each step renders one view of every date q,
-``jax.vmap``-ed over the pairs' parameters, Adam states, cameras and images, with the Gaussians shared —
-the same numbers as running the pairs one by one, fewer dispatches and one compilation per date p.
-``batch_dates`` caps how many run at once (memory grows with it); dates with other image sizes run
-apart.
+The pairs of one date p run together (``init_pairs``): each step is one compiled call that takes one
+view of every date q, the pairs one after another (``jax.lax.map``; ``jax.vmap`` of the kernel is 2–3×
+slower on a CPU) or split over the devices of a mesh, each with its own parameters, Adam state,
+cameras and images and the Gaussians shared — the same numbers as running the pairs one by one, fewer
+dispatches and one compilation per date p. ``batch_dates`` caps how many run at once (memory grows
+with it); dates with other image sizes run apart.
 """
 
 from __future__ import annotations
@@ -68,7 +69,7 @@ class CrossInitConfig:
     lpips_net: Literal["alex", "vgg"] = "alex"
     lpips_scale: float = 1.0  # ε_LPIPS = clip(map / lpips_scale, 0, 1)
     background_anneal: float = 1.0  # fraction of the steps over which b's range shrinks to black
-    batch_dates: int = 0  # pairs (p, q) of one p optimised together per step (vmapped); 0: all of them
+    batch_dates: int = 0  # pairs (p, q) of one p optimised together per step (one call); 0: all of them
     exposure_init: bool = True  # start the gains at the pair's least-squares exposure, not 1
     exposure_range_ev: float = (
         2.0  # the start exposure is clipped to ± this many stops (a dark image is not a gain of 0)
@@ -179,14 +180,19 @@ def pair_loss(params, g: Gaussians, camera, image, eps_map, b, step, config: Cro
 
 
 @functools.lru_cache(maxsize=16)
-def _compiled_step(config: CrossInitConfig, render_config: splat.RenderConfig):
-    """One optimisation step of several pairs (p, q₁), (p, q₂), … at once: ``jax.vmap`` over the pairs'
-    parameters, optimiser states, views, ε maps and keys (the Gaussians are shared). Each pair's views
-    arrive stacked ([pairs, views, …]) with the index of the one it draws this step, so the inputs
-    stay on their devices from step to step and a pair axis split over devices stays split."""
+def _compiled_step(config: CrossInitConfig, render_config: splat.RenderConfig, mesh=None):
+    """One optimisation step of several pairs (p, q₁), (p, q₂), …: each pair with its own parameters,
+    optimiser state, views, ε maps and key, the Gaussians shared. Each pair's views arrive stacked
+    ([pairs, views, …]) with the index of the one it draws this step, so the inputs stay on their
+    devices from step to step; the pairs run one after another (``parallel.map_batch``), split over
+    the devices of ``mesh``."""
     optimizer = cross_init_optimizer(config)
 
-    def one(params, opt_state, g, camera, image, eps_map, key, it):
+    def one(pair, shared):
+        params, opt_state, cameras, images, eps_maps, drawn, key = pair
+        g, it = shared
+        camera = jax.tree_util.tree_map(lambda rows: rows[drawn], cameras)
+        image, eps_map = images[drawn], eps_maps[drawn]
         b = background_colour(key, it, config, image.dtype)
         (loss, res), grads = jax.value_and_grad(pair_loss, has_aux=True)(
             params, g, camera, image, eps_map, b, it, config, render_config
@@ -196,12 +202,8 @@ def _compiled_step(config: CrossInitConfig, render_config: splat.RenderConfig):
 
     @jax.jit
     def step(params, opt_state, g, cameras, images, eps_maps, drawn, keys, it):
-        pick = lambda x: jax.vmap(lambda rows, i: rows[i])(x, drawn)
-        cams = jax.tree_util.tree_map(pick, cameras)
-        batched = jax.vmap(one, in_axes=(0, 0, None, 0, 0, 0, 0, None))
-        params, opt_state, loss, overflowed = batched(
-            params, opt_state, g, cams, pick(images), pick(eps_maps), keys, it
-        )
+        pairs = (params, opt_state, cameras, images, eps_maps, drawn, keys)
+        params, opt_state, loss, overflowed = parallel.map_batch(one, pairs, (g, it), mesh)
         return params, opt_state, loss, jnp.any(overflowed)
 
     return optimizer, step
@@ -310,7 +312,7 @@ def init_pairs(
 ) -> tuple[TemporalGaussians, list[dict]]:
     """Optimise o^q and l^q of the Gaussians from date p against date q's views (Eq. 2) for every q in
     ``qs`` at once (``views[i]`` the views of ``qs[i]``; all of one image shape): each step renders one
-    view of every q, vmapped, each pair with its own parameters, Adam state, view sequence and
+    view of every q, each pair with its own parameters, Adam state, view sequence and
     background colours — the same result as running the pairs one by one. ``mesh``
     (``parallel.device_mesh``): split the pairs over its devices. Returns the updated model and one
     report per pair (visible count, first/last loss, mean o^q, light, ε)."""
@@ -365,7 +367,7 @@ def _stacked_inputs(pairs: _Pairs, eps_maps) -> tuple:
 def _optimise(
     pairs: _Pairs, params, eps_maps, config: CrossInitConfig, p: int, qs, progress, mesh=None
 ) -> tuple[dict, np.ndarray]:
-    """Eq. 2's ``config.steps`` Adam steps of the pairs (p, q) for q in ``qs``, vmapped: each pair with
+    """Eq. 2's ``config.steps`` Adam steps of the pairs (p, q) for q in ``qs`` together: each pair with
     its own view sequence and background key. With a ``mesh`` of several devices the pair axis is
     split over them (padded to a multiple of the device count with copies of the first pair, whose
     results are dropped). Returns the parameters and the [steps, pairs] losses."""
@@ -373,7 +375,7 @@ def _optimise(
     seeds = [(config.seed, p, q) for q in qs]
     counts = [len(ims) for ims in pairs.images]
     keys = np.stack([jax.random.key_data(jax.random.key(config.seed * 1_000_003 + p * 1009 + q)) for q in qs])
-    optimizer, step = _compiled_step(config, pairs.render_config)
+    optimizer, step = _compiled_step(config, pairs.render_config, mesh if parallel.is_parallel(mesh) else None)
     cameras, images, eps = _stacked_inputs(pairs, eps_maps)
     batch = (params, jax.vmap(optimizer.init)(params), cameras, images, eps, keys)
     if parallel.is_parallel(mesh):
@@ -391,6 +393,7 @@ def _optimise(
         both = jax.vmap(jax.random.split)(keys)
         drawn = [view_order(s, it, n) for s, n in zip(seeds, counts)]
         drawn = np.asarray(drawn + drawn[:1] * (width - k), np.int32)
+        drawn = parallel.shard_batch(drawn, mesh) if parallel.is_parallel(mesh) else drawn
         params, opt_state, loss, overflowed = step(
             params, opt_state, g, cameras, images, eps, drawn, both[:, 1], jnp.float32(it)
         )
@@ -481,8 +484,8 @@ def cross_init(
     mesh=None,
 ):
     """Eq. 2 for every ordered pair p ≠ q (or the given ``pairs``, e.g. only those that involve a new
-    date when extending), the pairs of one p run together (``pair_groups``, ``init_pairs``: vmapped,
-    up to ``config.batch_dates`` at a time, split over the devices of ``mesh`` when it has several);
+    date when extending), the pairs of one p run together (``pair_groups``, ``init_pairs``: one step
+    call for up to ``config.batch_dates`` at a time, split over the devices of ``mesh`` when it has several);
     returns the model and the per-pair reports."""
     config = config or CrossInitConfig()
     t = model.num_dates

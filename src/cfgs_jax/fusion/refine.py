@@ -152,39 +152,32 @@ def _compiled_step(config: RefineConfig, extent: float, render_config: splat.Ren
     return optimizer, step, contribution
 
 
-def batch_refine_loss(
-    params, light_logits, o_init, cameras, images, dates, backgrounds, config: RefineConfig, render_config
-):
-    """Eq. 3 averaged over a batch of training images (cameras, images, dates and backgrounds stacked
-    along a leading axis); also the batch of renders."""
-    losses, res = jax.vmap(refine_loss, in_axes=(None, None, None, 0, 0, 0, 0, None, None))(
-        params, light_logits, o_init, cameras, images, dates, backgrounds, config, render_config
-    )
-    return jnp.mean(losses), res
-
-
 @functools.lru_cache(maxsize=16)
 def _compiled_batch_step(
-    config: RefineConfig, extent: float, render_config: splat.RenderConfig, train_config: TrainConfig
+    config: RefineConfig, extent: float, render_config: splat.RenderConfig, train_config: TrainConfig, mesh=None
 ):
-    """The step of ``view_batch`` > 1 views: one Adam update on the mean loss of the batch. Given a
-    batch split over devices (and everything else replicated), XLA computes each device's views there
-    and all-reduces the gradient."""
+    """The step of ``view_batch`` = B > 1 views: each view's Eq. 3 gradient (the views one after
+    another, or each device over its share of them: ``parallel.map_batch``), one Adam update on their
+    mean. Across devices the sum is an all-reduce."""
     optimizer = refinement_optimizer(config, extent, train_config)
+
+    def one(view, shared):
+        camera, image, date, key = view
+        params, light_logits, o_init = shared
+        bg = jax.random.uniform(key, (3,), image.dtype) if config.random_background else jnp.zeros(3, image.dtype)
+        (loss, res), grads = jax.value_and_grad(refine_loss, has_aux=True)(
+            params, light_logits, o_init, camera, image, date, bg, config, render_config
+        )
+        contributed = visible_weight(res.max_weight[0], params["o_logits"][:, date]) >= config.contribution_threshold
+        return loss, grads, contributed, res.overflowed
 
     @jax.jit
     def step(params, opt_state, light_logits, o_init, cameras, images, dates, keys):
-        if config.random_background:
-            bg = jax.vmap(lambda k: jax.random.uniform(k, (3,), images.dtype))(keys)
-        else:
-            bg = jnp.zeros((len(dates), 3), images.dtype)
-        (loss, res), grads = jax.value_and_grad(batch_refine_loss, has_aux=True)(
-            params, light_logits, o_init, cameras, images, dates, bg, config, render_config
-        )
+        views = (cameras, images, dates, keys)
+        losses, grads, contributed, overflowed = parallel.map_batch(one, views, (params, light_logits, o_init), mesh)
+        grads = jax.tree_util.tree_map(lambda g: jnp.mean(g, axis=0), grads)
         updates, opt_state = optimizer.update(grads, opt_state, params)
-        o_logits = jnp.take(params["o_logits"], dates, axis=1).T  # [B, N]
-        contributed = visible_weight(res.max_weight[:, 0], o_logits) >= config.contribution_threshold
-        return optax.apply_updates(params, updates), opt_state, loss, contributed, jnp.any(res.overflowed)
+        return optax.apply_updates(params, updates), opt_state, jnp.mean(losses), contributed, jnp.any(overflowed)
 
     return step
 
@@ -390,6 +383,7 @@ class _Refinement:
                 float(self.extent),
                 dataclasses.replace(self.render_config, capacity=cap),
                 self.train_config,
+                self.mesh if parallel.is_parallel(self.mesh) else None,
             ),
             c.capacity,
             (

@@ -272,22 +272,19 @@ def render(
     )
 
 
-@functools.partial(jax.jit, static_argnames=("config", "capacity"))
-def _render_views_jit(gaussians, cameras, opacity_mult, color_mult, background, *, config, capacity):
-    one = lambda camera: _render_impl(
-        gaussians,
-        camera,
-        opacity_mult,
-        color_mult,
-        background,
-        None,
-        config=config,
-        capacity=capacity,
-        with_depth=False,
-        statistics=False,
-    )
-    res = jax.vmap(one)(cameras)
-    return res.image, jnp.max(res.num_intersections)
+@functools.partial(jax.jit, static_argnames=("config", "capacity", "mesh"))
+def _render_views_jit(gaussians, cameras, opacity_mult, color_mult, background, *, config, capacity, mesh):
+    from cfgs_jax import parallel
+
+    def one(camera, shared):
+        g, om, cm, bg = shared
+        res = _render_impl(
+            g, camera, om, cm, bg, None, config=config, capacity=capacity, with_depth=False, statistics=False
+        )
+        return res.image, res.num_intersections
+
+    images, needed = parallel.map_batch(one, cameras, (gaussians, opacity_mult, color_mult, background), mesh)
+    return images, jnp.max(needed)
 
 
 def render_views(
@@ -300,10 +297,9 @@ def render_views(
     config: RenderConfig | None = None,
     mesh=None,
 ) -> list[np.ndarray]:
-    """``render_dates`` images ([T, H, W, 3] each) at every camera, ``jax.vmap``-ed over as many views
-    at once as the ``mesh`` (``cfgs_jax.parallel.device_mesh``; None: one device) has devices, split
-    over them with the Gaussians replicated. Cameras of one image size render together. The same
-    images as rendering the views one by one."""
+    """``render_dates`` images ([T, H, W, 3] each) at every camera, as many views per call as the ``mesh`` (``cfgs_jax.parallel.device_mesh``; None: one device) has devices, split
+    over them with the Gaussians replicated (``parallel.map_batch``). Cameras of one image size render
+    together. The same images as rendering the views one by one."""
     from cfgs_jax import parallel
 
     config = config or RenderConfig()
@@ -337,7 +333,9 @@ def _render_chunk(shared, cameras: list[Camera], width: int, config: RenderConfi
         stacked = parallel.shard_batch(stacked, mesh)
     capacity = config.capacity or max(required_capacity(g, c, om, config=config) for c in cameras)
     while True:
-        images, needed = _render_views_jit(g, stacked, om, cm, bg, config=config, capacity=capacity)
+        images, needed = _render_views_jit(
+            g, stacked, om, cm, bg, config=config, capacity=capacity, mesh=mesh if parallel.is_parallel(mesh) else None
+        )
         if int(needed) <= capacity:
             return parallel.to_host(images)[: len(cameras)]
         capacity = _bucket(int(needed))

@@ -120,10 +120,12 @@ def _dummy(n: int) -> Gaussians:
 
 
 @functools.lru_cache(maxsize=32)
-def _compiled_step(config: TrainConfig, extent: float, render_config: splat.RenderConfig):
-    """One jitted step per (config, extent, intersection capacity): runs in one process share them."""
-    make = make_batch_train_step if config.view_batch > 1 else make_train_step
-    return make(make_optimizer(config, extent), config, render_config)
+def _compiled_step(config: TrainConfig, extent: float, render_config: splat.RenderConfig, mesh=None):
+    """One jitted step per (config, extent, intersection capacity, mesh): runs in one process share
+    them."""
+    if config.view_batch > 1:
+        return make_batch_train_step(make_optimizer(config, extent), config, render_config, mesh)
+    return make_train_step(make_optimizer(config, extent), config, render_config)
 
 
 def _render_capacity(state: TrainState, cameras, render_config: splat.RenderConfig) -> int:
@@ -238,7 +240,7 @@ class _Training:
 
     def compiled(self, capacity: int):
         rc = dataclasses.replace(self.render_config, capacity=capacity)
-        return _compiled_step(self.config, self.extent, rc)
+        return _compiled_step(self.config, self.extent, rc, self.mesh if parallel.is_parallel(self.mesh) else None)
 
     def evaluate(self, gaussians: Gaussians) -> dict:
         return evaluate(

@@ -155,50 +155,58 @@ def make_train_step(optimizer: optax.GradientTransformation, config: TrainConfig
 
 
 def make_batch_train_step(
-    optimizer: optax.GradientTransformation, config: TrainConfig, render_config: splat.RenderConfig
+    optimizer: optax.GradientTransformation, config: TrainConfig, render_config: splat.RenderConfig, mesh=None
 ):
     """``make_train_step`` on a batch of views per step: cameras and images stacked along a leading
-    axis B, one Adam update on their mean loss. The densification statistics take each view's own
-    screen-space gradient (B times the gradient of the mean), as B single-view steps would. Given a
-    batch split over devices and a replicated state, XLA all-reduces the gradient."""
+    axis B, one Adam update on the mean of the views' gradients (the views one after another, or each
+    device of ``mesh`` over its share: ``parallel.map_batch``; the sum across devices is an
+    all-reduce). The densification statistics take each view's own screen-space gradient, as B
+    single-view steps would."""
+    from cfgs_jax import parallel
+
     if render_config.capacity is None:
         raise ValueError("make_batch_train_step needs render_config.capacity (splat.required_capacity)")
+
+    def one(view, shared):
+        camera, image, key = view
+        params, active = shared
+        if config.random_background:
+            background = jax.random.uniform(key, (3,), image.dtype)
+        else:
+            background = jnp.zeros((3,), image.dtype)
+        offset = jnp.zeros_like(params["means"][:, :2])
+
+        def objective(params, offset):
+            return loss_fn(params, active, camera, image, background, config, render_config, offset)
+
+        (loss, res), (grads, d_offset) = jax.value_and_grad(objective, argnums=(0, 1), has_aux=True)(params, offset)
+        ndc = d_offset * (0.5 * jnp.asarray([camera.width, camera.height], d_offset.dtype))
+        visible = active & (res.radii > 0)
+        psnr = metrics.psnr(res.image[0], over_background(image, background))
+        norm = jnp.where(visible, jnp.linalg.norm(ndc, axis=-1), 0.0)
+        return loss, grads, norm, visible, jnp.where(visible, res.radii, 0.0), psnr, res.overflowed
 
     @jax.jit
     def step(state: TrainState, cameras: Camera, images):
         b = images.shape[0]
         keys = jax.random.split(state.key, b + 1)
-        if config.random_background:
-            backgrounds = jax.vmap(lambda k: jax.random.uniform(k, (3,), images.dtype))(keys[1:])
-        else:
-            backgrounds = jnp.zeros((b, 3), images.dtype)
-        offsets = jnp.zeros((b,) + state.params["means"][:, :2].shape, state.params["means"].dtype)
-
-        def objective(params, offsets):
-            per_view = lambda cam, im, bg, off: loss_fn(params, state.active, cam, im, bg, config, render_config, off)
-            losses, res = jax.vmap(per_view)(cameras, images, backgrounds, offsets)
-            return jnp.mean(losses), res
-
-        (loss, res), (grads, d_offsets) = jax.value_and_grad(objective, argnums=(0, 1), has_aux=True)(
-            state.params, offsets
+        views = (cameras, images, keys[1:])
+        loss, grads, norm, visible, radii, psnr, overflowed = parallel.map_batch(
+            one, views, (state.params, state.active), mesh
         )
+        grads = jax.tree_util.tree_map(lambda g: jnp.mean(g, axis=0), grads)
         updates, opt_state = optimizer.update(grads, state.opt_state, state.params)
-        half_size = 0.5 * jnp.stack([cameras.width * jnp.ones(b), cameras.height * jnp.ones(b)], -1)
-        ndc = b * d_offsets * half_size[:, None, :].astype(d_offsets.dtype)  # each view's own gradient
-        visible = state.active[None] & (res.radii > 0)  # [B, N]
         new = dataclasses.replace(
             state,
             params=optax.apply_updates(state.params, updates),
             opt_state=opt_state,
             step=state.step + 1,
             key=keys[0],
-            grad_accum=state.grad_accum + jnp.sum(jnp.where(visible, jnp.linalg.norm(ndc, axis=-1), 0.0), 0),
+            grad_accum=state.grad_accum + jnp.sum(norm, 0),
             grad_count=state.grad_count + jnp.sum(visible.astype(jnp.int32), 0),
-            max_radius=jnp.maximum(state.max_radius, jnp.max(jnp.where(visible, res.radii, 0.0), 0)),
+            max_radius=jnp.maximum(state.max_radius, jnp.max(radii, 0)),
         )
-        targets = jax.vmap(over_background)(images, backgrounds)
-        psnr = jnp.mean(jax.vmap(metrics.psnr)(res.image[:, 0], targets))
-        stats = {"loss": loss, "psnr": psnr, "overflowed": jnp.any(res.overflowed)}
+        stats = {"loss": jnp.mean(loss), "psnr": jnp.mean(psnr), "overflowed": jnp.any(overflowed)}
         return new, stats | {"visible": jnp.sum(jnp.any(visible, 0))}
 
     return step
