@@ -375,7 +375,7 @@ def _optimise(
     seeds = [(config.seed, p, q) for q in qs]
     counts = [len(ims) for ims in pairs.images]
     keys = np.stack([jax.random.key_data(jax.random.key(config.seed * 1_000_003 + p * 1009 + q)) for q in qs])
-    optimizer, step = _compiled_step(config, pairs.render_config, mesh if parallel.is_parallel(mesh) else None)
+    optimizer, step = _compiled_step(config, pairs.render_config, mesh)
     cameras, images, eps = _stacked_inputs(pairs, eps_maps)
     batch = (params, jax.vmap(optimizer.init)(params), cameras, images, eps, keys)
     if parallel.is_parallel(mesh):

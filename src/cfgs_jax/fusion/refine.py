@@ -383,7 +383,7 @@ class _Refinement:
                 float(self.extent),
                 dataclasses.replace(self.render_config, capacity=cap),
                 self.train_config,
-                self.mesh if parallel.is_parallel(self.mesh) else None,
+                self.mesh,
             ),
             c.capacity,
             (

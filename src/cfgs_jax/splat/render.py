@@ -333,9 +333,7 @@ def _render_chunk(shared, cameras: list[Camera], width: int, config: RenderConfi
         stacked = parallel.shard_batch(stacked, mesh)
     capacity = config.capacity or max(required_capacity(g, c, om, config=config) for c in cameras)
     while True:
-        images, needed = _render_views_jit(
-            g, stacked, om, cm, bg, config=config, capacity=capacity, mesh=mesh if parallel.is_parallel(mesh) else None
-        )
+        images, needed = _render_views_jit(g, stacked, om, cm, bg, config=config, capacity=capacity, mesh=mesh)
         if int(needed) <= capacity:
             return parallel.to_host(images)[: len(cameras)]
         capacity = _bucket(int(needed))

@@ -240,11 +240,16 @@ class _Training:
 
     def compiled(self, capacity: int):
         rc = dataclasses.replace(self.render_config, capacity=capacity)
-        return _compiled_step(self.config, self.extent, rc, self.mesh if parallel.is_parallel(self.mesh) else None)
+        return _compiled_step(self.config, self.extent, rc, self.mesh)
 
     def evaluate(self, gaussians: Gaussians) -> dict:
         return evaluate(
-            gaussians, self.scene, self.test_idx, render_config=self.render_config, lpips_net=self.lpips_net
+            gaussians,
+            self.scene,
+            self.test_idx,
+            render_config=self.render_config,
+            lpips_net=self.lpips_net,
+            mesh=self.mesh,
         )
 
     def body(self, c: _Carry, k: int, bar: Progress) -> _Carry:
