@@ -78,12 +78,17 @@ def devices(out: str) -> None:
         saved[f"refine_{name}_means"] = np.asarray(refined.gaussians.means)
         saved[f"refine_{name}_o_logits"] = np.asarray(refined.o_logits)
         saved[f"refine_{name}_loss"] = np.asarray(report["loss_last"])
+        single = rf.RefineConfig(steps=2, view_batch=1, checkpoint_every=0)  # B = 1: the mesh is not used
+        saved[f"refine_b1_{name}_means"] = np.asarray(
+            rf.refine(model, views, single, extent=1.0, mesh=mesh)[0].gaussians.means
+        )
         cams = list(views[1].cameras) + list(views[0].cameras)
         o = np.asarray(jax.nn.sigmoid(model.o_logits)).T
         light = np.ones((3, len(model), 3), np.float32)
         saved[f"render_{name}"] = np.stack(
             splat.render_views(model.gaussians, cams, o, light, background=(0.2, 0.1, 0.0), mesh=mesh)
         )
+    saved["refine_b1_none_means"] = np.asarray(rf.refine(model, views, single, extent=1.0)[0].gaussians.means)
     # the views one by one through the single-view entry point (an independent path)
     saved["render_single"] = np.stack(
         [np.asarray(splat.render_dates(model.gaussians, c, o, light, background=(0.2, 0.1, 0.0)).image) for c in cams]

@@ -11,6 +11,7 @@ at another length and differs by float32 rounding (measured 2.4e-7 in logits aft
 from __future__ import annotations
 
 import dataclasses
+import json
 import os
 import socket
 import subprocess
@@ -69,6 +70,9 @@ def test_refinement_with_two_views_per_step_on_two_devices_equals_one(two_device
     for name in ("means", "o_logits", "loss"):
         np.testing.assert_array_equal(two_devices[f"refine_two_{name}"], two_devices[f"refine_one_{name}"])
     assert np.any(two_devices["refine_one_means"] != two_devices["start_means"])  # the steps moved something
+    # one view per step (the default) runs unsharded, whatever the mesh
+    for name in ("one", "two"):
+        np.testing.assert_array_equal(two_devices[f"refine_b1_{name}_means"], two_devices["refine_b1_none_means"])
 
 
 def test_rendering_views_on_two_devices_equals_one_and_the_single_view_path(two_devices):
@@ -162,3 +166,47 @@ def test_devices_and_environment_are_validated(monkeypatch):
         parallel.initialize_from_environment()
     with pytest.raises(InputError, match="view_batch"):
         TrainConfig(view_batch=0)
+
+
+@pytest.mark.slow
+def test_fuse_in_two_processes_writes_what_one_process_writes(tmp_path):
+    """The README's two-process ``fuse`` on a tiny synthetic scene: both processes finish, write the
+    same files (process 1 to OUT.process-1), and the fused model matches a one-process run (the
+    cross-init pairs split between the processes differ by float32 rounding)."""
+    from cfgs_jax import synthetic
+    from cfgs_jax.io import read_fused
+    from cfgs_jax.pipeline import main
+
+    spec = synthetic.make_preset("corals", seed=11, width=48, height=36, images_per_date=4, spp=4)
+    root = synthetic.render_dataset(spec, tmp_path / "data", dates=[0, 1, 2], progress=False)
+    transforms = root / "transforms.json"
+    transforms.write_text(json.dumps(synthetic.reference_transforms(root, ["d0", "d1", "d2"])))
+    toml = tmp_path / "tiny.toml"
+    toml.write_text("[train]\nsteps = 40\ndensify = false\n[cross_init]\nsteps = 10\n[refine]\nsteps = 10\n")
+    dates = [str(root / d) for d in ("d0", "d1", "d2")]
+    args = ["fuse", "--dates", *dates, "--config", str(toml), "--transforms", str(transforms), "--no-progress"]
+    port = _free_port()
+    procs = [
+        subprocess.Popen(
+            [sys.executable, "-m", "cfgs_jax.pipeline", *args, "--out", str(tmp_path / "two")],
+            env=_environment(JAX_COORDINATOR_ADDRESS=f"127.0.0.1:{port}", JAX_NUM_PROCESSES="2", JAX_PROCESS_ID=str(i)),
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+            text=True,
+        )
+        for i in range(2)
+    ]
+    try:
+        logs = [p.communicate(timeout=600)[0] for p in procs]
+    finally:
+        for p in procs:
+            p.kill()
+    assert all(p.returncode == 0 for p in procs), "\n".join(log[-2000:] for log in logs)
+    first, second = tmp_path / "two", tmp_path / "two.process-1"
+    files = sorted(p.relative_to(first) for p in (first / "fused").rglob("*") if p.is_file())
+    assert files and all((first / f).read_bytes() == (second / f).read_bytes() for f in files)
+    assert main([*args, "--out", str(tmp_path / "one")]) == 0
+    a, b = read_fused(tmp_path / "one" / "fused"), read_fused(first / "fused")
+    assert len(a) == len(b)
+    np.testing.assert_allclose(np.asarray(b.o_logits), np.asarray(a.o_logits), atol=1e-3)
+    np.testing.assert_allclose(np.asarray(b.gaussians.means), np.asarray(a.gaussians.means), atol=1e-4)

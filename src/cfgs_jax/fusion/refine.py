@@ -317,7 +317,7 @@ class _Refinement:
                 field="refine.view_batch",
                 fix="set refine.view_batch = 1, or train the dates at one resolution",
             )
-        if parallel.is_parallel(self.mesh) and batch % parallel.mesh_size(self.mesh):
+        if parallel.is_parallel(self.mesh) and batch > 1 and batch % parallel.mesh_size(self.mesh):
             raise InputError(
                 f"{batch} views per step do not split over {parallel.mesh_size(self.mesh)} devices",
                 field="refine.view_batch",

@@ -208,7 +208,7 @@ class _Training:
             raise InputError(
                 "a batch of views needs one image size", path=self.scene.root, fix="set train.view_batch = 1"
             )
-        if parallel.is_parallel(self.mesh) and batch % parallel.mesh_size(self.mesh):
+        if parallel.is_parallel(self.mesh) and batch > 1 and batch % parallel.mesh_size(self.mesh):
             raise InputError(
                 f"{batch} views per step do not split over {parallel.mesh_size(self.mesh)} devices",
                 field="train.view_batch",
