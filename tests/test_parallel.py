@@ -87,14 +87,12 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
-def test_two_processes_run_a_sharded_cross_init_that_agrees_with_one(two_devices, tmp_path):
-    """Two real processes on 127.0.0.1 (jax.distributed, gloo CPU collectives), one device each, split
-    the pairs between them; process 0 saves the gathered result."""
-    out = tmp_path / "processes.npz"
+def _two_processes(argv: list[str], *, timeout: int) -> None:
+    """``python ARGV`` as processes 0 and 1 of a jax.distributed run on 127.0.0.1; both must succeed."""
     port = _free_port()
     procs = [
         subprocess.Popen(
-            [sys.executable, str(WORKER), "processes", str(out)],
+            [sys.executable, *argv],
             env=_environment(JAX_COORDINATOR_ADDRESS=f"127.0.0.1:{port}", JAX_NUM_PROCESSES="2", JAX_PROCESS_ID=str(i)),
             stdout=subprocess.PIPE,
             stderr=subprocess.STDOUT,
@@ -103,11 +101,18 @@ def test_two_processes_run_a_sharded_cross_init_that_agrees_with_one(two_devices
         for i in range(2)
     ]
     try:
-        logs = [p.communicate(timeout=300)[0] for p in procs]
+        logs = [p.communicate(timeout=timeout)[0] for p in procs]
     finally:
         for p in procs:
             p.kill()
     assert all(p.returncode == 0 for p in procs), "\n".join(log[-2000:] for log in logs)
+
+
+def test_two_processes_run_a_sharded_cross_init_that_agrees_with_one(two_devices, tmp_path):
+    """Two real processes on 127.0.0.1 (jax.distributed, gloo CPU collectives), one device each, split
+    the pairs between them; process 0 saves the gathered result."""
+    out = tmp_path / "processes.npz"
+    _two_processes([str(WORKER), "processes", str(out)], timeout=300)
     got = np.load(out)
     assert int(got["processes"]) == 2 and int(got["devices"]) == 2 and bool(got["distributed"])
     for name in ("o_logits", "light_logits"):
@@ -185,23 +190,7 @@ def test_fuse_in_two_processes_writes_what_one_process_writes(tmp_path):
     toml.write_text("[train]\nsteps = 40\ndensify = false\n[cross_init]\nsteps = 10\n[refine]\nsteps = 10\n")
     dates = [str(root / d) for d in ("d0", "d1", "d2")]
     args = ["fuse", "--dates", *dates, "--config", str(toml), "--transforms", str(transforms), "--no-progress"]
-    port = _free_port()
-    procs = [
-        subprocess.Popen(
-            [sys.executable, "-m", "cfgs_jax.pipeline", *args, "--out", str(tmp_path / "two")],
-            env=_environment(JAX_COORDINATOR_ADDRESS=f"127.0.0.1:{port}", JAX_NUM_PROCESSES="2", JAX_PROCESS_ID=str(i)),
-            stdout=subprocess.PIPE,
-            stderr=subprocess.STDOUT,
-            text=True,
-        )
-        for i in range(2)
-    ]
-    try:
-        logs = [p.communicate(timeout=600)[0] for p in procs]
-    finally:
-        for p in procs:
-            p.kill()
-    assert all(p.returncode == 0 for p in procs), "\n".join(log[-2000:] for log in logs)
+    _two_processes(["-m", "cfgs_jax.pipeline", *args, "--out", str(tmp_path / "two")], timeout=600)
     first, second = tmp_path / "two", tmp_path / "two.process-1"
     files = sorted(p.relative_to(first) for p in (first / "fused").rglob("*") if p.is_file())
     assert files and all((first / f).read_bytes() == (second / f).read_bytes() for f in files)
