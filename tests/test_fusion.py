@@ -325,6 +325,28 @@ def test_batched_pairs_equal_the_pairs_one_by_one():
     assert ci.pair_groups([(2, 0), (2, 1), (2, 3)], vs, 2) == [(2, [0, 1]), (2, [3])]
 
 
+def test_cross_init_early_stopping_stops_a_settled_pair_and_not_a_moving_one():
+    """With early_stop_tolerance, a pair whose o^q and light no longer move (rates ~0) stops at the
+    second check after the ε ramp (step 15 here); a pair still moving runs its whole schedule."""
+    ci = importlib.import_module("cfgs_jax.fusion.cross_init")
+    g = _random_gaussians(80, seed=6)
+    cams = tuple(
+        cj.Camera.look_at([x, -0.3, -2.5], [0, 0, 0], up=(0, -1, 0), width=40, height=32, fov_x_deg=55)
+        for x in (-0.3, 0.3)
+    )
+    views = ci.DateViews(cams, tuple(np.float32(np.asarray(splat.render(g, c).image)) * 0.5 for c in cams))
+    model = fusion.merge([g, g], ["p", "q"])
+    common = dict(steps=40, rate_reference_steps=0, ramp_fraction=0.25, background_anneal=0.25)
+    stop = dict(early_stop_tolerance=1e-4, early_stop_every=5)
+    _, settled = ci.init_pair(model, 0, 1, views, ci.CrossInitConfig(lr_o=1e-9, lr_light=1e-9, **common, **stop))
+    moved, moving = ci.init_pair(model, 0, 1, views, ci.CrossInitConfig(lr_o=0.05, lr_light=0.03, **common, **stop))
+    assert settled["steps_run"] == 15 and moving["steps_run"] == 40
+    full, _ = ci.init_pair(model, 0, 1, views, ci.CrossInitConfig(lr_o=0.05, lr_light=0.03, **common))
+    np.testing.assert_array_equal(np.asarray(moved.o_logits), np.asarray(full.o_logits))  # off = on when it never stops
+    with pytest.raises(cj.InputError, match="early_stop"):
+        ci.CrossInitConfig(early_stop_tolerance=-1.0)
+
+
 def test_change_loss_visibility_rule_and_final_prune_hand_cases():
     rf = importlib.import_module("cfgs_jax.fusion.refine")
 

@@ -57,15 +57,21 @@ def run_steps(
     save_at_end: bool = False,
     progress: Progress | None = None,
     info: Callable[[Carry], str] | None = None,
+    converged: Callable[[Carry, int], bool] | None = None,
 ) -> tuple[Carry, int]:
     """Steps ``start`` … ``last − 1`` of ``body``, last = ``steps`` or ``stop_after`` when that is
     earlier (never before ``start``). ``save(carry, done)`` runs after every ``checkpoint_every``-th
-    step short of the last, at the last when the run stops early or ``save_at_end``. Returns the carry
-    and the number of steps done."""
+    step short of the last, at the last when the run stops early or ``save_at_end``.
+    ``converged(carry, done)``, asked after every step, ends the run there when true (a finished run:
+    no save). Returns the carry and the number of steps done."""
     last = steps if stop_after is None else max(start, min(steps, stop_after))
     for k in range(start, last):
         carry = body(carry, k)
         done = k + 1
+        if converged is not None and converged(carry, done):
+            if progress is not None:
+                progress.update(done, info(carry) if info is not None else "")
+            return carry, done
         if save is not None and checkpoint_every and done < last and done % checkpoint_every == 0:
             save(carry, done)
         if progress is not None:

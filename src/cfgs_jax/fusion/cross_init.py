@@ -58,7 +58,12 @@ class CrossInitConfig:
     silent: δ = 0.8 (it says δ < 1) and gains starting at the pair's exposure (the README's "Where we depart from the paper").
     Shorter schedules keep the paper's travel: with ``steps`` < ``rate_reference_steps`` both rates are
     multiplied by rate_reference_steps / steps (an Adam step moves a logit by ≈ lr, so o^q can still
-    travel lr·3000 in logit; 0 uses the rates as given)."""
+    travel lr·3000 in logit; 0 uses the rates as given).
+
+    Early stopping (``early_stop_tolerance`` > 0): every ``early_stop_every`` steps, once the ε ramp
+    and the background anneal are over (their schedules still change the loss before), the pairs of a
+    group stop when, over the last ``early_stop_every`` steps, no o^q (as an opacity in [0, 1]) and no
+    channel of any light multiplier l^q moved by more than the tolerance."""
 
     steps: int = 3000
     lr_o: float = 0.0075
@@ -75,6 +80,8 @@ class CrossInitConfig:
         2.0  # the start exposure is clipped to ± this many stops (a dark image is not a gain of 0)
     )
     rate_reference_steps: int = 3000  # the step count the rates are meant for; fewer steps scale them up (0: off)
+    early_stop_tolerance: float = 0.0  # stop a group of pairs once nothing moves more than this (0: off)
+    early_stop_every: int = 100  # steps between the convergence checks
     seed: int = 0
 
     def __post_init__(self):
@@ -96,6 +103,11 @@ class CrossInitConfig:
             raise InputError(
                 f"must be ≥ 0 (0: the rates as given), got {self.rate_reference_steps}",
                 field="cross_init.rate_reference_steps",
+            )
+        if self.early_stop_tolerance < 0 or self.early_stop_every <= 0:
+            raise InputError(
+                "early_stop_tolerance must be ≥ 0 (0: off) and early_stop_every positive",
+                field="cross_init.early_stop_tolerance",
             )
         if self.batch_dates < 0:
             raise InputError(
@@ -404,9 +416,40 @@ def _optimise(
         losses.append(loss)
         return params, opt_state, both[:, 0], losses
 
-    (params, _, _, losses), _ = run_steps(body, (params, opt_state, keys, []), start=0, steps=config.steps)
+    (params, _, _, losses), _ = run_steps(
+        body,
+        (params, opt_state, keys, []),
+        start=0,
+        steps=config.steps,
+        converged=_convergence_test(config) if config.early_stop_tolerance > 0 else None,
+    )
     params, losses = parallel.to_host((params, jnp.stack(losses)))
     return jax.tree_util.tree_map(lambda x: x[:k], params), losses[:, :k]
+
+
+def _settled(params) -> jax.Array:
+    """Each pair's o^q as opacities and l^q as multipliers, side by side ([pairs, m, 4])."""
+    o = jax.nn.sigmoid(params["o_logit"])[..., None]
+    return jnp.concatenate([o, light_multiplier(params["u"], params["w"])], axis=-1)
+
+
+def _convergence_test(config: CrossInitConfig):
+    """``converged(carry, done)`` for ``run_steps``: true at a check (every ``early_stop_every`` steps
+    after the ε ramp and the background anneal) when no o^q or light channel of any pair moved by more
+    than ``early_stop_tolerance`` since the previous check."""
+    start = int(np.ceil(max(config.ramp_fraction, config.background_anneal) * config.steps))
+    last = {"values": None}
+
+    def converged(carry, done: int) -> bool:
+        if done < start or (done - start) % config.early_stop_every:
+            return False
+        values, previous = _settled(carry[0]), last["values"]
+        last["values"] = values
+        if previous is None:
+            return False
+        return float(jnp.max(jnp.abs(values - previous))) <= config.early_stop_tolerance
+
+    return converged
 
 
 def _write_back(model, qs, pairs: _Pairs, params, losses, start_light, eps_maps, reports) -> TemporalGaussians:
@@ -422,6 +465,7 @@ def _write_back(model, qs, pairs: _Pairs, params, losses, start_light, eps_maps,
         l_logits[pairs.idx[sel], q] = np.asarray(light_logits(light_multiplier(jnp.asarray(u), jnp.asarray(w))))
         reports[j] |= {
             "skipped": False,
+            "steps_run": int(losses.shape[0]),
             "loss_first": float(np.mean(losses[:10, j])),
             "loss_last": float(np.mean(losses[-10:, j])),
             "mean_o": float(np.mean(np.asarray(jax.nn.sigmoid(o_fit)))),
