@@ -1,0 +1,136 @@
+"""Run time against error for one knob of the fusion: for each value, cross-timestep initialisation
+from a finished run's merged model with the run's own configuration and the knob set, then the run's
+refinement, then the test PSNR / SSIM / LPIPS per date and change detection against the synthetic
+ground truth (per-Gaussian F1, pixel IoU at the default threshold). The first value is the reference
+row (the run's configuration, e.g. 0 = the knob off).
+
+    python benchmarks/bench_speed_vs_error.py --run RUN --data DATA \\
+        --knob cross_init.early_stop_tolerance --values 0 0.002 0.005 [--set cross_init.early_stop_every=25]
+
+RUN, DATA: the ``run/`` and ``data/`` of ``python -m cfgs_jax.pipeline eval --scene S --config
+benchmarks/eval_small.toml --out DIR``. Writes benchmarks/results/speed_vs_error_<preset>_<knob>.json
+and .md (``--name`` overrides the stem).
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import json
+import sys
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bench_splat import RESULTS, machine
+
+
+def one_setting(run_dir: Path, data: Path, raw: dict) -> dict:
+    """Cross-init + refinement + evaluation of the run's merged model under the configuration ``raw``."""
+    from cfgs_jax import fusion, splat, train
+    from cfgs_jax.config import section
+    from cfgs_jax.evaluation.protocol import change_detection
+    from cfgs_jax.fusion.evaluate import evaluate_fused
+    from cfgs_jax.io import read_fused
+    from cfgs_jax.render_run import open_run
+
+    run = open_run(run_dir)
+    views = [run.date_views(d) for d in range(len(run.names))]
+    tests = [run.date_views(d, "test") for d in range(len(run.names))]
+    render_config = section(raw, "render", splat.RenderConfig)
+    t0 = time.perf_counter()
+    model, reports = fusion.cross_init(
+        read_fused(run_dir / "merged"),
+        views,
+        section(raw, "cross_init", fusion.CrossInitConfig),
+        render_config=render_config,
+    )
+    cross_s = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    refined, _ = fusion.refine(
+        model,
+        views,
+        section(raw, "refine", fusion.RefineConfig),
+        extent=train.scene_extent(run.scenes[0].cameras),
+        train_config=section(raw, "train", train.TrainConfig),
+        render_config=render_config,
+    )
+    refine_s = time.perf_counter() - t0
+    m = evaluate_fused(refined, tests, render_config=render_config)
+    change = change_detection(refined, data, run.scenes, run.sims, render_config)
+    return {
+        "cross_init_s": cross_s,
+        "refine_s": refine_s,
+        "steps_run": [r.get("steps_run") for r in reports],
+        "mean": m["mean"],
+        "dates": m["dates"],
+        "f1": change["gaussians"]["f1"],
+        "iou": change["pixels"]["iou"],
+    }
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--run", required=True)
+    ap.add_argument("--data", required=True)
+    ap.add_argument("--knob", required=True, help="TABLE.KEY, e.g. cross_init.early_stop_tolerance")
+    ap.add_argument("--values", nargs="+", required=True, help="values (TOML); the first is the reference")
+    ap.add_argument("--set", action="append", default=[], dest="overrides", help="TABLE.KEY=VALUE for every row")
+    ap.add_argument("--name", default=None)
+    args = ap.parse_args()
+
+    from cfgs_jax.config import apply_overrides
+    from cfgs_jax.io.atomic import read_json
+
+    run_dir, data = Path(args.run), Path(args.data)
+    base = apply_overrides(read_json(run_dir / "run.json")["config"], args.overrides)
+    rows = []
+    for value in args.values:
+        raw = apply_overrides(base, [f"{args.knob}={value}"])
+        rows.append({"value": value} | one_setting(run_dir, data, raw))
+        print(json.dumps({k: rows[-1][k] for k in ("value", "cross_init_s", "mean", "f1", "iou")}), flush=True)
+    preset = json.loads((data / "ground_truth.json").read_text()).get("preset", data.parent.name)
+    stem = args.name or f"speed_vs_error_{preset}_{args.knob.split('.')[-1]}"
+    result = {
+        "date": datetime.date.today().isoformat(),
+        "machine": machine(),
+        "command": f"python benchmarks/bench_speed_vs_error.py --run RUN --data DATA --knob {args.knob} --values "
+        + " ".join(args.values)
+        + "".join(f" --set {o}" for o in args.overrides),
+        "run": str(run_dir.resolve()),
+        "rows": rows,
+    }
+    RESULTS.mkdir(exist_ok=True)
+    (RESULTS / f"{stem}.json").write_text(json.dumps(result, indent=1))
+    (RESULTS / f"{stem}.md").write_text(markdown(result, args.knob))
+    print(markdown(result, args.knob))
+
+
+def markdown(r: dict, knob: str) -> str:
+    ref = r["rows"][0]
+    lines = [
+        f"# Run time against error: `{knob}`",
+        "",
+        f"`{r['command']}` — {r['date']}, {r['machine']}; RUN = `{r['run']}`. The first row is the reference.",
+        "",
+        "| value | cross-init (s) | × reference | PSNR | ΔPSNR | worst date ΔPSNR | SSIM | LPIPS | ΔLPIPS | F1 | ΔF1 "
+        "| pixel IoU |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for row in r["rows"]:
+        m, b = row["mean"], ref["mean"]
+        worst = min(row["dates"][d]["psnr"] - ref["dates"][d]["psnr"] for d in ref["dates"])
+        lines.append(
+            f"| {row['value']} | {row['cross_init_s']:.0f} | {row['cross_init_s'] / ref['cross_init_s']:.2f} | "
+            f"{m['psnr']:.2f} | {m['psnr'] - b['psnr']:+.2f} | {worst:+.2f} | {m['ssim']:.4f} | {m['lpips']:.4f} | "
+            f"{m['lpips'] - b['lpips']:+.4f} | {row['f1']:.3f} | {row['f1'] - ref['f1']:+.3f} | {row['iou']:.3f} |"
+        )
+    lines += [
+        "",
+        "Steps run per pair (early stopping): " + "; ".join(f"{r['value']}: {r['steps_run']}" for r in r["rows"]),
+    ]
+    return "\n".join(lines) + "\n"
+
+
+if __name__ == "__main__":
+    main()
