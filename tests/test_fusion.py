@@ -341,10 +341,15 @@ def test_cross_init_early_stopping_stops_a_settled_pair_and_not_a_moving_one():
     _, settled = ci.init_pair(model, 0, 1, views, ci.CrossInitConfig(lr_o=1e-9, lr_light=1e-9, **common, **stop))
     moved, moving = ci.init_pair(model, 0, 1, views, ci.CrossInitConfig(lr_o=0.05, lr_light=0.03, **common, **stop))
     assert settled["steps_run"] == 15 and moving["steps_run"] == 40
+    quantile = dict(early_stop_tolerance=1e-4, early_stop_every=5, early_stop_quantile=0.5)
+    _, settled_q = ci.init_pair(model, 0, 1, views, ci.CrossInitConfig(lr_o=1e-9, lr_light=1e-9, **common, **quantile))
+    assert settled_q["steps_run"] == 15
     full, _ = ci.init_pair(model, 0, 1, views, ci.CrossInitConfig(lr_o=0.05, lr_light=0.03, **common))
     np.testing.assert_array_equal(np.asarray(moved.o_logits), np.asarray(full.o_logits))  # off = on when it never stops
     with pytest.raises(cj.InputError, match="early_stop"):
         ci.CrossInitConfig(early_stop_tolerance=-1.0)
+    with pytest.raises(cj.InputError, match="early_stop"):
+        ci.CrossInitConfig(early_stop_quantile=0.0)
 
 
 def test_change_loss_visibility_rule_and_final_prune_hand_cases():

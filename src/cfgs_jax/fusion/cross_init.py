@@ -63,7 +63,8 @@ class CrossInitConfig:
     Early stopping (``early_stop_tolerance`` > 0): every ``early_stop_every`` steps, once the ε ramp
     and the background anneal are over (their schedules still change the loss before), the pairs of a
     group stop when, over the last ``early_stop_every`` steps, no o^q (as an opacity in [0, 1]) and no
-    channel of any light multiplier l^q moved by more than the tolerance."""
+    channel of any light multiplier l^q moved by more than the tolerance — or, with
+    ``early_stop_quantile`` q < 1, when the q-quantile of those moves is within it."""
 
     steps: int = 3000
     lr_o: float = 0.0075
@@ -82,6 +83,7 @@ class CrossInitConfig:
     rate_reference_steps: int = 3000  # the step count the rates are meant for; fewer steps scale them up (0: off)
     early_stop_tolerance: float = 0.0  # stop a group of pairs once nothing moves more than this (0: off)
     early_stop_every: int = 100  # steps between the convergence checks
+    early_stop_quantile: float = 1.0  # the share of values that must have settled (1: all of them)
     seed: int = 0
 
     def __post_init__(self):
@@ -104,9 +106,9 @@ class CrossInitConfig:
                 f"must be ≥ 0 (0: the rates as given), got {self.rate_reference_steps}",
                 field="cross_init.rate_reference_steps",
             )
-        if self.early_stop_tolerance < 0 or self.early_stop_every <= 0:
+        if self.early_stop_tolerance < 0 or self.early_stop_every <= 0 or not 0 < self.early_stop_quantile <= 1:
             raise InputError(
-                "early_stop_tolerance must be ≥ 0 (0: off) and early_stop_every positive",
+                "early_stop_tolerance must be ≥ 0 (0: off), early_stop_every positive, early_stop_quantile in (0, 1]",
                 field="cross_init.early_stop_tolerance",
             )
         if self.batch_dates < 0:
@@ -399,6 +401,7 @@ def _optimise(
     params, opt_state, cameras, images, eps, keys = batch
     keys = jax.random.wrap_key_data(keys)
     width = len(keys)
+    seen = parallel.pad_rows(np.asarray(pairs.mask) > 0, width)[..., None]  # [pairs, m, 1]
 
     def body(carry, it):
         params, opt_state, keys, losses = carry
@@ -421,7 +424,7 @@ def _optimise(
         (params, opt_state, keys, []),
         start=0,
         steps=config.steps,
-        converged=_convergence_test(config) if config.early_stop_tolerance > 0 else None,
+        converged=_convergence_test(config, seen) if config.early_stop_tolerance > 0 else None,
     )
     params, losses = parallel.to_host((params, jnp.stack(losses)))
     return jax.tree_util.tree_map(lambda x: x[:k], params), losses[:, :k]
@@ -433,10 +436,11 @@ def _settled(params) -> jax.Array:
     return jnp.concatenate([o, light_multiplier(params["u"], params["w"])], axis=-1)
 
 
-def _convergence_test(config: CrossInitConfig):
+def _convergence_test(config: CrossInitConfig, seen):
     """``converged(carry, done)`` for ``run_steps``: true at a check (every ``early_stop_every`` steps
     after the ε ramp and the background anneal) when no o^q or light channel of any pair moved by more
-    than ``early_stop_tolerance`` since the previous check."""
+    than ``early_stop_tolerance`` since the previous check (or their ``early_stop_quantile``-quantile
+    did not; ``seen`` [pairs, m, 1]: the rows each pair optimises)."""
     start = int(np.ceil(max(config.ramp_fraction, config.background_anneal) * config.steps))
     last = {"values": None}
 
@@ -447,7 +451,12 @@ def _convergence_test(config: CrossInitConfig):
         last["values"] = values
         if previous is None:
             return False
-        return float(jnp.max(jnp.abs(values - previous))) <= config.early_stop_tolerance
+        moves = jnp.abs(values - previous)
+        if config.early_stop_quantile < 1:  # over the Gaussians each pair optimises (seen from its q)
+            moved = float(jnp.nanquantile(jnp.where(seen, moves, jnp.nan), config.early_stop_quantile))
+        else:
+            moved = float(jnp.max(moves))
+        return moved <= config.early_stop_tolerance
 
     return converged
 
