@@ -86,7 +86,7 @@ def devices(out: str) -> None:
         o = np.asarray(jax.nn.sigmoid(model.o_logits)).T
         light = np.ones((3, len(model), 3), np.float32)
         saved[f"render_{name}"] = np.stack(
-            splat.render_views(model.gaussians, cams, o, light, background=(0.2, 0.1, 0.0), mesh=mesh)
+            list(splat.render_views(model.gaussians, cams, o, light, background=(0.2, 0.1, 0.0), mesh=mesh))
         )
     saved["refine_b1_none_means"] = np.asarray(rf.refine(model, views, single, extent=1.0)[0].gaussians.means)
     # the views one by one through the single-view entry point (an independent path)

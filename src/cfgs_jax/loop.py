@@ -28,6 +28,31 @@ def view_order(seed: int | tuple[int, ...], step: int, num_views: int) -> int:
     return int(np.random.default_rng(seeds + [epoch]).permutation(num_views)[k])
 
 
+def view_batch(seed: int | tuple[int, ...], step: int, batch: int, num_views: int) -> list[int]:
+    """The ``batch`` views drawn at 0-based ``step`` when every step trains on a batch of views:
+    entries step·B … step·B + B − 1 of ``view_order``'s sequence, so S steps see S·B views (equal
+    epochs take S/B steps) and B = 1 is ``view_order``."""
+    return [view_order(seed, step * batch + j, num_views) for j in range(batch)]
+
+
+def check_view_batch(batch: int, image_shapes, mesh, *, field: str, path=None) -> None:
+    """Refuse a batch of views (``batch`` > 1) over images of several sizes, or one that does not split
+    evenly over the devices of ``mesh``."""
+    from cfgs_jax import parallel
+    from cfgs_jax.errors import InputError
+
+    if batch > 1 and len(set(image_shapes)) > 1:
+        raise InputError("a batch of views needs one image size", path=path, field=field, fix=f"set {field} = 1")
+    devices = parallel.mesh_size(mesh)
+    if batch > 1 and batch % devices:
+        raise InputError(
+            f"{batch} views per step do not split over {devices} devices",
+            path=path,
+            field=field,
+            fix="use a multiple of the device count, or fewer devices (--devices)",
+        )
+
+
 def step_with_capacity(
     compiled: Callable[[int], Callable],
     capacity: int,

@@ -21,6 +21,7 @@ import os
 from collections.abc import Sequence
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
@@ -126,9 +127,23 @@ def _place(tree, sharding_of):
     return jax.tree_util.tree_map(one, tree)
 
 
-def shard_batch(tree, mesh: Mesh):
+def on_device(tree):
+    """Every leaf of ``tree`` as a JAX array (host data copied to the default device once, so a loop
+    does not send it again each step); JAX arrays as they are."""
+    return jax.tree_util.tree_map(lambda x: x if isinstance(x, jax.Array) else jnp.asarray(x), tree)
+
+
+def stack(items):
+    """The pytrees ``items`` (e.g. cameras) stacked along a new leading axis, as numpy arrays."""
+    return jax.tree_util.tree_map(lambda *xs: np.stack([np.asarray(x) for x in xs]), *items)
+
+
+def shard_batch(tree, mesh: Mesh | None):
     """Every array of ``tree`` (host data, the same in every process) with its leading axis split over
-    the mesh; the axis length must be a multiple of the device count (``padded``)."""
+    the mesh; the axis length must be a multiple of the device count (``padded``). Without a mesh of
+    several devices, on the default device (``on_device``)."""
+    if not is_parallel(mesh):
+        return on_device(tree)
     k = mesh_size(mesh)
     for x in jax.tree_util.tree_leaves(tree):
         if np.shape(x)[0] % k:
@@ -136,8 +151,11 @@ def shard_batch(tree, mesh: Mesh):
     return _place(tree, lambda x: NamedSharding(mesh, PartitionSpec(AXIS)))
 
 
-def replicate(tree, mesh: Mesh):
-    """Every array of ``tree`` whole on every device of the mesh."""
+def replicate(tree, mesh: Mesh | None):
+    """Every array of ``tree`` whole on every device of the mesh; without a mesh of several devices,
+    on the default device (``on_device``)."""
+    if not is_parallel(mesh):
+        return on_device(tree)
     return _place(tree, lambda x: NamedSharding(mesh, PartitionSpec()))
 
 

@@ -150,6 +150,7 @@ def render_views(
     """Render the selection at every camera: ``<name>.png`` (sRGB, legend below) and ``<name>.exr``
     (linear) under ``out``; with a ``mesh`` (``parallel.device_mesh``) as many views at once as it has
     devices, split over them. Returns the PNG paths."""
+    from cfgs_jax import splat
     from cfgs_jax.model import Gaussians
 
     out = ensure_writable_dir(out)
@@ -158,7 +159,16 @@ def render_views(
     g = Gaussians(g0.means, g0.quats, g0.log_scales, g0.opacity_logits, colours)
     written = []
     strip = None
-    for (name, _), img in zip(cameras, _images(g, [c for _, c in cameras], mult, background, mesh)):
+    n = len(g)
+    images = splat.render_views(
+        g,
+        [c for _, c in cameras],
+        np.ones((1, n), np.float32) if mult is None else np.reshape(np.asarray(mult, np.float32), (1, n)),
+        np.ones((1, n, 3), np.float32),
+        background=background,
+        mesh=mesh,
+    )
+    for (name, _), img in zip(cameras, (np.asarray(im[0]) for im in images)):
         write_image(out / f"{name}.exr", img)
         if legend:
             if strip is None or strip.shape[1] != img.shape[1]:
@@ -174,23 +184,6 @@ def render_views(
         if progress is not None:
             progress()
     return written
-
-
-def _images(g, cameras, mult, background, mesh):
-    """The render at each camera (opacity × ``mult``): one by one, or a mesh's device count at a time."""
-    from cfgs_jax import parallel, splat
-
-    if not parallel.is_parallel(mesh):
-        for cam in cameras:
-            yield np.asarray(splat.render(g, cam, opacity_mult=mult, background=background, statistics=False).image)
-        return
-    n, width = len(g), parallel.mesh_size(mesh)
-    om = np.ones((1, n), np.float32) if mult is None else np.reshape(np.asarray(mult, np.float32), (1, n))
-    cm = np.ones((1, n, 3), np.float32)
-    for start in range(0, len(cameras), width):
-        chunk = cameras[start : start + width]
-        for im in splat.render_views(g, chunk, om, cm, background=background, mesh=mesh):
-            yield im[0]
 
 
 def export_selection(run: FusedRun, t, style: SelectionStyle, path: str | Path) -> Path:

@@ -371,11 +371,8 @@ def _stacked_inputs(pairs: _Pairs, eps_maps) -> tuple:
     H, W] (a date with fewer views is padded with copies of its first; they are never drawn)."""
     v = max(len(cs) for cs in pairs.cameras)
     fill = lambda xs: list(xs) + [xs[0]] * (v - len(xs))
-    stack = lambda *xs: np.stack([np.asarray(x) for x in xs])
-    cameras = jax.tree_util.tree_map(stack, *[jax.tree_util.tree_map(stack, *fill(cs)) for cs in pairs.cameras])
-    images = np.stack([np.stack([np.asarray(im) for im in fill(ims)]) for ims in pairs.images])
-    eps = np.stack([np.stack([np.asarray(e) for e in fill(es)]) for es in eps_maps])
-    return cameras, images, eps
+    per_pair = lambda rows: parallel.stack([parallel.stack(fill(r)) for r in rows])
+    return per_pair(pairs.cameras), per_pair(pairs.images), per_pair(eps_maps)
 
 
 def _optimise(
@@ -392,23 +389,18 @@ def _optimise(
     optimizer, step = _compiled_step(config, pairs.render_config, mesh)
     cameras, images, eps = _stacked_inputs(pairs, eps_maps)
     batch = (params, jax.vmap(optimizer.init)(params), cameras, images, eps, keys)
-    if parallel.is_parallel(mesh):
-        width = parallel.padded(k, mesh)
-        batch = parallel.shard_batch(jax.tree_util.tree_map(lambda x: parallel.pad_rows(x, width), batch), mesh)
-        g = parallel.replicate(pairs.g, mesh)
-    else:
-        batch, g = jax.tree_util.tree_map(jnp.asarray, batch), pairs.g
+    width = parallel.padded(k, mesh)
+    batch = parallel.shard_batch(jax.tree_util.tree_map(lambda x: parallel.pad_rows(x, width), batch), mesh)
     params, opt_state, cameras, images, eps, keys = batch
+    g = parallel.replicate(pairs.g, mesh)
     keys = jax.random.wrap_key_data(keys)
-    width = len(keys)
     seen = parallel.pad_rows(np.asarray(pairs.mask) > 0, width)[..., None]  # [pairs, m, 1]
 
     def body(carry, it):
         params, opt_state, keys, losses = carry
         both = jax.vmap(jax.random.split)(keys)
         drawn = [view_order(s, it, n) for s, n in zip(seeds, counts)]
-        drawn = np.asarray(drawn + drawn[:1] * (width - k), np.int32)
-        drawn = parallel.shard_batch(drawn, mesh) if parallel.is_parallel(mesh) else drawn
+        drawn = parallel.shard_batch(np.asarray(drawn + drawn[:1] * (width - k), np.int32), mesh)
         params, opt_state, loss, overflowed = step(
             params, opt_state, g, cameras, images, eps, drawn, both[:, 1], jnp.float32(it)
         )

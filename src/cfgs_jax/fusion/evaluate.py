@@ -8,7 +8,7 @@ from collections.abc import Sequence
 import jax.numpy as jnp
 import numpy as np
 
-from cfgs_jax import metrics, parallel, splat
+from cfgs_jax import metrics, splat
 from cfgs_jax.model import TemporalGaussians, light_multipliers, opacity_multipliers
 from cfgs_jax.train.evaluate import image_metrics
 from cfgs_jax.train.step import over_background
@@ -21,20 +21,6 @@ def render_date(model: TemporalGaussians, q: int, camera, *, background=(0.0, 0.
     return splat.render_dates(
         model.gaussians, camera, o[None], light[None], background=background, config=config, statistics=False
     )
-
-
-def date_images(model: TemporalGaussians, q: int, cameras, background, render_config=None, mesh=None):
-    """Date ``q``'s render at each camera: one at a time, or with a mesh of several devices split over
-    them (``splat.render_views``)."""
-    if not parallel.is_parallel(mesh):
-        for cam in cameras:
-            yield render_date(model, q, cam, background=background, config=render_config).image[0]
-        return
-    o, light = opacity_multipliers(model)[:, q], light_multipliers(model)[:, q]
-    for im in splat.render_views(
-        model.gaussians, cameras, o[None], light[None], background=background, config=render_config, mesh=mesh
-    ):
-        yield jnp.asarray(im[0])
 
 
 def evaluate_fused(
@@ -53,9 +39,13 @@ def evaluate_fused(
     out, weights = {}, []
     for q, dv in enumerate(views):
         rows = []
-        for img, pred in zip(dv.images, date_images(model, q, dv.cameras, bg, render_config, mesh)):
+        o, light = opacity_multipliers(model)[:, q], light_multipliers(model)[:, q]
+        preds = splat.render_views(
+            model.gaussians, dv.cameras, o[None], light[None], background=bg, config=render_config, mesh=mesh
+        )
+        for img, pred in zip(dv.images, preds):
             gt = over_background(jnp.asarray(img, jnp.float32), bg)
-            rows.append(image_metrics(pred, gt, net))
+            rows.append(image_metrics(pred[0], gt, net))
         out[model.dates[q].name] = {k: float(np.mean([r[k] for r in rows])) for k in rows[0]} | {"views": len(rows)}
         weights.append(len(rows))
     return {"dates": out, "mean": weighted_mean(list(out.values()), weights)}

@@ -48,7 +48,7 @@ from cfgs_jax.errors import InputError
 from cfgs_jax.fusion.cross_init import DateViews
 from cfgs_jax.fusion.updates import halve_alpha_of, refinement_optimizer, zero_invisible
 from cfgs_jax.io.checkpoint import read_meta, restore_tree, save_tree
-from cfgs_jax.loop import Progress, run_steps, step_with_capacity, view_order
+from cfgs_jax.loop import Progress, check_view_batch, run_steps, step_with_capacity, view_batch, view_order
 from cfgs_jax.model import TemporalGaussians, gaussians_of, trainable, with_trainable
 from cfgs_jax.train.config import TrainConfig
 from cfgs_jax.train.step import over_background
@@ -310,21 +310,11 @@ class _Refinement:
         self.light_logits = jnp.asarray(self.model.light_logits)
         self.flat = [(q, v) for q in range(len(self.views)) for v in range(len(self.views[q].cameras))]
         self.images = [[jnp.asarray(im, jnp.float32) for im in dv.images] for dv in self.views]
-        batch = self.config.view_batch
-        if batch > 1 and len({tuple(im.shape) for ims in self.images for im in ims}) > 1:
-            raise InputError(
-                "a batch of views needs one image size across all dates",
-                field="refine.view_batch",
-                fix="set refine.view_batch = 1, or train the dates at one resolution",
-            )
-        if parallel.is_parallel(self.mesh) and batch > 1 and batch % parallel.mesh_size(self.mesh):
-            raise InputError(
-                f"{batch} views per step do not split over {parallel.mesh_size(self.mesh)} devices",
-                field="refine.view_batch",
-                fix="use a multiple of the device count, or fewer devices (--devices)",
-            )
-        if parallel.is_parallel(self.mesh) and batch > 1:
-            self.light_logits = parallel.replicate(self.light_logits, self.mesh)
+        shapes = [tuple(im.shape) for ims in self.images for im in ims]
+        check_view_batch(self.config.view_batch, shapes, self.mesh, field="refine.view_batch")
+        # the mesh a step's views are split over (none with one view per step)
+        self.batch_mesh = self.mesh if self.config.view_batch > 1 else None
+        self.light_logits = parallel.replicate(self.light_logits, self.batch_mesh)
 
     def capacity_for(self, params, q: int, v: int) -> int:
         o = jax.nn.sigmoid(params["o_logits"][:, q])[None]
@@ -356,26 +346,19 @@ class _Refinement:
         c.covered[:] = False
         return c
 
-    def drawn(self, it: int) -> list[int]:
-        """The flat indices of the views step ``it`` trains on: entries it·B … it·B + B − 1 of the view
-        sequence (B = ``view_batch``): S steps see S·B views, so equal epochs take S/B steps."""
-        b = self.config.view_batch
-        return [view_order(self.config.seed, it * b + j, len(self.flat)) for j in range(b)]
-
     def batch_body(self, c: _Carry, it: int) -> _Carry:
         """A step on ``view_batch`` views at once (their mean loss)."""
         keys = jax.random.split(c.key, self.config.view_batch + 1)
         c.key, subs = keys[0], jax.random.key_data(keys[1:])
-        drawn = self.drawn(it)
-        qs = [self.flat[i][0] for i in drawn]
-        stack = lambda *xs: np.stack([np.asarray(x) for x in xs])
-        cameras = jax.tree_util.tree_map(
-            stack, *[self.views[q].cameras[v] for q, v in map(self.flat.__getitem__, drawn)]
+        drawn = view_batch(self.config.seed, it, self.config.view_batch, len(self.flat))
+        views = [self.flat[i] for i in drawn]
+        batch = (
+            parallel.stack([self.views[q].cameras[v] for q, v in views]),
+            parallel.stack([self.images[q][v] for q, v in views]),
+            np.asarray([q for q, _ in views], np.int32),
+            subs,
         )
-        images = np.stack([np.asarray(self.images[q][v]) for q, v in map(self.flat.__getitem__, drawn)])
-        batch = (cameras, images, np.asarray(qs, np.int32), subs)
-        batch = parallel.shard_batch(batch, self.mesh) if parallel.is_parallel(self.mesh) else batch
-        cameras, images, dates, subs = batch
+        cameras, images, dates, subs = parallel.shard_batch(batch, self.batch_mesh)
         need = lambda: max(self.capacity_for(c.params, *self.flat[i]) for i in drawn)
         (params, opt_state, loss, contrib, _), c.capacity = step_with_capacity(
             lambda cap: _compiled_batch_step(
@@ -413,8 +396,7 @@ class _Refinement:
         done = it + 1
         if done % config.visibility_interval == 0 or done == config.steps:
             c = self.check_visibility(c)
-            if parallel.is_parallel(self.mesh) and config.view_batch > 1:
-                c.params, c.opt_state, c.o_init = parallel.replicate((c.params, c.opt_state, c.o_init), self.mesh)
+            c.params, c.opt_state, c.o_init = parallel.replicate((c.params, c.opt_state, c.o_init), self.batch_mesh)
         if self.on_snapshot is not None and done in self.snapshot_steps and done < config.steps:
             self.on_snapshot(done, final_prune(with_trainable(self.model, c.params), config.prune_threshold))
         return c
@@ -488,10 +470,9 @@ def refine(
     )
     identity = _identity(run, new_dates)
     carry, start = _start(run, new_dates, checkpoint, identity)
-    if parallel.is_parallel(mesh) and config.view_batch > 1:
-        carry.params, carry.opt_state, carry.o_init = parallel.replicate(
-            (carry.params, carry.opt_state, carry.o_init), mesh
-        )
+    carry.params, carry.opt_state, carry.o_init = parallel.replicate(
+        (carry.params, carry.opt_state, carry.o_init), run.batch_mesh
+    )
     carry.capacity = max(run.capacity_for(carry.params, q, v) for q, v in run.flat)
 
     def save(c: _Carry, done: int):

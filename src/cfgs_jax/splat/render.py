@@ -11,6 +11,7 @@ given (``RenderConfig(capacity=...)``; ``required_capacity`` computes it) and th
 from __future__ import annotations
 
 import functools
+from collections.abc import Iterator
 
 import equinox as eqx
 import jax
@@ -296,30 +297,41 @@ def render_views(
     background=(0.0, 0.0, 0.0),
     config: RenderConfig | None = None,
     mesh=None,
-) -> list[np.ndarray]:
-    """``render_dates`` images ([T, H, W, 3] each) at every camera, as many views per call as the ``mesh`` (``cfgs_jax.parallel.device_mesh``; None: one device) has devices, split
-    over them with the Gaussians replicated (``parallel.map_batch``). Cameras of one image size render
-    together. The same images as rendering the views one by one."""
+) -> Iterator[Float[Array, "T H W 3"]]:
+    """``render_dates`` images at each camera, in order, one at a time (a stream: the views are never
+    all held at once). Without a ``mesh`` of several devices (``cfgs_jax.parallel.device_mesh``), one
+    ``render_dates`` call per view; with one, as many consecutive views of one image size per call as
+    the mesh has devices, split over them with the Gaussians replicated (``parallel.map_batch``) —
+    the same images."""
     from cfgs_jax import parallel
 
+    if not parallel.is_parallel(mesh):
+        for camera in cameras:
+            yield render_dates(
+                gaussians,
+                camera,
+                opacity_mult,
+                color_mult,
+                background=background,
+                config=config,
+                statistics=False,
+            ).image
+        return
     config = config or RenderConfig()
     dtype = jnp.result_type(gaussians.means)
     opacity_mult, color_mult = jnp.asarray(opacity_mult, dtype), jnp.asarray(color_mult, dtype)
     for c in cameras:
         _validate(gaussians, c, opacity_mult, color_mult)
-    shared = (gaussians, opacity_mult, color_mult, np.asarray(background, dtype))
-    width = parallel.mesh_size(mesh)
-    if parallel.is_parallel(mesh):
-        shared = parallel.replicate(shared, mesh)
-    images: list = [None] * len(cameras)
-    sizes = [(c.width, c.height) for c in cameras]
-    for size in dict.fromkeys(sizes):
-        group = [i for i, s in enumerate(sizes) if s == size]
-        for start in range(0, len(group), width):
-            idx = group[start : start + width]
-            for i, im in zip(idx, _render_chunk(shared, [cameras[i] for i in idx], width, config, mesh)):
-                images[i] = im
-    return images
+    shared = parallel.replicate((gaussians, opacity_mult, color_mult, np.asarray(background, dtype)), mesh)
+    width, chunk = parallel.mesh_size(mesh), []
+    size = lambda c: (c.width, c.height)
+    for camera in cameras:
+        if chunk and (len(chunk) == width or size(camera) != size(chunk[0])):
+            yield from _render_chunk(shared, chunk, width, config, mesh)
+            chunk = []
+        chunk.append(camera)
+    if chunk:
+        yield from _render_chunk(shared, chunk, width, config, mesh)
 
 
 def _render_chunk(shared, cameras: list[Camera], width: int, config: RenderConfig, mesh) -> np.ndarray:
@@ -327,10 +339,7 @@ def _render_chunk(shared, cameras: list[Camera], width: int, config: RenderConfi
     from cfgs_jax import parallel
 
     g, om, cm, bg = shared
-    stack = lambda *xs: np.stack([np.asarray(x) for x in xs])
-    stacked = jax.tree_util.tree_map(stack, *(cameras + [cameras[0]] * (width - len(cameras))))
-    if parallel.is_parallel(mesh):
-        stacked = parallel.shard_batch(stacked, mesh)
+    stacked = parallel.shard_batch(parallel.stack(cameras + [cameras[0]] * (width - len(cameras))), mesh)
     capacity = config.capacity or max(required_capacity(g, c, om, config=config) for c in cameras)
     while True:
         images, needed = _render_views_jit(g, stacked, om, cm, bg, config=config, capacity=capacity, mesh=mesh)

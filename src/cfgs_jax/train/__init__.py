@@ -3,6 +3,7 @@ Adam, the L1 + D-SSIM step, adaptive density control on a fixed-capacity buffer,
 evaluation on the held-out views, and the "Individual +N" continuation baseline.
 """
 
+from cfgs_jax.loop import view_order
 from cfgs_jax.train.config import TrainConfig
 from cfgs_jax.train.densify import (
     capacity_bucket,
@@ -22,7 +23,6 @@ from cfgs_jax.train.run import (
     fit,
     load_checkpoint,
     save_checkpoint,
-    view_order,
 )
 from cfgs_jax.train.step import TrainState, loss_fn, make_train_step
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from cfgs_jax import metrics, parallel, splat
+from cfgs_jax import metrics, splat
 from cfgs_jax.io.colmap import Scene
 from cfgs_jax.model import Gaussians
 from cfgs_jax.train.step import over_background
@@ -35,23 +35,18 @@ def evaluate(
     net = metrics.load_lpips(lpips_net) if lpips_net else None
     rows = []
     indices = [int(i) for i in np.asarray(indices, np.int64)]
-    preds = _renders(gaussians, [scene.cameras[i] for i in indices], background, render_config, mesh)
-    for i, pred in zip(indices, preds):
+    n = len(gaussians)
+    preds = splat.render_views(
+        gaussians,
+        [scene.cameras[i] for i in indices],
+        np.ones((1, n), np.float32),
+        np.ones((1, n, 3), np.float32),
+        background=background,
+        config=render_config,
+        mesh=mesh,
+    )
+    for i, pred in zip(indices, (p[0] for p in preds)):
         gt = np.asarray(over_background(scene.load_image(int(i), with_alpha=True), np.asarray(background, np.float32)))
         rows.append({"image": scene.image_names[int(i)]} | image_metrics(pred, gt, net))
     out = {k: float(np.mean([r[k] for r in rows])) for k in ("psnr", "ssim", "lpips") if rows and k in rows[0]}
     return out | {"views": rows, "background": list(map(float, background))}
-
-
-def _renders(gaussians: Gaussians, cameras, background, render_config, mesh):
-    """The images at ``cameras``: one by one, or split over the devices of a mesh."""
-    if not parallel.is_parallel(mesh):
-        for cam in cameras:
-            yield splat.render(gaussians, cam, background=background, config=render_config, statistics=False).image
-        return
-    n = len(gaussians)
-    ones = np.ones((1, n), np.float32)
-    for im in splat.render_views(
-        gaussians, cameras, ones, np.ones((1, n, 3), np.float32), background=background, config=render_config, mesh=mesh
-    ):
-        yield im[0]

@@ -23,7 +23,7 @@ from cfgs_jax.errors import InputError
 from cfgs_jax.io.atomic import ensure_writable_dir
 from cfgs_jax.io.checkpoint import read_meta, restore_tree, save_tree
 from cfgs_jax.io.colmap import Scene
-from cfgs_jax.loop import Progress, run_steps, step_with_capacity, view_order
+from cfgs_jax.loop import Progress, check_view_batch, run_steps, step_with_capacity, view_batch
 from cfgs_jax.model import Gaussians, gaussians_of
 from cfgs_jax.train.config import TrainConfig
 from cfgs_jax.train.densify import capacity_bucket, densify_step, reset_opacity
@@ -203,40 +203,25 @@ class _Training:
         # RGBA when the dataset has alpha, else alpha 1
         self.images = [jnp.asarray(self.scene.load_image(int(i), with_alpha=True)) for i in self.train_idx]
         self.extent = scene_extent(self.scene.cameras)
-        batch = self.config.view_batch
-        if batch > 1 and len({tuple(im.shape) for im in self.images}) > 1:
-            raise InputError(
-                "a batch of views needs one image size", path=self.scene.root, fix="set train.view_batch = 1"
-            )
-        if parallel.is_parallel(self.mesh) and batch > 1 and batch % parallel.mesh_size(self.mesh):
-            raise InputError(
-                f"{batch} views per step do not split over {parallel.mesh_size(self.mesh)} devices",
-                field="train.view_batch",
-                fix="use a multiple of the device count, or fewer devices (--devices)",
-            )
+        shapes = [tuple(im.shape) for im in self.images]
+        check_view_batch(self.config.view_batch, shapes, self.mesh, field="train.view_batch", path=self.scene.root)
+        # the mesh a step's views are split over (none with one view per step)
+        self.batch_mesh = self.mesh if self.config.view_batch > 1 else None
 
     def drawn(self, k: int) -> list[int]:
-        """The training views of 0-based step ``k``: entries k·B … k·B + B − 1 of the view sequence."""
-        b = self.config.view_batch
-        return [view_order(self.config.seed, k * b + j, len(self.cameras)) for j in range(b)]
+        """The training views of 0-based step ``k`` (``loop.view_batch``)."""
+        return view_batch(self.config.seed, k, self.config.view_batch, len(self.cameras))
 
     def placed(self, state: TrainState) -> TrainState:
-        """The state replicated over the mesh when a batch is split over it (else as it is)."""
-        if parallel.is_parallel(self.mesh) and self.config.view_batch > 1:
-            return parallel.replicate(state, self.mesh)
-        return state
+        """The state replicated over the mesh when a step's views are split over it (else as it is)."""
+        return parallel.replicate(state, self.batch_mesh)
 
-    def step_inputs(self, k: int) -> tuple:
-        """(camera, image) of step ``k``, or its batch stacked (and split over the mesh)."""
-        drawn = self.drawn(k)
+    def step_inputs(self, drawn: list[int]) -> tuple:
+        """(camera, image) of the view ``drawn``, or the views' batch stacked (and split over the mesh)."""
         if self.config.view_batch == 1:
             return self.cameras[drawn[0]], self.images[drawn[0]]
-        stack = lambda *xs: np.stack([np.asarray(x) for x in xs])
-        batch = (
-            jax.tree_util.tree_map(stack, *[self.cameras[v] for v in drawn]),
-            np.stack([np.asarray(self.images[v]) for v in drawn]),
-        )
-        return parallel.shard_batch(batch, self.mesh) if parallel.is_parallel(self.mesh) else batch
+        batch = parallel.stack([self.cameras[v] for v in drawn]), parallel.stack([self.images[v] for v in drawn])
+        return parallel.shard_batch(batch, self.batch_mesh)
 
     def compiled(self, capacity: int):
         rc = dataclasses.replace(self.render_config, capacity=capacity)
@@ -255,11 +240,12 @@ class _Training:
     def body(self, c: _Carry, k: int, bar: Progress) -> _Carry:
         config = self.config
         it = k + 1  # 1-based like INRIA's loop
-        views = [self.cameras[v] for v in self.drawn(k)]
+        drawn = self.drawn(k)
+        views = [self.cameras[v] for v in drawn]
         (state, stats), capacity = step_with_capacity(
             self.compiled,
             c.capacity,
-            (c.state, *self.step_inputs(k)),
+            (c.state, *self.step_inputs(drawn)),
             required=lambda: _render_capacity(c.state, views, self.render_config),
             overflowed=lambda out: out[1]["overflowed"],
         )
