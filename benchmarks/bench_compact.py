@@ -1,11 +1,14 @@
-"""Cross-timestep compaction against its price in error: for each ``hidden_threshold``, a copy of a
-finished fusion run is compacted (``compact --run``) and refined ``--refine-steps`` more steps; the
-reference row is the same refinement without compaction (threshold 0, which still merges the few
-mutual-nearest copies). Reports Gaussians, test PSNR / SSIM / LPIPS (mean over dates and per date),
+"""Cross-timestep compaction against its price in error: for each value of one hidden-copy knob
+(``--knob``: ``hidden_threshold`` or ``hidden_share``), a copy of a finished fusion run is compacted
+(``compact --run``) and refined ``--refine-steps`` more steps; the reference row is the same
+refinement without compaction (value 0, which still merges the few mutual-nearest copies). Reports Gaussians, test PSNR / SSIM / LPIPS (mean over dates and per date),
 the stage's wall time and the render time of a full selection (all dates, highlight) of the test
 views over the reference's, timed alternately in one process.
 
-    python benchmarks/bench_compact.py --run RUN [--thresholds 0 0.02 0.05 0.1] [--refine-steps 200]
+    python benchmarks/bench_compact.py --run RUN [--knob hidden_share] [--values 0 0.01 0.02] [--refine-steps 200]
+
+With ``--data DATA`` (the synthetic dataset root with ``ground_truth.json``), every row also scores
+change detection against ground truth (per-Gaussian F1, per-pixel IoU at the default thresholds).
 
 RUN: a finished ``fuse`` (e.g. the ``run/`` of ``python -m cfgs_jax.pipeline eval --scene coverage
 --config benchmarks/eval_small.toml --out DIR``). Writes benchmarks/results/NAME.json and NAME.md
@@ -65,11 +68,27 @@ def render_ratios(dirs: list[Path], repeats: int = 7) -> list[float]:
     return [m / medians[0] for m in medians]
 
 
+def change_scores(run_dir: Path, data: Path) -> dict:
+    """Per-Gaussian F1 and per-pixel IoU of the run's fused model against the scene's ground truth."""
+    from cfgs_jax import splat
+    from cfgs_jax.config import section
+    from cfgs_jax.evaluation.protocol import change_detection
+    from cfgs_jax.io.atomic import read_json
+    from cfgs_jax.render_run import open_run
+
+    run = open_run(run_dir)
+    render_config = section(read_json(run_dir / "run.json")["config"] or {}, "render", splat.RenderConfig)
+    change = change_detection(run.model, data, run.scenes, run.sims, render_config)
+    return {"f1": change["gaussians"]["f1"], "iou": change["pixels"]["iou"]}
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--run", required=True, help="a finished fusion run (copied, never changed)")
-    ap.add_argument("--thresholds", type=float, nargs="+", default=[0.0, 0.02, 0.05, 0.1])
+    ap.add_argument("--knob", choices=["hidden_threshold", "hidden_share"], default="hidden_threshold")
+    ap.add_argument("--values", "--thresholds", type=float, nargs="+", default=[0.0, 0.02, 0.05, 0.1])
     ap.add_argument("--refine-steps", type=int, default=200)
+    ap.add_argument("--data", default=None, help="the scene's dataset root: also score change detection")
     ap.add_argument("--name", default="compact", help="results file stem (results/NAME.md and .json)")
     args = ap.parse_args()
 
@@ -81,11 +100,11 @@ def main():
     base = dict((read_json(Path(args.run) / "run.json")["config"] or {}).get("compact", {}))
     rows, dirs = [], []
     with tempfile.TemporaryDirectory() as tmp:
-        for th in sorted({0.0, *args.thresholds}):
+        for th in sorted({0.0, *args.values}):
             copy = Path(tmp) / f"run_{th}"
             shutil.copytree(args.run, copy, ignore=shutil.ignore_patterns("snapshots", "ablations", "*.npz"))
             config = section(
-                {"compact": base | {"hidden_threshold": th, "refine_steps": args.refine_steps}},
+                {"compact": base | {args.knob: th, "refine_steps": args.refine_steps}},
                 "compact",
                 CompactConfig,
             )
@@ -95,7 +114,7 @@ def main():
             rep = run.report["compact"]
             rows.append(
                 {
-                    "hidden_threshold": th,
+                    args.knob: th,
                     "gaussians_before": rep["gaussians_before"],
                     "gaussians_after": rep["gaussians_after"],
                     "hidden_pruned": rep["hidden_pruned"],
@@ -105,6 +124,8 @@ def main():
                     "stage_seconds": seconds,
                 }
             )
+            if args.data:
+                rows[-1]["change"] = change_scores(copy, Path(args.data))
             dirs.append(copy)
             print(json.dumps(rows[-1]["test"]), rows[-1]["gaussians_after"], flush=True)
         for row, ratio in zip(rows, render_ratios(dirs)):
@@ -115,6 +136,7 @@ def main():
         "command": " ".join(["python benchmarks/bench_compact.py", *sys.argv[1:]]),
         "run": str(args.run),
         "refine_steps": args.refine_steps,
+        "knob": args.knob,
         "rows": rows,
     }
     RESULTS.mkdir(exist_ok=True)
@@ -124,29 +146,45 @@ def main():
 
 
 def markdown(result: dict) -> str:
-    ref = next(r for r in result["rows"] if r["hidden_threshold"] == 0.0)
+    knob = result.get("knob", "hidden_threshold")
+    ref = next(r for r in result["rows"] if r[knob] == 0.0)
     lines = [
         "# Cross-timestep compaction: Gaussians against error",
         "",
         f"Machine: {result['machine']}. Date: {result['date']}. Command: `{result['command']}`.",
         f"Every row: a copy of the run compacted, then refined {result['refine_steps']} steps (α not halved);",
-        "the reference row (threshold 0) is the same refinement without the hidden-copy rule. Δ against it;",
+        f"the reference row ({knob} 0) is the same refinement without the hidden-copy rule. Δ against it;",
         "render: the full-selection highlight frames of all test views, median of 7 alternating timings,",
         "over the reference row's.",
         "",
-        "| hidden_threshold | Gaussians | removed | PSNR | Δ dB | SSIM | Δ | LPIPS | Δ | worst date Δ dB | render ratio | stage (s) |",
-        "|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
+        f"| {knob} | Gaussians | removed | PSNR | Δ dB | SSIM | Δ | LPIPS | Δ | worst date Δ dB | worst date Δ LPIPS | render ratio | stage (s) |",
+        "|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
     for r in result["rows"]:
         t, rt = r["test"], ref["test"]
-        worst = min(r["test_per_date"][d]["psnr"] - ref["test_per_date"][d]["psnr"] for d in r["test_per_date"])
+        dates = r["test_per_date"]
+        worst = min(dates[d]["psnr"] - ref["test_per_date"][d]["psnr"] for d in dates)
+        worst_lpips = max(dates[d]["lpips"] - ref["test_per_date"][d]["lpips"] for d in dates)
         removed = 1 - r["gaussians_after"] / ref["gaussians_after"]
         lines.append(
-            f"| {r['hidden_threshold']:g} | {r['gaussians_after']:,} | {removed:.1%} | {t['psnr']:.2f} | "
+            f"| {r[knob]:g} | {r['gaussians_after']:,} | {removed:.1%} | {t['psnr']:.2f} | "
             f"{t['psnr'] - rt['psnr']:+.2f} | {t['ssim']:.4f} | {t['ssim'] - rt['ssim']:+.4f} | {t['lpips']:.4f} | "
-            f"{t['lpips'] - rt['lpips']:+.4f} | {worst:+.2f} | {r['render_ratio']:.2f} | "
+            f"{t['lpips'] - rt['lpips']:+.4f} | {worst:+.2f} | {worst_lpips:+.4f} | {r['render_ratio']:.2f} | "
             f"{r['stage_seconds']:.0f} |"
         )
+    if "change" in ref:
+        lines += [
+            "",
+            "Change detection against ground truth (default thresholds), Δ against the reference row:",
+            "",
+            f"| {knob} | F1 per Gaussian | Δ | pixel IoU | Δ |",
+            "|---:|---:|---:|---:|---:|",
+        ]
+        for r in result["rows"]:
+            c, rc = r["change"], ref["change"]
+            lines.append(
+                f"| {r[knob]:g} | {c['f1']:.3f} | {c['f1'] - rc['f1']:+.3f} | {c['iou']:.3f} | {c['iou'] - rc['iou']:+.3f} |"
+            )
     lines += ["", "Positive Δ PSNR / SSIM and negative Δ LPIPS: better than the reference row."]
     return "\n".join(lines) + "\n"
 

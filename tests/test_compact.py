@@ -107,7 +107,7 @@ def test_hidden_persistent_copies_are_dropped_and_changed_ones_kept():
     one > 0.9). With hidden_threshold 0.05 the hidden copy that is shown at both dates goes; the
     hidden blob that marks a change (gone at date 1) stays, and so does the front one."""
     from cfgs_jax.fusion import DateViews
-    from cfgs_jax.fusion.compact import hidden_persistent, max_contribution
+    from cfgs_jax.fusion.compact import contributions, hidden_persistent
 
     model = _model(
         means=[[0, 0, 0], [0, 0.3, 0], [0, 0.3, 0.01]],
@@ -119,10 +119,72 @@ def test_hidden_persistent_copies_are_dropped_and_changed_ones_kept():
     )
     camera = cj.Camera.look_at([0, -2.0, 0], [0, 0, 0], width=40, height=30, fov_x_deg=40)
     views = [DateViews((camera,), (np.zeros((30, 40, 3), np.float32),))] * 2
-    weight = max_contribution(model, views)
-    assert weight[0].min() > 0.9 and weight[1].max() < 0.05 and weight[2, 0] < 0.05
+    weight = contributions(model, views)
+    largest = weight.largest
+    assert largest[0].min() > 0.9 and largest[1].max() < 0.05 and largest[2, 0] < 0.05
     config = CompactConfig(hidden_threshold=0.05)
     assert hidden_persistent(model, weight, config).tolist() == [False, True, False]
     out, report = compact(model, config, weight)
     assert report["hidden_pruned"] == 1 and len(out) == 2
     np.testing.assert_array_equal(np.asarray(out.gaussians.means), np.asarray(model.gaussians.means)[[0, 2]])
+
+
+def test_summed_weights_match_one_hot_float64_renders():
+    """The summed compositing weight Σ_pixels w_i of each Gaussian of four overlapping ones equals the
+    image sum of a float64 reference render in which only Gaussian i has colour 1 (the image is
+    Σ_i w_i c_i), at each date's o; the largest weight matches the reference's max_weight."""
+    from cfgs_jax.fusion import DateViews
+    from cfgs_jax.fusion.compact import contributions
+    from cfgs_jax.splat import reference
+
+    model = _model(
+        means=[[0, 0, 0], [0.05, 0.2, 0.02], [-0.1, 0.3, -0.05], [0.1, -0.2, 0.1]],
+        log_scales=np.log([[0.12, 0.08, 0.1], [0.06] * 3, [0.09, 0.05, 0.07], [0.05] * 3]),
+        alphas=[0.7, 0.9, 0.5, 0.8],
+        colours=np.full((4, 3), 0.5),
+        o=[[0.99, 0.6], [0.9, 0.99], [0.3, 0.95], [0.99, 0.99]],
+        origin=[0, 1, 1, 0],
+    )
+    cameras = (
+        cj.Camera.look_at([0, -2.0, 0.1], [0, 0, 0], width=40, height=30, fov_x_deg=40),
+        cj.Camera.look_at([0.5, -1.8, 0.4], [0, 0, 0], width=40, height=30, fov_x_deg=40),
+    )
+    views = [DateViews(cameras, (np.zeros((30, 40, 3), np.float32),) * 2)] * 2
+    got = contributions(model, views)
+    o = np.asarray(cj.opacity_multipliers(model), np.float64)
+    want_total, want_largest = np.zeros((4, 2)), np.zeros((4, 2))
+    for q in range(2):
+        for cam in cameras:
+            for i in range(4):
+                one_hot = np.zeros((1, 4, 3))
+                one_hot[0, i] = 1.0
+                ref = reference.render_dates(model.gaussians, cam, o[:, q][None], one_hot / 0.5)
+                want_total[i, q] += float(np.sum(np.asarray(ref.image)[0, ..., 0]))
+            ref = reference.render_dates(model.gaussians, cam, o[:, q][None], np.ones((1, 4, 3)))
+            want_largest[:, q] = np.maximum(want_largest[:, q], np.asarray(ref.max_weight)[0])
+    assert want_total.min() > 1.0  # every Gaussian is seen
+    np.testing.assert_allclose(got.total, want_total, rtol=2e-4)
+    np.testing.assert_allclose(got.largest, want_largest, rtol=1e-4, atol=1e-6)
+
+
+def test_hidden_share_drops_the_least_shown_persistent_gaussians_up_to_the_share():
+    """With made-up summed weights, hidden_share drops persistent Gaussians in ascending order of their
+    summed weight while the dropped ones draw at most the share of all weight (a hand count), and never
+    one that is absent at some date, however little it is shown."""
+    from cfgs_jax.fusion.compact import Contributions, hidden_persistent
+
+    model = _model(
+        means=np.zeros((5, 3)),
+        log_scales=np.zeros((5, 3)),
+        alphas=[0.5] * 5,
+        colours=np.full((5, 3), 0.5),
+        o=[[0.9, 0.9], [0.9, 0.9], [0.1, 0.9], [0.9, 0.9], [0.9, 0.9]],
+        origin=[0, 1, 0, 1, 0],
+    )
+    total = np.array([[10.0, 10.0], [1.0, 2.0], [0.5, 0.0], [2.0, 2.0], [30.0, 42.5]])  # all: 100
+    weights = Contributions(np.ones((5, 2)), total)
+    # persistent ranked: 1 (3), 3 (4), 0 (20), 4 (72.5): cumulative 3, 7, 27, 99.5
+    assert hidden_persistent(model, weights, CompactConfig(hidden_share=0.02)).tolist() == [False] * 5
+    assert hidden_persistent(model, weights, CompactConfig(hidden_share=0.03)).tolist() == [0, 1, 0, 0, 0]
+    assert hidden_persistent(model, weights, CompactConfig(hidden_share=0.1)).tolist() == [0, 1, 0, 1, 0]
+    assert hidden_persistent(model, weights, CompactConfig(hidden_share=0.3)).tolist() == [1, 1, 0, 1, 0]

@@ -43,6 +43,7 @@ from PIL import Image
 from cfgs_jax import splat, viz
 from cfgs_jax.errors import InputError
 from cfgs_jax.model import Camera, Gaussians, TemporalGaussians, light_multipliers, opacity_multipliers
+from cfgs_jax.splat.weights import contribution_per_label, max_weight, summed_weights
 
 
 @dataclasses.dataclass(frozen=True)
@@ -68,65 +69,6 @@ class ChangeConfig:
                 raise InputError(f"must lie in (0, 1), got {v}", field=f"change.{name}")
         if not 0.0 <= self.surface_threshold < 1.0:
             raise InputError(f"must lie in [0, 1), got {self.surface_threshold}", field="change.surface_threshold")
-
-
-@functools.partial(jax.jit, static_argnames=("config",))
-def _weights_on_masks(
-    g: Gaussians, camera: Camera, opacity: Float[Array, " N"], masks: Float[Array, "M H W 3"], config
-):
-    n = len(g)
-    ones = dataclasses.replace(g, colors=jnp.ones_like(g.colors))
-    m = masks.shape[0]
-
-    def weighted(mult):
-        res = splat.render_dates(ones, camera, jnp.broadcast_to(opacity, (m, n)), mult, config=config, statistics=False)
-        return jnp.sum(res.image * masks)
-
-    return jax.grad(weighted)(jnp.ones((m, n, 3), masks.dtype))  # [M, N, 3]: Σ_pixels w_i·mask
-
-
-def contribution_per_label(
-    g: Gaussians,
-    opacity: Float[Array, " N"],
-    cameras: Sequence[Camera],
-    label_images: Sequence[np.ndarray],
-    num_labels: int,
-    *,
-    render_config: splat.RenderConfig | None = None,
-) -> np.ndarray:
-    """[N, K] float64: Σ over views and pixels of w_i = α_i·opacity_i·T_i on pixels whose label is k.
-
-    ``label_images[v]`` is an [H, W] integer image in 0..K−1 for ``cameras[v]`` (other values ignored).
-    """
-    rc = render_config or splat.RenderConfig()
-    groups = -(-num_labels // 3)
-    total = np.zeros((len(g), groups * 3), np.float64)
-    for cam, labels in zip(cameras, label_images):
-        labels = np.asarray(labels)
-        if labels.shape != (int(cam.height), int(cam.width)):
-            raise InputError(
-                f"label image {labels.shape} for a {int(cam.width)}×{int(cam.height)} camera",
-                field="label_images",
-                fix="give one [H, W] label image per camera",
-            )
-        onehot = (labels[None, ..., None] == np.arange(groups * 3).reshape(groups, 1, 1, 3)).astype(np.float32)
-        cap = splat.required_capacity(g, cam, jnp.broadcast_to(opacity, (1, len(g))), config=rc)  # bucketed
-        cfg = dataclasses.replace(rc, capacity=cap)
-        w = np.asarray(_weights_on_masks(g, cam, jnp.asarray(opacity), jnp.asarray(onehot), cfg), np.float64)
-        total += np.transpose(w, (1, 0, 2)).reshape(len(g), groups * 3)
-    return total[:, :num_labels]
-
-
-def max_weight(
-    g: Gaussians, opacity: Float[Array, " N"], cameras: Sequence[Camera], *, render_config=None
-) -> np.ndarray:
-    """[N] max over the pixels of ``cameras`` of α·opacity·T (the kernel's per-Gaussian statistic)."""
-    best = np.zeros(len(g), np.float32)
-    for cam in cameras:
-        best = np.maximum(
-            best, np.asarray(splat.render(g, cam, opacity_mult=jnp.asarray(opacity), config=render_config).max_weight)
-        )
-    return best
 
 
 def observed_from(
@@ -255,7 +197,7 @@ def surface_effect(
                 img = splat.render_dates(g, cam, both, light_q, config=cfg, statistics=False).image
                 d = jnp.mean(jnp.abs(img[0] - img[1]), axis=-1)
                 maps = jnp.stack([d, jnp.ones_like(d), jnp.zeros_like(d)], axis=-1)[None]
-                w = np.asarray(_weights_on_masks(g, cam, full, maps, cfg), np.float64)[0]
+                w = np.asarray(summed_weights(g, cam, full, maps, cfg), np.float64)[0]
                 num += w[:, 0]
                 den += w[:, 1]
             rows = origin == p

@@ -31,10 +31,12 @@ moved.
 from __future__ import annotations
 
 import dataclasses
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jaxtyping import Float
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
@@ -59,6 +61,7 @@ class CompactConfig:
     max_opacity_difference: float = 0.3
     max_alpha: float = 0.99
     hidden_threshold: float = 0.0  # also drop persistent Gaussians whose largest compositing weight is below (0: off)
+    hidden_share: float = 0.0  # also drop the least-shown persistent Gaussians drawing at most this share (0: off)
     refine_steps: int = 500
 
     def __post_init__(self):
@@ -68,6 +71,7 @@ class CompactConfig:
             "max_colour_difference",
             "max_opacity_difference",
             "hidden_threshold",
+            "hidden_share",
         ):
             if not 0 <= getattr(self, name) <= 1:
                 raise InputError(f"must be in [0, 1], got {getattr(self, name)}", field=f"compact.{name}")
@@ -78,6 +82,11 @@ class CompactConfig:
             raise InputError(f"must be in (0, 1), got {self.max_alpha}", field="compact.max_alpha")
         if self.refine_steps < 0:
             raise InputError(f"must be ≥ 0, got {self.refine_steps}", field="compact.refine_steps")
+
+    @property
+    def prunes_hidden(self) -> bool:
+        """Whether a hidden-copy rule is on (it needs the Gaussians' ``contributions``)."""
+        return self.hidden_threshold > 0 or self.hidden_share > 0
 
 
 def _attributes(model: TemporalGaussians) -> dict:
@@ -198,43 +207,60 @@ def merge_groups(model: TemporalGaussians, labels: np.ndarray, config: CompactCo
     return merged, kept
 
 
-def max_contribution(model: TemporalGaussians, views, render_config=None) -> np.ndarray:
-    """[N, T]: per Gaussian and date q, the largest compositing weight min(0.99, α·o^q·G)·T over the
-    pixels of date q's views (``views[q]``, a ``DateViews``), from the kernel's ``max_weight``."""
-    from cfgs_jax import splat
-    from cfgs_jax.model import light_multipliers, opacity_multipliers
+class Contributions(NamedTuple):
+    """Per Gaussian and date q, over the pixels of every view of date q: the largest compositing weight
+    w = min(0.99, α·o^q·G)·T and the sum of w (a Gaussian's share of what the views show)."""
 
-    o, light = opacity_multipliers(model), light_multipliers(model)
-    rc = render_config or splat.RenderConfig()
-    out = np.zeros((len(model), model.num_dates))
+    largest: Float[np.ndarray, "N T"]
+    total: Float[np.ndarray, "N T"]
+
+
+def contributions(model: TemporalGaussians, views, render_config=None) -> Contributions:
+    """Every Gaussian's largest and summed compositing weight per date q over date q's views
+    (``views[q]``, a ``DateViews``), rendered at date q's o^q (``Contributions``)."""
+    from cfgs_jax.model import opacity_multipliers
+    from cfgs_jax.splat.weights import contribution_per_label, max_weight
+
+    o = opacity_multipliers(model)
+    largest, total = np.zeros((len(model), model.num_dates)), np.zeros((len(model), model.num_dates))
     for q, dv in enumerate(views):
-        for cam in dv.cameras:
-            cfg = dataclasses.replace(
-                rc, capacity=splat.required_capacity(model.gaussians, cam, o[:, q][None], config=rc)
-            )
-            res = splat.render_dates(model.gaussians, cam, o[:, q][None], light[:, q][None], config=cfg)
-            out[:, q] = np.maximum(out[:, q], np.asarray(res.max_weight[0]))
-    return out
+        cams = dv.cameras
+        unlabelled = [np.zeros((int(c.height), int(c.width)), np.int64) for c in cams]
+        largest[:, q] = max_weight(model.gaussians, o[:, q], cams, render_config=render_config)
+        total[:, q] = contribution_per_label(
+            model.gaussians, o[:, q], cams, unlabelled, 1, render_config=render_config
+        )[:, 0]
+    return Contributions(largest, total)
 
 
-def hidden_persistent(model: TemporalGaussians, contribution: np.ndarray, config: CompactConfig) -> np.ndarray:
-    """[N] mask of the Gaussians shown at every date (o ≥ ``present``) whose largest compositing weight
-    over every view of every date (``max_contribution``) stays below ``hidden_threshold``: copies of a
-    persistent surface that the other copies in front of them hide."""
+def hidden_persistent(model: TemporalGaussians, contribution: Contributions, config: CompactConfig) -> np.ndarray:
+    """[N] mask of the Gaussians shown at every date (o ≥ ``present``) that the views barely show:
+    copies of a persistent surface that the other copies in front of them hide. A Gaussian is hidden
+    when its largest compositing weight over every view of every date stays below ``hidden_threshold``,
+    or when it is among the least-shown persistent Gaussians (ranked by summed weight over all views of
+    all dates) that together draw at most ``hidden_share`` of the weight all Gaussians draw."""
     o = np.asarray(jax.nn.sigmoid(model.o_logits))
-    return np.all(o >= config.present, axis=1) & (np.max(contribution, axis=1) < config.hidden_threshold)
+    persistent = np.all(o >= config.present, axis=1)
+    hidden = persistent & (np.max(contribution.largest, axis=1) < config.hidden_threshold)
+    if config.hidden_share > 0:
+        total = np.sum(contribution.total, axis=1)
+        rows = np.nonzero(persistent)[0]
+        order = rows[np.argsort(total[rows], kind="stable")]
+        within = np.cumsum(total[order]) <= config.hidden_share * np.sum(total)
+        hidden[order[within]] = True
+    return hidden
 
 
 def compact(
-    model: TemporalGaussians, config: CompactConfig | None = None, contribution: np.ndarray | None = None
+    model: TemporalGaussians, config: CompactConfig | None = None, contribution: Contributions | None = None
 ) -> tuple[TemporalGaussians, dict]:
     """The model without its hidden persistent copies (``hidden_persistent``, when ``hidden_threshold``
-    > 0; ``contribution`` from ``max_contribution``) and with every group of ``duplicate_groups``
+    or ``hidden_share`` > 0; ``contribution`` from ``contributions``) and with every group of ``duplicate_groups``
     merged into one Gaussian (``merge_groups``), the others unchanged; and a report (Gaussians
     before/after per origin date and in all)."""
     config = config or CompactConfig()
     hidden = np.zeros(len(model), bool)
-    if config.hidden_threshold > 0:
+    if config.prunes_hidden:
         if contribution is None:
             raise InputError("hidden_threshold needs the Gaussians' contributions", field="compact.contribution")
         hidden = hidden_persistent(model, contribution, config)

@@ -32,7 +32,7 @@ from cfgs_jax import splat, train
 from cfgs_jax.compiled_code import release_if_near_limit
 from cfgs_jax.config import check_sections, section
 from cfgs_jax.errors import InputError
-from cfgs_jax.fusion.compact import CompactConfig, compact, max_contribution
+from cfgs_jax.fusion.compact import CompactConfig, compact, contributions
 from cfgs_jax.fusion.cross_init import CrossInitConfig, DateViews, init_pairs, pair_groups
 from cfgs_jax.fusion.fuse import merge
 from cfgs_jax.fusion.refine import RefineConfig, refine
@@ -534,8 +534,8 @@ def compact_stage(run: FusionRun, config: CompactConfig, views, scenes, sims, re
     before = evaluate_fused(model, test_views, render_config=render_config, mesh=run.mesh)
     write_fused(run.out / "before_compact", model, config=run.state["config"])
     contribution = None
-    if config.hidden_threshold > 0:
-        contribution = max_contribution(model, views, render_config)
+    if config.prunes_hidden:
+        contribution = contributions(model, views, render_config)
     compacted, report = compact(model, config, contribution)
     log(
         f"[compact] {report['gaussians_before']:,} → {report['gaussians_after']:,} Gaussians "
