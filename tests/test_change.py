@@ -8,7 +8,7 @@ from test_splat import camera, scene
 
 import cfgs_jax as cj
 from cfgs_jax.evaluation import change
-from cfgs_jax.splat import reference
+from cfgs_jax.splat import reference, weights
 
 
 def _weights64(g, cam, opacity):
@@ -27,7 +27,7 @@ def test_contribution_per_label_matches_reference_weights():
     cams = [camera(24, 18), camera(24, 18, eye=(1.5, -3.5, 1.2))]
     rng = np.random.default_rng(2)
     labels = [rng.integers(0, 5, (18, 24)) for _ in cams]
-    got = change.contribution_per_label(g, jnp.asarray(opacity), cams, labels, 5)
+    got = weights.contribution_per_label(g, jnp.asarray(opacity), cams, labels, 5)
     want = np.zeros((len(g), 5))
     for cam, lab in zip(cams, labels):
         w = _weights64(g, cam, opacity)
@@ -40,7 +40,7 @@ def test_contribution_per_label_matches_reference_weights():
 def test_observed_from_is_the_visibility_rule():
     g = scene(32, 4)  # with Gaussians behind the camera, sub-pixel ones, ...
     cams = [camera(20, 16)]
-    got = change.observed_from(g, jnp.ones(len(g)), cams, 0.01)
+    got = weights.observed_from(g, jnp.ones(len(g)), cams, 0.01)
     want = np.asarray(reference.render(g, cams[0]).max_weight) >= 0.01
     assert got.any() and not got.all()
     assert np.array_equal(got, want)
@@ -117,8 +117,8 @@ def test_observed_at_a_date_is_visibility_behind_that_dates_model():
         (cj.DateInfo("a"), cj.DateInfo("b")),
     )
     cams = [(cj.Camera.look_at([0, -4, 0], [0, 0, 0], width=40, height=20, fov_x_deg=50),)] * 2
-    fused = change.observed_matrix(model, cams, 0.01)
-    alone = change.observed_matrix(model, cams, 0.01, occlusion="own date")
+    fused = weights.observed_matrix(model, cams, 0.01)
+    alone = weights.observed_matrix(model, cams, 0.01, occlusion="own date")
     o = 1 / (1 + np.exp(-o_logits.astype(np.float64)))
     mult = np.array([[o[0, 0], o[1, 0], o[2, 1], o[3, 1]]])  # date a's Gaussians at b: a's own o, W at o^b
     ref = reference.render_dates(g, cams[1][0], mult, np.ones((1, 4, 3)))
@@ -231,7 +231,7 @@ def test_surface_effect_separates_a_dropped_front_layer_from_a_removed_object():
     assert (
         want[2] > 0.15 and want[0] < 0.05 and np.all(got[:, 0] == 0)
     )  # R: colour 0.5 against black, weighted over its falloff
-    observed = change.observed_matrix(model, [(cam,), (cam,)], 0.01)[:, 1]
+    observed = weights.observed_matrix(model, [(cam,), (cam,)], 0.01)[:, 1]
     assert observed[0] and observed[2]
     table = {
         "pairs": {

@@ -167,24 +167,30 @@ def test_summed_weights_match_one_hot_float64_renders():
     np.testing.assert_allclose(got.largest, want_largest, rtol=1e-4, atol=1e-6)
 
 
-def test_hidden_share_drops_the_least_shown_persistent_gaussians_up_to_the_share():
-    """With made-up summed weights, hidden_share drops persistent Gaussians in ascending order of their
-    summed weight while the dropped ones draw at most the share of all weight (a hand count), and never
-    one that is absent at some date, however little it is shown."""
+def test_hidden_share_drops_the_least_shown_gaussians_that_mark_no_change_up_to_the_share():
+    """With made-up summed weights, hidden_share drops the Gaussians that mark no change in ascending
+    order of their summed weight while the dropped ones draw at most the share of all weight (a hand
+    count). Gaussian 2 is absent at date 0, where the views observe it: it marks a change and is never
+    dropped, however little it is shown. Gaussian 5 is absent at date 1 but unobserved there, so it marks
+    no change and is dropped first."""
     from cfgs_jax.fusion.compact import Contributions, hidden_persistent
 
     model = _model(
-        means=np.zeros((5, 3)),
-        log_scales=np.zeros((5, 3)),
-        alphas=[0.5] * 5,
-        colours=np.full((5, 3), 0.5),
-        o=[[0.9, 0.9], [0.9, 0.9], [0.1, 0.9], [0.9, 0.9], [0.9, 0.9]],
-        origin=[0, 1, 0, 1, 0],
+        means=np.zeros((6, 3)),
+        log_scales=np.zeros((6, 3)),
+        alphas=[0.5] * 6,
+        colours=np.full((6, 3), 0.5),
+        o=[[0.9, 0.9], [0.9, 0.9], [0.1, 0.9], [0.9, 0.9], [0.9, 0.9], [0.9, 0.01]],
+        origin=[0, 1, 0, 1, 0, 0],
     )
-    total = np.array([[10.0, 10.0], [1.0, 2.0], [0.5, 0.0], [2.0, 2.0], [30.0, 42.5]])  # all: 100
-    weights = Contributions(np.ones((5, 2)), total)
-    # persistent ranked: 1 (3), 3 (4), 0 (20), 4 (72.5): cumulative 3, 7, 27, 99.5
-    assert hidden_persistent(model, weights, CompactConfig(hidden_share=0.02)).tolist() == [False] * 5
-    assert hidden_persistent(model, weights, CompactConfig(hidden_share=0.03)).tolist() == [0, 1, 0, 0, 0]
-    assert hidden_persistent(model, weights, CompactConfig(hidden_share=0.1)).tolist() == [0, 1, 0, 1, 0]
-    assert hidden_persistent(model, weights, CompactConfig(hidden_share=0.3)).tolist() == [1, 1, 0, 1, 0]
+    total = np.array([[10.0, 10.0], [1.0, 2.0], [0.5, 0.0], [2.0, 2.0], [29.0, 42.5], [1.0, 0.0]])  # all: 100
+    observed = np.ones((6, 2), bool)
+    observed[5, 1] = False
+    weights = Contributions(np.ones((6, 2)), total, observed)
+    # no change marked, ranked: 5 (1), 1 (3), 3 (4), 0 (20), 4 (71.5): cumulative 1, 4, 8, 28, 99.5
+    share = lambda s: hidden_persistent(model, weights, CompactConfig(hidden_share=s)).astype(int).tolist()
+    assert share(0.005) == [0] * 6
+    assert share(0.01) == [0, 0, 0, 0, 0, 1]
+    assert share(0.05) == [0, 1, 0, 0, 0, 1]
+    assert share(0.1) == [0, 1, 0, 1, 0, 1]
+    assert share(0.3) == [1, 1, 0, 1, 0, 1]

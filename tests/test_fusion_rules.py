@@ -13,6 +13,7 @@ from test_fusion import FROZEN, _random_gaussians
 import cfgs_jax as cj
 from cfgs_jax import fusion, splat, train
 from cfgs_jax.fusion import updates
+from cfgs_jax.splat import weights
 from cfgs_jax.train import view_order
 
 ci = importlib.import_module("cfgs_jax.fusion.cross_init")  # the package exports a function of that name
@@ -253,7 +254,6 @@ def test_both_observation_rules_leave_the_persistence_out():
     """A Gaussian of date 0 with α = 0.03 and o^0 = 0.3 in full view: α·o·T = 0.009 < 0.01 but
     α·T = 0.03, so it is observed under both occlusion rules (before, the "own date" rule compared
     α·o^p·T and missed it); one behind an opaque wall of the same date is unobserved under both."""
-    from cfgs_jax.evaluation import change
 
     g = cj.Gaussians(
         np.float32([[0.0, 0, 0], [0.8, 0, 0.5], [0.8, 0, 0.0], [0.8, 0, 0.05]]),
@@ -267,10 +267,10 @@ def test_both_observation_rules_leave_the_persistence_out():
         g, jnp.asarray(o), jnp.zeros((4, 2, 3)), np.zeros(4, np.int32), (cj.DateInfo("a"), cj.DateInfo("b"))
     )
     cams = [cj.Camera.look_at([0.4, 0, -3.0], [0.4, 0, 0], up=(0, -1, 0), width=48, height=32, fov_x_deg=60)]
-    w = change.max_weight(g, jnp.asarray(jax.nn.sigmoid(o[:, 0])), cams)
+    w = weights.max_weight(g, jnp.asarray(jax.nn.sigmoid(o[:, 0])), cams)
     assert 1 / 255 < w[0] < 0.01 and w[1] < 0.005  # the statistic the rules divide
     for occlusion in ("fused", "own date"):
-        seen = change.observed_matrix(model, [cams, cams], 0.01, occlusion=occlusion)
+        seen = weights.observed_matrix(model, [cams, cams], 0.01, occlusion=occlusion)
         assert seen[0].tolist() == [True, True] and seen[1].tolist() == [False, False], (occlusion, seen)
 
 

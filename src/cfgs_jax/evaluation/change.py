@@ -37,13 +37,12 @@ from pathlib import Path
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Float
 from PIL import Image
 
 from cfgs_jax import splat, viz
 from cfgs_jax.errors import InputError
 from cfgs_jax.model import Camera, Gaussians, TemporalGaussians, light_multipliers, opacity_multipliers
-from cfgs_jax.splat.weights import contribution_per_label, max_weight, summed_weights
+from cfgs_jax.splat.weights import contribution_per_label, observed_matrix, summed_weights
 
 
 @dataclasses.dataclass(frozen=True)
@@ -69,17 +68,6 @@ class ChangeConfig:
                 raise InputError(f"must lie in (0, 1), got {v}", field=f"change.{name}")
         if not 0.0 <= self.surface_threshold < 1.0:
             raise InputError(f"must lie in [0, 1), got {self.surface_threshold}", field="change.surface_threshold")
-
-
-def observed_from(
-    g: Gaussians, opacity: Float[Array, " N"], cameras: Sequence[Camera], threshold: float, *, render_config=None
-) -> np.ndarray:
-    """[N] bool: the refinement's visibility rule — α·T ≥ ``threshold`` at some pixel of some camera,
-    α the Gaussian's own opacity (times its falloff), T from the render at ``opacity`` (the kernel's
-    α·opacity·T divided by the opacity)."""
-    opacity = np.asarray(opacity, np.float32)
-    weight = max_weight(g, opacity, cameras, render_config=render_config)
-    return np.where(opacity > 0, weight / np.maximum(opacity, 1e-30), 0.0) >= threshold
 
 
 @dataclasses.dataclass(frozen=True)
@@ -131,38 +119,6 @@ def object_labels(
             )
             labels[rows] = np.where(w.sum(1) > 0, w.argmax(1), -1)
     return labels
-
-
-def observed_matrix(
-    model: TemporalGaussians,
-    observing: Sequence[Sequence[Camera]],
-    threshold: float,
-    *,
-    occlusion: str = "fused",
-    render_config=None,
-) -> np.ndarray:
-    """[N, T] bool: column q says whether each Gaussian is observed at date q (``observing[q]``: date
-    q's training cameras). ``occlusion="fused"``: the whole model rendered at q, the Gaussians of the
-    evaluated date p at opacity o^p and all others at o^q (so column q of date q's own Gaussians is
-    the fused render at q); ``"own date"``: date p's Gaussians alone at o^p."""
-    if occlusion not in ("fused", "own date"):
-        raise InputError(f"unknown occlusion {occlusion!r}", field="occlusion", fix='use "fused" or "own date"')
-    o = np.asarray(opacity_multipliers(model))
-    origin = np.asarray(model.origin)
-    seen = np.zeros((len(origin), len(observing)), bool)
-    for p in range(model.num_dates):
-        rows = np.nonzero(origin == p)[0]
-        if not len(rows):
-            continue
-        if occlusion == "own date":
-            g = jax.tree_util.tree_map(lambda x: jnp.asarray(x)[rows], model.gaussians)
-            for q, cams in enumerate(observing):
-                seen[rows, q] = observed_from(g, o[rows, p], cams, threshold, render_config=render_config)
-            continue
-        for q, cams in enumerate(observing):
-            mult = np.where(origin == p, o[:, p], o[:, q]).astype(np.float32)
-            seen[rows, q] = observed_from(model.gaussians, mult, cams, threshold, render_config=render_config)[rows]
-    return seen
 
 
 def surface_effect(

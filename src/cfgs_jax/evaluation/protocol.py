@@ -35,6 +35,7 @@ from cfgs_jax.io.fused import read_fused
 from cfgs_jax.io.ply import read_ply, write_ply
 from cfgs_jax.model import light_multipliers, opacity_multipliers
 from cfgs_jax.sim3 import Sim3
+from cfgs_jax.splat.weights import observed_matrix
 
 
 @dataclasses.dataclass(frozen=True)
@@ -425,14 +426,14 @@ def change_detection(
     masks_test = date_masks(data, scenes, sims, names, "test")
     observing = [m.cameras for m in masks]
     cfg = config or ChangeConfig()
-    observed = change.observed_matrix(model, observing, cfg.contribution_threshold, render_config=render_config)
+    observed = observed_matrix(model, observing, cfg.contribution_threshold, render_config=render_config)
     table = change.gaussian_change_table(
         model, masks, observing, len(gt["objects"]), cfg, render_config=render_config, observed=observed
     )
     summary = change.summarise_gaussians(table, cfg)
     # how much the fused occlusion rule matters: entries seen with their own date's Gaussians alone but
     # hidden in the fused model at q, and how many of those are absent (would count as changed otherwise)
-    alone = change.observed_matrix(
+    alone = observed_matrix(
         model, observing, cfg.contribution_threshold, occlusion="own date", render_config=render_config
     )
     seen_alone = np.concatenate([alone[v["rows"], q] for (_, q), v in table["pairs"].items()])

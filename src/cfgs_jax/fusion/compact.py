@@ -24,6 +24,13 @@ largest compositing weight min(0.99, α·o^q·G)·T over every training view of 
 the threshold are dropped first: the copies of a persistent surface hidden behind other copies. A
 Gaussian that marks a change (o low at some date) is never dropped by this rule.
 
+With ``hidden_share`` > 0, the Gaussians that mark no change (at every date shown, o ≥ ``present``, or
+not observed by that date's views: the refinement's visibility rule) are ranked by their summed
+compositing weight Σ w over every training view of every date, and the least-shown are dropped while
+together they draw at most that share of the weight of all Gaussians. A copy hidden behind another copy
+of the same surface draws little, and where it does show, the copy behind it takes its place in the
+recovery refinement. A Gaussian whose o is low at a date whose views observe it is never dropped.
+
 A short refinement afterwards (``CompactConfig.refine_steps``) recovers what the merge and the drop
 moved.
 """
@@ -36,7 +43,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Float
+from jaxtyping import Bool, Float
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
@@ -61,7 +68,9 @@ class CompactConfig:
     max_opacity_difference: float = 0.3
     max_alpha: float = 0.99
     hidden_threshold: float = 0.0  # also drop persistent Gaussians whose largest compositing weight is below (0: off)
-    hidden_share: float = 0.0  # also drop the least-shown persistent Gaussians drawing at most this share (0: off)
+    hidden_share: float = (
+        0.0  # also drop the least-shown Gaussians that mark no change, up to this share of all weight (0: off)
+    )
     refine_steps: int = 500
 
     def __post_init__(self):
@@ -209,17 +218,22 @@ def merge_groups(model: TemporalGaussians, labels: np.ndarray, config: CompactCo
 
 class Contributions(NamedTuple):
     """Per Gaussian and date q, over the pixels of every view of date q: the largest compositing weight
-    w = min(0.99, α·o^q·G)·T and the sum of w (a Gaussian's share of what the views show)."""
+    w = min(0.99, α·o^q·G)·T, the sum of w (a Gaussian's share of what the views show), and whether the
+    views of q observe it (the refinement's visibility rule, ``splat.weights.observed_matrix``)."""
 
     largest: Float[np.ndarray, "N T"]
     total: Float[np.ndarray, "N T"]
+    observed: Bool[np.ndarray, "N T"]
 
 
-def contributions(model: TemporalGaussians, views, render_config=None) -> Contributions:
+def contributions(
+    model: TemporalGaussians, views, render_config=None, observed_threshold: float = 0.01
+) -> Contributions:
     """Every Gaussian's largest and summed compositing weight per date q over date q's views
-    (``views[q]``, a ``DateViews``), rendered at date q's o^q (``Contributions``)."""
+    (``views[q]``, a ``DateViews``), rendered at date q's o^q, and whether q's views observe it
+    (α·T ≥ ``observed_threshold`` somewhere; ``Contributions``)."""
     from cfgs_jax.model import opacity_multipliers
-    from cfgs_jax.splat.weights import contribution_per_label, max_weight
+    from cfgs_jax.splat.weights import contribution_per_label, max_weight, observed_matrix
 
     o = opacity_multipliers(model)
     largest, total = np.zeros((len(model), model.num_dates)), np.zeros((len(model), model.num_dates))
@@ -230,21 +244,30 @@ def contributions(model: TemporalGaussians, views, render_config=None) -> Contri
         total[:, q] = contribution_per_label(
             model.gaussians, o[:, q], cams, unlabelled, 1, render_config=render_config
         )[:, 0]
-    return Contributions(largest, total)
+    observed = observed_matrix(model, [dv.cameras for dv in views], observed_threshold, render_config=render_config)
+    return Contributions(largest, total, observed)
+
+
+def marks_no_change(model: TemporalGaussians, observed: Bool[np.ndarray, "N T"], present: float) -> np.ndarray:
+    """[N] mask of the Gaussians that mark no change: at every date q either shown (o^q ≥ ``present``)
+    or not observed by q's views (so a low o^q there says nothing about the scene)."""
+    o = np.asarray(jax.nn.sigmoid(model.o_logits))
+    return np.all((o >= present) | ~np.asarray(observed, bool), axis=1)
 
 
 def hidden_persistent(model: TemporalGaussians, contribution: Contributions, config: CompactConfig) -> np.ndarray:
-    """[N] mask of the Gaussians shown at every date (o ≥ ``present``) that the views barely show:
-    copies of a persistent surface that the other copies in front of them hide. A Gaussian is hidden
-    when its largest compositing weight over every view of every date stays below ``hidden_threshold``,
-    or when it is among the least-shown persistent Gaussians (ranked by summed weight over all views of
-    all dates) that together draw at most ``hidden_share`` of the weight all Gaussians draw."""
+    """[N] mask of the Gaussians that mark no change but that the views barely show: copies of a
+    persistent surface that the other copies in front of them hide. Either rule drops a Gaussian:
+    ``hidden_threshold``: shown at every date (o ≥ ``present``) and its largest compositing weight over
+    every view of every date stays below the threshold; ``hidden_share``: it marks no change
+    (``marks_no_change``) and is among the least-shown such Gaussians (ranked by summed weight over all
+    views of all dates) that together draw at most this share of the weight all Gaussians draw."""
     o = np.asarray(jax.nn.sigmoid(model.o_logits))
     persistent = np.all(o >= config.present, axis=1)
     hidden = persistent & (np.max(contribution.largest, axis=1) < config.hidden_threshold)
     if config.hidden_share > 0:
         total = np.sum(contribution.total, axis=1)
-        rows = np.nonzero(persistent)[0]
+        rows = np.nonzero(marks_no_change(model, contribution.observed, config.present))[0]
         order = rows[np.argsort(total[rows], kind="stable")]
         within = np.cumsum(total[order]) <= config.hidden_share * np.sum(total)
         hidden[order[within]] = True

@@ -1,5 +1,6 @@
-"""Per-Gaussian compositing weights w_i = α_i·o_i·T_i (Eq. 1) summed or maximised over the pixels of views:
-how much of what the views show each Gaussian draws."""
+"""Per-Gaussian compositing weights w_i = α_i·o_i·T_i (Eq. 1) summed or maximised over the pixels of views
+(how much of what the views show each Gaussian draws), and the visibility rule built on them (whether a
+date's views could see a Gaussian)."""
 
 from __future__ import annotations
 
@@ -13,7 +14,7 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from cfgs_jax.errors import InputError
-from cfgs_jax.model import Camera, Gaussians
+from cfgs_jax.model import Camera, Gaussians, TemporalGaussians, opacity_multipliers
 from cfgs_jax.splat.config import RenderConfig
 from cfgs_jax.splat.render import render, render_dates, required_capacity
 
@@ -79,3 +80,46 @@ def max_weight(
             best, np.asarray(render(g, cam, opacity_mult=jnp.asarray(opacity), config=render_config).max_weight)
         )
     return best
+
+
+def observed_from(
+    g: Gaussians, opacity: Float[Array, " N"], cameras: Sequence[Camera], threshold: float, *, render_config=None
+) -> np.ndarray:
+    """[N] bool: the refinement's visibility rule — α·T ≥ ``threshold`` at some pixel of some camera,
+    α the Gaussian's own opacity (times its falloff), T from the render at ``opacity`` (the kernel's
+    α·opacity·T divided by the opacity)."""
+    opacity = np.asarray(opacity, np.float32)
+    weight = max_weight(g, opacity, cameras, render_config=render_config)
+    return np.where(opacity > 0, weight / np.maximum(opacity, 1e-30), 0.0) >= threshold
+
+
+def observed_matrix(
+    model: TemporalGaussians,
+    observing: Sequence[Sequence[Camera]],
+    threshold: float,
+    *,
+    occlusion: str = "fused",
+    render_config=None,
+) -> np.ndarray:
+    """[N, T] bool: column q says whether each Gaussian is observed at date q (``observing[q]``: date
+    q's training cameras). ``occlusion="fused"``: the whole model rendered at q, the Gaussians of the
+    evaluated date p at opacity o^p and all others at o^q (so column q of date q's own Gaussians is
+    the fused render at q); ``"own date"``: date p's Gaussians alone at o^p."""
+    if occlusion not in ("fused", "own date"):
+        raise InputError(f"unknown occlusion {occlusion!r}", field="occlusion", fix='use "fused" or "own date"')
+    o = np.asarray(opacity_multipliers(model))
+    origin = np.asarray(model.origin)
+    seen = np.zeros((len(origin), len(observing)), bool)
+    for p in range(model.num_dates):
+        rows = np.nonzero(origin == p)[0]
+        if not len(rows):
+            continue
+        if occlusion == "own date":
+            g = jax.tree_util.tree_map(lambda x: jnp.asarray(x)[rows], model.gaussians)
+            for q, cams in enumerate(observing):
+                seen[rows, q] = observed_from(g, o[rows, p], cams, threshold, render_config=render_config)
+            continue
+        for q, cams in enumerate(observing):
+            mult = np.where(origin == p, o[:, p], o[:, q]).astype(np.float32)
+            seen[rows, q] = observed_from(model.gaussians, mult, cams, threshold, render_config=render_config)[rows]
+    return seen
