@@ -64,7 +64,11 @@ class CrossInitConfig:
     and the background anneal are over (their schedules still change the loss before), the pairs of a
     group stop when, over the last ``early_stop_every`` steps, no o^q (as an opacity in [0, 1]) and no
     channel of any light multiplier l^q moved by more than the tolerance — or, with
-    ``early_stop_quantile`` q < 1, when the q-quantile of those moves is within it."""
+    ``early_stop_quantile`` q < 1, when the q-quantile of those moves is within it.
+
+    Coarse to fine (``coarse_fraction`` > 0): the first ``coarse_fraction`` of the steps render and
+    compare at 1/``coarse_factor`` of the resolution (cameras scaled, images and ε maps box-filtered),
+    the rest at full resolution; the step count, schedules and parameters are the same."""
 
     steps: int = 3000
     lr_o: float = 0.0075
@@ -84,6 +88,8 @@ class CrossInitConfig:
     early_stop_tolerance: float = 0.0  # stop a group of pairs once nothing moves more than this (0: off)
     early_stop_every: int = 100  # steps between the convergence checks
     early_stop_quantile: float = 1.0  # the share of values that must have settled (1: all of them)
+    coarse_fraction: float = 0.0  # the first steps, this share of them, at 1/coarse_factor resolution (0: off)
+    coarse_factor: int = 2
     seed: int = 0
 
     def __post_init__(self):
@@ -110,6 +116,12 @@ class CrossInitConfig:
             raise InputError(
                 "early_stop_tolerance must be ≥ 0 (0: off), early_stop_every positive, early_stop_quantile in (0, 1]",
                 field="cross_init.early_stop_tolerance",
+            )
+        if not 0 <= self.coarse_fraction < 1 or self.coarse_factor < 1:
+            raise InputError(
+                f"coarse_fraction must be in [0, 1) (the last steps run at full resolution), got "
+                f"{self.coarse_fraction}; coarse_factor ≥ 1, got {self.coarse_factor}",
+                field="cross_init.coarse_fraction",
             )
         if self.batch_dates < 0:
             raise InputError(
@@ -366,6 +378,30 @@ def _mark_unseen(model: TemporalGaussians, p: int, qs, rows, seen) -> tuple[Temp
     return dataclasses.replace(model, o_logits=jnp.asarray(o_logits)), reports
 
 
+def coarse_steps(config: CrossInitConfig) -> int:
+    """How many of the first steps run at 1/``coarse_factor`` resolution (the others at full)."""
+    if config.coarse_fraction <= 0 or config.coarse_factor == 1:
+        return 0
+    return int(round(config.coarse_fraction * config.steps))
+
+
+def _coarse(pairs: _Pairs, eps_maps, factor: int) -> tuple[_Pairs, list]:
+    """The pairs' views and ε maps at 1/``factor`` of the resolution: cameras scaled to the downscaled
+    size, images and ε maps box-filtered; the intersection capacity recomputed for those cameras."""
+    from cfgs_jax.io.colmap import downscale_image, downscaled_size, scale_camera
+
+    size = downscaled_size(pairs.cameras[0][0].width, pairs.cameras[0][0].height, factor)
+    small = lambda x: jnp.asarray(downscale_image(np.asarray(x, np.float32), size))
+    cameras = [[scale_camera(c, size) for c in cs] for cs in pairs.cameras]
+    images = [[small(im) for im in ims] for ims in pairs.images]
+    eps = [[small(np.asarray(e)[..., None])[..., 0] for e in es] for es in eps_maps]
+    ones = jnp.ones((1, len(pairs.g)), jnp.float32)
+    rc = pairs.render_config
+    capacity = max(splat.required_capacity(pairs.g, c, ones, config=rc) for cs in cameras for c in cs)
+    rc = dataclasses.replace(rc, capacity=capacity)
+    return dataclasses.replace(pairs, cameras=cameras, images=images, render_config=rc), eps
+
+
 def _stacked_inputs(pairs: _Pairs, eps_maps) -> tuple:
     """Each pair's views as stacked arrays: cameras and images [pairs, views, …], ε maps [pairs, views,
     H, W] (a date with fewer views is padded with copies of its first; they are never drawn)."""
@@ -386,12 +422,14 @@ def _optimise(
     seeds = [(config.seed, p, q) for q in qs]
     counts = [len(ims) for ims in pairs.images]
     keys = np.stack([jax.random.key_data(jax.random.key(config.seed * 1_000_003 + p * 1009 + q)) for q in qs])
-    optimizer, step = _compiled_step(config, pairs.render_config, mesh)
-    cameras, images, eps = _stacked_inputs(pairs, eps_maps)
-    batch = (params, jax.vmap(optimizer.init)(params), cameras, images, eps, keys)
     width = parallel.padded(k, mesh)
-    batch = parallel.shard_batch(jax.tree_util.tree_map(lambda x: parallel.pad_rows(x, width), batch), mesh)
-    params, opt_state, cameras, images, eps, keys = batch
+    on_devices = lambda x: parallel.shard_batch(jax.tree_util.tree_map(lambda a: parallel.pad_rows(a, width), x), mesh)
+    n_coarse = coarse_steps(config)
+    levels = [(pairs, eps_maps)] + ([_coarse(pairs, eps_maps, config.coarse_factor)] if n_coarse else [])
+    compiled = [_compiled_step(config, level.render_config, mesh) for level, _ in levels]
+    optimizer, steps = compiled[0][0], [step for _, step in compiled]
+    inputs = [on_devices(_stacked_inputs(level, e)) for level, e in levels]  # (cameras, images, ε) per level
+    params, opt_state, keys = on_devices((params, jax.vmap(optimizer.init)(params), keys))
     g = parallel.replicate(pairs.g, mesh)
     keys = jax.random.wrap_key_data(keys)
     seen = parallel.pad_rows(np.asarray(pairs.mask) > 0, width)[..., None]  # [pairs, m, 1]
@@ -401,8 +439,9 @@ def _optimise(
         both = jax.vmap(jax.random.split)(keys)
         drawn = [view_order(s, it, n) for s, n in zip(seeds, counts)]
         drawn = parallel.shard_batch(np.asarray(drawn + drawn[:1] * (width - k), np.int32), mesh)
-        params, opt_state, loss, overflowed = step(
-            params, opt_state, g, cameras, images, eps, drawn, both[:, 1], jnp.float32(it)
+        level = 1 if it < n_coarse else 0  # coarse first, full resolution to the end
+        params, opt_state, loss, overflowed = steps[level](
+            params, opt_state, g, *inputs[level], drawn, both[:, 1], jnp.float32(it)
         )
         if bool(overflowed):  # cannot happen with capacities from o = 1 (o^q ≤ 1), but never silently
             raise RuntimeError("cross-init render overflowed its intersection buffer")
