@@ -68,9 +68,7 @@ class CompactConfig:
     max_opacity_difference: float = 0.3
     max_alpha: float = 0.99
     hidden_threshold: float = 0.0  # also drop persistent Gaussians whose largest compositing weight is below (0: off)
-    hidden_share: float = (
-        0.0  # also drop the least-shown Gaussians that mark no change, up to this share of all weight (0: off)
-    )
+    hidden_share: float = 0.0  # also drop the least-shown Gaussians that mark no change, up to this share (0: off)
     refine_steps: int = 500
 
     def __post_init__(self):
@@ -231,7 +229,7 @@ def contributions(
 ) -> Contributions:
     """Every Gaussian's largest and summed compositing weight per date q over date q's views
     (``views[q]``, a ``DateViews``), rendered at date q's o^q, and whether q's views observe it
-    (α·T ≥ ``observed_threshold`` somewhere; ``Contributions``)."""
+    (α·T ≥ ``observed_threshold`` somewhere, the refinement's ``contribution_threshold``; ``Contributions``)."""
     from cfgs_jax.model import opacity_multipliers
     from cfgs_jax.splat.weights import contribution_per_label, max_weight, observed_matrix
 
@@ -285,7 +283,9 @@ def compact(
     hidden = np.zeros(len(model), bool)
     if config.prunes_hidden:
         if contribution is None:
-            raise InputError("hidden_threshold needs the Gaussians' contributions", field="compact.contribution")
+            raise InputError(
+                "hidden_threshold and hidden_share need the Gaussians' contributions", field="compact.contribution"
+            )
         hidden = hidden_persistent(model, contribution, config)
     full = model
     model = select(model, np.nonzero(~hidden)[0])

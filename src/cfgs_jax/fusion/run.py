@@ -533,9 +533,10 @@ def compact_stage(run: FusionRun, config: CompactConfig, views, scenes, sims, re
     test_views = [date_views(sc, sm, "test") for sc, sm in zip(scenes, sims)]
     before = evaluate_fused(model, test_views, render_config=render_config, mesh=run.mesh)
     write_fused(run.out / "before_compact", model, config=run.state["config"])
+    refine_config = section(run.raw, "refine", RefineConfig)
     contribution = None
-    if config.prunes_hidden:
-        contribution = contributions(model, views, render_config)
+    if config.prunes_hidden:  # "observed" by the refinement's own visibility threshold
+        contribution = contributions(model, views, render_config, refine_config.contribution_threshold)
     compacted, report = compact(model, config, contribution)
     log(
         f"[compact] {report['gaussians_before']:,} → {report['gaussians_after']:,} Gaussians "
@@ -543,7 +544,7 @@ def compact_stage(run: FusionRun, config: CompactConfig, views, scenes, sims, re
         f"{config.refine_steps:,} refinement steps"
     )
     if config.refine_steps:
-        rc = dataclasses.replace(section(run.raw, "refine", RefineConfig), steps=config.refine_steps, halve_alpha=False)
+        rc = dataclasses.replace(refine_config, steps=config.refine_steps, halve_alpha=False)
         extent = train.scene_extent(scenes[run.reference].cameras)
         tc = section(run.raw, "train", train.TrainConfig)
         compacted, refined = refine(
