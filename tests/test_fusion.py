@@ -925,6 +925,43 @@ def test_compact_cli_merges_in_place_reports_and_refuses_twice(fused_run, tmp_pa
     assert len(read_fused(run / "fused")) == len(after)
 
 
+def test_changes_cli_writes_masks_ply_and_regions(fused_run, tmp_path):
+    """`changes --run --pair --out`: a mask and a score image per test view of both dates at the views'
+    size, a PLY holding exactly the Gaussians in regions, region sizes that add up, the Markdown list;
+    a bad pair and a foreign --set are refused with the field named."""
+    import json
+
+    from PIL import Image
+
+    from cfgs_jax.io import read_ply
+    from cfgs_jax.pipeline import main
+    from cfgs_jax.render_run import open_run
+
+    run_dir = fused_run[0]
+    out = tmp_path / "ch"
+    args = ["changes", "--run", str(run_dir), "--pair", "d0,d1", "--out", str(out), "--no-progress"]
+    loose = ["--set", "changes.min_region_gaussians=2", "--set", "changes.threshold=0.01"]  # some regions
+    assert main([*args, *loose]) == 0
+    summary = json.loads((out / "regions.json").read_text())
+    run = open_run(run_dir)
+    tests = {f"{n}/{v.split('_', 1)[1]}" for n, v in ((v.split("_", 1)[0], v) for v, _ in run.test_cameras())}
+    assert {v["view"] for v in summary["views"]} == tests
+    for v in summary["views"]:
+        date, name = v["view"].split("/")
+        with Image.open(out / "masks" / date / f"{name}.png") as im:
+            mask = np.asarray(im)
+        assert mask.shape[:2] == (48, 64) and set(np.unique(mask)) <= {0, 255}
+        assert int((mask[..., 0] if mask.ndim == 3 else mask).astype(bool).sum()) == v["changed_pixels"]
+        assert (out / "scores" / date / f"{name}.png").is_file()
+    gs = summary["gaussians"]
+    assert gs["in_regions"] == sum(r["gaussians"] for r in summary["regions"]) <= gs["changed"] <= gs["total"]
+    assert len(read_ply(out / "changed.ply")) == gs["in_regions"] > 0
+    assert summary["config"]["min_region_gaussians"] == 2
+    assert (out / "regions.md").read_text().startswith("# Changes between d0 and d1")
+    assert main(["changes", "--run", str(run_dir), "--pair", "d0,d9", "--out", str(tmp_path / "x")]) != 0
+    assert main([*args, "--set", "refine.steps=3"]) != 0
+
+
 def test_fuse_with_compact_enabled_runs_the_stage_before_the_export(tiny_two_dates, tmp_path):
     """`[compact] enabled = true`: fuse records the compact stage after refinement, and the exported
     authors' layout and the evaluated model are the compacted one."""

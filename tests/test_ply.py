@@ -65,6 +65,13 @@ def test_random_round_trip_bit_exact(tmp_path):
         assert bits_equal(a, b)
 
 
+def test_an_empty_model_round_trips(tmp_path):
+    """A PLY with no vertex (e.g. no changed Gaussian) is written and read back as zero Gaussians."""
+    empty = jax.tree_util.tree_map(lambda x: x[:0], random_gaussians(3, seed=1))
+    g = read_ply(write_ply(tmp_path / "e.ply", empty))
+    assert len(g) == 0 and np.shape(g.means) == (0, 3) and np.shape(g.colors) == (0, 3)
+
+
 def test_arbitrary_colours_round_trip_within_one_ulp(tmp_path):
     g = random_gaussians(1000, seed=3)
     rng = np.random.default_rng(0)

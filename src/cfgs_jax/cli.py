@@ -331,6 +331,33 @@ def _add_compact(sub, prog: str) -> None:
     _progress_arg(s)
 
 
+def _add_changes(sub, prog: str) -> None:
+    s = _command(
+        sub,
+        "changes",
+        "find what changed between two dates of a fused run: masks, changed Gaussians, regions",
+        "Scores every Gaussian by how much better the other date's training images are explained "
+        "without it than with it (a brightness gain allowed, so light and shadow are not change), "
+        "pooled over its nearest neighbours. Writes DIR/masks/<date>/<image>.png (255 = changed) and "
+        "DIR/scores/<date>/<image>.png for the test views of both dates, DIR/changed.ply (the changed "
+        "Gaussians, 3DGS PLY) and DIR/regions.json / regions.md (changed regions in 3D and per view). "
+        "The detector's values are the [changes] table of the run's configuration.",
+        [
+            "--run runs/corals --pair d0,d2 --out changes/d0_d2",
+            "--run runs/corals --pair d1,d3 --out ch --set changes.threshold=0.08",
+        ],
+        prog,
+    )
+    s.add_argument("--run", required=True, help="run directory of a finished `fuse` (read only)")
+    s.add_argument("--pair", required=True, metavar="DATE,DATE", help="the two dates, by name (or index)")
+    s.add_argument("--out", required=True, help="output directory")
+    s.add_argument(
+        "--split", default="test", choices=["test", "train", "all"], help="which views of both dates get masks"
+    )
+    _set_arg(s, "changes.KEY=VALUE", "override one [changes] value of the run's configuration (repeatable)")
+    _progress_arg(s)
+
+
 def _add_eval(sub, prog: str) -> None:
     from cfgs_jax.synthetic.presets import PRESETS
 
@@ -501,6 +528,7 @@ def build_parser(prog: str | None = None) -> argparse.ArgumentParser:
         _add_fuse,
         _add_extend,
         _add_compact,
+        _add_changes,
         _add_eval,
         _add_sweep,
         _add_render,

@@ -482,6 +482,40 @@ def cmd_compact(args) -> int:
     return 0
 
 
+def cmd_changes(args) -> int:
+    from rich.progress import Progress
+
+    from cfgs_jax.changes.report import detect_changes
+    from cfgs_jax.config import apply_overrides
+
+    bad = [o for o in args.overrides if not o.startswith("changes.")]
+    if bad:
+        raise InputError(
+            f"only [changes] values can be set here, got {bad}", field="--set", fix="use --set changes.KEY=VALUE"
+        )
+    overrides = apply_overrides({"changes": {}}, args.overrides)["changes"]
+    console = _console()
+    with Progress(console=console, disable=args.no_progress, transient=True) as bar:
+        task = bar.add_task("change evidence (date pairs)", total=None)
+        summary = detect_changes(
+            Path(args.run),
+            args.pair,
+            Path(args.out),
+            overrides,
+            split=args.split,
+            progress=lambda done, total: bar.update(task, completed=done, total=total),
+            log=console.print,
+        )
+    gs = summary["gaussians"]
+    kinds = ", ".join(f"{r['kind']} {r['gaussians']:,}" for r in summary["regions"]) or "none"
+    console.print(
+        f"{summary['pair'][0]} ↔ {summary['pair'][1]}: {gs['changed']:,} of {gs['observed_at_both']:,} observed "
+        f"Gaussians changed; {len(summary['regions'])} region(s) ({kinds}); masks of {len(summary['views'])} "
+        f"views → {args.out} (regions.md)"
+    )
+    return 0
+
+
 def _selection_style(args):
     from cfgs_jax.cli import parse_stops
     from cfgs_jax.render_run import SelectionStyle
@@ -642,6 +676,7 @@ COMMANDS = {
     "fuse": cmd_fuse,
     "extend": cmd_extend,
     "compact": cmd_compact,
+    "changes": cmd_changes,
     "eval": cmd_eval,
     "sweep": cmd_sweep,
     "render": cmd_render,

@@ -361,3 +361,173 @@ def pixel_change_iou(
             ).tolist(),
         },
     }
+
+
+def _region_scores(regions: list[dict], member: np.ndarray, objects: np.ndarray, changed_objects: set) -> dict:
+    """A region is true when most of its Gaussians belong to an object whose presence differs between
+    the two dates (``objects``: [N] ground-truth object id per Gaussian, −1 unknown)."""
+    found, false = set(), 0
+    for r in regions:
+        ids = objects[member == r["id"]]
+        ids = ids[ids >= 0]
+        top = int(np.bincount(ids).argmax()) if len(ids) else -1
+        r["object"] = top
+        if top in changed_objects:
+            found.add(top)
+        else:
+            false += 1
+    return {"found": sorted(found), "false_regions": false}
+
+
+def evidence_detection(
+    model: TemporalGaussians,
+    views: Sequence,
+    table: dict,
+    masks_test: Sequence[DateMasks],
+    changed_objects: dict[tuple[int, int], set],
+    config=None,
+    *,
+    render_config=None,
+    statistics=None,
+) -> dict:
+    """The residual-evidence detector (``cfgs_jax.changes``) scored against ground truth, as the
+    ``changes`` command runs it: per Gaussian (the entries of ``table``: observed Gaussians of date p at
+    q, predicted changed when in a region of the pair, or by s^q > 0.5 alone; true when the Gaussian's
+    object changed between p and q, and, prefixed ``pixel_label_``, when most of its weight in its own
+    views lies on pixels whose surface differs at q), per pixel of each date's test views (the pair's region members rendered,
+    against ``changed_vs``; pixels covered and observed at both dates) and per region
+    (``changed_objects[(p, q)]``: object ids whose presence differs, p < q). ``statistics``:
+    precomputed ``changes.pair_statistics`` (computed when not given)."""
+    from cfgs_jax.changes import ChangesConfig, evidence_from, pair_statistics, presence_difference
+    from cfgs_jax.changes.maps import change_mask, pixel_change
+    from cfgs_jax.changes.regions import median_spacing, regions_3d
+    from cfgs_jax.changes.report import pair_known
+
+    cfg = config or ChangesConfig()
+    rc = render_config or splat.RenderConfig()
+    stats = statistics or pair_statistics(model, views, cfg, render_config=rc)
+    means = np.asarray(model.gaussians.means, np.float64)
+    ev = evidence_from(stats, means, cfg)
+    origin = np.asarray(model.origin)
+    spacing = median_spacing(means)
+    names = [d.name for d in model.dates]
+    pixel = {"inter": 0, "union": 0, "predicted": 0, "truth": 0, "valid": 0}
+    per_pair, found, changed, false_regions, region_count = {}, 0, 0, 0, 0
+    t = model.num_dates
+    members = {}
+    for p in range(t):
+        for q in range(p + 1, t):
+            diff = presence_difference(ev, origin, p, q)
+            known = pair_known(ev, origin, p, q)
+            regions, member = regions_3d(
+                means,
+                known & (np.abs(diff) > 0.5),
+                diff,
+                spacing=spacing,
+                candidates=known & (np.abs(diff) > cfg.grow_above),
+                link_factor=cfg.link_factor,
+                min_gaussians=cfg.min_region_gaussians,
+            )
+            members[(p, q)] = members[(q, p)] = member >= 0
+            objs = _region_scores(regions, member, table["objects"], changed_objects.get((p, q), set()))
+            n_changed = len(changed_objects.get((p, q), ()))
+            found += len(objs["found"])
+            changed += n_changed
+            false_regions += objs["false_regions"]
+            region_count += len(regions)
+            inter = union = 0
+            for a, b in ((p, q), (q, p)):
+                for cam, gt in zip(masks_test[a].cameras, masks_test[a].changed_vs[names[b]]):
+                    s, k, alpha = pixel_change(
+                        model, cam, (member >= 0).astype(np.float32), known, p, q, render_config=rc
+                    )
+                    valid = (alpha >= 0.5) & (k >= 0.5)
+                    pred, true = change_mask(s, k, alpha), gt & valid
+                    counts = {
+                        "inter": int((pred & true).sum()),
+                        "union": int((pred | true).sum()),
+                        "predicted": int(pred.sum()),
+                        "truth": int(true.sum()),
+                        "valid": int(valid.sum()),
+                    }
+                    inter, union = inter + counts["inter"], union + counts["union"]
+                    for key, value in counts.items():
+                        pixel[key] += value
+            per_pair[f"{names[p]}↔{names[q]}"] = {
+                "regions": len(regions),
+                "changed_objects": n_changed,
+                "found_objects": len(objs["found"]),
+                "false_regions": objs["false_regions"],
+                "pixel_iou": inter / union if union else float("nan"),
+                "region_list": regions,
+            }
+    entries = [(v["rows"], p, q, v["gt_changed"], v["observed"]) for (p, q), v in table["pairs"].items()]
+    score = np.concatenate([ev.score[r, q][obs] for r, _, q, _, obs in entries])
+    in_region = np.concatenate([members[(p, q)][r][obs] for r, p, q, _, obs in entries])
+    by_pixels = np.concatenate([gt[obs] for *_, gt, obs in entries])
+    objects = np.asarray(table["objects"])
+    by_object = np.concatenate(
+        [
+            np.isin(objects[r][obs], sorted(changed_objects.get((min(p, q), max(p, q)), ())))
+            for r, p, q, _, obs in entries
+        ]
+    )
+    gaussians = {}
+    for label, truth in (("", by_object), ("pixel_label_", by_pixels)):
+        region = precision_recall(in_region.astype(float), truth, [0.5])
+        at = precision_recall(score, truth, [0.5])
+        gaussians |= {
+            f"{label}precision": float(region["precision"][0]),
+            f"{label}recall": float(region["recall"][0]),
+            f"{label}f1": float(region["f1"][0]),
+            f"{label}score_precision": float(at["precision"][0]),
+            f"{label}score_recall": float(at["recall"][0]),
+            f"{label}score_f1": float(at["f1"][0]),
+            f"{label}gt_changed": float(truth.mean()) if len(truth) else 0.0,
+        }
+    curve = precision_recall(score, by_object, np.linspace(0.02, 0.98, 49))
+    valid = max(pixel["valid"], 1)
+    return {
+        "config": dataclasses.asdict(cfg),
+        "gaussians": gaussians
+        | {
+            "flagged_in_regions": float(in_region.mean()) if len(in_region) else 0.0,
+            "entries": int(len(score)),
+            "flagged_changed": float((score > 0.5).mean()) if len(score) else 0.0,
+            "curve": {k: v.tolist() for k, v in curve.items()},
+        },
+        "pixels": {
+            "iou": pixel["inter"] / pixel["union"] if pixel["union"] else float("nan"),
+            "predicted_changed_share": pixel["predicted"] / valid,
+            "gt_changed_share": pixel["truth"] / valid,
+            "evaluated_pixels": pixel["valid"],
+        },
+        "regions": {
+            "changed_objects": changed,
+            "found_objects": found,
+            "recall": found / changed if changed else float("nan"),
+            "false_regions": false_regions,
+            "regions": region_count,
+            "pairs": t * (t - 1) // 2,
+        },
+        "per_pair": per_pair,
+    }
+
+
+def changed_objects_by_pair(gt: dict) -> dict[tuple[int, int], set]:
+    """From ``ground_truth.json``: for each date pair p < q the ids of the objects (not the ground)
+    present at exactly one of the two dates or shown in a different variant."""
+    dates = gt["dates"]
+    out = {}
+    for p in range(len(dates)):
+        for q in range(p + 1, len(dates)):
+            ids = set()
+            for obj in gt["objects"]:
+                name = obj["name"]
+                if name == "ground":
+                    continue
+                a, b = dates[p], dates[q]
+                if a["present"].get(name) != b["present"].get(name) or a["variant"].get(name) != b["variant"].get(name):
+                    ids.add(int(obj["id"]))
+            out[(p, q)] = ids
+    return out

@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from cfgs_jax import splat, train
+from cfgs_jax.changes import ChangesConfig
 from cfgs_jax.compiled_code import release_if_near_limit
 from cfgs_jax.config import section
 from cfgs_jax.errors import InputError
@@ -287,6 +288,7 @@ class _Evaluation:
                 self.render_config,
                 cross_init=read_fused(self.run_dir / "cross_init"),
                 config=section(self.raw, "change", ChangeConfig),
+                changes_config=section(self.raw, "changes", ChangesConfig),
             )
             write_json(self.out / "change.json", change)
         pr_curve_plot(self.out / "change_pr.png", change, scene)
@@ -414,11 +416,22 @@ def cross_init_checks(model, data: Path, scenes, sims, render_config, masks=None
 
 
 def change_detection(
-    model, data: Path, scenes, sims, render_config, cross_init=None, config: ChangeConfig | None = None
+    model,
+    data: Path,
+    scenes,
+    sims,
+    render_config,
+    cross_init=None,
+    config: ChangeConfig | None = None,
+    changes_config: ChangesConfig | None = None,
+    statistics=None,
 ) -> dict:
-    """Per-Gaussian and per-pixel change detection of the fused model against the synthetic ground truth
+    """Per-Gaussian, per-pixel and per-region change detection of the fused model against the synthetic
+    ground truth: the residual-evidence detector (``changes_config``: the run's ``[changes]`` table,
+    under ``"evidence"``; ``statistics``: its precomputed ``changes.pair_statistics``) and the o^q rules
     (``config``: the eval's ``[change]`` table)."""
     from cfgs_jax.evaluation import change
+    from cfgs_jax.fusion.run import date_views
 
     gt = json.loads((data / "ground_truth.json").read_text())
     names = [d.name for d in model.dates]
@@ -447,6 +460,17 @@ def change_detection(
     fused = object_persistence(model, table["objects"], gt)
     summary["absent_objects_below_0.2"] = fused.pop("absent_by_object")
     result = {"gaussians": summary, "pixels": pixels, "config": dataclasses.asdict(cfg), "objects_fused": fused}
+    views = [date_views(sc, sm) for sc, sm in zip(scenes, sims)]
+    result["evidence"] = change.evidence_detection(
+        model,
+        views,
+        table,
+        masks_test,
+        change.changed_objects_by_pair(gt),
+        changes_config,
+        render_config=render_config,
+        statistics=statistics,
+    )
     if cross_init is not None:
         checks = cross_init_checks(cross_init, data, scenes, sims, render_config, masks)
         result["objects_cross_init"], result["light_cross_init"] = checks["objects"], checks["light"]

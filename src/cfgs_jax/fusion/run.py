@@ -29,6 +29,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from cfgs_jax import splat, train
+from cfgs_jax.changes.evidence import ChangesConfig
 from cfgs_jax.compiled_code import release_if_near_limit
 from cfgs_jax.config import check_sections, section
 from cfgs_jax.errors import InputError
@@ -54,6 +55,7 @@ CONFIG_SECTIONS = {
     "cross_init": CrossInitConfig,
     "refine": RefineConfig,
     "compact": CompactConfig,
+    "changes": ChangesConfig,
 }
 #: o-logit of every Gaussian of a one-date "fusion": σ(30) rounds to exactly 1.0 in float32, so the
 #: fused model renders bit-identically to its input.

@@ -100,7 +100,7 @@ def check_finite(fields: dict[str, np.ndarray], *, path: str | os.PathLike, drop
     bad_rows = np.zeros(len(next(iter(fields.values()))), bool)
     first_field = None
     for name, arr in fields.items():
-        bad = ~np.isfinite(arr).reshape(len(arr), -1).all(axis=1)
+        bad = ~np.isfinite(arr).reshape(len(arr), int(np.prod(np.shape(arr)[1:]))).all(axis=1)
         if bad.any() and first_field is None:
             first_field = name
         bad_rows |= bad

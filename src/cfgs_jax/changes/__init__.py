@@ -1,0 +1,26 @@
+"""Change detection without ground truth: per-Gaussian evidence from the dates' images, per-pixel
+change maps, and changed regions in 3D and in the image."""
+
+from cfgs_jax.changes.evidence import (
+    ChangeEvidence,
+    ChangesConfig,
+    PairStatistics,
+    change_evidence,
+    evidence_from,
+    pair_change,
+    pair_statistics,
+    pairs_for,
+    presence_difference,
+)
+
+__all__ = [
+    "ChangeEvidence",
+    "ChangesConfig",
+    "PairStatistics",
+    "change_evidence",
+    "evidence_from",
+    "pair_statistics",
+    "pair_change",
+    "pairs_for",
+    "presence_difference",
+]

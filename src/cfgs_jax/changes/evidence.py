@@ -1,0 +1,305 @@
+"""Change evidence per (Gaussian, date): do date q's images show a Gaussian of date p, or what lies
+behind it?
+
+For a Gaussian i of date p and a date q ≠ p, render the fused model at every training view of q
+under two hypotheses, the other dates' Gaussians at o^q and light l^q in both:
+
+    F⁺: date p's Gaussians present (opacity o^p),    F⁻: date p's Gaussians absent (opacity 0),
+
+and compare each with q's image I over i's footprint, w_i = α_i·o^p_i·T_i its compositing weight in
+F⁺ (Eq. 1), summed over all pixels of all views of q. Each hypothesis gets one free brightness gain
+γ ∈ [γ_min, γ_max] per Gaussian, fitted in closed form (least squares), so an exposure or shadow
+change, which scales the colour, is not evidence of change:
+
+    E± = min_γ Σ w_i·|γ·F± − I|²  =  C − 2γ*A± + γ*²B±,   A± = Σ w_i F±·I,  B± = Σ w_i |F±|²,  C = Σ w_i |I|²,
+
+γ* = clip(A±/B±, γ_min, γ_max). One backward pass of the kernel per view gives all five sums and the
+weight W_i = Σ w_i (``splat.weights.summed_weights``). The evidence pools each Gaussian's sums with
+those of its k nearest neighbours of the same date (the same surface seen through more pixels):
+
+    e_i^q = √(Σ_nb E⁺ / 3Σ_nb W) − √(Σ_nb E⁻ / 3Σ_nb W),
+
+the RMS colour residual with the Gaussians minus that without them. A Gaussian removed at q leaves
+q's images explained better without it (e ≈ its colour contrast with what replaced it); a
+persistent one is explained as well or better with it (e ≤ 0), whatever o^q cross-init reached. The
+score s_i^q = clip(e_i^q / (2τ), 0, 1) is 0.5 at the decision threshold τ. It is defined where q's
+views observe the Gaussian (the refinement's visibility rule in the fused render at q) and 0 elsewhere.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+from collections.abc import Sequence
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float
+from scipy.spatial import cKDTree
+
+from cfgs_jax import splat
+from cfgs_jax.errors import InputError
+from cfgs_jax.model import Camera, Gaussians, TemporalGaussians, light_multipliers, opacity_multipliers
+from cfgs_jax.splat.weights import observed_from, summed_weights
+
+
+@dataclasses.dataclass(frozen=True)
+class ChangesConfig:
+    """``[changes]``: the residual-evidence change detector.
+
+    ``threshold`` τ is an RMS colour difference in linear RGB (0..1): a Gaussian counts as changed
+    between two dates when q's images are explained better without it by more than τ (score > 0.5).
+    ``neighbours`` k pools each Gaussian's evidence with its k − 1 nearest Gaussians of the same date
+    (1: none). ``gain_range`` bounds the per-Gaussian brightness gain of each hypothesis.
+    ``contribution_threshold`` is the visibility rule (α·T at some pixel of some view of q).
+    Regions: changed Gaussians closer than ``link_factor`` × the model's median nearest-neighbour
+    distance are linked, and so are Gaussians scored above ``grow_above`` (≤ 0.5) that touch them; a
+    region needs ``min_region_gaussians`` Gaussians scored > 0.5 (3D) and ``min_region_pixels`` pixels
+    (image)."""
+
+    threshold: float = 0.06
+    neighbours: int = 32
+    gain_range: tuple[float, float] = (1.0 / 3.0, 3.0)
+    contribution_threshold: float = 0.01
+    link_factor: float = 3.0
+    grow_above: float = 0.25
+    min_region_gaussians: int = 16
+    min_region_pixels: int = 8
+
+    def __post_init__(self):
+        if not 0.0 < self.threshold < 1.0:
+            raise InputError(f"must lie in (0, 1), got {self.threshold}", field="changes.threshold")
+        if int(self.neighbours) < 1:
+            raise InputError(f"must be ≥ 1, got {self.neighbours}", field="changes.neighbours")
+        lo, hi = (float(v) for v in self.gain_range)
+        if not 0.0 < lo <= 1.0 <= hi:
+            raise InputError(
+                f"must satisfy 0 < low ≤ 1 ≤ high, got {self.gain_range}",
+                field="changes.gain_range",
+                fix="e.g. [0.333, 3.0]; [1, 1] fits no gain",
+            )
+        object.__setattr__(self, "gain_range", (lo, hi))
+        if not 0.0 < self.contribution_threshold < 1.0:
+            raise InputError(
+                f"must lie in (0, 1), got {self.contribution_threshold}", field="changes.contribution_threshold"
+            )
+        if not 0.0 < self.grow_above <= 0.5:
+            raise InputError(f"must lie in (0, 0.5], got {self.grow_above}", field="changes.grow_above")
+        if self.link_factor <= 0:
+            raise InputError(f"must be > 0, got {self.link_factor}", field="changes.link_factor")
+        for name in ("min_region_gaussians", "min_region_pixels"):
+            if int(getattr(self, name)) < 1:
+                raise InputError(f"must be ≥ 1, got {getattr(self, name)}", field=f"changes.{name}")
+
+
+@dataclasses.dataclass(frozen=True)
+class ChangeEvidence:
+    """Per (Gaussian, date) arrays [N, T]: ``score`` s ∈ [0, 1] (0.5 at the threshold), ``evidence`` e
+    (RMS residual with minus without, pooled), ``observed`` (q's views could see it), ``computed``
+    (the entry was evaluated: i's date ≠ q and the pair was asked for)."""
+
+    score: np.ndarray
+    evidence: np.ndarray
+    observed: np.ndarray
+    computed: np.ndarray
+
+    def changed(self) -> np.ndarray:
+        """[N, T] bool: observed, evaluated and scored above 0.5."""
+        return self.computed & self.observed & (self.score > 0.5)
+
+
+@functools.partial(jax.jit, static_argnames=("config",))
+def residual_sums(
+    g: Gaussians,
+    camera: Camera,
+    present: Float[Array, " N"],
+    absent: Float[Array, " N"],
+    light: Float[Array, "N 3"],
+    image: Float[Array, "H W 3"],
+    config: splat.RenderConfig,
+) -> Float[Array, "N 6"]:
+    """Per Gaussian, over one view: W = Σ w, A⁺ = Σ w F⁺·I, B⁺ = Σ w |F⁺|², A⁻, B⁻, C = Σ w |I|², with
+    F± the renders at opacities ``present`` / ``absent`` under ``light`` and w the compositing weight
+    in F⁺. ``config`` must carry the intersection capacity of both renders."""
+    both = jnp.stack([present, absent])
+    mult = jnp.broadcast_to(light, (2,) + light.shape)
+    renders = splat.render_dates(g, camera, both, mult, config=config, statistics=False).image
+    plus, minus = renders[0], renders[1]
+    dot = lambda a, b: jnp.sum(a * b, axis=-1)
+    maps = jnp.stack(
+        [
+            jnp.stack([jnp.ones(image.shape[:2], image.dtype), dot(plus, image), dot(plus, plus)], -1),
+            jnp.stack([dot(minus, image), dot(minus, minus), dot(image, image)], -1),
+        ]
+    )
+    w = summed_weights(g, camera, present, jax.lax.stop_gradient(maps), config)  # [2, N, 3]
+    return jnp.concatenate([w[0], w[1]], axis=-1)
+
+
+def premultiplied(image: np.ndarray) -> np.ndarray:
+    """RGB of an [H, W, 3|4] image, an RGBA one premultiplied by its alpha (what the kernel renders
+    over black)."""
+    image = np.asarray(image, np.float32)
+    return image[..., :3] * image[..., 3:4] if image.shape[-1] == 4 else image
+
+
+def pair_sums(
+    model: TemporalGaussians,
+    p: int,
+    q: int,
+    cameras: Sequence[Camera],
+    images: Sequence[np.ndarray],
+    *,
+    render_config: splat.RenderConfig | None = None,
+) -> np.ndarray:
+    """[N_p, 6] float64: ``residual_sums`` of date p's Gaussians summed over date q's views."""
+    rc = render_config or splat.RenderConfig()
+    o = np.asarray(opacity_multipliers(model), np.float32)
+    origin = np.asarray(model.origin)
+    own = origin == p
+    present = jnp.asarray(np.where(own, o[:, p], o[:, q]))
+    absent = jnp.asarray(np.where(own, 0.0, o[:, q]).astype(np.float32))
+    light = jnp.asarray(light_multipliers(model)[:, q], jnp.float32)
+    g = model.gaussians
+    total = jnp.zeros((len(origin), 6), jnp.float32)
+    for cam, image in zip(cameras, images):
+        ref = premultiplied(image)
+        if ref.shape[:2] != (int(cam.height), int(cam.width)):
+            raise InputError(
+                f"image {ref.shape[:2]} for a {int(cam.width)}×{int(cam.height)} camera",
+                field="images",
+                fix="give each view its camera's image",
+            )
+        cap = splat.required_capacity(g, cam, jnp.stack([present, absent]), config=rc)
+        total = total + residual_sums(
+            g, cam, present, absent, light, jnp.asarray(ref), dataclasses.replace(rc, capacity=cap)
+        )
+    return np.asarray(total, np.float64)[own]
+
+
+def gain_fitted_residual(a, b, c, gain_range: tuple[float, float]):
+    """min over γ ∈ gain_range of C − 2γA + γ²B (= Σ w |γF − I|²), elementwise, never below 0."""
+    lo, hi = gain_range
+    gamma = np.clip(a / np.maximum(b, 1e-30), lo, hi)
+    return np.maximum(c - 2.0 * gamma * a + gamma * gamma * b, 0.0)
+
+
+def pooled_evidence(sums: np.ndarray, means: np.ndarray, usable: np.ndarray, config: ChangesConfig) -> np.ndarray:
+    """[M] evidence e of each Gaussian from its ``residual_sums`` [M, 6] pooled with its k nearest
+    ``usable`` neighbours (``means`` [M, 3]); 0 where not ``usable`` (unobserved or no weight)."""
+    w = sums[:, 0]
+    e_plus = gain_fitted_residual(sums[:, 1], sums[:, 2], sums[:, 5], config.gain_range)
+    e_minus = gain_fitted_residual(sums[:, 3], sums[:, 4], sums[:, 5], config.gain_range)
+    out = np.zeros(len(sums))
+    idx = np.nonzero(usable & (w > 0))[0]
+    if not len(idx):
+        return out
+    k = min(int(config.neighbours), len(idx))
+    if k > 1:
+        _, nb = cKDTree(means[idx]).query(means[idx], k=k)
+        nb = idx[np.asarray(nb).reshape(len(idx), k)]
+    else:
+        nb = idx[:, None]
+    den = 3.0 * w[nb].sum(1)
+    out[idx] = np.sqrt(e_plus[nb].sum(1) / den) - np.sqrt(e_minus[nb].sum(1) / den)
+    return out
+
+
+@dataclasses.dataclass(frozen=True)
+class PairStatistics:
+    """What the images say, before pooling: per ordered pair (p, q) the rows of date p's Gaussians,
+    their ``residual_sums`` over q's views [N_p, 6] and whether q's views observe them."""
+
+    num_gaussians: int
+    num_dates: int
+    pairs: dict[tuple[int, int], tuple[np.ndarray, np.ndarray, np.ndarray]]
+
+
+def pair_statistics(
+    model: TemporalGaussians,
+    views: Sequence,
+    config: ChangesConfig = ChangesConfig(),
+    *,
+    pairs: Sequence[tuple[int, int]] | None = None,
+    render_config: splat.RenderConfig | None = None,
+    progress=None,
+) -> PairStatistics:
+    """The residual sums and visibility of every Gaussian of date p at date q for each ordered pair
+    (p, q) in ``pairs`` (default: all p ≠ q). ``views[q]``: date q's training views in the model's
+    frame (``cameras``, ``images``, e.g. ``fusion.DateViews``). ``progress(done, total)`` per pair."""
+    t = model.num_dates
+    if len(views) != t:
+        raise InputError(f"{len(views)} sets of views for {t} dates", field="views", fix="give one per date")
+    pairs = [(p, q) for p in range(t) for q in range(t) if p != q] if pairs is None else list(pairs)
+    for p, q in pairs:
+        if not (0 <= p < t and 0 <= q < t) or p == q:
+            raise InputError(f"bad pair ({p}, {q}) for {t} dates", field="pairs", fix="two different date indices")
+    rc = render_config or splat.RenderConfig()
+    origin = np.asarray(model.origin)
+    o = np.asarray(opacity_multipliers(model), np.float32)
+    out = {}
+    for k, (p, q) in enumerate(pairs):
+        rows = np.nonzero(origin == p)[0]
+        if len(rows):
+            mult = np.where(origin == p, o[:, p], o[:, q]).astype(np.float32)
+            seen = observed_from(
+                model.gaussians, mult, views[q].cameras, config.contribution_threshold, render_config=rc
+            )[rows]
+            sums = pair_sums(model, p, q, views[q].cameras, views[q].images, render_config=rc)
+            out[(p, q)] = (rows, sums, seen)
+        if progress is not None:
+            progress(k + 1, len(pairs))
+    return PairStatistics(len(origin), t, out)
+
+
+def evidence_from(statistics: PairStatistics, means: np.ndarray, config: ChangesConfig) -> ChangeEvidence:
+    """Pool the statistics (``pooled_evidence``) and score them: s = clip(e / 2τ, 0, 1) where observed."""
+    shape = (statistics.num_gaussians, statistics.num_dates)
+    evidence, observed, computed = np.zeros(shape), np.zeros(shape, bool), np.zeros(shape, bool)
+    means = np.asarray(means, np.float64)
+    for (_, q), (rows, sums, seen) in statistics.pairs.items():
+        evidence[rows, q] = pooled_evidence(sums, means[rows], seen, config)
+        observed[rows, q] = seen
+        computed[rows, q] = True
+    score = np.where(computed & observed, np.clip(evidence / (2.0 * config.threshold), 0.0, 1.0), 0.0)
+    return ChangeEvidence(score, evidence, observed, computed)
+
+
+def change_evidence(
+    model: TemporalGaussians,
+    views: Sequence,
+    config: ChangesConfig = ChangesConfig(),
+    *,
+    pairs: Sequence[tuple[int, int]] | None = None,
+    render_config: splat.RenderConfig | None = None,
+    progress=None,
+) -> ChangeEvidence:
+    """The evidence and score of every Gaussian of date p at date q for each ordered pair (p, q) in
+    ``pairs`` (default: all p ≠ q): ``pair_statistics`` then ``evidence_from``."""
+    stats = pair_statistics(model, views, config, pairs=pairs, render_config=render_config, progress=progress)
+    return evidence_from(stats, np.asarray(model.gaussians.means), config)
+
+
+def presence_difference(evidence: ChangeEvidence, origin: np.ndarray, p: int, q: int) -> np.ndarray:
+    """[N] π^p − π^q per Gaussian, π^x = 1 − s^x its presence at date x (1 at its own date): > 0 where
+    it is shown at p and gone at q. 0 where either date neither owns nor observes it."""
+    origin = np.asarray(origin)
+    known = evidence.computed & evidence.observed
+    presence = np.where(known, 1.0 - evidence.score, np.nan)
+    own = origin[:, None] == np.arange(evidence.score.shape[1])[None]
+    presence = np.where(own, 1.0, presence)
+    diff = presence[:, p] - presence[:, q]
+    return np.where(np.isnan(diff), 0.0, diff)
+
+
+def pair_change(evidence: ChangeEvidence, origin: np.ndarray, p: int, q: int) -> np.ndarray:
+    """[N] change score of every Gaussian between dates p and q, |π^p − π^q| (``presence_difference``):
+    for a Gaussian of date p this is s^q, for one of date q s^p."""
+    return np.abs(presence_difference(evidence, origin, p, q))
+
+
+def pairs_for(t: int, p: int, q: int) -> list[tuple[int, int]]:
+    """The ordered (origin, observing date) entries ``pair_change(·, p, q)`` reads: every other date's
+    Gaussians at p and at q."""
+    return [(r, x) for r in range(t) for x in (p, q) if r != x]

@@ -1,0 +1,196 @@
+"""The residual-evidence change detector (cfgs_jax.changes) against float64 references, closed forms
+and hand-built scenes."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from test_change import _weights64
+from test_compact import _model
+
+import cfgs_jax as cj
+from cfgs_jax import splat
+from cfgs_jax.changes import ChangesConfig, change_evidence, pair_change, presence_difference
+from cfgs_jax.changes.evidence import gain_fitted_residual, pooled_evidence, residual_sums
+from cfgs_jax.changes.maps import change_mask, pixel_change
+from cfgs_jax.changes.regions import cluster_labels, hull_volume, image_regions, median_spacing, regions_3d
+from cfgs_jax.errors import InputError
+from cfgs_jax.fusion import DateViews
+from cfgs_jax.splat import reference
+
+
+def _cam(eye, size=(40, 30)):
+    return cj.Camera.look_at(eye, [0, 0, 0], width=size[0], height=size[1], fov_x_deg=50)
+
+
+def test_residual_sums_match_float64_reference():
+    """Each of W, A±, B±, C equals Σ_px w_i·map with w_i from one-hot float64 reference renders and F±
+    the float64 reference renders at the present / absent opacities under the date's light."""
+    model = _model(
+        means=[[0, 0, 0], [0.05, 0.2, 0.02], [-0.1, 0.3, -0.05], [0.1, -0.2, 0.1]],
+        log_scales=np.log([[0.12, 0.08, 0.1], [0.06] * 3, [0.09, 0.05, 0.07], [0.05] * 3]),
+        alphas=[0.7, 0.9, 0.5, 0.8],
+        colours=[[0.8, 0.2, 0.1], [0.1, 0.7, 0.3], [0.5, 0.5, 0.9], [0.9, 0.9, 0.2]],
+        o=[[0.99, 0.6], [0.9, 0.99], [0.3, 0.95], [0.99, 0.7]],
+        origin=[0, 1, 1, 0],
+    )
+    light = np.array([[1.2, 1.0, 0.8], [1.0, 1.0, 1.0], [0.9, 1.1, 1.0], [1.3, 1.3, 1.3]])
+    cam = _cam([0.4, -1.9, 0.3])
+    image = np.random.default_rng(0).uniform(0, 1, (30, 40, 3))
+    o = np.asarray(cj.opacity_multipliers(model), np.float64)
+    origin = np.asarray(model.origin)
+    present = np.where(origin == 0, o[:, 0], o[:, 1])
+    absent = np.where(origin == 0, 0.0, o[:, 1])
+    rc = splat.RenderConfig(capacity=splat.required_capacity(model.gaussians, cam, jnp.ones((1, 4))))
+    got = np.asarray(
+        residual_sums(
+            model.gaussians,
+            cam,
+            jnp.asarray(present, jnp.float32),
+            jnp.asarray(absent, jnp.float32),
+            jnp.asarray(light, jnp.float32),
+            jnp.asarray(image, jnp.float32),
+            rc,
+        ),
+        np.float64,
+    )
+    w = _weights64(model.gaussians, cam, present)  # [N, H, W]
+    plus = np.asarray(reference.render_dates(model.gaussians, cam, present[None], light[None]).image)[0]
+    minus = np.asarray(reference.render_dates(model.gaussians, cam, absent[None], light[None]).image)[0]
+    maps = [
+        np.ones(image.shape[:2]),
+        (plus * image).sum(-1),
+        (plus * plus).sum(-1),
+        (minus * image).sum(-1),
+        (minus * minus).sum(-1),
+        (image * image).sum(-1),
+    ]
+    want = np.stack([(w * m).sum((1, 2)) for m in maps], -1)
+    assert want[:, 0].min() > 1.0  # every Gaussian is seen
+    np.testing.assert_allclose(got, want, rtol=2e-4, atol=1e-5)
+
+
+def test_gain_fit_is_the_least_squares_minimum_over_the_gain_range():
+    """The closed form equals a brute-force minimum of Σ w|γF − I|² over a fine γ grid in the range."""
+    rng = np.random.default_rng(3)
+    for lo, hi in [(1.0, 1.0), (0.5, 2.0), (1 / 3, 3.0)]:
+        for _ in range(20):
+            f, i, w = (
+                rng.uniform(0, 1, (50, 3)),
+                rng.uniform(0, 1, (50, 3)) * rng.uniform(0.2, 3),
+                rng.uniform(0, 1, 50),
+            )
+            a, b, c = (w[:, None] * f * i).sum(), (w[:, None] * f * f).sum(), (w[:, None] * i * i).sum()
+            grid = np.linspace(lo, hi, 20001)
+            brute = min((w[:, None] * (g * f - i) ** 2).sum() for g in grid[::50]) if lo < hi else None
+            fine = ((w[None, :, None] * (grid[:, None, None] * f[None] - i[None]) ** 2).sum((1, 2))).min()
+            got = gain_fitted_residual(a, b, c, (lo, hi))
+            assert got == pytest.approx(fine, rel=1e-6, abs=1e-9)
+            if brute is not None:
+                assert got <= brute + 1e-9
+
+
+def test_pooled_evidence_hand_case():
+    """Two Gaussians with hand sums, no gain: E± = C − 2A± + B±; pooled with k = 2 both get
+    √(ΣE⁺/3ΣW) − √(ΣE⁻/3ΣW); alone (k = 1) each its own; an unusable one gets 0 and is no neighbour."""
+    sums = np.array([[2.0, 1.0, 1.5, 3.0, 3.0, 3.3], [1.0, 0.5, 0.8, 0.6, 0.5, 0.9], [5.0, 9, 9, 9, 9, 9]])
+    e_plus = sums[:, 5] - 2 * sums[:, 1] + sums[:, 2]  # 2.8, 0.7
+    e_minus = sums[:, 5] - 2 * sums[:, 3] + sums[:, 4]  # 0.3, 0.2
+    means = np.array([[0.0, 0, 0], [1.0, 0, 0], [0.1, 0, 0]])
+    usable = np.array([True, True, False])
+    cfg = ChangesConfig(neighbours=2, gain_range=(1.0, 1.0))
+    got = pooled_evidence(sums, means, usable, cfg)
+    both = np.sqrt(e_plus[:2].sum() / 9.0) - np.sqrt(e_minus[:2].sum() / 9.0)
+    np.testing.assert_allclose(got, [both, both, 0.0], rtol=1e-12)
+    alone = pooled_evidence(sums, means, usable, ChangesConfig(neighbours=1, gain_range=(1.0, 1.0)))
+    want = np.sqrt(e_plus[:2] / (3 * sums[:2, 0])) - np.sqrt(e_minus[:2] / (3 * sums[:2, 0]))
+    np.testing.assert_allclose(alone, [*want, 0.0], rtol=1e-12)
+
+
+def _two_date_scene(gain: float):
+    """Date 0: a red blob A and a green blob B; date 1: a copy A' of A only (B was removed). Date 1's
+    images are A' rendered alone and brightened by ``gain`` (an exposure change)."""
+    s = np.log(0.12)
+    model = _model(
+        means=[[-0.35, 0, 0], [0.35, 0, 0], [-0.35, 0.0, 0.01]],
+        log_scales=[[s] * 3] * 3,
+        alphas=[0.9, 0.9, 0.9],
+        colours=[[0.6, 0.2, 0.2], [0.3, 0.9, 0.3], [0.6, 0.2, 0.2]],
+        o=[[0.999, 0.7], [0.999, 0.7], [0.5, 0.999]],  # cross-init left A and B undecided at date 1
+        origin=[0, 0, 1],
+    )
+    cams = tuple(_cam(e) for e in ([0, -2.2, 0.4], [0.8, -2.0, 0.5], [-0.8, -2.0, 0.3]))
+    g1 = jax.tree_util.tree_map(lambda x: jnp.asarray(x)[2:], model.gaussians)
+    images = []
+    for cam in cams:
+        rc = splat.RenderConfig(capacity=splat.required_capacity(g1, cam, jnp.ones((1, 1))))
+        img = splat.render_dates(g1, cam, jnp.ones((1, 1)), jnp.ones((1, 1, 3)), config=rc).image[0]
+        images.append(np.clip(gain * np.asarray(img), 0, 1))
+    views = [DateViews(cams, tuple(images)), DateViews(cams, tuple(images))]
+    return model, views
+
+
+def test_a_removed_blob_is_changed_and_a_brightened_persistent_one_is_not():
+    """B is scored changed at date 1 (score > 0.5), A not, under a 1.4× exposure change; only the pairs
+    asked for are computed; B's footprint in a date-0 view is in the pixel change mask, A's is not."""
+    model, views = _two_date_scene(gain=1.4)
+    cfg = ChangesConfig(neighbours=1)
+    ev = change_evidence(model, views, cfg, pairs=[(0, 1)])
+    assert ev.computed[:, 1].tolist() == [True, True, False] and not ev.computed[:, 0].any()
+    assert ev.observed[:2, 1].all()
+    assert ev.score[1, 1] > 0.5 and ev.score[0, 1] < 0.5
+    assert ev.changed()[:, 1].tolist() == [False, True, False]
+    assert np.allclose(pair_change(ev, model.origin, 0, 1)[:2], ev.score[:2, 1])
+    assert presence_difference(ev, model.origin, 0, 1)[1] > 0.5  # shown at 0, gone at 1
+    cam = views[0].cameras[0]
+    known = np.ones(3)
+    s, k, a = pixel_change(model, cam, pair_change(ev, model.origin, 0, 1), known, 0, 1)
+    mask = change_mask(s, k, a)
+
+    def centre(i):  # the brightest alpha pixel of blob i rendered alone
+        alone = np.asarray(reference.render_dates(model.gaussians, cam, np.eye(3)[i][None], np.ones((1, 3, 3))).alpha)
+        return np.unravel_index(np.argmax(alone[0]), alone.shape[1:])
+
+    assert mask[centre(1)] and not mask[centre(0)]
+    assert mask.sum() < 0.5 * (a >= 0.5).sum()
+
+
+def test_changes_config_validates():
+    with pytest.raises(InputError, match="changes.gain_range"):
+        ChangesConfig(gain_range=(1.2, 3.0))
+    with pytest.raises(InputError, match="changes.threshold"):
+        ChangesConfig(threshold=0.0)
+    with pytest.raises(InputError, match="changes.neighbours"):
+        ChangesConfig(neighbours=0)
+
+
+def test_regions_hand_cases():
+    """Two point clouds 10 apart are two regions (the small third cloud too few); kinds follow the sign
+    of the presence difference; hull volume of the unit cube's corners is 1; image areas by hand."""
+    rng = np.random.default_rng(0)
+    a, b, c = rng.normal(0, 0.3, (40, 3)), rng.normal(0, 0.3, (25, 3)) + 10, rng.normal(0, 0.1, (3, 3)) - 10
+    pts = np.concatenate([a, b, c])
+    assert len(np.unique(cluster_labels(pts, 2.0))) == 3
+    diff = np.concatenate([np.full(40, 0.9), np.full(25, -0.8), np.full(3, 0.7)])
+    regions, member = regions_3d(pts, np.ones(68, bool), diff, spacing=median_spacing(pts), min_gaussians=16)
+    assert [(r["kind"], r["gaussians"]) for r in regions] == [("disappeared", 40), ("appeared", 25)]
+    assert (member[:40] == 0).all() and (member[40:65] == 1).all() and (member[65:] == -1).all()
+    np.testing.assert_allclose(regions[1]["centroid"], b.mean(0))
+    # hysteresis: 20 seeds and 20 candidates in one cloud form one region of 40; a cloud of candidates
+    # without seeds forms none
+    seeds = np.zeros(68, bool)
+    seeds[:20] = True
+    grown, member = regions_3d(pts, seeds, diff, spacing=median_spacing(pts), candidates=np.ones(68, bool))
+    assert [(r["gaussians"], r["seeds"]) for r in grown] == [(40, 20)] and (member[40:] == -1).all()
+    corners = np.array([[x, y, z] for x in (0, 1) for y in (0, 1) for z in (0, 1)], float)
+    assert hull_volume(corners) == pytest.approx(1.0) and hull_volume(corners[:3]) == 0.0
+    mask = np.zeros((10, 12), bool)
+    mask[1:4, 1:5] = True  # 12 pixels
+    mask[6:9, 8:10] = True  # 6 pixels
+    mask[9, 10] = True  # diagonal neighbour of the second area (8-connected): 7
+    mask[0, 11] = True  # a lone pixel, below min_pixels
+    areas, labels = image_regions(mask, mask.astype(float) * 0.8, min_pixels=2)
+    assert [(r["area_pixels"], r["bbox_xyxy"]) for r in areas] == [(12, [1, 1, 4, 3]), (7, [8, 6, 10, 9])]
+    assert labels[0, 11] == 0 and (labels[mask & (labels > 0)] > 0).sum() == 19
