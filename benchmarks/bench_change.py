@@ -4,6 +4,7 @@ residual evidence without the brightness gain, without neighbour pooling, and at
 neighbourhood sizes. The ground truth only scores; every row uses one setting for all scenes.
 
     python benchmarks/bench_change.py --run RUN --data DATA --scene NAME
+    python benchmarks/bench_change.py --summary corals coverage flood light   # the README table
 
 RUN: the ``run/`` of ``python -m cfgs_jax.pipeline eval --scene NAME --config benchmarks/eval_small.toml
 --out DIR`` and DATA its ``data/``. Writes benchmarks/results/change_NAME.json, change_NAME.md (the
@@ -32,18 +33,50 @@ VARIANTS = [  # (label, overrides of the default [changes] table)
     ("gain, k = 16", {"neighbours": 16}),
     ("gain, k = 64", {"neighbours": 64}),
     ("no growth", {"grow_above": 0.5}),
-    ("grow above 0.15", {"grow_above": 0.15}),
+    ("grow above 0.25", {"grow_above": 0.25}),
+    ("link 3", {"link_factor": 3.0}),
+    ("link 3, grow above 0.25", {"link_factor": 3.0, "grow_above": 0.25}),
     ("τ = 0.05", {"threshold": 0.05}),
     ("τ = 0.07", {"threshold": 0.07}),
 ]
 
 
+def summary(scenes: list[str]) -> str:
+    """One row per scene from benchmarks/results/change_<scene>.json: the default detector's figures."""
+    lines = [
+        "| scene (dates) | Gaussians P / R / F1 | flagged | pixel IoU | pixels flagged | changed objects found | "
+        "false regions (pairs) | o^q < 0.2 flagged |",
+        "|---|---:|---:|---:|---:|---:|---:|---:|",
+    ]
+    for scene in scenes:
+        r = json.loads((RESULTS / f"change_{scene}.json").read_text())
+        ev = r["change"]["evidence"]
+        g, px, rg = ev["gaussians"], ev["pixels"], ev["regions"]
+        o = r["change"]["gaussians"]
+        dates = len(r["change"]["evidence"]["per_pair"])
+        found = f"{rg['found_objects']} / {rg['changed_objects']}" if rg["changed_objects"] else "– (none changed)"
+        prf = f"{g['precision']:.3f} / {g['recall']:.3f} / {g['f1']:.3f}" if rg["changed_objects"] else "–"
+        iou = f"{px['iou']:.3f}" if rg["changed_objects"] else "–"
+        lines.append(
+            f"| {scene} ({int(round((1 + (1 + 8 * dates) ** 0.5) / 2))}) | {prf} | "
+            f"{100 * g['flagged_in_regions']:.2f} % | {iou} | {100 * px['predicted_changed_share']:.2f} % | {found} | "
+            f"{rg['false_regions']} ({rg['pairs']}) | {100 * o['flagged_changed_o_only']:.1f} % |"
+        )
+    return "\n".join(lines)
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--run", required=True, help="a finished fusion run (read only)")
-    ap.add_argument("--data", required=True, help="its synthetic dataset root (ground_truth.json)")
-    ap.add_argument("--scene", required=True, help="the scene name (file names and titles)")
+    ap.add_argument("--run", help="a finished fusion run (read only)")
+    ap.add_argument("--data", help="its synthetic dataset root (ground_truth.json)")
+    ap.add_argument("--scene", help="the scene name (file names and titles)")
+    ap.add_argument("--summary", nargs="+", metavar="SCENE", help="print the README table of these scenes' results")
     args = ap.parse_args()
+    if args.summary:
+        print(summary(args.summary))
+        return
+    if not (args.run and args.data and args.scene):
+        ap.error("--run, --data and --scene are required (or --summary)")
 
     from cfgs_jax import splat
     from cfgs_jax.changes import ChangesConfig, pair_statistics

@@ -954,7 +954,8 @@ def test_changes_cli_writes_masks_ply_and_regions(fused_run, tmp_path):
         assert int((mask[..., 0] if mask.ndim == 3 else mask).astype(bool).sum()) == v["changed_pixels"]
         assert (out / "scores" / date / f"{name}.png").is_file()
     gs = summary["gaussians"]
-    assert gs["in_regions"] == sum(r["gaussians"] for r in summary["regions"]) <= gs["changed"] <= gs["total"]
+    assert gs["in_regions"] == sum(r["gaussians"] for r in summary["regions"]) <= gs["total"]
+    assert sum(r["seeds"] for r in summary["regions"]) <= gs["changed"] <= gs["observed_at_both"]
     assert len(read_ply(out / "changed.ply")) == gs["in_regions"] > 0
     assert summary["config"]["min_region_gaussians"] == 2
     assert (out / "regions.md").read_text().startswith("# Changes between d0 and d1")

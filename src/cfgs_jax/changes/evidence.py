@@ -62,8 +62,8 @@ class ChangesConfig:
     neighbours: int = 32
     gain_range: tuple[float, float] = (1.0 / 3.0, 3.0)
     contribution_threshold: float = 0.01
-    link_factor: float = 3.0
-    grow_above: float = 0.25
+    link_factor: float = 5.0
+    grow_above: float = 0.35
     min_region_gaussians: int = 16
     min_region_pixels: int = 8
 

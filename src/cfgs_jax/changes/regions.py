@@ -58,7 +58,7 @@ def regions_3d(
     *,
     spacing: float,
     candidates: np.ndarray | None = None,
-    link_factor: float = 3.0,
+    link_factor: float = 5.0,
     min_gaussians: int = 16,
 ) -> tuple[list[dict], np.ndarray]:
     """The changed regions of a pair of dates (p earlier than q), largest first, and [N] region index per
