@@ -30,7 +30,6 @@ on date p's test views, over pixels observed at both dates.
 from __future__ import annotations
 
 import dataclasses
-import functools
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -40,8 +39,9 @@ import numpy as np
 from PIL import Image
 
 from cfgs_jax import splat, viz
+from cfgs_jax.changes.maps import rendered_scores
 from cfgs_jax.errors import InputError
-from cfgs_jax.model import Camera, Gaussians, TemporalGaussians, light_multipliers, opacity_multipliers
+from cfgs_jax.model import Camera, TemporalGaussians, light_multipliers, opacity_multipliers
 from cfgs_jax.splat.weights import contribution_per_label, observed_matrix, summed_weights
 
 
@@ -274,16 +274,6 @@ def summarise_gaussians(table: dict, config: ChangeConfig = ChangeConfig(), thre
     }
 
 
-@functools.partial(jax.jit, static_argnames=("config",))
-def _pixel_scores(g: Gaussians, camera: Camera, opacity, score, observed, config):
-    ones = dataclasses.replace(g, colors=jnp.ones_like(g.colors))
-    mult = jnp.stack([score, observed, jnp.zeros_like(score)], -1)[None]
-    res = splat.render_dates(ones, camera, opacity[None], mult, config=config, statistics=False)
-    alpha = res.alpha[0]
-    safe = jnp.maximum(alpha, 1e-6)
-    return res.image[0, ..., 0] / safe, res.image[0, ..., 1] / safe, alpha
-
-
 def _view_counts(s, seen, alpha, gt, threshold: float, thresholds: np.ndarray) -> dict:
     """Pixel counts of one view over the pixels covered (alpha ≥ 0.5) and observed at both dates: the
     change mask s > ``threshold`` against the truth ``gt`` (intersection, union, predicted, true,
@@ -337,7 +327,7 @@ def pixel_change_iou(
             pair: dict = {}
             for cam, gt in zip(dm.cameras, dm.changed_vs[names[q]]):
                 cfg = dataclasses.replace(rc, capacity=splat.required_capacity(g, cam, opacity[None], config=rc))
-                s, seen, alpha = (np.asarray(x) for x in _pixel_scores(g, cam, opacity, score, both, cfg))
+                s, seen, alpha = (np.asarray(x) for x in rendered_scores(g, cam, opacity, score, both, cfg))
                 for key, value in _view_counts(s, seen, alpha, gt, config.pixel_threshold, thresholds).items():
                     pair[key] = pair.get(key, 0) + value
             per_pair[f"{names[p]}→{names[q]}"] = pair["inter"] / pair["union"] if pair.get("union") else float("nan")
@@ -486,6 +476,9 @@ def evidence_detection(
             f"{label}gt_changed": float(truth.mean()) if len(truth) else 0.0,
         }
     curve = precision_recall(score, by_object, np.linspace(0.02, 0.98, 49))
+    o_q = np.concatenate([table["pairs"][(p, q)]["o_q"][obs] for _, p, q, _, obs in entries])
+    o_curve = precision_recall(1.0 - o_q, by_object, np.linspace(0.02, 0.98, 49))  # the o^q rule, same truth
+    o_at = precision_recall(1.0 - o_q, by_object, [0.8])
     valid = max(pixel["valid"], 1)
     return {
         "config": dataclasses.asdict(cfg),
@@ -495,6 +488,10 @@ def evidence_detection(
             "entries": int(len(score)),
             "flagged_changed": float((score > 0.5).mean()) if len(score) else 0.0,
             "curve": {k: v.tolist() for k, v in curve.items()},
+            "o_curve": {k: v.tolist() for k, v in o_curve.items()},
+            "o_precision": float(o_at["precision"][0]),
+            "o_recall": float(o_at["recall"][0]),
+            "o_f1": float(o_at["f1"][0]),
         },
         "pixels": {
             "iou": pixel["inter"] / pixel["union"] if pixel["union"] else float("nan"),

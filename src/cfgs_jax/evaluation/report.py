@@ -219,8 +219,9 @@ def figure_grid(path: Path, run_dir: Path, scenes, sims, names, render_config) -
 
 
 def pr_curve_plot(path: Path, change: dict, scene: str) -> None:
-    """Precision–recall of the per-Gaussian "changed" scores over their thresholds: 1 − o^q (F1 at τ
-    marked) and, where computed, the residual-evidence score (F1 at 0.5 marked)."""
+    """Precision–recall of the per-Gaussian change scores over their thresholds: with the residual
+    evidence computed, its score s^q and the o^q rule's 1 − o^q, both against the same truth (the
+    Gaussian's object changed), the defaults marked; otherwise 1 − o^q against the pixel label."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -228,29 +229,34 @@ def pr_curve_plot(path: Path, change: dict, scene: str) -> None:
 
     from cfgs_jax.io.atomic import atomic_file
 
-    g = change["gaussians"]
-    c = g["curve"]
     fig, ax = plt.subplots(figsize=(4.6, 4.2))
-    ax.plot(c["recall"], c["precision"], marker=".", lw=1)
-    ax.scatter(
-        [g["recall"]],
-        [g["precision"]],
-        color="C3",
-        zorder=3,
-        label=f"o^q < {change['config']['absent_below']}: F1 {g['f1']:.3f}",
-    )
     if "evidence" in change:
         e = change["evidence"]["gaussians"]
-        ax.plot(e["curve"]["recall"], e["curve"]["precision"], marker=".", lw=1, color="C2")
+        ax.plot(e["o_curve"]["recall"], e["o_curve"]["precision"], marker=".", lw=1, color="C0", label="1 − o^q")
+        ax.scatter([e["o_recall"]], [e["o_precision"]], color="C3", zorder=3, label=f"o^q < 0.2: F1 {e['o_f1']:.3f}")
+        ax.plot(e["curve"]["recall"], e["curve"]["precision"], marker=".", lw=1, color="C2", label="evidence s^q")
         ax.scatter(
-            [e["recall"]], [e["precision"]], color="C2", marker="s", zorder=3, label=f"evidence > 0.5: F1 {e['f1']:.3f}"
+            [e["recall"]],
+            [e["precision"]],
+            color="C2",
+            marker="s",
+            zorder=3,
+            label=f"changed regions: F1 {e['f1']:.3f}",
         )
+        title = f"change detection, {scene} (truth: object changed)"
+    else:
+        g = change["gaussians"]
+        c = g["curve"]
+        ax.plot(c["recall"], c["precision"], marker=".", lw=1)
+        label = f"o^q < {change['config']['absent_below']}: F1 {g['f1']:.3f}"
+        ax.scatter([g["recall"]], [g["precision"]], color="C3", zorder=3, label=label)
+        title = f"change detection, {scene}"
     ax.set_xlabel("recall (changed Gaussians found)")
     ax.set_ylabel("precision")
     ax.set_xlim(0, 1.02)
     ax.set_ylim(0, 1.02)
-    ax.set_title(f"change detection, {scene}")
-    ax.legend(loc="lower left")
+    ax.set_title(title, fontsize=9)
+    ax.legend(loc="lower left", fontsize=8)
     fig.tight_layout()
     with atomic_file(path) as tmp:
         fig.savefig(tmp, format="png", dpi=110)
