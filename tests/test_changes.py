@@ -164,6 +164,10 @@ def test_changes_config_validates():
         ChangesConfig(threshold=0.0)
     with pytest.raises(InputError, match="changes.neighbours"):
         ChangesConfig(neighbours=0)
+    with pytest.raises(InputError, match="changes.views"):
+        ChangesConfig(views="validation")
+    with pytest.raises(InputError, match="changes.grow_above"):
+        ChangesConfig(grow_above=0.7)
 
 
 def test_regions_hand_cases():

@@ -50,7 +50,9 @@ class ChangesConfig:
 
     ``threshold`` τ is an RMS colour difference in linear RGB (0..1): a Gaussian counts as changed
     between two dates when q's images are explained better without it by more than τ (score > 0.5).
-    ``neighbours`` k pools each Gaussian's evidence with its k − 1 nearest Gaussians of the same date
+    ``views``: which of each date's views supply the evidence — ``"all"``, ``"train"``, or ``"test"``
+    (held out from training, so the "absent" residual is not lowered by the date's own Gaussians having
+    been fitted to those very images). ``neighbours`` k pools each Gaussian's evidence with its k − 1 nearest Gaussians of the same date
     (1: none). ``gain_range`` bounds the per-Gaussian brightness gain of each hypothesis.
     ``contribution_threshold`` is the visibility rule (α·T at some pixel of some view of q).
     Regions: changed Gaussians closer than ``link_factor`` × the model's median nearest-neighbour
@@ -59,6 +61,7 @@ class ChangesConfig:
     (image)."""
 
     threshold: float = 0.06
+    views: str = "all"
     neighbours: int = 32
     gain_range: tuple[float, float] = (1.0 / 3.0, 3.0)
     contribution_threshold: float = 0.01
@@ -70,6 +73,8 @@ class ChangesConfig:
     def __post_init__(self):
         if not 0.0 < self.threshold < 1.0:
             raise InputError(f"must lie in (0, 1), got {self.threshold}", field="changes.threshold")
+        if self.views not in ("all", "train", "test"):
+            raise InputError(f"unknown split {self.views!r}", field="changes.views", fix='use "all", "train" or "test"')
         if int(self.neighbours) < 1:
             raise InputError(f"must be ≥ 1, got {self.neighbours}", field="changes.neighbours")
         lo, hi = (float(v) for v in self.gain_range)

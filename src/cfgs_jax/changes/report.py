@@ -69,8 +69,8 @@ def detect_changes(
     p, q = sorted(parse_pair(pair, run.names))
     model = run.model
     origin = np.asarray(model.origin)
-    log(f"[changes] evidence of {run.names[p]} ↔ {run.names[q]} from both dates' training views")
-    views = [run.date_views(d) for d in range(len(run.names))]
+    log(f"[changes] evidence of {run.names[p]} ↔ {run.names[q]} from the dates' {config.views} views")
+    views = [run.date_views(d, config.views) for d in range(len(run.names))]
     evidence = change_evidence(
         model, views, config, pairs=pairs_for(len(run.names), p, q), render_config=render_config, progress=progress
     )

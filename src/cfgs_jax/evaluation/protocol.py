@@ -460,7 +460,8 @@ def change_detection(
     fused = object_persistence(model, table["objects"], gt)
     summary["absent_objects_below_0.2"] = fused.pop("absent_by_object")
     result = {"gaussians": summary, "pixels": pixels, "config": dataclasses.asdict(cfg), "objects_fused": fused}
-    views = [date_views(sc, sm) for sc, sm in zip(scenes, sims)]
+    split = (changes_config or ChangesConfig()).views
+    views = [date_views(sc, sm, split) for sc, sm in zip(scenes, sims)]
     result["evidence"] = change.evidence_detection(
         model,
         views,
