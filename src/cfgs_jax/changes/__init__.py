@@ -8,6 +8,7 @@ from cfgs_jax.changes.evidence import (
     change_evidence,
     evidence_from,
     pair_change,
+    pair_known,
     pair_statistics,
     pairs_for,
     presence_difference,
@@ -21,6 +22,7 @@ __all__ = [
     "evidence_from",
     "pair_statistics",
     "pair_change",
+    "pair_known",
     "pairs_for",
     "presence_difference",
 ]

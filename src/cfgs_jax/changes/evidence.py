@@ -298,6 +298,13 @@ def presence_difference(evidence: ChangeEvidence, origin: np.ndarray, p: int, q:
     return np.where(np.isnan(diff), 0.0, diff)
 
 
+def pair_known(evidence: ChangeEvidence, origin: np.ndarray, p: int, q: int) -> np.ndarray:
+    """[N] bool: each Gaussian is its own date's or observed there, at both p and q."""
+    origin = np.asarray(origin)
+    seen = evidence.observed & evidence.computed
+    return (seen[:, p] | (origin == p)) & (seen[:, q] | (origin == q))
+
+
 def pair_change(evidence: ChangeEvidence, origin: np.ndarray, p: int, q: int) -> np.ndarray:
     """[N] change score of every Gaussian between dates p and q, |π^p − π^q| (``presence_difference``):
     for a Gaussian of date p this is s^q, for one of date q s^p."""

@@ -61,6 +61,11 @@ def pixel_change(
     return tuple(np.asarray(m) for m in maps)
 
 
+def valid_pixels(known_map: np.ndarray, alpha: np.ndarray) -> np.ndarray:
+    """[H, W] bool: pixels covered (alpha ≥ 0.5) and observed at both dates (known share ≥ 0.5)."""
+    return (alpha >= 0.5) & (known_map >= 0.5)
+
+
 def change_mask(score_map: np.ndarray, known_map: np.ndarray, alpha: np.ndarray) -> np.ndarray:
-    """[H, W] bool: pixels covered (alpha ≥ 0.5), observed at both dates and scored above 0.5."""
-    return (alpha >= 0.5) & (known_map >= 0.5) & (score_map > 0.5)
+    """[H, W] bool: ``valid_pixels`` scored above 0.5."""
+    return valid_pixels(known_map, alpha) & (score_map > 0.5)

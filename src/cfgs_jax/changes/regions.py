@@ -20,6 +20,8 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import ConvexHull, QhullError, cKDTree
 
+from cfgs_jax.changes.evidence import ChangeEvidence, ChangesConfig, pair_known, presence_difference
+
 
 def median_spacing(means: np.ndarray) -> float:
     """The median distance from a Gaussian centre to its nearest other centre (0 for < 2 points)."""
@@ -95,6 +97,34 @@ def regions_3d(
             }
         )
     return out, member
+
+
+def pair_regions(
+    evidence: ChangeEvidence,
+    origin: np.ndarray,
+    means: np.ndarray,
+    p: int,
+    q: int,
+    config: ChangesConfig,
+    *,
+    spacing: float,
+) -> tuple[np.ndarray, np.ndarray, list[dict], np.ndarray]:
+    """The changed regions of dates p < q from their evidence, as the ``changes`` command reports them:
+    (presence difference [N], known at both dates [N] bool, regions, [N] region index or −1).
+    Seeds: known and |difference| > 0.5; candidates: known and |difference| > ``grow_above``."""
+    difference = presence_difference(evidence, origin, p, q)
+    known = pair_known(evidence, origin, p, q)
+    score = np.abs(difference)
+    regions, member = regions_3d(
+        means,
+        known & (score > 0.5),
+        difference,
+        spacing=spacing,
+        candidates=known & (score > config.grow_above),
+        link_factor=config.link_factor,
+        min_gaussians=config.min_region_gaussians,
+    )
+    return difference, known, regions, member
 
 
 def image_regions(mask: np.ndarray, score_map: np.ndarray, min_pixels: int = 8) -> tuple[list[dict], np.ndarray]:

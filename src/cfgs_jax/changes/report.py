@@ -17,21 +17,14 @@ import jax.numpy as jnp
 import numpy as np
 
 from cfgs_jax import splat
-from cfgs_jax.changes.evidence import ChangeEvidence, ChangesConfig, change_evidence, pairs_for, presence_difference
-from cfgs_jax.changes.maps import change_mask, pixel_change
-from cfgs_jax.changes.regions import image_regions, median_spacing, regions_3d
+from cfgs_jax.changes.evidence import ChangesConfig, change_evidence, pairs_for
+from cfgs_jax.changes.maps import change_mask, pixel_change, valid_pixels
+from cfgs_jax.changes.regions import image_regions, median_spacing, pair_regions
 from cfgs_jax.config import section
 from cfgs_jax.errors import InputError
 from cfgs_jax.io.atomic import read_json, write_json, write_text
 from cfgs_jax.io.images import write_image
 from cfgs_jax.io.ply import write_ply
-
-
-def pair_known(evidence: ChangeEvidence, origin: np.ndarray, p: int, q: int) -> np.ndarray:
-    """[N] bool: each Gaussian is its own date's or observed there, at both p and q."""
-    origin = np.asarray(origin)
-    seen = evidence.observed & evidence.computed
-    return (seen[:, p] | (origin == p)) & (seen[:, q] | (origin == q))
 
 
 def parse_pair(text: str, names: list[str]) -> tuple[int, int]:
@@ -74,20 +67,11 @@ def detect_changes(
     evidence = change_evidence(
         model, views, config, pairs=pairs_for(len(run.names), p, q), render_config=render_config, progress=progress
     )
-    difference = presence_difference(evidence, origin, p, q)
-    score = np.abs(difference)
-    known = pair_known(evidence, origin, p, q)
-    changed = known & (score > 0.5)
     means = np.asarray(model.gaussians.means, np.float64)
-    regions, member = regions_3d(
-        means,
-        changed,
-        difference,
-        spacing=median_spacing(means),
-        candidates=known & (score > config.grow_above),
-        link_factor=config.link_factor,
-        min_gaussians=config.min_region_gaussians,
+    difference, known, regions, member = pair_regions(
+        evidence, origin, means, p, q, config, spacing=median_spacing(means)
     )
+    changed = known & (np.abs(difference) > 0.5)
     rows = np.nonzero(member >= 0)[0]
     g = jax.tree_util.tree_map(lambda x: jnp.asarray(x)[rows], model.gaussians)
     write_ply(out / "changed.ply", g)
@@ -103,7 +87,7 @@ def detect_changes(
             mask = change_mask(s, k, a)
             areas, _ = image_regions(mask, s, config.min_region_pixels)
             write_image(out / "masks" / run.names[d] / f"{name}.png", mask.astype(np.float32))
-            write_image(out / "scores" / run.names[d] / f"{name}.png", np.where((a >= 0.5) & (k >= 0.5), s, 0.0))
+            write_image(out / "scores" / run.names[d] / f"{name}.png", np.where(valid_pixels(k, a), s, 0.0))
             views_out.append({"view": f"{run.names[d]}/{name}", "changed_pixels": int(mask.sum()), "regions": areas})
     summary = {
         "run": str(run_dir),

@@ -388,10 +388,9 @@ def evidence_detection(
     against ``changed_vs``; pixels covered and observed at both dates) and per region
     (``changed_objects[(p, q)]``: object ids whose presence differs, p < q). ``statistics``:
     precomputed ``changes.pair_statistics`` (computed when not given)."""
-    from cfgs_jax.changes import ChangesConfig, evidence_from, pair_statistics, presence_difference
-    from cfgs_jax.changes.maps import change_mask, pixel_change
-    from cfgs_jax.changes.regions import median_spacing, regions_3d
-    from cfgs_jax.changes.report import pair_known
+    from cfgs_jax.changes import ChangesConfig, evidence_from, pair_statistics
+    from cfgs_jax.changes.maps import change_mask, pixel_change, valid_pixels
+    from cfgs_jax.changes.regions import median_spacing, pair_regions
 
     cfg = config or ChangesConfig()
     rc = render_config or splat.RenderConfig()
@@ -407,17 +406,7 @@ def evidence_detection(
     members = {}
     for p in range(t):
         for q in range(p + 1, t):
-            diff = presence_difference(ev, origin, p, q)
-            known = pair_known(ev, origin, p, q)
-            regions, member = regions_3d(
-                means,
-                known & (np.abs(diff) > 0.5),
-                diff,
-                spacing=spacing,
-                candidates=known & (np.abs(diff) > cfg.grow_above),
-                link_factor=cfg.link_factor,
-                min_gaussians=cfg.min_region_gaussians,
-            )
+            _, known, regions, member = pair_regions(ev, origin, means, p, q, cfg, spacing=spacing)
             members[(p, q)] = members[(q, p)] = member >= 0
             objs = _region_scores(regions, member, table["objects"], changed_objects.get((p, q), set()))
             n_changed = len(changed_objects.get((p, q), ()))
@@ -431,7 +420,7 @@ def evidence_detection(
                     s, k, alpha = pixel_change(
                         model, cam, (member >= 0).astype(np.float32), known, p, q, render_config=rc
                     )
-                    valid = (alpha >= 0.5) & (k >= 0.5)
+                    valid = valid_pixels(k, alpha)
                     pred, true = change_mask(s, k, alpha), gt & valid
                     counts = {
                         "inter": int((pred & true).sum()),
