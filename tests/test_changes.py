@@ -44,20 +44,19 @@ def test_residual_sums_match_float64_reference():
     present = np.where(origin == 0, o[:, 0], o[:, 1])
     absent = np.where(origin == 0, 0.0, o[:, 1])
     rc = splat.RenderConfig(capacity=splat.required_capacity(model.gaussians, cam, jnp.ones((1, 4))))
-    got = np.asarray(
-        residual_sums(
-            model.gaussians,
-            cam,
-            jnp.asarray(present, jnp.float32),
-            jnp.asarray(absent, jnp.float32),
-            jnp.asarray(light, jnp.float32),
-            jnp.asarray(image, jnp.float32),
-            rc,
-        ),
-        np.float64,
+    sums, largest = residual_sums(
+        model.gaussians,
+        cam,
+        jnp.asarray(present, jnp.float32),
+        jnp.asarray(absent, jnp.float32),
+        jnp.asarray(light, jnp.float32),
+        jnp.asarray(image, jnp.float32),
+        rc,
     )
+    got = np.asarray(sums, np.float64)
     w = _weights64(model.gaussians, cam, present)  # [N, H, W]
-    plus = np.asarray(reference.render_dates(model.gaussians, cam, present[None], light[None]).image)[0]
+    ref_plus = reference.render_dates(model.gaussians, cam, present[None], light[None])
+    plus = np.asarray(ref_plus.image)[0]
     minus = np.asarray(reference.render_dates(model.gaussians, cam, absent[None], light[None]).image)[0]
     maps = [
         np.ones(image.shape[:2]),
@@ -70,6 +69,8 @@ def test_residual_sums_match_float64_reference():
     want = np.stack([(w * m).sum((1, 2)) for m in maps], -1)
     assert want[:, 0].min() > 1.0  # every Gaussian is seen
     np.testing.assert_allclose(got, want, rtol=2e-4, atol=1e-5)
+    # the largest weight of the present render (the visibility statistic)
+    np.testing.assert_allclose(np.asarray(largest), np.asarray(ref_plus.max_weight)[0], rtol=2e-4, atol=1e-6)
 
 
 def test_gain_fit_is_the_least_squares_minimum_over_the_gain_range():

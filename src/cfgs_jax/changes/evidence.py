@@ -41,7 +41,7 @@ from scipy.spatial import cKDTree
 from cfgs_jax import splat
 from cfgs_jax.errors import InputError
 from cfgs_jax.model import Camera, Gaussians, TemporalGaussians, light_multipliers, opacity_multipliers
-from cfgs_jax.splat.weights import observed_from, summed_weights
+from cfgs_jax.splat.weights import summed_weights, visible
 
 
 @dataclasses.dataclass(frozen=True)
@@ -123,14 +123,15 @@ def residual_sums(
     light: Float[Array, "N 3"],
     image: Float[Array, "H W 3"],
     config: splat.RenderConfig,
-) -> Float[Array, "N 6"]:
+) -> tuple[Float[Array, "N 6"], Float[Array, " N"]]:
     """Per Gaussian, over one view: W = Σ w, A⁺ = Σ w F⁺·I, B⁺ = Σ w |F⁺|², A⁻, B⁻, C = Σ w |I|², with
     F± the renders at opacities ``present`` / ``absent`` under ``light`` and w the compositing weight
-    in F⁺. ``config`` must carry the intersection capacity of both renders."""
+    in F⁺; and the largest w over the view's pixels (the visibility statistic of F⁺). ``config`` must
+    carry the intersection capacity of both renders."""
     both = jnp.stack([present, absent])
     mult = jnp.broadcast_to(light, (2,) + light.shape)
-    renders = splat.render_dates(g, camera, both, mult, config=config, statistics=False).image
-    plus, minus = renders[0], renders[1]
+    res = splat.render_dates(g, camera, both, mult, config=config)
+    plus, minus = res.image[0], res.image[1]
     dot = lambda a, b: jnp.sum(a * b, axis=-1)
     maps = jnp.stack(
         [
@@ -139,7 +140,7 @@ def residual_sums(
         ]
     )
     w = summed_weights(g, camera, present, jax.lax.stop_gradient(maps), config)  # [2, N, 3]
-    return jnp.concatenate([w[0], w[1]], axis=-1)
+    return jnp.concatenate([w[0], w[1]], axis=-1), res.max_weight[0]
 
 
 def premultiplied(image: np.ndarray) -> np.ndarray:
@@ -157,8 +158,11 @@ def pair_sums(
     images: Sequence[np.ndarray],
     *,
     render_config: splat.RenderConfig | None = None,
-) -> np.ndarray:
-    """[N_p, 6] float64: ``residual_sums`` of date p's Gaussians summed over date q's views."""
+    contribution_threshold: float = 0.01,
+) -> tuple[np.ndarray, np.ndarray]:
+    """``residual_sums`` of date p's Gaussians summed over date q's views ([N_p, 6] float64), and whether
+    those views observe them ([N_p] bool: the visibility rule ``splat.weights.visible`` on the largest
+    weight of the present render, the fused model at q with date p's Gaussians at o^p)."""
     rc = render_config or splat.RenderConfig()
     o = np.asarray(opacity_multipliers(model), np.float32)
     origin = np.asarray(model.origin)
@@ -168,6 +172,7 @@ def pair_sums(
     light = jnp.asarray(light_multipliers(model)[:, q], jnp.float32)
     g = model.gaussians
     total = jnp.zeros((len(origin), 6), jnp.float32)
+    largest = jnp.zeros(len(origin), jnp.float32)
     for cam, image in zip(cameras, images):
         ref = premultiplied(image)
         if ref.shape[:2] != (int(cam.height), int(cam.width)):
@@ -177,10 +182,12 @@ def pair_sums(
                 fix="give each view its camera's image",
             )
         cap = splat.required_capacity(g, cam, jnp.stack([present, absent]), config=rc)
-        total = total + residual_sums(
+        sums, weight = residual_sums(
             g, cam, present, absent, light, jnp.asarray(ref), dataclasses.replace(rc, capacity=cap)
         )
-    return np.asarray(total, np.float64)[own]
+        total, largest = total + sums, jnp.maximum(largest, weight)
+    seen = visible(np.asarray(largest), np.asarray(present), contribution_threshold)
+    return np.asarray(total, np.float64)[own], seen[own]
 
 
 def gain_fitted_residual(a, b, c, gain_range: tuple[float, float]):
@@ -242,16 +249,19 @@ def pair_statistics(
             raise InputError(f"bad pair ({p}, {q}) for {t} dates", field="pairs", fix="two different date indices")
     rc = render_config or splat.RenderConfig()
     origin = np.asarray(model.origin)
-    o = np.asarray(opacity_multipliers(model), np.float32)
     out = {}
     for k, (p, q) in enumerate(pairs):
         rows = np.nonzero(origin == p)[0]
         if len(rows):
-            mult = np.where(origin == p, o[:, p], o[:, q]).astype(np.float32)
-            seen = observed_from(
-                model.gaussians, mult, views[q].cameras, config.contribution_threshold, render_config=rc
-            )[rows]
-            sums = pair_sums(model, p, q, views[q].cameras, views[q].images, render_config=rc)
+            sums, seen = pair_sums(
+                model,
+                p,
+                q,
+                views[q].cameras,
+                views[q].images,
+                render_config=rc,
+                contribution_threshold=config.contribution_threshold,
+            )
             out[(p, q)] = (rows, sums, seen)
         if progress is not None:
             progress(k + 1, len(pairs))

@@ -88,9 +88,14 @@ def observed_from(
     """[N] bool: the refinement's visibility rule — α·T ≥ ``threshold`` at some pixel of some camera,
     α the Gaussian's own opacity (times its falloff), T from the render at ``opacity`` (the kernel's
     α·opacity·T divided by the opacity)."""
+    return visible(max_weight(g, opacity, cameras, render_config=render_config), opacity, threshold)
+
+
+def visible(weight: np.ndarray, opacity: np.ndarray, threshold: float) -> np.ndarray:
+    """The visibility rule on a render's per-Gaussian max weight α·opacity·T (max over pixels and
+    views): α·T = weight / opacity ≥ ``threshold`` (never for opacity 0)."""
     opacity = np.asarray(opacity, np.float32)
-    weight = max_weight(g, opacity, cameras, render_config=render_config)
-    return np.where(opacity > 0, weight / np.maximum(opacity, 1e-30), 0.0) >= threshold
+    return np.where(opacity > 0, np.asarray(weight) / np.maximum(opacity, 1e-30), 0.0) >= threshold
 
 
 def observed_matrix(
