@@ -25,6 +25,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_splat import RESULTS, machine
 
 VARIANTS = [  # (label, overrides of the default [changes] table)
+    ("every view direction", {"max_view_angle": 180.0}),
+    ("view angle ≤ 30°", {"max_view_angle": 30.0}),
+    ("view angle ≤ 15°", {"max_view_angle": 15.0}),
     ("training views only", {"views": "train"}),
     ("held-out views only", {"views": "test"}),
     ("no gain, k = 1", {"gain_range": (1.0, 1.0), "neighbours": 1}),
@@ -93,8 +96,9 @@ def main():
     rc = section(raw, "render", splat.RenderConfig)
     default = section(raw, "changes", ChangesConfig)
     views = [run.date_views(d, default.views) for d in range(len(run.names))]
+    support = [run.date_cameras(d, "train") for d in range(len(run.names))]
     t0 = time.perf_counter()
-    stats = pair_statistics(run.model, views, default, render_config=rc)
+    stats = pair_statistics(run.model, views, default, support_cameras=support, render_config=rc)
     stats_s = time.perf_counter() - t0
     result = change_detection(run.model, data, run.scenes, run.sims, rc, changes_config=default, statistics=stats)
     gt = json.loads((data / "ground_truth.json").read_text())
@@ -108,10 +112,14 @@ def main():
     other_stats = {}
     for label, over in [("default", {})] + VARIANTS:
         cfg = dataclasses.replace(default, **over)
-        if cfg.views != default.views and cfg.views not in other_stats:
+        key = (cfg.views, cfg.max_view_angle)
+        if key != (default.views, default.max_view_angle) and key not in other_stats:
             other_views = [run.date_views(d, cfg.views) for d in range(len(run.names))]
-            other_stats[cfg.views] = (other_views, pair_statistics(run.model, other_views, cfg, render_config=rc))
-        v, st = other_stats.get(cfg.views, (views, stats))
+            other_stats[key] = (
+                other_views,
+                pair_statistics(run.model, other_views, cfg, support_cameras=support, render_config=rc),
+            )
+        v, st = other_stats.get(key, (views, stats))
         ev = (
             result["evidence"]
             if not over

@@ -13,7 +13,14 @@ from test_compact import _model
 import cfgs_jax as cj
 from cfgs_jax import splat
 from cfgs_jax.changes import ChangesConfig, change_evidence, pair_change, presence_difference
-from cfgs_jax.changes.evidence import gain_fitted_residual, pooled_evidence, residual_sums
+from cfgs_jax.changes.evidence import (
+    direction_support,
+    gain_fitted_residual,
+    nearest_ray_cosine,
+    pair_sums,
+    pooled_evidence,
+    residual_sums,
+)
 from cfgs_jax.changes.maps import change_mask, pixel_change
 from cfgs_jax.changes.regions import cluster_labels, hull_volume, image_regions, median_spacing, regions_3d
 from cfgs_jax.errors import InputError
@@ -169,6 +176,51 @@ def test_changes_config_validates():
         ChangesConfig(views="validation")
     with pytest.raises(InputError, match="changes.grow_above"):
         ChangesConfig(grow_above=0.7)
+    with pytest.raises(InputError, match="changes.max_view_angle"):
+        ChangesConfig(max_view_angle=0.0)
+
+
+def test_nearest_ray_cosine_matches_float64_angles():
+    """The cosine of the smallest angle at each point between the ray from the query centre and a
+    marked ray from the other centres equals a float64 brute force, far from the origin too."""
+    rng = np.random.default_rng(5)
+    for offset in (0.0, 1000.0):
+        points = rng.normal(0, 1, (50, 3)) + offset
+        centres = rng.normal(0, 4, (7, 3)) + offset
+        centre = rng.normal(0, 4, 3) + offset
+        seen = rng.uniform(size=(50, 7)) < 0.4
+        seen[0] = False  # no marked ray: −1
+        got = np.asarray(
+            nearest_ray_cosine(
+                jnp.asarray(points, jnp.float32),
+                jnp.asarray(seen, jnp.float32),
+                jnp.asarray(centres, jnp.float32),
+                jnp.asarray(centre, jnp.float32),
+            )
+        )
+        unit = lambda v: v / np.linalg.norm(v, axis=-1, keepdims=True)
+        cos = np.einsum("mk,mvk->mv", unit(points - centre), unit(points[:, None] - centres[None]))
+        want = np.where(seen, cos, -1.0).max(1)
+        assert want[0] == -1.0
+        np.testing.assert_allclose(got, want, atol=2e-4 if offset else 2e-6)
+
+
+def test_views_beyond_the_max_view_angle_give_no_evidence():
+    """Date 0's only camera looks from −y. A view of date 1 from the same side gives the same sums with
+    and without the direction rule; a view from +x (90° away) gives none under a 20° limit (and the
+    Gaussians count as unobserved), its full sums at 180°."""
+    model, views = _two_date_scene(gain=1.0)
+    front, side = _cam([0.1, -2.2, 0.3]), _cam([2.2, 0.1, 0.3])
+    support = direction_support(model, 0, [_cam([0.0, -2.2, 0.4])])
+    assert support[0].shape == (2, 1) and support[0].all()
+    front_img, side_img = (np.asarray(splat.render(model.gaussians, c).image) for c in (front, side))
+    alone, seen_alone = pair_sums(model, 0, 1, [front], [front_img])
+    both, _ = pair_sums(model, 0, 1, [front, side], [front_img, side_img], support=support, max_view_angle=20.0)
+    np.testing.assert_allclose(both, alone, rtol=1e-6)
+    none, seen_none = pair_sums(model, 0, 1, [side], [side_img], support=support, max_view_angle=20.0)
+    assert np.all(none == 0) and not seen_none.any() and seen_alone.all()
+    full, seen_full = pair_sums(model, 0, 1, [side], [side_img], support=support, max_view_angle=180.0)
+    assert full[:, 0].min() > 1.0 and seen_full.all()
 
 
 def test_regions_hand_cases():
@@ -199,3 +251,22 @@ def test_regions_hand_cases():
     areas, labels = image_regions(mask, mask.astype(float) * 0.8, min_pixels=2)
     assert [(r["area_pixels"], r["bbox_xyxy"]) for r in areas] == [(12, [1, 1, 4, 3]), (7, [8, 6, 10, 9])]
     assert labels[0, 11] == 0 and (labels[mask & (labels > 0)] > 0).sum() == 19
+
+
+def test_regions_split_neighbours_of_opposite_kind_and_join_colocated_ones():
+    """A removed cloud touching an added one is two regions (each of one kind); an old and a new cloud
+    intermixed at the same place (a changed look) is one region of kind "changed"."""
+    rng = np.random.default_rng(1)
+    a = rng.uniform(0, 1, (300, 3))
+    b = rng.uniform(0, 1, (300, 3)) + [1.02, 0, 0]  # touches a along one face
+    pts = np.concatenate([a, b])
+    diff = np.concatenate([np.full(300, 0.9), np.full(300, -0.9)])
+    regions, member = regions_3d(pts, np.ones(600, bool), diff, spacing=median_spacing(pts), link_factor=4.0)
+    assert len(np.unique(cluster_labels(pts, 4.0 * median_spacing(pts)))) == 1  # one component if linked together
+    assert sorted((r["kind"], r["gaussians"]) for r in regions) == [("appeared", 300), ("disappeared", 300)]
+    assert len(set(member[:300])) == 1 and len(set(member[300:])) == 1 and member[0] != member[300]
+    # same place: the second cloud inside the first
+    c = rng.uniform(0, 1, (300, 3))
+    pts = np.concatenate([a, c])
+    regions, member = regions_3d(pts, np.ones(600, bool), diff, spacing=median_spacing(pts), link_factor=4.0)
+    assert [(r["kind"], r["gaussians"]) for r in regions] == [("changed", 600)] and (member == 0).all()

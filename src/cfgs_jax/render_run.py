@@ -101,6 +101,12 @@ class FusedRun:
 
         return date_views(self.scenes[date], self.sims[date], split)
 
+    def date_cameras(self, date: int, split: str = "train") -> list[Camera]:
+        """Date ``date``'s ``split`` cameras posed in the model's frame (no images read)."""
+        from cfgs_jax.fusion.run import date_cameras
+
+        return date_cameras(self.scenes[date], self.sims[date], split)
+
     def all_cameras(self) -> list[Camera]:
         from cfgs_jax.fusion.run import camera_in_frame
 

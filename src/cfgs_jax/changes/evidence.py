@@ -24,6 +24,12 @@ q's images explained better without it (e ≈ its colour contrast with what repl
 persistent one is explained as well or better with it (e ≤ 0), whatever o^q cross-init reached. The
 score s_i^q = clip(e_i^q / (2τ), 0, 1) is 0.5 at the decision threshold τ. It is defined where q's
 views observe the Gaussian (the refinement's visibility rule in the fused render at q) and 0 elsewhere.
+
+A reconstruction is only trustworthy from the directions it was fitted from: seen from elsewhere, a
+Gaussian that date p's images constrained poorly (a floater, a surface seen at a grazing angle by a
+date with partial coverage) renders wrong although nothing changed. So a view u of q gives evidence on
+Gaussian i only when the ray from u's centre to i lies within ``max_view_angle`` of the ray from some
+training camera of p that sees i (the same visibility rule in the fused render at p).
 """
 
 from __future__ import annotations
@@ -41,7 +47,7 @@ from scipy.spatial import cKDTree
 from cfgs_jax import splat
 from cfgs_jax.errors import InputError
 from cfgs_jax.model import Camera, Gaussians, TemporalGaussians, light_multipliers, opacity_multipliers
-from cfgs_jax.splat.weights import summed_weights, visible
+from cfgs_jax.splat.weights import max_weight, summed_weights, visible
 
 
 @dataclasses.dataclass(frozen=True)
@@ -58,7 +64,8 @@ class ChangesConfig:
     Regions: changed Gaussians closer than ``link_factor`` × the model's median nearest-neighbour
     distance are linked, and so are Gaussians scored above ``grow_above`` (≤ 0.5) that touch them; a
     region needs ``min_region_gaussians`` Gaussians scored > 0.5 (3D) and ``min_region_pixels`` pixels
-    (image)."""
+    (image). ``max_view_angle`` (degrees): a view of q informs a Gaussian of p only from within this
+    angle of a direction one of p's training cameras saw it from (180: every view)."""
 
     threshold: float = 0.06
     views: str = "all"
@@ -69,6 +76,7 @@ class ChangesConfig:
     grow_above: float = 0.35
     min_region_gaussians: int = 16
     min_region_pixels: int = 8
+    max_view_angle: float = 20.0
 
     def __post_init__(self):
         if not 0.0 < self.threshold < 1.0:
@@ -91,6 +99,12 @@ class ChangesConfig:
             )
         if not 0.0 < self.grow_above <= 0.5:
             raise InputError(f"must lie in (0, 0.5], got {self.grow_above}", field="changes.grow_above")
+        if not 0.0 < self.max_view_angle <= 180.0:
+            raise InputError(
+                f"must lie in (0, 180] degrees, got {self.max_view_angle}",
+                field="changes.max_view_angle",
+                fix="e.g. 20; 180 lets every view count",
+            )
         if self.link_factor <= 0:
             raise InputError(f"must be > 0, got {self.link_factor}", field="changes.link_factor")
         for name in ("min_region_gaussians", "min_region_pixels"):
@@ -150,6 +164,39 @@ def premultiplied(image: np.ndarray) -> np.ndarray:
     return image[..., :3] * image[..., 3:4] if image.shape[-1] == 4 else image
 
 
+@jax.jit
+def nearest_ray_cosine(
+    points: Float[Array, "M 3"], seen: Float[Array, "M V"], centres: Float[Array, "V 3"], centre: Float[Array, "3"]
+) -> Float[Array, " M"]:
+    """Per point x, the cosine of the smallest angle between the ray centre → x and a ray c_v → x from
+    one of the ``centres`` that ``seen`` marks for x (−1 where none is marked)."""
+    direction = points - centre
+    direction = direction / jnp.maximum(jnp.linalg.norm(direction, axis=-1, keepdims=True), 1e-30)
+    rays = points[:, None, :] - centres[None]  # [M, V, 3]
+    cosine = jnp.sum(rays * direction[:, None], -1) / jnp.maximum(jnp.linalg.norm(rays, axis=-1), 1e-30)
+    return jnp.max(jnp.where(seen > 0, cosine, -1.0), axis=1)
+
+
+def direction_support(
+    model: TemporalGaussians,
+    p: int,
+    cameras: Sequence[Camera],
+    *,
+    render_config: splat.RenderConfig | None = None,
+    contribution_threshold: float = 0.01,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Which of date p's (training) ``cameras`` see each of its Gaussians — [N_p, V] bool, the visibility
+    rule on the fused render at p — and the cameras' centres [V, 3]."""
+    o = np.asarray(opacity_multipliers(model), np.float32)[:, p]
+    own = np.asarray(model.origin) == p
+    seen = [
+        visible(max_weight(model.gaussians, o, [cam], render_config=render_config), o, contribution_threshold)[own]
+        for cam in cameras
+    ]
+    centres = np.stack([np.asarray(cam.center, np.float32) for cam in cameras]) if cameras else np.zeros((0, 3))
+    return (np.stack(seen, 1) if seen else np.zeros((int(own.sum()), 0), bool)), centres
+
+
 def pair_sums(
     model: TemporalGaussians,
     p: int,
@@ -159,20 +206,36 @@ def pair_sums(
     *,
     render_config: splat.RenderConfig | None = None,
     contribution_threshold: float = 0.01,
+    support: tuple[np.ndarray, np.ndarray] | None = None,
+    max_view_angle: float = 180.0,
 ) -> tuple[np.ndarray, np.ndarray]:
     """``residual_sums`` of date p's Gaussians summed over date q's views ([N_p, 6] float64), and whether
     those views observe them ([N_p] bool: the visibility rule ``splat.weights.visible`` on the largest
-    weight of the present render, the fused model at q with date p's Gaussians at o^p)."""
+    weight of the present render, the fused model at q with date p's Gaussians at o^p). With
+    ``support`` (``direction_support`` of date p) a view counts for a Gaussian only within
+    ``max_view_angle`` degrees of a direction p's cameras saw it from."""
     rc = render_config or splat.RenderConfig()
     o = np.asarray(opacity_multipliers(model), np.float32)
     origin = np.asarray(model.origin)
     own = origin == p
+    rows = jnp.asarray(np.nonzero(own)[0])
     present = jnp.asarray(np.where(own, o[:, p], o[:, q]))
     absent = jnp.asarray(np.where(own, 0.0, o[:, q]).astype(np.float32))
     light = jnp.asarray(light_multipliers(model)[:, q], jnp.float32)
     g = model.gaussians
-    total = jnp.zeros((len(origin), 6), jnp.float32)
-    largest = jnp.zeros(len(origin), jnp.float32)
+    restrict = support is not None and max_view_angle < 180.0
+    if restrict:
+        points = jnp.asarray(g.means)[rows]
+        seen_by_p, centres = jnp.asarray(support[0], jnp.float32), jnp.asarray(support[1], jnp.float32)
+        if seen_by_p.shape[0] != len(rows):
+            raise InputError(
+                f"support for {seen_by_p.shape[0]} Gaussians, date {p} has {len(rows)}",
+                field="support",
+                fix="pass direction_support(model, p, …) of the same model",
+            )
+        min_cosine = np.float32(np.cos(np.radians(max_view_angle)))
+    total = jnp.zeros((len(rows), 6), jnp.float32)
+    largest = jnp.zeros(len(rows), jnp.float32)
     for cam, image in zip(cameras, images):
         ref = premultiplied(image)
         if ref.shape[:2] != (int(cam.height), int(cam.width)):
@@ -185,9 +248,13 @@ def pair_sums(
         sums, weight = residual_sums(
             g, cam, present, absent, light, jnp.asarray(ref), dataclasses.replace(rc, capacity=cap)
         )
+        sums, weight = sums[rows], weight[rows]
+        if restrict:
+            counts = nearest_ray_cosine(points, seen_by_p, centres, jnp.asarray(cam.center, jnp.float32)) >= min_cosine
+            sums, weight = sums * counts[:, None], weight * counts
         total, largest = total + sums, jnp.maximum(largest, weight)
-    seen = visible(np.asarray(largest), np.asarray(present), contribution_threshold)
-    return np.asarray(total, np.float64)[own], seen[own]
+    seen = visible(np.asarray(largest), np.asarray(present)[own], contribution_threshold)
+    return np.asarray(total, np.float64), seen
 
 
 def gain_fitted_residual(a, b, c, gain_range: tuple[float, float]):
@@ -234,25 +301,38 @@ def pair_statistics(
     config: ChangesConfig = ChangesConfig(),
     *,
     pairs: Sequence[tuple[int, int]] | None = None,
+    support_cameras: Sequence[Sequence[Camera]] | None = None,
     render_config: splat.RenderConfig | None = None,
     progress=None,
 ) -> PairStatistics:
     """The residual sums and visibility of every Gaussian of date p at date q for each ordered pair
-    (p, q) in ``pairs`` (default: all p ≠ q). ``views[q]``: date q's training views in the model's
-    frame (``cameras``, ``images``, e.g. ``fusion.DateViews``). ``progress(done, total)`` per pair."""
+    (p, q) in ``pairs`` (default: all p ≠ q). ``views[q]``: date q's views in the model's frame
+    (``cameras``, ``images``, e.g. ``fusion.DateViews``); ``support_cameras[p]``: the cameras date p's
+    Gaussians were fitted to (its training cameras; default ``views[p].cameras``), which bound the
+    directions a view of q may inform them from (``config.max_view_angle``). ``progress(done, total)``
+    per pair."""
     t = model.num_dates
     if len(views) != t:
         raise InputError(f"{len(views)} sets of views for {t} dates", field="views", fix="give one per date")
+    if support_cameras is not None and len(support_cameras) != t:
+        raise InputError(
+            f"{len(support_cameras)} sets of cameras for {t} dates", field="support_cameras", fix="give one per date"
+        )
     pairs = [(p, q) for p in range(t) for q in range(t) if p != q] if pairs is None else list(pairs)
     for p, q in pairs:
         if not (0 <= p < t and 0 <= q < t) or p == q:
             raise InputError(f"bad pair ({p}, {q}) for {t} dates", field="pairs", fix="two different date indices")
     rc = render_config or splat.RenderConfig()
     origin = np.asarray(model.origin)
-    out = {}
+    out, support = {}, {}
     for k, (p, q) in enumerate(pairs):
         rows = np.nonzero(origin == p)[0]
         if len(rows):
+            if config.max_view_angle < 180.0 and p not in support:
+                cams = views[p].cameras if support_cameras is None else support_cameras[p]
+                support[p] = direction_support(
+                    model, p, cams, render_config=rc, contribution_threshold=config.contribution_threshold
+                )
             sums, seen = pair_sums(
                 model,
                 p,
@@ -261,6 +341,8 @@ def pair_statistics(
                 views[q].images,
                 render_config=rc,
                 contribution_threshold=config.contribution_threshold,
+                support=support.get(p),
+                max_view_angle=config.max_view_angle,
             )
             out[(p, q)] = (rows, sums, seen)
         if progress is not None:
@@ -285,14 +367,11 @@ def change_evidence(
     model: TemporalGaussians,
     views: Sequence,
     config: ChangesConfig = ChangesConfig(),
-    *,
-    pairs: Sequence[tuple[int, int]] | None = None,
-    render_config: splat.RenderConfig | None = None,
-    progress=None,
+    **kwargs,
 ) -> ChangeEvidence:
-    """The evidence and score of every Gaussian of date p at date q for each ordered pair (p, q) in
-    ``pairs`` (default: all p ≠ q): ``pair_statistics`` then ``evidence_from``."""
-    stats = pair_statistics(model, views, config, pairs=pairs, render_config=render_config, progress=progress)
+    """The evidence and score of every Gaussian of date p at date q for each ordered pair (p, q) asked
+    for: ``pair_statistics`` (same arguments) then ``evidence_from``."""
+    stats = pair_statistics(model, views, config, **kwargs)
     return evidence_from(stats, np.asarray(model.gaussians.means), config)
 
 

@@ -3,9 +3,11 @@ areas in an image.
 
 3D: Gaussians whose pair score exceeds ``grow_above`` are linked when their centres lie closer than
 ``link_factor`` × the median nearest-neighbour distance of all the model's Gaussians (a scale-free
-radius); a connected component holding at least ``min_region_gaussians`` Gaussians scored changed
-(score > 0.5) is a region, with all its members (hysteresis thresholding: a weakly scored Gaussian
-belongs to a change only where it touches a confident one).
+radius), what appeared and what disappeared separately (two neighbouring objects, one removed and one
+added, are two changes), and then the appeared and disappeared components that occupy the same place
+are joined (an object whose look changed). A component holding at least ``min_region_gaussians``
+Gaussians scored changed (score > 0.5) is a region, with all its members (hysteresis thresholding: a
+weakly scored Gaussian belongs to a change only where it touches a confident one).
 Each has its Gaussian count, centroid, axis-aligned bounds, the volume of the convex hull of its
 centres, and its kind: "disappeared" (≥ 80 % of its Gaussians shown at the earlier date and gone at the later), "appeared"
 (≥ 80 % the other way) or "changed" (both).
@@ -53,6 +55,47 @@ def hull_volume(points: np.ndarray) -> float:
         return 0.0
 
 
+def merge_colocated(
+    means: np.ndarray, first: list[np.ndarray], second: list[np.ndarray], radius: float
+) -> list[np.ndarray]:
+    """The groups of Gaussian indices ``first`` and ``second`` (e.g. what appeared and what disappeared),
+    a group of one joined with a group of the other that occupies the same place: at least half of the
+    smaller one's centres have their nearest centre of the other side, within ``radius``, in the larger
+    one (an object whose look changed leaves an old and a new group intermixed; two neighbouring objects
+    only touch)."""
+    groups = list(first) + list(second)
+    label = np.full(len(means), -1, np.int64)
+    for k, g in enumerate(groups):
+        label[g] = k
+    size = np.array([len(g) for g in groups])
+    parent = np.arange(len(groups))
+
+    def root(i):
+        while parent[i] != i:
+            i = parent[i]
+        return i
+
+    sides = (
+        np.concatenate(first) if first else np.zeros(0, int),
+        np.concatenate(second) if second else np.zeros(0, int),
+    )
+    for mine, other in (sides, sides[::-1]):
+        if not len(mine) or not len(other):
+            continue
+        d, nearest = cKDTree(means[other]).query(means[mine], distance_upper_bound=radius)
+        near = np.isfinite(d)
+        pairs, counts = np.unique(
+            np.stack([label[mine[near]], label[other[nearest[near]]]], 1), axis=0, return_counts=True
+        )
+        for (a, b), c in zip(pairs, counts):
+            if size[a] <= size[b] and c >= 0.5 * size[a]:
+                parent[root(a)] = root(b)
+    joined: dict[int, list[np.ndarray]] = {}
+    for k, g in enumerate(groups):
+        joined.setdefault(root(k), []).append(g)
+    return [np.sort(np.concatenate(parts)) for parts in joined.values()]
+
+
 def regions_3d(
     means: np.ndarray,
     seeds: np.ndarray,
@@ -72,10 +115,14 @@ def regions_3d(
     difference = np.asarray(difference, np.float64)
     seeds = np.asarray(seeds, bool)
     candidates = seeds if candidates is None else (np.asarray(candidates, bool) | seeds)
-    rows = np.nonzero(candidates)[0]
+    radius = link_factor * spacing
     member = np.full(len(means), -1, np.int64)
-    labels = cluster_labels(means[rows], link_factor * spacing)
-    groups = [rows[labels == k] for k in np.unique(labels)]
+    sides = []
+    for side in (difference > 0, difference <= 0):  # what disappeared and what appeared, apart
+        rows = np.nonzero(candidates & side)[0]
+        labels = cluster_labels(means[rows], radius)
+        sides.append([rows[labels == k] for k in np.unique(labels)])
+    groups = merge_colocated(means, *sides, radius)
     groups = sorted((g for g in groups if seeds[g].sum() >= min_gaussians), key=len, reverse=True)
     out = []
     for k, idx in enumerate(groups):

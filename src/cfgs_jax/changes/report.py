@@ -65,7 +65,13 @@ def detect_changes(
     log(f"[changes] evidence of {run.names[p]} ↔ {run.names[q]} from the dates' {config.views} views")
     views = [run.date_views(d, config.views) for d in range(len(run.names))]
     evidence = change_evidence(
-        model, views, config, pairs=pairs_for(len(run.names), p, q), render_config=render_config, progress=progress
+        model,
+        views,
+        config,
+        pairs=pairs_for(len(run.names), p, q),
+        support_cameras=[run.date_cameras(d, "train") for d in range(len(run.names))],
+        render_config=render_config,
+        progress=progress,
     )
     means = np.asarray(model.gaussians.means, np.float64)
     difference, known, regions, member = pair_regions(

@@ -377,6 +377,7 @@ def evidence_detection(
     changed_objects: dict[tuple[int, int], set],
     config=None,
     *,
+    support_cameras=None,
     render_config=None,
     statistics=None,
 ) -> dict:
@@ -387,14 +388,15 @@ def evidence_detection(
     views lies on pixels whose surface differs at q), per pixel of each date's test views (the pair's region members rendered,
     against ``changed_vs``; pixels covered and observed at both dates) and per region
     (``changed_objects[(p, q)]``: object ids whose presence differs, p < q). ``statistics``:
-    precomputed ``changes.pair_statistics`` (computed when not given)."""
+    precomputed ``changes.pair_statistics`` (computed from ``views`` and ``support_cameras``, each date's
+    training cameras, when not given)."""
     from cfgs_jax.changes import ChangesConfig, evidence_from, pair_statistics
     from cfgs_jax.changes.maps import change_mask, pixel_change, valid_pixels
     from cfgs_jax.changes.regions import median_spacing, pair_regions
 
     cfg = config or ChangesConfig()
     rc = render_config or splat.RenderConfig()
-    stats = statistics or pair_statistics(model, views, cfg, render_config=rc)
+    stats = statistics or pair_statistics(model, views, cfg, support_cameras=support_cameras, render_config=rc)
     means = np.asarray(model.gaussians.means, np.float64)
     ev = evidence_from(stats, means, cfg)
     origin = np.asarray(model.origin)

@@ -431,7 +431,7 @@ def change_detection(
     under ``"evidence"``; ``statistics``: its precomputed ``changes.pair_statistics``) and the o^q rules
     (``config``: the eval's ``[change]`` table)."""
     from cfgs_jax.evaluation import change
-    from cfgs_jax.fusion.run import date_views
+    from cfgs_jax.fusion.run import date_cameras, date_views
 
     gt = json.loads((data / "ground_truth.json").read_text())
     names = [d.name for d in model.dates]
@@ -469,6 +469,7 @@ def change_detection(
         masks_test,
         change.changed_objects_by_pair(gt),
         changes_config,
+        support_cameras=[date_cameras(sc, sm) for sc, sm in zip(scenes, sims)],
         render_config=render_config,
         statistics=statistics,
     )

@@ -84,7 +84,8 @@ def _evidence_table(ev: dict) -> list[str]:
         "## Change detection against ground truth (residual evidence, the `changes` command)",
         "",
         f"Threshold τ = {tau} (RMS colour, score > 0.5), evidence pooled over k = {k} neighbours, "
-        f"gain range {ev['config']['gain_range'][0]:.3g}–{ev['config']['gain_range'][1]:.3g}; regions grow "
+        f"gain range {ev['config']['gain_range'][0]:.3g}–{ev['config']['gain_range'][1]:.3g}, views within "
+        f"{ev['config'].get('max_view_angle', 180.0):g}° of the Gaussian's own date's; regions grow "
         f"over Gaussians scored > {ev['config']['grow_above']} and need {ev['config']['min_region_gaussians']} "
         "scored > 0.5.",
         "",

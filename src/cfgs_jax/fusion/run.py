@@ -86,6 +86,11 @@ def split_or_all(scene: Scene, split: str) -> np.ndarray:
     return idx if len(idx) else scene.indices("all")
 
 
+def date_cameras(scene: Scene, sim3: Sim3, split: str = "train") -> list[Camera]:
+    """A date's ``split`` cameras posed in the reference frame (no images read)."""
+    return [camera_in_frame(scene.cameras[int(i)], sim3) for i in split_or_all(scene, split)]
+
+
 def date_views(scene: Scene, sim3: Sim3, split: str = "train") -> DateViews:
     """A date's ``split`` views (RGBA images, alpha 1 where none) posed in the reference frame."""
     idx = split_or_all(scene, split)
