@@ -20,6 +20,7 @@ from cfgs_jax.changes.evidence import (
     pair_sums,
     pooled_evidence,
     residual_sums,
+    spread_cameras,
 )
 from cfgs_jax.changes.maps import change_mask, pixel_change
 from cfgs_jax.changes.regions import cluster_labels, hull_volume, image_regions, median_spacing, regions_3d
@@ -178,6 +179,17 @@ def test_changes_config_validates():
         ChangesConfig(grow_above=0.7)
     with pytest.raises(InputError, match="changes.max_view_angle"):
         ChangesConfig(max_view_angle=0.0)
+    with pytest.raises(InputError, match="changes.support_views"):
+        ChangesConfig(support_views=0)
+
+
+def test_spread_cameras_is_a_farthest_point_sample():
+    """Of 11 cameras on a line, 3 spread out are both ends and the middle; fewer than asked: all."""
+    cams = [_cam([x, -2.0, 0.3]) for x in np.linspace(-1.0, 1.0, 11)]
+    picked = spread_cameras(cams, 3)
+    xs = sorted(float(np.asarray(c.center)[0]) for c in picked)
+    np.testing.assert_allclose(xs, [-1.0, 0.0, 1.0], atol=1e-5)
+    assert spread_cameras(cams[:2], 3) == cams[:2]
 
 
 def test_nearest_ray_cosine_matches_float64_angles():
@@ -193,7 +205,7 @@ def test_nearest_ray_cosine_matches_float64_angles():
         got = np.asarray(
             nearest_ray_cosine(
                 jnp.asarray(points, jnp.float32),
-                jnp.asarray(seen, jnp.float32),
+                jnp.asarray(seen),
                 jnp.asarray(centres, jnp.float32),
                 jnp.asarray(centre, jnp.float32),
             )

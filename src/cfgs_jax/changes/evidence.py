@@ -41,7 +41,7 @@ from collections.abc import Sequence
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Float
+from jaxtyping import Array, Bool, Float
 from scipy.spatial import cKDTree
 
 from cfgs_jax import splat
@@ -65,7 +65,8 @@ class ChangesConfig:
     distance are linked, and so are Gaussians scored above ``grow_above`` (≤ 0.5) that touch them; a
     region needs ``min_region_gaussians`` Gaussians scored > 0.5 (3D) and ``min_region_pixels`` pixels
     (image). ``max_view_angle`` (degrees): a view of q informs a Gaussian of p only from within this
-    angle of a direction one of p's training cameras saw it from (180: every view)."""
+    angle of a direction one of p's training cameras saw it from (180: every view); at most
+    ``support_views`` of those cameras, spread out (``spread_cameras``), stand for them all."""
 
     threshold: float = 0.06
     views: str = "all"
@@ -77,6 +78,7 @@ class ChangesConfig:
     min_region_gaussians: int = 16
     min_region_pixels: int = 8
     max_view_angle: float = 20.0
+    support_views: int = 64
 
     def __post_init__(self):
         if not 0.0 < self.threshold < 1.0:
@@ -105,6 +107,8 @@ class ChangesConfig:
                 field="changes.max_view_angle",
                 fix="e.g. 20; 180 lets every view count",
             )
+        if int(self.support_views) < 1:
+            raise InputError(f"must be ≥ 1, got {self.support_views}", field="changes.support_views")
         if self.link_factor <= 0:
             raise InputError(f"must be > 0, got {self.link_factor}", field="changes.link_factor")
         for name in ("min_region_gaussians", "min_region_pixels"):
@@ -166,7 +170,7 @@ def premultiplied(image: np.ndarray) -> np.ndarray:
 
 @jax.jit
 def nearest_ray_cosine(
-    points: Float[Array, "M 3"], seen: Float[Array, "M V"], centres: Float[Array, "V 3"], centre: Float[Array, "3"]
+    points: Float[Array, "M 3"], seen: Bool[Array, "M V"], centres: Float[Array, "V 3"], centre: Float[Array, "3"]
 ) -> Float[Array, " M"]:
     """Per point x, the cosine of the smallest angle between the ray centre → x and a ray c_v → x from
     one of the ``centres`` that ``seen`` marks for x (−1 where none is marked)."""
@@ -174,7 +178,22 @@ def nearest_ray_cosine(
     direction = direction / jnp.maximum(jnp.linalg.norm(direction, axis=-1, keepdims=True), 1e-30)
     rays = points[:, None, :] - centres[None]  # [M, V, 3]
     cosine = jnp.sum(rays * direction[:, None], -1) / jnp.maximum(jnp.linalg.norm(rays, axis=-1), 1e-30)
-    return jnp.max(jnp.where(seen > 0, cosine, -1.0), axis=1)
+    return jnp.max(jnp.where(seen, cosine, -1.0), axis=1)
+
+
+def spread_cameras(cameras: Sequence[Camera], count: int) -> list[Camera]:
+    """At most ``count`` of ``cameras``, spread out: a farthest-point sample of their centres starting
+    from the first (consecutive frames of a capture lie close together, and a few stand for many)."""
+    cameras = list(cameras)
+    if len(cameras) <= count:
+        return cameras
+    centres = np.stack([np.asarray(cam.center, np.float64) for cam in cameras])
+    chosen = [0]
+    distance = np.linalg.norm(centres - centres[0], axis=1)
+    for _ in range(count - 1):
+        chosen.append(int(np.argmax(distance)))
+        distance = np.minimum(distance, np.linalg.norm(centres - centres[chosen[-1]], axis=1))
+    return [cameras[i] for i in sorted(chosen)]
 
 
 def direction_support(
@@ -226,7 +245,7 @@ def pair_sums(
     restrict = support is not None and max_view_angle < 180.0
     if restrict:
         points = jnp.asarray(g.means)[rows]
-        seen_by_p, centres = jnp.asarray(support[0], jnp.float32), jnp.asarray(support[1], jnp.float32)
+        seen_by_p, centres = jnp.asarray(support[0], bool), jnp.asarray(support[1], jnp.float32)
         if seen_by_p.shape[0] != len(rows):
             raise InputError(
                 f"support for {seen_by_p.shape[0]} Gaussians, date {p} has {len(rows)}",
@@ -330,6 +349,7 @@ def pair_statistics(
         if len(rows):
             if config.max_view_angle < 180.0 and p not in support:
                 cams = views[p].cameras if support_cameras is None else support_cameras[p]
+                cams = spread_cameras(cams, int(config.support_views))
                 support[p] = direction_support(
                     model, p, cams, render_config=rc, contribution_threshold=config.contribution_threshold
                 )
