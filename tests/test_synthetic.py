@@ -147,6 +147,32 @@ def test_light_only_changes_flag_nothing_and_cracks_flag_part_of_the_vase(tmp_pa
     assert not ch[ids != vid].any()
 
 
+def test_quake_moves_one_object_and_collapses_another(tmp_path):
+    """The geometric-change preset: object_0 placed elsewhere from d1 on, object_1 flattened at d2.
+    The ground truth names exactly those objects per date pair, and the change masks mark moved
+    geometry (content differs) while the untouched objects stay unmarked."""
+    from cfgs_jax.evaluation.change import changed_objects_by_pair
+
+    spec = synthetic.make_preset("quake", seed=1, width=48, height=36, images_per_date=3, spp=2)
+    out = synthetic.render_dataset(spec, tmp_path / "quake", progress=False)
+    gt = json.loads((out / "ground_truth.json").read_text())
+    ids = {o["name"]: o["id"] for o in gt["objects"]}
+    assert changed_objects_by_pair(gt) == {
+        (0, 1): {ids["object_0"]},
+        (0, 2): {ids["object_0"], ids["object_1"]},
+        (1, 2): {ids["object_1"]},
+    }
+    height = [np.asarray(m)[2, 2] for m in spec.objects[2].to_world]
+    assert height[2] == pytest.approx(0.4 * height[0]) and height[0] == height[1]
+    still = [ids[f"object_{i}"] for i in (2, 3, 4)]
+    marked = 0
+    for f in sorted((out / "d2" / "masks" / "changed_vs_d1").glob("*.png")):
+        ch, obj = _mask(f) > 0, _mask(out / "d2" / "masks" / "ids" / f.name)
+        assert not ch[np.isin(obj, still)].any()
+        marked += int(ch.sum())
+    assert marked > 0
+
+
 @pytest.mark.slow
 def test_sfm_registers_a_rendered_corals_date(tmp_path):
     """pycolmap SIFT + exhaustive matching + incremental mapping on one date registers ≥ 90 %."""

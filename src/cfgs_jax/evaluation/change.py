@@ -504,7 +504,8 @@ def evidence_detection(
 
 def changed_objects_by_pair(gt: dict) -> dict[tuple[int, int], set]:
     """From ``ground_truth.json``: for each date pair p < q the ids of the objects (not the ground)
-    present at exactly one of the two dates or shown in a different variant."""
+    present at exactly one of the two dates, shown in a different variant, or, present at both, placed
+    differently (``to_world``)."""
     dates = gt["dates"]
     out = {}
     for p in range(len(dates)):
@@ -515,7 +516,14 @@ def changed_objects_by_pair(gt: dict) -> dict[tuple[int, int], set]:
                 if name == "ground":
                     continue
                 a, b = dates[p], dates[q]
-                if a["present"].get(name) != b["present"].get(name) or a["variant"].get(name) != b["variant"].get(name):
+                placed = a.get("to_world", {}).get(name), b.get("to_world", {}).get(name)
+                moved = a["present"].get(name) and b["present"].get(name) and None not in placed
+                moved = moved and not np.allclose(placed[0], placed[1], atol=1e-6)
+                if (
+                    a["present"].get(name) != b["present"].get(name)
+                    or a["variant"].get(name) != b["variant"].get(name)
+                    or moved
+                ):
                     ids.add(int(obj["id"]))
             out[(p, q)] = ids
     return out

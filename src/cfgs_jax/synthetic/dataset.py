@@ -257,6 +257,7 @@ def _date_truth(spec: SceneSpec, q: int, names: list[str], frame: Sim3) -> dict:
         "coverage": date.coverage,
         "present": {o.name: bool(o.present[q]) for o in spec.objects},
         "variant": {o.name: int(o.variant[q]) for o in spec.objects},
+        "to_world": {o.name: np.asarray(o.to_world[q]).tolist() for o in spec.objects},
         "lighting": {
             "sun_azimuth_deg": date.sun_azimuth_deg,
             "sun_elevation_deg": date.sun_elevation_deg,

@@ -139,7 +139,7 @@ def _dates(rng, names, n_images, *, lighting, coverage=None) -> tuple[DateSpec, 
 def make_preset(
     name: str, *, seed: int = 0, width: int = 320, height: int = 240, images_per_date: int = 32, spp: int = 32
 ) -> SceneSpec:
-    """The named preset (vase, corals, flood, coverage, light, reef) at the given size and quality
+    """The named preset (vase, corals, flood, coverage, light, reef, quake) at the given size and quality
     (``spp`` is rounded up to a power of two for the low-discrepancy sampler)."""
     if name not in PRESETS:
         raise InputError(f"unknown preset {name!r}", field="--preset", fix=f"use one of {', '.join(PRESETS)}")
@@ -230,4 +230,31 @@ def _reef(rng, seed, k):
     return objs, _dates(rng, [f"d{i}" for i in range(d)], k, lighting=light)
 
 
-PRESETS = {"vase": _vase, "corals": _corals, "flood": _flood, "coverage": _coverage, "light": _light, "reef": _reef}
+def _quake(rng, seed, k):
+    """Geometric change only (no object comes or goes, no texture changes): object_0 is moved to a free
+    spot at d1 and stays there; object_1 collapses to 0.4 of its height at d2."""
+    d = 3
+    objs = [_ground(d, seed * 100 + 1)]
+    spots = _placements(rng, 6)
+    for i, xy in enumerate(spots[:5]):
+        objs.append(_thing(rng, f"object_{i}", xy, d, [True] * d, seed * 100 + 10 + i))
+    m0 = np.asarray(objs[1].to_world[0], np.float64)
+    moved = m0.copy()
+    moved[:2, 3] = spots[5]
+    objs[1] = dataclasses.replace(objs[1], to_world=(_mat(m0), _mat(moved), _mat(moved)))
+    m1 = np.asarray(objs[2].to_world[0], np.float64)
+    collapsed = np.diag([1.0, 1.0, 0.4, 1.0]) @ m1  # world z scaled about the ground plane: it stays on the ground
+    objs[2] = dataclasses.replace(objs[2], to_world=(_mat(m1), _mat(m1), _mat(collapsed)))
+    light = [(45, 60, 5600, 0.0), (75, 50, 5200, -0.2), (120, 55, 6200, 0.2)]
+    return objs, _dates(rng, ["d0", "d1", "d2"], k, lighting=light)
+
+
+PRESETS = {
+    "vase": _vase,
+    "corals": _corals,
+    "flood": _flood,
+    "coverage": _coverage,
+    "light": _light,
+    "reef": _reef,
+    "quake": _quake,
+}
