@@ -926,8 +926,8 @@ def test_compact_cli_merges_in_place_reports_and_refuses_twice(fused_run, tmp_pa
 
 
 def test_changes_cli_writes_masks_ply_and_regions(fused_run, tmp_path):
-    """`changes --run --pair --out`: a mask and a score image per test view of both dates at the views'
-    size, a PLY holding exactly the Gaussians in regions, region sizes that add up, the Markdown list;
+    """`changes --run --pair --out`: a mask, a score image and an overlay per test view of both dates at
+    the views' size, a PLY holding exactly the Gaussians in regions, region sizes that add up, the Markdown list;
     a bad pair and a foreign --set are refused with the field named."""
     import json
 
@@ -953,6 +953,13 @@ def test_changes_cli_writes_masks_ply_and_regions(fused_run, tmp_path):
         assert mask.shape[:2] == (48, 64) and set(np.unique(mask)) <= {0, 255}
         assert int((mask[..., 0] if mask.ndim == 3 else mask).astype(bool).sum()) == v["changed_pixels"]
         assert (out / "scores" / date / f"{name}.png").is_file()
+        with Image.open(out / "overlays" / date / f"{name}.png") as im:
+            tinted = np.asarray(im).astype(int)
+        changed = (mask[..., 0] if mask.ndim == 3 else mask) > 0
+        assert tinted.shape == (48, 64, 3)
+        if changed.any():  # magenta: red and blue above green where changed
+            px = tinted[changed]
+            assert np.all(px[:, 0] > px[:, 1]) and np.all(px[:, 2] > px[:, 1])
     gs = summary["gaussians"]
     assert gs["in_regions"] == sum(r["gaussians"] for r in summary["regions"]) <= gs["total"]
     assert sum(r["seeds"] for r in summary["regions"]) <= gs["changed"] <= gs["observed_at_both"]

@@ -2,7 +2,8 @@
 
 ``DIR/masks/<date>/<image>.png``: per test view of both dates, 255 where most of what the pixel shows
 (covered, observed at both dates) belongs to a changed region; ``DIR/scores/<date>/<image>.png`` that
-share (0..255); ``DIR/changed.ply``: the Gaussians of the changed regions as a 3DGS PLY; ``DIR/regions.json``
+share (0..255); ``DIR/overlays/<date>/<image>.png`` the view's image with the mask tinted magenta and
+the pixels not observed at both dates dimmed; ``DIR/changed.ply``: the Gaussians of the changed regions as a 3DGS PLY; ``DIR/regions.json``
 and ``DIR/regions.md``: the changed regions in 3D (Gaussian clusters: kind, count, centroid, bounds,
 hull volume) and per view (connected areas, pixels, bounding box). Every file is written atomically.
 """
@@ -25,6 +26,18 @@ from cfgs_jax.errors import InputError
 from cfgs_jax.io.atomic import read_json, write_json, write_text
 from cfgs_jax.io.images import write_image
 from cfgs_jax.io.ply import write_ply
+
+OVERLAY_COLOUR = np.array([1.0, 0.0, 1.0], np.float32)  # magenta
+
+
+def overlay(image: np.ndarray, mask: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """The view's image (sRGB [H, W, 3]) with changed pixels tinted magenta (55 %) and the pixels that
+    one of the dates did not observe (or that nothing covers) dimmed to 60 %: what a person checks a
+    mask against."""
+    rgb = np.asarray(image, np.float32)[..., :3]
+    rgb = np.where(np.asarray(valid)[..., None], rgb, 0.6 * rgb)
+    tint = np.asarray(mask, bool)[..., None]
+    return np.where(tint, 0.45 * rgb + 0.55 * OVERLAY_COLOUR, rgb)
 
 
 def parse_pair(text: str, names: list[str]) -> tuple[int, int]:
@@ -94,6 +107,8 @@ def detect_changes(
             areas, _ = image_regions(mask, s, config.min_region_pixels)
             write_image(out / "masks" / run.names[d] / f"{name}.png", mask.astype(np.float32))
             write_image(out / "scores" / run.names[d] / f"{name}.png", np.where(valid_pixels(k, a), s, 0.0))
+            image = scene.load_image(int(i))
+            write_image(out / "overlays" / run.names[d] / f"{name}.png", overlay(image, mask, valid_pixels(k, a)))
             views_out.append({"view": f"{run.names[d]}/{name}", "changed_pixels": int(mask.sum()), "regions": areas})
     summary = {
         "run": str(run_dir),
