@@ -109,8 +109,10 @@ def regions_3d(
     """The changed regions of a pair of dates (p earlier than q), largest first, and [N] region index per
     Gaussian (−1: in none). ``seeds``: [N] bool, the Gaussians scored changed; ``candidates`` (⊇ seeds,
     default the seeds): those that may join a region they touch (hysteresis: a region is a connected
-    component of the candidates holding ≥ ``min_gaussians`` seeds); ``difference``: [N] presence at p
-    minus presence at q (``evidence.presence_difference``); ``spacing``: ``median_spacing``."""
+    component of the candidates holding ≥ ``min_gaussians`` seeds; the components of what disappeared,
+    difference > 0, and of what appeared are formed apart, then joined where they occupy the same
+    place, ``merge_colocated``); ``difference``: [N] presence at p minus presence at q
+    (``evidence.presence_difference``); ``spacing``: ``median_spacing``."""
     means = np.asarray(means, np.float64)
     difference = np.asarray(difference, np.float64)
     seeds = np.asarray(seeds, bool)
