@@ -193,15 +193,10 @@ def markdown(result: dict) -> str:
         ]
         for r in result["rows"]:
             c, rc = r["change"], ref["change"]
-            evidence = (
-                f"{c['evidence_f1']:.3f} | {c['evidence_f1'] - rc['evidence_f1']:+.3f} | {c['evidence_iou']:.3f} | "
-                f"{c['evidence_iou'] - rc['evidence_iou']:+.3f} | {c['false_regions']}"
-                if "evidence_f1" in c and "evidence_f1" in rc
-                else "– | – | – | – | –"
-            )
             lines.append(
-                f"| {r[knob]:g} | {evidence} | {c['f1']:.3f} | {c['f1'] - rc['f1']:+.3f} | {c['iou']:.3f} | "
-                f"{c['iou'] - rc['iou']:+.3f} |"
+                f"| {r[knob]:g} | {c['evidence_f1']:.3f} | {c['evidence_f1'] - rc['evidence_f1']:+.3f} | "
+                f"{c['evidence_iou']:.3f} | {c['evidence_iou'] - rc['evidence_iou']:+.3f} | {c['false_regions']} | "
+                f"{c['f1']:.3f} | {c['f1'] - rc['f1']:+.3f} | {c['iou']:.3f} | {c['iou'] - rc['iou']:+.3f} |"
             )
     lines += ["", "Positive Δ PSNR / SSIM and negative Δ LPIPS: better than the reference row."]
     return "\n".join(lines) + "\n"

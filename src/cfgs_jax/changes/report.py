@@ -95,20 +95,19 @@ def detect_changes(
     g = jax.tree_util.tree_map(lambda x: jnp.asarray(x)[rows], model.gaussians)
     write_ply(out / "changed.ply", g)
     views_out = []
+    in_region = (member >= 0).astype(np.float32)
     for d in (p, q):
         scene, sim = run.scenes[d], run.sims[d]
         for i in split_or_all(scene, split):
             name = Path(scene.image_names[int(i)]).stem
             cam = camera_in_frame(scene.cameras[int(i)], sim)
-            s, k, a = pixel_change(
-                model, cam, (member >= 0).astype(np.float32), known, p, q, render_config=render_config
-            )
-            mask = change_mask(s, k, a)
+            s, k, a = pixel_change(model, cam, in_region, known, p, q, render_config=render_config)
+            mask, valid = change_mask(s, k, a), valid_pixels(k, a)
             areas, _ = image_regions(mask, s, config.min_region_pixels)
             write_image(out / "masks" / run.names[d] / f"{name}.png", mask.astype(np.float32))
-            write_image(out / "scores" / run.names[d] / f"{name}.png", np.where(valid_pixels(k, a), s, 0.0))
+            write_image(out / "scores" / run.names[d] / f"{name}.png", np.where(valid, s, 0.0))
             image = scene.load_image(int(i))
-            write_image(out / "overlays" / run.names[d] / f"{name}.png", overlay(image, mask, valid_pixels(k, a)))
+            write_image(out / "overlays" / run.names[d] / f"{name}.png", overlay(image, mask, valid))
             views_out.append({"view": f"{run.names[d]}/{name}", "changed_pixels": int(mask.sum()), "regions": areas})
     summary = {
         "run": str(run_dir),

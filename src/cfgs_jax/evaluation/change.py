@@ -516,14 +516,10 @@ def changed_objects_by_pair(gt: dict) -> dict[tuple[int, int], set]:
                 if name == "ground":
                     continue
                 a, b = dates[p], dates[q]
+                present = a["present"].get(name), b["present"].get(name)
                 placed = a.get("to_world", {}).get(name), b.get("to_world", {}).get(name)
-                moved = a["present"].get(name) and b["present"].get(name) and None not in placed
-                moved = moved and not np.allclose(placed[0], placed[1], atol=1e-6)
-                if (
-                    a["present"].get(name) != b["present"].get(name)
-                    or a["variant"].get(name) != b["variant"].get(name)
-                    or moved
-                ):
+                moved = all(present) and None not in placed and not np.allclose(*placed, atol=1e-6)
+                if present[0] != present[1] or a["variant"].get(name) != b["variant"].get(name) or moved:
                     ids.add(int(obj["id"]))
             out[(p, q)] = ids
     return out
