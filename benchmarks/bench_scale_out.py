@@ -94,7 +94,7 @@ def _cross_init(model, views, steps: int, mesh) -> dict:
 
     cfg = ci.CrossInitConfig(steps=steps)
     t0, c0 = time.perf_counter(), _cpu_seconds()
-    ci.init_pairs(model, 0, [1, 2], [views[1], views[2]], cfg, mesh=mesh, progress=tick)
+    ci.init_pairs(model, [(0, 1), (0, 2)], [views[1], views[2]], cfg, mesh=mesh, progress=tick)
     total, cpu = time.perf_counter() - t0, _cpu_seconds() - c0
     return {"step_s": (stamps[steps] - stamps[1]) / (steps - 1), "total_s": total, "cores_busy": cpu / total}
 

@@ -1,8 +1,9 @@
 """Run time against error for one knob of the fusion: for each value, cross-timestep initialisation
 from a finished run's merged model with the run's own configuration and the knob set, then the run's
 refinement, then the test PSNR / SSIM / LPIPS per date and change detection against the synthetic
-ground truth (per-Gaussian F1, pixel IoU at the default threshold). The first value is the reference
-row (the run's configuration, e.g. 0 = the knob off).
+ground truth: per-Gaussian F1, pixel IoU and false regions of the ``changes`` detector (residual
+evidence, the run's ``[changes]`` table), and F1 / pixel IoU of the o^q < 0.2 rule with the surface
+effect. The first value is the reference row (the run's configuration, e.g. 0 = the knob off).
 
     python benchmarks/bench_speed_vs_error.py --run RUN --data DATA \\
         --knob cross_init.early_stop_tolerance --values 0 0.002 0.005 [--set cross_init.early_stop_every=25]
@@ -66,6 +67,9 @@ def one_setting(run_dir: Path, data: Path, raw: dict) -> dict:
         "dates": m["dates"],
         "f1": change["gaussians"]["f1"],
         "iou": change["pixels"]["iou"],
+        "evidence_f1": change["evidence"]["gaussians"]["f1"],
+        "evidence_iou": change["evidence"]["pixels"]["iou"],
+        "false_regions": change["evidence"]["regions"]["false_regions"],
     }
 
 
@@ -88,7 +92,8 @@ def main():
     for value in args.values:
         raw = apply_overrides(base, [f"{args.knob}={value}"])
         rows.append({"value": value} | one_setting(run_dir, data, raw))
-        print(json.dumps({k: rows[-1][k] for k in ("value", "cross_init_s", "mean", "f1", "iou")}), flush=True)
+        shown = ("value", "cross_init_s", "mean", "evidence_f1", "evidence_iou", "f1")
+        print(json.dumps({k: rows[-1][k] for k in shown}), flush=True)
     preset = json.loads((data / "ground_truth.json").read_text()).get("preset", data.parent.name)
     stem = args.name or f"speed_vs_error_{preset}_{args.knob.split('.')[-1]}"
     result = {
@@ -113,9 +118,12 @@ def markdown(r: dict, knob: str) -> str:
         "",
         f"`{r['command']}` — {r['date']}, {r['machine']}; RUN = `{r['run']}`. The first row is the reference.",
         "",
-        "| value | cross-init (s) | × reference | PSNR | ΔPSNR | worst date ΔPSNR | SSIM | LPIPS | ΔLPIPS | F1 | ΔF1 "
-        "| pixel IoU |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "Change detection: the `changes` detector's per-Gaussian F1, pixel IoU and false regions, and the "
+        "o^q < 0.2 rule's F1 (with the surface effect).",
+        "",
+        "| value | cross-init (s) | × reference | PSNR | ΔPSNR | worst date ΔPSNR | SSIM | LPIPS | ΔLPIPS "
+        "| `changes` F1 | ΔF1 | pixel IoU | ΔIoU | false regions | o^q rule F1 | ΔF1 |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for row in r["rows"]:
         m, b = row["mean"], ref["mean"]
@@ -123,7 +131,9 @@ def markdown(r: dict, knob: str) -> str:
         lines.append(
             f"| {row['value']} | {row['cross_init_s']:.0f} | {row['cross_init_s'] / ref['cross_init_s']:.2f} | "
             f"{m['psnr']:.2f} | {m['psnr'] - b['psnr']:+.2f} | {worst:+.2f} | {m['ssim']:.4f} | {m['lpips']:.4f} | "
-            f"{m['lpips'] - b['lpips']:+.4f} | {row['f1']:.3f} | {row['f1'] - ref['f1']:+.3f} | {row['iou']:.3f} |"
+            f"{m['lpips'] - b['lpips']:+.4f} | {row['evidence_f1']:.3f} | {row['evidence_f1'] - ref['evidence_f1']:+.3f} | "
+            f"{row['evidence_iou']:.3f} | {row['evidence_iou'] - ref['evidence_iou']:+.3f} | {row['false_regions']} | "
+            f"{row['f1']:.3f} | {row['f1'] - ref['f1']:+.3f} |"
         )
     lines += [
         "",

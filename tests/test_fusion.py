@@ -304,7 +304,7 @@ def test_batched_pairs_equal_the_pairs_one_by_one():
     assert 0 < seen2.sum() < 0.7 * len(g)  # q₂ sees part of date p
     model = fusion.merge([g, g, g], ["p", "q1", "q2"])
     cfg = ci.CrossInitConfig(steps=12, lr_o=0.05, lr_light=0.03, rate_reference_steps=0)
-    both, reps = ci.init_pairs(model, 0, [1, 2], [v1, v2], cfg)
+    both, reps = ci.init_pairs(model, [(0, 1), (0, 2)], [v1, v2], cfg)
     one, r1 = ci.init_pair(model, 0, 1, v1, cfg)
     one, r2 = ci.init_pair(one, 0, 2, v2, cfg)
     for name in ("o_logits", "light_logits"):
@@ -317,12 +317,50 @@ def test_batched_pairs_equal_the_pairs_one_by_one():
         assert np.isclose(rb["loss_last"], ro["loss_last"], rtol=1e-4) and np.isclose(
             rb["mean_o"], ro["mean_o"], rtol=1e-4
         )
-    # grouping: consecutive pairs of one p, one image shape, at most `batch` per group
+    # grouping: consecutive pairs of one p and one image shape, at most `batch` per group; then the
+    # pairs left alone, across dates p, by image shape
     small = ci.DateViews(wide[:1], (np.zeros((32, 40, 3), np.float32),))
     vs = [v1, v1, small, v1]
     pairs = [(0, 1), (0, 2), (0, 3), (1, 0), (1, 3), (2, 0)]
-    assert ci.pair_groups(pairs, vs, 0) == [(0, [1]), (0, [2]), (0, [3]), (1, [0, 3]), (2, [0])]
-    assert ci.pair_groups([(2, 0), (2, 1), (2, 3)], vs, 2) == [(2, [0, 1]), (2, [3])]
+    assert ci.pair_groups(pairs, vs, 0) == [[(0, 1), (0, 3), (2, 0)], [(0, 2)], [(1, 0), (1, 3)]]
+    assert ci.pair_groups([(2, 0), (2, 1), (2, 3)], vs, 2) == [[(2, 0), (2, 1)], [(2, 3)]]
+    extension = [(0, 3), (1, 3), (2, 3), (3, 0), (3, 1)]
+    assert ci.pair_groups(extension, vs, 0) == [[(0, 3), (1, 3), (2, 3)], [(3, 0), (3, 1)]]
+    assert ci.pair_groups(extension, vs, 2) == [[(0, 3), (1, 3)], [(2, 3)], [(3, 0), (3, 1)]]
+
+
+def test_pairs_of_different_dates_p_batched_equal_the_pairs_one_by_one():
+    """init_pairs runs (p₁, q), (p₂, q) of two dates p with different Gaussians (and counts: each padded
+    to one) in one step; the result equals running the pairs one by one, and date q's own Gaussians
+    and every other entry are left as they were."""
+    ci = importlib.import_module("cfgs_jax.fusion.cross_init")
+    g = _random_gaussians(90, seed=4)
+    g = cj.Gaussians(g.means * np.float32([2.4, 1, 1]), g.quats, g.log_scales, g.opacity_logits, g.colors)
+    h = _random_gaussians(94, seed=7)  # another count, padded to the same 96 as g's 90
+    h = cj.Gaussians(h.means * np.float32([2.0, 1, 1]), h.quats, h.log_scales, h.opacity_logits, h.colors)
+    cams = tuple(
+        cj.Camera.look_at([x, -0.3, -2.6], [0, 0, 0], up=(0, -1, 0), width=64, height=48, fov_x_deg=60)
+        for x in (-0.3, 0.3, 0.0)
+    )
+    rng = np.random.default_rng(5)
+    ims = [np.asarray(splat.render(g, c).image) * 0.7 + 0.15 * rng.uniform(size=(48, 64, 3)) for c in cams]
+    v = ci.DateViews(cams, tuple(np.float32(im) for im in ims))
+    model = fusion.merge([g, h, g], ["p1", "p2", "q"])
+    cfg = ci.CrossInitConfig(steps=12, lr_o=0.05, lr_light=0.03, rate_reference_steps=0)
+    assert ci.pair_groups([(0, 2), (1, 2)], [v, v, v], 0) == [[(0, 2), (1, 2)]]
+    both, reps = ci.init_pairs(model, [(0, 2), (1, 2)], [v, v], cfg)
+    one, r1 = ci.init_pair(model, 0, 2, v, cfg)
+    one, r2 = ci.init_pair(one, 1, 2, v, cfg)
+    for name in ("o_logits", "light_logits"):
+        a, b, start = (np.asarray(getattr(m, name)) for m in (both, one, model))
+        np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-4)
+        for rows in (slice(0, 90), slice(90, 184)):  # both dates p were fitted at q
+            assert not np.allclose(a[rows, 2], start[rows, 2])
+        np.testing.assert_array_equal(a[:, :2], start[:, :2])  # nothing else moved
+        np.testing.assert_array_equal(a[184:], start[184:])
+    for rb, ro in zip(reps, (r1, r2)):
+        assert rb["pair"] == ro["pair"] and rb["visible"] == ro["visible"] and rb["gaussians"] == ro["gaussians"]
+        assert np.isclose(rb["loss_last"], ro["loss_last"], rtol=1e-4)
 
 
 def test_cross_init_early_stopping_stops_a_settled_pair_and_not_a_moving_one():
@@ -369,8 +407,8 @@ def test_cross_init_coarse_to_fine_ends_at_full_resolution(monkeypatch):
     shapes = []
     compiled = ci._compiled_step
 
-    def recording(config, render_config, mesh=None):
-        optimizer, step = compiled(config, render_config, mesh)
+    def recording(config, render_config, mesh=None, own_gaussians=False):
+        optimizer, step = compiled(config, render_config, mesh, own_gaussians)
 
         def wrapped(params, opt_state, g, cameras, images, *rest):
             shapes.append(tuple(images.shape[-3:-1]))
@@ -528,6 +566,8 @@ def test_fuse_cli_runs_every_stage_and_resumes_mid_cross_init(tiny_two_dates, fu
     ref = cj.io.read_fused(a_dir / "reference")
     timings = json.loads((a_dir / "timings.json").read_text())
     assert set(timings) == {"train", "register", "merge", "cross_init", "refine", "export", "evaluate"}
+    peak_rss = json.loads((a_dir / "peak_rss.json").read_text())
+    assert set(peak_rss) == set(timings) and all(50e6 < v < 16e9 for v in peak_rss.values())
     metrics_json = json.loads((a_dir / "metrics.json").read_text())
     assert set(metrics_json["dates"]) == {"d0", "d1"} and np.isfinite(metrics_json["mean"]["psnr"])
     assert a.num_dates == 2 and [d.name for d in a.dates] == ["d0", "d1"]
@@ -536,8 +576,10 @@ def test_fuse_cli_runs_every_stage_and_resumes_mid_cross_init(tiny_two_dates, fu
     assert [r["pair"] for r in report["cross_init"]] == [[0, 1], [1, 0]]
     assert main(args) == 2  # refuses to overwrite a run without --resume
 
-    # "kill" the second run after its first cross-init pair, then resume it
-    from cfgs_jax.config import load_config
+    # "kill" a run that optimises one pair at a time after its first cross-init pair, then resume it
+    from cfgs_jax.config import apply_overrides, load_config
+
+    one_by_one = ["--set", "cross_init.batch_dates=1"]
 
     class Killed(Exception):
         pass
@@ -554,17 +596,22 @@ def test_fuse_cli_runs_every_stage_and_resumes_mid_cross_init(tiny_two_dates, fu
         run_fusion(
             [root / "d0", root / "d1"],
             b_dir,
-            load_config(root / "tiny.toml"),
+            apply_overrides(load_config(root / "tiny.toml"), ["cross_init.batch_dates=1"]),
             transforms=root / "transforms.json",
             progress=False,
             log=log,
         )
     assert json.loads((b_dir / "cross_init_pairs.json").read_text())["pairs"] == [[0, 1]]
-    assert main(args[:5] + [str(b_dir)] + args[6:] + ["--resume"]) == 0
+    assert main(args[:5] + [str(b_dir)] + args[6:] + one_by_one + ["--resume"]) == 0
     b = cj.io.read_fused(b_dir / "fused")
-    assert len(a) == len(b)
-    for x, y in zip(jax.tree_util.tree_leaves(a), jax.tree_util.tree_leaves(b)):  # bit-identical, as the README says
+    c_dir = tmp_path / "c"  # the same configuration, never interrupted
+    assert main(args[:5] + [str(c_dir)] + args[6:] + one_by_one) == 0
+    c = cj.io.read_fused(c_dir / "fused")
+    assert len(c) == len(b)
+    for x, y in zip(jax.tree_util.tree_leaves(c), jax.tree_util.tree_leaves(b)):  # bit-identical, as the README says
         np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+    for x, y in zip(jax.tree_util.tree_leaves(a), jax.tree_util.tree_leaves(b)):  # both pairs in one group: rounding
+        np.testing.assert_allclose(np.asarray(x), np.asarray(y), rtol=1e-3, atol=1e-3)
 
 
 def test_fused_model_is_no_worse_than_the_merged_inputs(tiny_two_dates, fused_run):

@@ -22,12 +22,14 @@ Gaussians cannot explain. α, geometry and colour stay frozen. o^q
 starts at δ·o^p. Gaussians of date p that project into no training view of date q get o^q = −4e
 (``INVISIBLE_LOGIT``) and are left out of that pair; a pair with none visible is skipped.
 
-The pairs of one date p run together (``init_pairs``): each step is one compiled call that takes one
-view of every date q, the pairs one after another (``jax.lax.map``; ``jax.vmap`` of the kernel is 2–3×
+Several pairs run together (``init_pairs``): each step is one compiled call that takes one view of
+every pair's date q, the pairs one after another (``jax.lax.map``; ``jax.vmap`` of the kernel is 2–3×
 slower on a CPU) or split over the devices of a mesh, each with its own parameters, Adam state,
-cameras and images and the Gaussians shared — the same numbers as running the pairs one by one, fewer
-dispatches and one compilation per date p. ``batch_dates`` caps how many run at once (memory grows
-with it); dates with other image sizes run apart.
+cameras and images — the same numbers as running the pairs one by one, with fewer dispatches and
+compilations. The pairs of one date p share its Gaussians; pairs of different dates p (the pairs
+(p, new) of an extension) each carry their own, padded to one count (``pair_groups`` forms both kinds
+of group). ``batch_dates`` caps how many run at once (memory grows with it); dates with other image
+sizes run apart.
 """
 
 from __future__ import annotations
@@ -79,7 +81,7 @@ class CrossInitConfig:
     lpips_net: Literal["alex", "vgg"] = "alex"
     lpips_scale: float = 1.0  # ε_LPIPS = clip(map / lpips_scale, 0, 1)
     background_anneal: float = 1.0  # fraction of the steps over which b's range shrinks to black
-    batch_dates: int = 0  # pairs (p, q) of one p optimised together per step (one call); 0: all of them
+    batch_dates: int = 0  # pairs (p, q) optimised together per step (one call, ``pair_groups``); 0: no limit
     exposure_init: bool = True  # start the gains at the pair's least-squares exposure, not 1
     exposure_range_ev: float = (
         2.0  # the start exposure is clipped to ± this many stops (a dark image is not a gain of 0)
@@ -125,7 +127,7 @@ class CrossInitConfig:
             )
         if self.batch_dates < 0:
             raise InputError(
-                f"must be ≥ 0 (0: all dates q of one p at once), got {self.batch_dates}",
+                f"must be ≥ 0 (0: no limit on the pairs run together), got {self.batch_dates}",
                 field="cross_init.batch_dates",
                 fix="lower it (e.g. 1) when memory is short",
             )
@@ -206,17 +208,19 @@ def pair_loss(params, g: Gaussians, camera, image, eps_map, b, step, config: Cro
 
 
 @functools.lru_cache(maxsize=16)
-def _compiled_step(config: CrossInitConfig, render_config: splat.RenderConfig, mesh=None):
-    """One optimisation step of several pairs (p, q₁), (p, q₂), …: each pair with its own parameters,
-    optimiser state, views, ε maps and key, the Gaussians shared. Each pair's views arrive stacked
+def _compiled_step(config: CrossInitConfig, render_config: splat.RenderConfig, mesh=None, own_gaussians=False):
+    """One optimisation step of several pairs (p₁, q₁), (p₂, q₂), …: each pair with its own parameters,
+    optimiser state, views, ε maps and key, and the Gaussians shared (one date p) or, with
+    ``own_gaussians``, each pair's own (stacked [pairs, m, …]). Each pair's views arrive stacked
     ([pairs, views, …]) with the index of the one it draws this step, so the inputs stay on their
     devices from step to step; the pairs run one after another (``parallel.map_batch``), split over
     the devices of ``mesh``."""
     optimizer = cross_init_optimizer(config)
 
     def one(pair, shared):
-        params, opt_state, cameras, images, eps_maps, drawn, key = pair
-        g, it = shared
+        params, opt_state, cameras, images, eps_maps, drawn, key, g_own = pair
+        g_shared, it = shared
+        g = g_own if own_gaussians else g_shared
         camera = jax.tree_util.tree_map(lambda rows: rows[drawn], cameras)
         image, eps_map = images[drawn], eps_maps[drawn]
         b = background_colour(key, it, config, image.dtype)
@@ -228,8 +232,9 @@ def _compiled_step(config: CrossInitConfig, render_config: splat.RenderConfig, m
 
     @jax.jit
     def step(params, opt_state, g, cameras, images, eps_maps, drawn, keys, it):
-        pairs = (params, opt_state, cameras, images, eps_maps, drawn, keys)
-        params, opt_state, loss, overflowed = parallel.map_batch(one, pairs, (g, it), mesh)
+        g_own, g_shared = (g, None) if own_gaussians else (None, g)
+        pairs = (params, opt_state, cameras, images, eps_maps, drawn, keys, g_own)
+        params, opt_state, loss, overflowed = parallel.map_batch(one, pairs, (g_shared, it), mesh)
         return params, opt_state, loss, jnp.any(overflowed)
 
     return optimizer, step
@@ -273,30 +278,60 @@ def _image_shape(views: DateViews) -> tuple | None:
 
 @dataclasses.dataclass
 class _Pairs:
-    """The pairs (p, q) of one date p that ``init_pairs`` optimises together: the date-p Gaussians seen
-    from some q (padded to ``padded_count``), and per pair its seen-mask, views, start o^q and gains."""
+    """The pairs (p, q) that ``init_pairs`` optimises together: per pair the rows of the model it
+    optimises (date p's Gaussians seen from some q of the group), its seen-mask, o^p, views and the
+    Gaussians — one padded set shared by all pairs when they have one p, else each pair's own padded
+    to one count (``padded_count``), stacked."""
 
-    idx: np.ndarray  # rows of the model optimised (seen from at least one q)
-    g: Gaussians  # those Gaussians, padded
-    mask: jax.Array  # [k, m] 1 where seen from the pair's q
-    o_p: jax.Array  # [m] o^p (padding 1)
+    pairs: list  # (p, q) per pair
+    idx: list  # per pair: model rows of the first len(idx[j]) Gaussians of its set
+    g: Gaussians  # [m] shared (``shared``) or [k, m] one set per pair
+    shared: bool
+    mask: jax.Array  # [k, m] 1 where the pair optimises the Gaussian (seen from its q)
+    o_p: jax.Array  # [k, m] o^p (padding 1)
     cameras: list
     images: list
     render_config: splat.RenderConfig  # with the intersection capacity of every view at o = 1
 
+    def gaussians(self, j: int) -> Gaussians:
+        """Pair j's Gaussians ([m])."""
+        return self.g if self.shared else jax.tree_util.tree_map(lambda x: x[j], self.g)
 
-def _gather(model: TemporalGaussians, p: int, rows, seen, views, render_config) -> _Pairs:
-    union = seen.any(axis=0)
-    idx = rows[union]
-    n, m = len(idx), padded_count(len(idx))  # padded rows: zero opacity, never rendered (shared compilations)
-    g = pad_gaussians(jax.tree_util.tree_map(lambda x: jnp.asarray(x)[idx], model.gaussians), m)
-    mask = jnp.asarray(np.pad(seen[:, union], ((0, 0), (0, m - n))), jnp.float32)
-    o_p = jnp.pad(jax.nn.sigmoid(jnp.asarray(np.asarray(model.o_logits)[idx, p])), (0, m - n), constant_values=1.0)
+
+def _gather(model: TemporalGaussians, pairs, rows, seen, views, render_config) -> _Pairs:
+    """The group's inputs: ``rows[j]`` date p_j's rows of the model, ``seen[j]`` which of them q_j sees."""
+    gaussians = lambda idx, m: pad_gaussians(jax.tree_util.tree_map(lambda x: jnp.asarray(x)[idx], model.gaussians), m)
+    o_logits = np.asarray(model.o_logits)
+    shared = len({p for p, _ in pairs}) == 1
+    if shared:  # one set: the union of what the dates q see, each pair masked to its own
+        union = np.any(seen, axis=0)
+        idx = [rows[0][union]] * len(pairs)
+        m = padded_count(len(idx[0]))  # padded rows: zero opacity, never rendered (shared compilations)
+        mask = np.pad(np.stack(seen)[:, union], ((0, 0), (0, m - len(idx[0]))))
+        g = gaussians(idx[0], m)
+    else:
+        idx = [r[s] for r, s in zip(rows, seen)]
+        m = padded_count(max(len(i) for i in idx))
+        mask = np.stack([np.arange(m) < len(i) for i in idx])
+        g = parallel.stack([gaussians(i, m) for i in idx])
+        g = jax.tree_util.tree_map(jnp.asarray, g)
+    o_p = np.ones((len(pairs), m), np.float32)
+    for j, (p, _) in enumerate(pairs):
+        o_p[j, : len(idx[j])] = np.asarray(jax.nn.sigmoid(jnp.asarray(o_logits[idx[j], p])))
     cameras = [v.cameras for v in views]
     ones = jnp.ones((1, m), jnp.float32)
-    capacity = max(splat.required_capacity(g, c, ones, config=render_config) for cs in cameras for c in cs)
+    group = _Pairs(
+        list(pairs), idx, g, shared, jnp.asarray(mask, jnp.float32), jnp.asarray(o_p), cameras, [], render_config
+    )
+    capacity = max(
+        splat.required_capacity(group.gaussians(j), c, ones, config=render_config)
+        for j, cs in enumerate(cameras)
+        for c in cs
+    )
     images = [[jnp.asarray(im, jnp.float32) for im in v.images] for v in views]
-    return _Pairs(idx, g, mask, o_p, cameras, images, dataclasses.replace(render_config, capacity=capacity))
+    return dataclasses.replace(
+        group, images=images, render_config=dataclasses.replace(render_config, capacity=capacity)
+    )
 
 
 def _start_values(pairs: _Pairs, config: CrossInitConfig, lpips_net) -> tuple[dict, list[float], list[list]]:
@@ -308,7 +343,10 @@ def _start_values(pairs: _Pairs, config: CrossInitConfig, lpips_net) -> tuple[di
     # date p's own render at each view of each q (seen from q only: the others render nothing there),
     # shared by the exposure start and the ε maps
     rc = pairs.render_config
-    owns = [[own_render(pairs.g, pairs.o_p * pairs.mask[j], c, rc) for c in pairs.cameras[j]] for j in range(k)]
+    owns = [
+        [own_render(pairs.gaussians(j), pairs.o_p[j] * pairs.mask[j], c, rc) for c in pairs.cameras[j]]
+        for j in range(k)
+    ]
     lo, hi = 2.0**-config.exposure_range_ev, 2.0**config.exposure_range_ev
     start_gains = [
         float(np.clip(exposure_gain(owns[j], pairs.images[j]), lo, hi)) if config.exposure_init else 1.0
@@ -326,8 +364,7 @@ def _start_values(pairs: _Pairs, config: CrossInitConfig, lpips_net) -> tuple[di
 
 def init_pairs(
     model: TemporalGaussians,
-    p: int,
-    qs: Sequence[int],
+    pairs: Sequence[tuple[int, int]],
     views: Sequence[DateViews],
     config: CrossInitConfig,
     *,
@@ -336,45 +373,61 @@ def init_pairs(
     progress=None,
     mesh=None,
 ) -> tuple[TemporalGaussians, list[dict]]:
-    """Optimise o^q and l^q of the Gaussians from date p against date q's views (Eq. 2) for every q in
-    ``qs`` at once (``views[i]`` the views of ``qs[i]``; all of one image shape): each step renders one
-    view of every q, each pair with its own parameters, Adam state, view sequence and
-    background colours — the same result as running the pairs one by one. ``mesh``
+    """Optimise o^q and l^q of the Gaussians from date p against date q's views (Eq. 2) for every pair
+    (p, q) of ``pairs`` at once (``views[i]`` the views of ``pairs[i]``'s q; all of one image shape):
+    each step renders one view of every pair, each pair with its own parameters, Adam state, view
+    sequence and background colours — the same result as running the pairs one by one. Pairs of one
+    date p share its Gaussians; pairs of different dates p carry their own. ``mesh``
     (``parallel.device_mesh``): split the pairs over its devices. Returns the updated model and one
     report per pair (visible count, first/last loss, mean o^q, light, ε)."""
-    qs = list(qs)
-    if len(views) != len(qs) or len({_image_shape(v) for v in views}) != 1 or _image_shape(views[0]) is None:
+    pairs = [(int(p), int(q)) for p, q in pairs]
+    if (
+        not pairs
+        or len(views) != len(pairs)
+        or len({_image_shape(v) for v in views}) != 1
+        or _image_shape(views[0]) is None
+    ):
         raise InputError(
-            "init_pairs needs one DateViews per q, all views of one image shape",
+            "init_pairs needs one DateViews per pair, all views of one image shape",
             field="cross_init.pairs",
             fix="run dates with other image sizes separately (cross_init groups them itself)",
         )
     render_config = render_config or splat.RenderConfig()
     lpips_net = lpips_net if lpips_net is not None else metrics.load_lpips(config.lpips_net)
-    rows = np.nonzero(np.asarray(model.origin) == p)[0]
-    g_p = jax.tree_util.tree_map(lambda x: jnp.asarray(x)[rows], model.gaussians)
-    seen = np.stack([visible_from(g_p, v.cameras, render_config) for v in views])  # [Q, N_p]
-    model, reports = _mark_unseen(model, p, qs, rows, seen)
-    active = [i for i in range(len(qs)) if seen[i].any()]
+    origin = np.asarray(model.origin)
+    rows = [np.nonzero(origin == p)[0] for p, _ in pairs]
+    seen = []  # [N_p] per pair: projects into some view of q
+    for r, v in zip(rows, views):
+        g_p = jax.tree_util.tree_map(lambda x: jnp.asarray(x)[r], model.gaussians)
+        seen.append(visible_from(g_p, v.cameras, render_config))
+    model, reports = _mark_unseen(model, pairs, rows, seen)
+    active = [i for i in range(len(pairs)) if seen[i].any()]
     if not active:
         return model, reports
-    pairs = _gather(model, p, rows, seen[active], [views[i] for i in active], render_config)
-    params, start_light, eps_maps = _start_values(pairs, config, lpips_net)
-    params, losses = _optimise(pairs, params, eps_maps, config, p, [qs[i] for i in active], progress, mesh)
+    group = _gather(
+        model,
+        [pairs[i] for i in active],
+        [rows[i] for i in active],
+        [seen[i] for i in active],
+        [views[i] for i in active],
+        render_config,
+    )
+    params, start_light, eps_maps = _start_values(group, config, lpips_net)
+    params, losses = _optimise(group, params, eps_maps, config, progress, mesh)
     fitted = [reports[i] for i in active]
-    return _write_back(model, [qs[i] for i in active], pairs, params, losses, start_light, eps_maps, fitted), reports
+    return _write_back(model, group, params, losses, start_light, eps_maps, fitted), reports
 
 
-def _mark_unseen(model: TemporalGaussians, p: int, qs, rows, seen) -> tuple[TemporalGaussians, list[dict]]:
+def _mark_unseen(model: TemporalGaussians, pairs, rows, seen) -> tuple[TemporalGaussians, list[dict]]:
     """o^q := ``INVISIBLE_LOGIT`` for date p's Gaussians that project into no view of q, and one report
     per pair (a pair with none visible is marked skipped)."""
     o_logits = np.asarray(model.o_logits).copy()
     reports = []
-    for i, q in enumerate(qs):
-        o_logits[rows[~seen[i]], q] = INVISIBLE_LOGIT
-        reports.append({"pair": [p, q], "gaussians": int(len(rows)), "visible": int(seen[i].sum())})
-        if not seen[i].any():
-            reports[i]["skipped"] = True
+    for (p, q), r, s in zip(pairs, rows, seen):
+        o_logits[r[~s], q] = INVISIBLE_LOGIT
+        reports.append({"pair": [p, q], "gaussians": int(len(r)), "visible": int(s.sum())})
+        if not s.any():
+            reports[-1]["skipped"] = True
     return dataclasses.replace(model, o_logits=jnp.asarray(o_logits)), reports
 
 
@@ -395,9 +448,11 @@ def _coarse(pairs: _Pairs, eps_maps, factor: int) -> tuple[_Pairs, list]:
     cameras = [[scale_camera(c, size) for c in cs] for cs in pairs.cameras]
     images = [[small(im) for im in ims] for ims in pairs.images]
     eps = [[small(np.asarray(e)[..., None])[..., 0] for e in es] for es in eps_maps]
-    ones = jnp.ones((1, len(pairs.g)), jnp.float32)
+    ones = jnp.ones(pairs.mask[:1].shape, jnp.float32)
     rc = pairs.render_config
-    capacity = max(splat.required_capacity(pairs.g, c, ones, config=rc) for cs in cameras for c in cs)
+    capacity = max(
+        splat.required_capacity(pairs.gaussians(j), c, ones, config=rc) for j, cs in enumerate(cameras) for c in cs
+    )
     rc = dataclasses.replace(rc, capacity=capacity)
     return dataclasses.replace(pairs, cameras=cameras, images=images, render_config=rc), eps
 
@@ -411,26 +466,26 @@ def _stacked_inputs(pairs: _Pairs, eps_maps) -> tuple:
     return per_pair(pairs.cameras), per_pair(pairs.images), per_pair(eps_maps)
 
 
-def _optimise(
-    pairs: _Pairs, params, eps_maps, config: CrossInitConfig, p: int, qs, progress, mesh=None
-) -> tuple[dict, np.ndarray]:
-    """Eq. 2's ``config.steps`` Adam steps of the pairs (p, q) for q in ``qs`` together: each pair with
-    its own view sequence and background key. With a ``mesh`` of several devices the pair axis is
-    split over them (padded to a multiple of the device count with copies of the first pair, whose
-    results are dropped). Returns the parameters and the [steps, pairs] losses."""
-    k = len(qs)
-    seeds = [(config.seed, p, q) for q in qs]
+def _optimise(pairs: _Pairs, params, eps_maps, config: CrossInitConfig, progress, mesh=None) -> tuple[dict, np.ndarray]:
+    """Eq. 2's ``config.steps`` Adam steps of the group's pairs together: each pair with its own view
+    sequence and background key. With a ``mesh`` of several devices the pair axis is split over them
+    (padded to a multiple of the device count with copies of the first pair, whose results are
+    dropped). Returns the parameters and the [steps, pairs] losses."""
+    k = len(pairs.pairs)
+    seeds = [(config.seed, p, q) for p, q in pairs.pairs]
     counts = [len(ims) for ims in pairs.images]
-    keys = np.stack([jax.random.key_data(jax.random.key(config.seed * 1_000_003 + p * 1009 + q)) for q in qs])
+    keys = np.stack(
+        [jax.random.key_data(jax.random.key(config.seed * 1_000_003 + p * 1009 + q)) for p, q in pairs.pairs]
+    )
     width = parallel.padded(k, mesh)
     on_devices = lambda x: parallel.shard_batch(jax.tree_util.tree_map(lambda a: parallel.pad_rows(a, width), x), mesh)
     n_coarse = coarse_steps(config)
     levels = [(pairs, eps_maps)] + ([_coarse(pairs, eps_maps, config.coarse_factor)] if n_coarse else [])
-    compiled = [_compiled_step(config, level.render_config, mesh) for level, _ in levels]
+    compiled = [_compiled_step(config, level.render_config, mesh, not pairs.shared) for level, _ in levels]
     optimizer, steps = compiled[0][0], [step for _, step in compiled]
     inputs = [on_devices(_stacked_inputs(level, e)) for level, e in levels]  # (cameras, images, ε) per level
     params, opt_state, keys = on_devices((params, jax.vmap(optimizer.init)(params), keys))
-    g = parallel.replicate(pairs.g, mesh)
+    g = parallel.replicate(pairs.g, mesh) if pairs.shared else on_devices(pairs.g)
     keys = jax.random.wrap_key_data(keys)
     seen = parallel.pad_rows(np.asarray(pairs.mask) > 0, width)[..., None]  # [pairs, m, 1]
 
@@ -492,17 +547,17 @@ def _convergence_test(config: CrossInitConfig, seen):
     return converged
 
 
-def _write_back(model, qs, pairs: _Pairs, params, losses, start_light, eps_maps, reports) -> TemporalGaussians:
+def _write_back(model, pairs: _Pairs, params, losses, start_light, eps_maps, reports) -> TemporalGaussians:
     """The model with the fitted o^q and l^q of each pair written into its rows, and each pair's report
     completed (in place)."""
     o_logits = np.asarray(model.o_logits).copy()
     l_logits = np.asarray(model.light_logits).copy()
-    n = len(pairs.idx)
-    for j, q in enumerate(qs):
-        sel = np.asarray(pairs.mask[j, :n]) > 0
-        o_fit, u, w = (np.asarray(params[name][j, :n])[sel] for name in ("o_logit", "u", "w"))
-        o_logits[pairs.idx[sel], q] = o_fit
-        l_logits[pairs.idx[sel], q] = np.asarray(light_logits(light_multiplier(jnp.asarray(u), jnp.asarray(w))))
+    for j, (_, q) in enumerate(pairs.pairs):
+        idx = pairs.idx[j]
+        sel = np.asarray(pairs.mask[j, : len(idx)]) > 0
+        o_fit, u, w = (np.asarray(params[name][j, : len(idx)])[sel] for name in ("o_logit", "u", "w"))
+        o_logits[idx[sel], q] = o_fit
+        l_logits[idx[sel], q] = np.asarray(light_logits(light_multiplier(jnp.asarray(u), jnp.asarray(w))))
         reports[j] |= {
             "skipped": False,
             "steps_run": int(losses.shape[0]),
@@ -530,30 +585,45 @@ def init_pair(
 ) -> tuple[TemporalGaussians, dict]:
     """``init_pairs`` for the one pair (p, q): the updated model and its report."""
     model, reports = init_pairs(
-        model, p, [q], [views], config, render_config=render_config, lpips_net=lpips_net, progress=progress
+        model, [(p, q)], [views], config, render_config=render_config, lpips_net=lpips_net, progress=progress
     )
     return model, reports[0]
 
 
 def pair_groups(
     pairs: Sequence[tuple[int, int]], views: Sequence[DateViews], batch: int
-) -> list[tuple[int, list[int]]]:
-    """``pairs`` as (p, [q, …]) groups run together by ``init_pairs``: the same p, dates q of one image
-    shape, at most ``batch`` (0: no limit) per group, in the order of ``pairs``."""
+) -> list[list[tuple[int, int]]]:
+    """``pairs`` as the groups ``init_pairs`` runs together, each of one image shape (of its dates q)
+    and at most ``batch`` (0: no limit) pairs: first consecutive pairs of one date p (they share its
+    Gaussians); then the pairs left alone by that are gathered, in order, into groups of different p
+    (each pair with its own Gaussians: the pairs (p, new) of an extension run together)."""
     shapes = [_image_shape(v) for v in views]
-    groups: list[tuple[int, list[int]]] = []
+    full = lambda group: batch and len(group) >= batch
+    by_p: list[list[tuple[int, int]]] = []
     for p, q in pairs:
-        last = groups[-1] if groups else None
+        last = by_p[-1] if by_p else None
         if (
             last is not None
-            and last[0] == p
+            and last[0][0] == p
             and shapes[q] is not None
-            and shapes[last[1][0]] == shapes[q]
-            and (batch == 0 or len(last[1]) < batch)
+            and shapes[last[0][1]] == shapes[q]
+            and not full(last)
         ):
-            last[1].append(q)
+            last.append((p, q))
         else:
-            groups.append((p, [q]))
+            by_p.append([(p, q)])
+    groups: list[list[tuple[int, int]]] = []
+    open_by_shape: dict = {}  # image shape → the group of lone pairs still being filled
+    for group in by_p:
+        shape = shapes[group[0][1]]
+        if len(group) > 1 or shape is None:
+            groups.append(group)
+            continue
+        current = open_by_shape.get(shape)
+        if current is None or full(current):
+            current = open_by_shape[shape] = []
+            groups.append(current)
+        current.extend(group)
     return groups
 
 
@@ -568,8 +638,8 @@ def cross_init(
     mesh=None,
 ):
     """Eq. 2 for every ordered pair p ≠ q (or the given ``pairs``, e.g. only those that involve a new
-    date when extending), the pairs of one p run together (``pair_groups``, ``init_pairs``: one step
-    call for up to ``config.batch_dates`` at a time, split over the devices of ``mesh`` when it has several);
+    date when extending), in the groups of ``pair_groups`` (``init_pairs``: one step call for up to
+    ``config.batch_dates`` pairs at a time, split over the devices of ``mesh`` when it has several);
     returns the model and the per-pair reports."""
     config = config or CrossInitConfig()
     t = model.num_dates
@@ -586,16 +656,15 @@ def cross_init(
     with Progress(disable=not progress, transient=True) as bar:
         task = bar.add_task("cross-timestep init", total=len(pairs) * config.steps)
         done = 0
-        for p, qs in pair_groups(pairs, views, config.batch_dates):
+        for group in pair_groups(pairs, views, config.batch_dates):
 
-            def tick(k, base=done, width=len(qs)):
+            def tick(k, base=done, width=len(group)):
                 bar.update(task, completed=base + width * k)
 
             model, reps = init_pairs(
                 model,
-                p,
-                qs,
-                [views[q] for q in qs],
+                group,
+                [views[q] for _, q in group],
                 config,
                 render_config=render_config,
                 lpips_net=net,
@@ -603,5 +672,5 @@ def cross_init(
                 mesh=mesh,
             )
             reports.extend(reps)
-            done += len(qs) * config.steps
+            done += len(group) * config.steps
     return model, reports

@@ -5,6 +5,7 @@ Layout of ``RUN/``::
 
     run.json            dates (name, dataset path), finished stages, configuration
     timings.json        wall seconds per finished stage (per date / pair where it applies)
+    peak_rss.json       peak resident memory (bytes) of the process during each finished stage
     dates/<name>/       per-date training runs (point_cloud.ply, train.json, checkpoint.npz)
     register.json       date → reference Sim(3)s with their residuals
     merged/             the merged model (cfgs layout)
@@ -44,6 +45,7 @@ from cfgs_jax.io.colmap import Scene, read_colmap
 from cfgs_jax.io.fused import read_fused, write_fused
 from cfgs_jax.io.ply import read_ply, write_ply
 from cfgs_jax.model import Camera, DateInfo
+from cfgs_jax.resources import peak_rss_bytes, reset_peak_rss
 from cfgs_jax.sim3 import Sim3
 
 STAGES = ("train", "register", "merge", "cross_init", "refine", "export", "evaluate")
@@ -215,8 +217,10 @@ class FusionRun:
             "models": [str(Path(m).resolve()) for m in models] if models else None,
         }
         self.timings = read_json(self.out / "timings.json", {})
+        self.peak_rss = read_json(self.out / "peak_rss.json", {})
         self.report = read_json(self.out / "report.json", {})
         self._save()
+        reset_peak_rss()  # each stage's peak from here on
 
     @property
     def names(self) -> list[str]:
@@ -242,11 +246,16 @@ class FusionRun:
     def _save(self):
         write_json(self.out / "run.json", self.state)
         write_json(self.out / "timings.json", self.timings)
+        write_json(self.out / "peak_rss.json", self.peak_rss)
         write_json(self.out / "report.json", self.report)
 
     def finish(self, stage: str, seconds: float, report=None):
+        """Record ``stage`` as done with its wall time, its report and the process's peak RSS since the
+        previous stage finished (a stage resumed in a new process: since the resume)."""
         self.state["done"].append(stage)
         self.timings[stage] = seconds
+        self.peak_rss[stage] = peak_rss_bytes()
+        reset_peak_rss()
         if report is not None:
             self.report[stage] = report
         self._save()
@@ -288,7 +297,7 @@ def _register(run: FusionRun, reference: Scene, date: Scene, name: str, ref_name
 
 def _cross_init_pairs(run: FusionRun, start: Path, pairs, views, render_config, log, stage: str, tag: str) -> None:
     """Cross-timestep init of ``pairs`` from the model at ``start``, resumable per group of pairs run
-    together (``pair_groups``: one p, up to ``cross_init.batch_dates`` dates q): the model is written to
+    together (``pair_groups``, up to ``cross_init.batch_dates`` pairs): the model is written to
     ``RUN/cross_init`` and the finished pairs to ``RUN/cross_init_pairs.json`` after each group."""
     cc = section(run.raw, "cross_init", CrossInitConfig)
     partial = run.out / "cross_init"
@@ -297,15 +306,18 @@ def _cross_init_pairs(run: FusionRun, start: Path, pairs, views, render_config, 
     model = read_fused(partial if finished["pairs"] else start)
     names = run.names
     todo = [(p, q) for p, q in pairs if [p, q] not in finished["pairs"]]
-    for p, qs in pair_groups(todo, views, cc.batch_dates):
+    for group in pair_groups(todo, views, cc.batch_dates):
         release_if_near_limit()  # each group compiles for its own Gaussian count
-        log(f"[{tag}] Gaussians of {names[p]} against images of {', '.join(names[q] for q in qs)}: {cc.steps:,} steps")
+        said = ", ".join(f"{names[p]} against {names[q]}" for p, q in group)
+        log(f"[{tag}] Gaussians of one date against images of another ({said}): {cc.steps:,} steps")
         s = time.perf_counter()
-        model, reps = init_pairs(model, p, qs, [views[q] for q in qs], cc, render_config=render_config, mesh=run.mesh)
+        model, reps = init_pairs(
+            model, group, [views[q] for _, q in group], cc, render_config=render_config, mesh=run.mesh
+        )
         write_fused(partial, model)
         seconds = time.perf_counter() - s
-        finished["pairs"].extend([p, q] for q in qs)
-        finished["reports"].extend(rep | {"seconds": seconds / len(qs)} for rep in reps)
+        finished["pairs"].extend([p, q] for p, q in group)
+        finished["reports"].extend(rep | {"seconds": seconds / len(group)} for rep in reps)
         finished["seconds"] += seconds
         write_json(progress_file, finished)
     run.finish(stage, finished["seconds"], finished["reports"])
