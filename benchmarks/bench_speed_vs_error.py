@@ -75,13 +75,24 @@ def one_setting(run_dir: Path, data: Path, raw: dict) -> dict:
 
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--run", required=True)
-    ap.add_argument("--data", required=True)
-    ap.add_argument("--knob", required=True, help="TABLE.KEY, e.g. cross_init.early_stop_tolerance")
-    ap.add_argument("--values", nargs="+", required=True, help="values (TOML); the first is the reference")
+    ap.add_argument("--run")
+    ap.add_argument("--data")
+    ap.add_argument("--knob", help="TABLE.KEY, e.g. cross_init.early_stop_tolerance")
+    ap.add_argument("--values", nargs="+", help="values (TOML); the first is the reference")
     ap.add_argument("--set", action="append", default=[], dest="overrides", help="TABLE.KEY=VALUE for every row")
     ap.add_argument("--name", default=None)
+    ap.add_argument(
+        "--summary",
+        nargs="+",
+        metavar="STEM",
+        help="print the README table of these results (e.g. speed_vs_error_corals_steps)",
+    )
     args = ap.parse_args()
+    if args.summary:
+        print(summary(args.summary))
+        return
+    if not (args.run and args.data and args.knob and args.values):
+        ap.error("--run, --data, --knob and --values are required (or --summary)")
 
     from cfgs_jax.config import apply_overrides
     from cfgs_jax.io.atomic import read_json
@@ -103,12 +114,38 @@ def main():
         + " ".join(args.values)
         + "".join(f" --set {o}" for o in args.overrides),
         "run": str(run_dir.resolve()),
+        "scene": preset,
         "rows": rows,
     }
     RESULTS.mkdir(exist_ok=True)
     (RESULTS / f"{stem}.json").write_text(json.dumps(result, indent=1))
     (RESULTS / f"{stem}.md").write_text(markdown(result, args.knob))
     print(markdown(result, args.knob))
+
+
+def summary(stems: list[str]) -> str:
+    """One row per non-reference setting of each result file: the scene, the setting, cross-init time
+    against the reference and the error figures' changes."""
+    lines = [
+        "| scene | setting (reference) | cross-init | Δ PSNR mean / worst date | Δ SSIM | Δ LPIPS | `changes` F1 (Δ) "
+        "| pixel IoU (Δ) | false regions |",
+        "|---|---|---:|---:|---:|---:|---:|---:|---:|",
+    ]
+    for stem in stems:
+        r = json.loads((RESULTS / f"{stem}.json").read_text())
+        knob = r["command"].split("--knob ")[1].split()[0]
+        scene = r.get("scene") or stem.removeprefix("speed_vs_error_").split("_")[0]  # files before "scene" was kept
+        ref = r["rows"][0]
+        for row in r["rows"][1:]:
+            m, b = row["mean"], ref["mean"]
+            worst = min(row["dates"][d]["psnr"] - ref["dates"][d]["psnr"] for d in ref["dates"])
+            lines.append(
+                f"| {scene} | `{knob}` = {row['value']} ({ref['value']}) | {row['cross_init_s'] / ref['cross_init_s']:.2f}× | "
+                f"{m['psnr'] - b['psnr']:+.2f} / {worst:+.2f} dB | {m['ssim'] - b['ssim']:+.4f} | "
+                f"{m['lpips'] - b['lpips']:+.4f} | {row['evidence_f1']:.3f} ({row['evidence_f1'] - ref['evidence_f1']:+.3f}) | "
+                f"{row['evidence_iou']:.3f} ({row['evidence_iou'] - ref['evidence_iou']:+.3f}) | {row['false_regions']} |"
+            )
+    return "\n".join(lines)
 
 
 def markdown(r: dict, knob: str) -> str:
