@@ -123,6 +123,11 @@ def main():
     print(markdown(result, args.knob))
 
 
+def worst_date_change(row: dict, ref: dict) -> float:
+    """The lowest per-date PSNR change of a row against the reference row (dB)."""
+    return min(row["dates"][d]["psnr"] - ref["dates"][d]["psnr"] for d in ref["dates"])
+
+
 def summary(stems: list[str]) -> str:
     """One row per non-reference setting of each result file: the scene, the setting, cross-init time
     against the reference and the error figures' changes."""
@@ -137,8 +142,7 @@ def summary(stems: list[str]) -> str:
         scene = r.get("scene") or stem.removeprefix("speed_vs_error_").split("_")[0]  # files before "scene" was kept
         ref = r["rows"][0]
         for row in r["rows"][1:]:
-            m, b = row["mean"], ref["mean"]
-            worst = min(row["dates"][d]["psnr"] - ref["dates"][d]["psnr"] for d in ref["dates"])
+            m, b, worst = row["mean"], ref["mean"], worst_date_change(row, ref)
             lines.append(
                 f"| {scene} | `{knob}` = {row['value']} ({ref['value']}) | {row['cross_init_s'] / ref['cross_init_s']:.2f}× | "
                 f"{m['psnr'] - b['psnr']:+.2f} / {worst:+.2f} dB | {m['ssim'] - b['ssim']:+.4f} | "
@@ -163,8 +167,7 @@ def markdown(r: dict, knob: str) -> str:
         "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for row in r["rows"]:
-        m, b = row["mean"], ref["mean"]
-        worst = min(row["dates"][d]["psnr"] - ref["dates"][d]["psnr"] for d in ref["dates"])
+        m, b, worst = row["mean"], ref["mean"], worst_date_change(row, ref)
         lines.append(
             f"| {row['value']} | {row['cross_init_s']:.0f} | {row['cross_init_s'] / ref['cross_init_s']:.2f} | "
             f"{m['psnr']:.2f} | {m['psnr'] - b['psnr']:+.2f} | {worst:+.2f} | {m['ssim']:.4f} | {m['lpips']:.4f} | "
