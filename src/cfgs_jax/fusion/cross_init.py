@@ -319,19 +319,16 @@ def _gather(model: TemporalGaussians, pairs, rows, seen, views, render_config) -
     for j, (p, _) in enumerate(pairs):
         o_p[j, : len(idx[j])] = np.asarray(jax.nn.sigmoid(jnp.asarray(o_logits[idx[j], p])))
     cameras = [v.cameras for v in views]
+    images = [[jnp.asarray(im, jnp.float32) for im in v.images] for v in views]
+    mask, o_p = jnp.asarray(mask, jnp.float32), jnp.asarray(o_p)
+    group = _Pairs(list(pairs), idx, g, shared, mask, o_p, cameras, images, render_config)
     ones = jnp.ones((1, m), jnp.float32)
-    group = _Pairs(
-        list(pairs), idx, g, shared, jnp.asarray(mask, jnp.float32), jnp.asarray(o_p), cameras, [], render_config
-    )
     capacity = max(
         splat.required_capacity(group.gaussians(j), c, ones, config=render_config)
         for j, cs in enumerate(cameras)
         for c in cs
     )
-    images = [[jnp.asarray(im, jnp.float32) for im in v.images] for v in views]
-    return dataclasses.replace(
-        group, images=images, render_config=dataclasses.replace(render_config, capacity=capacity)
-    )
+    return dataclasses.replace(group, render_config=dataclasses.replace(render_config, capacity=capacity))
 
 
 def _start_values(pairs: _Pairs, config: CrossInitConfig, lpips_net) -> tuple[dict, list[float], list[list]]:
@@ -395,11 +392,11 @@ def init_pairs(
     render_config = render_config or splat.RenderConfig()
     lpips_net = lpips_net if lpips_net is not None else metrics.load_lpips(config.lpips_net)
     origin = np.asarray(model.origin)
-    rows = [np.nonzero(origin == p)[0] for p, _ in pairs]
-    seen = []  # [N_p] per pair: projects into some view of q
-    for r, v in zip(rows, views):
-        g_p = jax.tree_util.tree_map(lambda x: jnp.asarray(x)[r], model.gaussians)
-        seen.append(visible_from(g_p, v.cameras, render_config))
+    rows_of = {p: np.nonzero(origin == p)[0] for p in dict.fromkeys(p for p, _ in pairs)}
+    gaussians_of = {p: jax.tree_util.tree_map(lambda x: jnp.asarray(x)[r], model.gaussians) for p, r in rows_of.items()}
+    rows = [rows_of[p] for p, _ in pairs]
+    # [N_p] per pair: projects into some view of q
+    seen = [visible_from(gaussians_of[p], v.cameras, render_config) for (p, _), v in zip(pairs, views)]
     model, reports = _mark_unseen(model, pairs, rows, seen)
     active = [i for i in range(len(pairs)) if seen[i].any()]
     if not active:
