@@ -87,9 +87,16 @@ def main():
         metavar="STEM",
         help="print the README table of these results (e.g. speed_vs_error_corals_steps)",
     )
+    ap.add_argument(
+        "--write",
+        metavar="STEM",
+        help="with --summary: also write results/STEM.md with the table and results/STEM.png with its plot",
+    )
     args = ap.parse_args()
     if args.summary:
         print(summary(args.summary))
+        if args.write:
+            write_summary(args.summary, args.write)
         return
     if not (args.run and args.data and args.knob and args.values):
         ap.error("--run, --data, --knob and --values are required (or --summary)")
@@ -128,28 +135,126 @@ def worst_date_change(row: dict, ref: dict) -> float:
     return min(row["dates"][d]["psnr"] - ref["dates"][d]["psnr"] for d in ref["dates"])
 
 
-def summary(stems: list[str]) -> str:
-    """One row per non-reference setting of each result file: the scene, the setting, cross-init time
-    against the reference and the error figures' changes."""
-    lines = [
-        "| scene | setting (reference) | cross-init | Δ PSNR mean / worst date | Δ SSIM | Δ LPIPS | `changes` F1 (Δ) "
-        "| pixel IoU (Δ) | false regions |",
-        "|---|---|---:|---:|---:|---:|---:|---:|---:|",
-    ]
+def summary_points(stems: list[str]) -> list[dict]:
+    """Every non-reference row of these result files, as its changes against the file's reference row
+    (the ``changes`` detector's figures are None where the file predates them)."""
+    points = []
     for stem in stems:
         r = json.loads((RESULTS / f"{stem}.json").read_text())
         knob = r["command"].split("--knob ")[1].split()[0]
         scene = r.get("scene") or stem.removeprefix("speed_vs_error_").split("_")[0]  # files before "scene" was kept
+        also = [part.split()[0] for part in r["command"].split(" --set ")[1:]]
         ref = r["rows"][0]
         for row in r["rows"][1:]:
-            m, b, worst = row["mean"], ref["mean"], worst_date_change(row, ref)
-            lines.append(
-                f"| {scene} | `{knob}` = {row['value']} ({ref['value']}) | {row['cross_init_s'] / ref['cross_init_s']:.2f}× | "
-                f"{m['psnr'] - b['psnr']:+.2f} / {worst:+.2f} dB | {m['ssim'] - b['ssim']:+.4f} | "
-                f"{m['lpips'] - b['lpips']:+.4f} | {row['evidence_f1']:.3f} ({row['evidence_f1'] - ref['evidence_f1']:+.3f}) | "
-                f"{row['evidence_iou']:.3f} ({row['evidence_iou'] - ref['evidence_iou']:+.3f}) | {row['false_regions']} |"
+            has_changes = "evidence_f1" in row and "evidence_f1" in ref
+            m, b = row["mean"], ref["mean"]
+            points.append(
+                {
+                    "scene": scene,
+                    "knob": knob,
+                    "also": also,
+                    "value": row["value"],
+                    "reference": ref["value"],
+                    "time_ratio": row["cross_init_s"] / ref["cross_init_s"],
+                    "psnr": m["psnr"] - b["psnr"],
+                    "worst_psnr": worst_date_change(row, ref),
+                    "ssim": m["ssim"] - b["ssim"],
+                    "lpips": m["lpips"] - b["lpips"],
+                    "evidence_f1": row["evidence_f1"] if has_changes else None,
+                    "f1": row["evidence_f1"] - ref["evidence_f1"] if has_changes else None,
+                    "evidence_iou": row["evidence_iou"] if has_changes else None,
+                    "iou": row["evidence_iou"] - ref["evidence_iou"] if has_changes else None,
+                    "false_regions": row["false_regions"] if has_changes else None,
+                    "rule_f1": row["f1"] - ref["f1"],
+                    "date": r["date"],
+                }
             )
+    return points
+
+
+def summary(stems: list[str]) -> str:
+    """One row per non-reference setting of each result file: the scene, the setting, cross-init time
+    against the reference and the error figures' changes ("–": the file predates the ``changes``
+    detector's columns)."""
+    lines = [
+        "| # | scene | setting (reference) | cross-init | Δ PSNR mean / worst date | Δ SSIM | Δ LPIPS | `changes` F1 (Δ) "
+        "| pixel IoU (Δ) | false regions | o^q rule ΔF1 |",
+        "|---:|---|---|---:|---:|---:|---:|---:|---:|---:|---:|",
+    ]
+    for number, p in enumerate(summary_points(stems), 1):
+        changes = (
+            f"{p['evidence_f1']:.3f} ({p['f1']:+.3f}) | {p['evidence_iou']:.3f} ({p['iou']:+.3f}) | {p['false_regions']}"
+            if p["f1"] is not None
+            else "– | – | –"
+        )
+        lines.append(
+            f"| {number} | {p['scene']} | `{p['knob']}` = {p['value']} ({p['reference']}){''.join(f', `{a}`' for a in p['also'])} | "
+            f"{p['time_ratio']:.2f}× | "
+            f"{p['psnr']:+.2f} / {p['worst_psnr']:+.2f} dB | {p['ssim']:+.4f} | {p['lpips']:+.4f} | {changes} | "
+            f"{p['rule_f1']:+.3f} |"
+        )
     return "\n".join(lines)
+
+
+def write_summary(stems: list[str], stem: str) -> None:
+    """results/STEM.md (the summary table, its sources and command) and results/STEM.png: each
+    setting's cross-init time against the reference on x, its worst-date PSNR change and its change F1
+    change on y, with the targets (3× faster, −0.1 dB, −0.02 F1) drawn in."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    points = summary_points(stems)
+    colours = {scene: f"C{i}" for i, scene in enumerate(dict.fromkeys(p["scene"] for p in points))}
+    fig, axes = plt.subplots(1, 2, figsize=(12, 4.6), constrained_layout=True)
+    for ax, label, floor in (
+        (axes[0], "Δ PSNR after refinement, worst date (dB)", -0.1),
+        (axes[1], "Δ change F1 per Gaussian", -0.02),
+    ):
+        for number, p in enumerate(points, 1):
+            y, hollow = (
+                (p["worst_psnr"], False)
+                if ax is axes[0]
+                else ((p["f1"], False) if p["f1"] is not None else (p["rule_f1"], True))
+            )
+            c = colours[p["scene"]]
+            ax.scatter(p["time_ratio"], y, s=30, facecolors="none" if hollow else c, edgecolors=c)
+            ax.annotate(str(number), (p["time_ratio"], y), fontsize=7, xytext=(3, 3), textcoords="offset points")
+        ax.axhline(floor, color="tab:red", lw=0.8, ls="--")
+        ax.axhline(0.0, color="0.6", lw=0.6)
+        ax.axvline(1 / 3, color="tab:green", lw=0.8, ls="--")
+        ax.set_xlim(0, 1.15)
+        ax.set_xlabel("cross-init time / reference (each file's first row)")
+        ax.set_ylabel(label)
+    for scene, c in colours.items():
+        axes[0].scatter([], [], color=c, label=scene)
+    axes[0].legend(fontsize=8, loc="lower right")
+    fig.suptitle(
+        "Run time against error; numbers: the rows of the table; dashed: the targets (3× faster, largest loss); "
+        "hollow: o^q rule F1 (the file predates the `changes` detector)",
+        fontsize=9,
+    )
+    command = "python benchmarks/bench_speed_vs_error.py --summary " + " ".join(stems) + f" --write {stem}"
+    dates = sorted({p["date"] for p in points})
+    text = "\n".join(
+        [
+            "# Run time against error: every knob measured",
+            "",
+            f"Command: `{command}` (written {datetime.date.today().isoformat()}; the rows were measured on "
+            f"{', '.join(dates)}, machine and code in each source file). Each row is one setting against its "
+            "file's reference row, the first value in parentheses. Sources: "
+            + ", ".join(f"[{s}.md]({s}.md)" for s in stems)
+            + f". Plot: [{stem}.png]({stem}.png).",
+            "",
+            summary(stems),
+            "",
+        ]
+    )
+    RESULTS.mkdir(exist_ok=True)
+    fig.savefig(RESULTS / f"{stem}.png", dpi=110)
+    plt.close(fig)
+    (RESULTS / f"{stem}.md").write_text(text)
 
 
 def markdown(r: dict, knob: str) -> str:
