@@ -30,6 +30,14 @@ compositing weight Σ w over every training view of every date, and the least-sh
 together they draw at most that share of the weight of all Gaussians. A copy hidden behind another copy
 of the same surface draws little, and where it does show, the copy behind it takes its place in the
 recovery refinement. A Gaussian whose o is low at a date whose views observe it is never dropped.
+With ``hidden_rank = "removal"`` the same candidates are ranked instead by what removing each changes
+in the training views, Σ_q Σ_views Σ_RGB |Σ_pixels (C − C_without_i)| (``splat.weights.removal_change``,
+at each date's o^q and l^q): a copy in front of a matching copy changes little, a copy whose colour
+differs from what shows through it changes much, whatever their weights. The share then bounds the
+summed removal change of the dropped ones, against 3 × the summed weight of all. Two overlapping Gaussians
+(centres closer than 2·(s_i + s_j), s the largest scale) are never both dropped in one round, since each
+was measured with the other in place; ``hidden_rounds`` > 1 splits the share over rounds and measures
+again after each.
 
 A short refinement afterwards (``CompactConfig.refine_steps``) recovers what the merge and the drop
 moved.
@@ -38,7 +46,8 @@ moved.
 from __future__ import annotations
 
 import dataclasses
-from typing import NamedTuple
+from collections.abc import Callable
+from typing import Literal, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -69,6 +78,10 @@ class CompactConfig:
     max_alpha: float = 0.99
     hidden_threshold: float = 0.0  # also drop persistent Gaussians whose largest compositing weight is below (0: off)
     hidden_share: float = 0.0  # also drop the least-shown Gaussians that mark no change, up to this share (0: off)
+    hidden_rank: Literal["weight", "removal"] = (
+        "weight"  # rank hidden_share's candidates by summed weight or by removal change
+    )
+    hidden_rounds: int = 1  # hidden_share split over this many rounds, measured again after each
     refine_steps: int = 500
 
     def __post_init__(self):
@@ -89,6 +102,12 @@ class CompactConfig:
             raise InputError(f"must be in (0, 1), got {self.max_alpha}", field="compact.max_alpha")
         if self.refine_steps < 0:
             raise InputError(f"must be ≥ 0, got {self.refine_steps}", field="compact.refine_steps")
+        if self.hidden_rank not in ("weight", "removal"):
+            raise InputError(
+                f"unknown ranking {self.hidden_rank!r}", field="compact.hidden_rank", fix='use "weight" or "removal"'
+            )
+        if self.hidden_rounds < 1:
+            raise InputError(f"must be ≥ 1, got {self.hidden_rounds}", field="compact.hidden_rounds")
 
     @property
     def prunes_hidden(self) -> bool:
@@ -217,24 +236,31 @@ def merge_groups(model: TemporalGaussians, labels: np.ndarray, config: CompactCo
 class Contributions(NamedTuple):
     """Per Gaussian and date q, over the pixels of every view of date q: the largest compositing weight
     w = min(0.99, α·o^q·G)·T, the sum of w (a Gaussian's share of what the views show), and whether the
-    views of q observe it (the refinement's visibility rule, ``splat.weights.observed_matrix``)."""
+    views of q observe it (the refinement's visibility rule, ``splat.weights.observed_matrix``); and,
+    where measured, what removing it changes in those views, Σ_views Σ_RGB |Σ_pixels (C − C_without_i)|."""
 
     largest: Float[np.ndarray, "N T"]
     total: Float[np.ndarray, "N T"]
     observed: Bool[np.ndarray, "N T"]
+    removal: Float[np.ndarray, "N T"] | None = None
 
 
 def contributions(
-    model: TemporalGaussians, views, render_config=None, observed_threshold: float = 0.01
+    model: TemporalGaussians, views, render_config=None, observed_threshold: float = 0.01, removal: bool = False
 ) -> Contributions:
     """Every Gaussian's largest and summed compositing weight per date q over date q's views
     (``views[q]``, a ``DateViews``), rendered at date q's o^q, and whether q's views observe it
-    (α·T ≥ ``observed_threshold`` somewhere, the refinement's ``contribution_threshold``; ``Contributions``)."""
-    from cfgs_jax.model import opacity_multipliers
-    from cfgs_jax.splat.weights import contribution_per_label, max_weight, observed_matrix
+    (α·T ≥ ``observed_threshold`` somewhere, the refinement's ``contribution_threshold``; ``Contributions``).
+    With ``removal``, also what removing each changes there (at o^q and l^q, measured with
+    ``max_alpha`` 0.9999 so that opaque Gaussians are not cut off by the clamp)."""
+    from cfgs_jax.model import light_multipliers, opacity_multipliers
+    from cfgs_jax.splat import RenderConfig
+    from cfgs_jax.splat.weights import contribution_per_label, max_weight, observed_matrix, removal_change
 
     o = opacity_multipliers(model)
     largest, total = np.zeros((len(model), model.num_dates)), np.zeros((len(model), model.num_dates))
+    change = np.zeros((len(model), model.num_dates)) if removal else None
+    unclamped = dataclasses.replace(render_config or RenderConfig(), max_alpha=0.9999)
     for q, dv in enumerate(views):
         cams = dv.cameras
         unlabelled = [np.zeros((int(c.height), int(c.width)), np.int64) for c in cams]
@@ -242,8 +268,12 @@ def contributions(
         total[:, q] = contribution_per_label(
             model.gaussians, o[:, q], cams, unlabelled, 1, render_config=render_config
         )[:, 0]
+        if removal:
+            light = light_multipliers(model)[:, q]
+            per_view = removal_change(model.gaussians, o[:, q], light, cams, render_config=unclamped)
+            change[:, q] = np.sum(np.abs(per_view), axis=(0, 2))
     observed = observed_matrix(model, [dv.cameras for dv in views], observed_threshold, render_config=render_config)
-    return Contributions(largest, total, observed)
+    return Contributions(largest, total, observed, change)
 
 
 def marks_no_change(model: TemporalGaussians, observed: Bool[np.ndarray, "N T"], present: float) -> np.ndarray:
@@ -253,42 +283,91 @@ def marks_no_change(model: TemporalGaussians, observed: Bool[np.ndarray, "N T"],
     return np.all((o >= present) | ~np.asarray(observed, bool), axis=1)
 
 
-def hidden_persistent(model: TemporalGaussians, contribution: Contributions, config: CompactConfig) -> np.ndarray:
+def _overlapping(means: np.ndarray, radius: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """CSR (indptr, indices) of the pairs of rows whose centres lie within 2·(radius_i + radius_j)."""
+    found = cKDTree(means).query_ball_point(means, 4.0 * radius)  # the larger one's ball holds the pair
+    a = np.repeat(np.arange(len(means)), [len(f) for f in found])
+    b = np.concatenate([np.asarray(f, np.int64) for f in found]) if len(found) else np.zeros(0, np.int64)
+    keep = (a != b) & (np.linalg.norm(means[a] - means[b], axis=-1) <= 2.0 * (radius[a] + radius[b]))
+    graph = coo_matrix((np.ones(int(keep.sum())), (a[keep], b[keep])), shape=(len(means),) * 2).tocsr()
+    graph = (graph + graph.T).tocsr()
+    return graph.indptr, graph.indices
+
+
+def hidden_persistent(
+    model: TemporalGaussians, contribution: Contributions, config: CompactConfig, share: float | None = None
+) -> np.ndarray:
     """[N] mask of the Gaussians that mark no change but that the views barely show: copies of a
     persistent surface that the other copies in front of them hide. Either rule drops a Gaussian:
     ``hidden_threshold``: shown at every date (o ≥ ``present``) and its largest compositing weight over
-    every view of every date stays below the threshold; ``hidden_share``: it marks no change
-    (``marks_no_change``) and is among the least-shown such Gaussians (ranked by summed weight over all
-    views of all dates) that together draw at most this share of the weight all Gaussians draw."""
+    every view of every date stays below the threshold; ``hidden_share`` (or ``share``, one round's
+    part): it marks no change (``marks_no_change``) and is among the lowest-ranked such Gaussians that
+    together draw at most this share of the weight all Gaussians draw. ``hidden_rank = "weight"`` ranks
+    by summed weight over all views of all dates; ``"removal"`` by the removal change
+    (``contribution.removal``), skipping a Gaussian that overlaps one already dropped, while the
+    dropped ones together change the views by at most the share of 3 × the summed weight of all
+    Gaussians (what a change of 1 in every channel of every covered pixel would be)."""
     o = np.asarray(jax.nn.sigmoid(model.o_logits))
     persistent = np.all(o >= config.present, axis=1)
     hidden = persistent & (np.max(contribution.largest, axis=1) < config.hidden_threshold)
-    if config.hidden_share > 0:
-        total = np.sum(contribution.total, axis=1)
-        rows = np.nonzero(marks_no_change(model, contribution.observed, config.present))[0]
+    share = config.hidden_share if share is None else share
+    if share <= 0:
+        return hidden
+    total = np.sum(contribution.total, axis=1)
+    rows = np.nonzero(marks_no_change(model, contribution.observed, config.present))[0]
+    budget = share * np.sum(total)
+    if not len(rows):
+        return hidden
+    if config.hidden_rank == "weight":
         order = rows[np.argsort(total[rows], kind="stable")]
-        within = np.cumsum(total[order]) <= config.hidden_share * np.sum(total)
-        hidden[order[within]] = True
+        hidden[order[np.cumsum(total[order]) <= budget]] = True
+        return hidden
+    if contribution.removal is None:
+        raise InputError('hidden_rank = "removal" needs contributions(..., removal=True)', field="compact.hidden_rank")
+    cost = np.sum(contribution.removal[rows], axis=1)
+    budget = share * 3.0 * np.sum(total)  # colour change, L1 over RGB, against the coverage the views show
+    order = np.argsort(cost, kind="stable")
+    radius = np.exp(np.max(np.asarray(model.gaussians.log_scales, np.float64)[rows], axis=-1))
+    indptr, indices = _overlapping(np.asarray(model.gaussians.means, np.float64)[rows], radius)
+    taken = np.zeros(len(rows), bool)
+    spent = 0.0
+    for k in order:
+        if spent + cost[k] > budget:
+            break
+        if taken[indices[indptr[k] : indptr[k + 1]]].any():
+            continue
+        taken[k] = True
+        spent += cost[k]
+    hidden[rows[taken]] = True
     return hidden
 
 
 def compact(
-    model: TemporalGaussians, config: CompactConfig | None = None, contribution: Contributions | None = None
+    model: TemporalGaussians,
+    config: CompactConfig | None = None,
+    contribution: Contributions | Callable[[TemporalGaussians], Contributions] | None = None,
 ) -> tuple[TemporalGaussians, dict]:
     """The model without its hidden persistent copies (``hidden_persistent``, when ``hidden_threshold``
-    or ``hidden_share`` > 0; ``contribution`` from ``contributions``) and with every group of ``duplicate_groups``
-    merged into one Gaussian (``merge_groups``), the others unchanged; and a report (Gaussians
-    before/after per origin date and in all)."""
+    or ``hidden_share`` > 0) and with every group of ``duplicate_groups`` merged into one Gaussian
+    (``merge_groups``), the others unchanged; and a report (Gaussians before/after per origin date and
+    in all). ``contribution``: the model's ``contributions``, or a function that measures them for a
+    model (needed for ``hidden_rounds`` > 1: each round drops up to hidden_share / hidden_rounds of
+    the weight the model then draws, and the next round measures the model that is left)."""
     config = config or CompactConfig()
-    hidden = np.zeros(len(model), bool)
-    if config.prunes_hidden:
-        if contribution is None:
-            raise InputError(
-                "hidden_threshold and hidden_share need the Gaussians' contributions", field="compact.contribution"
-            )
-        hidden = hidden_persistent(model, contribution, config)
     full = model
-    model = select(model, np.nonzero(~hidden)[0])
+    hidden_count = 0
+    if config.prunes_hidden:
+        if contribution is None or (config.hidden_rounds > 1 and not callable(contribution)):
+            raise InputError(
+                "hidden_threshold and hidden_share need the Gaussians' contributions (a function that measures "
+                "them, for hidden_rounds > 1)",
+                field="compact.contribution",
+            )
+        for _ in range(config.hidden_rounds):
+            measured = contribution(model) if callable(contribution) else contribution
+            hidden = hidden_persistent(model, measured, config, config.hidden_share / config.hidden_rounds)
+            hidden_count += int(hidden.sum())
+            model = select(model, np.nonzero(~hidden)[0])
     labels = duplicate_groups(model, config)
     merged, kept = merge_groups(model, labels, config)
     out = select(merged, np.nonzero(kept)[0])
@@ -296,7 +375,7 @@ def compact(
     report = {
         "gaussians_before": len(full),
         "gaussians_after": len(out),
-        "hidden_pruned": int(hidden.sum()),
+        "hidden_pruned": hidden_count,
         "groups_merged": int(np.sum(np.bincount(labels) > 1)),
         "per_date_before": {names[d]: int(np.sum(before == d)) for d in range(model.num_dates)},
         "per_date_after": {names[d]: int(np.sum(after == d)) for d in range(model.num_dates)},

@@ -553,10 +553,12 @@ def compact_stage(run: FusionRun, config: CompactConfig, views, scenes, sims, re
     before = evaluate_fused(model, test_views, render_config=render_config, mesh=run.mesh)
     write_fused(run.out / "before_compact", model, config=run.state["config"])
     refine_config = section(run.raw, "refine", RefineConfig)
-    contribution = None
-    if config.prunes_hidden:  # "observed" by the refinement's own visibility threshold
-        contribution = contributions(model, views, render_config, refine_config.contribution_threshold)
-    compacted, report = compact(model, config, contribution)
+
+    def measure(m):  # "observed" by the refinement's own visibility threshold
+        threshold = refine_config.contribution_threshold
+        return contributions(m, views, render_config, threshold, removal=config.hidden_rank == "removal")
+
+    compacted, report = compact(model, config, measure if config.prunes_hidden else None)
     log(
         f"[compact] {report['gaussians_before']:,} → {report['gaussians_after']:,} Gaussians "
         f"({report['hidden_pruned']:,} hidden copies dropped, {report['groups_merged']:,} groups merged); "
