@@ -6,6 +6,7 @@ the stage's wall time and the render time of a full selection (all dates, highli
 views over the reference's, timed alternately in one process.
 
     python benchmarks/bench_compact.py --run RUN [--knob hidden_share] [--values 0 0.01 0.02] [--refine-steps 200]
+        [--set compact.hidden_rank=removal --set compact.hidden_rounds=3]
 
 With ``--data DATA`` (the synthetic dataset root with ``ground_truth.json``), every row also scores
 change detection against ground truth (per-Gaussian F1, per-pixel IoU at the default settings, of the
@@ -100,14 +101,22 @@ def main():
     ap.add_argument("--refine-steps", type=int, default=200)
     ap.add_argument("--data", default=None, help="the scene's dataset root: also score change detection")
     ap.add_argument("--name", default="compact", help="results file stem (results/NAME.md and .json)")
+    ap.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        dest="overrides",
+        help="compact.KEY=VALUE for every row, e.g. compact.hidden_rank=removal",
+    )
     args = ap.parse_args()
 
-    from cfgs_jax.config import section
+    from cfgs_jax.config import apply_overrides, section
     from cfgs_jax.fusion.compact import CompactConfig
     from cfgs_jax.fusion.run import run_compact
     from cfgs_jax.io.atomic import read_json
 
     base = dict((read_json(Path(args.run) / "run.json")["config"] or {}).get("compact", {}))
+    base = apply_overrides({"compact": base}, args.overrides)["compact"]
     rows, dirs = [], []
     with tempfile.TemporaryDirectory() as tmp:
         for th in sorted({0.0, *args.values}):

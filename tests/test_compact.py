@@ -264,8 +264,9 @@ def test_removal_rounds_drop_one_of_two_stacked_copies_per_round_and_keep_both_d
     behind it (same colour), and a blob that changed (gone at date 1). Where the grids overlap, removing
     the centre blob of either copy changes almost nothing (the other copy and the neighbours fill in),
     much less than removing the changed blob. Measured with the other in place, the two centre blobs
-    may not both go in one round: one round drops exactly one of them; two rounds (measured again in
-    between) drop both, and both dates' renders stay within 0.01 of the originals."""
+    may not both go in one round: one round drops exactly one of them (beside other blobs that overlap
+    neither); two rounds (measured again in between) drop both, keep the changed blob, and both dates'
+    renders stay within 0.01 of the originals."""
     from cfgs_jax.fusion import DateViews
     from cfgs_jax.fusion.compact import contributions
 
@@ -293,9 +294,9 @@ def test_removal_rounds_drop_one_of_two_stacked_copies_per_round_and_keep_both_d
         kept = {tuple(x) for x in np.asarray(out.gaussians.means).tolist()}
         return out, [i for i, x in enumerate(np.asarray(model.gaussians.means).tolist()) if tuple(x) not in kept]
 
-    _, one_round = dropped(1, 0.002)
-    assert len(one_round) == 1 and one_round[0] in centre
-    out, two_rounds = dropped(2, 0.004)
-    assert sorted(two_rounds) == centre
+    _, one_round = dropped(1, 0.001)
+    assert len(set(one_round) & set(centre)) == 1
+    out, two_rounds = dropped(2, 0.002)
+    assert set(centre) <= set(two_rounds) and 50 not in two_rounds
     for date in (0, 1):
         np.testing.assert_allclose(_render(out, camera, date), _render(model, camera, date), atol=0.01)

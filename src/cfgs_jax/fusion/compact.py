@@ -35,7 +35,7 @@ in the training views, Σ_q Σ_views Σ_RGB |Σ_pixels (C − C_without_i)| (``s
 at each date's o^q and l^q): a copy in front of a matching copy changes little, a copy whose colour
 differs from what shows through it changes much, whatever their weights. The share then bounds the
 summed removal change of the dropped ones, against 3 × the summed weight of all. Two overlapping Gaussians
-(centres closer than 2·(s_i + s_j), s the largest scale) are never both dropped in one round, since each
+(centres closer than s̄_i + s̄_j) are never both dropped in one round, since each
 was measured with the other in place; ``hidden_rounds`` > 1 splits the share over rounds and measures
 again after each.
 
@@ -284,11 +284,11 @@ def marks_no_change(model: TemporalGaussians, observed: Bool[np.ndarray, "N T"],
 
 
 def _overlapping(means: np.ndarray, radius: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """CSR (indptr, indices) of the pairs of rows whose centres lie within 2·(radius_i + radius_j)."""
-    found = cKDTree(means).query_ball_point(means, 4.0 * radius)  # the larger one's ball holds the pair
+    """CSR (indptr, indices) of the pairs of rows whose centres lie within radius_i + radius_j."""
+    found = cKDTree(means).query_ball_point(means, 2.0 * radius)  # the larger one's ball holds the pair
     a = np.repeat(np.arange(len(means)), [len(f) for f in found])
     b = np.concatenate([np.asarray(f, np.int64) for f in found]) if len(found) else np.zeros(0, np.int64)
-    keep = (a != b) & (np.linalg.norm(means[a] - means[b], axis=-1) <= 2.0 * (radius[a] + radius[b]))
+    keep = (a != b) & (np.linalg.norm(means[a] - means[b], axis=-1) <= radius[a] + radius[b])
     graph = coo_matrix((np.ones(int(keep.sum())), (a[keep], b[keep])), shape=(len(means),) * 2).tocsr()
     graph = (graph + graph.T).tocsr()
     return graph.indptr, graph.indices
@@ -327,7 +327,7 @@ def hidden_persistent(
     cost = np.sum(contribution.removal[rows], axis=1)
     budget = share * 3.0 * np.sum(total)  # colour change, L1 over RGB, against the coverage the views show
     order = np.argsort(cost, kind="stable")
-    radius = np.exp(np.max(np.asarray(model.gaussians.log_scales, np.float64)[rows], axis=-1))
+    radius = np.exp(np.mean(np.asarray(model.gaussians.log_scales, np.float64)[rows], axis=-1))
     indptr, indices = _overlapping(np.asarray(model.gaussians.means, np.float64)[rows], radius)
     taken = np.zeros(len(rows), bool)
     spent = 0.0
