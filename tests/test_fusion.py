@@ -365,7 +365,9 @@ def test_pairs_of_different_dates_p_batched_equal_the_pairs_one_by_one():
 
 def test_cross_init_early_stopping_stops_a_settled_pair_and_not_a_moving_one():
     """With early_stop_tolerance, a pair whose o^q and light no longer move (rates ~0) stops at the
-    second check after the ε ramp (step 15 here); a pair still moving runs its whole schedule."""
+    second check after the ε ramp (step 15 here); a pair still moving runs its whole schedule. The same
+    on the loss (``early_stop_on = "loss"``): the frozen pair stops at the first comparison of two
+    windows after the ramp, the learning one runs to the end."""
     ci = importlib.import_module("cfgs_jax.fusion.cross_init")
     g = _random_gaussians(80, seed=6)
     cams = tuple(
@@ -384,10 +386,20 @@ def test_cross_init_early_stopping_stops_a_settled_pair_and_not_a_moving_one():
     assert settled_q["steps_run"] == 15
     full, _ = ci.init_pair(model, 0, 1, views, ci.CrossInitConfig(lr_o=0.05, lr_light=0.03, **common))
     np.testing.assert_array_equal(np.asarray(moved.o_logits), np.asarray(full.o_logits))  # off = on when it never stops
+    # on the loss: windows of 4 steps (two epochs of the two views); the first comparison, of the windows
+    # [10, 14) and [14, 18) after the ramp, finds a frozen pair's loss unchanged; a learning one falls on
+    on_loss = dict(early_stop_tolerance=1e-4, early_stop_every=4, early_stop_on="loss")
+    _, settled_loss = ci.init_pair(
+        model, 0, 1, views, ci.CrossInitConfig(lr_o=1e-9, lr_light=1e-9, **common, **on_loss)
+    )
+    _, moving_loss = ci.init_pair(model, 0, 1, views, ci.CrossInitConfig(lr_o=0.05, lr_light=0.03, **common, **on_loss))
+    assert settled_loss["steps_run"] == 18 and moving_loss["steps_run"] == 40
     with pytest.raises(cj.InputError, match="early_stop"):
         ci.CrossInitConfig(early_stop_tolerance=-1.0)
     with pytest.raises(cj.InputError, match="early_stop"):
         ci.CrossInitConfig(early_stop_quantile=0.0)
+    with pytest.raises(cj.InputError, match="early_stop_on"):
+        ci.CrossInitConfig(early_stop_on="gradient")
 
 
 def test_cross_init_coarse_to_fine_ends_at_full_resolution(monkeypatch):

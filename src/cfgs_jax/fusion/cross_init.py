@@ -66,7 +66,10 @@ class CrossInitConfig:
     and the background anneal are over (their schedules still change the loss before), the pairs of a
     group stop when, over the last ``early_stop_every`` steps, no o^q (as an opacity in [0, 1]) and no
     channel of any light multiplier l^q moved by more than the tolerance — or, with
-    ``early_stop_quantile`` q < 1, when the q-quantile of those moves is within it.
+    ``early_stop_quantile`` q < 1, when the q-quantile of those moves is within it. With
+    ``early_stop_on = "loss"`` they stop instead when no pair's mean Eq. 2 loss over the last
+    ``early_stop_every`` steps fell by more than the tolerance (relative) from the window before (a
+    multiple of the views per date makes each window see every view equally often).
 
     Coarse to fine (``coarse_fraction`` > 0): the first ``coarse_fraction`` of the steps render and
     compare at 1/``coarse_factor`` of the resolution (cameras scaled, images and ε maps box-filtered),
@@ -90,6 +93,7 @@ class CrossInitConfig:
     early_stop_tolerance: float = 0.0  # stop a group of pairs once nothing moves more than this (0: off)
     early_stop_every: int = 100  # steps between the convergence checks
     early_stop_quantile: float = 1.0  # the share of values that must have settled (1: all of them)
+    early_stop_on: Literal["updates", "loss"] = "updates"  # what must settle: o^q / l^q moves, or the loss (relative)
     coarse_fraction: float = 0.0  # the first steps, this share of them, at 1/coarse_factor resolution (0: off)
     coarse_factor: int = 2
     seed: int = 0
@@ -118,6 +122,12 @@ class CrossInitConfig:
             raise InputError(
                 "early_stop_tolerance must be ≥ 0 (0: off), early_stop_every positive, early_stop_quantile in (0, 1]",
                 field="cross_init.early_stop_tolerance",
+            )
+        if self.early_stop_on not in ("updates", "loss"):
+            raise InputError(
+                f"unknown criterion {self.early_stop_on!r}",
+                field="cross_init.early_stop_on",
+                fix='use "updates" or "loss"',
             )
         if not 0 <= self.coarse_fraction < 1 or self.coarse_factor < 1:
             raise InputError(
@@ -523,13 +533,21 @@ def _convergence_test(config: CrossInitConfig, seen):
     """``converged(carry, done)`` for ``run_steps``: true at a check (every ``early_stop_every`` steps
     after the ε ramp and the background anneal) when no o^q or light channel of any pair moved by more
     than ``early_stop_tolerance`` since the previous check (or their ``early_stop_quantile``-quantile
-    did not; ``seen`` [pairs, m, 1]: the rows each pair optimises)."""
+    did not; ``seen`` [pairs, m, 1]: the rows each pair optimises); with ``early_stop_on = "loss"``,
+    when no pair's mean loss over the window since the previous check fell by more than the
+    tolerance times the previous window's (both windows after the start)."""
     start = int(np.ceil(max(config.ramp_fraction, config.background_anneal) * config.steps))
     last = {"values": None}
 
     def converged(carry, done: int) -> bool:
         if done < start or (done - start) % config.early_stop_every:
             return False
+        if config.early_stop_on == "loss":  # the window's mean loss per pair against the window before
+            window, previous = jnp.mean(jnp.stack(carry[3][-config.early_stop_every :]), axis=0), last["values"]
+            last["values"] = window
+            if done - start < 2 * config.early_stop_every:  # the window before began before the start
+                return False
+            return bool(jnp.all(previous - window <= config.early_stop_tolerance * previous))
         values, previous = _settled(carry[0]), last["values"]
         last["values"] = values
         if previous is None:
