@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import time
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -228,6 +229,7 @@ class _Carry:
     losses: list
     completed: int = 0  # views completed by forward-only renders
     capacity: int = 0
+    seconds: float = 0.0  # wall time of the steps before this run (a resumed run's earlier part)
 
     ARRAYS = ("params", "opt_state", "key", "contributed", "covered", "zeroed", "o_init")
 
@@ -274,6 +276,7 @@ def _start(run: _Refinement, new_dates, checkpoint, identity: dict) -> tuple[_Ca
         *(np.asarray(loaded[k]).copy() for k in ("contributed", "covered", "zeroed")),
         list(meta["losses"]),
         int(meta["completed"]),
+        seconds=float(meta.get("seconds", 0.0)),
     )
     return carry, int(meta["step"])
 
@@ -442,7 +445,7 @@ def refine(
     """Eq. 3 refinement of a cross-initialised model on all dates' training views, the visibility
     rule every ``visibility_interval`` steps and at the end, then the final prune. Returns the model
     and a report (losses, Gaussians zeroed per date, views completed by forward-only renders, pruned
-    count).
+    count, and for a resumed run the step it resumed at and the wall seconds its steps took before).
 
     ``train_config``: the input training's configuration, whose position schedule refinement uses
     (default ``TrainConfig()``). ``new_dates``: the dates whose Gaussians get α halved at the start
@@ -475,8 +478,11 @@ def refine(
     )
     carry.capacity = max(run.capacity_for(carry.params, q, v) for q, v in run.flat)
 
+    t0 = time.perf_counter()
+
     def save(c: _Carry, done: int):
-        meta = identity | {"step": done, "losses": c.losses, "completed": c.completed}
+        seconds = c.seconds + time.perf_counter() - t0
+        meta = identity | {"step": done, "losses": c.losses, "completed": c.completed, "seconds": seconds}
         save_tree(checkpoint, c.arrays(), meta, format=CHECKPOINT_FORMAT)
 
     with Progress("refine", total=config.steps, completed=start, enabled=progress, transient=True) as bar:
@@ -492,7 +498,8 @@ def refine(
         )
     if done < config.steps:
         return None, {"stopped_at": done}
-    return _finish(model, carry, config, new_dates)
+    pruned, report = _finish(model, carry, config, new_dates)
+    return pruned, report | {"resumed_at_step": start, "seconds_before_resume": carry.seconds}
 
 
 def _finish(model, carry: _Carry, config: RefineConfig, new_dates) -> tuple[TemporalGaussians, dict]:

@@ -367,7 +367,7 @@ def _refine_stage(
         mesh=run.mesh,
     )
     write_fused(run.out / "fused", model, config=run.state["config"])
-    run.finish(stage, time.perf_counter() - t0, rep)
+    run.finish(stage, time.perf_counter() - t0 + rep["seconds_before_resume"], rep)  # a resumed stage's whole time
     ckpt.unlink(missing_ok=True)
 
 
