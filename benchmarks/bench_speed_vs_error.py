@@ -6,7 +6,7 @@ evidence, the run's ``[changes]`` table), and F1 / pixel IoU of the o^q < 0.2 ru
 effect. The first value is the reference row (the run's configuration, e.g. 0 = the knob off).
 
     python benchmarks/bench_speed_vs_error.py --run RUN --data DATA \\
-        --knob cross_init.early_stop_tolerance --values 0 0.002 0.005 [--set cross_init.early_stop_every=25]
+        --knob cross_init.early_stop_tolerance --values 0 0.002 0.005 --set cross_init.background_anneal=0.5 [--set cross_init.early_stop_every=25]
 
 RUN, DATA: the ``run/`` and ``data/`` of ``python -m cfgs_jax.pipeline eval --scene S --config
 benchmarks/eval_small.toml --out DIR``. Writes benchmarks/results/speed_vs_error_<preset>_<knob>.json

@@ -400,6 +400,8 @@ def test_cross_init_early_stopping_stops_a_settled_pair_and_not_a_moving_one():
         ci.CrossInitConfig(early_stop_quantile=0.0)
     with pytest.raises(cj.InputError, match="early_stop_on"):
         ci.CrossInitConfig(early_stop_on="gradient")
+    with pytest.raises(cj.InputError, match="background_anneal"):  # the checks would never begin
+        ci.CrossInitConfig(early_stop_tolerance=1e-3)
 
 
 def test_cross_init_coarse_to_fine_ends_at_full_resolution(monkeypatch):

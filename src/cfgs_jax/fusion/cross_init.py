@@ -123,6 +123,13 @@ class CrossInitConfig:
                 "early_stop_tolerance must be ≥ 0 (0: off), early_stop_every positive, early_stop_quantile in (0, 1]",
                 field="cross_init.early_stop_tolerance",
             )
+        if self.early_stop_tolerance > 0 and max(self.ramp_fraction, self.background_anneal) >= 1:
+            raise InputError(
+                "early stopping checks only after the ε ramp and the background anneal, which here last the "
+                f"whole schedule (ramp_fraction {self.ramp_fraction}, background_anneal {self.background_anneal})",
+                field="cross_init.early_stop_tolerance",
+                fix="also set cross_init.background_anneal (and ramp_fraction) below 1, e.g. 0.5",
+            )
         if self.early_stop_on not in ("updates", "loss"):
             raise InputError(
                 f"unknown criterion {self.early_stop_on!r}",
