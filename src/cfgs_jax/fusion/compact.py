@@ -40,7 +40,8 @@ was measured with the other in place; ``hidden_rounds`` > 1 splits the share ove
 again after each.
 
 A short refinement afterwards (``CompactConfig.refine_steps``) recovers what the merge and the drop
-moved.
+moved; with ``lr_light`` > 0 it also fits the light multipliers l^q, so that a copy of one date that
+takes over at another date can take on that date's appearance.
 """
 
 from __future__ import annotations
@@ -83,6 +84,7 @@ class CompactConfig:
     )
     hidden_rounds: int = 1  # hidden_share split over this many rounds, measured again after each
     refine_steps: int = 500
+    lr_light: float = 0.0  # light rate of the recovery refinement (0: l frozen, as in the fusion's refinement)
 
     def __post_init__(self):
         for name in (
@@ -102,6 +104,8 @@ class CompactConfig:
             raise InputError(f"must be in (0, 1), got {self.max_alpha}", field="compact.max_alpha")
         if self.refine_steps < 0:
             raise InputError(f"must be ≥ 0, got {self.refine_steps}", field="compact.refine_steps")
+        if self.lr_light < 0:
+            raise InputError(f"must be ≥ 0 (0: l frozen), got {self.lr_light}", field="compact.lr_light")
         if self.hidden_rank not in ("weight", "removal"):
             raise InputError(
                 f"unknown ranking {self.hidden_rank!r}", field="compact.hidden_rank", fix='use "weight" or "removal"'

@@ -1,7 +1,7 @@
 """Combined refinement (paper §"Combined Optimization", Eq. 3) and the final prune.
 
-All Gaussian parameters and the persistence logits o are optimised together (light l frozen) on one
-random training image of a random date per step, with
+All Gaussian parameters and the persistence logits o are optimised together (light l frozen, unless
+``lr_light`` > 0) on one random training image of a random date per step, with
 
     L = 0.8·L1 + 0.2·D-SSIM + λ_change·L_change,  L_change = mean |d(õ) − d(o)|          (Eq. 3)
 
@@ -67,6 +67,7 @@ class RefineConfig:
     lr_color: float = 2e-5  # f_dc units: the RGB colour moves C0 times this
     lr_other: float = 5e-5
     position_lr_scale: float = 1.0  # × [train]'s position schedule (0 freezes the positions)
+    lr_light: float = 0.0  # Adam rate of the light logits l (0: frozen, the paper's refinement)
     lambda_dssim: float = 0.2
     lambda_change: float = 0.1
     halve_alpha: bool = True
@@ -89,6 +90,8 @@ class RefineConfig:
             raise InputError(f"must be positive, got {self.visibility_interval}", field="refine.visibility_interval")
         if self.position_lr_scale < 0:
             raise InputError(f"must be ≥ 0, got {self.position_lr_scale}", field="refine.position_lr_scale")
+        if self.lr_light < 0:
+            raise InputError(f"must be ≥ 0 (0: l frozen), got {self.lr_light}", field="refine.lr_light")
 
 
 def opacity_differences(o: jnp.ndarray) -> jnp.ndarray:
@@ -111,10 +114,11 @@ def change_loss(o_logits, o_logits_init) -> jnp.ndarray:
 
 
 def _date_render(params, light_logits, camera, date, background, render_config):
-    """Date ``date``'s render of the model ``params`` (opacity α·o^date, colour l^date ⊙ c)."""
+    """Date ``date``'s render of the model ``params`` (opacity α·o^date, colour l^date ⊙ c; l from
+    ``params`` where it is trained, else the frozen ``light_logits``)."""
     g = gaussians_of(params)
     o = jax.nn.sigmoid(params["o_logits"][:, date])
-    light = 2.0 * jax.nn.sigmoid(light_logits[:, date])
+    light = 2.0 * jax.nn.sigmoid(params.get("light_logits", light_logits)[:, date])
     return splat.render_dates(g, camera, o[None], light[None], background=background, config=render_config)
 
 
@@ -197,6 +201,12 @@ def final_prune(model: TemporalGaussians, threshold: float = 1.0 / 255.0) -> Tem
     return jax.tree_util.tree_map(lambda x: jnp.asarray(x)[np.nonzero(keep)[0]], model)
 
 
+def _with_params(model: TemporalGaussians, params: dict) -> TemporalGaussians:
+    """``model`` with the refined parameters written in (its light too where it was trained)."""
+    out = with_trainable(model, params)
+    return dataclasses.replace(out, light_logits=params["light_logits"]) if "light_logits" in params else out
+
+
 CHECKPOINT_FORMAT = "cfgs_jax.refine_checkpoint/2"
 
 
@@ -251,7 +261,7 @@ def _start(run: _Refinement, new_dates, checkpoint, identity: dict) -> tuple[_Ca
     """The carry at the start (α halved on ``new_dates``' Gaussians), or as the checkpoint left it
     (refused unless its ``identity`` matches); and the step to start from."""
     model, config = run.model, run.config
-    params = trainable(model)
+    params = trainable(model) | ({"light_logits": jnp.asarray(model.light_logits)} if config.lr_light else {})
     if config.halve_alpha and new_dates:
         params = halve_alpha_of(params, np.isin(np.asarray(model.origin), new_dates))
     n, t = len(model), model.num_dates
@@ -401,7 +411,7 @@ class _Refinement:
             c = self.check_visibility(c)
             c.params, c.opt_state, c.o_init = parallel.replicate((c.params, c.opt_state, c.o_init), self.batch_mesh)
         if self.on_snapshot is not None and done in self.snapshot_steps and done < config.steps:
-            self.on_snapshot(done, final_prune(with_trainable(self.model, c.params), config.prune_threshold))
+            self.on_snapshot(done, final_prune(_with_params(self.model, c.params), config.prune_threshold))
         return c
 
     def body(self, c: _Carry, it: int) -> _Carry:
@@ -504,7 +514,7 @@ def refine(
 
 def _finish(model, carry: _Carry, config: RefineConfig, new_dates) -> tuple[TemporalGaussians, dict]:
     """The refined model finally pruned, and the report."""
-    pruned = final_prune(with_trainable(model, carry.params), config.prune_threshold)
+    pruned = final_prune(_with_params(model, carry.params), config.prune_threshold)
     losses = carry.losses
     report = {
         "steps": config.steps,

@@ -565,7 +565,7 @@ def compact_stage(run: FusionRun, config: CompactConfig, views, scenes, sims, re
         f"{config.refine_steps:,} refinement steps"
     )
     if config.refine_steps:
-        rc = dataclasses.replace(refine_config, steps=config.refine_steps, halve_alpha=False)
+        rc = dataclasses.replace(refine_config, steps=config.refine_steps, halve_alpha=False, lr_light=config.lr_light)
         extent = train.scene_extent(scenes[run.reference].cameras)
         tc = section(run.raw, "train", train.TrainConfig)
         compacted, refined = refine(

@@ -94,6 +94,8 @@ def refinement_optimizer(
         "colors": config.lr_color * SH_C0,
         "o_logits": config.lr_o,
     }
+    if config.lr_light:  # l trained too (the paper keeps it frozen)
+        rates["light_logits"] = config.lr_light
     return per_field_adam(rates, eps=1e-15)
 
 
