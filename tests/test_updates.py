@@ -132,4 +132,6 @@ def test_trainable_and_with_trainable_are_inverse():
     np.testing.assert_array_equal(m2.o_logits, p2["o_logits"])
     np.testing.assert_array_equal(m2.gaussians.means, p2["means"])
     assert m2.light_logits is m.light_logits and m2.dates == m.dates
+    lit = with_trainable(m, p2 | {"light_logits": m.light_logits + 0.5})  # refinement with lr_light > 0
+    np.testing.assert_array_equal(lit.light_logits, np.asarray(m.light_logits) + 0.5)
     assert with_trainable(g, trainable(g)) == gaussians_of(trainable(g))

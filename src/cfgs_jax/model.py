@@ -290,9 +290,11 @@ def gaussians_of(params: dict[str, Array]) -> Gaussians:
 
 
 def with_trainable(like: Gaussians | TemporalGaussians, params: dict[str, Array]):
-    """``like`` with its trainable leaves replaced by ``params``: the inverse of ``trainable``."""
+    """``like`` with its trainable leaves replaced by ``params``: the inverse of ``trainable`` (a
+    ``TemporalGaussians``' light too, where ``params`` carries ``light_logits``)."""
     if isinstance(like, TemporalGaussians):
-        return dataclasses.replace(like, gaussians=gaussians_of(params), o_logits=params["o_logits"])
+        light = {"light_logits": params["light_logits"]} if "light_logits" in params else {}
+        return dataclasses.replace(like, gaussians=gaussians_of(params), o_logits=params["o_logits"], **light)
     return gaussians_of(params)
 
 

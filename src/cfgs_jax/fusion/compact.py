@@ -261,7 +261,7 @@ def contributions(
     from cfgs_jax.splat import RenderConfig
     from cfgs_jax.splat.weights import contribution_per_label, max_weight, observed_matrix, removal_change
 
-    o = opacity_multipliers(model)
+    o, light = opacity_multipliers(model), light_multipliers(model)
     largest, total = np.zeros((len(model), model.num_dates)), np.zeros((len(model), model.num_dates))
     change = np.zeros((len(model), model.num_dates)) if removal else None
     unclamped = dataclasses.replace(render_config or RenderConfig(), max_alpha=0.9999)
@@ -273,8 +273,7 @@ def contributions(
             model.gaussians, o[:, q], cams, unlabelled, 1, render_config=render_config
         )[:, 0]
         if removal:
-            light = light_multipliers(model)[:, q]
-            per_view = removal_change(model.gaussians, o[:, q], light, cams, render_config=unclamped)
+            per_view = removal_change(model.gaussians, o[:, q], light[:, q], cams, render_config=unclamped)
             change[:, q] = np.sum(np.abs(per_view), axis=(0, 2))
     observed = observed_matrix(model, [dv.cameras for dv in views], observed_threshold, render_config=render_config)
     return Contributions(largest, total, observed, change)
@@ -319,12 +318,11 @@ def hidden_persistent(
         return hidden
     total = np.sum(contribution.total, axis=1)
     rows = np.nonzero(marks_no_change(model, contribution.observed, config.present))[0]
-    budget = share * np.sum(total)
     if not len(rows):
         return hidden
     if config.hidden_rank == "weight":
         order = rows[np.argsort(total[rows], kind="stable")]
-        hidden[order[np.cumsum(total[order]) <= budget]] = True
+        hidden[order[np.cumsum(total[order]) <= share * np.sum(total)]] = True
         return hidden
     if contribution.removal is None:
         raise InputError('hidden_rank = "removal" needs contributions(..., removal=True)', field="compact.hidden_rank")

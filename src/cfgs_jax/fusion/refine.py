@@ -201,12 +201,6 @@ def final_prune(model: TemporalGaussians, threshold: float = 1.0 / 255.0) -> Tem
     return jax.tree_util.tree_map(lambda x: jnp.asarray(x)[np.nonzero(keep)[0]], model)
 
 
-def _with_params(model: TemporalGaussians, params: dict) -> TemporalGaussians:
-    """``model`` with the refined parameters written in (its light too where it was trained)."""
-    out = with_trainable(model, params)
-    return dataclasses.replace(out, light_logits=params["light_logits"]) if "light_logits" in params else out
-
-
 CHECKPOINT_FORMAT = "cfgs_jax.refine_checkpoint/2"
 
 
@@ -411,7 +405,7 @@ class _Refinement:
             c = self.check_visibility(c)
             c.params, c.opt_state, c.o_init = parallel.replicate((c.params, c.opt_state, c.o_init), self.batch_mesh)
         if self.on_snapshot is not None and done in self.snapshot_steps and done < config.steps:
-            self.on_snapshot(done, final_prune(_with_params(self.model, c.params), config.prune_threshold))
+            self.on_snapshot(done, final_prune(with_trainable(self.model, c.params), config.prune_threshold))
         return c
 
     def body(self, c: _Carry, it: int) -> _Carry:
@@ -514,7 +508,7 @@ def refine(
 
 def _finish(model, carry: _Carry, config: RefineConfig, new_dates) -> tuple[TemporalGaussians, dict]:
     """The refined model finally pruned, and the report."""
-    pruned = final_prune(_with_params(model, carry.params), config.prune_threshold)
+    pruned = final_prune(with_trainable(model, carry.params), config.prune_threshold)
     losses = carry.losses
     report = {
         "steps": config.steps,
