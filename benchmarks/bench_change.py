@@ -41,6 +41,9 @@ VARIANTS = [  # (label, overrides of the default [changes] table)
     ("link 3, grow above 0.25", {"link_factor": 3.0, "grow_above": 0.25}),
     ("τ = 0.05", {"threshold": 0.05}),
     ("τ = 0.07", {"threshold": 0.07}),
+    ("colour completion, 4 hops", {"complete_hops": 4}),
+    ("colour completion, 8 hops", {"complete_hops": 8}),
+    ("colour completion, 8 hops, colour 0.05", {"complete_hops": 8, "complete_colour": 0.05}),
 ]
 
 

@@ -23,7 +23,14 @@ from cfgs_jax.changes.evidence import (
     spread_cameras,
 )
 from cfgs_jax.changes.maps import change_mask, pixel_change
-from cfgs_jax.changes.regions import cluster_labels, hull_volume, image_regions, median_spacing, regions_3d
+from cfgs_jax.changes.regions import (
+    cluster_labels,
+    complete_by_colour,
+    hull_volume,
+    image_regions,
+    median_spacing,
+    regions_3d,
+)
 from cfgs_jax.errors import InputError
 from cfgs_jax.fusion import DateViews
 from cfgs_jax.splat import reference
@@ -282,3 +289,54 @@ def test_regions_split_neighbours_of_opposite_kind_and_join_colocated_ones():
     pts = np.concatenate([a, c])
     regions, member = regions_3d(pts, np.ones(600, bool), diff, spacing=median_spacing(pts), link_factor=4.0)
     assert [(r["kind"], r["gaussians"]) for r in regions] == [("changed", 600)] and (member == 0).all()
+
+
+def test_colour_completion_takes_the_rest_of_an_object_and_not_the_ground():
+    """A red column on grey ground, whose top third alone is scored changed (a flattened object: its
+    lower part looks the same at both dates): completion by colour adds the column's lower part and no
+    ground; a red column of another date beside it, a red cloud out of reach of the hops and an
+    ineligible part stay out; without hops nothing is added."""
+    rng = np.random.default_rng(2)
+    column = rng.uniform([0, 0, 0], [1, 1, 3], (600, 3))
+    ground = np.concatenate([rng.uniform([-3, -3, -0.3], [4, 4, 0], (3000, 3))])
+    other_date = rng.uniform([1.2, 0, 0], [2.2, 1, 3], (300, 3))  # a column of date 1, touching
+    far = rng.uniform([0, 0, 9], [1, 1, 10], (100, 3))  # red, but 6 units above the column
+    means = np.concatenate([column, ground, other_date, far])
+    n = len(means)
+    red, grey = np.array([0.8, 0.1, 0.1]), np.array([0.5, 0.5, 0.5])
+    colors = np.where(np.arange(n)[:, None] < 600, red, grey)
+    colors[3600:] = red
+    colors = colors + rng.normal(0, 0.01, colors.shape)
+    origin = np.zeros(n, int)
+    origin[3600:3900] = 1
+    seeds = np.zeros(n, bool)
+    seeds[:600] = column[:, 2] > 2.0
+    member = np.where(seeds, 0, -1)
+    eligible = np.ones(n, bool)
+    eligible[:600] &= ~((column[:, 0] < 0.2) & (column[:, 2] < 0.5))  # a corner not observed at both dates
+    radius = 0.5
+    out = complete_by_colour(means, colors, origin, member, seeds, eligible, radius=radius, tolerance=0.1, hops=8)
+    expected = np.zeros(n, bool)
+    expected[:600] = eligible[:600]
+    np.testing.assert_array_equal(out == 0, expected)
+    assert (out[600:] == -1).all()
+    np.testing.assert_array_equal(
+        complete_by_colour(means, colors, origin, member, seeds, eligible, radius=radius, tolerance=0.1, hops=0),
+        member,
+    )
+    # one hop reaches only the Gaussians within the radius of the seeds
+    one = complete_by_colour(means, colors, origin, member, seeds, eligible, radius=radius, tolerance=0.1, hops=1)
+    assert (one[:600] == 0).sum() < expected.sum() and (one[:600][column[:, 2] < 1.4] == -1).all()
+    # through regions_3d and the config: the same result, and the region's description counts the members
+    diff = np.where(seeds, 0.9, 0.1)
+    regions, member3 = regions_3d(
+        means,
+        seeds,
+        diff,
+        spacing=radius / 5.0,
+        completion={"colors": colors, "origin": origin, "eligible": eligible, "tolerance": 0.1, "hops": 8},
+    )
+    assert len(regions) == 1 and regions[0]["gaussians"] == expected.sum() and regions[0]["seeds"] == seeds.sum()
+    np.testing.assert_array_equal(member3 == 0, expected)
+    with pytest.raises(InputError, match="complete_hops"):
+        ChangesConfig(complete_hops=-1)

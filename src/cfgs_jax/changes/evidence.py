@@ -66,7 +66,11 @@ class ChangesConfig:
     region needs ``min_region_gaussians`` Gaussians scored > 0.5 (3D) and ``min_region_pixels`` pixels
     (image). ``max_view_angle`` (degrees): a view of q informs a Gaussian of p only from within this
     angle of a direction one of p's training cameras saw it from (180: every view); at most
-    ``support_views`` of those cameras, spread out (``spread_cameras``), stand for them all."""
+    ``support_views`` of those cameras, spread out (``spread_cameras``), stand for them all.
+    ``complete_hops`` > 0 completes each region by colour (``regions.complete_by_colour``): a
+    Gaussian observed at both dates joins a region when it lies within that many link steps of the
+    region's Gaussians of its own date and its colour is within ``complete_colour`` (RGB distance) of
+    their median (0: no completion)."""
 
     threshold: float = 0.06
     views: str = "all"
@@ -79,6 +83,8 @@ class ChangesConfig:
     min_region_pixels: int = 8
     max_view_angle: float = 20.0
     support_views: int = 64
+    complete_hops: int = 0
+    complete_colour: float = 0.1
 
     def __post_init__(self):
         if not 0.0 < self.threshold < 1.0:
@@ -109,6 +115,12 @@ class ChangesConfig:
             )
         if int(self.support_views) < 1:
             raise InputError(f"must be ≥ 1, got {self.support_views}", field="changes.support_views")
+        if int(self.complete_hops) < 0:
+            raise InputError(f"must be ≥ 0, got {self.complete_hops}", field="changes.complete_hops")
+        if not self.complete_colour > 0:
+            raise InputError(
+                f"must be > 0, got {self.complete_colour}", field="changes.complete_colour", fix="e.g. 0.1"
+            )
         if self.link_factor <= 0:
             raise InputError(f"must be > 0, got {self.link_factor}", field="changes.link_factor")
         for name in ("min_region_gaussians", "min_region_pixels"):

@@ -11,6 +11,10 @@ weakly scored Gaussian belongs to a change only where it touches a confident one
 Each has its Gaussian count, centroid, axis-aligned bounds, the volume of the convex hull of its
 centres, and its kind: "disappeared" (≥ 80 % of its Gaussians shown at the earlier date and gone at the later), "appeared"
 (≥ 80 % the other way) or "changed" (both).
+Optionally a region is then completed by colour (``complete_by_colour``): the Gaussians of a date that
+lie within a few link steps of the region's own Gaussians of that date and share their colour join
+it, so that an object of which the images show only a part changed (a flattened object keeps its
+lower part's look) is reported whole, without reaching into a differently coloured ground.
 Image: 8-connected components of a change mask with at least ``min_region_pixels`` pixels.
 """
 
@@ -23,6 +27,7 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial import ConvexHull, QhullError, cKDTree
 
 from cfgs_jax.changes.evidence import ChangeEvidence, ChangesConfig, pair_known, presence_difference
+from cfgs_jax.errors import InputError
 
 
 def median_spacing(means: np.ndarray) -> float:
@@ -96,6 +101,57 @@ def merge_colocated(
     return [np.sort(np.concatenate(parts)) for parts in joined.values()]
 
 
+def complete_by_colour(
+    means: np.ndarray,
+    colors: np.ndarray,
+    origin: np.ndarray,
+    member: np.ndarray,
+    seeds: np.ndarray,
+    eligible: np.ndarray,
+    *,
+    radius: float,
+    tolerance: float,
+    hops: int,
+    min_seeds: int = 8,
+) -> np.ndarray:
+    """[N] region index per Gaussian (``member``, −1: none) with every region completed by colour.
+
+    For region k and each date r holding at least ``min_seeds`` of its ``seeds``, the reference colour
+    c_kr is the per-channel median of those seeds' colours. A Gaussian i of date r that is ``eligible``
+    and in no region joins k when ‖c_i − c_kr‖₂ ≤ ``tolerance`` and its centre lies within ``radius`` of
+    a Gaussian of date r that joined k in the previous step (the region's own Gaussians of date r at
+    the first); at most ``hops`` steps. Regions are completed largest first, and a Gaussian joins one
+    region at most."""
+    member = np.array(member, np.int64, copy=True)
+    if hops < 1 or not (member >= 0).any():
+        return member
+    means = np.asarray(means, np.float64)
+    colors = np.asarray(colors, np.float64)
+    origin = np.asarray(origin)
+    free = np.asarray(eligible, bool) & (member < 0)
+    for k in np.unique(member[member >= 0]):
+        for r in np.unique(origin[member == k]):
+            own_seeds = (member == k) & (origin == r) & seeds
+            if own_seeds.sum() < min_seeds:
+                continue
+            reference = np.median(colors[own_seeds], axis=0)
+            pool = np.nonzero(free & (origin == r) & (np.linalg.norm(colors - reference, axis=1) <= tolerance))[0]
+            if not len(pool):
+                continue
+            tree = cKDTree(means[pool])
+            frontier = means[(member == k) & (origin == r)]
+            for _ in range(hops):
+                near = tree.query_ball_point(frontier, radius)
+                reached = np.unique(np.concatenate([np.asarray(n, np.int64) for n in near])) if len(near) else []
+                added = pool[reached] if len(reached) else np.zeros(0, np.int64)
+                added = added[free[added]]
+                if not len(added):
+                    break
+                member[added], free[added] = k, False
+                frontier = means[added]
+    return member
+
+
 def regions_3d(
     means: np.ndarray,
     seeds: np.ndarray,
@@ -105,6 +161,7 @@ def regions_3d(
     candidates: np.ndarray | None = None,
     link_factor: float = 5.0,
     min_gaussians: int = 16,
+    completion: dict | None = None,
 ) -> tuple[list[dict], np.ndarray]:
     """The changed regions of a pair of dates (p earlier than q), largest first, and [N] region index per
     Gaussian (−1: in none). ``seeds``: [N] bool, the Gaussians scored changed; ``candidates`` (⊇ seeds,
@@ -112,7 +169,9 @@ def regions_3d(
     component of the candidates holding ≥ ``min_gaussians`` seeds; the components of what disappeared,
     difference > 0, and of what appeared are formed apart, then joined where they occupy the same
     place, ``merge_colocated``); ``difference``: [N] presence at p minus presence at q
-    (``evidence.presence_difference``); ``spacing``: ``median_spacing``."""
+    (``evidence.presence_difference``); ``spacing``: ``median_spacing``. ``completion``: the arguments
+    ``colors``, ``origin``, ``eligible``, ``tolerance`` and ``hops`` of ``complete_by_colour``, applied
+    to the regions before they are described (None: no completion)."""
     means = np.asarray(means, np.float64)
     difference = np.asarray(difference, np.float64)
     seeds = np.asarray(seeds, bool)
@@ -126,9 +185,13 @@ def regions_3d(
         sides.append([rows[labels == k] for k in np.unique(labels)])
     groups = merge_colocated(means, *sides, radius)
     groups = sorted((g for g in groups if seeds[g].sum() >= min_gaussians), key=len, reverse=True)
-    out = []
     for k, idx in enumerate(groups):
         member[idx] = k
+    if completion is not None:
+        member = complete_by_colour(means, member=member, seeds=seeds, radius=radius, **completion)
+        groups = [np.nonzero(member == k)[0] for k in range(len(groups))]
+    out = []
+    for k, idx in enumerate(groups):
         pts = means[idx]
         gone = float(np.mean(difference[idx] > 0))
         kind = "disappeared" if gone >= 0.8 else ("appeared" if gone <= 0.2 else "changed")
@@ -157,13 +220,31 @@ def pair_regions(
     config: ChangesConfig,
     *,
     spacing: float,
+    colors: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray, list[dict], np.ndarray]:
     """The changed regions of dates p < q from their evidence, as the ``changes`` command reports them:
     (presence difference [N], known at both dates [N] bool, regions, [N] region index or −1).
-    Seeds: known and |difference| > 0.5; candidates: known and |difference| > ``grow_above``."""
+    Seeds: known and |difference| > 0.5; candidates: known and |difference| > ``grow_above``. With
+    ``config.complete_hops`` > 0 the regions are completed by colour over the known Gaussians
+    (``colors``: [N, 3], the model's colours, then required)."""
     difference = presence_difference(evidence, origin, p, q)
     known = pair_known(evidence, origin, p, q)
     score = np.abs(difference)
+    completion = None
+    if config.complete_hops > 0:
+        if colors is None:
+            raise InputError(
+                "colour completion needs the Gaussians' colours",
+                field="colors",
+                fix="pass colors=model.rgb(model.gaussians), or set changes.complete_hops = 0",
+            )
+        completion = {
+            "colors": colors,
+            "origin": origin,
+            "eligible": known,
+            "tolerance": config.complete_colour,
+            "hops": int(config.complete_hops),
+        }
     regions, member = regions_3d(
         means,
         known & (score > 0.5),
@@ -172,6 +253,7 @@ def pair_regions(
         candidates=known & (score > config.grow_above),
         link_factor=config.link_factor,
         min_gaussians=config.min_region_gaussians,
+        completion=completion,
     )
     return difference, known, regions, member
 

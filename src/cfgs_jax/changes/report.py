@@ -26,6 +26,7 @@ from cfgs_jax.errors import InputError
 from cfgs_jax.io.atomic import read_json, write_json, write_text
 from cfgs_jax.io.images import write_image
 from cfgs_jax.io.ply import write_ply
+from cfgs_jax.model import rgb
 
 OVERLAY_COLOUR = np.array([1.0, 0.0, 1.0], np.float32)  # magenta
 
@@ -88,7 +89,7 @@ def detect_changes(
     )
     means = np.asarray(model.gaussians.means, np.float64)
     difference, known, regions, member = pair_regions(
-        evidence, origin, means, p, q, config, spacing=median_spacing(means)
+        evidence, origin, means, p, q, config, spacing=median_spacing(means), colors=np.asarray(rgb(model.gaussians))
     )
     changed = known & (np.abs(difference) > 0.5)
     rows = np.nonzero(member >= 0)[0]

@@ -41,7 +41,7 @@ from PIL import Image
 from cfgs_jax import splat, viz
 from cfgs_jax.changes.maps import rendered_scores
 from cfgs_jax.errors import InputError
-from cfgs_jax.model import Camera, TemporalGaussians, light_multipliers, opacity_multipliers
+from cfgs_jax.model import Camera, TemporalGaussians, light_multipliers, opacity_multipliers, rgb
 from cfgs_jax.splat.weights import contribution_per_label, observed_matrix, summed_weights
 
 
@@ -401,6 +401,7 @@ def evidence_detection(
     ev = evidence_from(stats, means, cfg)
     origin = np.asarray(model.origin)
     spacing = median_spacing(means)
+    colors = np.asarray(rgb(model.gaussians), np.float64)
     names = [d.name for d in model.dates]
     pixel = {"inter": 0, "union": 0, "predicted": 0, "truth": 0, "valid": 0}
     per_pair, found, changed, false_regions, region_count = {}, 0, 0, 0, 0
@@ -408,7 +409,7 @@ def evidence_detection(
     members = {}
     for p in range(t):
         for q in range(p + 1, t):
-            _, known, regions, member = pair_regions(ev, origin, means, p, q, cfg, spacing=spacing)
+            _, known, regions, member = pair_regions(ev, origin, means, p, q, cfg, spacing=spacing, colors=colors)
             members[(p, q)] = members[(q, p)] = member >= 0
             objs = _region_scores(regions, member, table["objects"], changed_objects.get((p, q), set()))
             n_changed = len(changed_objects.get((p, q), ()))
