@@ -338,5 +338,12 @@ def test_colour_completion_takes_the_rest_of_an_object_and_not_the_ground():
     )
     assert len(regions) == 1 and regions[0]["gaussians"] == expected.sum() and regions[0]["seeds"] == seeds.sum()
     np.testing.assert_array_equal(member3 == 0, expected)
+    # across dates: the touching red column of date 1 joins too (the object's other version), the
+    # ground still does not
+    across = complete_by_colour(
+        means, colors, origin, member, seeds, eligible, radius=radius, tolerance=0.1, hops=8, across_dates=True
+    )
+    expected[3600:3900] = True
+    np.testing.assert_array_equal(across == 0, expected)
     with pytest.raises(InputError, match="complete_hops"):
         ChangesConfig(complete_hops=-1)

@@ -70,7 +70,8 @@ class ChangesConfig:
     ``complete_hops`` > 0 completes each region by colour (``regions.complete_by_colour``): a
     Gaussian observed at both dates joins a region when it lies within that many link steps of the
     region's Gaussians of its own date and its colour is within ``complete_colour`` (RGB distance) of
-    their median (0: no completion)."""
+    their median (0: no completion); with ``complete_across_dates`` also Gaussians of the pair's
+    other dates (the other date's version of a changed object)."""
 
     threshold: float = 0.06
     views: str = "all"
@@ -85,6 +86,7 @@ class ChangesConfig:
     support_views: int = 64
     complete_hops: int = 0
     complete_colour: float = 0.1
+    complete_across_dates: bool = False
 
     def __post_init__(self):
         if not 0.0 < self.threshold < 1.0:

@@ -101,6 +101,23 @@ def merge_colocated(
     return [np.sort(np.concatenate(parts)) for parts in joined.values()]
 
 
+def _grow(member, free, k, pool, frontier, means, radius, hops) -> None:
+    """Add to region k (in place) the ``pool`` Gaussians still ``free`` that lie within ``radius`` of
+    ``frontier`` (centres) or of what joined in the previous step, for at most ``hops`` steps."""
+    if not len(pool) or not len(frontier):
+        return
+    tree = cKDTree(means[pool])
+    for _ in range(hops):
+        near = tree.query_ball_point(frontier, radius)
+        reached = np.unique(np.concatenate([np.asarray(n, np.int64) for n in near]))
+        added = pool[reached.astype(np.int64)]
+        added = added[free[added]]
+        if not len(added):
+            return
+        member[added], free[added] = k, False
+        frontier = means[added]
+
+
 def complete_by_colour(
     means: np.ndarray,
     colors: np.ndarray,
@@ -112,6 +129,7 @@ def complete_by_colour(
     radius: float,
     tolerance: float,
     hops: int,
+    across_dates: bool = False,
     min_seeds: int = 8,
 ) -> np.ndarray:
     """[N] region index per Gaussian (``member``, −1: none) with every region completed by colour.
@@ -120,8 +138,10 @@ def complete_by_colour(
     c_kr is the per-channel median of those seeds' colours. A Gaussian i of date r that is ``eligible``
     and in no region joins k when ‖c_i − c_kr‖₂ ≤ ``tolerance`` and its centre lies within ``radius`` of
     a Gaussian of date r that joined k in the previous step (the region's own Gaussians of date r at
-    the first); at most ``hops`` steps. Regions are completed largest first, and a Gaussian joins one
-    region at most."""
+    the first); at most ``hops`` steps. With ``across_dates`` a Gaussian of any date joins when its
+    colour is within ``tolerance`` of any of the region's reference colours and it lies within
+    ``radius`` of a member of any date (the other date's version of a changed object). Regions are
+    completed largest first, and a Gaussian joins one region at most."""
     member = np.array(member, np.int64, copy=True)
     if hops < 1 or not (member >= 0).any():
         return member
@@ -130,25 +150,23 @@ def complete_by_colour(
     origin = np.asarray(origin)
     free = np.asarray(eligible, bool) & (member < 0)
     for k in np.unique(member[member >= 0]):
+        references = {}
         for r in np.unique(origin[member == k]):
             own_seeds = (member == k) & (origin == r) & seeds
-            if own_seeds.sum() < min_seeds:
-                continue
-            reference = np.median(colors[own_seeds], axis=0)
-            pool = np.nonzero(free & (origin == r) & (np.linalg.norm(colors - reference, axis=1) <= tolerance))[0]
-            if not len(pool):
-                continue
-            tree = cKDTree(means[pool])
-            frontier = means[(member == k) & (origin == r)]
-            for _ in range(hops):
-                near = tree.query_ball_point(frontier, radius)
-                reached = np.unique(np.concatenate([np.asarray(n, np.int64) for n in near])) if len(near) else []
-                added = pool[reached] if len(reached) else np.zeros(0, np.int64)
-                added = added[free[added]]
-                if not len(added):
-                    break
-                member[added], free[added] = k, False
-                frontier = means[added]
+            if own_seeds.sum() >= min_seeds:
+                references[r] = np.median(colors[own_seeds], axis=0)
+        if not references:
+            continue
+        if across_dates:
+            distance = np.min([np.linalg.norm(colors - c, axis=1) for c in references.values()], axis=0)
+            _grow(
+                member, free, k, np.nonzero(free & (distance <= tolerance))[0], means[member == k], means, radius, hops
+            )
+            continue
+        for r, reference in references.items():
+            close = np.linalg.norm(colors - reference, axis=1) <= tolerance
+            pool = np.nonzero(free & (origin == r) & close)[0]
+            _grow(member, free, k, pool, means[(member == k) & (origin == r)], means, radius, hops)
     return member
 
 
@@ -244,6 +262,7 @@ def pair_regions(
             "eligible": known,
             "tolerance": config.complete_colour,
             "hops": int(config.complete_hops),
+            "across_dates": bool(config.complete_across_dates),
         }
     regions, member = regions_3d(
         means,
