@@ -44,6 +44,9 @@ VARIANTS = [  # (label, overrides of the default [changes] table)
     ("colour completion, 4 hops", {"complete_hops": 4}),
     ("colour completion, 8 hops", {"complete_hops": 8}),
     ("colour completion, 8 hops, colour 0.05", {"complete_hops": 8, "complete_colour": 0.05}),
+    ("colour completion, 8 hops, colour 0.15", {"complete_hops": 8, "complete_colour": 0.15}),
+    ("colour completion, 16 hops", {"complete_hops": 16}),
+    ("colour completion, 32 hops", {"complete_hops": 32}),
     ("colour completion, 8 hops, across dates", {"complete_hops": 8, "complete_across_dates": True}),
 ]
 
