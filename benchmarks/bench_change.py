@@ -41,13 +41,12 @@ VARIANTS = [  # (label, overrides of the default [changes] table)
     ("link 3, grow above 0.25", {"link_factor": 3.0, "grow_above": 0.25}),
     ("τ = 0.05", {"threshold": 0.05}),
     ("τ = 0.07", {"threshold": 0.07}),
-    ("colour completion, 4 hops", {"complete_hops": 4}),
+    ("no colour completion", {"complete_hops": 0}),
     ("colour completion, 8 hops", {"complete_hops": 8}),
-    ("colour completion, 8 hops, colour 0.05", {"complete_hops": 8, "complete_colour": 0.05}),
-    ("colour completion, 8 hops, colour 0.15", {"complete_hops": 8, "complete_colour": 0.15}),
-    ("colour completion, 16 hops", {"complete_hops": 16}),
     ("colour completion, 32 hops", {"complete_hops": 32}),
-    ("colour completion, 8 hops, across dates", {"complete_hops": 8, "complete_across_dates": True}),
+    ("colour completion, colour 0.05", {"complete_colour": 0.05}),
+    ("colour completion, colour 0.15", {"complete_colour": 0.15}),
+    ("colour completion across dates", {"complete_across_dates": True}),
 ]
 
 

@@ -84,7 +84,7 @@ class ChangesConfig:
     min_region_pixels: int = 8
     max_view_angle: float = 20.0
     support_views: int = 64
-    complete_hops: int = 0
+    complete_hops: int = 16
     complete_colour: float = 0.1
     complete_across_dates: bool = False
 
