@@ -109,8 +109,7 @@ def _grow(member, free, k, pool, frontier, means, radius, hops) -> None:
     tree = cKDTree(means[pool])
     for _ in range(hops):
         near = tree.query_ball_point(frontier, radius)
-        reached = np.unique(np.concatenate([np.asarray(n, np.int64) for n in near]))
-        added = pool[reached.astype(np.int64)]
+        added = pool[np.unique(np.concatenate([np.asarray(n, np.int64) for n in near]))]
         added = added[free[added]]
         if not len(added):
             return
@@ -187,8 +186,9 @@ def regions_3d(
     component of the candidates holding ≥ ``min_gaussians`` seeds; the components of what disappeared,
     difference > 0, and of what appeared are formed apart, then joined where they occupy the same
     place, ``merge_colocated``); ``difference``: [N] presence at p minus presence at q
-    (``evidence.presence_difference``); ``spacing``: ``median_spacing``. ``completion``: the arguments
-    ``colors``, ``origin``, ``eligible``, ``tolerance`` and ``hops`` of ``complete_by_colour``, applied
+    (``evidence.presence_difference``); ``spacing``: ``median_spacing``. ``completion``: the keyword
+    arguments ``colors``, ``origin``, ``eligible``, ``tolerance``, ``hops`` and ``across_dates`` of
+    ``complete_by_colour``, applied
     to the regions before they are described (None: no completion)."""
     means = np.asarray(means, np.float64)
     difference = np.asarray(difference, np.float64)
