@@ -204,12 +204,41 @@ def write_results(args, work: Path, names) -> None:
         "extend_over_scratch": extend_s / scratch_s if scratch_s else None,
         "metrics": metrics,
         "change": change,
-        "pairs": {p: len(fused[p].get("cross_init", [])) for p in fused},
+        "pairs": {
+            "scratch": len(fused["scratch"]["cross_init"]),
+            "extend": len(fused["incremental"][f"extend:{last}:cross_init"]),
+        },
+        "bound": ratio_bound(args.config, rows, fused, last),
     }
     RESULTS.mkdir(parents=True, exist_ok=True)
     (RESULTS / f"{args.name}.json").write_text(json.dumps(result, indent=1))
     (RESULTS / f"{args.name}.md").write_text(markdown(result))
     print(markdown(result))
+
+
+def ratio_bound(config: str, rows: dict, fused: dict, last: str) -> dict:
+    """What bounds the extension / scratch ratio: its share of the pairs and of the refinement steps,
+    each weighted by the scratch fusion's split of time between cross-init and refinement. This is the
+    ratio the extension would reach if its pairs and steps cost what the scratch fusion's do."""
+    from cfgs_jax.config import find_preset, load_config
+
+    raw = load_config(find_preset(config))
+    steps = raw.get("refine", {}).get("steps", 3000)
+    extend_steps = raw.get("refine", {}).get("extend_steps", 0) or steps
+    seconds = lambda rs, stage: sum(r["seconds"] for r in rs if r["stage"] == stage)
+    scratch, extend = rows["scratch"], rows["incremental: extend by the last date"]
+    pairs_s, pairs_e = len(fused["scratch"]["cross_init"]), len(fused["incremental"][f"extend:{last}:cross_init"])
+    ci_s, ref_s = seconds(scratch, "cross_init"), seconds(scratch, "refine")
+    ci_e, ref_e = seconds(extend, "cross_init"), seconds(extend, "refine")
+    total_s = sum(r["seconds"] for r in scratch if r["stage"] in FUSION_STAGES)
+    return {
+        "pair_share": pairs_e / pairs_s,
+        "step_share": extend_steps / steps,
+        "cross_init_share_of_scratch": ci_s / total_s,
+        "predicted": (ci_s * pairs_e / pairs_s + ref_s * extend_steps / steps) / total_s,
+        "seconds_per_pair": {"scratch": ci_s / pairs_s, "extend": ci_e / pairs_e},
+        "seconds_per_refine_step": {"scratch": ref_s / steps, "extend": ref_e / extend_steps},
+    }
 
 
 def markdown(r: dict) -> str:
@@ -236,8 +265,18 @@ def markdown(r: dict) -> str:
         "",
         f"Fusion (merge + cross-init + refine + export): from scratch {r['scratch_fusion_seconds']:.0f} s, "
         f"adding the last date {r['extend_fusion_seconds']:.0f} s: **{r['extend_over_scratch']:.2f}×**. "
-        f"Cross-init pairs: {r['pairs']['scratch']} from scratch, {r['pairs']['incremental']} in the incremental "
-        "run (its five-date base included).",
+        f"Cross-init pairs: {r['pairs']['scratch']} from scratch, {r['pairs']['extend']} in the extension.",
+        "",
+    ]
+    b = r["bound"]
+    lines += [
+        f"What bounds the ratio: the extension runs {b['pair_share']:.2f} of the scratch fusion's pairs (every pair "
+        f"that involves the new date, 2/T) and {b['step_share']:.2f} of its refinement steps, and cross-init is "
+        f"{b['cross_init_share_of_scratch']:.0%} of the scratch fusion's time. At the scratch fusion's cost per pair "
+        f"and per step that gives **{b['predicted']:.2f}×**. Measured cost per pair: "
+        f"{b['seconds_per_pair']['scratch']:.1f} s from scratch, {b['seconds_per_pair']['extend']:.1f} s in the "
+        f"extension; per refinement step: {b['seconds_per_refine_step']['scratch']:.2f} s and "
+        f"{b['seconds_per_refine_step']['extend']:.2f} s.",
         "",
         "Test views per date, PSNR ↑ / SSIM ↑ / LPIPS ↓ (from scratch | incremental):",
         "",

@@ -431,7 +431,7 @@ def test_cross_init_coarse_to_fine_ends_at_full_resolution(monkeypatch):
         return optimizer, wrapped
 
     monkeypatch.setattr(ci, "_compiled_step", recording)
-    common = dict(steps=40, lr_o=0.2, lr_light=0.01, rate_reference_steps=0)
+    common = dict(steps=40, lr_o=0.2, lr_light=0.01, rate_reference_steps=0, coarse_min_size=16)
     coarse, _ = ci.init_pair(model, 0, 1, views, ci.CrossInitConfig(coarse_fraction=0.5, **common))
     assert shapes == [(16, 20)] * 20 + [(32, 40)] * 20
     shapes.clear()
@@ -442,8 +442,15 @@ def test_cross_init_coarse_to_fine_ends_at_full_resolution(monkeypatch):
         o_q = np.asarray(jax.nn.sigmoid(fitted.o_logits))[:80, 1]
         assert o_q[seen & removed].mean() < o_q[seen & ~removed].mean() - 0.1  # 0.54 / 0.74 and 0.55 / 0.82
     assert ci.coarse_steps(ci.CrossInitConfig(steps=3000, coarse_fraction=0.6)) == 1800
+    # views too small to coarsen: every step at full resolution (a 2x-downscaled 40x32 view keeps 16 rows)
+    small = ci.CrossInitConfig(steps=3000, coarse_fraction=0.6, coarse_min_size=17)
+    assert ci.coarse_steps(small, 40, 32) == 0 and ci.coarse_steps(small, 40, 34) == 1800
+    assert ci.coarse_steps(ci.CrossInitConfig(steps=3000, coarse_fraction=0.6), 80, 60) == 0  # default min 120
+    assert ci.coarse_steps(ci.CrossInitConfig(steps=3000, coarse_fraction=0.6), 320, 240) == 1800
     with pytest.raises(cj.InputError, match="coarse_fraction"):
         ci.CrossInitConfig(coarse_fraction=1.0)
+    with pytest.raises(cj.InputError, match="coarse_min_size"):
+        ci.CrossInitConfig(coarse_min_size=-1)
 
 
 def test_change_loss_visibility_rule_and_final_prune_hand_cases():

@@ -74,7 +74,10 @@ class CrossInitConfig:
 
     Coarse to fine (``coarse_fraction`` > 0): the first ``coarse_fraction`` of the steps render and
     compare at 1/``coarse_factor`` of the resolution (cameras scaled, images and ε maps box-filtered),
-    the rest at full resolution; the step count, schedules and parameters are the same."""
+    the rest at full resolution; the step count, schedules and parameters are the same. A group whose
+    downscaled views would keep fewer than ``coarse_min_size`` pixels on their shorter side runs every
+    step at full resolution: there a changed object shrinks to a few pixels and the box-filtered ε maps
+    no longer single it out."""
 
     steps: int = 1000  # the paper: 3000 (same error at a third of the time, the README's "Run time against error")
     lr_o: float = 0.0075
@@ -97,6 +100,7 @@ class CrossInitConfig:
     early_stop_on: Literal["updates", "loss"] = "updates"  # what must settle: o^q / l^q moves, or the loss (relative)
     coarse_fraction: float = 0.0  # the first steps, this share of them, at 1/coarse_factor resolution (0: off)
     coarse_factor: int = 2
+    coarse_min_size: int = 120  # no coarse steps where the downscaled shorter side would fall below this (pixels)
     seed: int = 0
 
     def __post_init__(self):
@@ -137,10 +141,11 @@ class CrossInitConfig:
                 field="cross_init.early_stop_on",
                 fix='use "updates" or "loss"',
             )
-        if not 0 <= self.coarse_fraction < 1 or self.coarse_factor < 1:
+        if not 0 <= self.coarse_fraction < 1 or self.coarse_factor < 1 or self.coarse_min_size < 0:
             raise InputError(
                 f"coarse_fraction must be in [0, 1) (the last steps run at full resolution), got "
-                f"{self.coarse_fraction}; coarse_factor ≥ 1, got {self.coarse_factor}",
+                f"{self.coarse_fraction}; coarse_factor ≥ 1, got {self.coarse_factor}; coarse_min_size ≥ 0, got "
+                f"{self.coarse_min_size}",
                 field="cross_init.coarse_fraction",
             )
         if self.batch_dates < 0:
@@ -446,9 +451,14 @@ def _mark_unseen(model: TemporalGaussians, pairs, rows, seen) -> tuple[TemporalG
     return dataclasses.replace(model, o_logits=jnp.asarray(o_logits)), reports
 
 
-def coarse_steps(config: CrossInitConfig) -> int:
-    """How many of the first steps run at 1/``coarse_factor`` resolution (the others at full)."""
+def coarse_steps(config: CrossInitConfig, width: int | None = None, height: int | None = None) -> int:
+    """How many of the first steps run at 1/``coarse_factor`` resolution (the others at full); none for
+    views of ``width`` × ``height`` whose downscaled shorter side falls below ``coarse_min_size``."""
+    from cfgs_jax.io.colmap import downscaled_size
+
     if config.coarse_fraction <= 0 or config.coarse_factor == 1:
+        return 0
+    if width is not None and min(downscaled_size(width, height, config.coarse_factor)) < config.coarse_min_size:
         return 0
     return int(round(config.coarse_fraction * config.steps))
 
@@ -494,7 +504,7 @@ def _optimise(pairs: _Pairs, params, eps_maps, config: CrossInitConfig, progress
     )
     width = parallel.padded(k, mesh)
     on_devices = lambda x: parallel.shard_batch(jax.tree_util.tree_map(lambda a: parallel.pad_rows(a, width), x), mesh)
-    n_coarse = coarse_steps(config)
+    n_coarse = coarse_steps(config, pairs.cameras[0][0].width, pairs.cameras[0][0].height)
     levels = [(pairs, eps_maps)] + ([_coarse(pairs, eps_maps, config.coarse_factor)] if n_coarse else [])
     compiled = [_compiled_step(config, level.render_config, mesh, not pairs.shared) for level, _ in levels]
     optimizer, steps = compiled[0][0], [step for _, step in compiled]
