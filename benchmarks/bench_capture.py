@@ -153,7 +153,7 @@ def main():
         _path(args, raw, data, names, transforms, sims)
         return
     if args.path == "change":  # child process: one file per path, so a finished path is kept
-        for path in ("scratch", "incremental"):
+        for path in PATHS:
             if not (work / f"change_{path}.json").is_file():
                 (work / f"change_{path}.json").write_text(json.dumps(_change(work / path, data)))
         return
@@ -191,8 +191,8 @@ def write_results(args, work: Path, names) -> None:
     change = {
         p: json.loads((work / f"change_{p}.json").read_text()) for p in PATHS if (work / f"change_{p}.json").is_file()
     }
-    metrics = {p: json.loads((work / p / "metrics.json").read_text()) for p in ("scratch", "incremental")}
-    fused = {p: json.loads((work / p / "report.json").read_text()) for p in ("scratch", "incremental")}
+    metrics = {p: json.loads((work / p / "metrics.json").read_text()) for p in PATHS}
+    fused = {p: json.loads((work / p / "report.json").read_text()) for p in PATHS}
     scene_s = json.loads((work / "scene_seconds.json").read_text()) if (work / "scene_seconds.json").is_file() else None
     result = {
         "machine": machine(),
