@@ -186,8 +186,10 @@ def write_results(args, work: Path, names) -> None:
             inc, ("register", "merge", "cross_init", "refine", "export", "evaluate"), f"extend:{last}:"
         ),
     }
-    fusion_s = lambda rs: sum(r["seconds"] for r in rs if r["stage"] in FUSION_STAGES)
-    scratch_s, extend_s = fusion_s(rows["scratch"]), fusion_s(rows["incremental: extend by the last date"])
+    scratch_s, extend_s = (
+        _fusion_seconds(rows["scratch"]),
+        _fusion_seconds(rows["incremental: extend by the last date"]),
+    )
     change = {
         p: json.loads((work / f"change_{p}.json").read_text()) for p in PATHS if (work / f"change_{p}.json").is_file()
     }
@@ -213,44 +215,42 @@ def write_results(args, work: Path, names) -> None:
             n: json.loads((work / "models" / "dates" / n / "train.json").read_text())["test"] for n in names
         },
         "change": change,
-        "pairs": {
-            "scratch": len(fused["scratch"]["cross_init"]),
-            "extend": len(fused["incremental"][f"extend:{last}:cross_init"]),
-        },
-        "bound": ratio_bound(args.config, rows, fused, last),
     }
+    result["bound"] = ratio_bound(rows, fused["scratch"], fused["incremental"], f"extend:{last}:")
+    result["pairs"] = result["bound"]["pairs"]
     RESULTS.mkdir(parents=True, exist_ok=True)
     (RESULTS / f"{args.name}.json").write_text(json.dumps(result, indent=1))
     (RESULTS / f"{args.name}.md").write_text(markdown(result))
     print(markdown(result))
 
 
-def ratio_bound(config: str, rows: dict, fused: dict, last: str) -> dict:
+def _fusion_seconds(rows: list[dict]) -> float:
+    """The wall time of a path's fusion stages (merge, cross-init, refine, export)."""
+    return sum(r["seconds"] for r in rows if r["stage"] in FUSION_STAGES)
+
+
+def ratio_bound(rows: dict, scratch_report: dict, incremental_report: dict, prefix: str) -> dict:
     """What bounds the extension / scratch ratio: its share of the pairs and of the refinement steps,
     each weighted by the scratch fusion's split of time between cross-init and refinement. This is the
-    ratio the extension would reach if its pairs and steps cost what the scratch fusion's do."""
-    from cfgs_jax.config import find_preset, load_config
-
-    raw = load_config(find_preset(config))
-    steps = raw.get("refine", {}).get("steps", 3000)
-    extend_steps = raw.get("refine", {}).get("extend_steps", 0) or steps
+    ratio the extension would reach if its pairs and steps cost what the scratch fusion's do. Pair and
+    step counts are read from the runs' reports (what ran), stage times from ``rows``."""
     seconds = lambda rs, stage: sum(r["seconds"] for r in rs if r["stage"] == stage)
     scratch, extend = rows["scratch"], rows["incremental: extend by the last date"]
-    pairs_s, pairs_e = len(fused["scratch"]["cross_init"]), len(fused["incremental"][f"extend:{last}:cross_init"])
+    pairs_s, pairs_e = len(scratch_report["cross_init"]), len(incremental_report[prefix + "cross_init"])
+    refine_s, refine_e = scratch_report["refine"], incremental_report[prefix + "refine"]
     ci_s, ref_s = seconds(scratch, "cross_init"), seconds(scratch, "refine")
     ci_e, ref_e = seconds(extend, "cross_init"), seconds(extend, "refine")
-    total_s = sum(r["seconds"] for r in scratch if r["stage"] in FUSION_STAGES)
+    total_s = _fusion_seconds(scratch)
+    step_share = refine_e["steps"] / refine_s["steps"]
     return {
+        "pairs": {"scratch": pairs_s, "extend": pairs_e},
         "pair_share": pairs_e / pairs_s,
-        "step_share": extend_steps / steps,
+        "step_share": step_share,
         "cross_init_share_of_scratch": ci_s / total_s,
-        "predicted": (ci_s * pairs_e / pairs_s + ref_s * extend_steps / steps) / total_s,
+        "predicted": (ci_s * pairs_e / pairs_s + ref_s * step_share) / total_s,
         "seconds_per_pair": {"scratch": ci_s / pairs_s, "extend": ci_e / pairs_e},
-        "seconds_per_refine_step": {"scratch": ref_s / steps, "extend": ref_e / extend_steps},
-        "views_completed": {
-            "scratch": fused["scratch"]["refine"].get("views_completed"),
-            "extend": fused["incremental"][f"extend:{last}:refine"].get("views_completed"),
-        },
+        "seconds_per_refine_step": {"scratch": ref_s / refine_s["steps"], "extend": ref_e / refine_e["steps"]},
+        "views_completed": {"scratch": refine_s.get("views_completed"), "extend": refine_e.get("views_completed")},
     }
 
 
