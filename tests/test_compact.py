@@ -300,3 +300,72 @@ def test_removal_rounds_drop_one_of_two_stacked_copies_per_round_and_keep_both_d
     assert set(centre) <= set(two_rounds) and 50 not in two_rounds
     for date in (0, 1):
         np.testing.assert_allclose(_render(out, camera, date), _render(model, camera, date), atol=0.01)
+
+
+def test_restore_hidden_copies_gives_unobserved_entries_of_unchanged_gaussians_their_largest_observed_o():
+    """Closed form on three Gaussians and three dates: one that marks no change gets, at the date whose
+    views do not observe it, the largest o of the dates that do; a change marker (o low where observed)
+    is left as it is; one observed at no date takes its own date's o everywhere."""
+    from cfgs_jax.fusion.compact import restore_hidden_copies
+
+    o = np.array([[0.9, 1e-5, 0.8], [0.1, 0.95, 1e-5], [1e-5, 1e-5, 0.7]])
+    observed = np.array([[True, False, True], [True, True, False], [False, False, False]])
+    model = _model(
+        means=np.zeros((3, 3)),
+        log_scales=np.full((3, 3), np.log(0.05)),
+        alphas=[0.5] * 3,
+        colours=[[0.5, 0.5, 0.5]] * 3,
+        o=o,
+        origin=[0, 1, 2],
+    )
+    out, restored = restore_hidden_copies(model, observed, 0.5)
+    np.testing.assert_array_equal(restored, [[False, True, False], [False, False, False], [True, True, True]])
+    expected = np.array([[0.9, 0.9, 0.8], [0.1, 0.95, 1e-5], [0.7, 0.7, 0.7]])
+    np.testing.assert_allclose(np.asarray(cj.opacity_multipliers(out)), expected, rtol=1e-5)
+
+
+def test_restored_hidden_copies_keep_the_renders_and_fill_in_for_the_copy_removed_in_front():
+    """Two dense 7 × 7 layers of one surface, date 0's in front for date 0's camera and date 1's in front
+    for the opposite camera. As the refinement's visibility rule leaves them, each layer's Gaussians
+    hidden behind the other at a date have o ≈ 0 there. Restoring their presence changes neither
+    date's render by more than the hidden copies' leakage (α·T below the 0.01 visibility threshold per
+    Gaussian); and where the 5 × 5 centre of the front layer is then removed, the copies behind fill in
+    (within 0.05 of the render before), while without the restoration a hole opens (more than 0.3)."""
+    from cfgs_jax.fusion.compact import restore_hidden_copies
+    from cfgs_jax.model import select
+    from cfgs_jax.splat.weights import observed_matrix
+
+    xs = (np.arange(7) - 3) * 0.03
+    grid = np.array([[x, 0.0, z] for x in xs for z in xs])
+    n = len(grid)
+    means = np.concatenate([grid, grid + [0.0, 0.05, 0.0]])
+    cams = [
+        cj.Camera.look_at([0, -2.0, 0], [0, 0, 0], width=48, height=36, fov_x_deg=20),
+        cj.Camera.look_at([0, 2.0, 0], [0, 0, 0], width=48, height=36, fov_x_deg=20),
+    ]
+
+    def layers(o):
+        return _model(
+            means,
+            np.log(np.full((2 * n, 3), 0.03)),
+            [0.99] * (2 * n),
+            [[0.8, 0.4, 0.2]] * (2 * n),
+            o,
+            [0] * n + [1] * n,
+        )
+
+    observe = lambda m: observed_matrix(m, [[cams[0]], [cams[1]]], 0.01)
+    hidden = ~observe(layers(np.full((2 * n, 2), 0.995)))
+    assert hidden[n:, 0].sum() >= 9 and hidden[:n, 1].sum() >= 9  # each layer's centre is hidden behind the other
+    model = layers(np.where(hidden, 1e-5, 0.995))
+    restored, mask = restore_hidden_copies(model, observe(model), 0.5, observe)
+    np.testing.assert_array_equal(mask, hidden)
+    for date in (0, 1):
+        np.testing.assert_allclose(_render(restored, cams[date], date), _render(model, cams[date], date), atol=0.02)
+    centre = [k for k, (x, _, z) in enumerate(grid) if abs(x) < 0.07 and abs(z) < 0.07]
+    assert len(centre) == 25
+    keep = np.setdiff1d(np.arange(2 * n), centre)
+    reference = _render(model, cams[0], 0)
+    filled = np.abs(_render(select(restored, keep), cams[0], 0) - reference).max()
+    hole = np.abs(_render(select(model, keep), cams[0], 0) - reference).max()
+    assert filled < 0.05 and hole > 0.3

@@ -39,6 +39,15 @@ summed removal change of the dropped ones, against 3 × the summed weight of all
 was measured with the other in place; ``hidden_rounds`` > 1 splits the share over rounds and measures
 again after each.
 
+With ``restore_hidden``, the copies hidden at a date get their presence there back before the ranking:
+the refinement's visibility rule sets o^q := 0 for a Gaussian that no view of q sees (here: one behind
+another copy of the same surface), so removing the copy in front would leave a hole although a copy
+of the surface lies right behind it. For a Gaussian that marks no change, every date q whose views do
+not observe it gets o^q := max_r o^r over the dates r that do (its own date's o where none does). The
+render at q does not change (the restored copy stays hidden, up to the α·T < ``contribution_threshold``
+it may add), but the removal change of the copy in front is then measured with the copy behind shown,
+at the light multiplier l^q that cross-initialisation fitted for it.
+
 A short refinement afterwards (``CompactConfig.refine_steps``) recovers what the merge and the drop
 moved; with ``lr_light`` > 0 it also fits the light multipliers l^q, so that a copy of one date that
 takes over at another date can take on that date's appearance.
@@ -83,6 +92,7 @@ class CompactConfig:
         "weight"  # rank hidden_share's candidates by summed weight or by removal change
     )
     hidden_rounds: int = 1  # hidden_share split over this many rounds, measured again after each
+    restore_hidden: bool = False  # give the copies hidden at a date their o there back before the ranking
     refine_steps: int = 500
     lr_light: float = 0.0  # light rate of the recovery refinement (0: l frozen, as in the fusion's refinement)
 
@@ -286,6 +296,38 @@ def marks_no_change(model: TemporalGaussians, observed: Bool[np.ndarray, "N T"],
     return np.all((o >= present) | ~np.asarray(observed, bool), axis=1)
 
 
+def restore_hidden_copies(
+    model: TemporalGaussians,
+    observed: Bool[np.ndarray, "N T"],
+    present: float,
+    observe: Callable[[TemporalGaussians], Bool[np.ndarray, "N T"]] | None = None,
+) -> tuple[TemporalGaussians, Bool[np.ndarray, "N T"]]:
+    """The model with the presence of its hidden copies restored, and the [N, T] mask of the entries
+    restored: for every Gaussian that marks no change (``marks_no_change``), o^q := max over the dates r
+    whose views observe it of o^r, at each date q whose views do not (its own date's o^p where no date's
+    views do). With ``observe`` (the visibility rule, as ``observed`` was measured), an entry that the
+    views of q then observe is set back: it would show, so the render at q would change. Other entries
+    are unchanged."""
+    observed = np.asarray(observed, bool)
+    logits = np.asarray(model.o_logits)
+    restore = marks_no_change(model, observed, present)[:, None] & ~observed
+    if not restore.any():
+        return model, restore
+    origin = np.asarray(model.origin)
+    own = logits[np.arange(len(logits)), origin]
+    best = np.max(np.where(observed, logits, -np.inf), axis=1)
+    best = np.where(np.isfinite(best), best, own)
+    restored = dataclasses.replace(
+        model, o_logits=jnp.asarray(np.where(restore, best[:, None], logits).astype(logits.dtype))
+    )
+    if observe is not None:
+        restore &= ~np.asarray(observe(restored), bool)
+        restored = dataclasses.replace(
+            model, o_logits=jnp.asarray(np.where(restore, best[:, None], logits).astype(logits.dtype))
+        )
+    return restored, restore
+
+
 def _overlapping(means: np.ndarray, radius: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """CSR (indptr, indices) of the pairs of rows whose centres lie within radius_i + radius_j."""
     found = cKDTree(means).query_ball_point(means, 2.0 * radius)  # the larger one's ball holds the pair
@@ -348,16 +390,19 @@ def compact(
     model: TemporalGaussians,
     config: CompactConfig | None = None,
     contribution: Contributions | Callable[[TemporalGaussians], Contributions] | None = None,
+    observe: Callable[[TemporalGaussians], Bool[np.ndarray, "N T"]] | None = None,
 ) -> tuple[TemporalGaussians, dict]:
     """The model without its hidden persistent copies (``hidden_persistent``, when ``hidden_threshold``
     or ``hidden_share`` > 0) and with every group of ``duplicate_groups`` merged into one Gaussian
     (``merge_groups``), the others unchanged; and a report (Gaussians before/after per origin date and
     in all). ``contribution``: the model's ``contributions``, or a function that measures them for a
     model (needed for ``hidden_rounds`` > 1: each round drops up to hidden_share / hidden_rounds of
-    the weight the model then draws, and the next round measures the model that is left)."""
+    the weight the model then draws, and the next round measures the model that is left).
+    ``observe``: the visibility rule alone for a model ([N, T] observed), used by ``restore_hidden``
+    (default: the ``observed`` of ``contribution``)."""
     config = config or CompactConfig()
     full = model
-    hidden_count = 0
+    hidden_count = restored_count = 0
     if config.prunes_hidden:
         if contribution is None or (config.hidden_rounds > 1 and not callable(contribution)):
             raise InputError(
@@ -365,6 +410,15 @@ def compact(
                 "them, for hidden_rounds > 1)",
                 field="compact.contribution",
             )
+        if config.restore_hidden:
+            if not callable(contribution):
+                raise InputError(
+                    "restore_hidden needs a function that measures the contributions (they change with o)",
+                    field="compact.contribution",
+                )
+            observe = observe or (lambda m: contribution(m).observed)
+            model, restored = restore_hidden_copies(model, observe(model), config.present, observe)
+            restored_count = int(restored.sum())
         for _ in range(config.hidden_rounds):
             measured = contribution(model) if callable(contribution) else contribution
             hidden = hidden_persistent(model, measured, config, config.hidden_share / config.hidden_rounds)
@@ -378,6 +432,7 @@ def compact(
         "gaussians_before": len(full),
         "gaussians_after": len(out),
         "hidden_pruned": hidden_count,
+        "presence_restored": restored_count,
         "groups_merged": int(np.sum(np.bincount(labels) > 1)),
         "per_date_before": {names[d]: int(np.sum(before == d)) for d in range(model.num_dates)},
         "per_date_after": {names[d]: int(np.sum(after == d)) for d in range(model.num_dates)},

@@ -547,6 +547,7 @@ def compact_stage(run: FusionRun, config: CompactConfig, views, scenes, sims, re
     in ``RUN/before_compact``. Returns the report: Gaussians before/after per date and in all, and
     each date's test PSNR / SSIM / LPIPS before and after."""
     from cfgs_jax.fusion.evaluate import evaluate_fused
+    from cfgs_jax.splat.weights import observed_matrix
 
     model = read_fused(run.out / "fused")
     test_views = [date_views(sc, sm, "test") for sc, sm in zip(scenes, sims)]
@@ -558,7 +559,11 @@ def compact_stage(run: FusionRun, config: CompactConfig, views, scenes, sims, re
         threshold = refine_config.contribution_threshold
         return contributions(m, views, render_config, threshold, removal=config.hidden_rank == "removal")
 
-    compacted, report = compact(model, config, measure if config.prunes_hidden else None)
+    def observe(m):
+        cams = [dv.cameras for dv in views]
+        return observed_matrix(m, cams, refine_config.contribution_threshold, render_config=render_config)
+
+    compacted, report = compact(model, config, measure if config.prunes_hidden else None, observe)
     log(
         f"[compact] {report['gaussians_before']:,} → {report['gaussians_after']:,} Gaussians "
         f"({report['hidden_pruned']:,} hidden copies dropped, {report['groups_merged']:,} groups merged); "
