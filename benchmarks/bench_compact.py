@@ -6,7 +6,10 @@ the stage's wall time and the render time of a full selection (all dates, highli
 views over the reference's, timed alternately in one process.
 
     python benchmarks/bench_compact.py --run RUN [--knob hidden_share] [--values 0 0.01 0.02] [--refine-steps 200]
-        [--set compact.hidden_rank=removal --set compact.hidden_rounds=3]
+        [--set compact.hidden_rank=removal --set compact.hidden_rounds=3] [--noise-seeds 1 2]
+
+``--noise-seeds`` adds rows that repeat the reference with other seeds of the recovery refinement (its
+view order and random backgrounds): their Δ against the reference is the figures' noise floor.
 
 With ``--data DATA`` (the synthetic dataset root with ``ground_truth.json``), every row also scores
 change detection against ground truth (per-Gaussian F1, per-pixel IoU at the default settings, of the
@@ -108,20 +111,33 @@ def main():
         dest="overrides",
         help="compact.KEY=VALUE for every row, e.g. compact.hidden_rank=removal",
     )
+    ap.add_argument(
+        "--noise-seeds",
+        type=int,
+        nargs="*",
+        default=[],
+        help="also repeat the reference row with these refine.seed values (the noise floor)",
+    )
     args = ap.parse_args()
 
     from cfgs_jax.config import apply_overrides, section
     from cfgs_jax.fusion.compact import CompactConfig
     from cfgs_jax.fusion.run import run_compact
-    from cfgs_jax.io.atomic import read_json
+    from cfgs_jax.io.atomic import read_json, write_json
 
     base = dict((read_json(Path(args.run) / "run.json")["config"] or {}).get("compact", {}))
     base = apply_overrides({"compact": base}, args.overrides)["compact"]
     rows, dirs = [], []
     with tempfile.TemporaryDirectory() as tmp:
-        for th in sorted({0.0, *args.values}):
-            copy = Path(tmp) / f"run_{th}"
+        settings = [(th, None) for th in sorted({0.0, *args.values})] + [(0.0, s) for s in args.noise_seeds]
+        for th, seed in settings:
+            copy = Path(tmp) / (f"run_{th}" if seed is None else f"run_{th}_seed{seed}")
             shutil.copytree(args.run, copy, ignore=shutil.ignore_patterns("snapshots", "ablations", "*.npz"))
+            if seed is not None:
+                state = read_json(copy / "run.json")
+                state["config"] = dict(state["config"] or {})
+                state["config"]["refine"] = dict(state["config"].get("refine", {})) | {"seed": seed}
+                write_json(copy / "run.json", state)
             config = section(
                 {"compact": base | {args.knob: th, "refine_steps": args.refine_steps}},
                 "compact",
@@ -143,6 +159,8 @@ def main():
                     "stage_seconds": seconds,
                 }
             )
+            if seed is not None:
+                rows[-1]["refine_seed"] = seed
             if args.data:
                 rows[-1]["change"] = change_scores(copy, Path(args.data))
             dirs.append(copy)
@@ -166,7 +184,8 @@ def main():
 
 def markdown(result: dict) -> str:
     knob = result.get("knob", "hidden_threshold")
-    ref = next(r for r in result["rows"] if r[knob] == 0.0)
+    ref = next(r for r in result["rows"] if r[knob] == 0.0 and "refine_seed" not in r)
+    label = lambda r: f"{r[knob]:g}" + (f" (refine seed {r['refine_seed']})" if "refine_seed" in r else "")
     lines = [
         "# Cross-timestep compaction: Gaussians against error",
         "",
@@ -186,7 +205,7 @@ def markdown(result: dict) -> str:
         worst_lpips = max(dates[d]["lpips"] - ref["test_per_date"][d]["lpips"] for d in dates)
         removed = 1 - r["gaussians_after"] / ref["gaussians_after"]
         lines.append(
-            f"| {r[knob]:g} | {r['gaussians_after']:,} | {removed:.1%} | {t['psnr']:.2f} | "
+            f"| {label(r)} | {r['gaussians_after']:,} | {removed:.1%} | {t['psnr']:.2f} | "
             f"{t['psnr'] - rt['psnr']:+.2f} | {t['ssim']:.4f} | {t['ssim'] - rt['ssim']:+.4f} | {t['lpips']:.4f} | "
             f"{t['lpips'] - rt['lpips']:+.4f} | {worst:+.2f} | {worst_lpips:+.4f} | {r['render_ratio']:.2f} | "
             f"{r['stage_seconds']:.0f} |"
@@ -203,11 +222,16 @@ def markdown(result: dict) -> str:
         for r in result["rows"]:
             c, rc = r["change"], ref["change"]
             lines.append(
-                f"| {r[knob]:g} | {c['evidence_f1']:.3f} | {c['evidence_f1'] - rc['evidence_f1']:+.3f} | "
+                f"| {label(r)} | {c['evidence_f1']:.3f} | {c['evidence_f1'] - rc['evidence_f1']:+.3f} | "
                 f"{c['evidence_iou']:.3f} | {c['evidence_iou'] - rc['evidence_iou']:+.3f} | {c['false_regions']} | "
                 f"{c['f1']:.3f} | {c['f1'] - rc['f1']:+.3f} | {c['iou']:.3f} | {c['iou'] - rc['iou']:+.3f} |"
             )
     lines += ["", "Positive Δ PSNR / SSIM and negative Δ LPIPS: better than the reference row."]
+    if any("refine_seed" in r for r in result["rows"]):
+        lines.append(
+            "Rows marked 'refine seed s' repeat the reference with another seed of the recovery refinement "
+            "(view order, backgrounds): their Δ is the noise floor of the figures above."
+        )
     return "\n".join(lines) + "\n"
 
 
