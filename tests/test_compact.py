@@ -369,3 +369,33 @@ def test_restored_hidden_copies_keep_the_renders_and_fill_in_for_the_copy_remove
     filled = np.abs(_render(select(restored, keep), cams[0], 0) - reference).max()
     hole = np.abs(_render(select(model, keep), cams[0], 0) - reference).max()
     assert filled < 0.05 and hole > 0.3
+
+
+def test_per_date_budget_keeps_every_dates_removal_change_within_its_own_share():
+    """Made-up measurements on the model of the ranking test, with each date's summed weight 50: at share
+    0.02 the whole budget is 0.02 × 3 × 100 = 6, each date's 0.02 × 3 × 50 = 3. The total budget takes 3
+    (change 0.5 + 0.5), skips 1 (it overlaps 3), takes 4 (2 + 0) and 0 (0 + 3): 6 in all, but date 1
+    then pays 3.5 against date 0's 2.5. Per date, candidates go by their largest share of a date's
+    budget (3: 0.17, 1: 0.33, 4: 0.67, 0: 1.0); 0 would lift date 1 to 3.5 > 3, so it stays."""
+    from cfgs_jax.fusion.compact import Contributions, hidden_persistent
+
+    model = _model(
+        means=[[0, 0, 0], [5, 0, 0], [9, 0, 0], [5.05, 0, 0], [-5, 0, 0]],
+        log_scales=np.log(np.full((5, 3), 0.1)),
+        alphas=[0.5] * 5,
+        colours=np.full((5, 3), 0.5),
+        o=[[0.9, 0.9], [0.9, 0.9], [0.1, 0.9], [0.9, 0.9], [0.9, 0.9]],
+        origin=[0, 1, 0, 0, 1],
+    )
+    total = np.array([[7.5, 7.5], [6.0, 6.0], [2.5, 2.5], [5.0, 5.0], [29.0, 29.0]])
+    removal = np.array([[0.0, 3.0], [1.0, 1.0], [0.0, 0.0], [0.5, 0.5], [2.0, 0.0]])
+    measured = Contributions(np.ones((5, 2)), total, np.ones((5, 2), bool), removal)
+
+    def dropped(budget):
+        config = CompactConfig(hidden_share=0.02, hidden_rank="removal", hidden_budget=budget)
+        return hidden_persistent(model, measured, config)
+
+    assert dropped("total").astype(int).tolist() == [1, 0, 0, 1, 1]
+    per_date = dropped("per_date")
+    assert per_date.astype(int).tolist() == [0, 0, 0, 1, 1]
+    assert np.all(removal[per_date].sum(0) <= 3.0)

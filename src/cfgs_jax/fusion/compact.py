@@ -34,7 +34,10 @@ With ``hidden_rank = "removal"`` the same candidates are ranked instead by what 
 in the training views, Σ_q Σ_views Σ_RGB |Σ_pixels (C − C_without_i)| (``splat.weights.removal_change``,
 at each date's o^q and l^q): a copy in front of a matching copy changes little, a copy whose colour
 differs from what shows through it changes much, whatever their weights. The share then bounds the
-summed removal change of the dropped ones, against 3 × the summed weight of all. Two overlapping Gaussians
+summed removal change of the dropped ones, against 3 × the summed weight of all; with
+``hidden_budget = "per_date"`` it bounds each date's part alone, Σ_dropped change_i^q ≤ share · 3 · Σ_all w^q
+for every date q, and the candidates are ranked by their largest change_i^q over that bound, so that
+no date pays for the others. Two overlapping Gaussians
 (centres closer than s̄_i + s̄_j) are never both dropped in one round, since each
 was measured with the other in place; ``hidden_rounds`` > 1 splits the share over rounds and measures
 again after each.
@@ -93,6 +96,7 @@ class CompactConfig:
     )
     hidden_rounds: int = 1  # hidden_share split over this many rounds, measured again after each
     restore_hidden: bool = False  # give the copies hidden at a date their o there back before the ranking
+    hidden_budget: Literal["total", "per_date"] = "total"  # the removal share: of all dates' change, or each date's
     refine_steps: int = 500
     lr_light: float = 0.0  # light rate of the recovery refinement (0: l frozen, as in the fusion's refinement)
 
@@ -119,6 +123,10 @@ class CompactConfig:
         if self.hidden_rank not in ("weight", "removal"):
             raise InputError(
                 f"unknown ranking {self.hidden_rank!r}", field="compact.hidden_rank", fix='use "weight" or "removal"'
+            )
+        if self.hidden_budget not in ("total", "per_date"):
+            raise InputError(
+                f"unknown budget {self.hidden_budget!r}", field="compact.hidden_budget", fix='use "total" or "per_date"'
             )
         if self.hidden_rounds < 1:
             raise InputError(f"must be ≥ 1, got {self.hidden_rounds}", field="compact.hidden_rounds")
@@ -368,15 +376,22 @@ def hidden_persistent(
         return hidden
     if contribution.removal is None:
         raise InputError('hidden_rank = "removal" needs contributions(..., removal=True)', field="compact.hidden_rank")
-    cost = np.sum(contribution.removal[rows], axis=1)
-    budget = share * 3.0 * np.sum(total)  # colour change, L1 over RGB, against the coverage the views show
-    order = np.argsort(cost, kind="stable")
+    if config.hidden_budget == "per_date":  # each date's change against that date's own coverage
+        cost = contribution.removal[rows]
+        budget = share * 3.0 * np.sum(contribution.total, axis=0)
+        order = np.argsort(np.max(cost / np.maximum(budget, 1e-30), axis=1), kind="stable")
+    else:  # colour change, L1 over RGB, against the coverage the views show
+        cost = np.sum(contribution.removal[rows], axis=1, keepdims=True)
+        budget = share * 3.0 * np.sum(total, keepdims=True)
+        order = np.argsort(cost[:, 0], kind="stable")
     radius = np.exp(np.mean(np.asarray(model.gaussians.log_scales, np.float64)[rows], axis=-1))
     indptr, indices = _overlapping(np.asarray(model.gaussians.means, np.float64)[rows], radius)
     taken = np.zeros(len(rows), bool)
-    spent = 0.0
+    spent = np.zeros_like(budget)
     for k in order:
-        if spent + cost[k] > budget:
+        if np.any(spent + cost[k] > budget):
+            if config.hidden_budget == "per_date":
+                continue  # a later candidate may cost nothing at the dates whose budget is spent
             break
         if taken[indices[indptr[k] : indptr[k + 1]]].any():
             continue
