@@ -8,6 +8,8 @@ views over the reference's, timed alternately in one process.
     python benchmarks/bench_compact.py --run RUN [--knob hidden_share] [--values 0 0.01 0.02] [--refine-steps 200]
         [--set compact.hidden_rank=removal --set compact.hidden_rounds=3] [--noise-seeds 1 2]
 
+``--row VALUE compact.KEY=VALUE …`` adds a row at that knob value with its own overrides on top of
+``--set`` (e.g. ``--row 0.02 compact.restore_hidden=true``), so that settings share one reference row.
 ``--noise-seeds`` adds rows that repeat the reference with other seeds of the recovery refinement (its
 view order and random backgrounds): their Δ against the reference is the figures' noise floor.
 
@@ -118,6 +120,15 @@ def main():
         default=[],
         help="also repeat the reference row with these refine.seed values (the noise floor)",
     )
+    ap.add_argument(
+        "--row",
+        action="append",
+        nargs="+",
+        default=[],
+        dest="extra_rows",
+        metavar="VALUE [compact.KEY=VALUE ...]",
+        help="one more row: the knob's value and this row's own compact.* overrides",
+    )
     args = ap.parse_args()
 
     from cfgs_jax.config import apply_overrides, section
@@ -129,9 +140,11 @@ def main():
     base = apply_overrides({"compact": base}, args.overrides)["compact"]
     rows, dirs = [], []
     with tempfile.TemporaryDirectory() as tmp:
-        settings = [(th, None) for th in sorted({0.0, *args.values})] + [(0.0, s) for s in args.noise_seeds]
-        for th, seed in settings:
-            copy = Path(tmp) / (f"run_{th}" if seed is None else f"run_{th}_seed{seed}")
+        settings = [(th, None, []) for th in sorted({0.0, *args.values})]
+        settings += [(float(r[0]), None, r[1:]) for r in args.extra_rows]
+        settings += [(0.0, s, []) for s in args.noise_seeds]
+        for k, (th, seed, own) in enumerate(settings):
+            copy = Path(tmp) / f"run_{k}"
             shutil.copytree(args.run, copy, ignore=shutil.ignore_patterns("snapshots", "ablations", "*.npz"))
             if seed is not None:
                 state = read_json(copy / "run.json")
@@ -139,7 +152,10 @@ def main():
                 state["config"]["refine"] = dict(state["config"].get("refine", {})) | {"seed": seed}
                 write_json(copy / "run.json", state)
             config = section(
-                {"compact": base | {args.knob: th, "refine_steps": args.refine_steps}},
+                {
+                    "compact": apply_overrides({"compact": base}, own)["compact"]
+                    | {args.knob: th, "refine_steps": args.refine_steps}
+                },
                 "compact",
                 CompactConfig,
             )
@@ -161,6 +177,8 @@ def main():
             )
             if seed is not None:
                 rows[-1]["refine_seed"] = seed
+            if own:
+                rows[-1]["overrides"] = own
             if args.data:
                 rows[-1]["change"] = change_scores(copy, Path(args.data))
             dirs.append(copy)
@@ -184,8 +202,13 @@ def main():
 
 def markdown(result: dict) -> str:
     knob = result.get("knob", "hidden_threshold")
-    ref = next(r for r in result["rows"] if r[knob] == 0.0 and "refine_seed" not in r)
-    label = lambda r: f"{r[knob]:g}" + (f" (refine seed {r['refine_seed']})" if "refine_seed" in r else "")
+    ref = next(r for r in result["rows"] if r[knob] == 0.0 and "refine_seed" not in r and "overrides" not in r)
+
+    def label(r):
+        extra = [f"refine seed {r['refine_seed']}"] if "refine_seed" in r else []
+        extra += [o.removeprefix("compact.") for o in r.get("overrides", [])]
+        return f"{r[knob]:g}" + (f" ({', '.join(extra)})" if extra else "")
+
     lines = [
         "# Cross-timestep compaction: Gaussians against error",
         "",
