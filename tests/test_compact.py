@@ -233,6 +233,19 @@ def test_removal_change_equals_the_float64_render_without_each_gaussian():
             np.testing.assert_allclose(got[v, i], want, rtol=2e-3, atol=2e-3)
 
 
+def _five_blobs():
+    """Five blobs at two dates for the ranking tests: 1 and 3 overlap (centres 0.05 apart, scales 0.1),
+    2 marks a change (o 0.1 at date 0), the others lie far apart."""
+    return _model(
+        means=[[0, 0, 0], [5, 0, 0], [9, 0, 0], [5.05, 0, 0], [-5, 0, 0]],
+        log_scales=np.log(np.full((5, 3), 0.1)),
+        alphas=[0.5] * 5,
+        colours=np.full((5, 3), 0.5),
+        o=[[0.9, 0.9], [0.9, 0.9], [0.1, 0.9], [0.9, 0.9], [0.9, 0.9]],
+        origin=[0, 1, 0, 0, 1],
+    )
+
+
 def test_removal_ranking_drops_the_copy_whose_removal_changes_least_and_never_two_overlapping():
     """Made-up measurements: ranked by removal change, Gaussians 3 (1), 1 (2), 0 (5), 4 (20) mark no
     change (2 marks one). Gaussian 1 overlaps 3 (centres 0.05 apart, scales 0.1), so with 3 taken it is
@@ -242,14 +255,7 @@ def test_removal_ranking_drops_the_copy_whose_removal_changes_least_and_never_tw
     30)."""
     from cfgs_jax.fusion.compact import Contributions, hidden_persistent
 
-    model = _model(
-        means=[[0, 0, 0], [5, 0, 0], [9, 0, 0], [5.05, 0, 0], [-5, 0, 0]],
-        log_scales=np.log(np.full((5, 3), 0.1)),
-        alphas=[0.5] * 5,
-        colours=np.full((5, 3), 0.5),
-        o=[[0.9, 0.9], [0.9, 0.9], [0.1, 0.9], [0.9, 0.9], [0.9, 0.9]],
-        origin=[0, 1, 0, 0, 1],
-    )
+    model = _five_blobs()
     total = np.array([[7.5, 7.5], [6.0, 6.0], [2.5, 2.5], [5.0, 5.0], [29.0, 29.0]])  # Σ: 100
     removal = np.array([[2.5, 2.5], [1.0, 1.0], [0.0, 0.0], [0.5, 0.5], [10.0, 10.0]])
     measured = Contributions(np.ones((5, 2)), total, np.ones((5, 2), bool), removal)
@@ -379,14 +385,7 @@ def test_per_date_budget_keeps_every_dates_removal_change_within_its_own_share()
     budget (3: 0.17, 1: 0.33, 4: 0.67, 0: 1.0); 0 would lift date 1 to 3.5 > 3, so it stays."""
     from cfgs_jax.fusion.compact import Contributions, hidden_persistent
 
-    model = _model(
-        means=[[0, 0, 0], [5, 0, 0], [9, 0, 0], [5.05, 0, 0], [-5, 0, 0]],
-        log_scales=np.log(np.full((5, 3), 0.1)),
-        alphas=[0.5] * 5,
-        colours=np.full((5, 3), 0.5),
-        o=[[0.9, 0.9], [0.9, 0.9], [0.1, 0.9], [0.9, 0.9], [0.9, 0.9]],
-        origin=[0, 1, 0, 0, 1],
-    )
+    model = _five_blobs()
     total = np.array([[7.5, 7.5], [6.0, 6.0], [2.5, 2.5], [5.0, 5.0], [29.0, 29.0]])
     removal = np.array([[0.0, 3.0], [1.0, 1.0], [0.0, 0.0], [0.5, 0.5], [2.0, 0.0]])
     measured = Contributions(np.ones((5, 2)), total, np.ones((5, 2), bool), removal)
