@@ -325,15 +325,15 @@ def restore_hidden_copies(
     own = logits[np.arange(len(logits)), origin]
     best = np.max(np.where(observed, logits, -np.inf), axis=1)
     best = np.where(np.isfinite(best), best, own)
-    restored = dataclasses.replace(
-        model, o_logits=jnp.asarray(np.where(restore, best[:, None], logits).astype(logits.dtype))
-    )
-    if observe is not None:
-        restore &= ~np.asarray(observe(restored), bool)
-        restored = dataclasses.replace(
-            model, o_logits=jnp.asarray(np.where(restore, best[:, None], logits).astype(logits.dtype))
+
+    def restored(mask):
+        return dataclasses.replace(
+            model, o_logits=jnp.asarray(np.where(mask, best[:, None], logits).astype(logits.dtype))
         )
-    return restored, restore
+
+    if observe is not None:
+        restore &= ~np.asarray(observe(restored(restore)), bool)
+    return restored(restore), restore
 
 
 def _overlapping(means: np.ndarray, radius: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -376,7 +376,8 @@ def hidden_persistent(
         return hidden
     if contribution.removal is None:
         raise InputError('hidden_rank = "removal" needs contributions(..., removal=True)', field="compact.hidden_rank")
-    if config.hidden_budget == "per_date":  # each date's change against that date's own coverage
+    per_date = config.hidden_budget == "per_date"
+    if per_date:  # each date's change against that date's own coverage
         cost = contribution.removal[rows]
         budget = share * 3.0 * np.sum(contribution.total, axis=0)
         order = np.argsort(np.max(cost / np.maximum(budget, 1e-30), axis=1), kind="stable")
@@ -390,7 +391,7 @@ def hidden_persistent(
     spent = np.zeros_like(budget)
     for k in order:
         if np.any(spent + cost[k] > budget):
-            if config.hidden_budget == "per_date":
+            if per_date:
                 continue  # a later candidate may cost nothing at the dates whose budget is spent
             break
         if taken[indices[indptr[k] : indptr[k + 1]]].any():
