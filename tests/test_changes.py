@@ -17,6 +17,7 @@ from cfgs_jax.changes.evidence import (
     direction_support,
     gain_fitted_residual,
     nearest_ray_cosine,
+    pair_statistics,
     pair_sums,
     pooled_evidence,
     residual_sums,
@@ -62,13 +63,13 @@ def test_residual_sums_match_float64_reference():
     sums, largest = residual_sums(
         model.gaussians,
         cam,
-        jnp.asarray(present, jnp.float32),
-        jnp.asarray(absent, jnp.float32),
+        jnp.asarray(present, jnp.float32)[None],
+        jnp.asarray(absent, jnp.float32)[None],
         jnp.asarray(light, jnp.float32),
         jnp.asarray(image, jnp.float32),
         rc,
     )
-    got = np.asarray(sums, np.float64)
+    got, largest = np.asarray(sums, np.float64)[0], largest[0]
     w = _weights64(model.gaussians, cam, present)  # [N, H, W]
     ref_plus = reference.render_dates(model.gaussians, cam, present[None], light[None])
     plus = np.asarray(ref_plus.image)[0]
@@ -188,6 +189,8 @@ def test_changes_config_validates():
         ChangesConfig(max_view_angle=0.0)
     with pytest.raises(InputError, match="changes.support_views"):
         ChangesConfig(support_views=0)
+    with pytest.raises(InputError, match="changes.dates_per_pass"):
+        ChangesConfig(dates_per_pass=0)
 
 
 def test_spread_cameras_is_a_farthest_point_sample():
@@ -240,6 +243,33 @@ def test_views_beyond_the_max_view_angle_give_no_evidence():
     assert np.all(none == 0) and not seen_none.any() and seen_alone.all()
     full, seen_full = pair_sums(model, 0, 1, [side], [side_img], support=support, max_view_angle=180.0)
     assert full[:, 0].min() > 1.0 and seen_full.all()
+
+
+def test_dates_tested_in_one_pass_equal_one_pair_at_a_time():
+    """Three dates, each with two blobs in front of one another: the sums and visibility of every
+    ordered pair are the same whether each observing date's other dates share one pass over its views
+    (``dates_per_pass`` 2) or go one at a time, with and without the direction rule."""
+    s = np.log(0.1)
+    rng = np.random.default_rng(3)
+    model = _model(
+        means=[[-0.3, 0, 0], [0.3, 0.1, 0], [-0.25, 0.2, 0.05], [0.2, -0.1, 0.1], [0.0, 0.3, -0.1], [0.1, 0.0, 0.0]],
+        log_scales=[[s] * 3] * 6,
+        alphas=[0.9, 0.8, 0.7, 0.9, 0.6, 0.85],
+        colours=rng.uniform(0.1, 0.9, (6, 3)),
+        o=rng.uniform(0.3, 1.0, (6, 3)),
+        origin=[0, 0, 1, 1, 2, 2],
+    )
+    cams = [tuple(_cam(e) for e in ([0.2 * d, -2.2, 0.4], [0.8, -2.0, 0.3 * d])) for d in range(3)]
+    views = [DateViews(c, tuple(rng.uniform(0, 1, (30, 40, 3)) for _ in c)) for c in cams]
+    for angle in (180.0, 25.0):
+        one = pair_statistics(model, views, ChangesConfig(dates_per_pass=1, max_view_angle=angle))
+        shared = pair_statistics(model, views, ChangesConfig(dates_per_pass=2, max_view_angle=angle))
+        assert sorted(one.pairs) == sorted(shared.pairs) == [(p, q) for p in range(3) for q in range(3) if p != q]
+        for pair, (rows, sums, seen) in one.pairs.items():
+            assert sums[:, 0].max() > 1.0
+            np.testing.assert_array_equal(shared.pairs[pair][0], rows)
+            np.testing.assert_allclose(shared.pairs[pair][1], sums, rtol=1e-5, atol=1e-6)
+            np.testing.assert_array_equal(shared.pairs[pair][2], seen)
 
 
 def test_regions_hand_cases():

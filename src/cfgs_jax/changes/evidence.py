@@ -47,7 +47,7 @@ from scipy.spatial import cKDTree
 from cfgs_jax import splat
 from cfgs_jax.errors import InputError
 from cfgs_jax.model import Camera, Gaussians, TemporalGaussians, light_multipliers, opacity_multipliers
-from cfgs_jax.splat.weights import max_weight, summed_weights, visible
+from cfgs_jax.splat.weights import max_weight, visible
 
 
 @dataclasses.dataclass(frozen=True)
@@ -71,7 +71,10 @@ class ChangesConfig:
     Gaussian observed at both dates joins a region when it lies within that many link steps of the
     region's Gaussians of its own date and its colour is within ``complete_colour`` (RGB distance) of
     their median (0: no completion); with ``complete_across_dates`` also Gaussians of the pair's
-    other dates (the other date's version of a changed object)."""
+    other dates (the other date's version of a changed object). ``dates_per_pass``: how many dates'
+    Gaussians are tested against one observing date in one pass over its views (they share each
+    view's projection, sort and kernel walks; the figures do not depend on it beyond float32 rounding,
+    memory grows with it)."""
 
     threshold: float = 0.06
     views: str = "all"
@@ -87,6 +90,7 @@ class ChangesConfig:
     complete_hops: int = 16
     complete_colour: float = 0.1
     complete_across_dates: bool = False
+    dates_per_pass: int = 8
 
     def __post_init__(self):
         if not 0.0 < self.threshold < 1.0:
@@ -125,7 +129,7 @@ class ChangesConfig:
             )
         if self.link_factor <= 0:
             raise InputError(f"must be > 0, got {self.link_factor}", field="changes.link_factor")
-        for name in ("min_region_gaussians", "min_region_pixels"):
+        for name in ("min_region_gaussians", "min_region_pixels", "dates_per_pass"):
             if int(getattr(self, name)) < 1:
                 raise InputError(f"must be ≥ 1, got {getattr(self, name)}", field=f"changes.{name}")
 
@@ -150,29 +154,36 @@ class ChangeEvidence:
 def residual_sums(
     g: Gaussians,
     camera: Camera,
-    present: Float[Array, " N"],
-    absent: Float[Array, " N"],
+    present: Float[Array, "K N"],
+    absent: Float[Array, "K N"],
     light: Float[Array, "N 3"],
     image: Float[Array, "H W 3"],
     config: splat.RenderConfig,
-) -> tuple[Float[Array, "N 6"], Float[Array, " N"]]:
-    """Per Gaussian, over one view: W = Σ w, A⁺ = Σ w F⁺·I, B⁺ = Σ w |F⁺|², A⁻, B⁻, C = Σ w |I|², with
-    F± the renders at opacities ``present`` / ``absent`` under ``light`` and w the compositing weight
-    in F⁺; and the largest w over the view's pixels (the visibility statistic of F⁺). ``config`` must
-    carry the intersection capacity of both renders."""
-    both = jnp.stack([present, absent])
-    mult = jnp.broadcast_to(light, (2,) + light.shape)
-    res = splat.render_dates(g, camera, both, mult, config=config)
-    plus, minus = res.image[0], res.image[1]
+) -> tuple[Float[Array, "K N 6"], Float[Array, "K N"]]:
+    """Per hypothesis pair k and Gaussian, over one view: W = Σ w, A⁺ = Σ w F⁺·I, B⁺ = Σ w |F⁺|², A⁻, B⁻,
+    C = Σ w |I|², with F± the renders at opacities ``present[k]`` / ``absent[k]`` under ``light`` and w
+    the compositing weight in F⁺; and the largest w over the view's pixels (the visibility statistic of
+    F⁺). All 2K renders share one projection and sort, and the sums take one forward walk of the
+    kernel (``splat.summed_weight_maps``). ``config`` must carry the intersection capacity of all of
+    them."""
+    k = present.shape[0]
+    res = splat.render_dates(
+        g, camera, jnp.concatenate([present, absent]), jnp.broadcast_to(light, (2 * k,) + light.shape), config=config
+    )
+    plus, minus = res.image[:k], res.image[k:]  # [K, H, W, 3]
     dot = lambda a, b: jnp.sum(a * b, axis=-1)
     maps = jnp.stack(
         [
-            jnp.stack([jnp.ones(image.shape[:2], image.dtype), dot(plus, image), dot(plus, plus)], -1),
-            jnp.stack([dot(minus, image), dot(minus, minus), dot(image, image)], -1),
+            jnp.ones(plus.shape[:3], image.dtype),
+            dot(plus, image),
+            dot(plus, plus),
+            dot(minus, image),
+            dot(minus, minus),
+            jnp.broadcast_to(dot(image, image), plus.shape[:3]),
         ]
-    )
-    w = summed_weights(g, camera, present, jax.lax.stop_gradient(maps), config)  # [2, N, 3]
-    return jnp.concatenate([w[0], w[1]], axis=-1), res.max_weight[0]
+    )  # [6, K, H, W]
+    sums = splat.summed_weight_maps(g, camera, present, jax.lax.stop_gradient(maps), config=config)  # [6, K, N]
+    return jnp.moveaxis(sums, 0, -1), res.max_weight[:k]
 
 
 def premultiplied(image: np.ndarray) -> np.ndarray:
@@ -230,6 +241,86 @@ def direction_support(
     return (np.stack(seen, 1) if seen else np.zeros((int(own.sum()), 0), bool)), centres
 
 
+def observing_date_sums(
+    model: TemporalGaussians,
+    dates: Sequence[int],
+    q: int,
+    cameras: Sequence[Camera],
+    images: Sequence[np.ndarray],
+    *,
+    render_config: splat.RenderConfig | None = None,
+    contribution_threshold: float = 0.01,
+    supports: dict[int, tuple[np.ndarray, np.ndarray]] | None = None,
+    max_view_angle: float = 180.0,
+    dates_per_pass: int = 8,
+) -> dict[int, tuple[np.ndarray, np.ndarray]]:
+    """``pair_sums`` for the pairs (p, q) of every p in ``dates`` against one observing date q: per p,
+    date p's Gaussians' ``residual_sums`` over q's views ([N_p, 6] float64) and whether those views
+    observe them ([N_p] bool). Up to ``dates_per_pass`` dates p (split evenly over the passes) share
+    each view's projection, sort and kernel walks (2 renders and one weighted-sum walk per p, batched); the figures equal those of one
+    pair at a time up to float32 rounding."""
+    rc = render_config or splat.RenderConfig()
+    dates = [int(p) for p in dates]
+    if q in dates:
+        raise InputError(f"date {q} cannot observe itself", field="pairs", fix="two different date indices")
+    o = np.asarray(opacity_multipliers(model), np.float32)
+    origin = np.asarray(model.origin)
+    light = jnp.asarray(light_multipliers(model)[:, q], jnp.float32)
+    g = model.gaussians
+    restrict = supports is not None and max_view_angle < 180.0
+    min_cosine = np.float32(np.cos(np.radians(max_view_angle)))
+    out = {}
+    passes = -(-len(dates) // max(1, int(dates_per_pass)))
+    size = -(-len(dates) // max(1, passes))  # as even as the passes allow: 5 dates at 4 per pass → 3 + 2
+    for first in range(0, len(dates), max(1, size)):
+        batch = dates[first : first + size]
+        own = [origin == p for p in batch]
+        rows = [jnp.asarray(np.nonzero(mine)[0]) for mine in own]
+        present = jnp.asarray(np.stack([np.where(mine, o[:, p], o[:, q]) for p, mine in zip(batch, own)]))
+        absent = jnp.asarray(np.stack([np.where(mine, 0.0, o[:, q]) for mine in own]).astype(np.float32))
+        direction = {}
+        if restrict:
+            for k, p in enumerate(batch):
+                seen_by_p, centres = supports[p]
+                if seen_by_p.shape[0] != len(rows[k]):
+                    raise InputError(
+                        f"support for {seen_by_p.shape[0]} Gaussians, date {p} has {len(rows[k])}",
+                        field="support",
+                        fix="pass direction_support(model, p, …) of the same model",
+                    )
+                direction[k] = (
+                    jnp.asarray(g.means)[rows[k]],
+                    jnp.asarray(seen_by_p, bool),
+                    jnp.asarray(centres, jnp.float32),
+                )
+        total = [jnp.zeros((len(r), 6), jnp.float32) for r in rows]
+        largest = [jnp.zeros(len(r), jnp.float32) for r in rows]
+        for cam, image in zip(cameras, images):
+            ref = premultiplied(image)
+            if ref.shape[:2] != (int(cam.height), int(cam.width)):
+                raise InputError(
+                    f"image {ref.shape[:2]} for a {int(cam.width)}×{int(cam.height)} camera",
+                    field="images",
+                    fix="give each view its camera's image",
+                )
+            cap = splat.required_capacity(g, cam, jnp.concatenate([present, absent]), config=rc)
+            sums, weight = residual_sums(
+                g, cam, present, absent, light, jnp.asarray(ref), dataclasses.replace(rc, capacity=cap)
+            )
+            for k in range(len(batch)):
+                s_k, w_k = sums[k][rows[k]], weight[k][rows[k]]
+                if restrict:
+                    points, seen_by_p, centres = direction[k]
+                    cosine = nearest_ray_cosine(points, seen_by_p, centres, jnp.asarray(cam.center, jnp.float32))
+                    counts = cosine >= min_cosine
+                    s_k, w_k = s_k * counts[:, None], w_k * counts
+                total[k], largest[k] = total[k] + s_k, jnp.maximum(largest[k], w_k)
+        for k, p in enumerate(batch):
+            seen = visible(np.asarray(largest[k]), np.asarray(present[k])[own[k]], contribution_threshold)
+            out[p] = (np.asarray(total[k], np.float64), seen)
+    return out
+
+
 def pair_sums(
     model: TemporalGaussians,
     p: int,
@@ -247,47 +338,17 @@ def pair_sums(
     weight of the present render, the fused model at q with date p's Gaussians at o^p). With
     ``support`` (``direction_support`` of date p) a view counts for a Gaussian only within
     ``max_view_angle`` degrees of a direction p's cameras saw it from."""
-    rc = render_config or splat.RenderConfig()
-    o = np.asarray(opacity_multipliers(model), np.float32)
-    origin = np.asarray(model.origin)
-    own = origin == p
-    rows = jnp.asarray(np.nonzero(own)[0])
-    present = jnp.asarray(np.where(own, o[:, p], o[:, q]))
-    absent = jnp.asarray(np.where(own, 0.0, o[:, q]).astype(np.float32))
-    light = jnp.asarray(light_multipliers(model)[:, q], jnp.float32)
-    g = model.gaussians
-    restrict = support is not None and max_view_angle < 180.0
-    if restrict:
-        points = jnp.asarray(g.means)[rows]
-        seen_by_p, centres = jnp.asarray(support[0], bool), jnp.asarray(support[1], jnp.float32)
-        if seen_by_p.shape[0] != len(rows):
-            raise InputError(
-                f"support for {seen_by_p.shape[0]} Gaussians, date {p} has {len(rows)}",
-                field="support",
-                fix="pass direction_support(model, p, …) of the same model",
-            )
-        min_cosine = np.float32(np.cos(np.radians(max_view_angle)))
-    total = jnp.zeros((len(rows), 6), jnp.float32)
-    largest = jnp.zeros(len(rows), jnp.float32)
-    for cam, image in zip(cameras, images):
-        ref = premultiplied(image)
-        if ref.shape[:2] != (int(cam.height), int(cam.width)):
-            raise InputError(
-                f"image {ref.shape[:2]} for a {int(cam.width)}×{int(cam.height)} camera",
-                field="images",
-                fix="give each view its camera's image",
-            )
-        cap = splat.required_capacity(g, cam, jnp.stack([present, absent]), config=rc)
-        sums, weight = residual_sums(
-            g, cam, present, absent, light, jnp.asarray(ref), dataclasses.replace(rc, capacity=cap)
-        )
-        sums, weight = sums[rows], weight[rows]
-        if restrict:
-            counts = nearest_ray_cosine(points, seen_by_p, centres, jnp.asarray(cam.center, jnp.float32)) >= min_cosine
-            sums, weight = sums * counts[:, None], weight * counts
-        total, largest = total + sums, jnp.maximum(largest, weight)
-    seen = visible(np.asarray(largest), np.asarray(present)[own], contribution_threshold)
-    return np.asarray(total, np.float64), seen
+    return observing_date_sums(
+        model,
+        [p],
+        q,
+        cameras,
+        images,
+        render_config=render_config,
+        contribution_threshold=contribution_threshold,
+        supports=None if support is None else {p: support},
+        max_view_angle=max_view_angle,
+    )[p]
 
 
 def gain_fitted_residual(a, b, c, gain_range: tuple[float, float]):
@@ -358,29 +419,35 @@ def pair_statistics(
     rc = render_config or splat.RenderConfig()
     origin = np.asarray(model.origin)
     out, support = {}, {}
-    for k, (p, q) in enumerate(pairs):
-        rows = np.nonzero(origin == p)[0]
-        if len(rows):
-            if config.max_view_angle < 180.0 and p not in support:
-                cams = views[p].cameras if support_cameras is None else support_cameras[p]
-                cams = spread_cameras(cams, int(config.support_views))
-                support[p] = direction_support(
-                    model, p, cams, render_config=rc, contribution_threshold=config.contribution_threshold
-                )
-            sums, seen = pair_sums(
-                model,
-                p,
-                q,
-                views[q].cameras,
-                views[q].images,
-                render_config=rc,
-                contribution_threshold=config.contribution_threshold,
-                support=support.get(p),
-                max_view_angle=config.max_view_angle,
-            )
-            out[(p, q)] = (rows, sums, seen)
+    observers = sorted({q for _, q in pairs})
+    done = 0
+    for q in observers:
+        dates = [p for p, x in pairs if x == q and (origin == p).any()]
+        if config.max_view_angle < 180.0:
+            for p in dates:
+                if p not in support:
+                    cams = views[p].cameras if support_cameras is None else support_cameras[p]
+                    cams = spread_cameras(cams, int(config.support_views))
+                    support[p] = direction_support(
+                        model, p, cams, render_config=rc, contribution_threshold=config.contribution_threshold
+                    )
+        sums = observing_date_sums(
+            model,
+            dates,
+            q,
+            views[q].cameras,
+            views[q].images,
+            render_config=rc,
+            contribution_threshold=config.contribution_threshold,
+            supports=support,
+            max_view_angle=config.max_view_angle,
+            dates_per_pass=config.dates_per_pass,
+        )
+        for p in dates:
+            out[(p, q)] = (np.nonzero(origin == p)[0],) + sums[p]
+        done += sum(1 for _, x in pairs if x == q)
         if progress is not None:
-            progress(k + 1, len(pairs))
+            progress(done, len(pairs))
     return PairStatistics(len(origin), t, out)
 
 

@@ -8,7 +8,14 @@ from cfgs_jax.splat import reference
 from cfgs_jax.splat.binning import Bins, bin_gaussians
 from cfgs_jax.splat.config import RenderConfig
 from cfgs_jax.splat.project import Projection, project, tile_grid
-from cfgs_jax.splat.render import RenderResult, render, render_dates, render_views, required_capacity
+from cfgs_jax.splat.render import (
+    RenderResult,
+    render,
+    render_dates,
+    render_views,
+    required_capacity,
+    summed_weight_maps,
+)
 
 __all__ = [
     "Bins",
@@ -22,5 +29,6 @@ __all__ = [
     "render_dates",
     "render_views",
     "required_capacity",
+    "summed_weight_maps",
     "tile_grid",
 ]

@@ -338,3 +338,37 @@ def _composite_bwd(layout, res, cot):
 
 
 composite.defvjp(_composite_fwd, _composite_bwd)
+
+
+def weighted_sums(layout: Layout, means2d, conics, opac, ids, tile_start, tile_end, maps):
+    """Σ over pixels of w_k·map_m per Gaussian k, map m and date d → [M, D, N], with w_k = α_k·T_k the
+    compositing weight of Eq. 1 at the effective opacities ``opac`` [D, N] and ``maps`` [M, D, H, W]
+    per-pixel weights: the forward walk alone, each round's Σ_pixels w·map scatter-added per Gaussian
+    (what the gradient of Σ map·C with respect to a per-Gaussian colour multiplier gives, without the
+    backward walk)."""
+    d, n = opac.shape
+    m = maps.shape[0]
+    dtype = means2d.dtype
+    order = _tile_order(layout, tile_start, tile_end)
+    maps_b = _from_image(layout, jnp.moveaxis(maps.astype(dtype), 0, -1), order)  # [nb, D, B, P, M]
+    no_features = jnp.zeros((0, d, n), dtype)
+
+    def batch_step(sums, xs):
+        tiles, maps_batch = xs
+        start, end, px, py, n_rounds, t0, done0, _ = _batch_start(layout, tiles, tile_start, tile_end, d, 0, dtype)
+        planes = jnp.moveaxis(maps_batch, -1, 0)  # [M, D, B, P]
+
+        def body(c):
+            r, t, done, sums = c
+            ch = _chunk(layout, r, start, end, ids, means2d, conics, opac, no_features, px, py, t, done)
+            if d == 1:  # element-wise products and halving: on CPU faster than a contraction for one date
+                per_map = jnp.stack([_reduce_last(ch.w * planes[i][None]) for i in range(m)])  # [M, K, D, B]
+            else:  # a batched contraction over the pixels scales far better with the dates
+                per_map = jnp.einsum("kdbp,mdbp->mkdb", ch.w, planes)
+            return r + 1, ch.t_out, ch.done_out, sums.at[:, :, ch.gid].add(jnp.moveaxis(per_map, 2, 1))
+
+        *_, sums = jax.lax.while_loop(_still_running(n_rounds), body, (jnp.int32(0), t0, done0, sums))
+        return sums, None
+
+    sums, _ = jax.lax.scan(batch_step, jnp.zeros((m, d, n), dtype), (order, maps_b))
+    return sums

@@ -22,7 +22,7 @@ from jaxtyping import Array, Float, Int
 from cfgs_jax.errors import InputError
 from cfgs_jax.model import Camera, Gaussians, is_traced, opacities, rgb
 from cfgs_jax.splat.binning import bin_gaussians, listed_tiles
-from cfgs_jax.splat.composite import Layout, composite
+from cfgs_jax.splat.composite import Layout, composite, weighted_sums
 from cfgs_jax.splat.config import RenderConfig
 from cfgs_jax.splat.project import project, tile_grid
 
@@ -83,14 +83,10 @@ def _effective_opacity(gaussians: Gaussians, opacity_mult, config: RenderConfig)
     return opac, jax.lax.stop_gradient(jnp.max(opac, axis=0))
 
 
-def _render_impl(
-    gaussians, camera, opacity_mult, color_mult, background, means2d_offset, *, config, capacity, with_depth, statistics
-):
+def _project_and_bin(gaussians, camera, opacity_mult, *, config, capacity, statistics):
+    """Projection, per-date effective opacities and the tile lists shared by every date."""
     proj = project(gaussians.means, gaussians.quats, gaussians.log_scales, camera, config)
     opac, max_opacity = _effective_opacity(gaussians, opacity_mult, config)
-    feats = rgb(gaussians)[None] * color_mult
-    if with_depth:
-        feats = jnp.concatenate([feats, jnp.broadcast_to(proj.depths[None, :, None], feats.shape[:2] + (1,))], -1)
     layout = _layout(camera, config, opac.shape[0], statistics)
     bins = bin_gaussians(
         proj,
@@ -101,6 +97,18 @@ def _render_impl(
         min_alpha=config.min_alpha,
         cull=config.tile_cull,
     )
+    return proj, opac, layout, bins
+
+
+def _render_impl(
+    gaussians, camera, opacity_mult, color_mult, background, means2d_offset, *, config, capacity, with_depth, statistics
+):
+    proj, opac, layout, bins = _project_and_bin(
+        gaussians, camera, opacity_mult, config=config, capacity=capacity, statistics=statistics
+    )
+    feats = rgb(gaussians)[None] * color_mult
+    if with_depth:
+        feats = jnp.concatenate([feats, jnp.broadcast_to(proj.depths[None, :, None], feats.shape[:2] + (1,))], -1)
     means2d = proj.means2d if means2d_offset is None else proj.means2d + means2d_offset
     fg, t, maxw, hits = composite(
         layout, means2d, proj.conics, opac, feats, bins.gaussian_ids, bins.tile_start, bins.tile_end
@@ -136,6 +144,60 @@ def _render_jit(
         with_depth=with_depth,
         statistics=statistics,
     )
+
+
+@functools.partial(jax.jit, static_argnames=("config", "capacity"))
+def _weighted_sums_jit(gaussians, camera, opacity_mult, maps, *, config, capacity):
+    proj, opac, layout, bins = _project_and_bin(
+        gaussians, camera, opacity_mult, config=config, capacity=capacity, statistics=False
+    )
+    sums = weighted_sums(
+        layout, proj.means2d, proj.conics, opac, bins.gaussian_ids, bins.tile_start, bins.tile_end, maps
+    )
+    return sums, bins.num_intersections
+
+
+def summed_weight_maps(
+    gaussians: Gaussians,
+    camera: Camera,
+    opacity_mult: Float[Array, "T N"],
+    maps: Float[Array, "M T H W"],
+    *,
+    config: RenderConfig | None = None,
+) -> Float[Array, "M T N"]:
+    """Σ over the pixels of ``camera`` of w_i^t·maps[m, t] for every Gaussian i, map m and date t, with
+    w_i^t = α_i·o_i^t·T_i^t the compositing weight of Eq. 1 in the render at ``opacity_mult`` (one
+    forward walk of the kernel, no backward pass). The intersection capacity is sized as in
+    ``render_dates`` (given in ``config``, or counted and regrown outside a trace)."""
+    config = config or RenderConfig()
+    n = len(gaussians)
+    if np.ndim(opacity_mult) != 2 or np.shape(opacity_mult)[1] != n:
+        raise InputError(f"expected shape [T, {n}], got {list(np.shape(opacity_mult))}", field="opacity_mult")
+    t = np.shape(opacity_mult)[0]
+    if np.ndim(maps) != 4 or np.shape(maps)[1:] != (t, int(camera.height), int(camera.width)):
+        raise InputError(
+            f"expected shape [M, {t}, {int(camera.height)}, {int(camera.width)}], got {list(np.shape(maps))}",
+            field="maps",
+            fix="one [H, W] map per date for each of the M statistics",
+        )
+    dtype = jnp.result_type(gaussians.means)
+    if n == 0:
+        return jnp.zeros((np.shape(maps)[0], t, 0), dtype)
+    opacity_mult, maps = jnp.asarray(opacity_mult, dtype), jnp.asarray(maps, dtype)
+    if is_traced((gaussians, camera, opacity_mult, maps)):
+        if config.capacity is None:
+            raise InputError(
+                "summed_weight_maps was called under a JAX trace without an intersection capacity",
+                field="config.capacity",
+                fix="pass config=RenderConfig(capacity=cfgs_jax.splat.required_capacity(...)) computed outside",
+            )
+        return _weighted_sums_jit(gaussians, camera, opacity_mult, maps, config=config, capacity=config.capacity)[0]
+    capacity = config.capacity or required_capacity(gaussians, camera, opacity_mult, config=config)
+    while True:
+        sums, needed = _weighted_sums_jit(gaussians, camera, opacity_mult, maps, config=config, capacity=capacity)
+        if int(needed) <= capacity:
+            return sums
+        capacity = _bucket(int(needed))
 
 
 @functools.partial(jax.jit, static_argnames=("config",))

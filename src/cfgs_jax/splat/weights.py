@@ -16,7 +16,7 @@ from jaxtyping import Array, Float
 from cfgs_jax.errors import InputError
 from cfgs_jax.model import Camera, Gaussians, TemporalGaussians, opacity_multipliers
 from cfgs_jax.splat.config import RenderConfig
-from cfgs_jax.splat.render import render, render_dates, required_capacity
+from cfgs_jax.splat.render import render, render_dates, required_capacity, summed_weight_maps
 
 
 @functools.partial(jax.jit, static_argnames=("config",))
@@ -24,18 +24,12 @@ def summed_weights(
     g: Gaussians, camera: Camera, opacity: Float[Array, " N"], masks: Float[Array, "M H W 3"], config
 ) -> Float[Array, "M N 3"]:
     """Σ over pixels of w_i·mask per Gaussian i, mask and channel, w_i = α_i·opacity_i·T_i its compositing
-    weight: the gradient of Σ mask·C with respect to a per-Gaussian colour multiplier on white Gaussians
-    (the image is Σ_i w_i·c_i), so one backward pass of the kernel gives every Gaussian's sum.
+    weight in the render at ``opacity`` (one forward walk of the kernel, ``splat.summed_weight_maps``).
     ``config`` must carry the intersection capacity."""
-    n = len(g)
-    ones = dataclasses.replace(g, colors=jnp.ones_like(g.colors))
-    m = masks.shape[0]
-
-    def weighted(mult):
-        res = render_dates(ones, camera, jnp.broadcast_to(opacity, (m, n)), mult, config=config, statistics=False)
-        return jnp.sum(res.image * masks)
-
-    return jax.grad(weighted)(jnp.ones((m, n, 3), masks.dtype))  # [M, N, 3]: Σ_pixels w_i·mask
+    m, h, w, c = masks.shape
+    maps = jnp.moveaxis(masks, -1, 1).reshape(m * c, 1, h, w)  # plane (mask, channel)
+    sums = summed_weight_maps(g, camera, opacity[None], maps, config=config)  # [M·3, 1, N]
+    return jnp.moveaxis(sums[:, 0].reshape(m, c, len(g)), 1, 2)
 
 
 @functools.partial(jax.jit, static_argnames=("config",))
@@ -147,26 +141,38 @@ def observed_matrix(
     *,
     occlusion: str = "fused",
     render_config=None,
+    dates_per_render: int = 8,
 ) -> np.ndarray:
     """[N, T] bool: column q says whether each Gaussian is observed at date q (``observing[q]``: date
     q's training cameras). ``occlusion="fused"``: the whole model rendered at q, the Gaussians of the
     evaluated date p at opacity o^p and all others at o^q (so column q of date q's own Gaussians is
-    the fused render at q); ``"own date"``: date p's Gaussians alone at o^p."""
+    the fused render at q); up to ``dates_per_render`` dates p share each view's projection and sort
+    (one ``render_dates`` call, one opacity set per p). ``"own date"``: date p's Gaussians alone at o^p."""
     if occlusion not in ("fused", "own date"):
         raise InputError(f"unknown occlusion {occlusion!r}", field="occlusion", fix='use "fused" or "own date"')
     o = np.asarray(opacity_multipliers(model))
     origin = np.asarray(model.origin)
     seen = np.zeros((len(origin), len(observing)), bool)
-    for p in range(model.num_dates):
-        rows = np.nonzero(origin == p)[0]
-        if not len(rows):
-            continue
-        if occlusion == "own date":
+    dates = [p for p in range(model.num_dates) if (origin == p).any()]
+    if occlusion == "own date":
+        for p in dates:
+            rows = np.nonzero(origin == p)[0]
             g = jax.tree_util.tree_map(lambda x: jnp.asarray(x)[rows], model.gaussians)
             for q, cams in enumerate(observing):
                 seen[rows, q] = observed_from(g, o[rows, p], cams, threshold, render_config=render_config)
-            continue
-        for q, cams in enumerate(observing):
-            mult = np.where(origin == p, o[:, p], o[:, q]).astype(np.float32)
-            seen[rows, q] = observed_from(model.gaussians, mult, cams, threshold, render_config=render_config)[rows]
+        return seen
+    n = len(origin)
+    step = max(1, int(dates_per_render))
+    for q, cams in enumerate(observing):
+        for first in range(0, len(dates), step):
+            batch = dates[first : first + step]
+            mult = np.stack([np.where(origin == p, o[:, p], o[:, q]) for p in batch]).astype(np.float32)
+            colour = jnp.ones((len(batch), n, 3), jnp.float32)
+            best = np.zeros((len(batch), n), np.float32)
+            for cam in cams:
+                res = render_dates(model.gaussians, cam, jnp.asarray(mult), colour, config=render_config)
+                best = np.maximum(best, np.asarray(res.max_weight))
+            for k, p in enumerate(batch):
+                rows = origin == p
+                seen[rows, q] = visible(best[k], mult[k], threshold)[rows]
     return seen
