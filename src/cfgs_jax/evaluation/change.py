@@ -42,7 +42,7 @@ from cfgs_jax import splat, viz
 from cfgs_jax.changes.maps import rendered_scores
 from cfgs_jax.errors import InputError
 from cfgs_jax.model import Camera, TemporalGaussians, light_multipliers, opacity_multipliers, rgb
-from cfgs_jax.splat.weights import contribution_per_label, observed_matrix, summed_weights
+from cfgs_jax.splat.weights import contribution_per_label, observed_matrix
 
 
 @dataclasses.dataclass(frozen=True)
@@ -127,7 +127,8 @@ def surface_effect(
     """[N, T]: for a Gaussian i of date p and a date q ≠ p, how much date p's o^q change what date q
     shows where i would be: Σ_px w_i·d / Σ_px w_i over date q's training views, d = mean |F − F'| over
     channels with F the fused render at q (light l^q) with date p's Gaussians at o^p and F' the same at
-    o^q, w_i the Gaussian's compositing weight in F (one backward pass per view, as for the labels).
+    o^q, w_i the Gaussian's compositing weight in F (``splat.summed_weight_maps``; the dates p tested at
+    one q share each view's renders).
     A front layer whose o^q fell while the surface behind it shows the same colour scores ≈ 0 (Eq. 2
     cannot tell its o^q); an object removed at q scores its colour contrast with what replaced it.
     Entries of the own date (q = p) and Gaussians without weight are 0."""
@@ -136,28 +137,29 @@ def surface_effect(
     light = jnp.asarray(light_multipliers(model), jnp.float32)
     origin = np.asarray(model.origin)
     g = model.gaussians
+    n = len(origin)
     out = np.zeros(o.shape, np.float64)
-    for p in range(model.num_dates):
-        if not (origin == p).any():
+    for q, cams in enumerate(observing):
+        dates = [p for p in range(model.num_dates) if p != q and (origin == p).any()]
+        if not dates:
             continue
-        for q, cams in enumerate(observing):
-            if q == p:
-                continue
-            full = jnp.asarray(np.where(origin == p, o[:, p], o[:, q]))
-            both = jnp.stack([full, jnp.asarray(o[:, q])])  # date p's Gaussians at o^p, then at o^q
-            light_q = jnp.broadcast_to(light[:, q], (2,) + light[:, q].shape)
-            num = np.zeros(len(origin))
-            den = np.zeros(len(origin))
-            for cam in cams:
-                cfg = dataclasses.replace(rc, capacity=splat.required_capacity(g, cam, both, config=rc))
-                img = splat.render_dates(g, cam, both, light_q, config=cfg, statistics=False).image
-                d = jnp.mean(jnp.abs(img[0] - img[1]), axis=-1)
-                maps = jnp.stack([d, jnp.ones_like(d), jnp.zeros_like(d)], axis=-1)[None]
-                w = np.asarray(summed_weights(g, cam, full, maps, cfg), np.float64)[0]
-                num += w[:, 0]
-                den += w[:, 1]
+        k = len(dates)
+        # every date p's Gaussians at o^p (one opacity set per p), then the fused render at q: one
+        # projection and sort per view for all of them
+        full = np.stack([np.where(origin == p, o[:, p], o[:, q]) for p in dates]).astype(np.float32)
+        sets = jnp.asarray(np.concatenate([full, o[:, q][None]]))
+        light_q = jnp.broadcast_to(light[:, q], (k + 1, n, 3))
+        num, den = np.zeros((k, n)), np.zeros((k, n))
+        for cam in cams:
+            cfg = dataclasses.replace(rc, capacity=splat.required_capacity(g, cam, sets, config=rc))
+            img = splat.render_dates(g, cam, sets, light_q, config=cfg, statistics=False).image
+            d = jnp.mean(jnp.abs(img[:k] - img[k][None]), axis=-1)  # [K, H, W]
+            w = np.asarray(splat.summed_weight_maps(g, cam, sets[:k], jnp.stack([d, jnp.ones_like(d)]), config=cfg))
+            num += w[0]
+            den += w[1]
+        for i, p in enumerate(dates):
             rows = origin == p
-            out[rows, q] = np.where(den[rows] > 0, num[rows] / np.maximum(den[rows], 1e-30), 0.0)
+            out[rows, q] = np.where(den[i, rows] > 0, num[i, rows] / np.maximum(den[i, rows], 1e-30), 0.0)
     return out
 
 
