@@ -201,6 +201,57 @@ def test_light_by_pair_hand_case():
     assert out["sign_agrees"] == 1 and out["pairs_with_cct_change"] == 2
 
 
+def test_change_table_truth_is_the_weight_share_on_changed_pixels():
+    """Three dates: the ground truth of a Gaussian of date p against each q is whether more than half
+    of its float64 compositing weight in p's views lies on the pixels marked changed against q, and
+    its weight is that float64 sum."""
+    rng = np.random.default_rng(8)
+    n = 12
+    g = cj.Gaussians(
+        rng.uniform(-0.6, 0.6, (n, 3)).astype(np.float32),
+        np.tile([1, 0, 0, 0], (n, 1)).astype(np.float32),
+        np.full((n, 3), -1.7, np.float32),
+        rng.uniform(0.5, 3.0, n).astype(np.float32),
+        rng.uniform(0.1, 0.9, (n, 3)).astype(np.float32),
+    )
+    o_logits = rng.uniform(-2.0, 4.0, (n, 3)).astype(np.float32)
+    origin = np.repeat(np.arange(3), 4).astype(np.int32)
+    names = ("a", "b", "c")
+    model = cj.TemporalGaussians(g, o_logits, np.zeros((n, 3, 3), np.float32), origin, tuple(map(cj.DateInfo, names)))
+    cams = [tuple(cj.Camera.look_at([0.4 * v - 0.2, -3.5, 0.3], [0, 0, 0], width=32, height=24) for v in range(2))] * 3
+    xs = np.arange(32)[None, :].repeat(24, 0)
+    masks = [
+        change.DateMasks(
+            cams[p],
+            tuple(np.zeros((24, 32), np.int64) for _ in cams[p]),
+            {qn: tuple(xs < 8 + 8 * q + 4 * v for v in range(2)) for q, qn in enumerate(names) if q != p},
+        )
+        for p in range(3)
+    ]
+    observed = np.ones((n, 3), bool)
+    table = change.gaussian_change_table(
+        model, masks, cams, 0, change.ChangeConfig(surface_threshold=0.0), observed=observed
+    )
+    o = np.asarray(cj.opacity_multipliers(model), np.float64)
+    assert sorted(table["pairs"]) == [(p, q) for p in range(3) for q in range(3) if p != q]
+    truths = []
+    for (p, q), entry in table["pairs"].items():
+        rows = np.nonzero(origin == p)[0]
+        sub = cj.select(g, rows)
+        total, changed = np.zeros(len(rows)), np.zeros(len(rows))
+        for v, cam in enumerate(cams[p]):
+            w = _weights64(sub, cam, o[rows, p])
+            total += w.sum((1, 2))
+            changed += (w * masks[p].changed_vs[names[q]][v]).sum((1, 2))
+        keep = total > 0
+        np.testing.assert_array_equal(entry["rows"], rows[keep])
+        np.testing.assert_allclose(entry["weight"], total[keep], rtol=2e-4)
+        np.testing.assert_array_equal(entry["gt_changed"], (changed / np.maximum(total, 1e-30) > 0.5)[keep])
+        truths.append(entry["gt_changed"])
+    truths = np.concatenate(truths)
+    assert truths.any() and not truths.all()
+
+
 def test_surface_effect_of_every_date_pair_matches_float64_renders():
     """Three dates of overlapping blobs with random o and light: the surface score of each Gaussian of
     date p at every other date q is Σ w_i·d / Σ w_i with d the mean channel difference of float64

@@ -194,19 +194,26 @@ def gaussian_change_table(
         g = jax.tree_util.tree_map(lambda x: jnp.asarray(x)[rows], model.gaussians)
         own = jnp.asarray(o[rows, p])
         keep = objects[rows] >= 0  # Gaussians with weight in their own views
-        for q, qn in enumerate(names):
-            if q == p:
-                continue
-            w_ch = contribution_per_label(
-                g, own, dm.cameras, [m.astype(np.int64) for m in dm.changed_vs[qn]], 2, render_config=render_config
-            )
-            share = w_ch[:, 1] / np.maximum(w_ch.sum(1), 1e-30)
+        others = [q for q in range(len(names)) if q != p]
+        if not others:
+            continue
+        # per Gaussian, its weight in date p's views: all of it, then on the pixels changed against
+        # each other date q (one forward walk per view for every q)
+        weight = np.zeros((len(rows), 1 + len(others)))
+        for v, cam in enumerate(dm.cameras):
+            maps = np.stack(
+                [np.ones(dm.changed_vs[names[others[0]]][v].shape)] + [dm.changed_vs[names[q]][v] for q in others]
+            ).astype(np.float32)[:, None]
+            sums = splat.summed_weight_maps(g, cam, own[None], maps, config=render_config)
+            weight += np.asarray(sums, np.float64)[:, 0].T
+        for k, q in enumerate(others):
+            share = weight[:, 1 + k] / np.maximum(weight[:, 0], 1e-30)
             pairs[(p, q)] = {
                 "rows": rows[keep],
                 "gt_changed": (share > config.majority)[keep],
                 "observed": observed[rows, q][keep],
                 "o_q": o[rows[keep], q],
-                "weight": w_ch.sum(1)[keep],
+                "weight": weight[:, 0][keep],
             }
             if surface is not None:
                 pairs[(p, q)]["surface"] = surface[rows[keep], q]
