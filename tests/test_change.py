@@ -201,19 +201,25 @@ def test_light_by_pair_hand_case():
     assert out["sign_agrees"] == 1 and out["pairs_with_cct_change"] == 2
 
 
+def _round_blobs(rng, n, *, spread, log_scale, opacity_logits):
+    """n isotropic Gaussians of one size at uniform random places within ±spread, random colours and
+    opacity logits uniform in the given range."""
+    return cj.Gaussians(
+        rng.uniform(-spread, spread, (n, 3)).astype(np.float32),
+        np.tile([1, 0, 0, 0], (n, 1)).astype(np.float32),
+        np.full((n, 3), log_scale, np.float32),
+        rng.uniform(*opacity_logits, n).astype(np.float32),
+        rng.uniform(0.1, 0.9, (n, 3)).astype(np.float32),
+    )
+
+
 def test_change_table_truth_is_the_weight_share_on_changed_pixels():
     """Three dates: the ground truth of a Gaussian of date p against each q is whether more than half
     of its float64 compositing weight in p's views lies on the pixels marked changed against q, and
     its weight is that float64 sum."""
     rng = np.random.default_rng(8)
     n = 12
-    g = cj.Gaussians(
-        rng.uniform(-0.6, 0.6, (n, 3)).astype(np.float32),
-        np.tile([1, 0, 0, 0], (n, 1)).astype(np.float32),
-        np.full((n, 3), -1.7, np.float32),
-        rng.uniform(0.5, 3.0, n).astype(np.float32),
-        rng.uniform(0.1, 0.9, (n, 3)).astype(np.float32),
-    )
+    g = _round_blobs(rng, n, spread=0.6, log_scale=-1.7, opacity_logits=(0.5, 3.0))
     o_logits = rng.uniform(-2.0, 4.0, (n, 3)).astype(np.float32)
     origin = np.repeat(np.arange(3), 4).astype(np.int32)
     names = ("a", "b", "c")
@@ -258,13 +264,7 @@ def test_surface_effect_of_every_date_pair_matches_float64_renders():
     reference renders at q (date p's Gaussians at o^p against o^q) and w_i from float64 weights."""
     rng = np.random.default_rng(6)
     n = 9
-    g = cj.Gaussians(
-        rng.uniform(-0.5, 0.5, (n, 3)).astype(np.float32),
-        np.tile([1, 0, 0, 0], (n, 1)).astype(np.float32),
-        np.full((n, 3), -1.6, np.float32),
-        rng.uniform(0.0, 3.0, n).astype(np.float32),
-        rng.uniform(0.1, 0.9, (n, 3)).astype(np.float32),
-    )
+    g = _round_blobs(rng, n, spread=0.5, log_scale=-1.6, opacity_logits=(0.0, 3.0))
     o_logits = rng.uniform(-3.0, 3.0, (n, 3)).astype(np.float32)
     light_logits = rng.uniform(-0.5, 0.5, (n, 3, 3)).astype(np.float32)
     origin = np.repeat(np.arange(3), 3).astype(np.int32)
