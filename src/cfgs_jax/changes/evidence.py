@@ -270,10 +270,9 @@ def observing_date_sums(
     restrict = supports is not None and max_view_angle < 180.0
     min_cosine = np.float32(np.cos(np.radians(max_view_angle)))
     out = {}
-    passes = -(-len(dates) // max(1, int(dates_per_pass)))
-    size = -(-len(dates) // max(1, passes))  # as even as the passes allow: 5 dates at 4 per pass → 3 + 2
-    for first in range(0, len(dates), max(1, size)):
-        batch = dates[first : first + size]
+    passes = -(-len(dates) // max(1, int(dates_per_pass)))  # split evenly: 5 dates at 4 a pass → 3 + 2
+    batches = [b.tolist() for b in np.array_split(np.asarray(dates, int), passes)] if dates else []
+    for batch in batches:
         own = [origin == p for p in batch]
         rows = [jnp.asarray(np.nonzero(mine)[0]) for mine in own]
         present = jnp.asarray(np.stack([np.where(mine, o[:, p], o[:, q]) for p, mine in zip(batch, own)]))

@@ -201,9 +201,8 @@ def gaussian_change_table(
         # each other date q (one forward walk per view for every q)
         weight = np.zeros((len(rows), 1 + len(others)))
         for v, cam in enumerate(dm.cameras):
-            maps = np.stack(
-                [np.ones(dm.changed_vs[names[others[0]]][v].shape)] + [dm.changed_vs[names[q]][v] for q in others]
-            ).astype(np.float32)[:, None]
+            every_pixel = np.ones((int(cam.height), int(cam.width)))
+            maps = np.stack([every_pixel] + [dm.changed_vs[names[q]][v] for q in others]).astype(np.float32)[:, None]
             sums = splat.summed_weight_maps(g, cam, own[None], maps, config=render_config)
             weight += np.asarray(sums, np.float64)[:, 0].T
         for k, q in enumerate(others):

@@ -185,19 +185,13 @@ def summed_weight_maps(
         return jnp.zeros((np.shape(maps)[0], t, 0), dtype)
     opacity_mult, maps = jnp.asarray(opacity_mult, dtype), jnp.asarray(maps, dtype)
     if is_traced((gaussians, camera, opacity_mult, maps)):
-        if config.capacity is None:
-            raise InputError(
-                "summed_weight_maps was called under a JAX trace without an intersection capacity",
-                field="config.capacity",
-                fix="pass config=RenderConfig(capacity=cfgs_jax.splat.required_capacity(...)) computed outside",
-            )
-        return _weighted_sums_jit(gaussians, camera, opacity_mult, maps, config=config, capacity=config.capacity)[0]
-    capacity = config.capacity or required_capacity(gaussians, camera, opacity_mult, config=config)
-    while True:
-        sums, needed = _weighted_sums_jit(gaussians, camera, opacity_mult, maps, config=config, capacity=capacity)
-        if int(needed) <= capacity:
-            return sums
-        capacity = _bucket(int(needed))
+        capacity = _traced_capacity(config, "summed_weight_maps")
+        return _weighted_sums_jit(gaussians, camera, opacity_mult, maps, config=config, capacity=capacity)[0]
+
+    def attempt(capacity):
+        return _weighted_sums_jit(gaussians, camera, opacity_mult, maps, config=config, capacity=capacity)
+
+    return _until_it_fits(attempt, config.capacity or required_capacity(gaussians, camera, opacity_mult, config=config))
 
 
 @functools.partial(jax.jit, static_argnames=("config",))
@@ -218,6 +212,28 @@ def required_capacity(
     if opacity_mult is None:
         opacity_mult = jnp.ones((1, len(gaussians)), jnp.result_type(gaussians.means))
     return _bucket(int(_count_jit(gaussians, camera, jnp.asarray(opacity_mult), config=config)))
+
+
+def _traced_capacity(config: RenderConfig, caller: str, then: str = "") -> int:
+    """The intersection capacity a call under a JAX trace must be given (it cannot be counted there)."""
+    if config.capacity is None:
+        raise InputError(
+            f"{caller} was called under a JAX trace (jit/grad/vmap) without an intersection capacity",
+            field="config.capacity",
+            fix="pass config=RenderConfig(capacity=cfgs_jax.splat.required_capacity(gaussians, camera, "
+            f"opacity_mult)) computed outside the trace{then}",
+        )
+    return config.capacity
+
+
+def _until_it_fits(attempt, capacity: int):
+    """``attempt(capacity)`` → (result, intersections needed), regrown to the needed bucket until nothing
+    was dropped (outside a trace)."""
+    while True:
+        result, needed = attempt(capacity)
+        if int(needed) <= capacity:
+            return result
+        capacity = _bucket(int(needed))
 
 
 def _validate(gaussians, camera, opacity_mult, color_mult):
@@ -272,23 +288,14 @@ def render_dates(
     color_mult = jnp.asarray(color_mult, dtype)
     args = (gaussians, camera, opacity_mult, color_mult, background, means2d_offset)
     if is_traced(args):
-        if config.capacity is None:
-            raise InputError(
-                "render was called under a JAX trace (jit/grad/vmap) without an intersection capacity",
-                field="config.capacity",
-                fix="pass config=RenderConfig(capacity=cfgs_jax.splat.required_capacity(gaussians, camera, "
-                "opacity_mult)) computed outside the trace, and check result.overflowed",
-            )
-        return _render_impl(
-            *args, config=config, capacity=config.capacity, with_depth=with_depth, statistics=statistics
-        )
-    capacity = config.capacity or required_capacity(gaussians, camera, opacity_mult, config=config)
-    while True:
+        capacity = _traced_capacity(config, "render", ", and check result.overflowed")
+        return _render_impl(*args, config=config, capacity=capacity, with_depth=with_depth, statistics=statistics)
+
+    def attempt(capacity):
         result = _render_jit(*args, config=config, capacity=capacity, with_depth=with_depth, statistics=statistics)
-        n = int(result.num_intersections)
-        if n <= capacity:
-            return result
-        capacity = _bucket(n)
+        return result, result.num_intersections
+
+    return _until_it_fits(attempt, config.capacity or required_capacity(gaussians, camera, opacity_mult, config=config))
 
 
 def render(
