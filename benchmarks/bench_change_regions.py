@@ -1,0 +1,208 @@
+"""The ``changes`` detector's 3D regions of a finished fusion run against the synthetic scene's
+ground truth, for a few region rules, without recomputing the residual sums per rule.
+
+The residual sums of every ordered date pair (``changes.pair_statistics``, the costly part) and each
+Gaussian's ground-truth object (``evaluation.change.object_labels``) are computed once and cached in
+``--cache`` (rerun the command with other ``--set`` rules and they are read back). For each rule the
+regions of every date pair are formed as the ``changes`` command forms them and scored as the
+evaluation scores them (``evaluation.change._region_scores``: a region is true when most of its
+Gaussians belong to an object whose presence differs between the two dates): changed objects found,
+false regions, and for every false region its size and its dominant object.
+
+    python benchmarks/bench_change_regions.py --run RUN --data DATA --scene NAME --cache DIR \
+        [--rule LABEL changes.KEY=VALUE ...]...
+
+Writes benchmarks/results/change_regions_NAME.md and .json.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bench_splat import RESULTS, machine
+
+
+def _statistics(run, data: Path, cache: Path, changes_config, render_config):
+    """The pair statistics and object labels of the run, from the cache or computed and cached."""
+    from cfgs_jax.changes import PairStatistics, pair_statistics
+    from cfgs_jax.evaluation import change
+    from cfgs_jax.evaluation.protocol import date_masks
+    from cfgs_jax.fusion.run import date_cameras, date_views
+
+    cache.mkdir(parents=True, exist_ok=True)
+    model = run.model
+    stats_file, labels_file = cache / "pair_statistics.npz", cache / "object_labels.npy"
+    seconds = json.loads((cache / "seconds.json").read_text()) if (cache / "seconds.json").is_file() else {}
+    if not labels_file.is_file():
+        t0 = time.perf_counter()
+        gt = json.loads((data / "ground_truth.json").read_text())
+        masks = date_masks(data, run.scenes, run.sims, [d.name for d in model.dates])
+        labels = change.object_labels(model, masks, len(gt["objects"]), render_config=render_config)
+        np.save(labels_file, labels)
+        seconds["object_labels"] = time.perf_counter() - t0
+    if not stats_file.is_file():
+        t0 = time.perf_counter()
+        views = [date_views(sc, sm, changes_config.views) for sc, sm in zip(run.scenes, run.sims)]
+        support = [date_cameras(sc, sm) for sc, sm in zip(run.scenes, run.sims)]
+        progress = lambda done, total: print(f"  pair statistics {done}/{total}", flush=True)
+        stats = pair_statistics(
+            model, views, changes_config, support_cameras=support, render_config=render_config, progress=progress
+        )
+        arrays = {}
+        for (p, q), (rows, sums, seen) in stats.pairs.items():
+            arrays |= {f"{p}_{q}_rows": rows, f"{p}_{q}_sums": sums, f"{p}_{q}_seen": seen}
+        tmp = cache / "pair_statistics.tmp.npz"
+        np.savez(tmp, **arrays)
+        tmp.rename(stats_file)
+        seconds["pair_statistics"] = time.perf_counter() - t0
+    (cache / "seconds.json").write_text(json.dumps(seconds))
+    with np.load(stats_file) as f:
+        keys = sorted({tuple(int(x) for x in k.split("_")[:2]) for k in f.files})
+        pairs = {(p, q): (f[f"{p}_{q}_rows"], f[f"{p}_{q}_sums"], f[f"{p}_{q}_seen"]) for p, q in keys}
+    return PairStatistics(len(model.origin), model.num_dates, pairs), np.load(labels_file), seconds
+
+
+def regions_by_pair(model, stats, config) -> dict:
+    """Per date pair p < q: the regions of the ``changes`` command under ``config`` and [N] region index."""
+    from cfgs_jax.changes import evidence_from
+    from cfgs_jax.changes.regions import median_spacing, pair_regions
+    from cfgs_jax.model import rgb
+
+    means = np.asarray(model.gaussians.means, np.float64)
+    origin = np.asarray(model.origin)
+    colors = np.asarray(rgb(model.gaussians), np.float64)
+    spacing = median_spacing(means)
+    ev = evidence_from(stats, means, config)
+    out = {}
+    for p in range(model.num_dates):
+        for q in range(p + 1, model.num_dates):
+            _, _, regions, member = pair_regions(ev, origin, means, p, q, config, spacing=spacing, colors=colors)
+            out[(p, q)] = (regions, member)
+    return out
+
+
+def score_rule(model, stats, labels, changed_objects, config) -> dict:
+    """Regions of every date pair under ``config`` (a ``ChangesConfig``), scored against the objects."""
+    from cfgs_jax.evaluation.change import _region_scores
+
+    names = [d.name for d in model.dates]
+    per_pair, found, changed, false = {}, 0, 0, []
+    for (p, q), (regions, member) in regions_by_pair(model, stats, config).items():
+        truth = changed_objects.get((p, q), set())
+        objs = _region_scores(regions, member, labels, truth)
+        found += len(objs["found"])
+        changed += len(truth)
+        pair_false = [
+            {"pair": f"{names[p]}↔{names[q]}", "object": r["object"], "gaussians": r["gaussians"],
+             "seeds": r["seeds"], "kind": r["kind"]}
+            for r in regions
+            if r["object"] not in truth
+        ]  # fmt: skip
+        false += pair_false
+        per_pair[f"{names[p]}↔{names[q]}"] = {
+            "changed_objects": sorted(int(x) for x in truth),
+            "found_objects": objs["found"],
+            "regions": [(r["gaussians"], r["seeds"], r["object"]) for r in regions],
+            "false_regions": len(pair_false),
+        }
+    return {
+        "changed_objects": changed,
+        "found_objects": found,
+        "false_regions": len(false),
+        "false": false,
+        "per_pair": per_pair,
+        "seeds_of_true_regions": sorted(
+            s for v in per_pair.values() for g, s, o in v["regions"] if o in v["changed_objects"]
+        ),
+    }
+
+
+def markdown(r: dict) -> str:
+    lines = [
+        f"# Change regions by rule: {r['scene']} (bench_change_regions.py)",
+        "",
+        f"Command: `{r['command']}`. Machine: {r['machine']}. Date: {r['date']}. Run: {r['gaussians']:,} Gaussians, "
+        f"{r['dates']} dates. Cached pair statistics took {r['seconds'].get('pair_statistics', float('nan')):.0f} s "
+        f"and the object labels {r['seconds'].get('object_labels', float('nan')):.0f} s when computed.",
+        "",
+        "| rule | changed objects found | false regions | smallest true region (seeds) | false regions: seeds (object) |",
+        "|---|---:|---:|---:|---|",
+    ]
+    for label, s in r["rules"].items():
+        small = min(s["seeds_of_true_regions"]) if s["seeds_of_true_regions"] else "–"
+        falses = ", ".join(f"{f['seeds']} ({f['object']})" for f in sorted(s["false"], key=lambda f: -f["seeds"]))
+        lines.append(
+            f"| {label} | {s['found_objects']} / {s['changed_objects']} | {s['false_regions']} | {small} | "
+            f"{falses or '–'} |"
+        )
+    lines += ["", "Object 0 is the ground; −1 a Gaussian with no weight in its own date's views.", ""]
+    first = next(iter(r["rules"].values()))
+    lines += ["Per pair under the first rule (regions as Gaussians, seeds, object):", ""]
+    for pair, v in first["per_pair"].items():
+        lines.append(f"- {pair}: changed {v['changed_objects']}, found {v['found_objects']}, regions {v['regions']}")
+    return "\n".join(lines) + "\n"
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--run", required=True, help="a finished fusion run (read only)")
+    ap.add_argument("--data", required=True, help="its synthetic dataset root (ground_truth.json)")
+    ap.add_argument("--scene", required=True, help="the scene name (file names and titles)")
+    ap.add_argument("--cache", required=True, help="where the pair statistics and object labels are kept")
+    ap.add_argument(
+        "--rule",
+        nargs="+",
+        action="append",
+        default=[],
+        metavar="LABEL [changes.KEY=VALUE ...]",
+        help="a region rule: a label and overrides of the run's [changes] table (default row always first)",
+    )
+    args = ap.parse_args()
+
+    from cfgs_jax import splat
+    from cfgs_jax.changes import ChangesConfig
+    from cfgs_jax.config import apply_overrides, section
+    from cfgs_jax.evaluation.change import changed_objects_by_pair
+    from cfgs_jax.io.atomic import read_json
+    from cfgs_jax.render_run import open_run
+
+    run_dir, data = Path(args.run), Path(args.data)
+    raw = read_json(run_dir / "run.json")["config"] or {}
+    render_config = section(raw, "render", splat.RenderConfig)
+    base = section(raw, "changes", ChangesConfig)
+    run = open_run(run_dir)
+    stats, labels, seconds = _statistics(run, data, Path(args.cache), base, render_config)
+    gt = json.loads((data / "ground_truth.json").read_text())
+    changed = changed_objects_by_pair(gt)
+    rules = {"default": base}
+    for label, *overrides in args.rule:
+        rules[label] = section(apply_overrides(raw, overrides), "changes", ChangesConfig)
+    out = {
+        "scene": args.scene,
+        "command": "python benchmarks/bench_change_regions.py " + " ".join(sys.argv[1:]),
+        "machine": machine(),
+        "date": datetime.date.today().isoformat(),
+        "gaussians": len(run.model.origin),
+        "dates": run.model.num_dates,
+        "seconds": seconds,
+        "rules": {},
+    }
+    for label, config in rules.items():
+        out["rules"][label] = score_rule(run.model, stats, labels, changed, config)
+        s = out["rules"][label]
+        print(f"{label}: found {s['found_objects']}/{s['changed_objects']}, false {s['false_regions']}", flush=True)
+    stem = RESULTS / f"change_regions_{args.scene}"
+    stem.with_suffix(".json").write_text(json.dumps(out, indent=1))
+    stem.with_suffix(".md").write_text(markdown(out))
+
+
+if __name__ == "__main__":
+    main()
