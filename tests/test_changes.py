@@ -12,7 +12,7 @@ from test_compact import _model
 
 import cfgs_jax as cj
 from cfgs_jax import splat
-from cfgs_jax.changes import ChangesConfig, change_evidence, pair_change, presence_difference
+from cfgs_jax.changes import ChangeEvidence, ChangesConfig, change_evidence, pair_change, presence_difference
 from cfgs_jax.changes.evidence import (
     direction_support,
     gain_fitted_residual,
@@ -30,6 +30,8 @@ from cfgs_jax.changes.regions import (
     hull_volume,
     image_regions,
     median_spacing,
+    min_region_seeds,
+    pair_regions,
     regions_3d,
 )
 from cfgs_jax.errors import InputError
@@ -300,6 +302,35 @@ def test_regions_hand_cases():
     areas, labels = image_regions(mask, mask.astype(float) * 0.8, min_pixels=2)
     assert [(r["area_pixels"], r["bbox_xyxy"]) for r in areas] == [(12, [1, 1, 4, 3]), (7, [8, 6, 10, 9])]
     assert labels[0, 11] == 0 and (labels[mask & (labels > 0)] > 0).sum() == 19
+
+
+def test_region_size_bound_follows_the_share_of_the_two_dates_gaussians():
+    """Two clouds of changed Gaussians of date 0 (60 and 20) among 10 000 Gaussians of dates 0 and 1
+    and 5 000 of date 2: at a share of 0.004 the pair (0, 1) needs ⌈40⌉ seeds (the small cloud goes), the
+    pair (0, 2) ⌈(2 680 + 5 000) · 0.004⌉ = 31 seeds; at share 0 the absolute bound (16) alone."""
+    rng = np.random.default_rng(3)
+    n0, n1, n2 = 2680, 7320, 5000
+    origin = np.repeat([0, 1, 2], [n0, n1, n2])
+    means = rng.uniform(-50, 50, (len(origin), 3))
+    means[:60] = rng.normal(0, 0.3, (60, 3))
+    means[60:80] = rng.normal(0, 0.3, (20, 3)) + 40
+    score = np.zeros((len(origin), 3))
+    score[:80, 1] = score[:80, 2] = 0.9  # date 0's two clouds are gone at dates 1 and 2
+    known = np.ones_like(score, bool)
+    evidence = ChangeEvidence(score, score, known, known)
+    spacing = median_spacing(means)
+    sizes = {}
+    for share in (0.0, 0.004):
+        cfg = ChangesConfig(min_region_share=share, complete_hops=0)
+        for q in (1, 2):
+            assert min_region_seeds(origin, 0, q, cfg) == max(16, int(np.ceil(share * (n0 + (n1 if q == 1 else n2)))))
+            *_, regions, _ = pair_regions(evidence, origin, means, 0, q, cfg, spacing=spacing)
+            sizes[(share, q)] = [r["seeds"] for r in regions]
+    assert sizes[(0.0, 1)] == sizes[(0.0, 2)] == [60, 20]
+    assert sizes[(0.004, 1)] == [60] and min_region_seeds(origin, 0, 1, ChangesConfig(min_region_share=0.004)) == 40
+    assert sizes[(0.004, 2)] == [60] and min_region_seeds(origin, 0, 2, ChangesConfig(min_region_share=0.004)) == 31
+    with pytest.raises(InputError, match="min_region_share"):
+        ChangesConfig(min_region_share=1.0)
 
 
 def test_regions_split_neighbours_of_opposite_kind_and_join_colocated_ones():

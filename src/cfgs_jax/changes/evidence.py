@@ -63,8 +63,10 @@ class ChangesConfig:
     ``contribution_threshold`` is the visibility rule (α·T at some pixel of some view of q).
     Regions: changed Gaussians closer than ``link_factor`` × the model's median nearest-neighbour
     distance are linked, and so are Gaussians scored above ``grow_above`` (≤ 0.5) that touch them; a
-    region needs ``min_region_gaussians`` Gaussians scored > 0.5 (3D) and ``min_region_pixels`` pixels
-    (image). ``max_view_angle`` (degrees): a view of q informs a Gaussian of p only from within this
+    region needs at least ``min_region_gaussians`` Gaussians scored > 0.5 and at least
+    ``min_region_share`` of the two dates' Gaussians as seeds (3D; the larger bound counts, so that a
+    denser reconstruction of the same scene, whose objects and whose noise patches both hold more
+    Gaussians, needs proportionally more), and ``min_region_pixels`` pixels (image). ``max_view_angle`` (degrees): a view of q informs a Gaussian of p only from within this
     angle of a direction one of p's training cameras saw it from (180: every view); at most
     ``support_views`` of those cameras, spread out (``spread_cameras``), stand for them all.
     ``complete_hops`` > 0 completes each region by colour (``regions.complete_by_colour``): a
@@ -84,6 +86,7 @@ class ChangesConfig:
     link_factor: float = 5.0
     grow_above: float = 0.35
     min_region_gaussians: int = 16
+    min_region_share: float = 0.0015
     min_region_pixels: int = 8
     max_view_angle: float = 20.0
     support_views: int = 64
@@ -126,6 +129,12 @@ class ChangesConfig:
         if not self.complete_colour > 0:
             raise InputError(
                 f"must be > 0, got {self.complete_colour}", field="changes.complete_colour", fix="e.g. 0.1"
+            )
+        if not 0.0 <= self.min_region_share < 1.0:
+            raise InputError(
+                f"must lie in [0, 1), got {self.min_region_share}",
+                field="changes.min_region_share",
+                fix="e.g. 0.0015; 0: off",
             )
         if self.link_factor <= 0:
             raise InputError(f"must be > 0, got {self.link_factor}", field="changes.link_factor")

@@ -5,8 +5,9 @@ areas in an image.
 ``link_factor`` × the median nearest-neighbour distance of all the model's Gaussians (a scale-free
 radius), what appeared and what disappeared separately (two neighbouring objects, one removed and one
 added, are two changes), and then the appeared and disappeared components that occupy the same place
-are joined (an object whose look changed). A component holding at least ``min_region_gaussians``
-Gaussians scored changed (score > 0.5) is a region, with all its members (hysteresis thresholding: a
+are joined (an object whose look changed). A component holding enough Gaussians scored changed
+(score > 0.5; ``min_region_seeds``: at least ``min_region_gaussians`` and at least
+``min_region_share`` of the two dates' Gaussians) is a region, with all its members (hysteresis thresholding: a
 weakly scored Gaussian belongs to a change only where it touches a confident one).
 Each has its Gaussian count, centroid, axis-aligned bounds, the volume of the convex hull of its
 centres, and its kind: "disappeared" (≥ 80 % of its Gaussians shown at the earlier date and gone at the later), "appeared"
@@ -19,6 +20,8 @@ Image: 8-connected components of a change mask with at least ``min_region_pixels
 """
 
 from __future__ import annotations
+
+import math
 
 import numpy as np
 from scipy import ndimage
@@ -229,6 +232,14 @@ def regions_3d(
     return out, member
 
 
+def min_region_seeds(origin: np.ndarray, p: int, q: int, config: ChangesConfig) -> int:
+    """The seeds a region of dates p and q needs: max(``min_region_gaussians``,
+    ⌈``min_region_share`` · (N_p + N_q)⌉), N_x the Gaussians of date x."""
+    origin = np.asarray(origin)
+    both = int(np.count_nonzero((origin == p) | (origin == q)))
+    return max(int(config.min_region_gaussians), int(math.ceil(config.min_region_share * both)))
+
+
 def pair_regions(
     evidence: ChangeEvidence,
     origin: np.ndarray,
@@ -242,7 +253,9 @@ def pair_regions(
 ) -> tuple[np.ndarray, np.ndarray, list[dict], np.ndarray]:
     """The changed regions of dates p < q from their evidence, as the ``changes`` command reports them:
     (presence difference [N], known at both dates [N] bool, regions, [N] region index or −1).
-    Seeds: known and |difference| > 0.5; candidates: known and |difference| > ``grow_above``. With
+    Seeds: known and |difference| > 0.5; candidates: known and |difference| > ``grow_above``; a region
+    needs max(``min_region_gaussians``, ⌈``min_region_share`` · (N_p + N_q)⌉) seeds, N_x the Gaussians of
+    date x (``min_region_seeds``). With
     ``config.complete_hops`` > 0 the regions are completed by colour over the known Gaussians
     (``colors``: [N, 3], the model's colours, then required)."""
     difference = presence_difference(evidence, origin, p, q)
@@ -271,7 +284,7 @@ def pair_regions(
         spacing=spacing,
         candidates=known & (score > config.grow_above),
         link_factor=config.link_factor,
-        min_gaussians=config.min_region_gaussians,
+        min_gaussians=min_region_seeds(origin, p, q, config),
         completion=completion,
     )
     return difference, known, regions, member

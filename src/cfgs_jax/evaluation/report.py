@@ -87,7 +87,7 @@ def _evidence_table(ev: dict) -> list[str]:
         f"gain range {ev['config']['gain_range'][0]:.3g}–{ev['config']['gain_range'][1]:.3g}, views within "
         f"{ev['config'].get('max_view_angle', 180.0):g}° of the Gaussian's own date's; regions grow "
         f"over Gaussians scored > {ev['config']['grow_above']} and need {ev['config']['min_region_gaussians']} "
-        "scored > 0.5.",
+        f"scored > 0.5, and at least {100 * ev['config'].get('min_region_share', 0.0):g} % of the two dates' Gaussians.",
         "",
         "| Level | Precision | Recall | F1 | IoU | flagged changed | ground truth changed |",
         "|---|---:|---:|---:|---:|---:|---:|",
