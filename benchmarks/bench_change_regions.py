@@ -175,7 +175,8 @@ def markdown(r: dict) -> str:
     first = next(iter(r["rules"].values()))
     lines += ["Per pair under the first rule (regions as Gaussians, seeds, object, longest side):", ""]
     for pair, v in first["per_pair"].items():
-        lines.append(f"- {pair}: changed {v['changed_objects']}, found {v['found_objects']}, regions {v['regions']}")
+        regions = ", ".join(f"({g}, {k}, {o}, {e:.2f})" for g, k, o, e in v["regions"]) or "none"
+        lines.append(f"- {pair}: changed {v['changed_objects']}, found {v['found_objects']}, regions {regions}")
     return "\n".join(lines) + "\n"
 
 
