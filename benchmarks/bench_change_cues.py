@@ -104,22 +104,15 @@ def main():
     ap.add_argument("--scene", required=True)
     args = ap.parse_args()
 
-    from bench_change_regions import regions_by_pair
+    from bench_change_regions import open_scored_run, regions_by_pair
 
-    from cfgs_jax import splat
-    from cfgs_jax.changes import ChangesConfig, pair_statistics
-    from cfgs_jax.config import section
+    from cfgs_jax.changes import pair_statistics
     from cfgs_jax.evaluation import change
     from cfgs_jax.evaluation.protocol import date_masks
     from cfgs_jax.fusion.run import date_cameras, date_views
-    from cfgs_jax.io.atomic import read_json
-    from cfgs_jax.render_run import open_run
 
-    run_dir, data = Path(args.run), Path(args.data)
-    raw = read_json(run_dir / "run.json")["config"] or {}
-    rc = section(raw, "render", splat.RenderConfig)
-    cfg = section(raw, "changes", ChangesConfig)
-    run = open_run(run_dir)
+    data = Path(args.data)
+    run, _, rc, cfg = open_scored_run(Path(args.run))
     model = run.model
     gt = json.loads((data / "ground_truth.json").read_text())
     names = [d.name for d in model.dates]

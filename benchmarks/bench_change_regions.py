@@ -33,6 +33,18 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_splat import RESULTS, machine
 
 
+def open_scored_run(run_dir: Path):
+    """A finished run, its configuration, and its ``[render]`` and ``[changes]`` tables."""
+    from cfgs_jax import splat
+    from cfgs_jax.changes import ChangesConfig
+    from cfgs_jax.config import section
+    from cfgs_jax.io.atomic import read_json
+    from cfgs_jax.render_run import open_run
+
+    raw = read_json(Path(run_dir) / "run.json")["config"] or {}
+    return open_run(run_dir), raw, section(raw, "render", splat.RenderConfig), section(raw, "changes", ChangesConfig)
+
+
 def _statistics(run, data: Path, cache: Path, changes_config, render_config):
     """The pair statistics and object labels of the run, from the cache or computed and cached."""
     from cfgs_jax.changes import PairStatistics, pair_statistics
@@ -201,18 +213,12 @@ def main():
     )
     args = ap.parse_args()
 
-    from cfgs_jax import splat
     from cfgs_jax.changes import ChangesConfig
     from cfgs_jax.config import apply_overrides, section
     from cfgs_jax.evaluation.change import changed_objects_by_pair
-    from cfgs_jax.io.atomic import read_json
-    from cfgs_jax.render_run import open_run
 
-    run_dir, data = Path(args.run), Path(args.data)
-    raw = read_json(run_dir / "run.json")["config"] or {}
-    render_config = section(raw, "render", splat.RenderConfig)
-    base = section(raw, "changes", ChangesConfig)
-    run = open_run(run_dir)
+    data = Path(args.data)
+    run, raw, render_config, base = open_scored_run(Path(args.run))
     stats, labels, seconds = _statistics(run, data, Path(args.cache), base, render_config)
     gt = json.loads((data / "ground_truth.json").read_text())
     changed = changed_objects_by_pair(gt)
