@@ -23,6 +23,7 @@ from __future__ import annotations
 import argparse
 import datetime
 import json
+import shlex
 import sys
 from pathlib import Path
 
@@ -160,7 +161,7 @@ def main():
             )
     out = {
         "scene": args.scene,
-        "command": "python benchmarks/bench_change_cues.py " + " ".join(sys.argv[1:]),
+        "command": shlex.join(["python", "benchmarks/bench_change_cues.py", *sys.argv[1:]]),
         "machine": machine(),
         "date": datetime.date.today().isoformat(),
         "rows": rows_out,

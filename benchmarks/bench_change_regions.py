@@ -23,6 +23,7 @@ from __future__ import annotations
 import argparse
 import datetime
 import json
+import shlex
 import sys
 import time
 from pathlib import Path
@@ -152,7 +153,8 @@ def markdown(r: dict) -> str:
         "",
         f"Command: `{r['command']}`. Machine: {r['machine']}. Date: {r['date']}. Run: {r['gaussians']:,} Gaussians, "
         f"{r['dates']} dates. Cached pair statistics took {r['seconds'].get('pair_statistics', float('nan')):.0f} s "
-        f"and the object labels {r['seconds'].get('object_labels', float('nan')):.0f} s when computed.",
+        f"and the object labels {r['seconds'].get('object_labels', float('nan')):.0f} s when computed (not a timed "
+        "measurement: other jobs may have shared the machine).",
         "",
         "| rule | changed objects found | false regions | smallest true region (seeds) | false regions: seeds (object, longest side) |",
         "|---|---:|---:|---:|---|",
@@ -227,7 +229,7 @@ def main():
         rules[label] = section(apply_overrides(raw, overrides), "changes", ChangesConfig)
     out = {
         "scene": args.scene,
-        "command": "python benchmarks/bench_change_regions.py " + " ".join(sys.argv[1:]),
+        "command": shlex.join(["python", "benchmarks/bench_change_regions.py", *sys.argv[1:]]),
         "machine": machine(),
         "date": datetime.date.today().isoformat(),
         "gaussians": len(run.model.origin),
