@@ -66,7 +66,8 @@ class ChangesConfig:
     region needs at least ``min_region_gaussians`` Gaussians scored > 0.5 and at least
     ``min_region_share`` of the two dates' Gaussians as seeds (3D; the larger bound counts, so that a
     denser reconstruction of the same scene, whose objects and whose noise patches both hold more
-    Gaussians, needs proportionally more), and ``min_region_pixels`` pixels (image). ``max_view_angle`` (degrees): a view of q informs a Gaussian of p only from within this
+    Gaussians, needs proportionally more), and ``min_region_pixels`` pixels (image).
+    ``max_view_angle`` (degrees): a view of q informs a Gaussian of p only from within this
     angle of a direction one of p's training cameras saw it from (180: every view); at most
     ``support_views`` of those cameras, spread out (``spread_cameras``), stand for them all.
     ``complete_hops`` > 0 completes each region by colour (``regions.complete_by_colour``): a

@@ -7,8 +7,8 @@ radius), what appeared and what disappeared separately (two neighbouring objects
 added, are two changes), and then the appeared and disappeared components that occupy the same place
 are joined (an object whose look changed). A component holding enough Gaussians scored changed
 (score > 0.5; ``min_region_seeds``: at least ``min_region_gaussians`` and at least
-``min_region_share`` of the two dates' Gaussians) is a region, with all its members (hysteresis thresholding: a
-weakly scored Gaussian belongs to a change only where it touches a confident one).
+``min_region_share`` of the two dates' Gaussians) is a region, with all its members (hysteresis
+thresholding: a weakly scored Gaussian belongs to a change only where it touches a confident one).
 Each has its Gaussian count, centroid, axis-aligned bounds, the volume of the convex hull of its
 centres, and its kind: "disappeared" (≥ 80 % of its Gaussians shown at the earlier date and gone at the later), "appeared"
 (≥ 80 % the other way) or "changed" (both).
