@@ -5,7 +5,8 @@ from the unchanged ones?
 For every scored entry (a Gaussian i of date p observed at date q, as the evaluation scores them):
 
 - **visibility ratio**: i's largest compositing weight α·T over q's training views in the fused render
-  at q (date p's Gaussians at o^p, the others at o^q) over the same at its own date p. A Gaussian that
+  at q (date p's Gaussians at o^p, the others at o^q; ``splat.weights.fused_visibility``) over the
+  same at its own date p. A Gaussian that
   q's images show much less than p's did is mostly hidden at q.
 - **free space / covered**: over q's training views where i's centre projects onto a pixel that date
   q's own Gaussians cover (alpha > 0.7), the share where i lies in front of q's surface (depth z_i <
@@ -31,32 +32,6 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_splat import RESULTS, machine
-
-
-def visibility(model, observing, render_config) -> np.ndarray:
-    """[N, T]: each Gaussian's largest α·T (its own opacity multiplier divided out) over date q's views,
-    in the fused render at q with the Gaussian's own date at its own multiplier."""
-    import jax.numpy as jnp
-
-    from cfgs_jax import splat
-    from cfgs_jax.model import opacity_multipliers
-
-    o = np.asarray(opacity_multipliers(model))
-    origin = np.asarray(model.origin)
-    n, t = len(origin), model.num_dates
-    out = np.zeros((n, t))
-    mult = np.stack([np.where(origin == p, o[:, p], 0.0) for p in range(t)])  # rows: date p's own multiplier
-    for q, cams in enumerate(observing):
-        sets = np.where(mult > 0, mult, o[:, q][None]).astype(np.float32)  # date p at o^p, others at o^q
-        for cam in cams:
-            res = splat.render_dates(
-                model.gaussians, cam, jnp.asarray(sets), jnp.ones((t, n, 3), jnp.float32), config=render_config
-            )
-            best = np.asarray(res.max_weight) / np.maximum(sets, 1e-12)
-            for p in range(t):
-                rows = origin == p
-                out[rows, q] = np.maximum(out[rows, q], best[p][rows])
-    return out
 
 
 def depth_cues(model, observing, render_config) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -111,6 +86,7 @@ def main():
     from cfgs_jax.evaluation import change
     from cfgs_jax.evaluation.protocol import date_masks
     from cfgs_jax.fusion.run import date_cameras, date_views
+    from cfgs_jax.splat.weights import fused_visibility
 
     data = Path(args.data)
     run, _, rc, cfg = open_scored_run(Path(args.run))
@@ -129,7 +105,7 @@ def main():
         render_config=rc,
     )  # fmt: skip
     members = {pq: member >= 0 for pq, (_, member) in regions_by_pair(model, stats, cfg).items()}
-    shown = visibility(model, observing, rc)
+    shown = fused_visibility(model, observing, render_config=rc)
     origin = np.asarray(model.origin)
     own = shown[np.arange(len(origin)), origin]
     free, behind, seen = depth_cues(model, observing, rc)

@@ -94,20 +94,10 @@ def _extent(region: dict) -> float:
 def regions_by_pair(model, stats, config) -> dict:
     """Per date pair p < q: the regions of the ``changes`` command under ``config`` and [N] region index."""
     from cfgs_jax.changes import evidence_from
-    from cfgs_jax.changes.regions import median_spacing, pair_regions
-    from cfgs_jax.model import rgb
+    from cfgs_jax.changes.regions import every_pair_regions
 
-    means = np.asarray(model.gaussians.means, np.float64)
-    origin = np.asarray(model.origin)
-    colors = np.asarray(rgb(model.gaussians), np.float64)
-    spacing = median_spacing(means)
-    ev = evidence_from(stats, means, config)
-    out = {}
-    for p in range(model.num_dates):
-        for q in range(p + 1, model.num_dates):
-            _, _, regions, member = pair_regions(ev, origin, means, p, q, config, spacing=spacing, colors=colors)
-            out[(p, q)] = (regions, member)
-    return out
+    ev = evidence_from(stats, np.asarray(model.gaussians.means, np.float64), config)
+    return {pq: (regions, member) for pq, (_, _, regions, member) in every_pair_regions(ev, model, config).items()}
 
 
 def score_rule(model, stats, labels, changed_objects, config) -> dict:

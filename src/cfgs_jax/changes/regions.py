@@ -31,6 +31,7 @@ from scipy.spatial import ConvexHull, QhullError, cKDTree
 
 from cfgs_jax.changes.evidence import ChangeEvidence, ChangesConfig, pair_known, presence_difference
 from cfgs_jax.errors import InputError
+from cfgs_jax.model import rgb
 
 
 def median_spacing(means: np.ndarray) -> float:
@@ -288,6 +289,22 @@ def pair_regions(
         completion=completion,
     )
     return difference, known, regions, member
+
+
+def every_pair_regions(
+    evidence: ChangeEvidence, model, config: ChangesConfig
+) -> dict[tuple[int, int], tuple[np.ndarray, np.ndarray, list[dict], np.ndarray]]:
+    """``pair_regions`` of every date pair p < q of ``model`` (a ``TemporalGaussians``), its spacing
+    and colours computed once: {(p, q): (difference, known, regions, member)}."""
+    means = np.asarray(model.gaussians.means, np.float64)
+    origin = np.asarray(model.origin)
+    spacing = median_spacing(means)
+    colors = np.asarray(rgb(model.gaussians), np.float64)
+    return {
+        (p, q): pair_regions(evidence, origin, means, p, q, config, spacing=spacing, colors=colors)
+        for p in range(model.num_dates)
+        for q in range(p + 1, model.num_dates)
+    }
 
 
 def image_regions(mask: np.ndarray, score_map: np.ndarray, min_pixels: int = 8) -> tuple[list[dict], np.ndarray]:

@@ -41,7 +41,7 @@ from PIL import Image
 from cfgs_jax import splat, viz
 from cfgs_jax.changes.maps import rendered_scores
 from cfgs_jax.errors import InputError
-from cfgs_jax.model import Camera, TemporalGaussians, light_multipliers, opacity_multipliers, rgb
+from cfgs_jax.model import Camera, TemporalGaussians, light_multipliers, opacity_multipliers
 from cfgs_jax.splat.weights import contribution_per_label, observed_matrix
 
 
@@ -400,57 +400,49 @@ def evidence_detection(
     training cameras, when not given)."""
     from cfgs_jax.changes import ChangesConfig, evidence_from, pair_statistics
     from cfgs_jax.changes.maps import change_mask, pixel_change, valid_pixels
-    from cfgs_jax.changes.regions import median_spacing, pair_regions
+    from cfgs_jax.changes.regions import every_pair_regions
 
     cfg = config or ChangesConfig()
     rc = render_config or splat.RenderConfig()
     stats = statistics or pair_statistics(model, views, cfg, support_cameras=support_cameras, render_config=rc)
-    means = np.asarray(model.gaussians.means, np.float64)
-    ev = evidence_from(stats, means, cfg)
-    origin = np.asarray(model.origin)
-    spacing = median_spacing(means)
-    colors = np.asarray(rgb(model.gaussians), np.float64)
+    ev = evidence_from(stats, np.asarray(model.gaussians.means, np.float64), cfg)
     names = [d.name for d in model.dates]
     pixel = {"inter": 0, "union": 0, "predicted": 0, "truth": 0, "valid": 0}
     per_pair, found, changed, false_regions, region_count = {}, 0, 0, 0, 0
     t = model.num_dates
     members = {}
-    for p in range(t):
-        for q in range(p + 1, t):
-            _, known, regions, member = pair_regions(ev, origin, means, p, q, cfg, spacing=spacing, colors=colors)
-            members[(p, q)] = members[(q, p)] = member >= 0
-            objs = _region_scores(regions, member, table["objects"], changed_objects.get((p, q), set()))
-            n_changed = len(changed_objects.get((p, q), ()))
-            found += len(objs["found"])
-            changed += n_changed
-            false_regions += objs["false_regions"]
-            region_count += len(regions)
-            inter = union = 0
-            for a, b in ((p, q), (q, p)):
-                for cam, gt in zip(masks_test[a].cameras, masks_test[a].changed_vs[names[b]]):
-                    s, k, alpha = pixel_change(
-                        model, cam, (member >= 0).astype(np.float32), known, p, q, render_config=rc
-                    )
-                    valid = valid_pixels(k, alpha)
-                    pred, true = change_mask(s, k, alpha), gt & valid
-                    counts = {
-                        "inter": int((pred & true).sum()),
-                        "union": int((pred | true).sum()),
-                        "predicted": int(pred.sum()),
-                        "truth": int(true.sum()),
-                        "valid": int(valid.sum()),
-                    }
-                    inter, union = inter + counts["inter"], union + counts["union"]
-                    for key, value in counts.items():
-                        pixel[key] += value
-            per_pair[f"{names[p]}↔{names[q]}"] = {
-                "regions": len(regions),
-                "changed_objects": n_changed,
-                "found_objects": len(objs["found"]),
-                "false_regions": objs["false_regions"],
-                "pixel_iou": inter / union if union else float("nan"),
-                "region_list": regions,
-            }
+    for (p, q), (_, known, regions, member) in every_pair_regions(ev, model, cfg).items():
+        members[(p, q)] = members[(q, p)] = member >= 0
+        objs = _region_scores(regions, member, table["objects"], changed_objects.get((p, q), set()))
+        n_changed = len(changed_objects.get((p, q), ()))
+        found += len(objs["found"])
+        changed += n_changed
+        false_regions += objs["false_regions"]
+        region_count += len(regions)
+        inter = union = 0
+        for a, b in ((p, q), (q, p)):
+            for cam, gt in zip(masks_test[a].cameras, masks_test[a].changed_vs[names[b]]):
+                s, k, alpha = pixel_change(model, cam, (member >= 0).astype(np.float32), known, p, q, render_config=rc)
+                valid = valid_pixels(k, alpha)
+                pred, true = change_mask(s, k, alpha), gt & valid
+                counts = {
+                    "inter": int((pred & true).sum()),
+                    "union": int((pred | true).sum()),
+                    "predicted": int(pred.sum()),
+                    "truth": int(true.sum()),
+                    "valid": int(valid.sum()),
+                }
+                inter, union = inter + counts["inter"], union + counts["union"]
+                for key, value in counts.items():
+                    pixel[key] += value
+        per_pair[f"{names[p]}↔{names[q]}"] = {
+            "regions": len(regions),
+            "changed_objects": n_changed,
+            "found_objects": len(objs["found"]),
+            "false_regions": objs["false_regions"],
+            "pixel_iou": inter / union if union else float("nan"),
+            "region_list": regions,
+        }
     entries = [(v["rows"], p, q, v["gt_changed"], v["observed"]) for (p, q), v in table["pairs"].items()]
     score = np.concatenate([ev.score[r, q][obs] for r, _, q, _, obs in entries])
     in_region = np.concatenate([members[(p, q)][r][obs] for r, p, q, _, obs in entries])

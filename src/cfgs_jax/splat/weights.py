@@ -127,11 +127,45 @@ def observed_from(
     return visible(max_weight(g, opacity, cameras, render_config=render_config), opacity, threshold)
 
 
+def unweighted(weight: np.ndarray, opacity: np.ndarray) -> np.ndarray:
+    """A render's per-Gaussian max weight α·opacity·T with the opacity multiplier divided out: α·T
+    (0 where the multiplier is 0)."""
+    opacity = np.asarray(opacity, np.float32)
+    return np.where(opacity > 0, np.asarray(weight) / np.maximum(opacity, 1e-30), 0.0)
+
+
 def visible(weight: np.ndarray, opacity: np.ndarray, threshold: float) -> np.ndarray:
     """The visibility rule on a render's per-Gaussian max weight α·opacity·T (max over pixels and
     views): α·T = weight / opacity ≥ ``threshold`` (never for opacity 0)."""
-    opacity = np.asarray(opacity, np.float32)
-    return np.where(opacity > 0, np.asarray(weight) / np.maximum(opacity, 1e-30), 0.0) >= threshold
+    return unweighted(weight, opacity) >= threshold
+
+
+def fused_visibility(
+    model: TemporalGaussians, observing: Sequence[Sequence[Camera]], *, render_config=None, dates_per_render: int = 8
+) -> np.ndarray:
+    """[N, T] float: each Gaussian's largest α·T over date q's cameras ``observing[q]`` (its own opacity
+    multiplier divided out, ``unweighted``) in the whole model rendered at q, the Gaussians of its own
+    date p at opacity o^p and all others at o^q; up to ``dates_per_render`` dates p share each view's
+    projection and sort (one ``render_dates`` call, one opacity set per p)."""
+    o = np.asarray(opacity_multipliers(model))
+    origin = np.asarray(model.origin)
+    n = len(origin)
+    out = np.zeros((n, len(observing)), np.float32)
+    dates = [p for p in range(model.num_dates) if (origin == p).any()]
+    step = max(1, int(dates_per_render))
+    for q, cams in enumerate(observing):
+        for first in range(0, len(dates), step):
+            batch = dates[first : first + step]
+            mult = np.stack([np.where(origin == p, o[:, p], o[:, q]) for p in batch]).astype(np.float32)
+            colour = jnp.ones((len(batch), n, 3), jnp.float32)
+            best = np.zeros((len(batch), n), np.float32)
+            for cam in cams:
+                res = render_dates(model.gaussians, cam, jnp.asarray(mult), colour, config=render_config)
+                best = np.maximum(best, np.asarray(res.max_weight))
+            for k, p in enumerate(batch):
+                rows = origin == p
+                out[rows, q] = unweighted(best[k], mult[k])[rows]
+    return out
 
 
 def observed_matrix(
@@ -146,33 +180,21 @@ def observed_matrix(
     """[N, T] bool: column q says whether each Gaussian is observed at date q (``observing[q]``: date
     q's training cameras). ``occlusion="fused"``: the whole model rendered at q, the Gaussians of the
     evaluated date p at opacity o^p and all others at o^q (so column q of date q's own Gaussians is
-    the fused render at q); up to ``dates_per_render`` dates p share each view's projection and sort
-    (one ``render_dates`` call, one opacity set per p). ``"own date"``: date p's Gaussians alone at o^p."""
+    the fused render at q: ``fused_visibility`` ≥ ``threshold``); up to ``dates_per_render`` dates p
+    share each view's projection and sort. ``"own date"``: date p's Gaussians alone at o^p."""
     if occlusion not in ("fused", "own date"):
         raise InputError(f"unknown occlusion {occlusion!r}", field="occlusion", fix='use "fused" or "own date"')
+    if occlusion == "fused":
+        return (
+            fused_visibility(model, observing, render_config=render_config, dates_per_render=dates_per_render)
+            >= threshold
+        )
     o = np.asarray(opacity_multipliers(model))
     origin = np.asarray(model.origin)
     seen = np.zeros((len(origin), len(observing)), bool)
-    dates = [p for p in range(model.num_dates) if (origin == p).any()]
-    if occlusion == "own date":
-        for p in dates:
-            rows = np.nonzero(origin == p)[0]
-            g = jax.tree_util.tree_map(lambda x: jnp.asarray(x)[rows], model.gaussians)
-            for q, cams in enumerate(observing):
-                seen[rows, q] = observed_from(g, o[rows, p], cams, threshold, render_config=render_config)
-        return seen
-    n = len(origin)
-    step = max(1, int(dates_per_render))
-    for q, cams in enumerate(observing):
-        for first in range(0, len(dates), step):
-            batch = dates[first : first + step]
-            mult = np.stack([np.where(origin == p, o[:, p], o[:, q]) for p in batch]).astype(np.float32)
-            colour = jnp.ones((len(batch), n, 3), jnp.float32)
-            best = np.zeros((len(batch), n), np.float32)
-            for cam in cams:
-                res = render_dates(model.gaussians, cam, jnp.asarray(mult), colour, config=render_config)
-                best = np.maximum(best, np.asarray(res.max_weight))
-            for k, p in enumerate(batch):
-                rows = origin == p
-                seen[rows, q] = visible(best[k], mult[k], threshold)[rows]
+    for p in [p for p in range(model.num_dates) if (origin == p).any()]:
+        rows = np.nonzero(origin == p)[0]
+        g = jax.tree_util.tree_map(lambda x: jnp.asarray(x)[rows], model.gaussians)
+        for q, cams in enumerate(observing):
+            seen[rows, q] = observed_from(g, o[rows, p], cams, threshold, render_config=render_config)
     return seen
