@@ -26,8 +26,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_splat import RESULTS, machine
 
 
-def one_setting(run_dir: Path, data: Path, raw: dict) -> dict:
-    """Cross-init + refinement + evaluation of the run's merged model under the configuration ``raw``."""
+def one_setting(run_dir: Path, data: Path, raw: dict, change: bool = True) -> dict:
+    """Cross-init + refinement + evaluation of the run's merged model under the configuration ``raw``;
+    change detection against the ground truth unless ``change`` is false."""
     from cfgs_jax import fusion, splat, train
     from cfgs_jax.config import section
     from cfgs_jax.evaluation.protocol import change_detection
@@ -58,13 +59,17 @@ def one_setting(run_dir: Path, data: Path, raw: dict) -> dict:
     )
     refine_s = time.perf_counter() - t0
     m = evaluate_fused(refined, tests, render_config=render_config)
-    change = change_detection(refined, data, run.scenes, run.sims, render_config)
-    return {
+    row = {
         "cross_init_s": cross_s,
         "refine_s": refine_s,
         "steps_run": [r.get("steps_run") for r in reports],
         "mean": m["mean"],
         "dates": m["dates"],
+    }
+    if not change:
+        return row
+    change = change_detection(refined, data, run.scenes, run.sims, render_config)
+    return row | {
         "f1": change["gaussians"]["f1"],
         "iou": change["pixels"]["iou"],
         "evidence_f1": change["evidence"]["gaussians"]["f1"],
@@ -81,6 +86,11 @@ def main():
     ap.add_argument("--values", nargs="+", help="values (TOML); the first is the reference")
     ap.add_argument("--set", action="append", default=[], dest="overrides", help="TABLE.KEY=VALUE for every row")
     ap.add_argument("--name", default=None)
+    ap.add_argument(
+        "--no-change",
+        action="store_true",
+        help="skip change detection (for scenes where it costs hours); the rows then carry no change figures",
+    )
     ap.add_argument(
         "--summary",
         nargs="+",
@@ -109,9 +119,9 @@ def main():
     rows = []
     for value in args.values:
         raw = apply_overrides(base, [f"{args.knob}={value}"])
-        rows.append({"value": value} | one_setting(run_dir, data, raw))
-        shown = ("value", "cross_init_s", "mean", "evidence_f1", "evidence_iou", "f1")
-        print(json.dumps({k: rows[-1][k] for k in shown}), flush=True)
+        rows.append({"value": value} | one_setting(run_dir, data, raw, change=not args.no_change))
+        shown = ("value", "cross_init_s", "refine_s", "mean", "evidence_f1", "evidence_iou", "f1")
+        print(json.dumps({k: rows[-1][k] for k in shown if k in rows[-1]}), flush=True)
     preset = json.loads((data / "ground_truth.json").read_text()).get("preset", data.parent.name)
     stem = args.name or f"speed_vs_error_{preset}_{args.knob.split('.')[-1]}"
     result = {
@@ -119,7 +129,8 @@ def main():
         "machine": machine(),
         "command": f"python benchmarks/bench_speed_vs_error.py --run RUN --data DATA --knob {args.knob} --values "
         + " ".join(args.values)
-        + "".join(f" --set {o}" for o in args.overrides),
+        + "".join(f" --set {o}" for o in args.overrides)
+        + (" --no-change" if args.no_change else ""),
         "run": str(run_dir.resolve()),
         "scene": preset,
         "rows": rows,
@@ -165,7 +176,7 @@ def summary_points(stems: list[str]) -> list[dict]:
                     "evidence_iou": row["evidence_iou"] if has_changes else None,
                     "iou": row["evidence_iou"] - ref["evidence_iou"] if has_changes else None,
                     "false_regions": row["false_regions"] if has_changes else None,
-                    "rule_f1": row["f1"] - ref["f1"],
+                    "rule_f1": row["f1"] - ref["f1"] if "f1" in row and "f1" in ref else None,
                     "date": r["date"],
                 }
             )
@@ -191,7 +202,7 @@ def summary(stems: list[str]) -> str:
             f"| {number} | {p['scene']} | `{p['knob']}` = {p['value']} ({p['reference']}){''.join(f', `{a}`' for a in p['also'])} | "
             f"{p['time_ratio']:.2f}× | "
             f"{p['psnr']:+.2f} / {p['worst_psnr']:+.2f} dB | {p['ssim']:+.4f} | {p['lpips']:+.4f} | {changes} | "
-            f"{p['rule_f1']:+.3f} |"
+            + (f"{p['rule_f1']:+.3f} |" if p["rule_f1"] is not None else "– |")
         )
     return "\n".join(lines)
 
@@ -218,6 +229,8 @@ def write_summary(stems: list[str], stem: str) -> None:
                 if ax is axes[0]
                 else ((p["f1"], False) if p["f1"] is not None else (p["rule_f1"], True))
             )
+            if y is None:  # no change figures in this file
+                continue
             c = colours[p["scene"]]
             ax.scatter(p["time_ratio"], y, s=30, facecolors="none" if hollow else c, edgecolors=c)
             ax.annotate(str(number), (p["time_ratio"], y), fontsize=7, xytext=(3, 3), textcoords="offset points")
@@ -273,12 +286,17 @@ def markdown(r: dict, knob: str) -> str:
     ]
     for row in r["rows"]:
         m, b, worst = row["mean"], ref["mean"], worst_date_change(row, ref)
+        changes = (
+            f"{row['evidence_f1']:.3f} | {row['evidence_f1'] - ref['evidence_f1']:+.3f} | "
+            f"{row['evidence_iou']:.3f} | {row['evidence_iou'] - ref['evidence_iou']:+.3f} | {row['false_regions']} | "
+            f"{row['f1']:.3f} | {row['f1'] - ref['f1']:+.3f} |"
+            if "evidence_f1" in row and "evidence_f1" in ref
+            else "not measured (`--no-change`) | | | | | | |"
+        )
         lines.append(
             f"| {row['value']} | {row['cross_init_s']:.0f} | {row['cross_init_s'] / ref['cross_init_s']:.2f} | "
             f"{m['psnr']:.2f} | {m['psnr'] - b['psnr']:+.2f} | {worst:+.2f} | {m['ssim']:.4f} | {m['lpips']:.4f} | "
-            f"{m['lpips'] - b['lpips']:+.4f} | {row['evidence_f1']:.3f} | {row['evidence_f1'] - ref['evidence_f1']:+.3f} | "
-            f"{row['evidence_iou']:.3f} | {row['evidence_iou'] - ref['evidence_iou']:+.3f} | {row['false_regions']} | "
-            f"{row['f1']:.3f} | {row['f1'] - ref['f1']:+.3f} |"
+            f"{m['lpips'] - b['lpips']:+.4f} | " + changes
         )
     lines += [
         "",
