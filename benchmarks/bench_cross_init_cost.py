@@ -21,6 +21,7 @@ from __future__ import annotations
 import argparse
 import datetime
 import json
+import shlex
 import sys
 import time
 from pathlib import Path
@@ -31,17 +32,13 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_splat import RESULTS, machine
 
 
-def one_row(run_dir: Path, raw: dict, pairs: list[tuple[int, int]]) -> dict:
+def one_row(merged, views, raw: dict, pairs: list[tuple[int, int]]) -> dict:
     """Eq. 2 for ``pairs`` of the run's merged model under the configuration ``raw``: the wall time,
     the steps each pair ran, and the o^q / l^q of each pair's Gaussians of date p."""
     from cfgs_jax import fusion, splat
     from cfgs_jax.config import section
-    from cfgs_jax.io import read_fused
-    from cfgs_jax.render_run import open_run
+    from cfgs_jax.model import light_multipliers, opacity_multipliers
 
-    run = open_run(run_dir)
-    views = [run.date_views(d) for d in range(len(run.names))]
-    merged = read_fused(run_dir / "merged")
     config = section(raw, "cross_init", fusion.CrossInitConfig)
     t0 = time.perf_counter()
     model, reports = fusion.cross_init(
@@ -49,8 +46,8 @@ def one_row(run_dir: Path, raw: dict, pairs: list[tuple[int, int]]) -> dict:
     )
     seconds = time.perf_counter() - t0
     origin = np.asarray(model.origin)
-    o = 1.0 / (1.0 + np.exp(-np.asarray(model.o_logits, np.float64)))
-    light = 2.0 / (1.0 + np.exp(-np.asarray(model.light_logits, np.float64)))
+    o = np.asarray(opacity_multipliers(model), np.float64)
+    light = np.asarray(light_multipliers(model), np.float64)
     return {
         "seconds": seconds,
         "steps": config.steps,
@@ -121,18 +118,32 @@ def main():
     args = ap.parse_args()
 
     from cfgs_jax.config import apply_overrides
+    from cfgs_jax.io import read_fused
     from cfgs_jax.io.atomic import read_json
+    from cfgs_jax.render_run import open_run
 
     run_dir = Path(args.run)
     pairs = [tuple(int(x) for x in s.split(",")) for s in args.pairs]
     base = read_json(run_dir / "run.json")["config"]
+    run = open_run(run_dir)  # read once: every row starts from the same merged model and views
+    views = [run.date_views(d) for d in range(len(run.names))]
+    merged = read_fused(run_dir / "merged")
     rows = []
     for label, *overrides in args.row:
-        row = {"label": label, "overrides": overrides} | one_row(run_dir, apply_overrides(base, overrides), pairs)
+        row = {"label": label, "overrides": overrides} | one_row(merged, views, apply_overrides(base, overrides), pairs)
         rows.append(row)
         print(json.dumps({k: row[k] for k in ("label", "seconds", "steps_run")}), flush=True)
         text = write(args, run_dir, pairs, rows)  # after every row, so a stopped run keeps what it measured
     print(text)
+
+
+def command(args) -> str:
+    """The command line of this run, quoted for a shell (a row label may hold spaces)."""
+    rows = [x for r in args.row for x in ("--row", *r)]
+    return shlex.join(
+        ["python", "benchmarks/bench_cross_init_cost.py", "--run", args.run, "--pairs", *args.pairs, *rows]
+        + ["--name", args.name]
+    )
 
 
 def write(args, run_dir: Path, pairs, rows: list[dict]) -> str:
@@ -145,9 +156,7 @@ def write(args, run_dir: Path, pairs, rows: list[dict]) -> str:
         "name": args.name,
         "date": datetime.date.today().isoformat(),
         "machine": machine(),
-        "command": f"python benchmarks/bench_cross_init_cost.py --run {args.run} --pairs {' '.join(args.pairs)} "
-        + " ".join("--row " + " ".join(r) for r in args.row)
-        + f" --name {args.name}",
+        "command": command(args),
         "run": str(run_dir.resolve()),
         "pairs": pairs,
         "rows": [{k: v for k, v in r.items() if k not in ("o", "light")} for r in rows],

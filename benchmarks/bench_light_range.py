@@ -17,6 +17,7 @@ from __future__ import annotations
 import argparse
 import datetime
 import json
+import shlex
 import sys
 from pathlib import Path
 
@@ -32,11 +33,12 @@ def pair_table(run_dir: Path, at: float) -> dict:
     from cfgs_jax.fusion.light import MAX_LIGHT
     from cfgs_jax.io import read_fused
     from cfgs_jax.io.atomic import read_json
+    from cfgs_jax.model import light_multipliers, opacity_multipliers
 
     model = read_fused(run_dir / "fused")
     origin = np.asarray(model.origin)
-    light = 2.0 / (1.0 + np.exp(-np.asarray(model.light_logits, np.float64)))
-    o = 1.0 / (1.0 + np.exp(-np.asarray(model.o_logits, np.float64)))
+    light = np.asarray(light_multipliers(model), np.float64)
+    o = np.asarray(opacity_multipliers(model), np.float64)
     gains = {tuple(r["pair"]): r for r in read_json(run_dir / "report.json", {}).get("cross_init", [])}
     rows = []
     for p in range(model.num_dates):
@@ -92,8 +94,7 @@ def main():
         "name": args.name,
         "date": datetime.date.today().isoformat(),
         "machine": machine(),
-        "command": f"python benchmarks/bench_light_range.py --run {args.run} --name {args.name}"
-        + (f" --at {args.at}" if args.at != 0.985 else ""),
+        "command": shlex.join(["python", "benchmarks/bench_light_range.py", *sys.argv[1:]]),
         "run": str(run_dir.resolve()),
     } | pair_table(run_dir, args.at)
     RESULTS.mkdir(exist_ok=True)
