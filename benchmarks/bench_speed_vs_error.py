@@ -26,14 +26,15 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_splat import RESULTS, machine
 
 
-def one_setting(run_dir: Path, data: Path, raw: dict, change: bool = True) -> dict:
+def one_setting(run_dir: Path, data: Path, raw: dict, change: bool = True, save: Path | None = None) -> dict:
     """Cross-init + refinement + evaluation of the run's merged model under the configuration ``raw``;
-    change detection against the ground truth unless ``change`` is false."""
+    change detection against the ground truth unless ``change`` is false; the refined model written
+    to ``save`` (our layout) when given."""
     from cfgs_jax import fusion, splat, train
     from cfgs_jax.config import section
     from cfgs_jax.evaluation.protocol import change_detection
     from cfgs_jax.fusion.evaluate import evaluate_fused
-    from cfgs_jax.io import read_fused
+    from cfgs_jax.io import read_fused, write_fused
     from cfgs_jax.render_run import open_run
 
     run = open_run(run_dir)
@@ -58,6 +59,8 @@ def one_setting(run_dir: Path, data: Path, raw: dict, change: bool = True) -> di
         render_config=render_config,
     )
     refine_s = time.perf_counter() - t0
+    if save is not None:
+        write_fused(save, refined, config=raw)
     m = evaluate_fused(refined, tests, render_config=render_config)
     row = {
         "cross_init_s": cross_s,
@@ -92,6 +95,11 @@ def main():
         help="skip change detection (for scenes where it costs hours); the rows then carry no change figures",
     )
     ap.add_argument(
+        "--save-models",
+        metavar="DIR",
+        help="write each row's refined model to DIR/VALUE (our layout), e.g. to compact it afterwards",
+    )
+    ap.add_argument(
         "--summary",
         nargs="+",
         metavar="STEM",
@@ -119,7 +127,8 @@ def main():
     rows = []
     for value in args.values:
         raw = apply_overrides(base, [f"{args.knob}={value}"])
-        rows.append({"value": value} | one_setting(run_dir, data, raw, change=not args.no_change))
+        save = Path(args.save_models) / value if args.save_models else None
+        rows.append({"value": value} | one_setting(run_dir, data, raw, change=not args.no_change, save=save))
         shown = ("value", "cross_init_s", "refine_s", "mean", "evidence_f1", "evidence_iou", "f1")
         print(json.dumps({k: rows[-1][k] for k in shown if k in rows[-1]}), flush=True)
     preset = json.loads((data / "ground_truth.json").read_text()).get("preset", data.parent.name)

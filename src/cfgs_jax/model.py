@@ -17,7 +17,13 @@ field               shape                activation
 ``o_logits``        [N, T]               ``sigmoid`` (``opacity_multipliers``), the paper's o
 ``light_logits``    [N, T, 3]            ``2·sigmoid`` (``light_multipliers``), the paper's l
 ``origin``          [N] int32            index of the date a Gaussian was trained on
+``exposure``        [T, T, 3] or None    static: gain at date q of the Gaussians trained on date p
+                                         (``exposure[p, q]``), times l; None = 1 everywhere
 ==================  ===================  =========================================================
+
+The light a Gaussian i trained on date p is drawn with at date q is ``exposure[p, q] ⊙ l_i^q``
+(``light_multipliers``): cross-initialisation can put the exposure change between two dates into the
+table, so that l keeps the paper's range (0, 2) for what differs per Gaussian.
 
 ``TemporalGaussians.origin`` is an integer leaf: take gradients of functions of a whole
 ``TemporalGaussians`` with ``equinox.filter_grad`` (or ``jax.grad(..., allow_int=True)``); plain
@@ -64,6 +70,13 @@ def _check_trailing(where: str, name: str, x, trailing: tuple[int, ...]) -> tupl
 def _as_float(x):
     x = jnp.asarray(x)
     return x if jnp.issubdtype(x.dtype, jnp.floating) else x.astype(jnp.float32)
+
+
+def _as_exposure(x):
+    """A [T, T, 3] exposure table as nested tuples of floats (hashable: a static field), or None."""
+    if x is None:
+        return None
+    return tuple(tuple(tuple(float(v) for v in rgb) for rgb in row) for row in np.asarray(x, np.float64))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -215,6 +228,7 @@ class TemporalGaussians(eqx.Module):
     light_logits: Float[Array, "N T 3"] = eqx.field(converter=_as_float)
     origin: Int[Array, " N"] = eqx.field(converter=lambda x: jnp.asarray(x, jnp.int32))
     dates: tuple[DateInfo, ...] = eqx.field(static=True, converter=tuple)
+    exposure: tuple | None = eqx.field(static=True, default=None, converter=_as_exposure)
 
     def __check_init__(self):
         if not isinstance(self.gaussians, Gaussians):
@@ -244,6 +258,19 @@ class TemporalGaussians(eqx.Module):
                 )
         if t == 0:
             raise InputError("a fused model needs at least one date", field="TemporalGaussians.dates")
+        if self.exposure is not None:
+            table = np.asarray(self.exposure)
+            if table.shape != (t, t, 3):
+                raise InputError(
+                    f"expected shape [{t}, {t}, 3] for T={t} dates, got {list(table.shape)}",
+                    field="TemporalGaussians.exposure",
+                )
+            if not np.all(np.isfinite(table) & (table > 0)):
+                raise InputError(
+                    "exposure gains must be finite and positive",
+                    field="TemporalGaussians.exposure",
+                    fix="use None (1 everywhere) or positive gains",
+                )
         if not isinstance(self.origin, jax.core.Tracer):
             o = np.asarray(self.origin)
             if o.size and (o.min() < 0 or o.max() >= t):
@@ -327,9 +354,23 @@ def opacity_multipliers(model: TemporalGaussians) -> Float[Array, "N T"]:
     return jax.nn.sigmoid(model.o_logits)
 
 
+def exposure_table(model: TemporalGaussians) -> np.ndarray:
+    """[T, T, 3] float32: ``model.exposure`` (the gain at date q of date p's Gaussians), ones if None."""
+    t = model.num_dates
+    return np.ones((t, t, 3), np.float32) if model.exposure is None else np.asarray(model.exposure, np.float32)
+
+
+def exposure_rows(model: TemporalGaussians) -> Float[Array, "N T 3"]:
+    """Each Gaussian's row of the exposure table: exposure[origin_i, q] for every date q."""
+    return jnp.asarray(exposure_table(model))[model.origin]
+
+
 def light_multipliers(model: TemporalGaussians) -> Float[Array, "N T 3"]:
-    """The paper's l = 2·sigmoid(light logit) ∈ (0, 2), 1 = no change (§Implementation Details)."""
-    return 2.0 * jax.nn.sigmoid(model.light_logits)
+    """The light each Gaussian is drawn with at each date: the paper's l = 2·sigmoid(light logit) ∈
+    (0, 2), 1 = no change (§Implementation Details, Eq. 1), times the exposure of its origin date at
+    that date (1 where the model has no exposure table)."""
+    l = 2.0 * jax.nn.sigmoid(model.light_logits)
+    return l if model.exposure is None else l * exposure_rows(model)
 
 
 def is_traced(*trees) -> bool:
@@ -428,6 +469,12 @@ def concatenate(models: Sequence):
                 field="concatenate.models",
                 fix="merge dates with cfgs_jax.fuse instead",
             )
+        if len({m.exposure for m in models}) != 1:
+            raise InputError(
+                "models have different exposure tables",
+                field="concatenate.models",
+                fix="concatenate models of one fusion (one exposure table)",
+            )
     return jax.tree_util.tree_map(lambda *xs: jnp.concatenate(xs, axis=0), *models)
 
 
@@ -455,4 +502,5 @@ def select_dates(model: TemporalGaussians, dates: Sequence[int]) -> TemporalGaus
         sub.light_logits[:, dates],
         remap[np.asarray(sub.origin)],
         tuple(model.dates[d] for d in dates),
+        None if model.exposure is None else exposure_table(model)[np.ix_(dates, dates)],
     )

@@ -5,7 +5,7 @@ into the pipeline commands ``fuse`` and ``extend``."""
 from cfgs_jax.fusion import updates
 from cfgs_jax.fusion.cross_init import CrossInitConfig, DateViews, cross_init, init_pair, init_pairs
 from cfgs_jax.fusion.fuse import INVISIBLE_LOGIT, OTHER_LOGIT, OWN_LOGIT, add_date, merge
-from cfgs_jax.fusion.refine import RefineConfig, final_prune, refine, refine_loss, visible_weight
+from cfgs_jax.fusion.refine import RefineConfig, final_prune, frozen_light, refine, refine_loss, visible_weight
 from cfgs_jax.fusion.register import (
     RegisterConfig,
     Registration,
@@ -22,6 +22,7 @@ __all__ = [
     "RefineConfig",
     "cross_init",
     "final_prune",
+    "frozen_light",
     "init_pair",
     "init_pairs",
     "refine",

@@ -17,7 +17,8 @@ Pairs join into groups (connected components over all date pairs). A group becom
 centre, colour and light the α-weighted means, covariance the α-weighted moment match
 Σ = Σ_k w_k (Σ_k + (μ_k − μ)(μ_k − μ)ᵀ), opacity the stack's coverage 1 − Π_k (1 − α_k) (at most
 ``max_alpha``), o^r the largest of the group's at each date r, and the origin of its most opaque
-member.
+member. The light averaged is the light drawn (the exposure of each member's origin times its l); the
+merged l is that mean over the exposure of the kept origin.
 
 With ``hidden_threshold`` > 0, Gaussians shown at every date (o ≥ ``present`` everywhere) whose
 largest compositing weight min(0.99, α·o^q·G)·T over every training view of every date stays below
@@ -73,7 +74,7 @@ from scipy.spatial.transform import Rotation
 
 from cfgs_jax.errors import InputError
 from cfgs_jax.fusion.light import light_logits
-from cfgs_jax.model import Gaussians, TemporalGaussians, logit, rgb, select
+from cfgs_jax.model import Gaussians, TemporalGaussians, exposure_table, light_multipliers, logit, rgb, select
 
 
 @dataclasses.dataclass(frozen=True)
@@ -224,7 +225,10 @@ def merge_groups(model: TemporalGaussians, labels: np.ndarray, config: CompactCo
     vec = vec * np.where(np.linalg.det(vec) < 0, -1.0, 1.0)[:, None, None]  # a proper rotation
     coverage = np.minimum(1.0 - np.exp(group_sum(np.log1p(-np.minimum(a["alpha"], 1 - 1e-12)))), config.max_alpha)
     colour = group_sum(weight[:, None] * np.asarray(model.gaussians.colors, np.float64))
-    light = group_sum(weight[:, None, None] * np.asarray(2.0 * jax.nn.sigmoid(model.light_logits), np.float64))
+    # the light the members are drawn with (exposure of their origin included), averaged, then made
+    # relative to the exposure row of the keeper's origin
+    light = group_sum(weight[:, None, None] * np.asarray(light_multipliers(model), np.float64))
+    light = light / exposure_table(model)[np.asarray(model.origin)[keeper]]
     o_logits = np.full((len(size), model.num_dates), -np.inf)
     np.maximum.at(o_logits, group, np.asarray(model.o_logits, np.float64))  # max σ(x) = σ(max x)
     rows = keeper[size > 1]
@@ -275,7 +279,7 @@ def contributions(
     (α·T ≥ ``observed_threshold`` somewhere, the refinement's ``contribution_threshold``; ``Contributions``).
     With ``removal``, also what removing each changes there (at o^q and l^q, measured with
     ``max_alpha`` 0.9999 so that opaque Gaussians are not cut off by the clamp)."""
-    from cfgs_jax.model import light_multipliers, opacity_multipliers
+    from cfgs_jax.model import opacity_multipliers
     from cfgs_jax.splat import RenderConfig
     from cfgs_jax.splat.weights import contribution_per_label, max_weight, observed_matrix, removal_change
 

@@ -50,7 +50,7 @@ from cfgs_jax.fusion.fuse import INVISIBLE_LOGIT
 from cfgs_jax.fusion.light import REC709, gain_parameter, light_gain, light_logits, light_multiplier
 from cfgs_jax.fusion.updates import cross_init_optimizer
 from cfgs_jax.loop import run_steps, view_order
-from cfgs_jax.model import Camera, Gaussians, TemporalGaussians, logit
+from cfgs_jax.model import Camera, Gaussians, TemporalGaussians, exposure_table, logit
 from cfgs_jax.train.step import over_background
 
 
@@ -59,7 +59,9 @@ class CrossInitConfig:
     """The paper's rates (Adam lr 0.0075 for o, 0.00375 for l, meant for 3000 steps per pair) over 1000
     steps per pair (the paper: 3000; ``paper.toml`` keeps them); ours where it is silent: δ = 0.8 (it
     says δ < 1) and gains starting at the pair's exposure (the README's "Where we depart from the
-    paper"). Shorter schedules keep the paper's travel: with ``steps`` < ``rate_reference_steps`` both
+    paper"). With ``pair_exposure``, that exposure is not l's start but the model's exposure table entry
+    for the pair (``TemporalGaussians.exposure``): the Gaussians of p are drawn at q with exposure ⊙ l^q,
+    l^q starts at 1 and keeps the paper's range (0, 2) for what differs from the pair's global change. Shorter schedules keep the paper's travel: with ``steps`` < ``rate_reference_steps`` both
     rates are multiplied by rate_reference_steps / steps (an Adam step moves a logit by ≈ lr, so o^q can
     still travel lr·3000 in logit; 0 uses the rates as given).
 
@@ -92,6 +94,9 @@ class CrossInitConfig:
     exposure_init: bool = True  # start the gains at the pair's least-squares exposure, not 1
     exposure_range_ev: float = (
         2.0  # the start exposure is clipped to ± this many stops (a dark image is not a gain of 0)
+    )
+    pair_exposure: bool = (
+        False  # the start exposure goes to the model's exposure table; l^q fits around it, not from it
     )
     rate_reference_steps: int = 3000  # the step count the rates are meant for; fewer steps scale them up (0: off)
     early_stop_tolerance: float = 0.0  # stop a group of pairs once nothing moves more than this (0: off)
@@ -218,10 +223,13 @@ def exposure_gain(owns, images) -> float:
     return num / den if den > 0 else 1.0
 
 
-def pair_loss(params, g: Gaussians, camera, image, eps_map, b, step, config: CrossInitConfig, render_config):
-    """Eq. 2 for one view: the mean over pixels and channels; also the render."""
+def pair_loss(
+    params, g: Gaussians, camera, image, eps_map, b, step, config: CrossInitConfig, render_config, exposure=1.0
+):
+    """Eq. 2 for one view: the mean over pixels and channels; also the render (light: the pair's
+    ``exposure`` times l^q)."""
     o = jax.nn.sigmoid(params["o_logit"])
-    light = light_multiplier(params["u"], params["w"])
+    light = exposure * light_multiplier(params["u"], params["w"])
     res = splat.render_dates(g, camera, o[None], light[None], background=b, config=render_config, statistics=False)
     c = res.image[0]
     target = over_background(image, b)
@@ -233,7 +241,7 @@ def pair_loss(params, g: Gaussians, camera, image, eps_map, b, step, config: Cro
 @functools.lru_cache(maxsize=16)
 def _compiled_step(config: CrossInitConfig, render_config: splat.RenderConfig, mesh=None, own_gaussians=False):
     """One optimisation step of several pairs (p₁, q₁), (p₂, q₂), …: each pair with its own parameters,
-    optimiser state, views, ε maps and key, and the Gaussians shared (one date p) or, with
+    optimiser state, views, ε maps, key and exposure, and the Gaussians shared (one date p) or, with
     ``own_gaussians``, each pair's own (stacked [pairs, m, …]). Each pair's views arrive stacked
     ([pairs, views, …]) with the index of the one it draws this step, so the inputs stay on their
     devices from step to step; the pairs run one after another (``parallel.map_batch``), split over
@@ -241,22 +249,22 @@ def _compiled_step(config: CrossInitConfig, render_config: splat.RenderConfig, m
     optimizer = cross_init_optimizer(config)
 
     def one(pair, shared):
-        params, opt_state, cameras, images, eps_maps, drawn, key, g_own = pair
+        params, opt_state, cameras, images, eps_maps, drawn, key, exposure, g_own = pair
         g_shared, it = shared
         g = g_own if own_gaussians else g_shared
         camera = jax.tree_util.tree_map(lambda rows: rows[drawn], cameras)
         image, eps_map = images[drawn], eps_maps[drawn]
         b = background_colour(key, it, config, image.dtype)
         (loss, res), grads = jax.value_and_grad(pair_loss, has_aux=True)(
-            params, g, camera, image, eps_map, b, it, config, render_config
+            params, g, camera, image, eps_map, b, it, config, render_config, exposure
         )
         updates, opt_state = optimizer.update(grads, opt_state, params)
         return optax.apply_updates(params, updates), opt_state, loss, res.overflowed
 
     @jax.jit
-    def step(params, opt_state, g, cameras, images, eps_maps, drawn, keys, it):
+    def step(params, opt_state, g, cameras, images, eps_maps, drawn, keys, exposures, it):
         g_own, g_shared = (g, None) if own_gaussians else (None, g)
-        pairs = (params, opt_state, cameras, images, eps_maps, drawn, keys, g_own)
+        pairs = (params, opt_state, cameras, images, eps_maps, drawn, keys, exposures, g_own)
         params, opt_state, loss, overflowed = parallel.map_batch(one, pairs, (g_shared, it), mesh)
         return params, opt_state, loss, jnp.any(overflowed)
 
@@ -354,9 +362,10 @@ def _gather(model: TemporalGaussians, pairs, rows, seen, views, render_config) -
     return dataclasses.replace(group, render_config=dataclasses.replace(render_config, capacity=capacity))
 
 
-def _start_values(pairs: _Pairs, config: CrossInitConfig, lpips_net) -> tuple[dict, list[float], list[list]]:
+def _start_values(pairs: _Pairs, config: CrossInitConfig, lpips_net) -> tuple[dict, list[float], list[list], list]:
     """The pairs' start parameters (o^q = δ·o^p, gain at the pair's exposure, no cold/warm shift), the
-    start gains and the ε maps of every view."""
+    start gains as rendered, the ε maps of every view and the pairs' exposures (with ``pair_exposure``
+    the start exposure, which l^q's gain then starts at 1 around; else 1)."""
     k, m = pairs.mask.shape
     o_q = jnp.clip(config.delta * pairs.o_p, 1e-4, 1 - 1e-4)
     o_init = jnp.where(pairs.mask > 0, logit(o_q), -100.0)  # unseen from q: off (culled), no gradient
@@ -372,14 +381,17 @@ def _start_values(pairs: _Pairs, config: CrossInitConfig, lpips_net) -> tuple[di
         float(np.clip(exposure_gain(owns[j], pairs.images[j]), lo, hi)) if config.exposure_init else 1.0
         for j in range(k)
     ]
-    u0 = np.asarray([[gain_parameter(s)] for s in start_gains], np.float32)  # gain := the pair's exposure
+    exposures = start_gains if config.pair_exposure else [1.0] * k
+    # gain := the pair's exposure, in l^q or (``pair_exposure``) in the exposure table with l^q at 1
+    u0 = np.asarray([[gain_parameter(1.0 if config.pair_exposure else s)] for s in start_gains], np.float32)
     params = {"o_logit": o_init, "u": jnp.broadcast_to(jnp.asarray(u0), (k, m)), "w": jnp.zeros((k, m))}
-    start_light = [float(light_gain(jnp.asarray(u0[j, 0]))) for j in range(k)]  # the start gain, as rendered
+    # the start gain, as rendered
+    start_light = [exposures[j] * float(light_gain(jnp.asarray(u0[j, 0]))) for j in range(k)]
     eps_maps = [
         [lpips_map(own, im, lpips_net, config, start_light[j]) for own, im in zip(owns[j], pairs.images[j])]
         for j in range(k)
     ]
-    return params, start_light, eps_maps
+    return params, start_light, eps_maps, exposures
 
 
 def init_pairs(
@@ -432,10 +444,10 @@ def init_pairs(
         [views[i] for i in active],
         render_config,
     )
-    params, start_light, eps_maps = _start_values(group, config, lpips_net)
-    params, losses = _optimise(group, params, eps_maps, config, progress, mesh)
+    params, start_light, eps_maps, exposures = _start_values(group, config, lpips_net)
+    params, losses = _optimise(group, params, eps_maps, exposures, config, progress, mesh)
     fitted = [reports[i] for i in active]
-    return _write_back(model, group, params, losses, start_light, eps_maps, fitted), reports
+    return _write_back(model, group, params, losses, start_light, eps_maps, exposures, fitted, config), reports
 
 
 def _mark_unseen(model: TemporalGaussians, pairs, rows, seen) -> tuple[TemporalGaussians, list[dict]]:
@@ -491,9 +503,11 @@ def _stacked_inputs(pairs: _Pairs, eps_maps) -> tuple:
     return per_pair(pairs.cameras), per_pair(pairs.images), per_pair(eps_maps)
 
 
-def _optimise(pairs: _Pairs, params, eps_maps, config: CrossInitConfig, progress, mesh=None) -> tuple[dict, np.ndarray]:
+def _optimise(
+    pairs: _Pairs, params, eps_maps, exposures, config: CrossInitConfig, progress, mesh=None
+) -> tuple[dict, np.ndarray]:
     """Eq. 2's ``config.steps`` Adam steps of the group's pairs together: each pair with its own view
-    sequence and background key. With a ``mesh`` of several devices the pair axis is split over them
+    sequence, background key and exposure. With a ``mesh`` of several devices the pair axis is split over them
     (padded to a multiple of the device count with copies of the first pair, whose results are
     dropped). Returns the parameters and the [steps, pairs] losses."""
     k = len(pairs.pairs)
@@ -509,7 +523,8 @@ def _optimise(pairs: _Pairs, params, eps_maps, config: CrossInitConfig, progress
     compiled = [_compiled_step(config, level.render_config, mesh, not pairs.shared) for level, _ in levels]
     optimizer, steps = compiled[0][0], [step for _, step in compiled]
     inputs = [on_devices(_stacked_inputs(level, e)) for level, e in levels]  # (cameras, images, ε) per level
-    params, opt_state, keys = on_devices((params, jax.vmap(optimizer.init)(params), keys))
+    exposures = np.asarray(exposures, np.float32)
+    params, opt_state, keys, exposures = on_devices((params, jax.vmap(optimizer.init)(params), keys, exposures))
     g = parallel.replicate(pairs.g, mesh) if pairs.shared else on_devices(pairs.g)
     keys = jax.random.wrap_key_data(keys)
     seen = parallel.pad_rows(np.asarray(pairs.mask) > 0, width)[..., None]  # [pairs, m, 1]
@@ -521,7 +536,7 @@ def _optimise(pairs: _Pairs, params, eps_maps, config: CrossInitConfig, progress
         drawn = parallel.shard_batch(np.asarray(drawn + drawn[:1] * (width - k), np.int32), mesh)
         level = 1 if it < n_coarse else 0  # coarse first, full resolution to the end
         params, opt_state, loss, overflowed = steps[level](
-            params, opt_state, g, *inputs[level], drawn, both[:, 1], jnp.float32(it)
+            params, opt_state, g, *inputs[level], drawn, both[:, 1], exposures, jnp.float32(it)
         )
         if bool(overflowed):  # cannot happen with capacities from o = 1 (o^q ≤ 1), but never silently
             raise RuntimeError("cross-init render overflowed its intersection buffer")
@@ -580,12 +595,15 @@ def _convergence_test(config: CrossInitConfig, seen):
     return converged
 
 
-def _write_back(model, pairs: _Pairs, params, losses, start_light, eps_maps, reports) -> TemporalGaussians:
-    """The model with the fitted o^q and l^q of each pair written into its rows, and each pair's report
-    completed (in place)."""
+def _write_back(
+    model, pairs: _Pairs, params, losses, start_light, eps_maps, exposures, reports, config: CrossInitConfig
+) -> TemporalGaussians:
+    """The model with the fitted o^q and l^q of each pair written into its rows (with ``pair_exposure``
+    the pair's exposure into the exposure table), and each pair's report completed (in place)."""
     o_logits = np.asarray(model.o_logits).copy()
     l_logits = np.asarray(model.light_logits).copy()
-    for j, (_, q) in enumerate(pairs.pairs):
+    table = exposure_table(model).copy()
+    for j, (p, q) in enumerate(pairs.pairs):
         idx = pairs.idx[j]
         sel = np.asarray(pairs.mask[j, : len(idx)]) > 0
         o_fit, u, w = (np.asarray(params[name][j, : len(idx)])[sel] for name in ("o_logit", "u", "w"))
@@ -600,9 +618,14 @@ def _write_back(model, pairs: _Pairs, params, losses, start_light, eps_maps, rep
             "mean_w": float(np.mean(w)),
             "mean_gain": float(np.mean(np.asarray(light_gain(jnp.asarray(u))))),
             "start_gain": start_light[j],
+            "exposure": float(exposures[j]),
             "mean_epsilon": float(np.mean([np.asarray(e).mean() for e in eps_maps[j]])),
         }
-    return dataclasses.replace(model, o_logits=jnp.asarray(o_logits), light_logits=jnp.asarray(l_logits))
+        table[p, q] = exposures[j]
+    exposure = table if config.pair_exposure or model.exposure is not None else None
+    return dataclasses.replace(
+        model, o_logits=jnp.asarray(o_logits), light_logits=jnp.asarray(l_logits), exposure=exposure
+    )
 
 
 def init_pair(

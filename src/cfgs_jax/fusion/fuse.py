@@ -17,7 +17,7 @@ import numpy as np
 
 from cfgs_jax.errors import InputError
 from cfgs_jax.fusion.register import transform_gaussians
-from cfgs_jax.model import DateInfo, Gaussians, TemporalGaussians, concatenate
+from cfgs_jax.model import DateInfo, Gaussians, TemporalGaussians, concatenate, exposure_table
 from cfgs_jax.sim3 import Sim3
 
 #: o-logit of a Gaussian at its own date (σ = 0.9956) and at the other dates (σ = 0.0044).
@@ -70,7 +70,8 @@ def add_date(
     them): the new date's Gaussians (moved by ``transform`` into the model's frame) are appended with
     o = own ≈ 1 at the new date and ≈ 0 at the others; the existing Gaussians get o ≈ 0 at the new
     date (cross-timestep init of the pairs involving the new date sets both) and l = 1 there. Old
-    dates' o and l are kept; origins at or after ``position`` move up by one."""
+    dates' o and l are kept, and their exposures (the new date's row and column start at 1); origins
+    at or after ``position`` move up by one."""
     date = date if isinstance(date, DateInfo) else DateInfo(str(date))
     if date.name in model.date_names:
         raise InputError(f"the model already has a date named {date.name!r}", field="date", fix="use a new name")
@@ -91,4 +92,10 @@ def add_date(
         jnp.concatenate([light_old, jnp.zeros((n_new, t + 1, 3), dtype)]),
         np.concatenate([np.where(origin >= k, origin + 1, origin), np.full(n_new, k, np.int32)]).astype(np.int32),
         tuple(model.dates[:k]) + (date,) + tuple(model.dates[k:]),
+        None if model.exposure is None else _insert_date(exposure_table(model), k),
     )
+
+
+def _insert_date(table: np.ndarray, k: int) -> np.ndarray:
+    """The [T, T, 3] exposure table with a row and a column of ones inserted at date ``k``."""
+    return np.insert(np.insert(table, k, 1.0, axis=0), k, 1.0, axis=1)

@@ -50,7 +50,7 @@ from cfgs_jax.fusion.cross_init import DateViews
 from cfgs_jax.fusion.updates import halve_alpha_of, refinement_optimizer, zero_invisible
 from cfgs_jax.io.checkpoint import read_meta, restore_tree, save_tree
 from cfgs_jax.loop import Progress, check_view_batch, run_steps, step_with_capacity, view_batch, view_order
-from cfgs_jax.model import TemporalGaussians, gaussians_of, trainable, with_trainable
+from cfgs_jax.model import TemporalGaussians, exposure_rows, gaussians_of, trainable, with_trainable
 from cfgs_jax.train.config import TrainConfig
 from cfgs_jax.train.step import over_background
 
@@ -113,12 +113,23 @@ def change_loss(o_logits, o_logits_init) -> jnp.ndarray:
     return jnp.mean(absolute(d0 - d))
 
 
+def frozen_light(model: TemporalGaussians):
+    """The light ``refine_loss`` draws a model with when its l is not trained: the light logits
+    [N, T, 3], with each Gaussian's exposure row [N, T, 3] beside them where the model has an exposure
+    table (``model.exposure_rows``)."""
+    logits = jnp.asarray(model.light_logits)
+    return logits if model.exposure is None else (logits, exposure_rows(model))
+
+
 def _date_render(params, light_logits, camera, date, background, render_config):
-    """Date ``date``'s render of the model ``params`` (opacity α·o^date, colour l^date ⊙ c; l from
-    ``params`` where it is trained, else the frozen ``light_logits``)."""
+    """Date ``date``'s render of the model ``params`` (opacity α·o^date, colour l^date ⊙ c, l from
+    ``params`` where it is trained, else the frozen ``light_logits``; ``frozen_light``: with an
+    exposure row per Gaussian, l times it)."""
     g = gaussians_of(params)
     o = jax.nn.sigmoid(params["o_logits"][:, date])
-    light = 2.0 * jax.nn.sigmoid(params.get("light_logits", light_logits)[:, date])
+    frozen, exposure = light_logits if isinstance(light_logits, tuple) else (light_logits, None)
+    light = 2.0 * jax.nn.sigmoid(params.get("light_logits", frozen)[:, date])
+    light = light if exposure is None else light * exposure[:, date]
     return splat.render_dates(g, camera, o[None], light[None], background=background, config=render_config)
 
 
@@ -314,7 +325,7 @@ class _Refinement:
     mesh: object = None
 
     def __post_init__(self):
-        self.light_logits = jnp.asarray(self.model.light_logits)
+        self.light_logits = frozen_light(self.model)
         self.flat = [(q, v) for q in range(len(self.views)) for v in range(len(self.views[q].cameras))]
         self.images = [[jnp.asarray(im, jnp.float32) for im in dv.images] for dv in self.views]
         shapes = [tuple(im.shape) for ims in self.images for im in ims]

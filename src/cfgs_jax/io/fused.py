@@ -4,13 +4,15 @@
   ``model.ply``   one vertex element: the 17 DC-only INRIA properties (any 3DGS viewer opens it and
                   shows the un-modulated model), then ``origin`` (int32), ``o_logit_0..T-1``,
                   ``light_r_0 light_g_0 light_b_0 … light_b_{T-1}`` (float32 logits);
-  ``model.json``  format name and version, N, dates (name, capture date, sources), config hash.
+  ``model.json``  format name and version, N, dates (name, capture date, sources), config hash, and
+                  the exposure table ``exposure`` [T][T][3] where the model has one.
 
 ``layout="reference"`` (the authors' release, e.g. the NWM models), a directory with
   ``point_cloud.ply``  17 properties x y z nx ny nz f_dc_0..2 opacity scale_0..2 rot_0..3;
   ``activation.ply``   vertex element of float32 ``opacity_0..opacity_{T-1}`` (o logits) followed by
                        ``color_r_t color_g_t color_b_t`` for t = 0..T−1 (light logits, l = 2·sigmoid),
-                       in the same vertex order;
+                       in the same vertex order; a model's exposure table is folded into these
+                       (l := exposure[origin, t] ⊙ l, clipped below 2, the layout's range);
   ``cfgs_dates.json``  optional sidecar we add (date metadata and the run-length-encoded origin), which
                        the reference code ignores. Without it, dates are named ``t0..t{T-1}`` and each
                        Gaussian's origin is inferred as its date of largest o.
@@ -36,10 +38,10 @@ from cfgs_jax.io.ply import (
     read_vertex_table,
     write_table,
 )
-from cfgs_jax.model import DateInfo, TemporalGaussians
+from cfgs_jax.model import DateInfo, TemporalGaussians, exposure_table, logit
 
 FORMAT_NAME = "cfgs_jax.fused"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2  # 2: model.json may carry an exposure table (version 1 readers would ignore it)
 CFGS_PLY, CFGS_JSON = "model.ply", "model.json"
 REF_PLY, REF_ACT, REF_SIDECAR = "point_cloud.ply", "activation.ply", "cfgs_dates.json"
 
@@ -83,13 +85,25 @@ def _from_run_length(runs, n: int, *, path) -> np.ndarray:
     return out
 
 
-def _model_arrays(model: TemporalGaussians):
+#: The largest light multiplier a folded exposure leaves (the reference layout stores l = 2·sigmoid).
+FOLDED_LIGHT_MAX = 1.98
+
+
+def _model_arrays(model: TemporalGaussians, fold_exposure: bool = False):
+    """o logits [N, T], light logits [N, 3T] and origin [N]; with ``fold_exposure`` the light logits
+    of exposure[origin] ⊙ l, clipped into (0, ``FOLDED_LIGHT_MAX``], and how many channels were clipped."""
     n, t = model.num_gaussians, model.num_dates
     if np.ndim(model.o_logits) != 2:
         raise InputError("expected an unbatched model", field="TemporalGaussians.o_logits")
     o = np.asarray(model.o_logits, np.float32).reshape(n, t)
     light = np.asarray(model.light_logits, np.float32).reshape(n, t, 3)
-    return o, light.reshape(n, t * 3), np.asarray(model.origin, np.int32)
+    origin = np.asarray(model.origin, np.int32)
+    clipped = 0
+    if fold_exposure and model.exposure is not None:
+        l = 2.0 / (1.0 + np.exp(-light.astype(np.float64))) * exposure_table(model)[origin]
+        clipped = int(np.sum(l > FOLDED_LIGHT_MAX))
+        light = np.asarray(logit(np.clip(l / 2.0, 1e-12, FOLDED_LIGHT_MAX / 2.0)), np.float32)
+    return o, light.reshape(n, t * 3), origin, clipped
 
 
 def write_fused(path: str | os.PathLike, model: TemporalGaussians, layout: str = "cfgs", *, config=None) -> Path:
@@ -98,11 +112,11 @@ def write_fused(path: str | os.PathLike, model: TemporalGaussians, layout: str =
         raise InputError(f"unknown layout {layout!r}", field="layout", fix='use "cfgs" or "reference"')
     if not isinstance(model, TemporalGaussians):
         raise InputError(f"expected a TemporalGaussians, got {type(model).__name__}", field="model")
-    o, light, origin = _model_arrays(model)
+    o, light, origin, clipped = _model_arrays(model, fold_exposure=layout == "reference")
     t = model.num_dates
     meta = {
         "format": FORMAT_NAME,
-        "format_version": FORMAT_VERSION,
+        "format_version": FORMAT_VERSION if model.exposure is not None else 1,
         "layout": layout,
         "num_gaussians": model.num_gaussians,
         "num_dates": t,
@@ -110,6 +124,11 @@ def write_fused(path: str | os.PathLike, model: TemporalGaussians, layout: str =
         "config_hash": config_hash(config),
         "origin": _run_length(origin),
     }
+    if model.exposure is not None:
+        if layout == "cfgs":
+            meta["exposure"] = exposure_table(model).tolist()
+        else:
+            meta["exposure_folded"] = {"clipped_channels": clipped, "light_max": FOLDED_LIGHT_MAX}
     with atomic_directory(path) as tmp:
         if layout == "cfgs":
             extra = {"origin": origin}
@@ -208,7 +227,26 @@ def _read_cfgs(root: Path, drop_invalid: bool) -> TemporalGaussians:
     light = columns(table, names[t:], path=ply_path)
     origin = columns(table, ["origin"], path=ply_path, dtype=np.int64)[:, 0]
     dates = _dates_from_meta(meta, t, path=root / CFGS_JSON)
-    return _assemble(table, o, light, origin, dates, ply_path, drop_invalid)
+    exposure = _exposure_from_meta(meta, t, path=root / CFGS_JSON)
+    return _assemble(table, o, light, origin, dates, ply_path, drop_invalid, exposure)
+
+
+def _exposure_from_meta(meta: dict, t: int, *, path) -> np.ndarray | None:
+    """The ``exposure`` table of a model.json ([T][T][3] positive gains), or None where it has none."""
+    if meta.get("exposure") is None:
+        return None
+    try:
+        table = np.asarray(meta["exposure"], np.float64)
+    except (TypeError, ValueError) as exc:
+        raise InputError(f"malformed exposure table ({exc})", path=path, field="exposure") from exc
+    if table.shape != (t, t, 3) or not np.all(np.isfinite(table) & (table > 0)):
+        raise InputError(
+            f"expected [{t}][{t}][3] finite positive gains, got shape {list(table.shape)}",
+            path=path,
+            field="exposure",
+            fix="re-export the model, or delete the key (no exposure: 1 everywhere)",
+        )
+    return table
 
 
 def _read_reference(root: Path, drop_invalid: bool) -> TemporalGaussians:
@@ -249,7 +287,7 @@ def _read_reference(root: Path, drop_invalid: bool) -> TemporalGaussians:
     return _assemble(table, o, light, origin, dates, act_path, drop_invalid)
 
 
-def _assemble(table, o, light, origin, dates, path, drop_invalid) -> TemporalGaussians:
+def _assemble(table, o, light, origin, dates, path, drop_invalid, exposure=None) -> TemporalGaussians:
     keep = check_finite({"o_logits": o, "light_logits": light}, path=path, drop_invalid=drop_invalid)
     if keep is not None:
         table, o, light, origin = table[keep], o[keep], light[keep], origin[keep]
@@ -259,4 +297,4 @@ def _assemble(table, o, light, origin, dates, path, drop_invalid) -> TemporalGau
     t = len(dates)
     if origin.size and (origin.min() < 0 or origin.max() >= t):
         raise InputError(f"origin values must lie in [0, {t - 1}]", path=path, field="origin")
-    return TemporalGaussians(g, o, light.reshape(-1, t, 3), origin.astype(np.int32), dates)
+    return TemporalGaussians(g, o, light.reshape(-1, t, 3), origin.astype(np.int32), dates, exposure)

@@ -1,0 +1,157 @@
+"""The exposure table of a fused model: the gain at date q of the Gaussians trained on date p, times
+their light multipliers l^q. Checked against hand computations and closed forms."""
+
+import dataclasses
+import importlib
+import json
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import cfgs_jax as cj
+from cfgs_jax import fusion, splat
+from cfgs_jax.io import read_fused, write_fused
+
+ci = importlib.import_module("cfgs_jax.fusion.cross_init")  # the package exports a function of that name
+rf = importlib.import_module("cfgs_jax.fusion.refine")
+
+
+def _model(n=5, t=3, seed=0, exposure=None):
+    rng = np.random.default_rng(seed)
+    g = cj.Gaussians(
+        rng.uniform(-0.5, 0.5, (n, 3)).astype(np.float32),
+        rng.normal(size=(n, 4)).astype(np.float32),
+        np.log(rng.uniform(0.02, 0.08, (n, 3))).astype(np.float32),
+        rng.normal(0.5, 1.0, n).astype(np.float32),
+        rng.uniform(size=(n, 3)).astype(np.float32),
+    )
+    return cj.TemporalGaussians(
+        g,
+        rng.normal(size=(n, t)).astype(np.float32),
+        rng.normal(size=(n, t, 3)).astype(np.float32),
+        rng.integers(0, t, n).astype(np.int32),
+        tuple(cj.DateInfo(f"d{i}") for i in range(t)),
+        exposure,
+    )
+
+
+def _table(t=3, seed=1):
+    return np.random.default_rng(seed).uniform(0.4, 3.5, (t, t, 3))
+
+
+def test_light_multipliers_apply_the_exposure_of_each_gaussians_origin():
+    table = _table()
+    model = _model(exposure=table)
+    logits, origin = np.asarray(model.light_logits, np.float64), np.asarray(model.origin)
+    want = 2.0 / (1.0 + np.exp(-logits)) * table[origin]  # [N, T, 3], row i: its origin's gains
+    np.testing.assert_allclose(np.asarray(cj.light_multipliers(model)), want, rtol=1e-5)
+    plain = dataclasses.replace(model, exposure=None)
+    np.testing.assert_allclose(np.asarray(cj.light_multipliers(plain)), 2.0 / (1.0 + np.exp(-logits)), rtol=1e-5)
+
+    # selecting dates keeps their block of the table; adding a date inserts a row and a column of ones
+    sub = cj.select_dates(model, [2, 0])
+    np.testing.assert_allclose(np.asarray(sub.exposure), table[np.ix_([2, 0], [2, 0])])
+    grown = fusion.add_date(model, _model(n=2, t=1, seed=3).gaussians, "new", position=1)
+    got = np.asarray(grown.exposure)
+    np.testing.assert_allclose(got[[0, 2, 3]][:, [0, 2, 3]], table)
+    assert np.all(got[1] == 1.0) and np.all(got[:, 1] == 1.0)
+    np.testing.assert_allclose(np.asarray(cj.light_multipliers(grown))[: len(model)][:, [0, 2, 3]], want, rtol=1e-5)
+
+    with pytest.raises(cj.InputError, match="exposure"):
+        _model(exposure=np.ones((3, 2, 3)))
+    with pytest.raises(cj.InputError, match="positive"):
+        _model(exposure=-table)
+    with pytest.raises(cj.InputError, match="exposure tables"):
+        cj.concatenate([model, plain])
+
+
+def test_the_exposure_round_trips_ours_and_folds_into_the_reference_layout(tmp_path):
+    table = _table()
+    model = _model(n=40, exposure=table)
+    back = read_fused(write_fused(tmp_path / "ours", model))
+    np.testing.assert_allclose(np.asarray(back.exposure), table, rtol=1e-6)  # float32
+    np.testing.assert_allclose(np.asarray(cj.light_multipliers(back)), np.asarray(cj.light_multipliers(model)))
+
+    # the authors' layout has l = 2·sigmoid only: the drawn light is stored, clipped at 1.98
+    write_fused(tmp_path / "ref", model, layout="reference")
+    ref = read_fused(tmp_path / "ref")
+    assert ref.exposure is None
+    drawn = 2.0 / (1.0 + np.exp(-np.asarray(model.light_logits, np.float64))) * table[np.asarray(model.origin)]
+    np.testing.assert_allclose(np.asarray(cj.light_multipliers(ref)), np.minimum(drawn, 1.98), rtol=1e-4)
+    meta = json.loads((tmp_path / "ref" / "cfgs_dates.json").read_text())
+    assert meta["exposure_folded"]["clipped_channels"] == int(np.sum(drawn > 1.98)) > 0
+
+
+def test_pair_exposure_lets_cross_init_reach_a_date_beyond_the_light_range():
+    """Date q shows date p's scene 2.6× as bright, beyond l's cap of 2. Without the exposure table the
+    fitted l^q stays in (0, 2) and the render at q stays far from q's images; with ``pair_exposure`` the table
+    holds the least-squares exposure (2.6), l^q stays near 1, and the render at q matches q's images.
+    The refinement draws the table too: its loss on q's views is far lower with it."""
+    xs, ys = np.meshgrid(np.linspace(-0.8, 0.8, 6), np.linspace(-0.45, 0.45, 4))
+    means = np.c_[xs.ravel(), ys.ravel(), np.zeros(xs.size)].astype(np.float32)
+    n = len(means)
+    g = cj.Gaussians(
+        means,
+        np.tile(np.float32([1, 0, 0, 0]), (n, 1)),
+        np.full((n, 3), np.log(0.09), np.float32),
+        np.full(n, 3.0, np.float32),
+        np.random.default_rng(2).uniform(0.1, 0.3, (n, 3)).astype(np.float32),
+    )
+    cams = tuple(
+        cj.Camera.look_at([x, -0.2, -2.6], [0, 0, 0], up=(0, -1, 0), width=64, height=48, fov_x_deg=60)
+        for x in (-0.4, 0.0, 0.4)
+    )
+    own = [splat.render(g, c) for c in cams]
+    lit = lambda k: tuple(np.float32(k * np.asarray(r.image)) for r in own)  # over black
+    views = [ci.DateViews(cams, lit(1.0)), ci.DateViews(cams, lit(2.6))]
+    model = fusion.merge([g, g], ["p", "q"])
+    errors, fitted = {}, {}
+    for on in (False, True):
+        cfg = ci.CrossInitConfig(steps=200, pair_exposure=on)
+        out, rep = ci.init_pair(model, 0, 1, views[1], cfg)
+        fitted[on] = out
+        o = np.asarray(cj.opacity_multipliers(out))[:n, 1]
+        light = np.asarray(cj.light_multipliers(out))[:n, 1]
+        renders = [splat.render_dates(g, c, o[None], light[None]) for c in cams]
+        covered = np.stack([np.asarray(r.alpha) for r in own]) > 0.5
+        err = np.stack([np.abs(np.asarray(r.image[0]) - im[..., :3]) for r, im in zip(renders, views[1].images)])
+        errors[on] = float(np.mean(err[covered]))
+        if on:
+            assert abs(rep["exposure"] - 2.6) < 0.05 and abs(float(out.exposure[0][1][0]) - rep["exposure"]) < 1e-6
+            assert np.all(np.asarray(out.exposure)[1, 0] == 1.0) and np.all(np.asarray(out.exposure)[0, 0] == 1.0)
+            relative = 2.0 / (1.0 + np.exp(-np.asarray(out.light_logits)[:n, 1]))
+            assert abs(np.median(relative) - 1.0) < 0.1, np.median(relative)
+        else:
+            assert out.exposure is None and np.all(light < 1.99)  # l stays in its range, short of 2.6
+    mean_q = float(np.mean(np.stack(views[1].images)[..., :3][covered]))
+    assert errors[True] < 0.03 * mean_q < errors[False] / 3, (errors, mean_q)
+
+    # the refinement draws q with the table: with it (all rates 0) its loss is far lower than without
+    frozen = dict(lr_o=0.0, lr_alpha=0.0, lr_color=0.0, lr_other=0.0, position_lr_scale=0.0, halve_alpha=False)
+    config = rf.RefineConfig(steps=12, visibility_interval=1000, random_background=False, **frozen)
+    losses = {}
+    for name, m in (("table", fitted[True]), ("none", dataclasses.replace(fitted[True], exposure=None))):
+        m = dataclasses.replace(m, o_logits=jnp.asarray(m.o_logits).at[n:, 1].set(-20.0))  # q's own copies off
+        _, report = rf.refine(m, views, config, extent=1.0)
+        losses[name] = report["loss_last"]
+    assert losses["table"] < 0.5 * losses["none"], losses
+
+
+def test_compaction_merges_the_light_drawn_and_keeps_it_relative_to_the_kept_origin():
+    """Two Gaussians of dates 0 and 1 merged into one: the merged one's drawn light is the α-weighted
+    mean of the members' drawn lights (exposure of their origin times l), whatever origin it keeps."""
+    compact = importlib.import_module("cfgs_jax.fusion.compact")
+    table = np.ones((2, 2, 3))
+    table[0, 1] = [1.8, 1.7, 1.6]
+    table[1, 0] = [0.6, 0.55, 0.5]
+    model = _model(n=2, t=2, seed=4, exposure=table)
+    model = dataclasses.replace(
+        model, origin=jnp.asarray([0, 1], jnp.int32), light_logits=0.2 * jnp.asarray(model.light_logits)
+    )
+    alpha = 1.0 / (1.0 + np.exp(-np.asarray(model.gaussians.opacity_logits, np.float64)))
+    drawn = 2.0 / (1.0 + np.exp(-np.asarray(model.light_logits, np.float64))) * table[[0, 1]]
+    want = (alpha[:, None, None] * drawn).sum(0) / alpha.sum()
+    merged, kept = compact.merge_groups(model, np.array([0, 0]))
+    assert kept.sum() == 1
+    np.testing.assert_allclose(np.asarray(cj.light_multipliers(merged))[kept][0], want, rtol=1e-4)
