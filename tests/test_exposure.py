@@ -13,27 +13,14 @@ import cfgs_jax as cj
 from cfgs_jax import fusion, splat
 from cfgs_jax.io import read_fused, write_fused
 
+from conftest import random_temporal
+
 ci = importlib.import_module("cfgs_jax.fusion.cross_init")  # the package exports a function of that name
 rf = importlib.import_module("cfgs_jax.fusion.refine")
 
 
 def _model(n=5, t=3, seed=0, exposure=None):
-    rng = np.random.default_rng(seed)
-    g = cj.Gaussians(
-        rng.uniform(-0.5, 0.5, (n, 3)).astype(np.float32),
-        rng.normal(size=(n, 4)).astype(np.float32),
-        np.log(rng.uniform(0.02, 0.08, (n, 3))).astype(np.float32),
-        rng.normal(0.5, 1.0, n).astype(np.float32),
-        rng.uniform(size=(n, 3)).astype(np.float32),
-    )
-    return cj.TemporalGaussians(
-        g,
-        rng.normal(size=(n, t)).astype(np.float32),
-        rng.normal(size=(n, t, 3)).astype(np.float32),
-        rng.integers(0, t, n).astype(np.int32),
-        tuple(cj.DateInfo(f"d{i}") for i in range(t)),
-        exposure,
-    )
+    return dataclasses.replace(random_temporal(n, t, seed), exposure=exposure)
 
 
 def _table(t=3, seed=1):
