@@ -80,25 +80,19 @@ def main():
     ap.add_argument("--scene", required=True)
     args = ap.parse_args()
 
-    from bench_change_regions import open_scored_run, regions_by_pair
+    from bench_change_regions import change_table, open_scored_run, regions_by_pair
 
     from cfgs_jax.changes import pair_statistics
     from cfgs_jax.evaluation import change
-    from cfgs_jax.evaluation.protocol import date_masks
     from cfgs_jax.fusion.run import date_cameras, date_views
     from cfgs_jax.splat.weights import fused_visibility
 
     data = Path(args.data)
     run, _, rc, cfg = open_scored_run(Path(args.run))
     model = run.model
-    gt = json.loads((data / "ground_truth.json").read_text())
+    gt, _, observing, table = change_table(run, data, rc)
     names = [d.name for d in model.dates]
     object_names = ["background"] + [o["name"] for o in gt["objects"]]
-    masks = date_masks(data, run.scenes, run.sims, names)
-    observing = [m.cameras for m in masks]
-    table = change.gaussian_change_table(
-        model, masks, observing, len(gt["objects"]), change.ChangeConfig(surface_threshold=0.0), render_config=rc
-    )
     views = [date_views(sc, sm, cfg.views) for sc, sm in zip(run.scenes, run.sims)]
     stats = pair_statistics(
         model, views, cfg, support_cameras=[date_cameras(sc, sm) for sc, sm in zip(run.scenes, run.sims)],

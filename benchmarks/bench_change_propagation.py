@@ -44,25 +44,16 @@ def main():
     args = ap.parse_args()
 
     from bench_change_cues import depth_cues
-    from bench_change_regions import _statistics, open_scored_run, regions_by_pair
+    from bench_change_regions import _statistics, change_table, open_scored_run, regions_by_pair
 
     from cfgs_jax.evaluation import change
-    from cfgs_jax.evaluation.protocol import date_masks
-    from cfgs_jax.splat.weights import fused_visibility, observed_matrix
+    from cfgs_jax.splat.weights import fused_visibility
 
     data = Path(args.data)
     run, _, rc, cfg = open_scored_run(Path(args.run))
     model = run.model
     stats, _, _ = _statistics(run, data, Path(args.cache), cfg, rc)
-    gt = json.loads((data / "ground_truth.json").read_text())
-    names = [d.name for d in model.dates]
-    masks = date_masks(data, run.scenes, run.sims, names)
-    observing = [m.cameras for m in masks]
-    reference = change.ChangeConfig(surface_threshold=0.0)
-    observed = observed_matrix(model, observing, reference.contribution_threshold, render_config=rc)
-    table = change.gaussian_change_table(
-        model, masks, observing, len(gt["objects"]), reference, render_config=rc, observed=observed
-    )
+    gt, _, observing, table = change_table(run, data, rc)
     members = {}
     for (p, q), (_, member) in regions_by_pair(model, stats, cfg).items():
         members[(p, q)] = members[(q, p)] = member >= 0

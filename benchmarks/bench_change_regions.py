@@ -86,6 +86,25 @@ def _statistics(run, data: Path, cache: Path, changes_config, render_config):
     return PairStatistics(len(model.origin), model.num_dates, pairs), np.load(labels_file), seconds
 
 
+def change_table(run, data: Path, render_config) -> tuple[dict, list, list, dict]:
+    """The scene's ground truth, each date's masks and observing cameras, and the evaluation's table
+    of scored entries (``evaluation.change.gaussian_change_table``, observed with no surface bound)."""
+    from cfgs_jax.evaluation import change
+    from cfgs_jax.evaluation.protocol import date_masks
+    from cfgs_jax.splat.weights import observed_matrix
+
+    model = run.model
+    gt = json.loads((data / "ground_truth.json").read_text())
+    masks = date_masks(data, run.scenes, run.sims, [d.name for d in model.dates])
+    observing = [m.cameras for m in masks]
+    reference = change.ChangeConfig(surface_threshold=0.0)
+    observed = observed_matrix(model, observing, reference.contribution_threshold, render_config=render_config)
+    table = change.gaussian_change_table(
+        model, masks, observing, len(gt["objects"]), reference, render_config=render_config, observed=observed
+    )
+    return gt, masks, observing, table
+
+
 def _extent(region: dict) -> float:
     """The longest side of a region's bounding box (scene units)."""
     return float(np.max(np.subtract(region["bounds_max"], region["bounds_min"])))
