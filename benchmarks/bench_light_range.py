@@ -46,8 +46,8 @@ def pair_table(run_dir: Path, at: float, model_dir: Path | None = None) -> dict:
     exposure = exposure_table(model) @ np.asarray(REC709_LUMA)
     o = np.asarray(opacity_multipliers(model), np.float64)
     # cross-init's gains are the run's: not those of another model
-    report = read_json(run_dir / "report.json", {}) if model_dir is None else {}
-    gains = {tuple(r["pair"]): r for r in report.get("cross_init", [])}
+    run_report = read_json(run_dir / "report.json", {}) if model_dir is None else {}
+    gains = {tuple(r["pair"]): r for r in run_report.get("cross_init", [])}
     rows = []
     for p in range(model.num_dates):
         for q in range(model.num_dates):

@@ -72,6 +72,17 @@ def _as_float(x):
     return x if jnp.issubdtype(x.dtype, jnp.floating) else x.astype(jnp.float32)
 
 
+def exposure_problem(table, t: int) -> str | None:
+    """What is wrong with ``table`` as the exposure table of a model of ``t`` dates ([T, T, 3] finite
+    positive gains), or None when nothing is."""
+    table = np.asarray(table)
+    if table.shape != (t, t, 3):
+        return f"expected shape [{t}, {t}, 3] for T={t} dates, got {list(table.shape)}"
+    if not np.all(np.isfinite(table) & (table > 0)):
+        return "exposure gains must be finite and positive"
+    return None
+
+
 def _as_exposure(x):
     """A [T, T, 3] exposure table as nested tuples of floats (hashable: a static field), or None."""
     if x is None:
@@ -258,19 +269,11 @@ class TemporalGaussians(eqx.Module):
                 )
         if t == 0:
             raise InputError("a fused model needs at least one date", field="TemporalGaussians.dates")
-        if self.exposure is not None:
-            table = np.asarray(self.exposure)
-            if table.shape != (t, t, 3):
-                raise InputError(
-                    f"expected shape [{t}, {t}, 3] for T={t} dates, got {list(table.shape)}",
-                    field="TemporalGaussians.exposure",
-                )
-            if not np.all(np.isfinite(table) & (table > 0)):
-                raise InputError(
-                    "exposure gains must be finite and positive",
-                    field="TemporalGaussians.exposure",
-                    fix="use None (1 everywhere) or positive gains",
-                )
+        problem = None if self.exposure is None else exposure_problem(self.exposure, t)
+        if problem:
+            raise InputError(
+                problem, field="TemporalGaussians.exposure", fix="use None (1 everywhere) or finite positive gains"
+            )
         if not isinstance(self.origin, jax.core.Tracer):
             o = np.asarray(self.origin)
             if o.size and (o.min() < 0 or o.max() >= t):

@@ -38,7 +38,7 @@ from cfgs_jax.io.ply import (
     read_vertex_table,
     write_table,
 )
-from cfgs_jax.model import DateInfo, TemporalGaussians, exposure_table, logit
+from cfgs_jax.model import DateInfo, TemporalGaussians, exposure_problem, exposure_table, light_multipliers
 
 FORMAT_NAME = "cfgs_jax.fused"
 FORMAT_VERSION = 2  # 2: model.json may carry an exposure table (version 1 readers would ignore it)
@@ -85,25 +85,24 @@ def _from_run_length(runs, n: int, *, path) -> np.ndarray:
     return out
 
 
-#: The largest light multiplier a folded exposure leaves (the reference layout stores l = 2·sigmoid).
-FOLDED_LIGHT_MAX = 1.98
-
-
 def _model_arrays(model: TemporalGaussians, fold_exposure: bool = False):
     """o logits [N, T], light logits [N, 3T] and origin [N]; with ``fold_exposure`` the light logits
-    of exposure[origin] ⊙ l, clipped into (0, ``FOLDED_LIGHT_MAX``], and how many channels were clipped."""
+    of the light drawn, exposure[origin] ⊙ l, stored as the fitted light is (``fusion.light.light_logits``:
+    clipped at ``MAX_LIGHT``) and what was folded ({"clipped_channels", "light_max"}; else None)."""
     n, t = model.num_gaussians, model.num_dates
     if np.ndim(model.o_logits) != 2:
         raise InputError("expected an unbatched model", field="TemporalGaussians.o_logits")
     o = np.asarray(model.o_logits, np.float32).reshape(n, t)
     light = np.asarray(model.light_logits, np.float32).reshape(n, t, 3)
     origin = np.asarray(model.origin, np.int32)
-    clipped = 0
+    folded = None
     if fold_exposure and model.exposure is not None:
-        l = 2.0 / (1.0 + np.exp(-light.astype(np.float64))) * exposure_table(model)[origin]
-        clipped = int(np.sum(l > FOLDED_LIGHT_MAX))
-        light = np.asarray(logit(np.clip(l / 2.0, 1e-12, FOLDED_LIGHT_MAX / 2.0)), np.float32)
-    return o, light.reshape(n, t * 3), origin, clipped
+        from cfgs_jax.fusion.light import MAX_LIGHT, light_logits  # here: reading a model needs no fusion package
+
+        drawn = light_multipliers(model)
+        folded = {"clipped_channels": int(np.sum(np.asarray(drawn) > MAX_LIGHT)), "light_max": MAX_LIGHT}
+        light = np.asarray(light_logits(drawn), np.float32)
+    return o, light.reshape(n, t * 3), origin, folded
 
 
 def write_fused(path: str | os.PathLike, model: TemporalGaussians, layout: str = "cfgs", *, config=None) -> Path:
@@ -112,7 +111,7 @@ def write_fused(path: str | os.PathLike, model: TemporalGaussians, layout: str =
         raise InputError(f"unknown layout {layout!r}", field="layout", fix='use "cfgs" or "reference"')
     if not isinstance(model, TemporalGaussians):
         raise InputError(f"expected a TemporalGaussians, got {type(model).__name__}", field="model")
-    o, light, origin, clipped = _model_arrays(model, fold_exposure=layout == "reference")
+    o, light, origin, folded = _model_arrays(model, fold_exposure=layout == "reference")
     t = model.num_dates
     meta = {
         "format": FORMAT_NAME,
@@ -124,11 +123,10 @@ def write_fused(path: str | os.PathLike, model: TemporalGaussians, layout: str =
         "config_hash": config_hash(config),
         "origin": _run_length(origin),
     }
-    if model.exposure is not None:
-        if layout == "cfgs":
-            meta["exposure"] = exposure_table(model).tolist()
-        else:
-            meta["exposure_folded"] = {"clipped_channels": clipped, "light_max": FOLDED_LIGHT_MAX}
+    if model.exposure is not None and layout == "cfgs":
+        meta["exposure"] = exposure_table(model).tolist()
+    if folded is not None:
+        meta["exposure_folded"] = folded
     with atomic_directory(path) as tmp:
         if layout == "cfgs":
             extra = {"origin": origin}
@@ -239,9 +237,10 @@ def _exposure_from_meta(meta: dict, t: int, *, path) -> np.ndarray | None:
         table = np.asarray(meta["exposure"], np.float64)
     except (TypeError, ValueError) as exc:
         raise InputError(f"malformed exposure table ({exc})", path=path, field="exposure") from exc
-    if table.shape != (t, t, 3) or not np.all(np.isfinite(table) & (table > 0)):
+    problem = exposure_problem(table, t)
+    if problem:
         raise InputError(
-            f"expected [{t}][{t}][3] finite positive gains, got shape {list(table.shape)}",
+            problem,
             path=path,
             field="exposure",
             fix="re-export the model, or delete the key (no exposure: 1 everywhere)",
