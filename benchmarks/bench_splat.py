@@ -6,6 +6,9 @@ Writes benchmarks/results/splat.json and splat.md, naming the machine.
 
     python benchmarks/bench_splat.py            # all cases
     python benchmarks/bench_splat.py --quick    # the 20k case and the ratios only (→ results/splat_quick.md)
+    python benchmarks/bench_splat.py --large    # the capture-sized cases (1M Gaussians, 1080p; → results/splat_large.md)
+
+On an accelerator the files are named ``splat_gpu.*`` (``splat_quick_gpu.*``), beside the CPU ones.
 """
 
 from __future__ import annotations
@@ -130,6 +133,7 @@ def run_case(spec: dict) -> dict:
                 case_t.append(_timed(f_case, args))
             out[f"ratio_{name}"] = statistics.median(case_t) / statistics.median(base_t)
     out["peak_rss_gb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e6
+    out["device_peak_gb"] = device_peak_gb()
     return out
 
 
@@ -144,7 +148,30 @@ def machine() -> str:
                 break
     except OSError:
         pass
+    dev = jax.devices()[0]
+    if dev.platform != "cpu":
+        return f"{dev.device_kind} ({dev.platform}), host {cpu}, {os.cpu_count()} cores, jax {jax.__version__}"
     return f"{cpu}, {os.cpu_count()} cores, jax {jax.__version__} on {jax.default_backend()}"
+
+
+def backend_suffix() -> str:
+    """The result files' suffix: empty on the CPU, ``_gpu`` (the backend's name) on an accelerator, so
+    that an accelerator run never overwrites the CPU tables."""
+    import jax
+
+    backend = jax.default_backend()
+    return "" if backend == "cpu" else f"_{backend}"
+
+
+def device_peak_gb() -> float | None:
+    """Peak memory in use on the first accelerator (its allocator's count), or None on the CPU."""
+    import jax
+
+    dev = jax.devices()[0]
+    if dev.platform == "cpu":
+        return None
+    stats = dev.memory_stats() or {}
+    return stats.get("peak_bytes_in_use", 0) / 1e9 if stats else None
 
 
 CASES = {
@@ -189,6 +216,20 @@ CASES = {
     },
     "donut@640x480 tile_cull=False": {"scene": "donut", "width": 640, "height": 480, "tile_cull": False},
 }
+LARGE = {  # capture-sized: a real date's model at full HD (slow on a CPU)
+    "1M@1920x1080": {"scene": "synthetic", "n": 1_000_000, "width": 1920, "height": 1080},
+    "donut@1920x1080": {"scene": "donut", "width": 1920, "height": 1080},
+    "1M@1920x1080 T=4 fwd": {
+        "scene": "synthetic",
+        "n": 1_000_000,
+        "width": 1920,
+        "height": 1080,
+        "dates": 4,
+        "backward": False,
+        "baseline": "1M@1920x1080",
+    },
+}
+CASES.update(LARGE)
 QUICK = [
     "20k@320x240",
     "20k@320x240 T=4 fwd",
@@ -198,21 +239,86 @@ QUICK = [
 ]
 
 
+def write_markdown(result: dict, stem: str) -> None:
+    """Write ``results/STEM.md`` from a result dict (as saved in ``results/STEM.json``)."""
+    rows, ratios, failed = result["cases"], result["ratios"], result.get("failed", {})
+    command = result.get("command") or "python benchmarks/bench_splat.py" + (
+        " --quick" if "quick" in stem else " --large" if "large" in stem else ""
+    )
+    lines = [
+        "# Splatting kernel benchmark",
+        "",
+        f"Machine: {result['machine']}. Date: {result['date']}. Command: `{command}`. Medians of 5 runs after compilation;",
+        "peak RSS is the whole case process (JAX runtime included); device peak is the accelerator allocator's.",
+        "",
+        "| case | N | compile fwd (s) | fwd (s) | fwd+bwd (s) | peak RSS (GB) | device peak (GB) | intersections/tile composited (INRIA lists) | contributors/pixel |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    for name, r in rows.items():
+        fb = f"{r['fwd_bwd_s']:.3f}" if "fwd_bwd_s" in r else "-"
+        dev_peak = "-" if r.get("device_peak_gb") is None else f"{r['device_peak_gb']:.2f}"
+        lines.append(
+            f"| {name} | {r['num_gaussians']:,} | {r['compile_fwd_s']:.2f} | {r['fwd_s']:.3f} | {fb} | "
+            f"{r['peak_rss_gb']:.2f} | {dev_peak} | "
+            f"{r['intersections_per_tile']:.0f} ({r['inria_intersections_per_tile']:.0f}) | "
+            f"{r['contributors_per_pixel']:.1f} |"
+        )
+    knob = [(n, r) for n, r in rows.items() if "max_abs_diff_vs_inria_lists" in r and f"{n} tile_cull=False" in rows]
+    if knob:
+        lines += [
+            "",
+            "Exact tile culling (`RenderConfig.tile_cull`, default on) against INRIA's literal lists:",
+            "",
+            "| case | fwd on / off | fwd+bwd on / off | max abs image difference |",
+            "|---|---|---|---|",
+        ]
+        for n, r in knob:
+            off = rows[f"{n} tile_cull=False"]
+            fb = f"{r['fwd_bwd_s'] / off['fwd_bwd_s']:.2f}" if "fwd_bwd_s" in r and "fwd_bwd_s" in off else "-"
+            lines.append(f"| {n} | {r['fwd_s'] / off['fwd_s']:.2f} | {fb} | {r['max_abs_diff_vs_inria_lists']:.1e} |")
+    lines += [
+        "",
+        "Ratios: each case timed against its baseline (the same size at T=1, all active, same statistics setting;",
+        "`baseline` in the JSON) in one process, alternating runs, medians of 11 (the machine is shared and noisy).",
+        "",
+        "| ratio | value |",
+        "|---|---|",
+    ] + [f"| {k} | {v:.2f} |" for k, v in ratios.items()]
+    if failed:
+        lines += ["", "Cases that failed (the last line of their error):", ""]
+        lines += [f"- {n}: `{msg}`" for n, msg in failed.items()]
+    (RESULTS / f"{stem}.md").write_text("\n".join(lines) + "\n")
+    print("\n".join(lines))
+
+
 def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--quick", action="store_true")
+    ap.add_argument("--large", action="store_true", help="the capture-sized cases only")
+    ap.add_argument("--case-timeout", type=float, default=1800.0, help="seconds one case may run")
     ap.add_argument("--case", help=argparse.SUPPRESS)
+    ap.add_argument("--rewrite", metavar="STEM", help="rewrite results/STEM.md from results/STEM.json, run nothing")
     args = ap.parse_args()
+    if args.rewrite:
+        write_markdown(json.loads((RESULTS / f"{args.rewrite}.json").read_text()), args.rewrite)
+        return
     if args.case:  # child process
         print(json.dumps(run_case(CASES[args.case])))
         return
-    names = QUICK if args.quick else list(CASES)
-    rows = {}
+    names = QUICK if args.quick else list(LARGE) if args.large else [n for n in CASES if n not in LARGE]
+    rows, failed = {}, {}
     for name in names:
-        r = subprocess.run([sys.executable, __file__, "--case", name], capture_output=True, text=True)
-        if r.returncode != 0:
+        try:
+            r = subprocess.run(
+                [sys.executable, __file__, "--case", name], capture_output=True, text=True, timeout=args.case_timeout
+            )
+        except subprocess.TimeoutExpired:
+            failed[name] = f"ran past --case-timeout {args.case_timeout:g} s"
+            continue
+        if r.returncode != 0:  # recorded and reported; the other cases still run
             print(r.stderr[-2000:], file=sys.stderr)
-            raise SystemExit(f"case {name} failed")
+            failed[name] = (r.stderr.strip().splitlines() or ["no message"])[-1][:200]
+            continue
         rows[name] = json.loads(r.stdout.strip().splitlines()[-1])
         print(
             name,
@@ -232,49 +338,24 @@ def main():
     if "20k@320x240 75% inactive" in rows:
         ratios["75% inactive / all active, forward"] = rows["20k@320x240 75% inactive"]["ratio_fwd"]
         ratios["75% inactive / all active, fwd+bwd"] = rows["20k@320x240 75% inactive"]["ratio_fwd_bwd"]
-    result = {"machine": machine(), "date": time.strftime("%Y-%m-%d"), "cases": rows, "ratios": ratios}
+    if "1M@1920x1080 T=4 fwd" in rows:
+        ratios["1M@1920x1080: T=4 in one call / T=1, forward"] = rows["1M@1920x1080 T=4 fwd"]["ratio_fwd"]
+    # a quick or large run never overwrites the full table, nor an accelerator run the CPU one
+    stem = ("splat_quick" if args.quick else "splat_large" if args.large else "splat") + backend_suffix()
+    result = {
+        "machine": machine(),
+        "date": time.strftime("%Y-%m-%d"),
+        "command": "python benchmarks/bench_splat.py"
+        + (" --quick" if args.quick else " --large" if args.large else ""),
+        "cases": rows,
+        "ratios": ratios,
+        "failed": failed,
+    }
     RESULTS.mkdir(parents=True, exist_ok=True)
-    stem = "splat_quick" if args.quick else "splat"  # a quick run never overwrites the full table
     (RESULTS / f"{stem}.json").write_text(json.dumps(result, indent=2))
-    lines = [
-        "# Splatting kernel benchmark",
-        "",
-        f"Machine: {result['machine']}. Date: {result['date']}. Medians of 5 runs after compilation;",
-        "peak RSS is the whole case process (JAX runtime included).",
-        "",
-        "| case | N | compile fwd (s) | fwd (s) | fwd+bwd (s) | peak RSS (GB) | intersections/tile composited (INRIA lists) | contributors/pixel |",
-        "|---|---|---|---|---|---|---|---|",
-    ]
-    for name, r in rows.items():
-        fb = f"{r['fwd_bwd_s']:.3f}" if "fwd_bwd_s" in r else "-"
-        lines.append(
-            f"| {name} | {r['num_gaussians']:,} | {r['compile_fwd_s']:.2f} | {r['fwd_s']:.3f} | {fb} | "
-            f"{r['peak_rss_gb']:.2f} | {r['intersections_per_tile']:.0f} ({r['inria_intersections_per_tile']:.0f}) | "
-            f"{r['contributors_per_pixel']:.1f} |"
-        )
-    knob = [(n, r) for n, r in rows.items() if "max_abs_diff_vs_inria_lists" in r and f"{n} tile_cull=False" in rows]
-    if knob:
-        lines += [
-            "",
-            "Exact tile culling (`RenderConfig.tile_cull`, default on) against INRIA's literal lists:",
-            "",
-            "| case | fwd on / off | fwd+bwd on / off | max abs image difference |",
-            "|---|---|---|---|",
-        ]
-        for n, r in knob:
-            off = rows[f"{n} tile_cull=False"]
-            fb = f"{r['fwd_bwd_s'] / off['fwd_bwd_s']:.2f}" if "fwd_bwd_s" in r and "fwd_bwd_s" in off else "-"
-            lines.append(f"| {n} | {r['fwd_s'] / off['fwd_s']:.2f} | {fb} | {r['max_abs_diff_vs_inria_lists']:.1e} |")
-    lines += [
-        "",
-        "Ratios: each case timed against its baseline (20k@320x240, T=1, all active, same statistics setting) in one process,",
-        "alternating runs, medians of 11 (the machine is shared and noisy).",
-        "",
-        "| ratio | value |",
-        "|---|---|",
-    ] + [f"| {k} | {v:.2f} |" for k, v in ratios.items()]
-    (RESULTS / f"{stem}.md").write_text("\n".join(lines) + "\n")
-    print("\n".join(lines))
+    write_markdown(result, stem)
+    if failed:
+        raise SystemExit(f"{len(failed)} case(s) failed: {', '.join(failed)}")
 
 
 if __name__ == "__main__":

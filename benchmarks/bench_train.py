@@ -6,9 +6,13 @@ target count (a model of the size a trained date reaches). The step is ``train.m
 (render, L1 + D-SSIM, Adam, densification statistics). The kernel share is the time of the
 kernel alone — ``splat.render_dates`` forward and backward (VJP of the rendered image) with the same
 Gaussians, capacity and views — over the full step time, both timed alternately in one process.
-One densify-and-prune round is timed as well. Writes benchmarks/results/train.json and train.md.
+One densify-and-prune round is timed as well. Writes benchmarks/results/train.json and train.md
+(``train_gpu.*`` on a GPU; ``--tag`` adds to the name).
 
-    python benchmarks/bench_train.py [--gaussians 50000] [--steps 30]
+    python benchmarks/bench_train.py [--gaussians 50000] [--steps 30] [--width 320 --height 240]
+    python benchmarks/bench_train.py --data DIR   # render the date into DIR once, reuse it after
+
+``--data`` lets the synthetic date be rendered (Mitsuba) on one machine and timed on another.
 """
 
 from __future__ import annotations
@@ -23,7 +27,7 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_splat import RESULTS, machine
+from bench_splat import RESULTS, backend_suffix, device_peak_gb, machine
 
 
 def _timed(f, *args):
@@ -40,6 +44,10 @@ def main():
     ap.add_argument("--gaussians", type=int, default=50_000)
     ap.add_argument("--steps", type=int, default=30)
     ap.add_argument("--views", type=int, default=8)
+    ap.add_argument("--width", type=int, default=320)
+    ap.add_argument("--height", type=int, default=240)
+    ap.add_argument("--data", type=Path, help="folder for the rendered date: rendered there if absent, else read")
+    ap.add_argument("--tag", default="", help="added to the result files' names")
     args = ap.parse_args()
 
     import jax
@@ -53,12 +61,18 @@ def main():
     from cfgs_jax.train.step import TrainState
 
     with tempfile.TemporaryDirectory() as tmp:
-        spec = synthetic.make_preset("corals", seed=0, width=320, height=240, images_per_date=args.views, spp=16)
-        t0 = time.perf_counter()
-        root = synthetic.render_dataset(spec, tmp, dates=[0], progress=False) / "d0"
-        synth_s = time.perf_counter() - t0
-        scene = cj.io.read_colmap(root, test_every=10**6)
+        data = args.data if args.data is not None else Path(tmp)
+        synth_s = None
+        if not (data / "d0").is_dir():
+            spec = synthetic.make_preset(
+                "corals", seed=0, width=args.width, height=args.height, images_per_date=args.views, spp=16
+            )
+            t0 = time.perf_counter()
+            synthetic.render_dataset(spec, data, dates=[0], progress=False)
+            synth_s = time.perf_counter() - t0
+        scene = cj.io.read_colmap(data / "d0", test_every=10**6)
         images = [jnp.asarray(scene.load_image(i, with_alpha=True)) for i in range(len(scene))]
+    width, height = scene.cameras[0].width, scene.cameras[0].height
 
     rng = np.random.default_rng(0)
     pts = np.asarray(scene.points, np.float64)
@@ -106,7 +120,7 @@ def main():
     result = {
         "machine": machine(),
         "date": time.strftime("%Y-%m-%d"),
-        "image": "320x240",
+        "image": f"{width}x{height}",
         "views": len(images),
         "gaussians": len(g0),
         "buffer_capacity": int(state.active.shape[0]),
@@ -120,15 +134,18 @@ def main():
         "kernel_share": kernel_s / step_s,
         "densify_round_s_incl_compile": compile_densify,
         "peak_rss_gb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e6,
+        "device_peak_gb": device_peak_gb(),
         "timed_steps": args.steps,
     }
+    stem = f"train{args.tag}{backend_suffix()}"
+    command = "python benchmarks/bench_train.py " + " ".join(sys.argv[1:])
     RESULTS.mkdir(parents=True, exist_ok=True)
-    (RESULTS / "train.json").write_text(json.dumps(result, indent=2))
+    (RESULTS / f"{stem}.json").write_text(json.dumps(result, indent=2))
     lines = [
         "# Training-step benchmark",
         "",
-        f"Machine: {result['machine']}. Date: {result['date']}.",
-        f"One 320×240 date of `corals` ({result['views']} views), {result['gaussians']:,} Gaussians in a buffer of "
+        f"Machine: {result['machine']}. Date: {result['date']}. Command: `{command.strip()}`.",
+        f"One {width}×{height} date of `corals` ({result['views']} views), {result['gaussians']:,} Gaussians in a buffer of "
         f"{result['buffer_capacity']:,}; medians over {args.steps} steps, kernel timed alternately with the step.",
         "",
         "| quantity | value |",
@@ -141,7 +158,9 @@ def main():
         f"| one densify-and-prune round (incl. compile) | {compile_densify:.2f} s |",
         f"| peak RSS (whole process) | {result['peak_rss_gb']:.2f} GB |",
     ]
-    (RESULTS / "train.md").write_text("\n".join(lines) + "\n")
+    if result["device_peak_gb"] is not None:
+        lines.append(f"| device peak memory (allocator) | {result['device_peak_gb']:.2f} GB |")
+    (RESULTS / f"{stem}.md").write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
 
 

@@ -418,6 +418,7 @@ def test_summed_weight_maps_match_float64_weights_per_date():
     assert np.abs(want).max() > 1.0 and np.count_nonzero(want[:, 1, : n // 3]) == 0
     np.testing.assert_allclose(got, want, rtol=2e-4, atol=2e-4)
     small = np.asarray(splat.summed_weight_maps(g, cam, om, maps, config=splat.RenderConfig(capacity=64)))
-    np.testing.assert_array_equal(small, got)
+    # regrown, not truncated: equal up to the order of the scatter-adds, which a GPU does not fix
+    np.testing.assert_allclose(small, got, rtol=1e-6, atol=1e-6)
     with pytest.raises(InputError, match="maps"):
         splat.summed_weight_maps(g, cam, om, maps[:, :1])

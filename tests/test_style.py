@@ -1,7 +1,9 @@
-"""The code is formatted and linted with ruff (configuration in pyproject.toml), so CI fails on drift."""
+"""The code is formatted and linted with ruff (configuration in pyproject.toml), so CI fails on drift;
+and every JAX matrix product or convolution in the library states its precision."""
 
 from __future__ import annotations
 
+import ast
 import subprocess
 import sys
 
@@ -20,3 +22,27 @@ def test_code_is_formatted():
 def test_code_passes_the_linter():
     r = _ruff("check", "--output-format", "concise", ".")
     assert r.returncode == 0, "run `ruff check --fix .` and fix the rest:\n" + r.stdout[-3000:] + r.stderr[-2000:]
+
+
+_PRODUCTS = {"matmul", "einsum", "dot", "tensordot", "inner", "vdot", "dot_general", "conv_general_dilated"}
+
+
+def test_every_jax_product_states_its_precision():
+    """A GPU runs float32 products at TF32 unless asked otherwise, which the kernel's float64
+    comparisons do not survive: every ``jnp``/``lax`` product call names ``precision``, and the kernel's
+    modules use no ``@``, which cannot name it. The float64 reference kernel is exempt (no GPU rounds
+    float64 products)."""
+    src = REPO / "src" / "cfgs_jax"
+    missing = []
+    for path in sorted(p for p in src.rglob("*.py") if p != src / "splat" / "reference.py"):
+        tree = ast.parse(path.read_text(), filename=str(path))
+        for node in ast.walk(tree):
+            if isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute) and node.func.attr in _PRODUCTS:
+                owner = ast.unparse(node.func.value)
+                if owner in {"jnp", "jax.numpy", "lax", "jax.lax"} and not any(
+                    k.arg == "precision" for k in node.keywords
+                ):
+                    missing.append(f"{path.relative_to(REPO)}:{node.lineno} {owner}.{node.func.attr}")
+            if path.parent.name == "splat" and isinstance(node, ast.BinOp) and isinstance(node.op, ast.MatMult):
+                missing.append(f"{path.relative_to(REPO)}:{node.lineno} @")
+    assert not missing, "name precision=jax.lax.Precision.HIGHEST (or use jnp.matmul with it):\n" + "\n".join(missing)

@@ -7,6 +7,7 @@ differentiable) and the test suite checks them against colour-science itself
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
@@ -37,4 +38,6 @@ def linear_to_srgb(x: Float[Array, " ..."]) -> Float[Array, " ..."]:
 
 def luminance(rgb_linear: Float[Array, "... 3"]) -> Float[Array, " ..."]:
     """Relative luminance Y of linear Rec.709 RGB."""
-    return jnp.tensordot(jnp.asarray(rgb_linear), jnp.asarray(REC709_LUMA, jnp.asarray(rgb_linear).dtype), axes=1)
+    rgb_linear = jnp.asarray(rgb_linear)
+    luma = jnp.asarray(REC709_LUMA, rgb_linear.dtype)
+    return jnp.tensordot(rgb_linear, luma, axes=1, precision=jax.lax.Precision.HIGHEST)

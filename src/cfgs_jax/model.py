@@ -150,7 +150,7 @@ class Camera(eqx.Module):
     @property
     def center(self) -> Float[Array, "3"]:
         """Camera centre in world coordinates, −Rᵀt."""
-        return -jnp.einsum("...ji,...j->...i", self.rotation, self.translation)
+        return -jnp.einsum("...ji,...j->...i", self.rotation, self.translation, precision=jax.lax.Precision.HIGHEST)
 
     @property
     def tan_half_fov(self) -> tuple[Float[Array, ""], Float[Array, ""]]:
@@ -438,7 +438,7 @@ def quat_to_rotmat(q: Float[Array, "... 4"]) -> Float[Array, "... 3 3"]:
 def covariances(g: Gaussians) -> Float[Array, "N 3 3"]:
     """World-space covariance Σ = R S Sᵀ Rᵀ of each Gaussian (3DGS §4)."""
     m = quat_to_rotmat(g.quats) * scales(g)[..., None, :]
-    return m @ jnp.swapaxes(m, -1, -2)
+    return jnp.matmul(m, jnp.swapaxes(m, -1, -2), precision=jax.lax.Precision.HIGHEST)
 
 
 # --------------------------------------------------------------------------------------------------

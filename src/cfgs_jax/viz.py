@@ -91,7 +91,7 @@ def selection_opacity(o: Float[Array, "N T"], t: Float[Array, " T"], mode: Mode 
     o = jnp.asarray(o)
     _check_dates(o, t_hat)
     if mode == "mean":
-        return o @ t_hat.astype(o.dtype)
+        return jnp.matmul(o, t_hat.astype(o.dtype), precision=jax.lax.Precision.HIGHEST)
     if mode == "max":
         return jnp.max(o * (t_hat > 0).astype(o.dtype), axis=-1)
     raise InputError(f"unknown mode {mode!r}", field="mode", fix='use "mean" or "max"')
@@ -105,7 +105,9 @@ def blend(
     t_hat = normalize_selection(t)
     o = opacity_multipliers(model)
     _check_dates(o, t_hat)
-    light = jnp.einsum("ntc,t->nc", light_multipliers(model), t_hat.astype(o.dtype))
+    light = jnp.einsum(
+        "ntc,t->nc", light_multipliers(model), t_hat.astype(o.dtype), precision=jax.lax.Precision.HIGHEST
+    )
     return light * rgb(model.gaussians), opacities(model.gaussians) * selection_opacity(o, t, mode)
 
 
@@ -168,7 +170,7 @@ def persistence_filter(
     if normalize:
         integrals = integrals / lambda_integrals(jnp.asarray(0.0, dtype), jnp.asarray(1.0, dtype), sigma)
     shifted = selected * (o + 1 - jnp.max(o * selected, axis=-1, keepdims=True))  # [N, T]
-    return shifted @ integrals
+    return jnp.matmul(shifted, integrals, precision=jax.lax.Precision.HIGHEST)
 
 
 def _hsv_saturation(x: Float[Array, "... 3"]) -> Float[Array, " ..."]:

@@ -7,6 +7,7 @@ from the images with pycolmap and optimistix.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import logging
 from pathlib import Path
 
@@ -108,7 +109,7 @@ def _rotvec_to_matrix(v):
     small = theta2 < 1e-12
     a = jnp.where(small, 1.0 - theta2 / 6.0, jnp.sin(theta) / theta)
     b = jnp.where(small, 0.5 - theta2 / 24.0, (1.0 - jnp.cos(theta)) / jnp.maximum(theta2, 1e-30))
-    return jnp.eye(3, dtype=v.dtype) + a * k + b * (k @ k)
+    return jnp.eye(3, dtype=v.dtype) + a * k + b * jnp.matmul(k, k, precision=jax.lax.Precision.HIGHEST)
 
 
 def refine_sim3_pair(init_a: Sim3, init_b: Sim3, ref_pairs, date_pairs, extent: float, max_steps: int = 200):
@@ -132,12 +133,14 @@ def refine_sim3_pair(init_a: Sim3, init_b: Sim3, ref_pairs, date_pairs, extent: 
         c_rs, r_rs, c_rr, r_rr, c_ds, r_ds, c_dd, r_dd = args
         la, ra, ta = unpack(y[:7])
         lb, rb, tb = unpack(y[7:])
-        a_c = lambda c: jnp.exp(la) * c @ ra.T + ta
+        mul = functools.partial(jnp.matmul, precision=jax.lax.Precision.HIGHEST)
+        rotate = lambda r, rs: jnp.einsum("ij,njk->nik", r, rs, precision=jax.lax.Precision.HIGHEST)
+        a_c = lambda c: jnp.exp(la) * mul(c, ra.T) + ta
         out = [
             ((a_c(c_rs) - c_rr) / extent).ravel(),
-            ((a_c(c_ds) - (jnp.exp(lb) * c_dd @ rb.T + tb)) / extent).ravel(),
-            (jnp.einsum("ij,njk->nik", ra, r_rs) - r_rr).ravel(),
-            (jnp.einsum("ij,njk->nik", ra, r_ds) - jnp.einsum("ij,njk->nik", rb, r_dd)).ravel(),
+            ((a_c(c_ds) - (jnp.exp(lb) * mul(c_dd, rb.T) + tb)) / extent).ravel(),
+            (rotate(ra, r_rs) - r_rr).ravel(),
+            (rotate(ra, r_ds) - rotate(rb, r_dd)).ravel(),
         ]
         return jnp.concatenate(out)
 

@@ -364,7 +364,7 @@ def weighted_sums(layout: Layout, means2d, conics, opac, ids, tile_start, tile_e
             if d == 1:  # element-wise products and halving: on CPU faster than a contraction for one date
                 per_map = jnp.stack([_reduce_last(ch.w * planes[i][None]) for i in range(m)])  # [M, K, D, B]
             else:  # a batched contraction over the pixels scales far better with the dates
-                per_map = jnp.einsum("kdbp,mdbp->mkdb", ch.w, planes)
+                per_map = jnp.einsum("kdbp,mdbp->mkdb", ch.w, planes, precision=jax.lax.Precision.HIGHEST)
             return r + 1, ch.t_out, ch.done_out, sums.at[:, :, ch.gid].add(jnp.moveaxis(per_map, 2, 1))
 
         *_, sums = jax.lax.while_loop(_still_running(n_rounds), body, (jnp.int32(0), t0, done0, sums))

@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 from typing import NamedTuple
 
+import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float, Int
 
@@ -41,7 +42,9 @@ def project(
     """Project Gaussians: mean, EWA 2D covariance (+low-pass), conic, 3σ radius and tile rectangle."""
     rot = camera.cam_from_world[:3, :3].astype(means.dtype)
     trans = camera.cam_from_world[:3, 3].astype(means.dtype)
-    p = means @ rot.T + trans
+    # Every product here at full float32 precision: a GPU's default for float32 matrix products is
+    # TF32 (10-bit mantissa), which moves the projected means and conics by ~1e-3 relative.
+    p = jnp.matmul(means, rot.T, precision=jax.lax.Precision.HIGHEST) + trans
     x, y, z = p[:, 0], p[:, 1], p[:, 2]
     valid = z > config.near
     zs = jnp.where(valid, z, 1.0)  # keep culled Gaussians' arithmetic finite (their gradients are 0)
@@ -61,7 +64,9 @@ def project(
     )  # [N, 2, 3]
     r3 = quat_to_rotmat(quats)
     m = r3 * jnp.exp(log_scales)[:, None, :]  # R S
-    t = jac @ rot @ m  # J W R S, so Σ2D = T Tᵀ + eps2d·I
+    t = jnp.matmul(
+        jnp.matmul(jac, rot, precision=jax.lax.Precision.HIGHEST), m, precision=jax.lax.Precision.HIGHEST
+    )  # J W R S: Σ2D = T Tᵀ + eps2d·I
     r0, r1 = t[:, 0, :], t[:, 1, :]
     n0, n1 = jnp.sum(r0 * r0, -1), jnp.sum(r1 * r1, -1)
     a = n0 + config.eps2d

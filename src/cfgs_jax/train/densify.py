@@ -103,7 +103,7 @@ def densify_and_prune(state: TrainState, config: TrainConfig, extent, prune_big,
     for k in jax.random.split(k_children, SPLIT_CHILDREN):
         sample = jax.random.normal(k, std.shape, std.dtype) * std
         child = dict(p)
-        child["means"] = p["means"] + jnp.einsum("cij,cj->ci", rot, sample)
+        child["means"] = p["means"] + jnp.einsum("cij,cj->ci", rot, sample, precision=jax.lax.Precision.HIGHEST)
         child["log_scales"] = p["log_scales"] - jnp.log(SPLIT_SHRINK).astype(std.dtype)
         children.append(child)
     valid = jnp.concatenate([plan["keep"], plan["clone"]] + [plan["split"]] * SPLIT_CHILDREN)
