@@ -174,60 +174,30 @@ def device_peak_gb() -> float | None:
     return stats.get("peak_bytes_in_use", 0) / 1e9 if stats else None
 
 
+def _synthetic(n: int, width: int, height: int, **extra) -> dict:
+    """A case on the synthetic box of ``n`` Gaussians at ``width``×``height``."""
+    return {"scene": "synthetic", "n": n, "width": width, "height": height, **extra}
+
+
+FORWARD_T4 = {"dates": 4, "backward": False}  # four dates in one call, forward only
 CASES = {
-    "20k@320x240": {"scene": "synthetic", "n": 20_000, "width": 320, "height": 240},
-    "100k@640x480": {"scene": "synthetic", "n": 100_000, "width": 640, "height": 480},
+    "20k@320x240": _synthetic(20_000, 320, 240),
+    "100k@640x480": _synthetic(100_000, 640, 480),
     "donut@640x480": {"scene": "donut", "width": 640, "height": 480},
-    "20k@320x240 T=4 fwd": {
-        "scene": "synthetic",
-        "n": 20_000,
-        "width": 320,
-        "height": 240,
-        "dates": 4,
-        "backward": False,
-        "baseline": "20k@320x240",
-    },
-    "20k@320x240 images only": {"scene": "synthetic", "n": 20_000, "width": 320, "height": 240, "statistics": False},
-    "20k@320x240 T=4 fwd images only": {
-        "scene": "synthetic",
-        "n": 20_000,
-        "width": 320,
-        "height": 240,
-        "dates": 4,
-        "backward": False,
-        "statistics": False,
-        "baseline": "20k@320x240 images only",
-    },
-    "20k@320x240 75% inactive": {
-        "scene": "synthetic",
-        "n": 20_000,
-        "width": 320,
-        "height": 240,
-        "inactive": 0.75,
-        "baseline": "20k@320x240",
-    },
-    "20k@320x240 tile_cull=False": {"scene": "synthetic", "n": 20_000, "width": 320, "height": 240, "tile_cull": False},
-    "100k@640x480 tile_cull=False": {
-        "scene": "synthetic",
-        "n": 100_000,
-        "width": 640,
-        "height": 480,
-        "tile_cull": False,
-    },
+    "20k@320x240 T=4 fwd": _synthetic(20_000, 320, 240, **FORWARD_T4, baseline="20k@320x240"),
+    "20k@320x240 images only": _synthetic(20_000, 320, 240, statistics=False),
+    "20k@320x240 T=4 fwd images only": _synthetic(
+        20_000, 320, 240, **FORWARD_T4, statistics=False, baseline="20k@320x240 images only"
+    ),
+    "20k@320x240 75% inactive": _synthetic(20_000, 320, 240, inactive=0.75, baseline="20k@320x240"),
+    "20k@320x240 tile_cull=False": _synthetic(20_000, 320, 240, tile_cull=False),
+    "100k@640x480 tile_cull=False": _synthetic(100_000, 640, 480, tile_cull=False),
     "donut@640x480 tile_cull=False": {"scene": "donut", "width": 640, "height": 480, "tile_cull": False},
 }
 LARGE = {  # capture-sized: a real date's model at full HD (slow on a CPU)
-    "1M@1920x1080": {"scene": "synthetic", "n": 1_000_000, "width": 1920, "height": 1080},
+    "1M@1920x1080": _synthetic(1_000_000, 1920, 1080),
     "donut@1920x1080": {"scene": "donut", "width": 1920, "height": 1080},
-    "1M@1920x1080 T=4 fwd": {
-        "scene": "synthetic",
-        "n": 1_000_000,
-        "width": 1920,
-        "height": 1080,
-        "dates": 4,
-        "backward": False,
-        "baseline": "1M@1920x1080",
-    },
+    "1M@1920x1080 T=4 fwd": _synthetic(1_000_000, 1920, 1080, **FORWARD_T4, baseline="1M@1920x1080"),
 }
 CASES.update(LARGE)
 QUICK = [
