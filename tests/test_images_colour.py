@@ -62,3 +62,16 @@ def test_alpha_and_bad_images(tmp_path):
         read_image(tmp_path / "a.gifx") if (tmp_path / "a.gifx").write_bytes(b"x") else None
     with pytest.raises(InputError, match="image file not found"):
         read_image(tmp_path / "none.png")
+
+
+def test_missing_openexr_is_a_clear_error(tmp_path, monkeypatch):
+    """Without the OpenEXR package, writing or reading an EXR names the file and the package to install."""
+    import sys
+
+    monkeypatch.setitem(sys.modules, "OpenEXR", None)  # import OpenEXR now raises ImportError
+    with pytest.raises(InputError, match="OpenEXR") as err:
+        write_image(tmp_path / "a.exr", np.zeros((2, 2, 3), np.float32))
+    assert "a.exr" in str(err.value) and "pip install" in str(err.value)
+    (tmp_path / "b.exr").write_bytes(b"v/1\x01")  # present, so the missing package is what fails
+    with pytest.raises(InputError, match="OpenEXR"):
+        read_image(tmp_path / "b.exr")

@@ -57,13 +57,25 @@ def read_image(path: str | os.PathLike, *, linear: bool = False, with_alpha: boo
     return np.ascontiguousarray(rgb)
 
 
+def _openexr(path: Path):
+    """The OpenEXR module, or an error naming the file and the package to install."""
+    try:
+        import OpenEXR
+    except ImportError:
+        raise InputError(
+            "reading or writing EXR needs the OpenEXR package, which is not installed",
+            path=path,
+            fix="pip install 'OpenEXR>=3.3' (a dependency of cfgs-jax: reinstall cfgs-jax), or use a .png name",
+        ) from None
+    return OpenEXR
+
+
 def image_size(path: str | os.PathLike) -> tuple[int, int]:
     """(width, height) of an image file from its header only (PIL formats and EXR)."""
     p = Path(path)
     suffix = p.suffix.lower()
     if suffix in EXR_SUFFIXES:
-        import OpenEXR
-
+        OpenEXR = _openexr(p)
         try:
             with OpenEXR.File(str(p), header_only=True) as f:
                 (x0, y0), (x1, y1) = f.header()["dataWindow"]
@@ -102,8 +114,7 @@ def _read_pil(p: Path) -> np.ndarray:
 
 
 def _read_exr(p: Path) -> np.ndarray:
-    import OpenEXR
-
+    OpenEXR = _openexr(p)
     try:
         with OpenEXR.File(str(p), separate_channels=True) as f:
             ch = {name: np.asarray(c.pixels, np.float32) for name, c in f.channels().items()}
@@ -133,8 +144,7 @@ def write_image(path: str | os.PathLike, img, *, linear: bool = False, captured:
     rgb, alpha = a[..., :3], a[..., 3:]
     suffix = p.suffix.lower()
     if suffix in EXR_SUFFIXES:
-        import OpenEXR
-
+        OpenEXR = _openexr(p)
         lin = rgb if linear else _to_linear(rgb)
         channels = {"R": lin[..., 0].copy(), "G": lin[..., 1].copy(), "B": lin[..., 2].copy()}
         if alpha.shape[-1]:
