@@ -20,6 +20,7 @@ from __future__ import annotations
 import argparse
 import json
 import resource
+import shlex
 import statistics
 import sys
 import tempfile
@@ -138,13 +139,13 @@ def main():
         "timed_steps": args.steps,
     }
     stem = f"train{args.tag}{backend_suffix()}"
-    command = "python benchmarks/bench_train.py " + " ".join(sys.argv[1:])
+    command = shlex.join(["python", "benchmarks/bench_train.py", *sys.argv[1:]])
     RESULTS.mkdir(parents=True, exist_ok=True)
     (RESULTS / f"{stem}.json").write_text(json.dumps(result, indent=2))
     lines = [
         "# Training-step benchmark",
         "",
-        f"Machine: {result['machine']}. Date: {result['date']}. Command: `{command.strip()}`.",
+        f"Machine: {result['machine']}. Date: {result['date']}. Command: `{command}`.",
         f"One {width}×{height} date of `corals` ({result['views']} views), {result['gaussians']:,} Gaussians in a buffer of "
         f"{result['buffer_capacity']:,}; medians over {args.steps} steps, kernel timed alternately with the step.",
         "",
