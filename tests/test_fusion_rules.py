@@ -99,6 +99,49 @@ def test_visibility_covers_every_view_of_a_date():
     assert rep["views_completed"] == 13 and rep["zeroed_per_date"] == [0, 1], rep
 
 
+def test_extend_visibility_added_checks_only_the_added_dates():
+    """The many-view scene with a third date (one view of the cluster) added: under
+    ``extend_visibility="added"`` only the added date's views are completed and only its column is
+    checked, so the side Gaussian keeps o^1 (no view of date 1 sees it, but date 1 was checked before)
+    and loses o^2; under "all" it loses both, and all 43 + 1 undrawn views are completed. A full
+    fusion (every date new) checks every date under either setting."""
+    model, views = _many_view_scene()
+    n = len(model)
+    cam2 = _camera(0.1)
+    views = [*views, _views(model.gaussians, [cam2])]
+    model = cj.TemporalGaussians(
+        model.gaussians,
+        jnp.full((n, 3), 8.0),
+        jnp.zeros((n, 3, 3)),
+        model.origin,
+        (*model.dates, cj.DateInfo("d2")),
+    )
+    side = int(np.argmin(np.abs(np.asarray(model.gaussians.means)[:, 0] - SIDE)))
+    steps = 1
+    seed = next(s for s in range(200) if view_order(s, 0, 44) not in (40, 43))  # draws neither
+    base = dict(steps=steps, visibility_interval=steps, seed=seed, **FROZEN)
+    o = {}
+    for setting in ("all", "added"):
+        cfg = rf.RefineConfig(extend_visibility=setting, **base)
+        out, rep = rf.refine(model, views, cfg, extent=1.0, new_dates=[2])
+        o[setting] = np.asarray(out.o_logits)
+        if setting == "all":
+            assert rep["views_completed"] == 43 and rep["visibility_dates"] == [0, 1, 2], rep
+            assert rep["zeroed_per_date"] == [0, 1, 1], rep
+        else:
+            assert rep["views_completed"] == 1 and rep["visibility_dates"] == [2], rep
+            assert rep["zeroed_per_date"] == [0, 0, 1], rep
+    assert o["all"][side, 1] == fusion.INVISIBLE_LOGIT and o["added"][side, 1] == 8.0
+    assert o["all"][side, 2] == o["added"][side, 2] == fusion.INVISIBLE_LOGIT
+    rest = np.arange(n) != side
+    assert np.all(o["added"][rest] == 8.0) and np.all(o["all"][rest] == 8.0)
+    # a fusion from scratch (every date new): every date is checked whatever the setting
+    assert rf.visibility_dates(rf.RefineConfig(extend_visibility="added"), 3, [0, 1, 2]).all()
+    assert rf.visibility_dates(rf.RefineConfig(extend_visibility="all"), 3, [2]).all()
+    with pytest.raises(cj.InputError, match="extend_visibility"):
+        rf.RefineConfig(extend_visibility="new")
+
+
 def test_change_loss_has_zero_subgradient_and_follows_the_visibility_rule():
     """|·| in L_change differentiates to 0 at 0 (jnp.abs gives 1 there, so under Adam an untouched
     entry drifted by ≈ lr_o per step), and an entry zeroed by visibility gets its õ zeroed too and

@@ -27,7 +27,10 @@ contributing. Every ``visibility_interval`` steps and at the end, a Gaussian tha
 training view of date p — the views drawn in the interval, the others completed with forward-only
 renders, so the rule covers every view of every date whatever the interval — gets o^p := 0 (logit
 ``INVISIBLE_LOGIT``); its õ^p follows (L_change no longer pulls it back) and its Adam moments restart,
-as INRIA's opacity reset does. The final prune drops Gaussians with α·o^p ≤ 1/255 at every date.
+as INRIA's opacity reset does. When a date is added to a refined model, ``extend_visibility="added"``
+checks only the added date's column and completes only its views: the other dates were checked by the
+refinement that made the model (that skips re-checking whether the added Gaussians now hide older ones
+at older dates). The final prune drops Gaussians with α·o^p ≤ 1/255 at every date.
 """
 
 from __future__ import annotations
@@ -72,6 +75,7 @@ class RefineConfig:
     lambda_change: float = 0.1
     halve_alpha: bool = True
     visibility_interval: int = 2000
+    extend_visibility: str = "all"  # "all" | "added": the dates the visibility rule checks when a date is added
     contribution_threshold: float = 0.01
     random_background: bool = True
     prune_threshold: float = 1.0 / 255.0
@@ -86,6 +90,10 @@ class RefineConfig:
             raise InputError(f"must be ≥ 1, got {self.view_batch}", field="refine.view_batch")
         if self.extend_steps < 0:
             raise InputError(f"must be ≥ 0 (0: refine.steps), got {self.extend_steps}", field="refine.extend_steps")
+        if self.extend_visibility not in ("all", "added"):
+            raise InputError(
+                f"must be 'all' or 'added', got {self.extend_visibility!r}", field="refine.extend_visibility"
+            )
         if self.visibility_interval <= 0:
             raise InputError(f"must be positive, got {self.visibility_interval}", field="refine.visibility_interval")
         if self.position_lr_scale < 0:
@@ -196,6 +204,20 @@ def _compiled_batch_step(
         return optax.apply_updates(params, updates), opt_state, jnp.mean(losses), contributed, jnp.any(overflowed)
 
     return step
+
+
+def visibility_dates(config: RefineConfig, num_dates: int, new_dates: Sequence[int]) -> np.ndarray:
+    """[T] bool: the dates whose columns the visibility rule checks. Every date, except when a
+    refinement adds dates to a refined model (``new_dates`` a proper subset) with
+    ``extend_visibility="added"``: then only the added dates. The other dates' o^p were checked by
+    the refinement that made the model, and the added Gaussians' o^p at them by cross-init's
+    projection test; occlusion by the added Gaussians is not re-checked there."""
+    checked = np.ones(num_dates, bool)
+    added = sorted(set(new_dates))
+    if config.extend_visibility == "added" and 0 < len(added) < num_dates:
+        checked[:] = False
+        checked[added] = True
+    return checked
 
 
 def visible_weight(max_weight: Float[Array, " N"], o_logits: Float[Array, " N"]) -> Float[Array, " N"]:
@@ -323,9 +345,11 @@ class _Refinement:
     snapshot_steps: Sequence[int] = ()
     on_snapshot: object = None
     mesh: object = None
+    new_dates: Sequence[int] = ()
 
     def __post_init__(self):
         self.light_logits = frozen_light(self.model)
+        self.checked = visibility_dates(self.config, self.model.num_dates, self.new_dates)
         self.flat = [(q, v) for q in range(len(self.views)) for v in range(len(self.views[q].cameras))]
         self.images = [[jnp.asarray(im, jnp.float32) for im in dv.images] for dv in self.views]
         shapes = [tuple(im.shape) for ims in self.images for im in ims]
@@ -354,11 +378,14 @@ class _Refinement:
         return np.asarray(seen)
 
     def check_visibility(self, c: _Carry) -> _Carry:
-        """Complete the views this interval did not draw, then apply the visibility rule."""
+        """Complete the views of the checked dates this interval did not draw, then apply the visibility
+        rule to those dates' columns (the others count as contributing)."""
         for idx in np.nonzero(~c.covered)[0]:
-            c.contributed[:, self.flat[idx][0]] |= self.contribution_of(c, *self.flat[idx])
-            c.completed += 1
-        c.params, c.opt_state, c.o_init, kill = zero_invisible(c.params, c.opt_state, c.o_init, c.contributed)
+            if self.checked[self.flat[idx][0]]:
+                c.contributed[:, self.flat[idx][0]] |= self.contribution_of(c, *self.flat[idx])
+                c.completed += 1
+        contributed = c.contributed | ~self.checked[None, :]
+        c.params, c.opt_state, c.o_init, kill = zero_invisible(c.params, c.opt_state, c.o_init, contributed)
         c.zeroed |= kill
         c.contributed[:] = False
         c.covered[:] = False
@@ -485,6 +512,7 @@ def refine(
         snapshot_steps,
         on_snapshot,
         mesh,
+        new_dates,
     )
     identity = _identity(run, new_dates)
     carry, start = _start(run, new_dates, checkpoint, identity)
@@ -528,6 +556,7 @@ def _finish(model, carry: _Carry, config: RefineConfig, new_dates) -> tuple[Temp
         "zeroed_per_date": carry.zeroed.sum(axis=0).tolist(),
         "views_completed": carry.completed,
         "halved_dates": new_dates if config.halve_alpha else [],
+        "visibility_dates": np.nonzero(visibility_dates(config, model.num_dates, new_dates))[0].tolist(),
         "gaussians_before_prune": len(model),
         "gaussians_after_prune": len(pruned),
     }

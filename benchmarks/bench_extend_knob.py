@@ -1,0 +1,228 @@
+"""Run time against error for one knob of the extension's refinement: a date added to a fused model
+(``extend``), its refinement and evaluation rerun under each value of the knob, side by side in one
+process, every row from the same cross-initialised extension.
+
+The extension to start from is either
+
+- ``--extended RUN``: a finished extension (e.g. ``bench_capture.py``'s WORK/incremental), or
+- ``--run RUN``: a finished fusion of all T dates (an ``eval`` run); its first T − 1 dates are fused
+  again from RUN's per-date models and configuration with ground-truth Sim(3)s, then extended by the
+  last date (WORK/prepared, resumable; not timed).
+
+Each row copies that run, drops the extension's refinement and evaluation, sets the knob, and runs
+them again (``run_extend``). Per row: the refinement's wall time and what it did (views completed by
+forward-only renders, entries the visibility rule zeroed per date, Gaussians after the prune), the
+extension's fusion time (merge + cross-init, shared, + this refinement) and, with ``--scratch``, its
+ratio to that from-scratch fusion's time; the test PSNR / SSIM / LPIPS per date; and unless
+``--no-change`` the ``changes`` detector's per-Gaussian F1, pixel IoU and false regions against the
+synthetic ground truth. The first value is the reference row. Writes
+benchmarks/results/extend_knob_<scene>_<key>.json and .md (``--name`` overrides the stem).
+
+    python benchmarks/bench_extend_knob.py --run RUN --data DATA --knob refine.extend_visibility \\
+        --values '"all"' '"added"' [--work /tmp/bench_extend_knob] [--set TABLE.KEY=VALUE] [--no-change]
+    python benchmarks/bench_extend_knob.py --extended WORK/incremental --scratch WORK/scratch \\
+        --data WORK/data --knob refine.extend_visibility --values '"all"' '"added"' --no-change
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import json
+import shlex
+import shutil
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bench_capture import FUSION_STAGES
+from bench_compact import change_scores
+from bench_speed_vs_error import worst_date_change
+from bench_splat import RESULTS, machine
+
+
+def _quiet(*args, **kwargs) -> None:
+    """A ``log`` for the runs: the benchmark prints its own lines."""
+
+
+def extension_date(state: dict) -> str:
+    """The name of the date the run's (only) extension added."""
+    names = {s.split(":")[1] for s in state["done"] if s.startswith("extend:")}
+    if len(names) != 1:
+        raise SystemExit(f"expected a run extended by one date, found extensions {sorted(names)}")
+    return names.pop()
+
+
+def prepare(run_dir: Path, data: Path, work: Path) -> Path:
+    """WORK/prepared: the first T − 1 dates of the fusion ``run_dir`` fused again (its per-date models
+    and configuration, ground-truth Sim(3)s), then extended by the last date; resumable."""
+    from cfgs_jax import synthetic
+    from cfgs_jax.fusion.run import run_extend, run_fusion
+    from cfgs_jax.io.atomic import read_json
+    from cfgs_jax.sim3 import Sim3
+
+    state = read_json(run_dir / "run.json")
+    names = [d["name"] for d in state["dates"]]
+    dirs = [Path(d["path"]) for d in state["dates"]]
+    models = [run_dir / "dates" / n / "point_cloud.ply" for n in names]
+    sims = synthetic.reference_transforms(data, names)
+    work.mkdir(parents=True, exist_ok=True)
+    transforms = work / "transforms.json"
+    transforms.write_text(json.dumps(sims))
+    out = work / "prepared"
+    done = read_json(out / "run.json")["done"] if (out / "run.json").is_file() else []
+    if "export" not in done:
+        run_fusion(
+            dirs[:-1], out, state["config"], models=models[:-1], transforms=transforms,
+            resume=(out / "run.json").is_file(), progress=False, evaluate=False, log=_quiet,
+        )  # fmt: skip
+        done = read_json(out / "run.json")["done"]
+    last = names[-1]
+    if f"extend:{last}:evaluate" not in done:
+        run_extend(
+            out, dirs[-1], model=models[-1], transform=Sim3.from_dict(sims[last]),
+            resume=any(s.startswith(f"extend:{last}:") for s in done), progress=False, log=_quiet,
+        )  # fmt: skip
+    return out
+
+
+def one_setting(prepared: Path, row_dir: Path, overrides: list[str], data: Path, change: bool) -> dict:
+    """The extension of ``prepared`` with its refinement, compaction and evaluation rerun in a copy
+    (``row_dir``) under ``overrides``: their figures and the changes detector's unless ``change`` is
+    false."""
+    from cfgs_jax.config import apply_overrides
+    from cfgs_jax.fusion.run import run_extend
+    from cfgs_jax.io.atomic import read_json, write_json
+
+    shutil.rmtree(row_dir, ignore_errors=True)
+    shutil.copytree(prepared, row_dir)
+    state = read_json(row_dir / "run.json")
+    name = extension_date(state)
+    prefix = f"extend:{name}:"
+    state["done"] = [s for s in state["done"] if s not in {prefix + "refine", prefix + "compact", prefix + "evaluate"}]
+    state["config"] = apply_overrides(state["config"], overrides)
+    write_json(row_dir / "run.json", state)
+    k = [d["name"] for d in state["dates"]].index(name)
+    model = state["models"][k] if state.get("models") else None
+    run_extend(row_dir, Path(state["dates"][k]["path"]), model=model, resume=True, progress=False, log=_quiet)
+
+    timings = read_json(row_dir / "timings.json")
+    report = read_json(row_dir / "report.json")[prefix + "refine"]
+    metrics = read_json(row_dir / "metrics.json")
+    row = {
+        "refine_s": timings[prefix + "refine"],
+        "fusion_s": sum(timings.get(prefix + s, 0.0) for s in FUSION_STAGES),
+        "views_completed": report["views_completed"],
+        "zeroed_per_date": report["zeroed_per_date"],
+        "visibility_dates": report.get("visibility_dates"),
+        "gaussians": report["gaussians_after_prune"],
+        "mean": metrics["mean"],
+        "dates": metrics["dates"],
+    }
+    return row | (change_scores(row_dir, data) if change else {})
+
+
+def fusion_seconds(run_dir: Path) -> float:
+    """A from-scratch fusion's time: its merge, cross-init, refinement and export."""
+    timings = json.loads((run_dir / "timings.json").read_text())
+    return sum(timings.get(s, 0.0) for s in FUSION_STAGES)
+
+
+def markdown(r: dict) -> str:
+    ref = r["rows"][0]
+    scratch = r.get("scratch_s")
+    lines = [
+        f"# The extension's refinement against error: `{r['knob']}` ({r['scene']})",
+        "",
+        f"Command: `{r['command']}`. {r['date']}, {r['machine']}. Extension: date {r['date_added']} added to "
+        f"`{r['prepared']}`; every row reruns its refinement and evaluation from the same cross-init. The "
+        "first row is the reference.",
+        "",
+    ]
+    if scratch:
+        lines += [
+            f"From-scratch fusion of all dates (`{r['scratch']}`, merge + cross-init + refine + export): "
+            f"{scratch:.0f} s, timed by its own run (`timings.json`), not in this process.",
+            "",
+        ]
+    head = "| value | refine (s) | × reference | extension fusion (s) |" + (" × scratch |" if scratch else "")
+    head += " views completed | zeroed per date | Gaussians | PSNR | ΔPSNR | worst date ΔPSNR | SSIM | LPIPS | ΔLPIPS"
+    head += " | `changes` F1 | ΔF1 | pixel IoU | false regions |"
+    lines += [head, "|" + "---|" * (head.count("|") - 1)]
+    for row in r["rows"]:
+        m, b = row["mean"], ref["mean"]
+        changes = (
+            f"{row['evidence_f1']:.3f} | {row['evidence_f1'] - ref['evidence_f1']:+.3f} | "
+            f"{row['evidence_iou']:.3f} | {row['false_regions']} |"
+            if "evidence_f1" in row and "evidence_f1" in ref
+            else "not measured | | | |"
+        )
+        lines.append(
+            f"| {row['value']} | {row['refine_s']:.0f} | {row['refine_s'] / ref['refine_s']:.2f} | "
+            f"{row['fusion_s']:.0f} | "
+            + (f"{row['fusion_s'] / scratch:.3f} | " if scratch else "")
+            + f"{row['views_completed']} | {', '.join(f'{z:,}' for z in row['zeroed_per_date'])} | "
+            f"{row['gaussians']:,} | {m['psnr']:.2f} | {m['psnr'] - b['psnr']:+.2f} | "
+            f"{worst_date_change(row, ref):+.2f} | {m['ssim']:.4f} | {m['lpips']:.4f} | "
+            f"{m['lpips'] - b['lpips']:+.4f} | " + changes
+        )
+    lines += ["", "Per date, PSNR / SSIM / LPIPS:", ""]
+    dates = list(ref["dates"])
+    lines += ["| value | " + " | ".join(dates) + " |", "|---|" + "---|" * len(dates)]
+    for row in r["rows"]:
+        cells = [
+            f"{row['dates'][d]['psnr']:.2f} / {row['dates'][d]['ssim']:.4f} / {row['dates'][d]['lpips']:.4f}"
+            for d in dates
+        ]
+        lines.append(f"| {row['value']} | " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    source = ap.add_mutually_exclusive_group(required=True)
+    source.add_argument("--run", help="a finished fusion of all dates: its last date is the one added")
+    source.add_argument("--extended", help="a finished extension run (copied, never changed)")
+    ap.add_argument("--data", required=True, help="the scene's dataset root (ground truth)")
+    ap.add_argument("--knob", required=True, help="TABLE.KEY, e.g. refine.extend_visibility")
+    ap.add_argument("--values", nargs="+", required=True, help="values (TOML); the first is the reference")
+    ap.add_argument("--set", action="append", default=[], dest="overrides", help="TABLE.KEY=VALUE for every row")
+    ap.add_argument("--scratch", help="a from-scratch fusion of all dates: the extension's time is set against it")
+    ap.add_argument("--work", default="/tmp/bench_extend_knob")
+    ap.add_argument("--name", default=None)
+    ap.add_argument("--no-change", action="store_true", help="skip change detection (hours at capture scale)")
+    args = ap.parse_args()
+
+    data, work = Path(args.data), Path(args.work)
+    prepared = Path(args.extended) if args.extended else prepare(Path(args.run), data, work)
+    state = json.loads((prepared / "run.json").read_text())
+    rows = []
+    for i, value in enumerate(args.values):
+        overrides = [*args.overrides, f"{args.knob}={value}"]
+        row = one_setting(prepared, work / f"row{i}", overrides, data, change=not args.no_change)
+        rows.append({"value": value} | row)
+        shown = ("value", "refine_s", "fusion_s", "views_completed", "mean", "evidence_f1")
+        print(json.dumps({k: rows[-1][k] for k in shown if k in rows[-1]}), flush=True)
+        shutil.rmtree(work / f"row{i}", ignore_errors=True)
+    preset = json.loads((data / "ground_truth.json").read_text()).get("preset", data.parent.name)
+    stem = args.name or f"extend_knob_{preset}_{args.knob.split('.')[-1]}"
+    result = {
+        "date": datetime.date.today().isoformat(),
+        "machine": machine(),
+        "command": shlex.join(["python", "benchmarks/bench_extend_knob.py", *sys.argv[1:]]),
+        "scene": preset,
+        "knob": args.knob,
+        "prepared": str(prepared),
+        "date_added": extension_date(state),
+        "scratch": args.scratch,
+        "scratch_s": fusion_seconds(Path(args.scratch)) if args.scratch else None,
+        "rows": rows,
+    }
+    RESULTS.mkdir(exist_ok=True)
+    (RESULTS / f"{stem}.json").write_text(json.dumps(result, indent=1))
+    (RESULTS / f"{stem}.md").write_text(markdown(result))
+    print(markdown(result))
+
+
+if __name__ == "__main__":
+    main()
