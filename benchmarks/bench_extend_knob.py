@@ -100,7 +100,8 @@ def one_setting(prepared: Path, row_dir: Path, overrides: list[str], data: Path,
     name = extension_date(state)
     prefix = f"extend:{name}:"
     state["done"] = [s for s in state["done"] if s not in {prefix + "refine", prefix + "compact", prefix + "evaluate"}]
-    state["config"] = apply_overrides(state["config"], overrides)
+    config = apply_overrides(state["config"], overrides)
+    state["config"] = {key: v for key, v in config.items() if key != "__path__"}  # as run.json keeps it
     write_json(row_dir / "run.json", state)
     k = [d["name"] for d in state["dates"]].index(name)
     model = state["models"][k] if state.get("models") else None
