@@ -731,6 +731,7 @@ def test_extend_adds_a_date_initialising_only_its_pairs(tiny_two_dates, fused_ru
     shutil.copytree(fused_run[0], run)
     state = json.loads((run / "run.json").read_text())  # the run's config: extension refines 7 steps, not 20
     state["config"]["refine"]["extend_steps"] = 7
+    state["config"]["refine"]["extend_visibility"] = "added"  # the visibility rule at the added date only
     (run / "run.json").write_text(json.dumps(state))
     common = ["--transforms", str(root / "transforms.json"), "--no-progress"]
     before = cj.io.read_fused(run / "fused")
@@ -744,6 +745,7 @@ def test_extend_adds_a_date_initialising_only_its_pairs(tiny_two_dates, fused_ru
     assert [r["pair"] for r in report["extend:d2:cross_init"]] == [[0, 2], [1, 2], [2, 0], [2, 1]]
     assert report["extend:d2:refine"]["steps"] == 7 and report["refine"]["steps"] == 20
     assert report["extend:d2:refine"]["halved_dates"] == [2] and report["refine"]["halved_dates"] == [0, 1]
+    assert report["extend:d2:refine"]["visibility_dates"] == [2] and report["refine"]["visibility_dates"] == [0, 1]
     fused = cj.io.read_fused(run / "fused")
     assert fused.num_dates == 3 and [d.name for d in fused.dates] == ["d0", "d1", "d2"]
     assert set(json.loads((run / "metrics.json").read_text())["dates"]) == {"d0", "d1", "d2"}
