@@ -35,14 +35,10 @@ import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_capture import FUSION_STAGES
 from bench_compact import change_scores
+from bench_incremental import _fusion_seconds, _quiet
 from bench_speed_vs_error import worst_date_change
 from bench_splat import RESULTS, machine
-
-
-def _quiet(*args, **kwargs) -> None:
-    """A ``log`` for the runs: the benchmark prints its own lines."""
 
 
 def extension_date(state: dict) -> str:
@@ -112,7 +108,7 @@ def one_setting(prepared: Path, row_dir: Path, overrides: list[str], data: Path,
     metrics = read_json(row_dir / "metrics.json")
     row = {
         "refine_s": timings[prefix + "refine"],
-        "fusion_s": sum(timings.get(prefix + s, 0.0) for s in FUSION_STAGES),
+        "fusion_s": _fusion_seconds(row_dir, prefix),
         "views_completed": report["views_completed"],
         "zeroed_per_date": report["zeroed_per_date"],
         "visibility_dates": report.get("visibility_dates"),
@@ -121,12 +117,6 @@ def one_setting(prepared: Path, row_dir: Path, overrides: list[str], data: Path,
         "dates": metrics["dates"],
     }
     return row | (change_scores(row_dir, data) if change else {})
-
-
-def fusion_seconds(run_dir: Path) -> float:
-    """A from-scratch fusion's time: its merge, cross-init, refinement and export."""
-    timings = json.loads((run_dir / "timings.json").read_text())
-    return sum(timings.get(s, 0.0) for s in FUSION_STAGES)
 
 
 def markdown(r: dict) -> str:
@@ -216,7 +206,7 @@ def main():
         "prepared": str(prepared),
         "date_added": extension_date(state),
         "scratch": args.scratch,
-        "scratch_s": fusion_seconds(Path(args.scratch)) if args.scratch else None,
+        "scratch_s": _fusion_seconds(Path(args.scratch)) if args.scratch else None,
         "rows": rows,
     }
     RESULTS.mkdir(exist_ok=True)

@@ -30,24 +30,8 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bench_extend_knob import extension_date
 from bench_splat import RESULTS, machine
-
-
-def max_weights(model, cameras, date: int, render_config) -> np.ndarray:
-    """[N] the largest compositing weight of each Gaussian over ``cameras`` at ``date``."""
-    import jax.numpy as jnp
-
-    from cfgs_jax import splat
-    from cfgs_jax.model import opacity_multipliers
-
-    o = opacity_multipliers(model)[:, date]
-    best = np.zeros(len(model), np.float32)
-    for cam in cameras:
-        cap = splat.required_capacity(model.gaussians, cam, jnp.asarray(o)[None], config=render_config)
-        rc = dataclasses.replace(render_config, capacity=cap)
-        res = splat.render(model.gaussians, cam, opacity_mult=o, config=rc)
-        best = np.maximum(best, np.asarray(res.max_weight))
-    return best
 
 
 def main():
@@ -63,11 +47,13 @@ def main():
     from cfgs_jax.fusion.evaluate import evaluate_fused
     from cfgs_jax.fusion.refine import refine
     from cfgs_jax.io import read_fused
+    from cfgs_jax.model import opacity_multipliers
     from cfgs_jax.render_run import open_run
+    from cfgs_jax.splat.weights import max_weight
 
     prepared = Path(args.prepared)
     state = json.loads((prepared / "run.json").read_text())
-    added = {s.split(":")[1] for s in state["done"] if s.startswith("extend:")}.pop()
+    added = extension_date(state)
     run = open_run(prepared)
     names = run.names
     k = names.index(added)
@@ -108,8 +94,9 @@ def main():
             continue
         rows_k = np.nonzero(kept[:, p])[0]
         sub = jnp.asarray(rows_k)
-        w_train = max_weights(out["added"], views[p].cameras, p, render_config)[rows_k]
-        w_test = max_weights(out["added"], tests[p].cameras, p, render_config)[rows_k]
+        o_p = opacity_multipliers(out["added"])[:, p]
+        w_train = max_weight(out["added"].gaussians, o_p, views[p].cameras, render_config=render_config)[rows_k]
+        w_test = max_weight(out["added"].gaussians, o_p, tests[p].cameras, render_config=render_config)[rows_k]
         rows.append(
             {
                 "date": names[p],
