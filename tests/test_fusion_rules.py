@@ -142,6 +142,54 @@ def test_extend_visibility_added_checks_only_the_added_dates():
         rf.RefineConfig(extend_visibility="new")
 
 
+def test_extend_visibility_drawn_checks_the_older_dates_whose_views_were_all_drawn():
+    """``extend_visibility="drawn"`` on the three-date scene: an older date is checked only where the
+    interval drew every one of its training views (so no completion render is needed). Two steps that
+    draw both views of date 1 (flat 41, 42): date 1 is checked and the side Gaussian loses o^1 as under
+    "all", date 0 (39 of 41 views undrawn) is not, and only the added date's one undrawn view is
+    completed. One step that draws none of date 1's views: as "added"."""
+    model, views = _many_view_scene()
+    n = len(model)
+    views = [*views, _views(model.gaussians, [_camera(0.1)])]
+    model = cj.TemporalGaussians(
+        model.gaussians,
+        jnp.full((n, 3), 8.0),
+        jnp.zeros((n, 3, 3)),
+        model.origin,
+        (*model.dates, cj.DateInfo("d2")),
+    )
+    side = int(np.argmin(np.abs(np.asarray(model.gaussians.means)[:, 0] - SIDE)))
+    both = next(s for s in range(20000) if {view_order(s, 0, 44), view_order(s, 1, 44)} == {41, 42})
+    neither = next(s for s in range(200) if view_order(s, 0, 44) not in (40, 41, 42, 43))
+    o, rep = {}, {}
+    for label, setting, seed, steps in (
+        ("all", "all", both, 2),
+        ("drawn", "drawn", both, 2),
+        ("added", "added", neither, 1),
+        ("drawn, none", "drawn", neither, 1),
+    ):
+        cfg = rf.RefineConfig(extend_visibility=setting, steps=steps, visibility_interval=steps, seed=seed, **FROZEN)
+        out, rep[label] = rf.refine(model, views, cfg, extent=1.0, new_dates=[2])
+        o[label] = np.asarray(out.o_logits)
+    assert rep["all"]["views_completed"] == 42 and rep["all"]["visibility_dates"] == [0, 1, 2]
+    assert rep["drawn"]["views_completed"] == 1 and rep["drawn"]["visibility_dates"] == [1, 2], rep["drawn"]
+    assert rep["drawn"]["zeroed_per_date"] == rep["all"]["zeroed_per_date"] == [0, 1, 1]
+    assert o["drawn"][side, 1] == fusion.INVISIBLE_LOGIT and o["drawn"][side, 0] == 8.0
+    np.testing.assert_array_equal(o["drawn"], o["all"])  # date 0 has nothing to zero in either
+    assert rep["drawn, none"]["views_completed"] == 1 and rep["drawn, none"]["visibility_dates"] == [2]
+    assert rep["drawn, none"]["zeroed_per_date"] == [0, 0, 1]
+    np.testing.assert_array_equal(o["drawn, none"], o["added"])
+    assert o["added"][side, 1] == 8.0 and o["added"][side, 2] == fusion.INVISIBLE_LOGIT
+    # a fusion from scratch checks every date; a date with every view drawn is checked in an extension
+    assert rf.visibility_dates(rf.RefineConfig(), 3, [0, 1, 2]).all()
+    assert rf.visibility_dates(rf.RefineConfig(), 3, [2], drawn=[True, False, False]).tolist() == [True, False, True]
+    assert rf.visibility_dates(rf.RefineConfig(extend_visibility="added"), 3, [2], [True] * 3).tolist() == [
+        False,
+        False,
+        True,
+    ]
+
+
 def test_change_loss_has_zero_subgradient_and_follows_the_visibility_rule():
     """|·| in L_change differentiates to 0 at 0 (jnp.abs gives 1 there, so under Adam an untouched
     entry drifted by ≈ lr_o per step), and an entry zeroed by visibility gets its õ zeroed too and

@@ -27,10 +27,14 @@ contributing. Every ``visibility_interval`` steps and at the end, a Gaussian tha
 training view of date p — the views drawn in the interval, the others completed with forward-only
 renders, so the rule covers every view of every date whatever the interval — gets o^p := 0 (logit
 ``INVISIBLE_LOGIT``); its õ^p follows (L_change no longer pulls it back) and its Adam moments restart,
-as INRIA's opacity reset does. When a date is added to a refined model, ``extend_visibility="added"``
-checks only the added date's column and completes only its views: the other dates were checked by the
-refinement that made the model (that skips re-checking whether the added Gaussians now hide older ones
-at older dates). The final prune drops Gaussians with α·o^p ≤ 1/255 at every date.
+as INRIA's opacity reset does. When a date is added to a refined model, ``extend_visibility`` says
+which older dates a check covers: ``"all"`` every one; ``"added"`` none (only the added date's column is
+checked and only its views completed: the older dates were checked by the refinement that made the
+model, which skips re-checking whether the added Gaussians are hidden at older dates or hide older
+ones); ``"drawn"`` (the default) each older date whose every training view the interval drew — there the
+rule's evidence is complete without a completion render, so it is checked exactly as ``"all"`` checks it,
+and the older dates that would need completion renders are left as ``"added"`` leaves them. The final
+prune drops Gaussians with α·o^p ≤ 1/255 at every date.
 """
 
 from __future__ import annotations
@@ -57,6 +61,8 @@ from cfgs_jax.model import TemporalGaussians, exposure_rows, gaussians_of, train
 from cfgs_jax.train.config import TrainConfig
 from cfgs_jax.train.step import over_background
 
+EXTEND_VISIBILITY = ("all", "added", "drawn")
+
 
 @dataclasses.dataclass(frozen=True)
 class RefineConfig:
@@ -75,7 +81,7 @@ class RefineConfig:
     lambda_change: float = 0.1
     halve_alpha: bool = True
     visibility_interval: int = 2000
-    extend_visibility: str = "all"  # "all" | "added": the dates the visibility rule checks when a date is added
+    extend_visibility: str = "drawn"  # "all" | "added" | "drawn": the older dates a check covers when a date is added
     contribution_threshold: float = 0.01
     random_background: bool = True
     prune_threshold: float = 1.0 / 255.0
@@ -90,9 +96,10 @@ class RefineConfig:
             raise InputError(f"must be ≥ 1, got {self.view_batch}", field="refine.view_batch")
         if self.extend_steps < 0:
             raise InputError(f"must be ≥ 0 (0: refine.steps), got {self.extend_steps}", field="refine.extend_steps")
-        if self.extend_visibility not in ("all", "added"):
+        if self.extend_visibility not in EXTEND_VISIBILITY:
             raise InputError(
-                f"must be 'all' or 'added', got {self.extend_visibility!r}", field="refine.extend_visibility"
+                f"must be one of {', '.join(map(repr, EXTEND_VISIBILITY))}, got {self.extend_visibility!r}",
+                field="refine.extend_visibility",
             )
         if self.visibility_interval <= 0:
             raise InputError(f"must be positive, got {self.visibility_interval}", field="refine.visibility_interval")
@@ -206,17 +213,22 @@ def _compiled_batch_step(
     return step
 
 
-def visibility_dates(config: RefineConfig, num_dates: int, new_dates: Sequence[int]) -> np.ndarray:
-    """[T] bool: the dates whose columns the visibility rule checks. Every date, except when a
-    refinement adds dates to a refined model (``new_dates`` a proper subset) with
-    ``extend_visibility="added"``: then only the added dates. The other dates' o^p were checked by
-    the refinement that made the model, and the added Gaussians' o^p at them by cross-init's
-    projection test; occlusion by the added Gaussians is not re-checked there."""
+def visibility_dates(
+    config: RefineConfig, num_dates: int, new_dates: Sequence[int], drawn: Sequence[bool] | None = None
+) -> np.ndarray:
+    """[T] bool: the dates whose columns a visibility check covers. Every date, except when a refinement
+    adds dates to a refined model (``new_dates`` a proper subset): then ``extend_visibility="added"``
+    checks only the added dates, and ``"drawn"`` the added dates and each date whose every training view
+    the interval drew (``drawn``: [T] bool; none if not given). An unchecked date keeps the o^p the
+    refinement that made the model checked, and the added Gaussians' o^p there come from cross-init's
+    projection test: occlusion by or of the added Gaussians is not re-checked at it."""
     checked = np.ones(num_dates, bool)
     added = sorted(set(new_dates))
-    if config.extend_visibility == "added" and 0 < len(added) < num_dates:
+    if config.extend_visibility != "all" and 0 < len(added) < num_dates:
         checked[:] = False
         checked[added] = True
+        if config.extend_visibility == "drawn" and drawn is not None:
+            checked |= np.asarray(drawn, bool)
     return checked
 
 
@@ -349,8 +361,9 @@ class _Refinement:
 
     def __post_init__(self):
         self.light_logits = frozen_light(self.model)
-        self.checked = visibility_dates(self.config, self.model.num_dates, self.new_dates)
         self.flat = [(q, v) for q in range(len(self.views)) for v in range(len(self.views[q].cameras))]
+        self.flat_date = np.asarray([q for q, _ in self.flat], np.int64)
+        self.last_checked = visibility_dates(self.config, self.model.num_dates, self.new_dates)
         self.images = [[jnp.asarray(im, jnp.float32) for im in dv.images] for dv in self.views]
         shapes = [tuple(im.shape) for ims in self.images for im in ims]
         check_view_batch(self.config.view_batch, shapes, self.mesh, field="refine.view_batch")
@@ -380,11 +393,15 @@ class _Refinement:
     def check_visibility(self, c: _Carry) -> _Carry:
         """Complete the views of the checked dates this interval did not draw, then apply the visibility
         rule to those dates' columns (the others count as contributing)."""
+        t = self.model.num_dates
+        drawn = np.bincount(self.flat_date, weights=~c.covered, minlength=t) == 0  # every view of the date drawn
+        checked = visibility_dates(self.config, t, self.new_dates, drawn)
         for idx in np.nonzero(~c.covered)[0]:
-            if self.checked[self.flat[idx][0]]:
+            if checked[self.flat[idx][0]]:
                 c.contributed[:, self.flat[idx][0]] |= self.contribution_of(c, *self.flat[idx])
                 c.completed += 1
-        contributed = c.contributed | ~self.checked[None, :]
+        contributed = c.contributed | ~checked[None, :]
+        self.last_checked = checked
         c.params, c.opt_state, c.o_init, kill = zero_invisible(c.params, c.opt_state, c.o_init, contributed)
         c.zeroed |= kill
         c.contributed[:] = False
@@ -541,12 +558,13 @@ def refine(
         )
     if done < config.steps:
         return None, {"stopped_at": done}
-    pruned, report = _finish(model, carry, config, new_dates)
+    pruned, report = _finish(model, carry, config, new_dates, run.last_checked)
     return pruned, report | {"resumed_at_step": start, "seconds_before_resume": carry.seconds}
 
 
-def _finish(model, carry: _Carry, config: RefineConfig, new_dates) -> tuple[TemporalGaussians, dict]:
-    """The refined model finally pruned, and the report."""
+def _finish(model, carry: _Carry, config: RefineConfig, new_dates, checked) -> tuple[TemporalGaussians, dict]:
+    """The refined model finally pruned, and the report (``checked``: the dates the last visibility check
+    covered)."""
     pruned = final_prune(with_trainable(model, carry.params), config.prune_threshold)
     losses = carry.losses
     report = {
@@ -556,7 +574,7 @@ def _finish(model, carry: _Carry, config: RefineConfig, new_dates) -> tuple[Temp
         "zeroed_per_date": carry.zeroed.sum(axis=0).tolist(),
         "views_completed": carry.completed,
         "halved_dates": new_dates if config.halve_alpha else [],
-        "visibility_dates": np.nonzero(visibility_dates(config, model.num_dates, new_dates))[0].tolist(),
+        "visibility_dates": np.nonzero(checked)[0].tolist(),
         "gaussians_before_prune": len(model),
         "gaussians_after_prune": len(pruned),
     }
