@@ -34,15 +34,11 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bench_incremental import FUSION_STAGES, _quiet
 from bench_splat import RESULTS, machine
 
-FUSION_STAGES = ("merge", "cross_init", "refine", "export")
 PATHS = ("scratch", "incremental")
 DATES = 6
-
-
-def _quiet(*args, **kwargs) -> None:
-    """A ``log`` for the runs: the benchmark prints its own lines."""
 
 
 def _done(run: Path, stage: str) -> bool:
