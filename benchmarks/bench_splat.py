@@ -8,7 +8,8 @@ Writes benchmarks/results/splat.json and splat.md, naming the machine.
     python benchmarks/bench_splat.py --quick    # the 20k case and the ratios only (→ results/splat_quick.md)
     python benchmarks/bench_splat.py --large    # the capture-sized cases (1M Gaussians, 1080p; → results/splat_large.md)
 
-On an accelerator the files are named ``splat_gpu.*`` (``splat_quick_gpu.*``), beside the CPU ones.
+On an accelerator the files are named after the chip and backend, ``splat_h100_gpu.*`` (``splat_quick_h200_gpu.*``),
+beside the CPU ones.
 """
 
 from __future__ import annotations
@@ -155,12 +156,19 @@ def machine() -> str:
 
 
 def backend_suffix() -> str:
-    """The result files' suffix: empty on the CPU, ``_gpu`` (the backend's name) on an accelerator, so
-    that an accelerator run never overwrites the CPU tables."""
+    """The result files' suffix: empty on the CPU; on an accelerator the chip and the backend, e.g.
+    ``_h200_gpu``, so that an accelerator run never overwrites the CPU tables nor another chip's."""
+    import re
+
     import jax
 
     backend = jax.default_backend()
-    return "" if backend == "cpu" else f"_{backend}"
+    if backend == "cpu":
+        return ""
+    kind = jax.devices()[0].device_kind  # e.g. "NVIDIA H100 80GB HBM3", "NVIDIA H200"
+    chip = re.search(r"\b([A-Z]+\d+[A-Za-z]*)\b", kind)
+    name = chip.group(1) if chip else re.sub(r"[^A-Za-z0-9]+", "", kind) or "device"
+    return f"_{name.lower()}_{backend}"
 
 
 def device_peak_gb() -> float | None:

@@ -7,7 +7,7 @@ target count (a model of the size a trained date reaches). The step is ``train.m
 kernel alone — ``splat.render_dates`` forward and backward (VJP of the rendered image) with the same
 Gaussians, capacity and views — over the full step time, both timed alternately in one process.
 One densify-and-prune round is timed as well. Writes benchmarks/results/train.json and train.md
-(``train_gpu.*`` on a GPU; ``--tag`` adds to the name).
+(``train_h100_gpu.*`` on an H100; ``--tag`` adds to the name). ``XLA_FLAGS``, when set, is recorded.
 
     python benchmarks/bench_train.py [--gaussians 50000] [--steps 30] [--width 320 --height 240]
     python benchmarks/bench_train.py --data DIR   # render the date into DIR once, reuse it after
@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import resource
 import shlex
 import statistics
@@ -137,6 +138,7 @@ def main():
         "peak_rss_gb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e6,
         "device_peak_gb": device_peak_gb(),
         "timed_steps": args.steps,
+        "xla_flags": os.environ.get("XLA_FLAGS") or None,
     }
     stem = f"train{args.tag}{backend_suffix()}"
     command = shlex.join(["python", "benchmarks/bench_train.py", *sys.argv[1:]])
@@ -145,7 +147,8 @@ def main():
     lines = [
         "# Training-step benchmark",
         "",
-        f"Machine: {result['machine']}. Date: {result['date']}. Command: `{command}`.",
+        f"Machine: {result['machine']}. Date: {result['date']}. Command: `{command}`"
+        + (f" with `XLA_FLAGS={result['xla_flags']}`." if result["xla_flags"] else "."),
         f"One {width}×{height} date of `corals` ({result['views']} views), {result['gaussians']:,} Gaussians in a buffer of "
         f"{result['buffer_capacity']:,}; medians over {args.steps} steps, kernel timed alternately with the step.",
         "",
