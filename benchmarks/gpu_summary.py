@@ -9,9 +9,11 @@ from __future__ import annotations
 
 import json
 import re
+import sys
 from pathlib import Path
 
-RESULTS = Path(__file__).resolve().parent / "results"
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bench_splat import RESULTS
 
 # (row label, result stem without the device suffix, what to read)
 KERNEL_ROWS = [
