@@ -172,6 +172,8 @@ def main():
                     "groups_merged": rep["groups_merged"],
                     "test": rep["test_mean_after"],
                     "test_per_date": rep["test_after"],
+                    "test_before": rep["test_mean_before"],
+                    "test_before_per_date": rep["test_before"],
                     "stage_seconds": seconds,
                 }
             )
@@ -221,6 +223,21 @@ def markdown(result: dict) -> str:
         f"| {knob} | Gaussians | removed | PSNR | Δ dB | SSIM | Δ | LPIPS | Δ | worst date Δ dB | worst date Δ LPIPS | render ratio | stage (s) |",
         "|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
+    if "test_before" in ref:  # the fused model as the run left it, before any recovery step
+        b = ref["test_before"]
+        fused_worst = {
+            label(r): min(
+                r["test_per_date"][d]["psnr"] - ref["test_before_per_date"][d]["psnr"] for d in r["test_per_date"]
+            )
+            for r in result["rows"]
+        }
+        lines[-2:-2] = [
+            f"The fused model before compaction: PSNR {b['psnr']:.2f}, SSIM {b['ssim']:.4f}, LPIPS {b['lpips']:.4f}; "
+            "each row's worst date against it, Δ dB: "
+            + ", ".join(f"{k} {v:+.2f}" for k, v in fused_worst.items())
+            + ".",
+            "",
+        ]
     for r in result["rows"]:
         t, rt = r["test"], ref["test"]
         dates = r["test_per_date"]

@@ -1,7 +1,10 @@
 """Cross-timestep compaction on hand-built models: which copies merge, and the merge's closed forms."""
 
+import dataclasses
+
 import jax.numpy as jnp
 import numpy as np
+import pytest
 from scipy.spatial.transform import Rotation
 
 import cfgs_jax as cj
@@ -398,3 +401,33 @@ def test_per_date_budget_keeps_every_dates_removal_change_within_its_own_share()
     per_date = dropped("per_date")
     assert per_date.astype(int).tolist() == [0, 0, 0, 1, 1]
     assert np.all(removal[per_date].sum(0) <= 3.0)
+
+
+def test_recovery_config_scales_the_shape_and_colour_rates_and_leaves_o_and_positions():
+    """The recovery after a compaction: the refinement's colour, opacity, scale and rotation rates times
+    ``recovery_rate_scale``, o's rate and the position schedule as they were, α not halved; the
+    optimiser built from it moves a colour by the scaled rate (Adam's first step is lr · sign)."""
+    import jax
+
+    from cfgs_jax.fusion.compact import recovery_config
+    from cfgs_jax.fusion.refine import RefineConfig
+    from cfgs_jax.fusion.updates import refinement_optimizer
+    from cfgs_jax.model import SH_C0
+
+    base = RefineConfig(lr_color=2e-5, lr_alpha=0.005, lr_other=5e-5, lr_o=2.5e-6, position_lr_scale=0.5)
+    rc = recovery_config(base, CompactConfig(refine_steps=7, recovery_rate_scale=40.0, lr_light=0.003))
+    assert (rc.steps, rc.halve_alpha, rc.lr_light) == (7, False, 0.003)
+    assert np.allclose([rc.lr_color, rc.lr_alpha, rc.lr_other], [8e-4, 0.2, 2e-3], rtol=1e-12)
+    assert (rc.lr_o, rc.position_lr_scale, rc.seed) == (base.lr_o, base.position_lr_scale, base.seed)
+    shapes = {"means": 3, "quats": 4, "log_scales": 3, "opacity_logits": 1, "colors": 3, "o_logits": 2}
+    params = {k: jnp.zeros((2, m)) for k, m in shapes.items()} | {"light_logits": jnp.zeros((2, 2, 3))}
+    opt = refinement_optimizer(dataclasses.replace(rc, position_lr_scale=0.0), extent=1.0)
+    grads = jax.tree.map(jnp.ones_like, params)
+    updates, _ = opt.update(grads, opt.init(params), params)
+    assert np.allclose(updates["colors"], -8e-4 * SH_C0, rtol=1e-5)
+    assert np.allclose(updates["log_scales"], -2e-3, rtol=1e-5)
+    assert np.allclose(updates["opacity_logits"], -0.2, rtol=1e-5)
+    assert np.allclose(updates["o_logits"], -2.5e-6, rtol=1e-5)
+    assert np.allclose(updates["light_logits"], -0.003, rtol=1e-5)
+    with pytest.raises(cj.InputError, match="recovery_rate_scale"):
+        CompactConfig(recovery_rate_scale=0.0)

@@ -562,6 +562,49 @@ def test_refine_with_trainable_light_fits_a_dimmer_date_that_frozen_light_cannot
         rf.RefineConfig(lr_light=-1.0)
 
 
+def test_refine_with_learned_masks_switches_off_a_redundant_copy_and_keeps_the_renders():
+    """Two dates, each drawn by the same 60 Gaussians stacked on each other (two copies of one surface);
+    both dates' images are one copy's render. With learned masks on date 1's copies alone, the masks
+    switch off most of them (the date-0 copies render the images alone), no date-0 Gaussian goes, and
+    the renders stay close to the images; without masks nothing is removed. Off-range knobs are refused."""
+    rf = importlib.import_module("cfgs_jax.fusion.refine")
+    ci = importlib.import_module("cfgs_jax.fusion.cross_init")
+    g = _random_gaussians(60, seed=12)
+    cams = tuple(
+        cj.Camera.look_at([x, -0.3, -2.6], [0, 0, 0], up=(0, -1, 0), width=48, height=36, fov_x_deg=60)
+        for x in (-0.3, 0.3)
+    )
+    images = tuple(np.asarray(splat.render(g, c).image) for c in cams)
+    views = [ci.DateViews(cams, images)] * 2
+    model = fusion.merge([g, g], ["a", "b"])
+    model = dataclasses.replace(model, o_logits=jnp.full_like(jnp.asarray(model.o_logits), 6.0))
+    maskable = np.asarray(model.origin) == 1
+    common = dict(steps=300, visibility_interval=1000, random_background=False, halve_alpha=False, lr_alpha=0.0)
+    cfg = rf.RefineConfig(mask_lambda=0.002, **common)
+    masked, rep = rf.refine(model, views, cfg, extent=1.0, maskable=maskable)
+    plain, rep_plain = rf.refine(model, views, rf.RefineConfig(**common), extent=1.0, maskable=maskable)
+    assert rep_plain["masked_out"] == 0 and len(plain) == len(model)
+    assert rep["masked_out"] >= 55, rep  # of the 60 redundant copies
+    assert np.sum(np.asarray(masked.origin) == 0) == 60  # not maskable: all kept
+    assert len(masked) == len(model) - rep["masked_out"]
+    # the stacked pair at the start renders over-opaque; the masked model is close to the images
+    stacked = [np.mean(np.abs(np.asarray(splat.render(model.gaussians, c).image) - im)) for c, im in zip(cams, images)]
+    for date in (0, 1):
+        o = cj.opacity_multipliers(masked)[:, date]
+        light = cj.light_multipliers(masked)[:, date]
+        for cam, image, before in zip(cams, images, stacked):
+            drawn = np.asarray(splat.render_dates(masked.gaussians, cam, o[None], light[None]).image[0])
+            assert np.mean(np.abs(drawn - image)) < 0.25 * before
+    # images that need both copies (the stacked render itself): the masks keep nearly all of them
+    needed = [ci.DateViews(cams, tuple(np.asarray(splat.render(model.gaussians, c).image) for c in cams))] * 2
+    _, rep_needed = rf.refine(model, needed, cfg, extent=1.0, maskable=maskable)
+    assert rep_needed["masked_out"] <= 6, rep_needed
+    with pytest.raises(cj.InputError, match="mask_until"):
+        rf.RefineConfig(mask_until=0.0)
+    with pytest.raises(cj.InputError, match="mask_lambda"):
+        rf.RefineConfig(mask_lambda=-1.0)
+
+
 @pytest.fixture(scope="module")
 def tiny_two_dates(tmp_path_factory):
     """Two corals dates at 64×48 (6 views each) and their ground-truth date → reference Sim(3)s."""

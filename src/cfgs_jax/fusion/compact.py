@@ -54,7 +54,14 @@ at the light multiplier l^q that cross-initialisation fitted for it.
 
 A short refinement afterwards (``CompactConfig.refine_steps``) recovers what the merge and the drop
 moved; with ``lr_light`` > 0 it also fits the light multipliers l^q, so that a copy of one date that
-takes over at another date can take on that date's appearance.
+takes over at another date can take on that date's appearance. ``recovery_rate_scale`` multiplies the
+refinement's rates of colour, opacity, scales and rotations in that recovery (the paper's refinement
+rates are 10–125× below the input training's, small enough that a kept copy hardly changes colour).
+With ``mask_lambda`` > 0 the recovery also learns which of the Gaussians that mark no change can go
+(``refine``'s learned masks: in the first ``mask_until`` of the recovery each is drawn with its opacity
+times σ(m), against a penalty ``mask_lambda`` · mean σ(m); then those with σ(m) ≤ ½ are switched off
+and the rest of the recovery adapts to their absence): the removal is decided while the others adapt,
+not before.
 """
 
 from __future__ import annotations
@@ -74,6 +81,7 @@ from scipy.spatial.transform import Rotation
 
 from cfgs_jax.errors import InputError
 from cfgs_jax.fusion.light import light_logits
+from cfgs_jax.fusion.refine import RefineConfig
 from cfgs_jax.model import Gaussians, TemporalGaussians, exposure_table, light_multipliers, logit, rgb, select
 
 
@@ -100,6 +108,9 @@ class CompactConfig:
     hidden_budget: Literal["total", "per_date"] = "total"  # the removal share: of all dates' change, or each date's
     refine_steps: int = 500
     lr_light: float = 0.0  # light rate of the recovery refinement (0: l frozen, as in the fusion's refinement)
+    recovery_rate_scale: float = 1.0  # × the refinement's colour, opacity, scale and rotation rates in the recovery
+    mask_lambda: float = 0.0  # learned masks in the recovery: weight of their penalty (0: off)
+    lr_mask: float = 0.02  # Adam rate of the recovery's mask logits
 
     def __post_init__(self):
         for name in (
@@ -121,6 +132,17 @@ class CompactConfig:
             raise InputError(f"must be ≥ 0, got {self.refine_steps}", field="compact.refine_steps")
         if self.lr_light < 0:
             raise InputError(f"must be ≥ 0 (0: l frozen), got {self.lr_light}", field="compact.lr_light")
+        if self.mask_lambda < 0 or self.lr_mask <= 0:
+            raise InputError(
+                f"mask_lambda must be ≥ 0 and lr_mask > 0, got {self.mask_lambda} and {self.lr_mask}",
+                field="compact.mask_lambda",
+            )
+        if self.recovery_rate_scale <= 0:
+            raise InputError(
+                f"must be > 0, got {self.recovery_rate_scale}",
+                field="compact.recovery_rate_scale",
+                fix="1 keeps the refinement's rates",
+            )
         if self.hidden_rank not in ("weight", "removal"):
             raise InputError(
                 f"unknown ranking {self.hidden_rank!r}", field="compact.hidden_rank", fix='use "weight" or "removal"'
@@ -404,6 +426,25 @@ def hidden_persistent(
         spent += cost[k]
     hidden[rows[taken]] = True
     return hidden
+
+
+def recovery_config(refine_config: RefineConfig, config: CompactConfig) -> RefineConfig:
+    """The refinement that follows a compaction: ``config.refine_steps`` steps of ``refine_config``
+    with α not halved, the light rate ``config.lr_light``, the colour, opacity, scale and rotation
+    rates times ``config.recovery_rate_scale`` (o's rate and the position schedule unchanged), and the
+    learned masks' ``mask_lambda`` and ``lr_mask``."""
+    k = config.recovery_rate_scale
+    return dataclasses.replace(
+        refine_config,
+        steps=config.refine_steps,
+        halve_alpha=False,
+        lr_light=config.lr_light,
+        lr_color=k * refine_config.lr_color,
+        lr_alpha=k * refine_config.lr_alpha,
+        lr_other=k * refine_config.lr_other,
+        mask_lambda=config.mask_lambda,
+        lr_mask=config.lr_mask,
+    )
 
 
 def compact(

@@ -57,7 +57,7 @@ from cfgs_jax.fusion.cross_init import DateViews
 from cfgs_jax.fusion.updates import halve_alpha_of, refinement_optimizer, zero_invisible
 from cfgs_jax.io.checkpoint import read_meta, restore_tree, save_tree
 from cfgs_jax.loop import Progress, check_view_batch, run_steps, step_with_capacity, view_batch, view_order
-from cfgs_jax.model import TemporalGaussians, exposure_rows, gaussians_of, trainable, with_trainable
+from cfgs_jax.model import TemporalGaussians, exposure_rows, gaussians_of, select, trainable, with_trainable
 from cfgs_jax.train.config import TrainConfig
 from cfgs_jax.train.step import over_background
 
@@ -88,6 +88,9 @@ class RefineConfig:
     checkpoint_every: int = 500
     view_batch: int = 1  # training views per step (their mean loss; split over the devices of a mesh)
     seed: int = 0
+    mask_lambda: float = 0.0  # weight of the learned-mask penalty on the maskable Gaussians (0: no masks)
+    lr_mask: float = 0.02  # Adam rate of the mask logits
+    mask_until: float = 0.6  # the share of the steps in which the masks learn; then they stay as they are
 
     def __post_init__(self):
         if self.steps < 0:
@@ -107,6 +110,13 @@ class RefineConfig:
             raise InputError(f"must be ≥ 0, got {self.position_lr_scale}", field="refine.position_lr_scale")
         if self.lr_light < 0:
             raise InputError(f"must be ≥ 0 (0: l frozen), got {self.lr_light}", field="refine.lr_light")
+        if not 0 < self.mask_until <= 1:
+            raise InputError(f"must be in (0, 1], got {self.mask_until}", field="refine.mask_until")
+        if self.mask_lambda < 0 or self.lr_mask <= 0:
+            raise InputError(
+                f"mask_lambda must be ≥ 0 and lr_mask > 0, got {self.mask_lambda} and {self.lr_mask}",
+                field="refine.mask_lambda",
+            )
 
 
 def opacity_differences(o: jnp.ndarray) -> jnp.ndarray:
@@ -136,12 +146,38 @@ def frozen_light(model: TemporalGaussians):
     return logits if model.exposure is None else (logits, exposure_rows(model))
 
 
+MASK_INIT_LOGIT = 2.0  # a learned mask starts at σ(2) ≈ 0.88: on, and 2 logits from switching off
+
+
+def learned_mask(params) -> Float[Array, " N"]:
+    """The mask of a refinement with learned masks, on the maskable Gaussians (1 on the others): σ(m)
+    while the masks learn, so that the penalty lowers a Gaussian's opacity only as far as the images let
+    it; the 0/1 decision M = [σ(m) > ½] once they are fixed (``params["mask_hard"]`` = 1)."""
+    soft = jax.nn.sigmoid(params["mask_logits"])
+    mask = jnp.where(params["mask_hard"] > 0, (soft > 0.5).astype(soft.dtype), soft)
+    return jnp.where(params["maskable"] > 0, mask, 1.0)
+
+
+def mask_steps(config: RefineConfig) -> int:
+    """The steps in which learned masks learn (``mask_until`` of the refinement's)."""
+    return int(round(config.mask_until * config.steps))
+
+
+def mask_penalty(params) -> jnp.ndarray:
+    """The mean σ(m) over the maskable Gaussians: the term whose weight ``mask_lambda`` trades the
+    Gaussians kept against the photometric loss."""
+    maskable = params["maskable"]
+    return jnp.sum(maskable * jax.nn.sigmoid(params["mask_logits"])) / jnp.maximum(jnp.sum(maskable), 1.0)
+
+
 def _date_render(params, light_logits, camera, date, background, render_config):
     """Date ``date``'s render of the model ``params`` (opacity α·o^date, colour l^date ⊙ c, l from
     ``params`` where it is trained, else the frozen ``light_logits``; ``frozen_light``: with an
-    exposure row per Gaussian, l times it)."""
+    exposure row per Gaussian, l times it; times the ``learned_mask`` where ``params`` has masks)."""
     g = gaussians_of(params)
     o = jax.nn.sigmoid(params["o_logits"][:, date])
+    if "mask_logits" in params:
+        o = o * learned_mask(params)
     frozen, exposure = light_logits if isinstance(light_logits, tuple) else (light_logits, None)
     light = 2.0 * jax.nn.sigmoid(params.get("light_logits", frozen)[:, date])
     light = light if exposure is None else light * exposure[:, date]
@@ -155,7 +191,10 @@ def refine_loss(params, light_logits, o_init, camera, image, date, background, c
     target = over_background(image, background)
     l1 = jnp.mean(jnp.abs(pred - target))
     photometric = (1.0 - config.lambda_dssim) * l1 + config.lambda_dssim * metrics.d_ssim(pred, target)
-    return photometric + config.lambda_change * change_loss(params["o_logits"], o_init), res
+    loss = photometric + config.lambda_change * change_loss(params["o_logits"], o_init)
+    if "mask_logits" in params:
+        loss = loss + config.mask_lambda * mask_penalty(params)
+    return loss, res
 
 
 @functools.lru_cache(maxsize=16)
@@ -301,6 +340,10 @@ def _start(run: _Refinement, new_dates, checkpoint, identity: dict) -> tuple[_Ca
     (refused unless its ``identity`` matches); and the step to start from."""
     model, config = run.model, run.config
     params = trainable(model) | ({"light_logits": jnp.asarray(model.light_logits)} if config.lr_light else {})
+    if run.maskable is not None:
+        maskable = jnp.asarray(np.asarray(run.maskable, np.float32))
+        start = jnp.full(len(model), MASK_INIT_LOGIT, jnp.float32)
+        params |= {"mask_logits": start, "maskable": maskable, "mask_hard": jnp.zeros((), jnp.float32)}
     if config.halve_alpha and new_dates:
         params = halve_alpha_of(params, np.isin(np.asarray(model.origin), new_dates))
     n, t = len(model), model.num_dates
@@ -339,6 +382,7 @@ def _identity(run: _Refinement, new_dates) -> dict:
         "dates": run.model.num_dates,
         "extent": float(run.extent),
         "new_dates": new_dates,
+        "maskable": None if run.maskable is None else int(np.sum(run.maskable)),
     }
 
 
@@ -358,6 +402,7 @@ class _Refinement:
     on_snapshot: object = None
     mesh: object = None
     new_dates: Sequence[int] = ()
+    maskable: np.ndarray | None = None  # [N] bool: the Gaussians whose masks are learnt (mask_lambda > 0)
 
     def __post_init__(self):
         self.light_logits = frozen_light(self.model)
@@ -456,6 +501,8 @@ class _Refinement:
         """The visibility rule every ``visibility_interval`` steps and at the end; snapshots."""
         config = self.config
         done = it + 1
+        if "mask_logits" in c.params and done == mask_steps(config):  # the masks are fixed from here on
+            c.params = parallel.replicate(c.params | {"mask_hard": jnp.ones((), jnp.float32)}, self.batch_mesh)
         if done % config.visibility_interval == 0 or done == config.steps:
             c = self.check_visibility(c)
             c.params, c.opt_state, c.o_init = parallel.replicate((c.params, c.opt_state, c.o_init), self.batch_mesh)
@@ -500,6 +547,7 @@ def refine(
     snapshot_steps: Sequence[int] = (),
     on_snapshot=None,
     mesh=None,
+    maskable=None,
 ):
     """Eq. 3 refinement of a cross-initialised model on all dates' training views, the visibility
     rule every ``visibility_interval`` steps and at the end, then the final prune. Returns the model
@@ -515,8 +563,18 @@ def refine(
     is called after each step k in ``snapshot_steps`` (< ``config.steps``) with the model as it stands,
     finally pruned (the visibility rule is left to its interval) — the paper's "saved iteration
     checkpoints". ``mesh`` (``parallel.device_mesh``): split each step's ``config.view_batch`` views
-    over its devices (the parameters replicated, the gradient all-reduced)."""
+    over its devices (the parameters replicated, the gradient all-reduced).
+
+    Learned masks (with ``config.mask_lambda`` > 0 and ``maskable``, an [N] bool): each maskable
+    Gaussian i gets a mask logit m_i (start ``MASK_INIT_LOGIT``), and the loss gains
+    ``mask_lambda`` · mean σ(m) over the maskable Gaussians. In the first ``mask_until`` of the steps
+    each such Gaussian is drawn with its opacity times σ(m_i), and the penalty lowers it as far as the
+    images let it; then the masks are fixed to M_i = [σ(m_i) > ½] (``learned_mask``), and the rest of
+    the steps recover with the set they chose. The Gaussians with M_i = 0 are removed with the final
+    prune (their count is the report's ``masked_out``)."""
     config = config or RefineConfig()
+    if maskable is None and config.mask_lambda:  # nothing maskable: no masks
+        config = dataclasses.replace(config, mask_lambda=0.0)
     train_config = train_config or TrainConfig()
     new_dates = _check_inputs(model, views, new_dates)
     run = _Refinement(
@@ -530,6 +588,7 @@ def refine(
         on_snapshot,
         mesh,
         new_dates,
+        None if not config.mask_lambda else np.asarray(maskable, bool),
     )
     identity = _identity(run, new_dates)
     carry, start = _start(run, new_dates, checkpoint, identity)
@@ -565,7 +624,11 @@ def refine(
 def _finish(model, carry: _Carry, config: RefineConfig, new_dates, checked) -> tuple[TemporalGaussians, dict]:
     """The refined model finally pruned, and the report (``checked``: the dates the last visibility check
     covered)."""
-    pruned = final_prune(with_trainable(model, carry.params), config.prune_threshold)
+    refined, masked_out = with_trainable(model, carry.params), 0
+    if "mask_logits" in carry.params:
+        off = (np.asarray(learned_mask(carry.params)) <= 0.5) & (np.asarray(carry.params["maskable"]) > 0)
+        refined, masked_out = select(refined, np.nonzero(~off)[0]), int(off.sum())
+    pruned = final_prune(refined, config.prune_threshold)
     losses = carry.losses
     report = {
         "steps": config.steps,
@@ -577,5 +640,6 @@ def _finish(model, carry: _Carry, config: RefineConfig, new_dates, checked) -> t
         "visibility_dates": np.nonzero(checked)[0].tolist(),
         "gaussians_before_prune": len(model),
         "gaussians_after_prune": len(pruned),
+        "masked_out": masked_out,
     }
     return pruned, report

@@ -34,7 +34,7 @@ from cfgs_jax.changes.evidence import ChangesConfig
 from cfgs_jax.compiled_code import release_if_near_limit
 from cfgs_jax.config import check_sections, section
 from cfgs_jax.errors import InputError
-from cfgs_jax.fusion.compact import CompactConfig, compact, contributions
+from cfgs_jax.fusion.compact import CompactConfig, compact, contributions, marks_no_change, recovery_config
 from cfgs_jax.fusion.cross_init import CrossInitConfig, DateViews, init_pairs, pair_groups
 from cfgs_jax.fusion.fuse import merge
 from cfgs_jax.fusion.refine import RefineConfig, refine
@@ -570,7 +570,8 @@ def compact_stage(run: FusionRun, config: CompactConfig, views, scenes, sims, re
         f"{config.refine_steps:,} refinement steps"
     )
     if config.refine_steps:
-        rc = dataclasses.replace(refine_config, steps=config.refine_steps, halve_alpha=False, lr_light=config.lr_light)
+        rc = recovery_config(refine_config, config)
+        maskable = marks_no_change(compacted, observe(compacted), config.present) if config.mask_lambda else None
         extent = train.scene_extent(scenes[run.reference].cameras)
         tc = section(run.raw, "train", train.TrainConfig)
         compacted, refined = refine(
@@ -583,8 +584,10 @@ def compact_stage(run: FusionRun, config: CompactConfig, views, scenes, sims, re
             render_config=render_config,
             progress=progress,
             mesh=run.mesh,
+            maskable=maskable,
         )
         report["refine"] = refined
+        report["masked_out"] = refined["masked_out"]
         report["gaussians_after"] = len(compacted)
     write_fused(run.out / "fused", compacted, config=run.state["config"])
     after = evaluate_fused(compacted, test_views, render_config=render_config, mesh=run.mesh)
