@@ -603,6 +603,8 @@ def test_refine_with_learned_masks_switches_off_a_redundant_copy_and_keeps_the_r
         rf.RefineConfig(mask_until=0.0)
     with pytest.raises(cj.InputError, match="mask_lambda"):
         rf.RefineConfig(mask_lambda=-1.0)
+    with pytest.raises(cj.InputError, match="compact.mask_lambda"):  # masks without the Gaussians they may remove
+        rf.refine(model, views, cfg, extent=1.0)
 
 
 @pytest.fixture(scope="module")
@@ -1041,8 +1043,9 @@ def test_visibility_rule_leaves_persistence_out_and_zeroes_hidden_gaussians():
 def test_compact_cli_merges_in_place_reports_and_refuses_twice(fused_run, tmp_path):
     """`compact --run`: the model before is kept, the fused model and the authors' layout hold the
     compacted one (its count as reported), the report has every date's test metrics before and after,
-    and a second compaction is refused. Loose criteria make sure some Gaussians do merge here, and
-    hidden_share 0.1 that some hidden copies go."""
+    and a second compaction is refused. Loose criteria make sure some Gaussians do merge here,
+    hidden_share 0.1 that some hidden copies go, and learned masks with a large rate that the recovery
+    removes some more."""
     import json
     import shutil
 
@@ -1052,11 +1055,11 @@ def test_compact_cli_merges_in_place_reports_and_refuses_twice(fused_run, tmp_pa
     run = tmp_path / "run"
     shutil.copytree(fused_run[0], run)
     loose = ["--set", "compact.max_distance=3.0", "--set", "compact.max_colour_difference=0.3"]
-    loose += ["--set", "compact.hidden_share=0.1"]
+    loose += ["--set", "compact.hidden_share=0.1", "--set", "compact.mask_lambda=1.0", "--set", "compact.lr_mask=2.0"]
     args = ["compact", "--run", str(run), "--set", "compact.refine_steps=4", *loose, "--no-progress"]
     assert main(args) == 0
     report = json.loads((run / "compact.json").read_text())
-    assert report["hidden_pruned"] > 0 and report["groups_merged"] > 0
+    assert report["hidden_pruned"] > 0 and report["groups_merged"] > 0 and report["masked_out"] > 0
     before, after = read_fused(run / "before_compact"), read_fused(run / "fused")
     assert report["gaussians_before"] == len(before) and report["gaussians_after"] == len(after) < len(before)
     assert sum(report["per_date_after"].values()) == len(before) - (len(before) - len(after))

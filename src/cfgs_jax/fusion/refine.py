@@ -573,8 +573,12 @@ def refine(
     the steps recover with the set they chose. The Gaussians with M_i = 0 are removed with the final
     prune (their count is the report's ``masked_out``)."""
     config = config or RefineConfig()
-    if maskable is None and config.mask_lambda:  # nothing maskable: no masks
-        config = dataclasses.replace(config, mask_lambda=0.0)
+    if maskable is None and config.mask_lambda:
+        raise InputError(
+            "learned masks need the Gaussians they may remove (refine(..., maskable=...))",
+            field="refine.mask_lambda",
+            fix="leave refine.mask_lambda at 0; in a run, set compact.mask_lambda (the compaction's recovery learns them)",
+        )
     train_config = train_config or TrainConfig()
     new_dates = _check_inputs(model, views, new_dates)
     run = _Refinement(

@@ -589,6 +589,8 @@ def compact_stage(run: FusionRun, config: CompactConfig, views, scenes, sims, re
         report["refine"] = refined
         report["masked_out"] = refined["masked_out"]
         report["gaussians_after"] = len(compacted)
+        origin = np.asarray(compacted.origin)
+        report["per_date_after"] = {name: int(np.sum(origin == d)) for d, name in enumerate(compacted.date_names)}
     write_fused(run.out / "fused", compacted, config=run.state["config"])
     after = evaluate_fused(compacted, test_views, render_config=render_config, mesh=run.mesh)
     report["test_before"], report["test_after"] = before["dates"], after["dates"]
