@@ -415,13 +415,14 @@ def test_recovery_config_scales_the_shape_and_colour_rates_and_leaves_o_and_posi
     from cfgs_jax.model import SH_C0
 
     base = RefineConfig(lr_color=2e-5, lr_alpha=0.005, lr_other=5e-5, lr_o=2.5e-6, position_lr_scale=0.5)
-    rc = recovery_config(base, CompactConfig(refine_steps=7, recovery_rate_scale=40.0, lr_light=0.003))
-    assert (rc.steps, rc.halve_alpha, rc.lr_light) == (7, False, 0.003)
+    config = CompactConfig(refine_steps=7, recovery_rate_scale=40.0, lr_light=0.003, mask_lambda=0.01, mask_until=0.5)
+    rc = recovery_config(base, config)
+    assert (rc.steps, rc.halve_alpha, rc.lr_light, rc.mask_lambda, rc.mask_until) == (7, False, 0.003, 0.01, 0.5)
     assert np.allclose([rc.lr_color, rc.lr_alpha, rc.lr_other], [8e-4, 0.2, 2e-3], rtol=1e-12)
     assert (rc.lr_o, rc.position_lr_scale, rc.seed) == (base.lr_o, base.position_lr_scale, base.seed)
     shapes = {"means": 3, "quats": 4, "log_scales": 3, "opacity_logits": 1, "colors": 3, "o_logits": 2}
     params = {k: jnp.zeros((2, m)) for k, m in shapes.items()} | {"light_logits": jnp.zeros((2, 2, 3))}
-    opt = refinement_optimizer(dataclasses.replace(rc, position_lr_scale=0.0), extent=1.0)
+    opt = refinement_optimizer(dataclasses.replace(rc, position_lr_scale=0.0, mask_lambda=0.0), extent=1.0)
     grads = jax.tree.map(jnp.ones_like, params)
     updates, _ = opt.update(grads, opt.init(params), params)
     assert np.allclose(updates["colors"], -8e-4 * SH_C0, rtol=1e-5)

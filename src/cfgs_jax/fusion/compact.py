@@ -111,6 +111,7 @@ class CompactConfig:
     recovery_rate_scale: float = 1.0  # × the refinement's colour, opacity, scale and rotation rates in the recovery
     mask_lambda: float = 0.0  # learned masks in the recovery: weight of their penalty (0: off)
     lr_mask: float = 0.02  # Adam rate of the recovery's mask logits
+    mask_until: float = 0.6  # the share of the recovery in which the masks learn (then fixed 0/1)
 
     def __post_init__(self):
         for name in (
@@ -137,6 +138,8 @@ class CompactConfig:
                 f"mask_lambda must be ≥ 0 and lr_mask > 0, got {self.mask_lambda} and {self.lr_mask}",
                 field="compact.mask_lambda",
             )
+        if not 0 < self.mask_until <= 1:
+            raise InputError(f"must be in (0, 1], got {self.mask_until}", field="compact.mask_until")
         if self.recovery_rate_scale <= 0:
             raise InputError(
                 f"must be > 0, got {self.recovery_rate_scale}",
@@ -432,7 +435,7 @@ def recovery_config(refine_config: RefineConfig, config: CompactConfig) -> Refin
     """The refinement that follows a compaction: ``config.refine_steps`` steps of ``refine_config``
     with α not halved, the light rate ``config.lr_light``, the colour, opacity, scale and rotation
     rates times ``config.recovery_rate_scale`` (o's rate and the position schedule unchanged), and the
-    learned masks' ``mask_lambda`` and ``lr_mask``."""
+    learned masks' ``mask_lambda``, ``lr_mask`` and ``mask_until``."""
     k = config.recovery_rate_scale
     return dataclasses.replace(
         refine_config,
@@ -444,6 +447,7 @@ def recovery_config(refine_config: RefineConfig, config: CompactConfig) -> Refin
         lr_other=k * refine_config.lr_other,
         mask_lambda=config.mask_lambda,
         lr_mask=config.lr_mask,
+        mask_until=config.mask_until,
     )
 
 
