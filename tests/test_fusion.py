@@ -536,21 +536,27 @@ def test_refine_lowers_the_loss_keeps_the_model_finite_and_resumes_exactly(tmp_p
         rf.refine(model, views, dataclasses.replace(cfg, lr_o=1e-3), extent=1.0, checkpoint=ckpt)
 
 
+def _one_set_at_two_dates(seed):
+    """60 random Gaussians g, two cameras, g's renders there, and the two-date model of g at both dates
+    (o ≈ 1 everywhere)."""
+    g = _random_gaussians(60, seed=seed)
+    cams = tuple(
+        cj.Camera.look_at([x, -0.3, -2.6], [0, 0, 0], up=(0, -1, 0), width=48, height=36, fov_x_deg=60)
+        for x in (-0.3, 0.3)
+    )
+    images = tuple(np.asarray(splat.render(g, c).image) for c in cams)
+    model = fusion.merge([g, g], ["a", "b"])
+    return cams, images, dataclasses.replace(model, o_logits=jnp.full_like(jnp.asarray(model.o_logits), 6.0))
+
+
 def test_refine_with_trainable_light_fits_a_dimmer_date_that_frozen_light_cannot():
     """One set of Gaussians at both dates; date 1's images are date 0's at 0.6 of the brightness. With
     l frozen (the paper), one colour must serve both dates; with ``lr_light`` the date-1 multipliers
     fall toward 0.6 (date 0's stay near 1) and the last loss is lower. ``lr_light`` 0 leaves l as it was."""
     rf = importlib.import_module("cfgs_jax.fusion.refine")
     ci = importlib.import_module("cfgs_jax.fusion.cross_init")
-    g = _random_gaussians(60, seed=11)
-    cams = tuple(
-        cj.Camera.look_at([x, -0.3, -2.6], [0, 0, 0], up=(0, -1, 0), width=48, height=36, fov_x_deg=60)
-        for x in (-0.3, 0.3)
-    )
-    images = [np.asarray(splat.render(g, c).image) for c in cams]
+    cams, images, model = _one_set_at_two_dates(11)
     views = [ci.DateViews(cams, tuple(np.float32(im * k) for im in images)) for k in (1.0, 0.6)]
-    model = fusion.merge([g, g], ["a", "b"])
-    model = dataclasses.replace(model, o_logits=jnp.full_like(jnp.asarray(model.o_logits), 6.0))
     common = dict(steps=200, visibility_interval=1000, random_background=False, halve_alpha=False, lr_color=1e-3)
     frozen, rep_frozen = rf.refine(model, views, rf.RefineConfig(**common), extent=1.0)
     lit, rep_lit = rf.refine(model, views, rf.RefineConfig(lr_light=0.01, **common), extent=1.0)
@@ -569,15 +575,8 @@ def test_refine_with_learned_masks_switches_off_a_redundant_copy_and_keeps_the_r
     the renders stay close to the images; without masks nothing is removed. Off-range knobs are refused."""
     rf = importlib.import_module("cfgs_jax.fusion.refine")
     ci = importlib.import_module("cfgs_jax.fusion.cross_init")
-    g = _random_gaussians(60, seed=12)
-    cams = tuple(
-        cj.Camera.look_at([x, -0.3, -2.6], [0, 0, 0], up=(0, -1, 0), width=48, height=36, fov_x_deg=60)
-        for x in (-0.3, 0.3)
-    )
-    images = tuple(np.asarray(splat.render(g, c).image) for c in cams)
+    cams, images, model = _one_set_at_two_dates(12)
     views = [ci.DateViews(cams, images)] * 2
-    model = fusion.merge([g, g], ["a", "b"])
-    model = dataclasses.replace(model, o_logits=jnp.full_like(jnp.asarray(model.o_logits), 6.0))
     maskable = np.asarray(model.origin) == 1
     common = dict(steps=300, visibility_interval=1000, random_background=False, halve_alpha=False, lr_alpha=0.0)
     cfg = rf.RefineConfig(mask_lambda=0.002, **common)
