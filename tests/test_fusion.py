@@ -598,18 +598,6 @@ def test_refine_with_learned_masks_switches_off_a_redundant_copy_and_keeps_the_r
     needed = [ci.DateViews(cams, tuple(np.asarray(splat.render(model.gaussians, c).image) for c in cams))] * 2
     _, rep_needed = rf.refine(model, needed, cfg, extent=1.0, maskable=maskable)
     assert rep_needed["masked_out"] <= 6, rep_needed
-    # fixing the masks: a kept maskable Gaussian takes σ(m) into α, so its drawn opacity does not jump
-    params = {
-        "opacity_logits": jnp.asarray([0.0, 1.0, 2.0, -1.0]),
-        "mask_logits": jnp.asarray([1.0, -1.0, 0.5, 3.0]),
-        "maskable": jnp.asarray([1.0, 1.0, 1.0, 0.0]),
-        "mask_hard": jnp.zeros(()),
-    }
-    fixed = rf.fix_masks(params)
-    drawn = lambda p: np.asarray(jax.nn.sigmoid(p["opacity_logits"]) * rf.learned_mask(p))
-    sig = lambda x: 1.0 / (1.0 + np.exp(-np.asarray(x, np.float64)))
-    np.testing.assert_allclose(drawn(fixed), [sig(0) * sig(1), 0.0, sig(2) * sig(0.5), sig(-1)], rtol=1e-5)
-    np.testing.assert_allclose(drawn(params)[[0, 2, 3]], drawn(fixed)[[0, 2, 3]], rtol=1e-5)
     with pytest.raises(cj.InputError, match="mask_until"):
         rf.RefineConfig(mask_until=0.0)
     with pytest.raises(cj.InputError, match="mask_lambda"):

@@ -57,7 +57,7 @@ from cfgs_jax.fusion.cross_init import DateViews
 from cfgs_jax.fusion.updates import halve_alpha_of, refinement_optimizer, zero_invisible
 from cfgs_jax.io.checkpoint import read_meta, restore_tree, save_tree
 from cfgs_jax.loop import Progress, check_view_batch, run_steps, step_with_capacity, view_batch, view_order
-from cfgs_jax.model import TemporalGaussians, exposure_rows, gaussians_of, logit, select, trainable, with_trainable
+from cfgs_jax.model import TemporalGaussians, exposure_rows, gaussians_of, select, trainable, with_trainable
 from cfgs_jax.train.config import TrainConfig
 from cfgs_jax.train.step import over_background
 
@@ -161,17 +161,6 @@ def learned_mask(params) -> Float[Array, " N"]:
 def mask_steps(config: RefineConfig) -> int:
     """The steps in which learned masks learn (``mask_until`` of the refinement's)."""
     return int(round(config.mask_until * config.steps))
-
-
-def fix_masks(params: dict) -> dict:
-    """``params`` with the learned masks fixed: M = [σ(m) > ½] from now on, and each maskable Gaussian
-    kept takes its σ(m) into its opacity (α := α·σ(m)), so that the render changes only by the
-    Gaussians switched off."""
-    soft = jax.nn.sigmoid(params["mask_logits"])
-    folds = (params["maskable"] > 0) & (soft > 0.5)
-    alpha = jax.nn.sigmoid(params["opacity_logits"]) * jnp.where(folds, soft, 1.0)
-    opacity = jnp.where(folds, logit(alpha), params["opacity_logits"])
-    return params | {"opacity_logits": opacity, "mask_hard": jnp.ones((), jnp.float32)}
 
 
 def mask_penalty(params) -> jnp.ndarray:
@@ -513,7 +502,7 @@ class _Refinement:
         config = self.config
         done = it + 1
         if "mask_logits" in c.params and done == mask_steps(config):  # the masks are fixed from here on
-            c.params = parallel.replicate(fix_masks(c.params), self.batch_mesh)
+            c.params = parallel.replicate(c.params | {"mask_hard": jnp.ones((), jnp.float32)}, self.batch_mesh)
         if done % config.visibility_interval == 0 or done == config.steps:
             c = self.check_visibility(c)
             c.params, c.opt_state, c.o_init = parallel.replicate((c.params, c.opt_state, c.o_init), self.batch_mesh)
@@ -580,9 +569,8 @@ def refine(
     Gaussian i gets a mask logit m_i (start ``MASK_INIT_LOGIT``), and the loss gains
     ``mask_lambda`` · mean σ(m) over the maskable Gaussians. In the first ``mask_until`` of the steps
     each such Gaussian is drawn with its opacity times σ(m_i), and the penalty lowers it as far as the
-    images let it; then the masks are fixed to M_i = [σ(m_i) > ½] (``fix_masks``: a Gaussian kept takes
-    σ(m_i) into its opacity, so the render changes only by those switched off), and the rest of the
-    steps recover with the set they chose. The Gaussians with M_i = 0 are removed with the final
+    images let it; then the masks are fixed to M_i = [σ(m_i) > ½] (``learned_mask``), and the rest of
+    the steps recover with the set they chose. The Gaussians with M_i = 0 are removed with the final
     prune (their count is the report's ``masked_out``)."""
     config = config or RefineConfig()
     if maskable is None and config.mask_lambda:
