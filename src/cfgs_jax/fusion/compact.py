@@ -431,6 +431,12 @@ def hidden_persistent(
     return hidden
 
 
+def per_date_counts(model: TemporalGaussians) -> dict[str, int]:
+    """The model's Gaussians per origin date, by date name."""
+    origin = np.asarray(model.origin)
+    return {name: int(np.sum(origin == d)) for d, name in enumerate(model.date_names)}
+
+
 def recovery_config(refine_config: RefineConfig, config: CompactConfig) -> RefineConfig:
     """The refinement that follows a compaction: ``config.refine_steps`` steps of ``refine_config``
     with α not halved, the light rate ``config.lr_light``, the colour, opacity, scale and rotation
@@ -492,14 +498,13 @@ def compact(
     labels = duplicate_groups(model, config)
     merged, kept = merge_groups(model, labels, config)
     out = select(merged, np.nonzero(kept)[0])
-    names, before, after = model.date_names, np.asarray(full.origin), np.asarray(out.origin)
     report = {
         "gaussians_before": len(full),
         "gaussians_after": len(out),
         "hidden_pruned": hidden_count,
         "presence_restored": restored_count,
         "groups_merged": int(np.sum(np.bincount(labels) > 1)),
-        "per_date_before": {names[d]: int(np.sum(before == d)) for d in range(model.num_dates)},
-        "per_date_after": {names[d]: int(np.sum(after == d)) for d in range(model.num_dates)},
+        "per_date_before": per_date_counts(full),
+        "per_date_after": per_date_counts(out),
     }
     return out, report

@@ -92,6 +92,11 @@ class RefineConfig:
     lr_mask: float = 0.02  # Adam rate of the mask logits
     mask_until: float = 0.6  # the share of the steps in which the masks learn; then they stay as they are
 
+    @property
+    def mask_steps(self) -> int:
+        """The steps in which learned masks learn (``mask_until`` of ``steps``); they are fixed after."""
+        return int(round(self.mask_until * self.steps))
+
     def __post_init__(self):
         if self.steps < 0:
             raise InputError(f"must be ≥ 0, got {self.steps}", field="refine.steps")
@@ -156,11 +161,6 @@ def learned_mask(params) -> Float[Array, " N"]:
     soft = jax.nn.sigmoid(params["mask_logits"])
     mask = jnp.where(params["mask_hard"] > 0, (soft > 0.5).astype(soft.dtype), soft)
     return jnp.where(params["maskable"] > 0, mask, 1.0)
-
-
-def mask_steps(config: RefineConfig) -> int:
-    """The steps in which learned masks learn (``mask_until`` of the refinement's)."""
-    return int(round(config.mask_until * config.steps))
 
 
 def mask_penalty(params) -> jnp.ndarray:
@@ -501,7 +501,7 @@ class _Refinement:
         """The visibility rule every ``visibility_interval`` steps and at the end; snapshots."""
         config = self.config
         done = it + 1
-        if "mask_logits" in c.params and done == mask_steps(config):  # the masks are fixed from here on
+        if "mask_logits" in c.params and done == config.mask_steps:  # the masks are fixed from here on
             c.params = parallel.replicate(c.params | {"mask_hard": jnp.ones((), jnp.float32)}, self.batch_mesh)
         if done % config.visibility_interval == 0 or done == config.steps:
             c = self.check_visibility(c)

@@ -34,7 +34,14 @@ from cfgs_jax.changes.evidence import ChangesConfig
 from cfgs_jax.compiled_code import release_if_near_limit
 from cfgs_jax.config import check_sections, section
 from cfgs_jax.errors import InputError
-from cfgs_jax.fusion.compact import CompactConfig, compact, contributions, marks_no_change, recovery_config
+from cfgs_jax.fusion.compact import (
+    CompactConfig,
+    compact,
+    contributions,
+    marks_no_change,
+    per_date_counts,
+    recovery_config,
+)
 from cfgs_jax.fusion.cross_init import CrossInitConfig, DateViews, init_pairs, pair_groups
 from cfgs_jax.fusion.fuse import merge
 from cfgs_jax.fusion.refine import RefineConfig, refine
@@ -589,8 +596,7 @@ def compact_stage(run: FusionRun, config: CompactConfig, views, scenes, sims, re
         report["refine"] = refined
         report["masked_out"] = refined["masked_out"]
         report["gaussians_after"] = len(compacted)
-        origin = np.asarray(compacted.origin)
-        report["per_date_after"] = {name: int(np.sum(origin == d)) for d, name in enumerate(compacted.date_names)}
+        report["per_date_after"] = per_date_counts(compacted)
     write_fused(run.out / "fused", compacted, config=run.state["config"])
     after = evaluate_fused(compacted, test_views, render_config=render_config, mesh=run.mesh)
     report["test_before"], report["test_after"] = before["dates"], after["dates"]

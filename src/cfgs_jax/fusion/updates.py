@@ -97,8 +97,7 @@ def refinement_optimizer(
     if config.lr_light:  # l trained too (the paper keeps it frozen)
         rates["light_logits"] = config.lr_light
     if config.mask_lambda:  # learned masks: their logits trained for the first mask_until of the steps
-        until = int(round(config.mask_until * config.steps))
-        mask_rate = optax.piecewise_constant_schedule(config.lr_mask, {until: 0.0})
+        mask_rate = optax.piecewise_constant_schedule(config.lr_mask, {config.mask_steps: 0.0})
         rates |= {"mask_logits": mask_rate, "maskable": 0.0, "mask_hard": 0.0}
     return per_field_adam(rates, eps=1e-15)
 
