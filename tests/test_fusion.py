@@ -1153,7 +1153,9 @@ def test_a_compacted_run_round_trips_both_layouts_and_can_be_extended(tiny_two_d
     sets = ["--set", "compact.hidden_threshold=0.05", "--set", "compact.refine_steps=2"]
     assert main(["compact", "--run", str(run), *sets, "--no-progress"]) == 0
     compacted = read_fused(run / "fused")
-    assert json.loads((run / "compact.json").read_text())["hidden_pruned"] > 0
+    report = json.loads((run / "compact.json").read_text())
+    assert report["hidden_pruned"] > 0
+    assert report["config"]["hidden_threshold"] == 0.05 and report["config"]["refine_steps"] == 2
     for layout in ("cfgs", "reference"):
         write_fused(tmp_path / layout, compacted, layout=layout)
         back = read_fused(tmp_path / layout)

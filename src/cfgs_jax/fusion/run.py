@@ -551,8 +551,8 @@ def _identity_for_one_date(run: FusionRun) -> None:
 def compact_stage(run: FusionRun, config: CompactConfig, views, scenes, sims, render_config, progress, log) -> dict:
     """Cross-timestep compaction of ``RUN/fused`` (``fusion.compact``), then ``config.refine_steps`` of
     refinement (α not halved) to recover what the merge moved → ``RUN/fused``; the model before is kept
-    in ``RUN/before_compact``. Returns the report: Gaussians before/after per date and in all, and
-    each date's test PSNR / SSIM / LPIPS before and after."""
+    in ``RUN/before_compact``. Returns the report: the settings, Gaussians before/after per date and in
+    all, and each date's test PSNR / SSIM / LPIPS before and after."""
     from cfgs_jax.fusion.evaluate import evaluate_fused
     from cfgs_jax.splat.weights import observed_matrix
 
@@ -571,6 +571,7 @@ def compact_stage(run: FusionRun, config: CompactConfig, views, scenes, sims, re
         return observed_matrix(m, cams, refine_config.contribution_threshold, render_config=render_config)
 
     compacted, report = compact(model, config, measure if config.prunes_hidden else None, observe)
+    report["config"] = dataclasses.asdict(config)  # the [compact] settings this run was compacted with
     log(
         f"[compact] {report['gaussians_before']:,} → {report['gaussians_after']:,} Gaussians "
         f"({report['hidden_pruned']:,} hidden copies dropped, {report['groups_merged']:,} groups merged); "
