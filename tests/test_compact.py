@@ -59,6 +59,7 @@ def test_a_persistent_pair_merges_and_a_changed_one_does_not():
     out, report = compact(model)
     assert report["gaussians_before"] == 4 and report["gaussians_after"] == 3 and report["groups_merged"] == 1
     assert report["per_date_after"] == {"d0": 2, "d1": 1}
+    assert report["shown_dates_before"] == [0, 2, 2] and report["shown_dates_after"] == [0, 2, 1]
     alpha = np.asarray(cj.opacities(out.gaussians))
     np.testing.assert_allclose(alpha[0], 1 - 0.4**2, rtol=1e-5)
     np.testing.assert_allclose(np.asarray(cj.opacity_multipliers(out))[0], [0.99, 0.99], rtol=1e-5)

@@ -437,6 +437,14 @@ def per_date_counts(model: TemporalGaussians) -> dict[str, int]:
     return {name: int(np.sum(origin == d)) for d, name in enumerate(model.date_names)}
 
 
+def shown_date_counts(model: TemporalGaussians, present: float) -> list[int]:
+    """Entry k (k = 0 … T): how many of the model's Gaussians are shown (o^q ≥ ``present``) at exactly k
+    of its T dates. Copies of a persistent surface are shown at every date, so the last entry is where
+    the redundancy a compaction removes lies."""
+    shown = np.asarray(jax.nn.sigmoid(model.o_logits)) >= present
+    return np.bincount(shown.sum(axis=1), minlength=model.num_dates + 1).tolist()
+
+
 def recovery_config(refine_config: RefineConfig, config: CompactConfig) -> RefineConfig:
     """The refinement that follows a compaction: ``config.refine_steps`` steps of ``refine_config``
     with α not halved, the light rate ``config.lr_light``, the colour, opacity, scale and rotation
@@ -506,5 +514,7 @@ def compact(
         "groups_merged": int(np.sum(np.bincount(labels) > 1)),
         "per_date_before": per_date_counts(full),
         "per_date_after": per_date_counts(out),
+        "shown_dates_before": shown_date_counts(full, config.present),
+        "shown_dates_after": shown_date_counts(out, config.present),
     }
     return out, report

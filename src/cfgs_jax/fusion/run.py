@@ -41,6 +41,7 @@ from cfgs_jax.fusion.compact import (
     marks_no_change,
     per_date_counts,
     recovery_config,
+    shown_date_counts,
 )
 from cfgs_jax.fusion.cross_init import CrossInitConfig, DateViews, init_pairs, pair_groups
 from cfgs_jax.fusion.fuse import merge
@@ -598,6 +599,7 @@ def compact_stage(run: FusionRun, config: CompactConfig, views, scenes, sims, re
         report["masked_out"] = refined["masked_out"]
         report["gaussians_after"] = len(compacted)
         report["per_date_after"] = per_date_counts(compacted)
+        report["shown_dates_after"] = shown_date_counts(compacted, config.present)
     write_fused(run.out / "fused", compacted, config=run.state["config"])
     after = evaluate_fused(compacted, test_views, render_config=render_config, mesh=run.mesh)
     report["test_before"], report["test_after"] = before["dates"], after["dates"]
