@@ -10,6 +10,11 @@ views over the reference's, timed alternately in one process.
 
 ``--row VALUE compact.KEY=VALUE …`` adds a row at that knob value with its own overrides on top of
 ``--set`` (e.g. ``--row 0.02 compact.restore_hidden=true``), so that settings share one reference row.
+``--pre-refine STEPS`` first refines a copy of the run STEPS steps with the ``--set`` settings and no
+compaction (merge and hidden-copy rules, masks off) and compacts that: a better-converged input, on which
+the reference row's recovery gains little. ``--summary SPEC … [--write STEM]`` prints (and writes as results/STEM.md) one table of chosen rows of
+earlier results, SPEC = ``NAME#K``: row K (1 = the first) of results/NAME.json against that file's
+reference row, or ``NAME#K@REF`` against the reference row of results/REF.json.
 ``--noise-seeds`` adds rows that repeat the reference with other seeds of the recovery refinement (its
 view order and random backgrounds): their Δ against the reference is the figures' noise floor.
 
@@ -98,9 +103,30 @@ def change_scores(run_dir: Path, data: Path) -> dict:
     }
 
 
+def pre_refined(run: Path, copy: Path, compact: dict, steps: int) -> Path:
+    """A copy of the finished fusion run ``run`` whose fused model was refined ``steps`` more steps with
+    the recovery settings of ``compact`` and nothing removed (no merge, no hidden-copy rule, no masks),
+    marked as a finished, uncompacted fusion run again."""
+    from cfgs_jax.config import section
+    from cfgs_jax.fusion.compact import CompactConfig
+    from cfgs_jax.fusion.run import run_compact
+    from cfgs_jax.io.atomic import read_json, write_json
+
+    shutil.copytree(run, copy, ignore=shutil.ignore_patterns("snapshots", "ablations", "*.npz"))
+    keep = {"max_distance": 0.0, "hidden_threshold": 0.0, "hidden_share": 0.0, "mask_lambda": 0.0}
+    config = section({"compact": compact | keep | {"refine_steps": steps}}, "compact", CompactConfig)
+    run_compact(copy, config, progress=False, log=lambda *a: None)
+    state = read_json(copy / "run.json")
+    state["done"] = [s for s in state["done"] if s != "compact"]
+    write_json(copy / "run.json", state)
+    (copy / "compact.json").unlink()
+    shutil.rmtree(copy / "before_compact")
+    return copy
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--run", required=True, help="a finished fusion run (copied, never changed)")
+    ap.add_argument("--run", help="a finished fusion run (copied, never changed)")
     ap.add_argument("--knob", choices=["hidden_threshold", "hidden_share"], default="hidden_threshold")
     ap.add_argument("--values", "--thresholds", type=float, nargs="+", default=[0.0, 0.02, 0.05, 0.1])
     ap.add_argument("--refine-steps", type=int, default=200)
@@ -129,7 +155,26 @@ def main():
         metavar="VALUE [compact.KEY=VALUE ...]",
         help="one more row: the knob's value and this row's own compact.* overrides",
     )
+    ap.add_argument(
+        "--pre-refine",
+        type=int,
+        default=0,
+        metavar="STEPS",
+        help="first refine a copy of the run STEPS steps (the --set settings, no compaction) and compact that",
+    )
+    ap.add_argument("--summary", nargs="+", metavar="NAME#K[@REF]", help="a table of rows of earlier results")
+    ap.add_argument("--write", metavar="STEM", help="with --summary: also write it as results/STEM.md")
     args = ap.parse_args()
+    if args.summary:
+        table = summary(args.summary)
+        print(table)
+        if args.write:
+            command = " ".join(["python benchmarks/bench_compact.py", *sys.argv[1:]])
+            head = f"# Cross-timestep compaction: chosen rows\n\nDate: {datetime.date.today().isoformat()}. Command: `{command}`.\n\n"
+            (RESULTS / f"{args.write}.md").write_text(head + table)
+        return
+    if not args.run:
+        ap.error("--run is required (or --summary)")
 
     from cfgs_jax.config import apply_overrides, section
     from cfgs_jax.fusion.compact import CompactConfig
@@ -140,6 +185,8 @@ def main():
     base = apply_overrides({"compact": base}, args.overrides)["compact"]
     rows, dirs = [], []
     with tempfile.TemporaryDirectory() as tmp:
+        if args.pre_refine:
+            args.run = pre_refined(Path(args.run), Path(tmp) / "input", base, args.pre_refine)
         settings = [(th, None, []) for th in sorted({0.0, *args.values})]
         settings += [(float(r[0]), None, r[1:]) for r in args.extra_rows]
         settings += [(0.0, s, []) for s in args.noise_seeds]
@@ -193,6 +240,7 @@ def main():
         "command": " ".join(["python benchmarks/bench_compact.py", *sys.argv[1:]]),
         "run": str(args.run),
         "refine_steps": args.refine_steps,
+        "pre_refine_steps": args.pre_refine,
         "knob": args.knob,
         "rows": rows,
     }
@@ -202,9 +250,62 @@ def main():
     print(markdown(result))
 
 
+def _reference_row(result: dict) -> dict:
+    """The reference row of a result: knob 0, the first seed, no overrides of its own."""
+    knob = result.get("knob", "hidden_threshold")
+    return next(r for r in result["rows"] if r[knob] == 0.0 and "refine_seed" not in r and "overrides" not in r)
+
+
+def _setting(result: dict, row: dict) -> str:
+    """What a row ran: its knob value (where not 0), the command's ``--set`` and the row's own overrides,
+    and the recovery steps."""
+    words = result["command"].split()
+    sets = [words[k + 1] for k, w in enumerate(words[:-1]) if w == "--set"]
+    knob = result.get("knob", "hidden_threshold")
+    parts = ([f"{knob}={row[knob]:g}"] if row[knob] else []) + sets + row.get("overrides", [])
+    parts = [p.removeprefix("compact.") for p in parts] + [f"{result['refine_steps']} steps"]
+    if result.get("pre_refine_steps"):
+        parts.append(f"input refined {result['pre_refine_steps']} steps first")
+    return ", ".join(parts)
+
+
+def summary(specs: list[str]) -> str:
+    """One markdown table of the rows named by ``specs`` (``NAME#K`` or ``NAME#K@REF``, see the module
+    docstring): Gaussians removed, Δ PSNR mean and worst date, Δ LPIPS worst date and Δ `changes` F1
+    against the reference row, and the render ratio where row and reference were timed together."""
+    lines = [
+        "| results | setting | removed | Δ PSNR mean / worst date | Δ LPIPS worst date | Δ `changes` F1 | render ratio | machine, date |",
+        "|---|---|---:|---:|---:|---:|---:|---|",
+    ]
+    for spec in specs:
+        name, _, ref_name = spec.partition("@")
+        name, _, k = name.partition("#")
+        result = json.loads((RESULTS / f"{name}.json").read_text())
+        row = result["rows"][int(k) - 1]
+        other = json.loads((RESULTS / f"{ref_name}.json").read_text()) if ref_name else result
+        ref = _reference_row(other)
+        dates = row["test_per_date"]
+        worst = min(dates[d]["psnr"] - ref["test_per_date"][d]["psnr"] for d in dates)
+        worst_lpips = max(dates[d]["lpips"] - ref["test_per_date"][d]["lpips"] for d in dates)
+        removed = 1 - row["gaussians_after"] / ref["gaussians_after"]
+        mean = row["test"]["psnr"] - ref["test"]["psnr"]
+        f1 = (
+            f"{row['change']['evidence_f1'] - ref['change']['evidence_f1']:+.3f}"
+            if "change" in row and "change" in ref and row["change"]["evidence_iou"] == row["change"]["evidence_iou"]
+            else "—"
+        )
+        ratio = f"{row['render_ratio']:.2f}" if not ref_name else "—"
+        source = f"`{name}.md`" + (f" against `{ref_name}.md`" if ref_name else "")
+        lines.append(
+            f"| {source} | {_setting(result, row)} | {removed:.1%} | {mean:+.2f} / {worst:+.2f} dB | "
+            f"{worst_lpips:+.4f} | {f1} | {ratio} | {result['machine']}, {result['date']} |"
+        )
+    return "\n".join(lines) + "\n"
+
+
 def markdown(result: dict) -> str:
     knob = result.get("knob", "hidden_threshold")
-    ref = next(r for r in result["rows"] if r[knob] == 0.0 and "refine_seed" not in r and "overrides" not in r)
+    ref = _reference_row(result)
 
     def label(r):
         extra = [f"refine seed {r['refine_seed']}"] if "refine_seed" in r else []
@@ -215,6 +316,13 @@ def markdown(result: dict) -> str:
         "# Cross-timestep compaction: Gaussians against error",
         "",
         f"Machine: {result['machine']}. Date: {result['date']}. Command: `{result['command']}`.",
+        *(
+            [
+                f"The input: the run's fused model refined {result['pre_refine_steps']} more steps first (`--pre-refine`)."
+            ]
+            if result.get("pre_refine_steps")
+            else []
+        ),
         f"Every row: a copy of the run compacted, then refined {result['refine_steps']} steps (α not halved);",
         f"the reference row ({knob} 0) is the same refinement without the hidden-copy rule. Δ against it;",
         "render: the full-selection highlight frames of all test views, median of 7 alternating timings,",
