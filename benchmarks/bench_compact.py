@@ -32,6 +32,7 @@ from __future__ import annotations
 import argparse
 import datetime
 import json
+import math
 import shutil
 import statistics
 import sys
@@ -291,7 +292,9 @@ def summary(specs: list[str]) -> str:
         mean = row["test"]["psnr"] - ref["test"]["psnr"]
         f1 = (
             f"{row['change']['evidence_f1'] - ref['change']['evidence_f1']:+.3f}"
-            if "change" in row and "change" in ref and row["change"]["evidence_iou"] == row["change"]["evidence_iou"]
+            if "change" in row
+            and "change" in ref
+            and not math.isnan(row["change"]["evidence_iou"])  # NaN: nothing to find
             else "—"
         )
         ratio = f"{row['render_ratio']:.2f}" if not ref_name else "—"
