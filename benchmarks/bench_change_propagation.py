@@ -1,9 +1,13 @@
 """Absence carried across dates, measured on the ``changes`` detector's cached evidence: a Gaussian of
-date p that the detector finds gone at some date r, and that date q's own surface covers (it lies
-behind q's surface in most of q's views that see its place), is counted as gone at q too. The
-per-Gaussian figures are scored as the evaluation scores them (the observed entries, truth = the
-Gaussian's object changed between p and q), with and without the rule, and with a visibility bound
-instead of the depth test.
+date p that the detector finds gone at some other date r (it lies in a changed region of the pair
+p, r) is counted as gone at q too when a test says q's images cannot show it present. The tests:
+- q's own surface covers it (behind that surface in most of q's views that see its place);
+- it lies behind, or not in front of, a surface of q that changed between p and q (q's Gaussians in a
+  changed region of the pair p, q make up most of the rendered surface at the pixel);
+- it lies in front of q's surface (free space at q), or either of the two;
+- a visibility bound, or no Gaussian of q near it.
+The per-Gaussian figures are scored as the evaluation scores them (the observed entries, truth = the
+Gaussian's object changed between p and q), with and without each rule.
 
     python benchmarks/bench_change_propagation.py --run RUN --data DATA --scene NAME --cache DIR
 
@@ -33,6 +37,72 @@ def f1_of(pred: np.ndarray, truth: np.ndarray) -> dict:
     recall = tp / max(float(truth.sum()), 1.0)
     f1 = 2 * precision * recall / max(precision + recall, 1e-12)
     return {"precision": precision, "recall": recall, "f1": f1, "flagged": int(pred.sum())}
+
+
+def changed_front(model, observing, members, render_config) -> dict:
+    """Per ordered pair (p, q): [N] counts over date q's views that see a Gaussian's place (its centre
+    projects into the view onto a pixel that q's own render covers, alpha > 0.7: ``"seen"``). Of those,
+    the views where q's surface at that pixel is mostly (rendered share > 0.5) q's Gaussians in a
+    changed region of the pair and the Gaussian lies behind it (``"behind"``) or not in front of it
+    (``"not_free"``; ``"not_free_any"`` with a share above 0.1), and the views where it lies in front of
+    q's surface (``"free"``). In front / behind: beyond 0.03·depth + 2·√(rᵀΣr), Σ the Gaussian's
+    covariance and r the unit ray from the camera to its centre (its extent along the ray)."""
+    import equinox as eqx
+    import jax.numpy as jnp
+
+    from cfgs_jax import splat
+    from cfgs_jax.model import covariances, opacity_multipliers
+
+    o = np.asarray(opacity_multipliers(model))
+    origin = np.asarray(model.origin)
+    n, t = len(origin), model.num_dates
+    cov = np.asarray(covariances(model.gaussians), np.float64)
+    white = eqx.tree_at(lambda g: g.colors, model.gaussians, jnp.ones((n, 3), jnp.float32))
+    means = np.asarray(model.gaussians.means, np.float64)
+    out = {}
+    for q, cams in enumerate(observing):
+        others = [p for p in range(t) if p != q]
+        own = np.where(origin == q, o[:, q], 0.0).astype(np.float32)[None]
+        # one colour channel per other date p (at most 3 per render): q's Gaussians in the pair's regions
+        groups = [others[k : k + 3] for k in range(0, len(others), 3)]
+        keys = ("behind", "not_free", "not_free_any", "free", "seen")
+        counts = {(p, q): {k: np.zeros(n) for k in keys} for p in others}
+        for cam in cams:
+            m = np.asarray(cam.cam_from_world, np.float64)
+            local = means @ m[:3, :3].T + m[:3, 3]
+            z = local[:, 2]
+            u = float(cam.fx) * local[:, 0] / np.maximum(z, 1e-9) + float(cam.cx)
+            v = float(cam.fy) * local[:, 1] / np.maximum(z, 1e-9) + float(cam.cy)
+            inside = (z > 1e-6) & (u >= 0) & (v >= 0) & (u < cam.width) & (v < cam.height)
+            ui = np.clip(u, 0, cam.width - 1).astype(int)
+            vi = np.clip(v, 0, cam.height - 1).astype(int)
+            centre = -m[:3, :3].T @ m[:3, 3]
+            ray = means - centre
+            ray /= np.maximum(np.linalg.norm(ray, axis=1, keepdims=True), 1e-12)
+            sigma_ray = np.sqrt(np.maximum(np.einsum("ni,nij,nj->n", ray, cov, ray), 0.0))  # extent along the ray
+            for group in groups:
+                colour = np.zeros((1, n, 3), np.float32)
+                for k, p in enumerate(group):
+                    colour[0, :, k] = (members[(p, q)] & (origin == q)).astype(np.float32)
+                res = splat.render_dates(
+                    white, cam, jnp.asarray(own), jnp.asarray(colour), with_depth=True,
+                    config=render_config, statistics=False,
+                )  # fmt: skip
+                alpha = np.asarray(res.alpha[0])
+                depth = np.asarray(res.depth[0]) / np.maximum(alpha, 1e-6)
+                share = np.asarray(res.image[0]) / np.maximum(alpha, 1e-6)[..., None]
+                d = depth[vi, ui]
+                ok = inside & (alpha[vi, ui] > 0.7)
+                margin = 0.03 * d + 2.0 * sigma_ray
+                for k, p in enumerate(group):
+                    changed = ok & (share[vi, ui, k] > 0.5)
+                    counts[(p, q)]["behind"] += changed & (z > d + margin)
+                    counts[(p, q)]["not_free"] += changed & (z >= d - margin)
+                    counts[(p, q)]["not_free_any"] += ok & (share[vi, ui, k] > 0.1) & (z >= d - margin)
+                    counts[(p, q)]["free"] += ok & (z < d - margin)
+                    counts[(p, q)]["seen"] += ok
+        out.update(counts)
+    return out
 
 
 def main():
@@ -81,10 +151,12 @@ def main():
         both = cov[:, None] + cov[mine][j]  # [N, 8, 3, 3]
         m2 = np.einsum("nki,nki->nk", d, np.linalg.solve(both, d[..., None])[..., 0])
         mahalanobis[:, q] = np.sqrt(np.maximum(m2.min(1), 0.0))
+    front = changed_front(model, observing, members, rc)
     changed_objects = change.changed_objects_by_pair(gt)
     objects = np.asarray(table["objects"])
 
     base, truth, gone_elsewhere, cover, ratio, apart, sigmas = [], [], [], [], [], [], []
+    behind_changed, under_changed, under_q, under_any, under_any_q, in_free, free_or_under = ([] for _ in range(7))
     for (p, q), v in table["pairs"].items():
         rows = v["rows"][v["observed"]]
         base.append(members[(p, q)][rows])
@@ -98,6 +170,17 @@ def main():
         ratio.append(shown[rows, q] / np.maximum(own[rows], 1e-12))
         apart.append(nearest[rows, q])
         sigmas.append(mahalanobis[rows, q])
+        c = front[(p, q)]
+        behind_changed.append(c["behind"][rows] / np.maximum(c["seen"][rows], 1) > 0.5)
+        under_changed.append(c["not_free"][rows] / np.maximum(c["seen"][rows], 1) > 0.5)
+        under_q.append(c["not_free"][rows] / np.maximum(c["seen"][rows], 1) > 0.25)
+        under_any.append(c["not_free_any"][rows] / np.maximum(c["seen"][rows], 1) > 0.5)
+        under_any_q.append(c["not_free_any"][rows] / np.maximum(c["seen"][rows], 1) > 0.25)
+        in_free.append(c["free"][rows] / np.maximum(c["seen"][rows], 1) > 0.5)
+        free_or_under.append((c["free"][rows] + c["not_free"][rows]) / np.maximum(c["seen"][rows], 1) > 0.5)
+    behind_changed, under_changed, under_q, under_any, under_any_q, in_free, free_or_under = map(
+        np.concatenate, (behind_changed, under_changed, under_q, under_any, under_any_q, in_free, free_or_under)
+    )
     base, truth, gone_elsewhere, cover, ratio, apart, sigmas = map(
         np.concatenate, (base, truth, gone_elsewhere, cover, ratio, apart, sigmas)
     )
@@ -105,6 +188,14 @@ def main():
         {
             "detector (regions)": base,
             "+ gone at another date, covered at q": base | (gone_elsewhere & cover),
+            "+ gone at another date, behind a changed surface of q": base | (gone_elsewhere & behind_changed),
+            "+ gone at another date, not in front of a changed surface of q": base | (gone_elsewhere & under_changed),
+            "+ … in 1/4 of q's views": base | (gone_elsewhere & under_q),
+            "+ … a surface changed over 1/10 of its pixel": base | (gone_elsewhere & under_any),
+            "+ … over 1/10, in 1/4 of q's views": base | (gone_elsewhere & under_any_q),
+            "+ gone at another date, in front of q's surface": base | (gone_elsewhere & in_free),
+            "+ gone at another date, in front of q's surface or not in front of a changed one": base
+            | (gone_elsewhere & free_or_under),
             "+ gone at another date, visibility ratio < 0.6": base | (gone_elsewhere & (ratio < 0.6)),
             "+ gone at another date (no geometric test)": base | gone_elsewhere,
         }
