@@ -34,6 +34,20 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_splat import RESULTS, machine
 
 
+def centre_pixels(means: np.ndarray, cam) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Where the centres [N, 3] project in ``cam``: view depth z, the pixel's column and row (clipped
+    into the image) and whether the centre lies in front of the camera and inside the image."""
+    m = np.asarray(cam.cam_from_world, np.float64)
+    local = means @ m[:3, :3].T + m[:3, 3]
+    z = local[:, 2]
+    u = float(cam.fx) * local[:, 0] / np.maximum(z, 1e-9) + float(cam.cx)
+    v = float(cam.fy) * local[:, 1] / np.maximum(z, 1e-9) + float(cam.cy)
+    inside = (z > 1e-6) & (u >= 0) & (v >= 0) & (u < cam.width) & (v < cam.height)
+    ui = np.clip(u, 0, cam.width - 1).astype(int)
+    vi = np.clip(v, 0, cam.height - 1).astype(int)
+    return z, ui, vi, inside
+
+
 def depth_cues(model, observing, render_config) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """[N, T] counts over date q's views: in front of q's own surface, behind it, and covered at all."""
     import jax.numpy as jnp
@@ -56,14 +70,7 @@ def depth_cues(model, observing, render_config) -> tuple[np.ndarray, np.ndarray,
             )  # fmt: skip
             alpha = np.asarray(res.alpha[0])
             depth = np.asarray(res.depth[0]) / np.maximum(alpha, 1e-6)
-            m = np.asarray(cam.cam_from_world, np.float64)
-            local = means @ m[:3, :3].T + m[:3, 3]
-            z = local[:, 2]
-            u = float(cam.fx) * local[:, 0] / np.maximum(z, 1e-9) + float(cam.cx)
-            v = float(cam.fy) * local[:, 1] / np.maximum(z, 1e-9) + float(cam.cy)
-            inside = (z > 1e-6) & (u >= 0) & (v >= 0) & (u < cam.width) & (v < cam.height)
-            ui = np.clip(u, 0, cam.width - 1).astype(int)
-            vi = np.clip(v, 0, cam.height - 1).astype(int)
+            z, ui, vi, inside = centre_pixels(means, cam)
             d = depth[vi, ui]
             ok = inside & (alpha[vi, ui] > 0.7)
             margin = 0.03 * d + 2.0 * size

@@ -49,6 +49,7 @@ def changed_front(model, observing, members, render_config) -> dict:
     covariance and r the unit ray from the camera to its centre (its extent along the ray)."""
     import equinox as eqx
     import jax.numpy as jnp
+    from bench_change_cues import centre_pixels
 
     from cfgs_jax import splat
     from cfgs_jax.model import covariances, opacity_multipliers
@@ -68,14 +69,8 @@ def changed_front(model, observing, members, render_config) -> dict:
         keys = ("behind", "not_free", "not_free_any", "free", "seen")
         counts = {(p, q): {k: np.zeros(n) for k in keys} for p in others}
         for cam in cams:
+            z, ui, vi, inside = centre_pixels(means, cam)
             m = np.asarray(cam.cam_from_world, np.float64)
-            local = means @ m[:3, :3].T + m[:3, 3]
-            z = local[:, 2]
-            u = float(cam.fx) * local[:, 0] / np.maximum(z, 1e-9) + float(cam.cx)
-            v = float(cam.fy) * local[:, 1] / np.maximum(z, 1e-9) + float(cam.cy)
-            inside = (z > 1e-6) & (u >= 0) & (v >= 0) & (u < cam.width) & (v < cam.height)
-            ui = np.clip(u, 0, cam.width - 1).astype(int)
-            vi = np.clip(v, 0, cam.height - 1).astype(int)
             centre = -m[:3, :3].T @ m[:3, 3]
             ray = means - centre
             ray /= np.maximum(np.linalg.norm(ray, axis=1, keepdims=True), 1e-12)
