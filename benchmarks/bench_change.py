@@ -47,6 +47,7 @@ VARIANTS = [  # (label, overrides of the default [changes] table)
     ("colour completion, colour 0.05", {"complete_colour": 0.05}),
     ("colour completion, colour 0.15", {"complete_colour": 0.15}),
     ("colour completion across dates", {"complete_across_dates": True}),
+    ("no carried absence", {"carry_absence": False}),
 ]
 
 
@@ -74,23 +75,23 @@ def summary(scenes: list[str]) -> str:
     return "\n".join(lines)
 
 
-def object_breakdown(model, evidence, table: dict, changed: dict, gt: dict, config) -> list[dict]:
+def object_breakdown(
+    model, evidence, table: dict, changed: dict, gt: dict, config, cameras, render_config
+) -> list[dict]:
     """Per date pair, per direction (date a's Gaussians observed at date b) and per ground-truth object
     with a changed truth or a flagged Gaussian: how many Gaussians, how many in a changed region (the
     default detector), and their mean score. Shows where per-Gaussian precision and recall are lost."""
     import numpy as np
 
-    from cfgs_jax.changes.regions import median_spacing, pair_regions
-    from cfgs_jax.model import rgb
+    from cfgs_jax.changes.regions import every_pair_regions
 
-    means = np.asarray(model.gaussians.means, np.float64)
-    origin, colors = np.asarray(model.origin), np.asarray(rgb(model.gaussians))
     objects = np.asarray(table["objects"])
     label = {int(o["id"]): o["name"] for o in gt["objects"]}
-    names, spacing, out = [d.name for d in model.dates], median_spacing(means), []
+    names, out = [d.name for d in model.dates], []
+    regions = every_pair_regions(evidence, model, config, cameras=cameras, render_config=render_config)
     for p in range(model.num_dates):
         for q in range(p + 1, model.num_dates):
-            _, _, _, member = pair_regions(evidence, origin, means, p, q, config, spacing=spacing, colors=colors)
+            member = regions[(p, q)][3]
             for a, b in ((p, q), (q, p)):
                 entry = table["pairs"].get((a, b))
                 if entry is None:
@@ -206,6 +207,8 @@ def main():
             gt_change.changed_objects_by_pair(gt),
             gt,
             default,
+            [v.cameras for v in views],
+            rc,
         ),  # fmt: skip
     }
     name = f"change_{args.scene}"

@@ -34,25 +34,12 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_splat import RESULTS, machine
 
 
-def centre_pixels(means: np.ndarray, cam) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Where the centres [N, 3] project in ``cam``: view depth z, the pixel's column and row (clipped
-    into the image) and whether the centre lies in front of the camera and inside the image."""
-    m = np.asarray(cam.cam_from_world, np.float64)
-    local = means @ m[:3, :3].T + m[:3, 3]
-    z = local[:, 2]
-    u = float(cam.fx) * local[:, 0] / np.maximum(z, 1e-9) + float(cam.cx)
-    v = float(cam.fy) * local[:, 1] / np.maximum(z, 1e-9) + float(cam.cy)
-    inside = (z > 1e-6) & (u >= 0) & (v >= 0) & (u < cam.width) & (v < cam.height)
-    ui = np.clip(u, 0, cam.width - 1).astype(int)
-    vi = np.clip(v, 0, cam.height - 1).astype(int)
-    return z, ui, vi, inside
-
-
 def depth_cues(model, observing, render_config) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """[N, T] counts over date q's views: in front of q's own surface, behind it, and covered at all."""
     import jax.numpy as jnp
 
     from cfgs_jax import splat
+    from cfgs_jax.changes.carried import centre_pixels
     from cfgs_jax.model import opacity_multipliers, scales
 
     o = np.asarray(opacity_multipliers(model))
@@ -105,7 +92,10 @@ def main():
         model, views, cfg, support_cameras=[date_cameras(sc, sm) for sc, sm in zip(run.scenes, run.sims)],
         render_config=rc,
     )  # fmt: skip
-    members = {pq: member >= 0 for pq, (_, member) in regions_by_pair(model, stats, cfg).items()}
+    members = {
+        pq: member >= 0
+        for pq, (_, member) in regions_by_pair(model, stats, cfg, [v.cameras for v in views], rc).items()
+    }
     shown = fused_visibility(model, observing, render_config=rc)
     origin = np.asarray(model.origin)
     own = shown[np.arange(len(origin)), origin]

@@ -23,6 +23,7 @@ import datetime
 import json
 import shlex
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -49,9 +50,9 @@ def changed_front(model, observing, members, render_config) -> dict:
     covariance and r the unit ray from the camera to its centre (its extent along the ray)."""
     import equinox as eqx
     import jax.numpy as jnp
-    from bench_change_cues import centre_pixels
 
     from cfgs_jax import splat
+    from cfgs_jax.changes.carried import centre_pixels
     from cfgs_jax.model import covariances, opacity_multipliers
 
     o = np.asarray(opacity_multipliers(model))
@@ -109,7 +110,7 @@ def main():
     args = ap.parse_args()
 
     from bench_change_cues import depth_cues
-    from bench_change_regions import _statistics, change_table, open_scored_run, regions_by_pair
+    from bench_change_regions import _statistics, change_table, open_scored_run, regions_by_pair, view_cameras
 
     from cfgs_jax.evaluation import change
     from cfgs_jax.splat.weights import fused_visibility
@@ -119,9 +120,12 @@ def main():
     model = run.model
     stats, _, _ = _statistics(run, data, Path(args.cache), cfg, rc)
     gt, _, observing, table = change_table(run, data, rc)
-    members = {}
-    for (p, q), (_, member) in regions_by_pair(model, stats, cfg).items():
+    cameras = view_cameras(run, cfg)
+    members, carried_rule = {}, {}  # the detector without carried absence, and with it (its default rule)
+    for (p, q), (_, member) in regions_by_pair(model, stats, replace(cfg, carry_absence=False), cameras, rc).items():
         members[(p, q)] = members[(q, p)] = member >= 0
+    for (p, q), (_, member) in regions_by_pair(model, stats, replace(cfg, carry_absence=True), cameras, rc).items():
+        carried_rule[(p, q)] = carried_rule[(q, p)] = member >= 0
     t = model.num_dates
     origin = np.asarray(model.origin)
     shown = fused_visibility(model, observing, render_config=rc)
@@ -150,11 +154,12 @@ def main():
     changed_objects = change.changed_objects_by_pair(gt)
     objects = np.asarray(table["objects"])
 
-    base, truth, gone_elsewhere, cover, ratio, apart, sigmas = [], [], [], [], [], [], []
+    base, truth, gone_elsewhere, cover, ratio, apart, sigmas, detector_rule = ([] for _ in range(8))
     behind_changed, under_changed, under_q, under_any, under_any_q, in_free, free_or_under = ([] for _ in range(7))
     for (p, q), v in table["pairs"].items():
         rows = v["rows"][v["observed"]]
         base.append(members[(p, q)][rows])
+        detector_rule.append(carried_rule[(p, q)][rows])
         truth.append(np.isin(objects[rows], sorted(changed_objects.get((min(p, q), max(p, q)), ()))))
         elsewhere = np.zeros(len(rows), bool)
         for r in range(t):
@@ -176,12 +181,13 @@ def main():
     behind_changed, under_changed, under_q, under_any, under_any_q, in_free, free_or_under = map(
         np.concatenate, (behind_changed, under_changed, under_q, under_any, under_any_q, in_free, free_or_under)
     )
-    base, truth, gone_elsewhere, cover, ratio, apart, sigmas = map(
-        np.concatenate, (base, truth, gone_elsewhere, cover, ratio, apart, sigmas)
+    base, truth, gone_elsewhere, cover, ratio, apart, sigmas, detector_rule = map(
+        np.concatenate, (base, truth, gone_elsewhere, cover, ratio, apart, sigmas, detector_rule)
     )
     rules = (
         {
-            "detector (regions)": base,
+            "detector (regions), no carried absence": base,
+            "the detector with carried absence (`changes.carry_absence`, the default)": detector_rule,
             "+ gone at another date, covered at q": base | (gone_elsewhere & cover),
             "+ gone at another date, behind a changed surface of q": base | (gone_elsewhere & behind_changed),
             "+ gone at another date, not in front of a changed surface of q": base | (gone_elsewhere & under_changed),

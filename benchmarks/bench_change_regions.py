@@ -110,22 +110,31 @@ def _extent(region: dict) -> float:
     return float(np.max(np.subtract(region["bounds_max"], region["bounds_min"])))
 
 
-def regions_by_pair(model, stats, config) -> dict:
-    """Per date pair p < q: the regions of the ``changes`` command under ``config`` and [N] region index."""
+def view_cameras(run, config) -> list:
+    """Each date's evidence views' cameras (``config.views``) in the fused frame."""
+    from cfgs_jax.fusion.run import date_views
+
+    return [date_views(sc, sm, config.views).cameras for sc, sm in zip(run.scenes, run.sims)]
+
+
+def regions_by_pair(model, stats, config, cameras, render_config=None) -> dict:
+    """Per date pair p < q: the regions of the ``changes`` command under ``config`` and [N] region index
+    (``cameras``: each date's views, for carried absence)."""
     from cfgs_jax.changes import evidence_from
     from cfgs_jax.changes.regions import every_pair_regions
 
     ev = evidence_from(stats, np.asarray(model.gaussians.means, np.float64), config)
-    return {pq: (regions, member) for pq, (_, _, regions, member) in every_pair_regions(ev, model, config).items()}
+    pairs = every_pair_regions(ev, model, config, cameras=cameras, render_config=render_config)
+    return {pq: (regions, member) for pq, (_, _, regions, member) in pairs.items()}
 
 
-def score_rule(model, stats, labels, changed_objects, config) -> dict:
+def score_rule(model, stats, labels, changed_objects, config, cameras, render_config=None) -> dict:
     """Regions of every date pair under ``config`` (a ``ChangesConfig``), scored against the objects."""
     from cfgs_jax.evaluation.change import _region_scores
 
     names = [d.name for d in model.dates]
     per_pair, found, changed, false = {}, 0, 0, []
-    for (p, q), (regions, member) in regions_by_pair(model, stats, config).items():
+    for (p, q), (regions, member) in regions_by_pair(model, stats, config, cameras, render_config).items():
         truth = changed_objects.get((p, q), set())
         objs = _region_scores(regions, member, labels, truth)
         found += len(objs["found"])
@@ -286,8 +295,9 @@ def main():
         "seconds": seconds,
         "rules": {},
     }
+    cameras = view_cameras(run, base)
     for label, config in rules.items():
-        out["rules"][label] = score_rule(run.model, stats, labels, changed, config)
+        out["rules"][label] = score_rule(run.model, stats, labels, changed, config, cameras, render_config)
         s = out["rules"][label]
         print(f"{label}: found {s['found_objects']}/{s['changed_objects']}, false {s['false_regions']}", flush=True)
     if args.full:

@@ -1,6 +1,7 @@
 """Change detection without ground truth: per-Gaussian evidence from the dates' images, per-pixel
 change maps, and changed regions in 3D and in the image."""
 
+from cfgs_jax.changes.carried import carried_absence, covered_share
 from cfgs_jax.changes.evidence import (
     ChangeEvidence,
     ChangesConfig,
@@ -18,7 +19,9 @@ __all__ = [
     "ChangeEvidence",
     "ChangesConfig",
     "PairStatistics",
+    "carried_absence",
     "change_evidence",
+    "covered_share",
     "evidence_from",
     "pair_statistics",
     "pair_change",

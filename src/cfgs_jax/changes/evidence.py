@@ -67,6 +67,10 @@ class ChangesConfig:
     ``min_region_share`` of the two dates' Gaussians as seeds (3D; the larger bound counts, so that a
     denser reconstruction of the same scene, whose objects and whose noise patches both hold more
     Gaussians, needs proportionally more), and ``min_region_pixels`` pixels (image).
+    ``carry_absence``: a Gaussian that another date pair found gone and that, at the pair's other
+    date, lies at or behind a surface that changed between the two dates is counted gone there too
+    (``changes.carried``; needs the regions of every pair that holds one of the two dates, so the
+    ``changes`` command then computes the evidence of those pairs as well).
     ``max_view_angle`` (degrees): a view of q informs a Gaussian of p only from within this
     angle of a direction one of p's training cameras saw it from (180: every view); at most
     ``support_views`` of those cameras, spread out (``spread_cameras``), stand for them all.
@@ -95,6 +99,7 @@ class ChangesConfig:
     complete_colour: float = 0.1
     complete_across_dates: bool = False
     dates_per_pass: int = 8
+    carry_absence: bool = True
 
     def __post_init__(self):
         if not 0.0 < self.threshold < 1.0:

@@ -22,6 +22,7 @@ Image: 8-connected components of a change mask with at least ``min_region_pixels
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 
 import numpy as np
 from scipy import ndimage
@@ -29,9 +30,10 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import ConvexHull, QhullError, cKDTree
 
+from cfgs_jax.changes.carried import carried_absence
 from cfgs_jax.changes.evidence import ChangeEvidence, ChangesConfig, pair_known, presence_difference
 from cfgs_jax.errors import InputError
-from cfgs_jax.model import rgb
+from cfgs_jax.model import Camera, rgb
 
 
 def median_spacing(means: np.ndarray) -> float:
@@ -251,6 +253,7 @@ def pair_regions(
     *,
     spacing: float,
     colors: np.ndarray | None = None,
+    carried: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray, list[dict], np.ndarray]:
     """The changed regions of dates p < q from their evidence, as the ``changes`` command reports them:
     (presence difference [N], known at both dates [N] bool, regions, [N] region index or −1).
@@ -258,9 +261,14 @@ def pair_regions(
     needs max(``min_region_gaussians``, ⌈``min_region_share`` · (N_p + N_q)⌉) seeds, N_x the Gaussians of
     date x (``min_region_seeds``). With
     ``config.complete_hops`` > 0 the regions are completed by colour over the known Gaussians
-    (``colors``: [N, 3], the model's colours, then required)."""
+    (``colors``: [N, 3], the model's colours, then required). ``carried``: [N] bool, Gaussians of p or q
+    counted gone at the other date (``carried.carried_absence``): presence difference ±1, known."""
     difference = presence_difference(evidence, origin, p, q)
     known = pair_known(evidence, origin, p, q)
+    if carried is not None:
+        carried = np.asarray(carried, bool)
+        difference = np.where(carried, np.where(np.asarray(origin) == p, 1.0, -1.0), difference)
+        known = known | carried
     score = np.abs(difference)
     completion = None
     if config.complete_hops > 0:
@@ -292,19 +300,54 @@ def pair_regions(
 
 
 def every_pair_regions(
-    evidence: ChangeEvidence, model, config: ChangesConfig
+    evidence: ChangeEvidence,
+    model,
+    config: ChangesConfig,
+    *,
+    cameras: Sequence[Sequence[Camera]] | None = None,
+    render_config=None,
+    pairs: Sequence[tuple[int, int]] | None = None,
 ) -> dict[tuple[int, int], tuple[np.ndarray, np.ndarray, list[dict], np.ndarray]]:
-    """``pair_regions`` of every date pair p < q of ``model`` (a ``TemporalGaussians``), its spacing
-    and colours computed once: {(p, q): (difference, known, regions, member)}."""
+    """``pair_regions`` of the date pairs p < q of ``model`` (a ``TemporalGaussians``; ``pairs``, default
+    all), its spacing and colours computed once: {(p, q): (difference, known, regions, member)}. With
+    ``config.carry_absence`` and more than two dates, each pair's regions are formed twice: first from
+    its evidence alone, then with the Gaussians ``carried.carried_absence`` finds from the first
+    regions of every pair that holds p or q (``cameras[d]``: date d's views, then required; the
+    evidence must cover those pairs)."""
     means = np.asarray(model.gaussians.means, np.float64)
     origin = np.asarray(model.origin)
+    t = model.num_dates
     spacing = median_spacing(means)
     colors = np.asarray(rgb(model.gaussians), np.float64)
-    return {
-        (p, q): pair_regions(evidence, origin, means, p, q, config, spacing=spacing, colors=colors)
-        for p in range(model.num_dates)
-        for q in range(p + 1, model.num_dates)
+    wanted = [(p, q) for p in range(t) for q in range(p + 1, t)] if pairs is None else sorted(set(pairs))
+    carry = bool(config.carry_absence) and t > 2
+    if carry and cameras is None:
+        raise InputError(
+            "carrying absence across dates needs each date's views",
+            field="changes.carry_absence",
+            fix="pass cameras=[views of date 0, …], or set changes.carry_absence = false",
+        )
+    first_pairs = (
+        {(min(a, r), max(a, r)) for p, q in wanted for a in (p, q) for r in range(t) if r != a} if carry else set()
+    )
+    first = {
+        pair: pair_regions(evidence, origin, means, *pair, config, spacing=spacing, colors=colors)
+        for pair in sorted(first_pairs | set(wanted))
     }
+    if not carry:
+        return {pair: first[pair] for pair in wanted}
+    members = {pair: value[3] for pair, value in first.items()}
+    out = {}
+    for p, q in wanted:
+        carried = carried_absence(
+            model, cameras, members, p, q, support_views=config.support_views, render_config=render_config
+        )
+        out[(p, q)] = (
+            pair_regions(evidence, origin, means, p, q, config, spacing=spacing, colors=colors, carried=carried)
+            if carried.any()
+            else first[(p, q)]
+        )
+    return out
 
 
 def image_regions(mask: np.ndarray, score_map: np.ndarray, min_pixels: int = 8) -> tuple[list[dict], np.ndarray]:

@@ -20,13 +20,12 @@ import numpy as np
 from cfgs_jax import splat
 from cfgs_jax.changes.evidence import ChangesConfig, change_evidence, pairs_for
 from cfgs_jax.changes.maps import change_mask, pixel_change, valid_pixels
-from cfgs_jax.changes.regions import image_regions, median_spacing, pair_regions
+from cfgs_jax.changes.regions import every_pair_regions, image_regions
 from cfgs_jax.config import section
 from cfgs_jax.errors import InputError
 from cfgs_jax.io.atomic import read_json, write_json, write_text
 from cfgs_jax.io.images import write_image
 from cfgs_jax.io.ply import write_ply
-from cfgs_jax.model import rgb
 
 OVERLAY_COLOUR = np.array([1.0, 0.0, 1.0], np.float32)  # magenta
 
@@ -78,19 +77,22 @@ def detect_changes(
     origin = np.asarray(model.origin)
     log(f"[changes] evidence of {run.names[p]} ↔ {run.names[q]} from the dates' {config.views} views")
     views = [run.date_views(d, config.views) for d in range(len(run.names))]
+    t = len(run.names)
+    pairs = pairs_for(t, p, q)
+    if config.carry_absence and t > 2:  # the regions of every pair that holds p or q
+        pairs = [(a, b) for a in range(t) for b in range(t) if a != b and {a, b} & {p, q}]
     evidence = change_evidence(
         model,
         views,
         config,
-        pairs=pairs_for(len(run.names), p, q),
+        pairs=pairs,
         support_cameras=[run.date_cameras(d, "train") for d in range(len(run.names))],
         render_config=render_config,
         progress=progress,
     )
-    means = np.asarray(model.gaussians.means, np.float64)
-    difference, known, regions, member = pair_regions(
-        evidence, origin, means, p, q, config, spacing=median_spacing(means), colors=np.asarray(rgb(model.gaussians))
-    )
+    difference, known, regions, member = every_pair_regions(
+        evidence, model, config, cameras=[v.cameras for v in views], render_config=render_config, pairs=[(p, q)]
+    )[(p, q)]
     changed = known & (np.abs(difference) > 0.5)
     rows = np.nonzero(member >= 0)[0]
     g = jax.tree_util.tree_map(lambda x: jnp.asarray(x)[rows], model.gaussians)

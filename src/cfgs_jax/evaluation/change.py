@@ -411,7 +411,9 @@ def evidence_detection(
     per_pair, found, changed, false_regions, region_count = {}, 0, 0, 0, 0
     t = model.num_dates
     members = {}
-    for (p, q), (_, known, regions, member) in every_pair_regions(ev, model, cfg).items():
+    for (p, q), (_, known, regions, member) in every_pair_regions(
+        ev, model, cfg, cameras=[v.cameras for v in views], render_config=rc
+    ).items():
         members[(p, q)] = members[(q, p)] = member >= 0
         objs = _region_scores(regions, member, table["objects"], changed_objects.get((p, q), set()))
         n_changed = len(changed_objects.get((p, q), ()))
