@@ -79,7 +79,10 @@ def detect_changes(
     views = [run.date_views(d, config.views) for d in range(len(run.names))]
     t = len(run.names)
     pairs = pairs_for(t, p, q)
-    if config.carry_absence and t > 2:  # the regions of every pair that holds p or q
+    if config.carry_absence and t > 2:
+        # the regions of every pair (p, r) and (q, r) decide which of p's and q's Gaussians are gone at
+        # r; they are formed from the Gaussians of their own two dates and of p and q (a third date's
+        # Gaussians at r are not computed here, as the evaluation, which computes every pair, does)
         pairs = [(a, b) for a in range(t) for b in range(t) if a != b and {a, b} & {p, q}]
     evidence = change_evidence(
         model,
