@@ -82,7 +82,7 @@ def detect_changes(
     if config.carry_absence and t > 2:
         # the regions of every pair (p, r) and (q, r) decide which of p's and q's Gaussians are gone at
         # r. Unlike the evaluation, which computes every pair, this leaves out a third date's Gaussians
-        # seen at r, so those regions hold only the Gaussians of their own two dates, p and q.
+        # seen at r: those regions hold only Gaussians of their own two dates and of p and q.
         pairs = [(a, b) for a in range(t) for b in range(t) if a != b and {a, b} & {p, q}]
     evidence = change_evidence(
         model,
