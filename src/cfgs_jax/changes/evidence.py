@@ -515,7 +515,13 @@ def pair_change(evidence: ChangeEvidence, origin: np.ndarray, p: int, q: int) ->
     return np.abs(presence_difference(evidence, origin, p, q))
 
 
-def pairs_for(t: int, p: int, q: int) -> list[tuple[int, int]]:
+def pairs_for(t: int, p: int, q: int, *, carry_absence: bool = False) -> list[tuple[int, int]]:
     """The ordered (origin, observing date) entries ``pair_change(·, p, q)`` reads: every other date's
-    Gaussians at p and at q."""
+    Gaussians at p and at q. With ``carry_absence`` (and more than two dates) also p's and q's
+    Gaussians at every other date, which the regions of the pairs (p, r) and (q, r) read for
+    ``carried.carried_absence``: every ordered pair that holds p or q. A third date's Gaussians seen at
+    r stay out, so those regions hold only Gaussians of their own two dates and of p and q (the
+    evaluation, which computes every pair, has them)."""
+    if carry_absence and t > 2:
+        return [(a, b) for a in range(t) for b in range(t) if a != b and {a, b} & {p, q}]
     return [(r, x) for r in range(t) for x in (p, q) if r != x]

@@ -77,18 +77,11 @@ def detect_changes(
     origin = np.asarray(model.origin)
     log(f"[changes] evidence of {run.names[p]} ↔ {run.names[q]} from the dates' {config.views} views")
     views = [run.date_views(d, config.views) for d in range(len(run.names))]
-    t = len(run.names)
-    pairs = pairs_for(t, p, q)
-    if config.carry_absence and t > 2:
-        # the regions of every pair (p, r) and (q, r) decide which of p's and q's Gaussians are gone at
-        # r. Unlike the evaluation, which computes every pair, this leaves out a third date's Gaussians
-        # seen at r: those regions hold only Gaussians of their own two dates and of p and q.
-        pairs = [(a, b) for a in range(t) for b in range(t) if a != b and {a, b} & {p, q}]
     evidence = change_evidence(
         model,
         views,
         config,
-        pairs=pairs,
+        pairs=pairs_for(len(run.names), p, q, carry_absence=config.carry_absence),
         support_cameras=[run.date_cameras(d, "train") for d in range(len(run.names))],
         render_config=render_config,
         progress=progress,
