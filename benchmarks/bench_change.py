@@ -48,6 +48,11 @@ VARIANTS = [  # (label, overrides of the default [changes] table)
     ("colour completion, colour 0.15", {"complete_colour": 0.15}),
     ("colour completion across dates", {"complete_across_dates": True}),
     ("no carried absence", {"carry_absence": False}),
+    ("pixels changed above 0.5 (a majority)", {"pixel_threshold": 0.5}),
+    ("pixels changed above 0.45", {"pixel_threshold": 0.45}),
+    ("pixels changed above 0.4", {"pixel_threshold": 0.4}),
+    ("pixels changed above 0.3", {"pixel_threshold": 0.3}),
+    ("pixels changed above 0.25", {"pixel_threshold": 0.25}),
 ]
 
 

@@ -176,11 +176,25 @@ def test_a_removed_blob_is_changed_and_a_brightened_persistent_one_is_not():
     assert mask.sum() < 0.5 * (a >= 0.5).sum()
 
 
+def test_change_mask_thresholds_the_weighted_share_on_valid_pixels():
+    """Hand-set maps: a pixel is changed when it is valid (alpha ≥ 0.5, known share ≥ 0.5) and the
+    changed share exceeds the threshold, strictly."""
+    score = np.array([[0.2, 0.35, 0.4, 0.9]])
+    known = np.array([[1.0, 1.0, 1.0, 0.4]])
+    alpha = np.array([[1.0, 1.0, 0.6, 1.0]])
+    assert change_mask(score, known, alpha).tolist() == [[False, False, False, False]]
+    assert change_mask(score, known, alpha, 0.35).tolist() == [[False, False, True, False]]
+    assert change_mask(score, known, alpha, 0.1).tolist() == [[True, True, True, False]]
+    assert change_mask(score, known, np.array([[1.0, 1.0, 0.4, 1.0]]), 0.1).tolist() == [[True, True, False, False]]
+
+
 def test_changes_config_validates():
     with pytest.raises(InputError, match="changes.gain_range"):
         ChangesConfig(gain_range=(1.2, 3.0))
     with pytest.raises(InputError, match="changes.threshold"):
         ChangesConfig(threshold=0.0)
+    with pytest.raises(InputError, match="changes.pixel_threshold"):
+        ChangesConfig(pixel_threshold=1.0)
     with pytest.raises(InputError, match="changes.neighbours"):
         ChangesConfig(neighbours=0)
     with pytest.raises(InputError, match="changes.views"):

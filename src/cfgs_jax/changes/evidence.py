@@ -67,6 +67,8 @@ class ChangesConfig:
     ``min_region_share`` of the two dates' Gaussians as seeds (3D; the larger bound counts, so that a
     denser reconstruction of the same scene, whose objects and whose noise patches both hold more
     Gaussians, needs proportionally more), and ``min_region_pixels`` pixels (image).
+    ``pixel_threshold``: a pixel of a view counts as changed when the regions' Gaussians hold more than
+    this share of the compositing weight of what it shows (``maps.change_mask``).
     ``carry_absence``: a Gaussian that another date pair found gone and that, at the pair's other
     date, lies at or behind a surface that changed between the two dates is counted gone there too
     (``changes.carried``; needs the regions of every pair that holds one of the two dates, so the
@@ -93,6 +95,7 @@ class ChangesConfig:
     min_region_gaussians: int = 16
     min_region_share: float = 0.0015
     min_region_pixels: int = 8
+    pixel_threshold: float = 0.35
     max_view_angle: float = 20.0
     support_views: int = 64
     complete_hops: int = 16
@@ -119,6 +122,10 @@ class ChangesConfig:
         if not 0.0 < self.contribution_threshold < 1.0:
             raise InputError(
                 f"must lie in (0, 1), got {self.contribution_threshold}", field="changes.contribution_threshold"
+            )
+        if not 0.0 < self.pixel_threshold < 1.0:
+            raise InputError(
+                f"must lie in (0, 1), got {self.pixel_threshold}", field="changes.pixel_threshold", fix="e.g. 0.35"
             )
         if not 0.0 < self.grow_above <= 0.5:
             raise InputError(f"must lie in (0, 0.5], got {self.grow_above}", field="changes.grow_above")

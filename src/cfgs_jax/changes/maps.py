@@ -66,6 +66,7 @@ def valid_pixels(known_map: np.ndarray, alpha: np.ndarray) -> np.ndarray:
     return (alpha >= 0.5) & (known_map >= 0.5)
 
 
-def change_mask(score_map: np.ndarray, known_map: np.ndarray, alpha: np.ndarray) -> np.ndarray:
-    """[H, W] bool: ``valid_pixels`` scored above 0.5."""
-    return valid_pixels(known_map, alpha) & (score_map > 0.5)
+def change_mask(score_map: np.ndarray, known_map: np.ndarray, alpha: np.ndarray, threshold: float = 0.5) -> np.ndarray:
+    """[H, W] bool: ``valid_pixels`` whose score Σ w·c / Σ w exceeds ``threshold`` (with region
+    membership as c: the changed Gaussians hold more than that share of what the pixel shows)."""
+    return valid_pixels(known_map, alpha) & (score_map > threshold)

@@ -101,7 +101,7 @@ def detect_changes(
             name = Path(scene.image_names[int(i)]).stem
             cam = camera_in_frame(scene.cameras[int(i)], sim)
             s, k, a = pixel_change(model, cam, in_region, known, p, q, render_config=render_config)
-            mask, valid = change_mask(s, k, a), valid_pixels(k, a)
+            mask, valid = change_mask(s, k, a, config.pixel_threshold), valid_pixels(k, a)
             areas, _ = image_regions(mask, s, config.min_region_pixels)
             write_image(out / "masks" / run.names[d] / f"{name}.png", mask.astype(np.float32))
             write_image(out / "scores" / run.names[d] / f"{name}.png", np.where(valid, s, 0.0))

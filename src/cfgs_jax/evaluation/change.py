@@ -394,7 +394,7 @@ def evidence_detection(
     q, predicted changed when in a region of the pair, or by s^q > 0.5 alone; true when the Gaussian's
     object changed between p and q, and, prefixed ``pixel_label_``, when most of its weight in its own
     views lies on pixels whose surface differs at q), per pixel of each date's test views (the pair's region members rendered,
-    against ``changed_vs``; pixels covered and observed at both dates) and per region
+    changed above ``config.pixel_threshold``, against ``changed_vs``; pixels covered and observed at both dates) and per region
     (``changed_objects[(p, q)]``: object ids whose presence differs, p < q). ``statistics``:
     precomputed ``changes.pair_statistics`` (computed from ``views`` and ``support_cameras``, each date's
     training cameras, when not given)."""
@@ -426,7 +426,7 @@ def evidence_detection(
             for cam, gt in zip(masks_test[a].cameras, masks_test[a].changed_vs[names[b]]):
                 s, k, alpha = pixel_change(model, cam, (member >= 0).astype(np.float32), known, p, q, render_config=rc)
                 valid = valid_pixels(k, alpha)
-                pred, true = change_mask(s, k, alpha), gt & valid
+                pred, true = change_mask(s, k, alpha, cfg.pixel_threshold), gt & valid
                 counts = {
                     "inter": int((pred & true).sum()),
                     "union": int((pred | true).sum()),

@@ -99,7 +99,8 @@ def _evidence_table(ev: dict) -> list[str]:
         f"| … truth by pixels (most weight on changed pixels) | {g['pixel_label_precision']:.3f} | "
         f"{g['pixel_label_recall']:.3f} | {g['pixel_label_f1']:.3f} | – | {100 * g['flagged_in_regions']:.2f} % | "
         f"{100 * g['pixel_label_gt_changed']:.1f} % |",
-        f"| Pixels (test views, mostly a changed region) | – | – | – | {p['iou']:.3f} | "
+        f"| Pixels (test views, a changed region's share > {ev['config'].get('pixel_threshold', 0.5):g}) | – | – | – | "
+        f"{p['iou']:.3f} | "
         f"{100 * p['predicted_changed_share']:.2f} % | {100 * p['gt_changed_share']:.1f} % |",
         "",
         f"Regions (3D, {r['pairs']} date pairs): {r['found_objects']} of {r['changed_objects']} changed objects "
