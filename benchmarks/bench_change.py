@@ -37,6 +37,7 @@ VARIANTS = [  # (label, overrides of the default [changes] table)
     ("gain, k = 64", {"neighbours": 64}),
     ("no growth", {"grow_above": 0.5}),
     ("grow above 0.25", {"grow_above": 0.25}),
+    ("link 4", {"link_factor": 4.0}),
     ("link 3", {"link_factor": 3.0}),
     ("link 3, grow above 0.25", {"link_factor": 3.0, "grow_above": 0.25}),
     ("τ = 0.05", {"threshold": 0.05}),
