@@ -413,6 +413,15 @@ def test_colour_completion_takes_the_rest_of_an_object_and_not_the_ground():
     )
     assert len(regions) == 1 and regions[0]["gaussians"] == expected.sum() and regions[0]["seeds"] == seeds.sum()
     np.testing.assert_array_equal(member3 == 0, expected)
+    # completion steps of their own length: with a link of half the radius, completion in steps of the
+    # link radius stops short of the column's foot; in steps of ``radius`` it reaches it as above
+    completion = {"colors": colors, "origin": origin, "eligible": eligible, "tolerance": 0.1, "hops": 8}
+    _, short = regions_3d(means, seeds, diff, spacing=radius / 5.0, link_factor=2.5, completion=completion)
+    _, own = regions_3d(
+        means, seeds, diff, spacing=radius / 5.0, link_factor=2.5, completion=completion | {"radius": radius}
+    )
+    assert (short == 0).sum() < expected.sum() and (short[:600][column[:, 2] < 0.2] == -1).all()
+    np.testing.assert_array_equal(own == 0, expected)
     # across dates: the touching red column of date 1 joins too (the object's other version), the
     # ground still does not
     across = complete_by_colour(
@@ -422,6 +431,8 @@ def test_colour_completion_takes_the_rest_of_an_object_and_not_the_ground():
     np.testing.assert_array_equal(across == 0, expected)
     with pytest.raises(InputError, match="complete_hops"):
         ChangesConfig(complete_hops=-1)
+    with pytest.raises(InputError, match="complete_link"):
+        ChangesConfig(complete_link=0.0)
 
 
 def _flood_model():

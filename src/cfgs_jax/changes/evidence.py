@@ -77,9 +77,10 @@ class ChangesConfig:
     angle of a direction one of p's training cameras saw it from (180: every view); at most
     ``support_views`` of those cameras, spread out (``spread_cameras``), stand for them all.
     ``complete_hops`` > 0 completes each region by colour (``regions.complete_by_colour``): a
-    Gaussian observed at both dates joins a region when it lies within that many link steps of the
-    region's Gaussians of its own date and its colour is within ``complete_colour`` (RGB distance) of
-    their median (0: no completion); with ``complete_across_dates`` also Gaussians of the pair's
+    Gaussian observed at both dates joins a region when it lies within that many steps of
+    ``complete_link`` × the median spacing from the region's Gaussians of its own date and its colour is
+    within ``complete_colour`` (RGB distance) of their median (0: no completion; the colour test lets
+    completion link farther than the evidence does); with ``complete_across_dates`` also Gaussians of the pair's
     other dates (the other date's version of a changed object). ``dates_per_pass``: how many dates'
     Gaussians are tested against one observing date in one pass over its views (they share each
     view's projection, sort and kernel walks; the figures do not depend on it beyond float32 rounding,
@@ -90,7 +91,7 @@ class ChangesConfig:
     neighbours: int = 32
     gain_range: tuple[float, float] = (1.0 / 3.0, 3.0)
     contribution_threshold: float = 0.01
-    link_factor: float = 5.0
+    link_factor: float = 4.0
     grow_above: float = 0.35
     min_region_gaussians: int = 16
     min_region_share: float = 0.0015
@@ -99,7 +100,8 @@ class ChangesConfig:
     max_view_angle: float = 20.0
     support_views: int = 64
     complete_hops: int = 16
-    complete_colour: float = 0.1
+    complete_colour: float = 0.15
+    complete_link: float = 5.5
     complete_across_dates: bool = False
     dates_per_pass: int = 8
     carry_absence: bool = True
@@ -139,6 +141,8 @@ class ChangesConfig:
             raise InputError(f"must be ≥ 1, got {self.support_views}", field="changes.support_views")
         if int(self.complete_hops) < 0:
             raise InputError(f"must be ≥ 0, got {self.complete_hops}", field="changes.complete_hops")
+        if not self.complete_link > 0:
+            raise InputError(f"must be > 0, got {self.complete_link}", field="changes.complete_link", fix="e.g. 5")
         if not self.complete_colour > 0:
             raise InputError(
                 f"must be > 0, got {self.complete_colour}", field="changes.complete_colour", fix="e.g. 0.1"

@@ -193,9 +193,9 @@ def regions_3d(
     difference > 0, and of what appeared are formed apart, then joined where they occupy the same
     place, ``merge_colocated``); ``difference``: [N] presence at p minus presence at q
     (``evidence.presence_difference``); ``spacing``: ``median_spacing``. ``completion``: the keyword
-    arguments ``colors``, ``origin``, ``eligible``, ``tolerance``, ``hops`` and ``across_dates`` of
-    ``complete_by_colour``, applied
-    to the regions before they are described (None: no completion)."""
+    arguments ``colors``, ``origin``, ``eligible``, ``tolerance``, ``hops``, ``across_dates`` and
+    optionally ``radius`` (default the link radius, ``link_factor`` × ``spacing``) of
+    ``complete_by_colour``, applied to the regions before they are described (None: no completion)."""
     means = np.asarray(means, np.float64)
     difference = np.asarray(difference, np.float64)
     seeds = np.asarray(seeds, bool)
@@ -212,7 +212,7 @@ def regions_3d(
     for k, idx in enumerate(groups):
         member[idx] = k
     if completion is not None:
-        member = complete_by_colour(means, member=member, seeds=seeds, radius=radius, **completion)
+        member = complete_by_colour(means, member=member, seeds=seeds, **({"radius": radius} | completion))
         groups = [np.nonzero(member == k)[0] for k in range(len(groups))]
     out = []
     for k, idx in enumerate(groups):
@@ -260,8 +260,8 @@ def pair_regions(
     Seeds: known and |difference| > 0.5; candidates: known and |difference| > ``grow_above``; a region
     needs max(``min_region_gaussians``, ⌈``min_region_share`` · (N_p + N_q)⌉) seeds, N_x the Gaussians of
     date x (``min_region_seeds``). With
-    ``config.complete_hops`` > 0 the regions are completed by colour over the known Gaussians
-    (``colors``: [N, 3], the model's colours, then required). ``carried``: [N] bool, Gaussians of p or q
+    ``config.complete_hops`` > 0 the regions are completed by colour over the known Gaussians, in steps
+    of ``config.complete_link`` × ``spacing`` (``colors``: [N, 3], the model's colours, then required). ``carried``: [N] bool, Gaussians of p or q
     counted gone at the other date (``carried.carried_absence``): presence difference ±1, known."""
     difference = presence_difference(evidence, origin, p, q)
     known = pair_known(evidence, origin, p, q)
@@ -282,6 +282,7 @@ def pair_regions(
             "colors": colors,
             "origin": origin,
             "eligible": known,
+            "radius": config.complete_link * spacing,
             "tolerance": config.complete_colour,
             "hops": int(config.complete_hops),
             "across_dates": bool(config.complete_across_dates),
