@@ -14,8 +14,9 @@ centres, and its kind: "disappeared" (≥ 80 % of its Gaussians shown at the ear
 (≥ 80 % the other way) or "changed" (both).
 Optionally a region is then completed by colour (``complete_by_colour``): the Gaussians of a date that
 lie within a few steps (``complete_link`` × the median spacing each) of the region's own Gaussians of
-that date and share their colour join it, so that an object of which the images show only a part changed (a flattened object keeps its
-lower part's look) is reported whole, without reaching into a differently coloured ground.
+that date and share their colour join it, so that an object of which the images show only a part
+changed (a flattened object keeps its lower part's look) is reported whole, without reaching into a
+differently coloured ground.
 Image: 8-connected components of a change mask with at least ``min_region_pixels`` pixels.
 """
 
