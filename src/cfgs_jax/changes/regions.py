@@ -260,10 +260,10 @@ def pair_regions(
     (presence difference [N], known at both dates [N] bool, regions, [N] region index or −1).
     Seeds: known and |difference| > 0.5; candidates: known and |difference| > ``grow_above``; a region
     needs max(``min_region_gaussians``, ⌈``min_region_share`` · (N_p + N_q)⌉) seeds, N_x the Gaussians of
-    date x (``min_region_seeds``). With
-    ``config.complete_hops`` > 0 the regions are completed by colour over the known Gaussians, in steps
-    of ``config.complete_link`` × ``spacing`` (``colors``: [N, 3], the model's colours, then required). ``carried``: [N] bool, Gaussians of p or q
-    counted gone at the other date (``carried.carried_absence``): presence difference ±1, known."""
+    date x (``min_region_seeds``). With ``config.complete_hops`` > 0 the regions are completed by colour
+    over the known Gaussians, in steps of ``config.complete_link`` × ``spacing`` (``colors``: [N, 3], the
+    model's colours, then required). ``carried``: [N] bool, Gaussians of p or q counted gone at the
+    other date (``carried.carried_absence``): presence difference ±1, known."""
     difference = presence_difference(evidence, origin, p, q)
     known = pair_known(evidence, origin, p, q)
     if carried is not None:

@@ -393,11 +393,11 @@ def evidence_detection(
     ``changes`` command runs it: per Gaussian (the entries of ``table``: observed Gaussians of date p at
     q, predicted changed when in a region of the pair, or by s^q > 0.5 alone; true when the Gaussian's
     object changed between p and q, and, prefixed ``pixel_label_``, when most of its weight in its own
-    views lies on pixels whose surface differs at q), per pixel of each date's test views (the pair's region members rendered,
-    changed above ``config.pixel_threshold``, against ``changed_vs``; pixels covered and observed at both dates) and per region
-    (``changed_objects[(p, q)]``: object ids whose presence differs, p < q). ``statistics``:
-    precomputed ``changes.pair_statistics`` (computed from ``views`` and ``support_cameras``, each date's
-    training cameras, when not given)."""
+    views lies on pixels whose surface differs at q), per pixel of each date's test views (the pair's
+    region members rendered, changed above ``config.pixel_threshold``, against ``changed_vs``; pixels
+    covered and observed at both dates) and per region (``changed_objects[(p, q)]``: object ids whose
+    presence differs, p < q). ``statistics``: precomputed ``changes.pair_statistics`` (computed from
+    ``views`` and ``support_cameras``, each date's training cameras, when not given)."""
     from cfgs_jax.changes import ChangesConfig, evidence_from, pair_statistics
     from cfgs_jax.changes.maps import change_mask, pixel_change, valid_pixels
     from cfgs_jax.changes.regions import every_pair_regions
