@@ -160,6 +160,50 @@ def test_eval_change_detection_and_resume(protocol):
     assert cj.io.read_fused(out / "run" / "snapshots" / "refine_60").num_dates == 2
 
 
+@pytest.mark.slow
+def test_eval_refines_again_when_the_run_lacks_a_snapshot(protocol, tmp_path):
+    """A run refined without the snapshot an evaluation asks for (its N₁ row) is refined again from its
+    cross-init on resume: the snapshot comes back, and with it a fused model equal to the first one
+    (the refinement is deterministic), the same Ours rows, and the other stages untouched."""
+    import shutil
+
+    from cfgs_jax.evaluation.protocol import run_protocol
+
+    data, out, raw = protocol
+    copy = tmp_path / "out"
+    shutil.copytree(out, copy)
+    before = json.loads((out / "table.json").read_text())
+    shutil.rmtree(copy / "run" / "snapshots")
+    seen = []
+    again = run_protocol(str(data), copy, raw, resume=True, progress=False, log=seen.append)
+    assert any("no refinement snapshot at [60]" in m for m in seen), seen
+    assert not any("Individual +" in m or "ablation" in m for m in seen), seen  # those stages are kept
+    first, second = read_fused(out / "run" / "fused"), read_fused(copy / "run" / "fused")
+    np.testing.assert_array_equal(np.asarray(second.gaussians.means), np.asarray(first.gaussians.means))
+    np.testing.assert_array_equal(np.asarray(second.o_logits), np.asarray(first.o_logits))
+    assert read_fused(copy / "run" / "snapshots" / "refine_60").num_dates == 2
+    rows = {r["row"]: r["psnr"] for r in again["rows"]}
+    for r in before["rows"]:
+        assert rows[r["row"]] == pytest.approx(r["psnr"], abs=1e-4), r["row"]
+    assert (copy / "change.json").is_file()
+
+
+def test_eval_refuses_to_refine_an_extended_run_again(tmp_path):
+    from cfgs_jax import InputError
+    from cfgs_jax.evaluation.protocol import _refine_again_for_snapshots
+    from cfgs_jax.io.atomic import write_json
+
+    done = ["train", "register", "merge", "cross_init", "refine", "export", "extend:d2:train"]
+    write_json(tmp_path / "run" / "run.json", {"done": done})
+    with pytest.raises(InputError, match=r"extend:d2:train"):
+        _refine_again_for_snapshots(tmp_path, (150,), print)
+    write_json(tmp_path / "run" / "run.json", {"done": done[:-1]})
+    write_json(tmp_path / "rows.json", {"merged": {"psnr": 1.0}, "ours_800": {"psnr": 2.0}})
+    _refine_again_for_snapshots(tmp_path, (150,), print)
+    assert json.loads((tmp_path / "run" / "run.json").read_text())["done"] == done[:4]
+    assert list(json.loads((tmp_path / "rows.json").read_text())) == ["merged"]
+
+
 def test_eval_change_table_is_checked_before_any_work():
     from cfgs_jax import InputError
     from cfgs_jax.evaluation.protocol import validate_eval_config

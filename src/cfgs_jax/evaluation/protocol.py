@@ -311,6 +311,38 @@ def _known_transforms(data: Path, dirs, out: Path) -> Path:
     return transforms
 
 
+#: The stages of a fusion run that follow the refinement and read its model.
+_AFTER_REFINE = ("compact", "export", "evaluate")
+
+
+def _refine_again_for_snapshots(out: Path, snapshots, log) -> None:
+    """Prepare a finished fusion run in ``out/run`` that lacks a refinement snapshot the evaluation asks
+    for (it was refined under other ``[eval] steps``): the refinement and the stages after it are marked
+    undone, and the rows and change detection read from the fused model are dropped, so the resumed run
+    refines ``RUN/cross_init`` again and keeps every snapshot. An extended run cannot be refined again."""
+    run_dir = out / "run"
+    state = read_json(run_dir / "run.json")
+    if state is None or "refine" not in state["done"]:
+        return
+    missing = [k for k in snapshots if not (run_dir / "snapshots" / f"refine_{k}" / "model.json").is_file()]
+    if not missing:
+        return
+    after = state["done"][state["done"].index("refine") + 1 :]
+    if any(stage not in _AFTER_REFINE for stage in after):
+        raise InputError(
+            f"the run has no refinement snapshot at {missing} and was extended since ({', '.join(after)})",
+            path=run_dir / "run.json",
+            field="eval.steps",
+            fix="evaluate with the step counts it was refined for, or choose another --out",
+        )
+    log(f"[eval] the run has no refinement snapshot at {missing}: its refinement is run again to keep them")
+    state["done"] = [s for s in state["done"] if s != "refine" and s not in _AFTER_REFINE]
+    write_json(run_dir / "run.json", state)
+    rows = read_json(out / "rows.json", {})
+    write_json(out / "rows.json", {k: v for k, v in rows.items() if not k.startswith("ours_")})
+    (out / "change.json").unlink(missing_ok=True)
+
+
 def _fuse(scene, raw, out: Path, ec: EvalConfig, progress: bool, log, mesh=None) -> tuple[Path, list, dict, float]:
     """Prepare the scene and run (or continue) its fusion with snapshots at the evaluation steps.
     Returns the data directory, the date directories, the fusion configuration and the wall time."""
@@ -319,6 +351,7 @@ def _fuse(scene, raw, out: Path, ec: EvalConfig, progress: bool, log, mesh=None)
     fusion_raw = {k: v for k, v in (raw or {}).items() if k in CONFIG_SECTIONS or k == "__path__"}
     fusion_raw["refine"] = dict(fusion_raw.get("refine", {})) | {"steps": max(ec.steps)}
     run_dir = out / "run"
+    _refine_again_for_snapshots(out, ec.steps[:-1], log)
     t0 = time.perf_counter()
     run_fusion(
         dirs,
