@@ -186,6 +186,15 @@ def test_eval_refines_again_when_the_run_lacks_a_snapshot(protocol, tmp_path):
     for r in before["rows"]:
         assert rows[r["row"]] == pytest.approx(r["psnr"], abs=1e-4), r["row"]
     assert (copy / "change.json").is_file()
+    # a date's Individual +N continuation evaluated at other step counts is trained again, alike
+    result = copy / "run" / "individual_plus" / "d0" / "result.json"
+    kept = json.loads(result.read_text())
+    result.write_text(json.dumps(kept | {"steps": {"120": kept["steps"]["120"]}}))
+    seen = []
+    third = run_protocol(str(data), copy, raw, resume=True, progress=False, log=seen.append)
+    assert any("date d0 was evaluated at other steps" in m for m in seen), seen
+    assert json.loads(result.read_text())["steps"]["60"]["psnr"] == pytest.approx(kept["steps"]["60"]["psnr"], abs=1e-4)
+    assert [r["row"] for r in third["rows"]] == [r["row"] for r in before["rows"]]
 
 
 def test_eval_refuses_to_refine_an_extended_run_again(tmp_path):

@@ -135,13 +135,18 @@ def _individual_plus(
     run_dir: Path, scenes, raw, steps: tuple[int, ...], render_config, lpips_net, progress, log
 ) -> dict:
     """Each date's model trained ``max(steps)`` more steps (``continuation_config``), evaluated after
-    every count in ``steps``; resumable per date (``RUN/individual_plus/<date>/``)."""
+    every count in ``steps``; resumable per date (``RUN/individual_plus/<date>/``). A date evaluated at
+    other step counts is trained again from its own model."""
     tc = train.continuation_config(dataclasses.replace(section(raw, "train", train.TrainConfig), steps=max(steps)))
     results = {}
     for sc in scenes:
         name = sc.root.name
         d = run_dir / "individual_plus" / name
         done = read_json(d / "result.json")
+        if done is not None and any(str(s) not in done["steps"] for s in steps):
+            log(f"[eval] Individual +{max(steps):,}: date {name} was evaluated at other steps; it is trained again")
+            (d / "checkpoint.npz").unlink(missing_ok=True)
+            done = None
         if done is None:
             log(f"[eval] Individual +{max(steps):,}: date {name}")
             g = read_ply(run_dir / "dates" / name / "point_cloud.ply")
