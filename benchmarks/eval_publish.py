@@ -141,7 +141,7 @@ def main():
     header = (
         f"Machine: {machine()}. Date: {datetime.date.today().isoformat()}. Command: `python -m cfgs_jax.pipeline "
         f"eval --scene {args.scene} --config {args.config} --out DIR` (steps {table['steps']}; the configuration's "
-        f"values are in DIR/run/run.json), code {code}; written by `python benchmarks/eval_publish.py --scene "
+        f"values are in DIR/run/run.json); written at code {code} by `python benchmarks/eval_publish.py --scene "
         f"{args.scene} --out DIR --config {args.config}`. Stages done: {', '.join(run['done'])}; stage wall times "
         "(s): " + ", ".join(f"{k} {v:.0f}" for k, v in timings.items()) + "."
     )
