@@ -136,7 +136,8 @@ def _individual_plus(
 ) -> dict:
     """Each date's model trained ``max(steps)`` more steps (``continuation_config``), evaluated after
     every count in ``steps``; resumable per date (``RUN/individual_plus/<date>/``). A date evaluated at
-    other step counts is trained again from its own model."""
+    other step counts, or resumed from a checkpoint past a count to evaluate, is trained again from its
+    own model."""
     tc = train.continuation_config(dataclasses.replace(section(raw, "train", train.TrainConfig), steps=max(steps)))
     results = {}
     for sc in scenes:
@@ -151,19 +152,27 @@ def _individual_plus(
             log(f"[eval] Individual +{max(steps):,}: date {name}")
             g = read_ply(run_dir / "dates" / name / "point_cloud.ply")
             t0 = time.perf_counter()
-            r = train.fit(
-                sc,
-                tc,
-                render_config,
-                init=g,
-                out=d,
-                resume=True,
-                progress=progress,
-                eval_steps=steps,
-                lpips_net=lpips_net,
-            )
+
+            def fit():
+                r = train.fit(
+                    sc,
+                    tc,
+                    render_config,
+                    init=g,
+                    out=d,
+                    resume=True,
+                    progress=progress,
+                    eval_steps=steps,
+                    lpips_net=lpips_net,
+                )
+                return r, {int(h["step"]): h for h in r.eval_history}
+
+            r, hist = fit()
+            if any(s not in hist for s in steps):  # resumed from a checkpoint of a call with other steps
+                log(f"[eval] Individual +{max(steps):,}: date {name} resumed past a step to evaluate; trained again")
+                (d / "checkpoint.npz").unlink(missing_ok=True)
+                r, hist = fit()
             write_ply(d / "point_cloud.ply", r.gaussians)
-            hist = {int(h["step"]): h for h in r.eval_history}
             done = {
                 "steps": {str(s): hist[s] for s in steps},
                 "gaussians": len(r.gaussians),
