@@ -195,6 +195,23 @@ def test_eval_refines_again_when_the_run_lacks_a_snapshot(protocol, tmp_path):
     assert any("date d0 was evaluated at other steps" in m for m in seen), seen
     assert json.loads(result.read_text())["steps"]["60"]["psnr"] == pytest.approx(kept["steps"]["60"]["psnr"], abs=1e-4)
     assert [r["row"] for r in third["rows"]] == [r["row"] for r in before["rows"]]
+    # and one left with no result but a checkpoint past N₁ taken by a call that did not evaluate N₁
+    import dataclasses
+
+    from cfgs_jax import train
+    from cfgs_jax.config import section
+
+    fusion_raw = json.loads((copy / "run" / "run.json").read_text())["config"]
+    tc = train.continuation_config(dataclasses.replace(section(fusion_raw, "train", train.TrainConfig), steps=120))
+    start = read_ply(copy / "run" / "dates" / "d0" / "point_cloud.ply")
+    result.unlink()
+    train.fit(
+        read_colmap(data / "d0"), tc, init=start, out=result.parent, progress=False, eval_steps=(120,), stop_after=90
+    )
+    seen = []
+    run_protocol(str(data), copy, raw, resume=True, progress=False, log=seen.append)
+    assert any("date d0 resumed past a step to evaluate" in m for m in seen), seen
+    assert json.loads(result.read_text())["steps"]["60"]["psnr"] == pytest.approx(kept["steps"]["60"]["psnr"], abs=1e-4)
 
 
 def test_eval_refuses_to_refine_an_extended_run_again(tmp_path):
