@@ -399,9 +399,10 @@ def evidence_detection(
     object changed between p and q, and, prefixed ``pixel_label_``, when most of its weight in its own
     views lies on pixels whose surface differs at q), per pixel of each date's test views (the pair's
     region members rendered, changed above ``config.pixel_threshold``, against ``changed_vs``; pixels
-    covered and observed at both dates; also at every threshold of ``PIXEL_THRESHOLDS``) and per region (``changed_objects[(p, q)]``: object ids whose
-    presence differs, p < q). ``statistics``: precomputed ``changes.pair_statistics`` (computed from
-    ``views`` and ``support_cameras``, each date's training cameras, when not given)."""
+    covered and observed at both dates; also at every threshold of ``PIXEL_THRESHOLDS``) and per region
+    (``changed_objects[(p, q)]``: object ids whose presence differs, p < q). ``statistics``: precomputed
+    ``changes.pair_statistics`` (computed from ``views`` and ``support_cameras``, each date's training
+    cameras, when not given)."""
     from cfgs_jax.changes import ChangesConfig, evidence_from, pair_statistics
     from cfgs_jax.changes.maps import change_mask, view_change
     from cfgs_jax.changes.regions import every_pair_regions
