@@ -147,7 +147,9 @@ def main():
     )
     target = RESULTS / f"eval_{args.scene}.md"
     old = target.read_text() if target.is_file() else ""
-    parts = [header] + ([args.note.strip()] if args.note.strip() else []) + [table_md.rstrip(), comparison(old, table_md)]
+    parts = (
+        [header] + ([args.note.strip()] if args.note.strip() else []) + [table_md.rstrip(), comparison(old, table_md)]
+    )
     target.write_text("\n\n".join(parts).rstrip() + "\n")
     print(f"wrote {target}")
 

@@ -23,7 +23,7 @@ from cfgs_jax.changes.evidence import (
     residual_sums,
     spread_cameras,
 )
-from cfgs_jax.changes.maps import change_mask, pixel_change
+from cfgs_jax.changes.maps import change_mask, pixel_change, valid_pixels, view_change
 from cfgs_jax.changes.regions import (
     cluster_labels,
     complete_by_colour,
@@ -166,7 +166,9 @@ def test_a_removed_blob_is_changed_and_a_brightened_persistent_one_is_not():
     cam = views[0].cameras[0]
     known = np.ones(3)
     s, k, a = pixel_change(model, cam, pair_change(ev, model.origin, 0, 1), known, 0, 1)
-    mask = change_mask(s, k, a)
+    score, valid, mask = view_change(model, cam, pair_change(ev, model.origin, 0, 1), known, 0, 1, 0.5)
+    np.testing.assert_array_equal(score, s)
+    np.testing.assert_array_equal(valid, (a >= 0.5) & (k >= 0.5))
 
     def centre(i):  # the brightest alpha pixel of blob i rendered alone
         alone = np.asarray(reference.render_dates(model.gaussians, cam, np.eye(3)[i][None], np.ones((1, 3, 3))).alpha)
@@ -182,10 +184,13 @@ def test_change_mask_thresholds_the_weighted_share_on_valid_pixels():
     score = np.array([[0.2, 0.35, 0.4, 0.9]])
     known = np.array([[1.0, 1.0, 1.0, 0.4]])
     alpha = np.array([[1.0, 1.0, 0.6, 1.0]])
-    assert change_mask(score, known, alpha).tolist() == [[False, False, False, False]]
-    assert change_mask(score, known, alpha, 0.35).tolist() == [[False, False, True, False]]
-    assert change_mask(score, known, alpha, 0.1).tolist() == [[True, True, True, False]]
-    assert change_mask(score, known, np.array([[1.0, 1.0, 0.4, 1.0]]), 0.1).tolist() == [[True, True, False, False]]
+    valid = valid_pixels(known, alpha)
+    assert valid.tolist() == [[True, True, True, False]]
+    assert change_mask(score, valid, 0.5).tolist() == [[False, False, False, False]]
+    assert change_mask(score, valid, 0.35).tolist() == [[False, False, True, False]]
+    assert change_mask(score, valid, 0.1).tolist() == [[True, True, True, False]]
+    dark = valid_pixels(known, np.array([[1.0, 1.0, 0.4, 1.0]]))
+    assert change_mask(score, dark, 0.1).tolist() == [[True, True, False, False]]
 
 
 def test_changes_config_validates():

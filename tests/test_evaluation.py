@@ -151,6 +151,15 @@ def test_eval_change_detection_and_resume(protocol):
     assert change["config"]["surface_threshold"] == g["surface_threshold"] == 0.08
     assert g["flagged_changed"] <= g["flagged_changed_o_only"]
     assert "o^q alone (no surface rule)" in (out / "table.md").read_text()
+    # the evidence detector's masks swept over the pixel threshold: the default's entry is its IoU, and a
+    # higher threshold can only flag fewer pixels
+    pixels, cfg = change["evidence"]["pixels"], change["evidence"]["config"]
+    sweep = pixels["by_threshold"]
+    at_default = [i for i, t in enumerate(sweep["threshold"]) if abs(t - cfg["pixel_threshold"]) < 1e-9]
+    assert len(at_default) == 1 and sweep["iou"][at_default[0]] == pytest.approx(pixels["iou"])
+    assert sweep["predicted_changed_share"][at_default[0]] == pytest.approx(pixels["predicted_changed_share"])
+    assert np.all(np.diff(sweep["predicted_changed_share"]) <= 0)
+    assert "Pixel masks at other shares of a changed region" in (out / "table.md").read_text()
     # a second call resumes: no stage runs again and the table is unchanged
     before = json.loads((out / "table.json").read_text())
     seen = []

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -66,7 +67,33 @@ def valid_pixels(known_map: np.ndarray, alpha: np.ndarray) -> np.ndarray:
     return (alpha >= 0.5) & (known_map >= 0.5)
 
 
-def change_mask(score_map: np.ndarray, known_map: np.ndarray, alpha: np.ndarray, threshold: float = 0.5) -> np.ndarray:
-    """[H, W] bool: ``valid_pixels`` whose score Σ w·c / Σ w exceeds ``threshold`` (with region
+def change_mask(score_map: np.ndarray, valid: np.ndarray, threshold: float) -> np.ndarray:
+    """[H, W] bool: the ``valid`` pixels whose score Σ w·c / Σ w exceeds ``threshold`` (with region
     membership as c: the changed Gaussians hold more than that share of what the pixel shows)."""
-    return valid_pixels(known_map, alpha) & (score_map > threshold)
+    return valid & (score_map > threshold)
+
+
+class ViewChange(NamedTuple):
+    """The change of a date pair seen from one camera, per pixel."""
+
+    score: np.ndarray  # [H, W] Σ w·c / Σ w, the changed share of what the pixel shows
+    valid: np.ndarray  # [H, W] bool, ``valid_pixels``
+    mask: np.ndarray  # [H, W] bool, ``change_mask`` at the threshold
+
+
+def view_change(
+    model: TemporalGaussians,
+    camera: Camera,
+    changed: np.ndarray,
+    known: np.ndarray,
+    p: int,
+    q: int,
+    threshold: float,
+    *,
+    render_config: splat.RenderConfig | None = None,
+) -> ViewChange:
+    """The pair {p, q}'s change at ``camera``: ``changed`` ([N] score or 0/1 region membership) rendered by
+    ``pixel_change``, the pixels valid there, and those changed above ``threshold``."""
+    score, known_map, alpha = pixel_change(model, camera, changed, known, p, q, render_config=render_config)
+    valid = valid_pixels(known_map, alpha)
+    return ViewChange(score, valid, change_mask(score, valid, threshold))

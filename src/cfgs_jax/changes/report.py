@@ -19,7 +19,7 @@ import numpy as np
 
 from cfgs_jax import splat
 from cfgs_jax.changes.evidence import ChangesConfig, change_evidence, pairs_for
-from cfgs_jax.changes.maps import change_mask, pixel_change, valid_pixels
+from cfgs_jax.changes.maps import view_change
 from cfgs_jax.changes.regions import every_pair_regions, image_regions
 from cfgs_jax.config import section
 from cfgs_jax.errors import InputError
@@ -100,8 +100,9 @@ def detect_changes(
         for i in split_or_all(scene, split):
             name = Path(scene.image_names[int(i)]).stem
             cam = camera_in_frame(scene.cameras[int(i)], sim)
-            s, k, a = pixel_change(model, cam, in_region, known, p, q, render_config=render_config)
-            mask, valid = change_mask(s, k, a, config.pixel_threshold), valid_pixels(k, a)
+            s, valid, mask = view_change(
+                model, cam, in_region, known, p, q, config.pixel_threshold, render_config=render_config
+            )
             areas, _ = image_regions(mask, s, config.min_region_pixels)
             write_image(out / "masks" / run.names[d] / f"{name}.png", mask.astype(np.float32))
             write_image(out / "scores" / run.names[d] / f"{name}.png", np.where(valid, s, 0.0))

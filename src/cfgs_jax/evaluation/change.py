@@ -377,6 +377,10 @@ def _region_scores(regions: list[dict], member: np.ndarray, objects: np.ndarray,
     return {"found": sorted(found), "false_regions": false}
 
 
+#: The pixel thresholds every evaluation of the detector also scores its masks at (the default among them).
+PIXEL_THRESHOLDS = np.round(np.arange(0.05, 0.951, 0.05), 2)
+
+
 def evidence_detection(
     model: TemporalGaussians,
     views: Sequence,
@@ -395,11 +399,12 @@ def evidence_detection(
     object changed between p and q, and, prefixed ``pixel_label_``, when most of its weight in its own
     views lies on pixels whose surface differs at q), per pixel of each date's test views (the pair's
     region members rendered, changed above ``config.pixel_threshold``, against ``changed_vs``; pixels
-    covered and observed at both dates) and per region (``changed_objects[(p, q)]``: object ids whose
-    presence differs, p < q). ``statistics``: precomputed ``changes.pair_statistics`` (computed from
-    ``views`` and ``support_cameras``, each date's training cameras, when not given)."""
+    covered and observed at both dates; also at every threshold of ``PIXEL_THRESHOLDS``) and per region
+    (``changed_objects[(p, q)]``: object ids whose presence differs, p < q). ``statistics``: precomputed
+    ``changes.pair_statistics`` (computed from ``views`` and ``support_cameras``, each date's training
+    cameras, when not given)."""
     from cfgs_jax.changes import ChangesConfig, evidence_from, pair_statistics
-    from cfgs_jax.changes.maps import change_mask, pixel_change, valid_pixels
+    from cfgs_jax.changes.maps import change_mask, view_change
     from cfgs_jax.changes.regions import every_pair_regions
 
     cfg = config or ChangesConfig()
@@ -408,6 +413,7 @@ def evidence_detection(
     ev = evidence_from(stats, np.asarray(model.gaussians.means, np.float64), cfg)
     names = [d.name for d in model.dates]
     pixel = {"inter": 0, "union": 0, "predicted": 0, "truth": 0, "valid": 0}
+    sweep = np.zeros((3, len(PIXEL_THRESHOLDS)), np.int64)  # intersection, union, predicted per threshold
     per_pair, found, changed, false_regions, region_count = {}, 0, 0, 0, 0
     t = model.num_dates
     members = {}
@@ -424,9 +430,15 @@ def evidence_detection(
         inter = union = 0
         for a, b in ((p, q), (q, p)):
             for cam, gt in zip(masks_test[a].cameras, masks_test[a].changed_vs[names[b]]):
-                s, k, alpha = pixel_change(model, cam, (member >= 0).astype(np.float32), known, p, q, render_config=rc)
-                valid = valid_pixels(k, alpha)
-                pred, true = change_mask(s, k, alpha, cfg.pixel_threshold), gt & valid
+                s, valid, pred = view_change(
+                    model, cam, (member >= 0).astype(np.float32), known, p, q, cfg.pixel_threshold, render_config=rc
+                )
+                true = gt & valid
+                for j, threshold in enumerate(PIXEL_THRESHOLDS):
+                    swept = change_mask(s, valid, threshold)
+                    sweep[0, j] += (swept & true).sum()
+                    sweep[1, j] += (swept | true).sum()
+                    sweep[2, j] += swept.sum()
                 counts = {
                     "inter": int((pred & true).sum()),
                     "union": int((pred | true).sum()),
@@ -492,6 +504,11 @@ def evidence_detection(
             "predicted_changed_share": pixel["predicted"] / valid,
             "gt_changed_share": pixel["truth"] / valid,
             "evaluated_pixels": pixel["valid"],
+            "by_threshold": {
+                "threshold": PIXEL_THRESHOLDS.tolist(),
+                "iou": np.where(sweep[1] > 0, sweep[0] / np.maximum(sweep[1], 1), np.nan).tolist(),
+                "predicted_changed_share": (sweep[2] / valid).tolist(),
+            },
         },
         "regions": {
             "changed_objects": changed,

@@ -115,6 +115,18 @@ def _evidence_table(ev: dict) -> list[str]:
             f"| {name} | {v['changed_objects']} | {v['found_objects']} | {v['regions']} | {v['false_regions']} | "
             f"{v['pixel_iou']:.3f} |"
         )
+    sweep = p.get("by_threshold")
+    if sweep:
+        cells = [
+            f"{t:.2f}: IoU {iou:.3f} ({100 * share:.1f} % flagged)"
+            for t, iou, share in zip(sweep["threshold"], sweep["iou"], sweep["predicted_changed_share"])
+            if round(t * 20) % 2 == 0 or abs(t - ev["config"].get("pixel_threshold", 0.5)) < 1e-9  # 0.1, 0.2, …
+        ]
+        ious = np.asarray(sweep["iou"], float)
+        if np.isfinite(ious).any():
+            best = int(np.nanargmax(ious))
+            cells.append(f"best IoU {ious[best]:.3f} at {sweep['threshold'][best]:.2f}")
+        lines += ["", "Pixel masks at other shares of a changed region: " + ", ".join(cells) + "."]
     return lines
 
 
