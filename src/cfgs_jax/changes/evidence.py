@@ -58,8 +58,8 @@ class ChangesConfig:
     between two dates when q's images are explained better without it by more than τ (score > 0.5).
     ``views``: which of each date's views supply the evidence — ``"all"``, ``"train"``, or ``"test"``
     (held out from training, so the "absent" residual is not lowered by the date's own Gaussians having
-    been fitted to those very images). ``neighbours`` k pools each Gaussian's evidence with its k − 1 nearest Gaussians of the same date
-    (1: none). ``gain_range`` bounds the per-Gaussian brightness gain of each hypothesis.
+    been fitted to those very images). ``neighbours`` k pools each Gaussian's evidence with its k − 1 nearest
+    Gaussians of the same date (1: none). ``gain_range`` bounds the per-Gaussian brightness gain of each hypothesis.
     ``contribution_threshold`` is the visibility rule (α·T at some pixel of some view of q).
     Regions: changed Gaussians closer than ``link_factor`` × the model's median nearest-neighbour
     distance are linked, and so are Gaussians scored above ``grow_above`` (≤ 0.5) that touch them; a
@@ -79,12 +79,11 @@ class ChangesConfig:
     ``complete_hops`` > 0 completes each region by colour (``regions.complete_by_colour``): a
     Gaussian observed at both dates joins a region when it lies within that many steps of
     ``complete_link`` × the median spacing from the region's Gaussians of its own date and its colour is
-    within ``complete_colour`` (RGB distance) of their median (0: no completion; the colour test lets
-    completion link farther than the evidence does); with ``complete_across_dates`` also Gaussians of the pair's
-    other dates (the other date's version of a changed object). ``dates_per_pass``: how many dates'
-    Gaussians are tested against one observing date in one pass over its views (they share each
-    view's projection, sort and kernel walks; the figures do not depend on it beyond float32 rounding,
-    memory grows with it)."""
+    within ``complete_colour`` (RGB distance) of their median (0: no completion; the colour test lets completion
+    link farther than the evidence does); with ``complete_across_dates`` also Gaussians of the pair's other dates
+    (the other date's version of a changed object). ``dates_per_pass``: how many dates' Gaussians are tested against
+    one observing date in one pass over its views (they share each view's projection, sort and kernel walks; the
+    figures do not depend on it beyond float32 rounding, memory grows with it)."""
 
     threshold: float = 0.06
     views: str = "all"
@@ -282,9 +281,9 @@ def observing_date_sums(
 ) -> dict[int, tuple[np.ndarray, np.ndarray]]:
     """``pair_sums`` for the pairs (p, q) of every p in ``dates`` against one observing date q: per p,
     date p's Gaussians' ``residual_sums`` over q's views ([N_p, 6] float64) and whether those views
-    observe them ([N_p] bool). Up to ``dates_per_pass`` dates p (split evenly over the passes) share
-    each view's projection, sort and kernel walks (2 renders and one weighted-sum walk per p, batched); the figures equal those of one
-    pair at a time up to float32 rounding."""
+    observe them ([N_p] bool). Up to ``dates_per_pass`` dates p (split evenly over the passes) share each view's
+    projection, sort and kernel walks (2 renders and one weighted-sum walk per p, batched); the figures equal those
+    of one pair at a time up to float32 rounding."""
     rc = render_config or splat.RenderConfig()
     dates = [int(p) for p in dates]
     if q in dates:

@@ -1,10 +1,10 @@
 """Per-pixel change maps: a per-Gaussian change score rendered through the splatting kernel.
 
-For the selection {p, q} every Gaussian is drawn with the selection's max opacity α·max(o^p, o^q)
-(so an object of one date renders solid) and white colour scaled by its score c_i (a change score,
-or 1 for the members of a changed region); dividing the rendered colour by the rendered alpha gives
-the weight-averaged score of what the pixel shows, Σ_i w_i·c_i / Σ_i w_i, in [0, 1]. The same render carries a second channel, whether the Gaussian is
-observed at both dates, so a pixel can be left out when neither date's views could see its surface.
+For the selection {p, q} every Gaussian is drawn with the selection's max opacity α·max(o^p, o^q) (so an object of
+one date renders solid) and white colour scaled by its score c_i (a change score, or 1 for the members of a changed
+region); dividing the rendered colour by the rendered alpha gives the weight-averaged score of what the pixel shows,
+Σ_i w_i·c_i / Σ_i w_i, in [0, 1]. The same render carries a second channel, whether the Gaussian is observed at both
+dates, so a pixel can be left out when neither date's views could see its surface.
 """
 
 from __future__ import annotations

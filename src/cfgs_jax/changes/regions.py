@@ -9,9 +9,9 @@ are joined (an object whose look changed). A component holding enough Gaussians 
 (score > 0.5; ``min_region_seeds``: at least ``min_region_gaussians`` and at least
 ``min_region_share`` of the two dates' Gaussians) is a region, with all its members (hysteresis
 thresholding: a weakly scored Gaussian belongs to a change only where it touches a confident one).
-Each has its Gaussian count, centroid, axis-aligned bounds, the volume of the convex hull of its
-centres, and its kind: "disappeared" (≥ 80 % of its Gaussians shown at the earlier date and gone at the later), "appeared"
-(≥ 80 % the other way) or "changed" (both).
+Each has its Gaussian count, centroid, axis-aligned bounds, the volume of the convex hull of its centres, and its
+kind: "disappeared" (≥ 80 % of its Gaussians shown at the earlier date and gone at the later), "appeared" (≥ 80 %
+the other way) or "changed" (both).
 Optionally a region is then completed by colour (``complete_by_colour``): the Gaussians of a date that
 lie within a few steps (``complete_link`` × the median spacing each) of the region's own Gaussians of
 that date and share their colour join it, so that an object of which the images show only a part

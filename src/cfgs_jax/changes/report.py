@@ -1,11 +1,11 @@
 """``changes``: the change map of one pair of dates of a fused run, written for people and tools.
 
-``DIR/masks/<date>/<image>.png``: per test view of both dates, 255 where most of what the pixel shows
-(covered, observed at both dates) belongs to a changed region; ``DIR/scores/<date>/<image>.png`` that
-share (0..255); ``DIR/overlays/<date>/<image>.png`` the view's image with the mask tinted magenta and
-the pixels not observed at both dates dimmed; ``DIR/changed.ply``: the Gaussians of the changed regions as a 3DGS PLY; ``DIR/regions.json``
-and ``DIR/regions.md``: the changed regions in 3D (Gaussian clusters: kind, count, centroid, bounds,
-hull volume) and per view (connected areas, pixels, bounding box). Every file is written atomically.
+``DIR/masks/<date>/<image>.png``: per test view of both dates, 255 where the changed regions hold more than
+``pixel_threshold`` of what the pixel shows (covered, observed at both dates); ``DIR/scores/<date>/<image>.png``
+that share (0..255); ``DIR/overlays/<date>/<image>.png`` the view's image with the mask tinted magenta and the
+pixels not observed at both dates dimmed; ``DIR/changed.ply``: the Gaussians of the changed regions as a 3DGS PLY;
+``DIR/regions.json`` and ``DIR/regions.md``: the changed regions in 3D (Gaussian clusters: kind, count, centroid,
+bounds, hull volume) and per view (connected areas, pixels, bounding box). Every file is written atomically.
 """
 
 from __future__ import annotations

@@ -1,12 +1,13 @@
 """The paper's evaluation protocol (§Evaluation, Table 2) on one scene, plus change detection.
 
-Rows: Individual init (each date's own model), Merged (before any refinement), Ours after N₁ < N₂ < N₃
-refinement steps (snapshots of one N₃ run, as the paper evaluates "each saved iteration checkpoint"),
-Individual +N (each date's model trained N more steps with its own parameters: no densification,
-position lr at its final value), and the ablations freeze-α / freeze-o (refinement of N₃ steps with
-α, or o, held at its input value: that rate 0, and for α no halving at the start). PSNR / SSIM / LPIPS on every 8th image per date, averaged over dates weighted
-by image count; Gaussian counts per row. Every stage is resumable: re-running the command with ``--resume`` skips
-finished work (the fusion run, the continuations and the ablations keep their own state).
+Rows: Individual init (each date's own model), Merged (before any refinement), Ours after N₁ < N₂ < N₃ refinement
+steps (snapshots of one N₃ run, as the paper evaluates "each saved iteration checkpoint"), Individual +N (each
+date's model trained N more steps with its own parameters: no densification, position lr at its final value), and
+the ablations freeze-α / freeze-o (refinement of N₃ steps with α, or o, held at its input value: that rate 0, and
+for α no halving at the start). PSNR / SSIM / LPIPS on every 8th image per date, averaged over dates weighted by
+image count; Gaussian counts per row. Every stage is resumable: re-running the command with ``--resume`` skips
+finished work (the fusion run, the continuations and the ablations keep their own state), and redoes the
+refinement or a date's continuation that lacks a step count the evaluation asks for.
 """
 
 from __future__ import annotations
