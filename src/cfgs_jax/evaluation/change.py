@@ -39,7 +39,7 @@ import numpy as np
 from PIL import Image
 
 from cfgs_jax import splat, viz
-from cfgs_jax.changes.maps import rendered_scores
+from cfgs_jax.changes.maps import change_mask, rendered_scores, valid_pixels
 from cfgs_jax.errors import InputError
 from cfgs_jax.model import Camera, TemporalGaussians, light_multipliers, opacity_multipliers
 from cfgs_jax.splat.weights import contribution_per_label, observed_matrix
@@ -282,23 +282,43 @@ def summarise_gaussians(table: dict, config: ChangeConfig = ChangeConfig(), thre
     }
 
 
-def _view_counts(s, seen, alpha, gt, threshold: float, thresholds: np.ndarray) -> dict:
-    """Pixel counts of one view over the pixels covered (alpha ≥ 0.5) and observed at both dates: the
-    change mask s > ``threshold`` against the truth ``gt`` (intersection, union, predicted, true,
-    evaluated), and intersection / union / predicted at each of ``thresholds``."""
-    valid = (alpha >= 0.5) & (seen >= 0.5)
-    pred = (s > threshold) & valid
+#: The thresholds every pixel evaluation also scores its masks at: 0.05, 0.10, …, 0.95.
+PIXEL_THRESHOLDS = np.round(np.arange(1, 20) * 0.05, 2)
+
+
+def _view_counts(score, valid, mask, gt, thresholds: np.ndarray) -> dict:
+    """Pixel counts of one view over its ``valid`` pixels: the change ``mask`` against the truth ``gt``
+    (intersection, union, predicted, true, evaluated), and intersection / union / predicted of the mask
+    ``change_mask(score, valid, t)`` at each t of ``thresholds``."""
     truth = gt & valid
-    sweep = (s[None] > thresholds[:, None, None]) & valid[None]
+    sweep = (score[None] > thresholds[:, None, None]) & valid[None]
     return {
-        "inter": int((pred & truth).sum()),
-        "union": int((pred | truth).sum()),
-        "predicted": int(pred.sum()),
+        "inter": int((mask & truth).sum()),
+        "union": int((mask | truth).sum()),
+        "predicted": int(mask.sum()),
         "truth": int(truth.sum()),
         "valid": int(valid.sum()),
         "sweep_inter": (sweep & truth[None]).sum((1, 2)),
         "sweep_union": (sweep | truth[None]).sum((1, 2)),
         "sweep_pred": sweep.sum((1, 2)),
+    }
+
+
+def _add_counts(total: dict, counts: dict) -> None:
+    for key, value in counts.items():
+        total[key] = total.get(key, 0) + value
+
+
+def _sweep_curve(total: dict, thresholds: np.ndarray) -> dict:
+    """IoU and flagged share at each of ``thresholds`` from ``_view_counts`` summed over views."""
+    zeros = np.zeros(len(thresholds))
+    union, inter = np.asarray(total.get("sweep_union", zeros)), np.asarray(total.get("sweep_inter", zeros))
+    return {
+        "threshold": thresholds.tolist(),
+        "iou": np.where(union > 0, inter / np.maximum(union, 1), np.nan).tolist(),
+        "predicted_changed_share": (
+            np.asarray(total.get("sweep_pred", zeros)) / max(total.get("valid", 0), 1)
+        ).tolist(),
     }
 
 
@@ -317,7 +337,7 @@ def pixel_change_iou(
     and observed at both dates (``observed``: the ``observed_matrix`` of ``observing``, computed when
     not given); micro-averaged over all ordered pairs, and per pair, at ``config.pixel_threshold``;
     ``curve``: IoU and flagged share at each of ``thresholds`` (default 0.05, 0.10, …, 0.95)."""
-    thresholds = np.round(np.arange(1, 20) * 0.05, 2) if thresholds is None else np.asarray(thresholds, np.float64)
+    thresholds = PIXEL_THRESHOLDS if thresholds is None else np.asarray(thresholds, np.float64)
     names = [d.name for d in model.dates]
     o = opacity_multipliers(model)
     rc = render_config or splat.RenderConfig()
@@ -336,28 +356,20 @@ def pixel_change_iou(
             for cam, gt in zip(dm.cameras, dm.changed_vs[names[q]]):
                 cfg = dataclasses.replace(rc, capacity=splat.required_capacity(g, cam, opacity[None], config=rc))
                 s, seen, alpha = (np.asarray(x) for x in rendered_scores(g, cam, opacity, score, both, cfg))
-                for key, value in _view_counts(s, seen, alpha, gt, config.pixel_threshold, thresholds).items():
-                    pair[key] = pair.get(key, 0) + value
+                valid = valid_pixels(seen, alpha)
+                mask = change_mask(s, valid, config.pixel_threshold)
+                _add_counts(pair, _view_counts(s, valid, mask, gt, thresholds))
             per_pair[f"{names[p]}→{names[q]}"] = pair["inter"] / pair["union"] if pair.get("union") else float("nan")
-            for key, value in pair.items():
-                total[key] = total.get(key, 0) + value
+            _add_counts(total, pair)
     valid = total.get("valid", 0)
     share = lambda k: total.get(k, 0) / valid if valid else float("nan")
-    sweep_union = np.asarray(total.get("sweep_union", np.zeros(len(thresholds))))
-    sweep_inter = np.asarray(total.get("sweep_inter", np.zeros(len(thresholds))))
     return {
         "iou": total["inter"] / total["union"] if total.get("union") else float("nan"),
         "per_pair": per_pair,
         "predicted_changed_share": share("predicted"),
         "gt_changed_share": share("truth"),
         "evaluated_pixels": valid,
-        "curve": {
-            "threshold": thresholds.tolist(),
-            "iou": np.where(sweep_union > 0, sweep_inter / np.maximum(sweep_union, 1), np.nan).tolist(),
-            "predicted_changed_share": (
-                np.asarray(total.get("sweep_pred", np.zeros(len(thresholds)))) / max(valid, 1)
-            ).tolist(),
-        },
+        "curve": _sweep_curve(total, thresholds),
     }
 
 
@@ -375,10 +387,6 @@ def _region_scores(regions: list[dict], member: np.ndarray, objects: np.ndarray,
         else:
             false += 1
     return {"found": sorted(found), "false_regions": false}
-
-
-#: The pixel thresholds every evaluation of the detector also scores its masks at (the default among them).
-PIXEL_THRESHOLDS = np.round(np.arange(0.05, 0.951, 0.05), 2)
 
 
 def evidence_detection(
@@ -404,7 +412,7 @@ def evidence_detection(
     ``changes.pair_statistics`` (computed from ``views`` and ``support_cameras``, each date's training
     cameras, when not given)."""
     from cfgs_jax.changes import ChangesConfig, evidence_from, pair_statistics
-    from cfgs_jax.changes.maps import change_mask, view_change
+    from cfgs_jax.changes.maps import view_change
     from cfgs_jax.changes.regions import every_pair_regions
 
     cfg = config or ChangesConfig()
@@ -413,7 +421,6 @@ def evidence_detection(
     ev = evidence_from(stats, np.asarray(model.gaussians.means, np.float64), cfg)
     names = [d.name for d in model.dates]
     pixel = {"inter": 0, "union": 0, "predicted": 0, "truth": 0, "valid": 0}
-    sweep = np.zeros((3, len(PIXEL_THRESHOLDS)), np.int64)  # intersection, union, predicted per threshold
     per_pair, found, changed, false_regions, region_count = {}, 0, 0, 0, 0
     t = model.num_dates
     members = {}
@@ -427,34 +434,20 @@ def evidence_detection(
         changed += n_changed
         false_regions += objs["false_regions"]
         region_count += len(regions)
-        inter = union = 0
+        pair: dict = {}
         for a, b in ((p, q), (q, p)):
             for cam, gt in zip(masks_test[a].cameras, masks_test[a].changed_vs[names[b]]):
-                s, valid, pred = view_change(
+                s, valid, mask = view_change(
                     model, cam, (member >= 0).astype(np.float32), known, p, q, cfg.pixel_threshold, render_config=rc
                 )
-                true = gt & valid
-                for j, threshold in enumerate(PIXEL_THRESHOLDS):
-                    swept = change_mask(s, valid, threshold)
-                    sweep[0, j] += (swept & true).sum()
-                    sweep[1, j] += (swept | true).sum()
-                    sweep[2, j] += swept.sum()
-                counts = {
-                    "inter": int((pred & true).sum()),
-                    "union": int((pred | true).sum()),
-                    "predicted": int(pred.sum()),
-                    "truth": int(true.sum()),
-                    "valid": int(valid.sum()),
-                }
-                inter, union = inter + counts["inter"], union + counts["union"]
-                for key, value in counts.items():
-                    pixel[key] += value
+                _add_counts(pair, _view_counts(s, valid, mask, gt, PIXEL_THRESHOLDS))
+        _add_counts(pixel, pair)
         per_pair[f"{names[p]}↔{names[q]}"] = {
             "regions": len(regions),
             "changed_objects": n_changed,
             "found_objects": len(objs["found"]),
             "false_regions": objs["false_regions"],
-            "pixel_iou": inter / union if union else float("nan"),
+            "pixel_iou": pair["inter"] / pair["union"] if pair.get("union") else float("nan"),
             "region_list": regions,
         }
     entries = [(v["rows"], p, q, v["gt_changed"], v["observed"]) for (p, q), v in table["pairs"].items()]
@@ -504,11 +497,7 @@ def evidence_detection(
             "predicted_changed_share": pixel["predicted"] / valid,
             "gt_changed_share": pixel["truth"] / valid,
             "evaluated_pixels": pixel["valid"],
-            "by_threshold": {
-                "threshold": PIXEL_THRESHOLDS.tolist(),
-                "iou": np.where(sweep[1] > 0, sweep[0] / np.maximum(sweep[1], 1), np.nan).tolist(),
-                "predicted_changed_share": (sweep[2] / valid).tolist(),
-            },
+            "by_threshold": _sweep_curve(pixel, PIXEL_THRESHOLDS),
         },
         "regions": {
             "changed_objects": changed,

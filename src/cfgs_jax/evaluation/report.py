@@ -117,17 +117,23 @@ def _evidence_table(ev: dict) -> list[str]:
         )
     sweep = p.get("by_threshold")
     if sweep:
-        cells = [
-            f"{t:.2f}: IoU {iou:.3f} ({100 * share:.1f} % flagged)"
-            for t, iou, share in zip(sweep["threshold"], sweep["iou"], sweep["predicted_changed_share"])
-            if round(t * 20) % 2 == 0 or abs(t - ev["config"].get("pixel_threshold", 0.5)) < 1e-9  # 0.1, 0.2, …
-        ]
+        cells = _sweep_cells(sweep, also=ev["config"].get("pixel_threshold", 0.5))
         ious = np.asarray(sweep["iou"], float)
         if np.isfinite(ious).any():
             best = int(np.nanargmax(ious))
             cells.append(f"best IoU {ious[best]:.3f} at {sweep['threshold'][best]:.2f}")
         lines += ["", "Pixel masks at other shares of a changed region: " + ", ".join(cells) + "."]
     return lines
+
+
+def _sweep_cells(curve: dict, also: float | None = None) -> list[str]:
+    """IoU and flagged share of a pixel threshold sweep (``threshold``, ``iou``, ``predicted_changed_share``)
+    at 0.1, 0.2, …, 0.9, and at ``also``, one cell of text each."""
+    return [
+        f"{t:.2f}: IoU {iou:.3f} ({100 * share:.1f} % flagged)"
+        for t, iou, share in zip(curve["threshold"], curve["iou"], curve["predicted_changed_share"])
+        if round(t * 20) % 2 == 0 or (also is not None and abs(t - also) < 1e-9)
+    ]
 
 
 def _change_table(ch: dict) -> list[str]:
@@ -181,11 +187,7 @@ def _change_notes(ch: dict) -> list[str]:
         best = int(np.argmax(np.nan_to_num(c["iou"], nan=-1.0)))
         lines.append(
             "\nPixels over the threshold on |S−1|: "
-            + ", ".join(
-                f"{t:.2f}: IoU {i:.3f} ({100 * f:.1f} % flagged)"
-                for t, i, f in zip(c["threshold"], c["iou"], c["predicted_changed_share"])
-                if round(t * 20) % 2 == 0
-            )
+            + ", ".join(_sweep_cells(c))
             + f"; best IoU {c['iou'][best]:.3f} at {c['threshold'][best]:.2f}."
         )
     for key, when in (("objects_cross_init", "after cross-init"), ("objects_fused", "after refinement")):
