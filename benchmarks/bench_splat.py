@@ -27,7 +27,7 @@ import time
 from pathlib import Path
 
 RESULTS = Path(__file__).resolve().parent / "results"
-FIXTURE = Path(__file__).resolve().parents[2] / "shared" / "fixtures" / "real_3dgs_donut_dc_only.ply"
+FIXTURE = Path(__file__).resolve().parents[1] / "tests" / "data" / "real_3dgs_donut_dc_only.ply"
 
 
 def synthetic(n: int, seed: int = 0):

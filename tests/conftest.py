@@ -1,4 +1,5 @@
-"""Shared test fixtures: paths to ../shared/fixtures and small deterministic scenes."""
+"""Shared test fixtures: the files under tests/data (a real 3DGS model, the LPIPS example images) and
+small deterministic scenes."""
 
 from __future__ import annotations
 
@@ -48,8 +49,7 @@ _persistent_compilation_cache()
 import cfgs_jax  # noqa: E402, F401  (first: loads the system libz before any test module imports pycolmap)
 
 REPO = Path(__file__).resolve().parents[1]
-SHARED = Path(os.environ.get("CFGS_SHARED", REPO.parent / "shared"))
-FIXTURES = SHARED / "fixtures"
+FIXTURES = REPO / "tests" / "data"  # files no one here wrote; sources and licences in its README
 DONUT_PLY = FIXTURES / "real_3dgs_donut_dc_only.ply"
 
 
@@ -65,14 +65,14 @@ def _release_compiled_code():
 
 
 @pytest.fixture(scope="session")
-def shared() -> Path:
-    assert FIXTURES.is_dir(), f"fixtures missing: {FIXTURES} (set CFGS_SHARED to the shared/ folder)"
-    return SHARED
+def fixtures_dir() -> Path:
+    assert FIXTURES.is_dir(), f"fixtures missing: {FIXTURES} (they are part of the repository)"
+    return FIXTURES
 
 
 @pytest.fixture(scope="session")
 def donut_path() -> Path:
-    assert DONUT_PLY.is_file(), f"fixture missing: {DONUT_PLY} (set CFGS_SHARED to the shared/ folder)"
+    assert DONUT_PLY.is_file(), f"fixture missing: {DONUT_PLY} (it is part of the repository)"
     return DONUT_PLY
 
 

@@ -75,12 +75,12 @@ def test_ssim_identity_batching_and_gradient():
         metrics.ssim(a, b[:, :20])
 
 
-def _fixture(name, shared):
-    return read_image(shared / "fixtures" / "lpips" / name)
+def _fixture(name, fixtures_dir):
+    return read_image(fixtures_dir / "lpips" / name)
 
 
-def test_lpips_reproduces_published_values(shared):
-    ref, p0, p1 = (_fixture(n, shared) for n in ("ex_ref.png", "ex_p0.png", "ex_p1.png"))
+def test_lpips_reproduces_published_values(fixtures_dir):
+    ref, p0, p1 = (_fixture(n, fixtures_dir) for n in ("ex_ref.png", "ex_p0.png", "ex_p1.png"))
     assert round(float(metrics.lpips(ref, p0)), 3) == 0.722
     assert round(float(metrics.lpips(ref, p1)), 3) == 0.138
     both = metrics.lpips(np.stack([ref, ref]), np.stack([p0, p1]))  # batched
@@ -88,10 +88,10 @@ def test_lpips_reproduces_published_values(shared):
     assert float(metrics.lpips(ref, ref)) == 0.0
 
 
-def test_lpips_spatial_map_averages_to_scalar(shared):
+def test_lpips_spatial_map_averages_to_scalar(fixtures_dir):
     """The map is each tap's distance map upsampled bilinearly (half-pixel centres) and summed; its
     mean equals the scalar up to the resampling at the borders (stated tolerance 1e-3 relative)."""
-    ref, p0 = _fixture("ex_ref.png", shared), _fixture("ex_p0.png", shared)
+    ref, p0 = _fixture("ex_ref.png", fixtures_dir), _fixture("ex_p0.png", fixtures_dir)
     for net in ("alex", "vgg"):
         m = metrics.lpips(ref, p0, net=net, spatial=True)
         s = float(metrics.lpips(ref, p0, net=net))
@@ -166,18 +166,18 @@ def test_missing_weights_package_names_the_fix(monkeypatch):
         metrics.lpips(np.zeros((32, 32, 3)), np.zeros((32, 32, 3)), net="squeeze")
 
 
-def test_metrics_cli_files_and_folders(shared, tmp_path, capsys):
+def test_metrics_cli_files_and_folders(fixtures_dir, tmp_path, capsys):
     import json
     import shutil
 
     from cfgs_jax.pipeline import main
 
-    lp = shared / "fixtures" / "lpips"
+    lp = fixtures_dir / "lpips"
     out = tmp_path / "m.json"
     assert main(["metrics", str(lp / "ex_ref.png"), str(lp / "ex_p1.png"), "--json", str(out)]) == 0
     rep = json.loads(out.read_text())
     assert round(rep["mean"]["lpips"], 3) == 0.138
-    ref, p1 = _fixture("ex_ref.png", shared), _fixture("ex_p1.png", shared)
+    ref, p1 = _fixture("ex_ref.png", fixtures_dir), _fixture("ex_p1.png", fixtures_dir)
     assert abs(rep["mean"]["psnr"] - float(metrics.psnr(ref, p1))) < 1e-4
     a, b = tmp_path / "renders", tmp_path / "gt"
     a.mkdir(), b.mkdir()

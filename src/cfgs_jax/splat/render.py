@@ -24,6 +24,7 @@ from cfgs_jax.model import Camera, Gaussians, is_traced, opacities, rgb
 from cfgs_jax.splat.binning import bin_gaussians, listed_tiles
 from cfgs_jax.splat.composite import Layout, composite, weighted_sums
 from cfgs_jax.splat.config import RenderConfig
+from cfgs_jax.splat.pallas_composite import PallasOptions, composite_pallas, weighted_sums_pallas
 from cfgs_jax.splat.project import project, tile_grid
 
 MIN_CAPACITY = 1 << 12
@@ -49,8 +50,15 @@ class RenderResult(eqx.Module):
         return self.num_intersections > self.capacity
 
 
+PALLAS_CHUNK = 32  # Gaussians per step of a tile's walk in the Pallas kernel
+
+
 def _layout(camera: Camera, config: RenderConfig, dates: int, statistics: bool) -> Layout:
     gx, gy = tile_grid(camera, config)
+    if config.resolved_backend() == "pallas":  # one program per tile: no tile batches
+        chunk = config.chunk or PALLAS_CHUNK
+        return Layout(camera.width, camera.height, config.tile_size, gx, gy, 1, chunk, config.min_alpha,
+                      config.max_alpha, config.min_transmittance, statistics)  # fmt: skip
     # CPU: one date: 32 tiles × 32 Gaussians per round; several: ~96 tile-dates × 16 Gaussians keep a
     # round's [K, D, B, P] arrays cache-sized (measured best: benchmarks/bench_splat.py).
     # GPU: every tile at once.
@@ -70,6 +78,18 @@ def _layout(camera: Camera, config: RenderConfig, dates: int, statistics: bool) 
         config.min_transmittance,
         statistics,
     )
+
+
+def _compositor(config: RenderConfig, layout: Layout):
+    """The tile compositor of ``config.backend``: (means2d, conics, opac, feats, ids, start, end) →
+    (fg, T, max α·T, hits), and the matching weighted-sums walk."""
+    if config.resolved_backend() == "pallas":
+        options = PallasOptions(interpret=jax.default_backend() != "gpu", num_warps=config.num_warps)
+        return (
+            functools.partial(composite_pallas, layout, options),
+            functools.partial(weighted_sums_pallas, layout, options),
+        )
+    return functools.partial(composite, layout), functools.partial(weighted_sums, layout)
 
 
 def _bucket(n: int) -> int:
@@ -110,8 +130,8 @@ def _render_impl(
     if with_depth:
         feats = jnp.concatenate([feats, jnp.broadcast_to(proj.depths[None, :, None], feats.shape[:2] + (1,))], -1)
     means2d = proj.means2d if means2d_offset is None else proj.means2d + means2d_offset
-    fg, t, maxw, hits = composite(
-        layout, means2d, proj.conics, opac, feats, bins.gaussian_ids, bins.tile_start, bins.tile_end
+    fg, t, maxw, hits = _compositor(config, layout)[0](
+        means2d, proj.conics, opac, feats, bins.gaussian_ids, bins.tile_start, bins.tile_end
     )
     image = fg[..., :3] + t[..., None] * background
     return RenderResult(
@@ -151,8 +171,8 @@ def _weighted_sums_jit(gaussians, camera, opacity_mult, maps, *, config, capacit
     proj, opac, layout, bins = _project_and_bin(
         gaussians, camera, opacity_mult, config=config, capacity=capacity, statistics=False
     )
-    sums = weighted_sums(
-        layout, proj.means2d, proj.conics, opac, bins.gaussian_ids, bins.tile_start, bins.tile_end, maps
+    sums = _compositor(config, layout)[1](
+        proj.means2d, proj.conics, opac, bins.gaussian_ids, bins.tile_start, bins.tile_end, maps
     )
     return sums, bins.num_intersections
 
