@@ -43,6 +43,7 @@ class RenderConfig:
     capacity: int | None = None
     backend: str = "auto"
     num_warps: int = 4
+    scatter: str = "atomic"
 
     def __post_init__(self):
         from cfgs_jax.errors import InputError
@@ -63,6 +64,8 @@ class RenderConfig:
             )
         if self.num_warps not in (1, 2, 4, 8, 16):
             raise InputError(f"must be 1, 2, 4, 8 or 16, got {self.num_warps!r}", field="render.num_warps")
+        if self.scatter not in ("atomic", "partials"):
+            raise InputError(f"unknown scatter {self.scatter!r}", field="render.scatter", fix="atomic or partials")
         if not self.near > 0:
             raise InputError(f"must be > 0, got {self.near}", field="render.near")
 

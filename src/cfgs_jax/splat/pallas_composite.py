@@ -50,6 +50,10 @@ class PallasOptions(NamedTuple):
 
     interpret: bool  # run the kernel in Pallas interpret mode (CPU)
     num_warps: int = 4
+    # how the backward pass gathers each Gaussian's gradient over tiles: "atomic" (one atomic add per
+    # Gaussian, tile and parameter) or "partials" (each list slot, one (Gaussian, tile) pair, stores
+    # its tile's sums; a segment sum over the list adds them up afterwards: deterministic)
+    scatter: str = "atomic"
 
 
 def _table(means2d, conics, opac, feats):
@@ -79,6 +83,7 @@ class _Geometry(NamedTuple):
     dy: jax.Array
     con: tuple  # (a, b, c) [K] each
     g: jax.Array  # [K, P] exp(power) where the pixel may composite the Gaussian, else 0
+    slot: jax.Array  # [K] list slot (the capacity, a spare slot, past the range's end)
 
 
 class _Date(NamedTuple):
@@ -104,7 +109,7 @@ def _geometry(layout: Layout, table_ref, ids_ref, r, start, end, px, py, n: int,
     power = -0.5 * (ca[:, None] * dx * dx + cc[:, None] * dy * dy) - cb[:, None] * dx * dy
     # INRIA skips power > 0; the zero column (op = 0) makes slots past the end composite nothing
     g = jnp.where(power <= 0.0, jnp.exp(jnp.minimum(power, 0.0)), 0.0)
-    return _Geometry(gid, dx, dy, (ca, cb, cc), g)
+    return _Geometry(gid, dx, dy, (ca, cb, cc), g, jnp.where(in_range, slot, capacity))
 
 
 def _date(layout: Layout, table_ref, geo: _Geometry, d: int, t_in, done_in) -> _Date:
@@ -227,8 +232,9 @@ def _forward(layout: Layout, options: PallasOptions, table, ids, tile_start, til
 
 
 def _backward_kernel(
-    start_ref, end_ref, ids_ref, table_ref, gfg_ref, gt_ref, fg_ref, t_ref, _, grad_ref, *, layout, d, f, n, capacity
-):
+    start_ref, end_ref, ids_ref, table_ref, gfg_ref, gt_ref, fg_ref, t_ref, _, grad_ref, *, layout, d, f, n, capacity,
+    scatter,
+):  # fmt: skip
     tile = pl.program_id(0)
     start, end = start_ref[tile], end_ref[tile]
     dtype = table_ref.dtype
@@ -238,7 +244,12 @@ def _backward_kernel(
     # Σ_f ∂L/∂fg_f · fg_f (what lies behind the first Gaussian) and ∂L/∂T_N · T_N per date
     behind0 = [sum(gfg[i][j] * fg_ref[i * f + j, tile, :] for j in range(f)) for i in range(d)]
     tail = [gt_ref[i, tile, :] * t_ref[i, tile, :] for i in range(d)]
-    row = lambda r, gid: r * (n + 1) + gid
+
+    def emit(r, geo, value):  # row r of the gradient, one value per slot of the chunk
+        if scatter == "atomic":
+            plt.atomic_add(grad_ref, (r * (n + 1) + geo.gid,), value)
+        else:
+            grad_ref[r * (capacity + 1) + geo.slot] = value
 
     def body(c):
         r, _, t, done, behind = c
@@ -253,10 +264,9 @@ def _backward_kernel(
             behind_k = behind[i][None, :] - jnp.cumsum(wgf, axis=0)  # Σ_f ∂L/∂fg_f (fg_f − S_k,f)
             d_alpha = jnp.where(dt.w > 0, dt.tk * gf - (behind_k + tail[i][None, :]) / dt.one_m, 0.0)
             d_og = jnp.where(dt.og < layout.max_alpha, d_alpha, 0.0)
-            plt.atomic_add(grad_ref, (row(GEOMETRY_ROWS + i, geo.gid),), jnp.sum(d_og * geo.g, axis=1))
+            emit(GEOMETRY_ROWS + i, geo, jnp.sum(d_og * geo.g, axis=1))
             for j in range(f):
-                d_feat = jnp.sum(dt.w * gfg[i][j][None, :], axis=1)
-                plt.atomic_add(grad_ref, (row(GEOMETRY_ROWS + d + i * f + j, geo.gid),), d_feat)
+                emit(GEOMETRY_ROWS + d + i * f + j, geo, jnp.sum(dt.w * gfg[i][j][None, :], axis=1))
             d_power = d_power + d_og * dt.op[:, None]
             t_new.append(dt.t_out)
             done_new.append(dt.done_out)
@@ -271,7 +281,7 @@ def _backward_kernel(
             jnp.sum(d_power * (-0.5 * dy * dy), axis=1),
         )
         for k, value in enumerate(sums):
-            plt.atomic_add(grad_ref, (row(k, geo.gid),), value)
+            emit(k, geo, value)
         return r + 1, _alive(done_new), t_new, done_new, behind_new
 
     init = (jnp.int32(0), _alive(done0), t0, done0, behind0)
@@ -320,17 +330,25 @@ def _composite_bwd(layout, options, res, cot):
     r, n = table.shape[0], table.shape[1] - 1
     gfg = _from_image(layout, jnp.moveaxis(g_fg.astype(dtype), -1, 1)).reshape(fg.shape)
     gt = _from_image(layout, g_t.astype(dtype))
-    kernel = functools.partial(_backward_kernel, layout=layout, d=d, f=f, n=n, capacity=ids.shape[0])
+    capacity = ids.shape[0]
+    kernel = functools.partial(
+        _backward_kernel, layout=layout, d=d, f=f, n=n, capacity=capacity, scatter=options.scatter
+    )
+    width = n + 1 if options.scatter == "atomic" else capacity + 1
     grads = pl.pallas_call(
         kernel,
         grid=(layout.num_tiles,),
-        out_shape=jax.ShapeDtypeStruct((r * (n + 1),), dtype),
+        out_shape=jax.ShapeDtypeStruct((r * width,), dtype),
         input_output_aliases={8: 0},
         interpret=options.interpret,
         compiler_params=_compiler(options),
         name="cfgs_composite_bwd",
-    )(tile_start, tile_end, ids, table, gfg, gt, fg, t, jnp.zeros((r * (n + 1),), dtype))
-    grads = grads.reshape(r, n + 1)[:, :n]
+    )(tile_start, tile_end, ids, table, gfg, gt, fg, t, jnp.zeros((r * width,), dtype))
+    grads = grads.reshape(r, width)
+    if options.scatter == "atomic":
+        grads = grads[:, :n]
+    else:  # slots no tile range covers were never written and hold zeros
+        grads = jax.ops.segment_sum(grads[:, :capacity].T, jnp.clip(ids, 0, n - 1), num_segments=n).T
     d_means = grads[0:2].T
     d_conics = grads[2:GEOMETRY_ROWS].T
     d_opac = grads[GEOMETRY_ROWS : GEOMETRY_ROWS + d]

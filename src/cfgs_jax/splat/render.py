@@ -84,7 +84,7 @@ def _compositor(config: RenderConfig, layout: Layout):
     """The tile compositor of ``config.backend``: (means2d, conics, opac, feats, ids, start, end) →
     (fg, T, max α·T, hits), and the matching weighted-sums walk."""
     if config.resolved_backend() == "pallas":
-        options = PallasOptions(interpret=jax.default_backend() != "gpu", num_warps=config.num_warps)
+        options = PallasOptions(jax.default_backend() != "gpu", config.num_warps, config.scatter)
         return (
             functools.partial(composite_pallas, layout, options),
             functools.partial(weighted_sums_pallas, layout, options),
