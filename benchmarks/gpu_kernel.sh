@@ -19,18 +19,22 @@ nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv
   >"$OUT/gsplat_build.txt" 2>&1 &)
 timeout 120 python3 benchmarks/gpu_probe.py | tee "$OUT/probe.txt"
 scatter=""
-if grep -q "bwd_atomic_T1_k32: OK" "$OUT/probe.txt" && grep -q "bwd_atomic_T2_k8: OK" "$OUT/probe.txt"; then
-  scatter=atomic
-elif grep -q "bwd_partials_T1_k32: OK" "$OUT/probe.txt" && grep -q "bwd_partials_T2_k8: OK" "$OUT/probe.txt"; then
-  scatter=partials  # the device copy's default only
-  sed -i 's/    scatter: str = "atomic"/    scatter: str = "partials"/' src/cfgs_jax/splat/config.py
-fi
+for v in "partials dotbehind dot_behind" "partials dot dot" "atomic dotbehind dot_behind" "atomic dot dot"; do
+  set -- $v
+  if grep -q "bwd_$1_$2_T1_k32: OK" "$OUT/probe.txt" && { [ "$1" = atomic ] || grep -q "bwd_$1_$2_T2_k16: OK" "$OUT/probe.txt"; }; then
+    scatter="$1 $3"  # the device copy's defaults only
+    sed -i "s/    scatter: str = \"atomic\"/    scatter: str = \"$1\"/" src/cfgs_jax/splat/config.py
+    sed -i "s/    prefix: str = \"scan\"/    prefix: str = \"$3\"/" src/cfgs_jax/splat/pallas_composite.py
+    break
+  fi
+done
+grep -n "scatter: str\|prefix: str" src/cfgs_jax/splat/config.py src/cfgs_jax/splat/pallas_composite.py
 echo "backward scatter: ${scatter:-none compiles} at $(( $(date +%s) - t0 )) s"
 if [ -n "$scatter" ]; then
-  timeout 120 python3 -m pytest -p no:cacheprovider -n 2 --dist loadfile -q -o addopts="" -rfE \
+  timeout 90 python3 -m pytest -p no:cacheprovider -n 2 --dist loadfile -q -o addopts="" -rfE \
     --junitxml="$OUT/junit.xml" tests/test_pallas.py tests/test_splat.py 2>&1 | grep -v "Fatal\|^  File\|^Thread\|^$\|PytestBenchmark\|warner"
   echo "pytest at $(( $(date +%s) - t0 )) s"
-  timeout 240 python3 benchmarks/bench_gsplat.py --out "$OUT" --no-sweep
+  timeout 190 python3 benchmarks/bench_gsplat.py --out "$OUT" --no-sweep --reps 5
 else
   timeout 200 python3 benchmarks/bench_gsplat.py --out "$OUT" --no-sweep --no-dates --backends xla
 fi

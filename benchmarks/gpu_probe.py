@@ -14,25 +14,31 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 
-PROBES = {  # name: (dates, chunk, scatter, what)
-    "bwd_atomic_T1_k32": (1, 32, "atomic", "grad"),
-    "bwd_partials_T1_k32": (1, 32, "partials", "grad"),
-    "bwd_atomic_T2_k8": (2, 8, "atomic", "grad"),
-    "bwd_partials_T2_k8": (2, 8, "partials", "grad"),
-    "fwd_images_T1_k32": (1, 32, "atomic", "fwd"),
-    "weighted_sums_T2_k32": (2, 32, "atomic", "sums"),
+PROBES = {  # name: (dates, chunk, scatter, prefix, what)
+    "bwd_partials_dotbehind_T1_k32": (1, 32, "partials", "dot_behind", "grad"),
+    "bwd_partials_dot_T1_k32": (1, 32, "partials", "dot", "grad"),
+    "bwd_atomic_dotbehind_T1_k32": (1, 32, "atomic", "dot_behind", "grad"),
+    "bwd_atomic_dot_T1_k32": (1, 32, "atomic", "dot", "grad"),
+    "bwd_partials_dotbehind_T2_k16": (2, 16, "partials", "dot_behind", "grad"),
+    "bwd_partials_dot_T2_k16": (2, 16, "partials", "dot", "grad"),
+    "weighted_sums_T1_k32": (1, 32, "atomic", "scan", "sums"),
 }
 
 
 def probe(name: str) -> str:
+    import importlib
+
     import jax
     import jax.numpy as jnp
     import numpy as np
     from test_splat import camera, scene
 
     from cfgs_jax import splat
+    from cfgs_jax.splat.pallas_composite import PallasOptions
 
-    dates, chunk, scatter, what = PROBES[name]
+    dates, chunk, scatter, prefix, what = PROBES[name]
+    render_module = importlib.import_module("cfgs_jax.splat.render")
+    render_module.PallasOptions = lambda *a: PallasOptions(*a, prefix=prefix)
     g, cam = scene(300, 3), camera(64, 48)
     rng = np.random.default_rng(0)
     om = jnp.asarray(rng.uniform(0.3, 1.0, (dates, len(g))), jnp.float32)

@@ -54,6 +54,9 @@ class PallasOptions(NamedTuple):
     # Gaussian, tile and parameter) or "partials" (each list slot, one (Gaussian, tile) pair, stores
     # its tile's sums; a segment sum over the list adds them up afterwards: deterministic)
     scatter: str = "atomic"
+    # how the backward pass forms prefix sums along a chunk: "scan" (cumsum) or "dot" (a product with
+    # the lower-triangular matrix of ones, at full float32 precision)
+    prefix: str = "scan"
 
 
 def _table(means2d, conics, opac, feats):
@@ -112,7 +115,16 @@ def _geometry(layout: Layout, table_ref, ids_ref, r, start, end, px, py, n: int,
     return _Geometry(gid, dx, dy, (ca, cb, cc), g, jnp.where(in_range, slot, capacity))
 
 
-def _date(layout: Layout, table_ref, geo: _Geometry, d: int, t_in, done_in) -> _Date:
+def _prefix_sum(x, how: str):
+    """Σ_{j≤k} x_j along the chunk axis (0) of x [K, P]."""
+    if how == "scan":
+        return jnp.cumsum(x, axis=0)
+    k = x.shape[0]
+    lower = (jnp.arange(k)[:, None] >= jnp.arange(k)[None, :]).astype(x.dtype)
+    return jnp.dot(lower, x, precision=jax.lax.Precision.HIGHEST, preferred_element_type=x.dtype)
+
+
+def _date(layout: Layout, table_ref, geo: _Geometry, d: int, t_in, done_in, prefix: str = "scan") -> _Date:
     """Eq. 1's α, T and weights of one date for the chunk, and the carry after it."""
     op = table_ref[GEOMETRY_ROWS + d, geo.gid]
     og = op[:, None] * geo.g
@@ -121,7 +133,7 @@ def _date(layout: Layout, table_ref, geo: _Geometry, d: int, t_in, done_in) -> _
     one_m = 1.0 - a
     log_one_m = jnp.log1p(-a)
     t_live = jnp.where(done_in > 0, 0.0, t_in)  # finished pixels start at 0 and so never contribute
-    after = t_live[None, :] * jnp.exp(jnp.cumsum(log_one_m, axis=0))  # T after each Gaussian
+    after = t_live[None, :] * jnp.exp(_prefix_sum(log_one_m, prefix))  # T after each Gaussian
     tk = after / one_m  # 1 − α ≥ 0.01
     live = after >= layout.min_transmittance
     w = jnp.where(live, a * tk, 0.0)
@@ -233,7 +245,7 @@ def _forward(layout: Layout, options: PallasOptions, table, ids, tile_start, til
 
 def _backward_kernel(
     start_ref, end_ref, ids_ref, table_ref, gfg_ref, gt_ref, fg_ref, t_ref, _, grad_ref, *, layout, d, f, n, capacity,
-    scatter,
+    scatter, prefix,
 ):  # fmt: skip
     tile = pl.program_id(0)
     start, end = start_ref[tile], end_ref[tile]
@@ -257,11 +269,13 @@ def _backward_kernel(
         d_power = jnp.zeros(geo.g.shape, dtype)
         t_new, done_new, behind_new = [], [], []
         for i in range(d):
-            dt = _date(layout, table_ref, geo, i, t[i], done[i])
+            dt = _date(layout, table_ref, geo, i, t[i], done[i], "scan" if prefix == "dot_behind" else prefix)
             feats = [table_ref[GEOMETRY_ROWS + d + i * f + j, geo.gid] for j in range(f)]
             gf = sum(gfg[i][j][None, :] * feats[j][:, None] for j in range(f))  # ∂L/∂fg · f_k  [K, P]
             wgf = dt.w * gf
-            behind_k = behind[i][None, :] - jnp.cumsum(wgf, axis=0)  # Σ_f ∂L/∂fg_f (fg_f − S_k,f)
+            behind_k = behind[i][None, :] - _prefix_sum(
+                wgf, "scan" if prefix == "scan" else "dot"
+            )  # Σ_f ∂L/∂fg_f (fg_f − S_k,f)
             d_alpha = jnp.where(dt.w > 0, dt.tk * gf - (behind_k + tail[i][None, :]) / dt.one_m, 0.0)
             d_og = jnp.where(dt.og < layout.max_alpha, d_alpha, 0.0)
             emit(GEOMETRY_ROWS + i, geo, jnp.sum(d_og * geo.g, axis=1))
@@ -332,7 +346,14 @@ def _composite_bwd(layout, options, res, cot):
     gt = _from_image(layout, g_t.astype(dtype))
     capacity = ids.shape[0]
     kernel = functools.partial(
-        _backward_kernel, layout=layout, d=d, f=f, n=n, capacity=capacity, scatter=options.scatter
+        _backward_kernel,
+        layout=layout,
+        d=d,
+        f=f,
+        n=n,
+        capacity=capacity,
+        scatter=options.scatter,
+        prefix=options.prefix,
     )
     width = n + 1 if options.scatter == "atomic" else capacity + 1
     grads = pl.pallas_call(
