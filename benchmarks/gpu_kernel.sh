@@ -17,7 +17,7 @@ nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv
 # gsplat's CUDA extension compiles on its first import: build it in the background meanwhile
 (MAX_JOBS=8 TORCH_CUDA_ARCH_LIST=9.0 python3 -c "from gsplat.cuda._backend import _C; print('gsplat built', _C is not None)" \
   >"$OUT/gsplat_build.txt" 2>&1 &)
-timeout 120 python3 benchmarks/gpu_probe.py | tee "$OUT/probe.txt"
+timeout 60 python3 benchmarks/gpu_probe.py | tee "$OUT/probe.txt"
 scatter=""
 for v in "partials dotbehind dot_behind" "partials dot dot" "atomic dotbehind dot_behind" "atomic dot dot"; do
   set -- $v
@@ -36,6 +36,6 @@ if [ -n "$scatter" ]; then
   echo "pytest at $(( $(date +%s) - t0 )) s"
   timeout 190 python3 benchmarks/bench_gsplat.py --out "$OUT" --no-sweep --reps 5
 else
-  timeout 200 python3 benchmarks/bench_gsplat.py --out "$OUT" --no-sweep --no-dates --backends xla
+  timeout 150 python3 benchmarks/bench_gsplat.py --out "$OUT" --no-sweep --no-dates --backends xla --reps 5
 fi
 echo "bench_gsplat rc=$? at $(( $(date +%s) - t0 )) s"

@@ -81,7 +81,7 @@ def main():
     }
     for n, p in procs.items():
         try:
-            out, err = p.communicate(timeout=150)
+            out, err = p.communicate(timeout=55)
         except subprocess.TimeoutExpired:
             p.kill()
             print(f"{n}: TIMEOUT")
