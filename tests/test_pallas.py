@@ -171,7 +171,7 @@ def test_triton_lowering_for_the_gpu():
 
 
 def test_backend_choice_and_errors():
-    assert splat.RenderConfig().resolved_backend() == ("pallas" if jax.default_backend() == "gpu" else "xla")
+    assert splat.RenderConfig().resolved_backend() == "xla"
     assert splat.RenderConfig(backend="xla").resolved_backend() == "xla"
     with pytest.raises(InputError, match="render.backend"):
         splat.RenderConfig(backend="cuda")

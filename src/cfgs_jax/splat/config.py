@@ -4,8 +4,6 @@ from __future__ import annotations
 
 import dataclasses
 
-import jax
-
 BACKENDS = ("auto", "xla", "pallas")
 
 
@@ -26,8 +24,9 @@ class RenderConfig:
 
     ``backend`` picks the compositor: ``"xla"`` (tile batches walked by XLA; the CPU kernel),
     ``"pallas"`` (one Pallas program per tile, Triton on a GPU; on a CPU it runs in Pallas interpret
-    mode, slowly, for tests) or ``"auto"`` (Pallas on a GPU, XLA elsewhere). Both give the same images,
-    statistics and gradients up to float32 rounding. ``num_warps``: warps per Pallas program on a GPU.
+    mode, slowly, for tests) or ``"auto"`` (XLA: the Pallas backward pass does not yet compile through
+    Triton on a GPU, so Pallas is opt-in). Both give the same images, statistics and gradients up to
+    float32 rounding. ``num_warps``: warps per Pallas program on a GPU.
     """
 
     near: float = 0.2
@@ -71,6 +70,4 @@ class RenderConfig:
 
     def resolved_backend(self) -> str:
         """``"xla"`` or ``"pallas"``: what ``backend`` means on the default JAX device."""
-        if self.backend != "auto":
-            return self.backend
-        return "pallas" if jax.default_backend() == "gpu" else "xla"
+        return "xla" if self.backend == "auto" else self.backend
