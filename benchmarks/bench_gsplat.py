@@ -273,6 +273,7 @@ def write_markdown(result: dict, path: Path) -> None:
         "with respect to every raw parameter. gsplat: the faster of packed / unpacked. Times in ms; "
         "ratios are ours / gsplat's (lower is better).",
         "",
+        *([f"Note: {result['note']}", ""] if result.get("note") else []),
         "| case | N | Pallas fwd | XLA fwd | gsplat fwd | Pallas / gsplat fwd | Pallas fwd+bwd | XLA fwd+bwd | "
         "gsplat fwd+bwd | Pallas / gsplat fwd+bwd | XLA / gsplat fwd+bwd | project+bin | image mean abs Δ (max) vs gsplat |",
         "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
