@@ -12,7 +12,17 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from test_splat import BG, F32, NAMES, _loss_fast, _ref_grads, _weights, assert_matches_reference, camera, scene
+from test_splat import (
+    BG,
+    F32,
+    NAMES,
+    _loss_fast,
+    _ref_grads,
+    assert_matches_reference,
+    camera,
+    grad_case,  # noqa: F401 (the fixture, shared with the XLA backend's tests)
+    scene,
+)
 
 import cfgs_jax as cj
 from cfgs_jax import InputError, splat
@@ -84,7 +94,7 @@ def test_dates_share_the_falloff():
 
 
 @pytest.mark.parametrize("tile_cull", [True, False])
-def test_float32_gradients_match_float64(grad_case, tile_cull):
+def test_float32_gradients_match_float64(grad_case, tile_cull):  # noqa: F811 (the imported fixture)
     """Every gradient (means, quaternions, scales, opacity, colours, o and l multipliers) of the Pallas
     backend at T = 2 against float64 autodiff of the reference, the tolerance of the XLA backend."""
     g, om, cm, cam, w_img, w_a = grad_case
@@ -100,7 +110,7 @@ def test_float32_gradients_match_float64(grad_case, tile_cull):
         assert np.abs(b).max() > 0, name
 
 
-def test_custom_vjp_in_float64_equals_autodiff(grad_case):
+def test_custom_vjp_in_float64_equals_autodiff(grad_case):  # noqa: F811 (the imported fixture)
     """The kernel run in float64 agrees with plain autodiff of the float64 reference to ~1e-10: the
     backward formulas are exact, not approximations that float32 noise could hide."""
     g, om, cm, cam, w_img, w_a = grad_case
@@ -116,17 +126,6 @@ def test_custom_vjp_in_float64_equals_autodiff(grad_case):
     for name, a, b in zip(NAMES, fast, ref):
         assert a.dtype == np.float64
         assert np.max(np.abs(a - b)) <= 1e-10 * np.max(np.abs(b)), name
-
-
-@pytest.fixture(scope="module")
-def grad_case():
-    n, t, w, h = 120, 2, 40, 30
-    rng = np.random.default_rng(11)
-    g = scene(n, 5, extras=True)
-    om = rng.uniform(0.2, 1.0, (t, n)).astype(F32)
-    cm = rng.uniform(0.5, 1.5, (t, n, 3)).astype(F32)
-    w_img, w_a = _weights((t, h, w, 3), (t, h, w))
-    return g, om, cm, camera(w, h), w_img, w_a
 
 
 def test_summed_weight_maps_equal_the_xla_backend():
