@@ -143,7 +143,7 @@ def gsplat_fns(g, cam, target, packed: bool):
     return fwd, fwd_bwd, lambda: image().detach().cpu().numpy(), (means, quats, logs, logits, colors)
 
 
-def run_case(name: str, reps: int, backends=("pallas", "xla")) -> dict:
+def run_case(name: str, reps: int, backends=("pallas", "xla"), with_gsplat: bool = True) -> dict:
     import jax
     import jax.numpy as jnp
     import numpy as np
@@ -184,6 +184,8 @@ def run_case(name: str, reps: int, backends=("pallas", "xla")) -> dict:
         return splat.bin_gaussians(proj, jax.nn.sigmoid(g.opacity_logits), grid, cap).gaussian_ids
 
     out["project_bin_s"] = _median_jax(jax.jit(project_bin), (g,), reps)
+    if not with_gsplat:
+        return out
     try:
         import torch
 
@@ -332,6 +334,7 @@ def main():
     ap.add_argument("--cases", nargs="*", default=list(CASES))
     ap.add_argument("--no-sweep", action="store_true")
     ap.add_argument("--no-dates", action="store_true")
+    ap.add_argument("--no-gsplat", action="store_true", help="ours alone (no torch / gsplat here)")
     ap.add_argument("--backends", nargs="+", default=["pallas", "xla"], help=argparse.SUPPRESS)
     ap.add_argument("--out", type=Path, default=RESULTS, help="folder for the result files")
     ap.add_argument("--rewrite", type=Path, help="rewrite the table of this JSON result, run nothing")
@@ -347,6 +350,8 @@ def main():
         "cases": {},
     }
     try:
+        if args.no_gsplat:
+            raise ImportError("not asked for (--no-gsplat)")
         import gsplat
         import torch
 
@@ -362,7 +367,7 @@ def main():
     for name in args.cases:
         print(name, flush=True)
         try:
-            result["cases"][name] = run_case(name, args.reps, tuple(args.backends))
+            result["cases"][name] = run_case(name, args.reps, tuple(args.backends), not args.no_gsplat)
         except Exception as e:
             traceback.print_exc()
             result["cases"][name] = {"error": f"{type(e).__name__}: {e}"[:300]}

@@ -1,41 +1,43 @@
 #!/usr/bin/env bash
-# On a lent GPU, in one call: which Pallas kernel variants compile (gpu_probe.py), the kernel tests of
-# both compositor backends, and the kernel against gsplat's CUDA rasteriser (bench_gsplat.py).
+# On a lent GPU, in one call: which Pallas kernel variants compile there (gpu_probe.py, each probe in its
+# own process); then, with the first full backward variant that compiles made the default of the device's
+# copy, our two compositors timed side by side (bench_gsplat.py; gsplat too unless NO_GSPLAT=1).
 # Run in the repository root on the device:
 #
-#   bash benchmarks/gpu_kernel.sh
+#   [NO_GSPLAT=1] [CASES="100k@640x480 ..."] bash benchmarks/gpu_kernel.sh
 #
 # Needs, carried beside the tree: .whl/ (cp312 wheels of colour-science, dm-pix, msgspec, OpenEXR, plyfile
-# and gsplat==1.5.3, which the device image lacks). Writes under $OUT: log.txt, probe.txt, junit.xml,
-# gsplat_build.txt, kernel_vs_gsplat_<chip>_gpu.{json,md}.
+# and gsplat==1.5.3, which the device image lacks). Writes under $OUT: log.txt, probe.txt,
+# kernel_vs_gsplat_<chip>_gpu.{json,md} (and gsplat_build.txt).
 export PYTHONUNBUFFERED=1
 exec > >(tee -a "$OUT/log.txt") 2>&1
 t0=$(date +%s)
 python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl || exit 1
 export PYTHONPATH=/tmp/site:$PWD/src XLA_PYTHON_CLIENT_PREALLOCATE=false
 nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv
-# gsplat's CUDA extension compiles on its first import: build it in the background meanwhile
-(MAX_JOBS=8 TORCH_CUDA_ARCH_LIST=9.0 python3 -c "from gsplat.cuda._backend import _C; print('gsplat built', _C is not None)" \
-  >"$OUT/gsplat_build.txt" 2>&1 &)
+if [ -z "${NO_GSPLAT:-}" ]; then  # gsplat's CUDA extension compiles on its first import: in the background
+  (MAX_JOBS=8 TORCH_CUDA_ARCH_LIST=9.0 python3 -c "from gsplat.cuda._backend import _C; print('gsplat built', _C is not None)" \
+    >"$OUT/gsplat_build.txt" 2>&1 &)
+fi
 timeout 60 python3 benchmarks/gpu_probe.py | tee "$OUT/probe.txt"
-scatter=""
-for v in "partials dotbehind dot_behind" "partials dot dot" "atomic dotbehind dot_behind" "atomic dot dot"; do
+chosen=""
+# preference: the widest chunk first; (probe, chunk, warps, scatter)
+for v in "bwd_k32_warps8 32 8 atomic" "bwd_k32_warps1 32 1 atomic" "bwd_k4 4 4 atomic" "bwd_k1 1 4 atomic" \
+  "bwd_partials_k1 1 4 partials"; do
   set -- $v
-  if grep -q "bwd_$1_$2_T1_k32: OK" "$OUT/probe.txt" && { [ "$1" = atomic ] || grep -q "bwd_$1_$2_T2_k16: OK" "$OUT/probe.txt"; }; then
-    scatter="$1 $3"  # the device copy's defaults only
-    sed -i "s/    scatter: str = \"atomic\"/    scatter: str = \"$1\"/" src/cfgs_jax/splat/config.py
-    sed -i "s/    prefix: str = \"scan\"/    prefix: str = \"$3\"/" src/cfgs_jax/splat/pallas_composite.py
+  if grep -q "^$1: OK" "$OUT/probe.txt"; then  # the device copy's defaults only
+    chosen=$1
+    sed -i "s/^PALLAS_CHUNK = 32/PALLAS_CHUNK = $2/" src/cfgs_jax/splat/render.py
+    sed -i "s/    num_warps: int = 4/    num_warps: int = $3/; s/    scatter: str = \"atomic\"/    scatter: str = \"$4\"/" \
+      src/cfgs_jax/splat/config.py
     break
   fi
 done
-grep -n "scatter: str\|prefix: str" src/cfgs_jax/splat/config.py src/cfgs_jax/splat/pallas_composite.py
-echo "backward scatter: ${scatter:-none compiles} at $(( $(date +%s) - t0 )) s"
-if [ -n "$scatter" ]; then
-  timeout 90 python3 -m pytest -p no:cacheprovider -n 2 --dist loadfile -q -o addopts="" -rfE \
-    --junitxml="$OUT/junit.xml" tests/test_pallas.py tests/test_splat.py 2>&1 | grep -v "Fatal\|^  File\|^Thread\|^$\|PytestBenchmark\|warner"
-  echo "pytest at $(( $(date +%s) - t0 )) s"
-  timeout 190 python3 benchmarks/bench_gsplat.py --out "$OUT" --no-sweep --reps 5
-else
-  timeout 150 python3 benchmarks/bench_gsplat.py --out "$OUT" --no-sweep --no-dates --backends xla --reps 5
+echo "backward variant: ${chosen:-none compiles} at $(( $(date +%s) - t0 )) s"
+grep -n "^PALLAS_CHUNK\|num_warps: int\|scatter: str" src/cfgs_jax/splat/render.py src/cfgs_jax/splat/config.py
+if [ -n "$chosen" ]; then
+  # shellcheck disable=SC2086
+  timeout "${BENCH_TIMEOUT:-240}" python3 benchmarks/bench_gsplat.py --out "$OUT" --no-sweep --no-dates --reps 5 \
+    ${NO_GSPLAT:+--no-gsplat} --cases ${CASES:-100k@640x480 donut@640x480 1M@1920x1080 donut@1920x1080}
+  echo "bench_gsplat rc=$? at $(( $(date +%s) - t0 )) s"
 fi
-echo "bench_gsplat rc=$? at $(( $(date +%s) - t0 )) s"

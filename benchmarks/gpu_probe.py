@@ -1,7 +1,12 @@
-"""Which variants of the Pallas kernels compile and agree with the XLA backend on this GPU: each probe
+"""Which variants of the Pallas kernels compile on this GPU and agree with the XLA backend: each probe
 runs in its own process (a compiler crash ends only that probe) and prints one line.
 
-    python benchmarks/gpu_probe.py            # all probes, in parallel; exit 0
+A probe sets the kernel's options (dates, chunk, warps, scatter, prefix) and may cut gradient sums out
+of the backward kernel (``cut``: which of its ``emit`` lines become no-ops; the module is rebuilt from
+its source with those lines removed), to bisect a compiler crash. A cut probe's gradients are
+incomplete, so it reports only whether it compiled and ran.
+
+    python benchmarks/gpu_probe.py            # all probes, in parallel
     python benchmarks/gpu_probe.py NAME       # one probe (the child process)
 """
 
@@ -14,15 +19,43 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 
-PROBES = {  # name: (dates, chunk, scatter, prefix, what)
-    "bwd_partials_dotbehind_T1_k32": (1, 32, "partials", "dot_behind", "grad"),
-    "bwd_partials_dot_T1_k32": (1, 32, "partials", "dot", "grad"),
-    "bwd_atomic_dotbehind_T1_k32": (1, 32, "atomic", "dot_behind", "grad"),
-    "bwd_atomic_dot_T1_k32": (1, 32, "atomic", "dot", "grad"),
-    "bwd_partials_dotbehind_T2_k16": (2, 16, "partials", "dot_behind", "grad"),
-    "bwd_partials_dot_T2_k16": (2, 16, "partials", "dot", "grad"),
-    "weighted_sums_T1_k32": (1, 32, "atomic", "scan", "sums"),
+EMITS = {  # the backward kernel's gradient sums, by the text of their lines
+    "opacity": "emit(GEOMETRY_ROWS + i, geo, jnp.sum(d_og * geo.g, axis=1))",
+    "features": "emit(GEOMETRY_ROWS + d + i * f + j, geo, jnp.sum(dt.w * gfg[i][j][None, :], axis=1))",
+    "geometry": "emit(k, geo, value)",
 }
+BASE = {"dates": 1, "chunk": 32, "warps": 4, "scatter": "atomic", "prefix": "scan", "what": "grad", "cut": ()}
+PROBES = {
+    "bwd_k1": {"chunk": 1},
+    "bwd_k4": {"chunk": 4},
+    "bwd_partials_k1": {"chunk": 1, "scatter": "partials"},
+    "bwd_k32_warps8": {"warps": 8},
+    "bwd_k32_warps1": {"warps": 1},
+    "bwd_cut_all": {"cut": ("opacity", "features", "geometry")},
+    "bwd_only_opacity": {"cut": ("features", "geometry")},
+    "bwd_only_features": {"cut": ("opacity", "geometry")},
+    "bwd_only_geometry": {"cut": ("opacity", "features")},
+    "fwd_statistics": {"what": "stats"},
+}
+
+
+def _kernel_module(cut):
+    """``pallas_composite`` itself, or a copy built from its source with the ``cut`` emits removed."""
+    import importlib
+    import types
+
+    module = importlib.import_module("cfgs_jax.splat.pallas_composite")
+    if not cut:
+        return module
+    source = Path(module.__file__).read_text()
+    for name in cut:
+        assert EMITS[name] in source, name
+        source = source.replace(EMITS[name], "pass")
+    copy = types.ModuleType("cfgs_jax.splat._pallas_probe")
+    copy.__file__ = module.__file__
+    sys.modules[copy.__name__] = copy
+    exec(compile(source, module.__file__, "exec"), copy.__dict__)
+    return copy
 
 
 def probe(name: str) -> str:
@@ -34,11 +67,13 @@ def probe(name: str) -> str:
     from test_splat import camera, scene
 
     from cfgs_jax import splat
-    from cfgs_jax.splat.pallas_composite import PallasOptions
 
-    dates, chunk, scatter, prefix, what = PROBES[name]
+    spec = {**BASE, **PROBES[name]}
+    kernel = _kernel_module(spec["cut"])
     render_module = importlib.import_module("cfgs_jax.splat.render")
-    render_module.PallasOptions = lambda *a: PallasOptions(*a, prefix=prefix)
+    render_module.PallasOptions = lambda *a: kernel.PallasOptions(*a, prefix=spec["prefix"])
+    render_module.composite_pallas = kernel.composite_pallas
+    dates = spec["dates"]
     g, cam = scene(300, 3), camera(64, 48)
     rng = np.random.default_rng(0)
     om = jnp.asarray(rng.uniform(0.3, 1.0, (dates, len(g))), jnp.float32)
@@ -47,27 +82,28 @@ def probe(name: str) -> str:
     cap = splat.required_capacity(g, cam, om)
     out = {}
     for backend in ("xla", "pallas"):
+        pallas = backend == "pallas"
         cfg = splat.RenderConfig(
-            capacity=cap, backend=backend, chunk=chunk if backend == "pallas" else None, scatter=scatter
+            capacity=cap,
+            backend=backend,
+            chunk=spec["chunk"] if pallas else None,
+            num_warps=spec["warps"],
+            scatter=spec["scatter"],
         )
-        if what == "grad":
-            f = jax.jit(
-                jax.grad(
-                    lambda g, om, cm: jnp.sum(
-                        splat.render_dates(g, cam, om, cm, config=cfg, statistics=False).image * w
-                    ),
-                    argnums=(0, 1, 2),
-                )
-            )
+        if spec["what"] == "grad":
+
+            def loss(g, om, cm, cfg=cfg):
+                return jnp.sum(splat.render_dates(g, cam, om, cm, config=cfg, statistics=False).image * w)
+
+            f = jax.jit(jax.grad(loss, argnums=(0, 1, 2)))
             out[backend] = [np.asarray(x) for x in jax.tree_util.tree_leaves(f(g, om, cm))]
-        elif what == "fwd":
-            f = jax.jit(lambda g, om, cm: splat.render_dates(g, cam, om, cm, config=cfg, statistics=False).image)
-            out[backend] = [np.asarray(f(g, om, cm))]
         else:
-            maps = jnp.asarray(rng.uniform(size=(2, dates, 48, 64)), jnp.float32)
-            out[backend] = [np.asarray(splat.summed_weight_maps(g, cam, om, maps, config=cfg))]
-    err = max(float(np.abs(a - b).max() / max(np.abs(b).max(), 1e-30)) for a, b in zip(out["pallas"], out["xla"]))
-    return f"{name}: OK, max relative difference to XLA {err:.1e}"
+            res = jax.jit(lambda g, om, cm, cfg=cfg: splat.render_dates(g, cam, om, cm, config=cfg))(g, om, cm)
+            out[backend] = [np.asarray(res.image), np.asarray(res.max_weight), np.asarray(res.hits, np.float64)]
+    if spec["cut"]:
+        return f"{name}: OK (compiled and ran; gradients cut: {', '.join(spec['cut'])})"
+    err = [float(np.abs(a - b).max() / max(np.abs(b).max(), 1e-30)) for a, b in zip(out["pallas"], out["xla"])]
+    return f"{name}: OK, relative difference to XLA per output {', '.join(f'{e:.1e}' for e in err)}"
 
 
 def main():
@@ -75,10 +111,8 @@ def main():
         print(probe(sys.argv[1]), flush=True)
         return
     t0 = time.time()
-    procs = {
-        n: subprocess.Popen([sys.executable, __file__, n], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-        for n in PROBES
-    }
+    run = lambda n: subprocess.Popen([sys.executable, __file__, n], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)  # fmt: skip
+    procs = {n: run(n) for n in PROBES}
     for n, p in procs.items():
         try:
             out, err = p.communicate(timeout=55)
@@ -89,7 +123,7 @@ def main():
         if p.returncode == 0:
             print(out.strip().splitlines()[-1])
         else:
-            tail = [l for l in err.strip().splitlines() if l.strip()][-3:]
+            tail = [line for line in err.strip().splitlines() if line.strip()][-3:]
             print(f"{n}: FAILED rc={p.returncode}: {' / '.join(tail)[:400]}")
     print(f"probes done in {time.time() - t0:.0f} s")
 
