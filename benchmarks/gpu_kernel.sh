@@ -1,14 +1,15 @@
 #!/usr/bin/env bash
 # On a lent GPU, in one call: which Pallas kernel variants compile there (gpu_probe.py, each probe in its
 # own process); then, with the first full backward variant that compiles made the default of the device's
-# copy, our two compositors timed side by side (bench_gsplat.py; gsplat too unless NO_GSPLAT=1).
+# copy, the kernel tests (junit.xml) and our two compositors timed side by side (bench_gsplat.py; gsplat
+# too unless NO_GSPLAT=1).
 # Run in the repository root on the device:
 #
 #   [NO_GSPLAT=1] [CASES="100k@640x480 ..."] bash benchmarks/gpu_kernel.sh
 #
 # Needs, carried beside the tree: .whl/ (cp312 wheels of colour-science, dm-pix, msgspec, OpenEXR, plyfile
 # and gsplat==1.5.3, which the device image lacks). Writes under $OUT: log.txt, probe.txt,
-# kernel_vs_gsplat_<chip>_gpu.{json,md} (and gsplat_build.txt).
+# junit.xml, kernel_vs_gsplat_<chip>_gpu.{json,md} (and gsplat_build.txt). The whole run fits ~8 minutes.
 export PYTHONUNBUFFERED=1
 exec > >(tee -a "$OUT/log.txt") 2>&1
 t0=$(date +%s)
@@ -19,23 +20,28 @@ if [ -z "${NO_GSPLAT:-}" ]; then  # gsplat's CUDA extension compiles on its firs
   (MAX_JOBS=8 TORCH_CUDA_ARCH_LIST=9.0 python3 -c "from gsplat.cuda._backend import _C; print('gsplat built', _C is not None)" \
     >"$OUT/gsplat_build.txt" 2>&1 &)
 fi
-timeout 60 python3 benchmarks/gpu_probe.py | tee "$OUT/probe.txt"
+timeout 100 python3 benchmarks/gpu_probe.py | tee "$OUT/probe.txt"
 chosen=""
-# preference: the widest chunk first; (probe, chunk, warps, scatter)
-for v in "bwd_k32_warps8 32 8 atomic" "bwd_k32_warps1 32 1 atomic" "bwd_k4 4 4 atomic" "bwd_k1 1 4 atomic" \
-  "bwd_partials_k1 1 4 partials"; do
+# preference (probe, walk, chunk, warps, scatter): the block walk, then the serial one
+for v in "bwd_k32_warps8 chunk 32 8 atomic" "bwd_k4 chunk 4 4 atomic" "bwd_serial_k8 serial 8 4 atomic" \
+  "bwd_serial_k8_partials serial 8 4 partials"; do
   set -- $v
   if grep -q "^$1: OK" "$OUT/probe.txt"; then  # the device copy's defaults only
     chosen=$1
-    sed -i "s/^PALLAS_CHUNK = 32/PALLAS_CHUNK = $2/" src/cfgs_jax/splat/render.py
-    sed -i "s/    num_warps: int = 4/    num_warps: int = $3/; s/    scatter: str = \"atomic\"/    scatter: str = \"$4\"/" \
+    sed -i "s/^PALLAS_CHUNK = .*/PALLAS_CHUNK = {\"$2\": $3}/" src/cfgs_jax/splat/render.py
+    sed -i "s/    num_warps: int = 4/    num_warps: int = $4/; s/    scatter: str = \"atomic\"/    scatter: str = \"$5\"/" \
+      src/cfgs_jax/splat/config.py
+    sed -i "s/    walk: str = \"chunk\"/    walk: str = \"$2\"/; s/    backend: str = \"auto\"/    backend: str = \"pallas\"/" \
       src/cfgs_jax/splat/config.py
     break
   fi
 done
 echo "backward variant: ${chosen:-none compiles} at $(( $(date +%s) - t0 )) s"
-grep -n "^PALLAS_CHUNK\|num_warps: int\|scatter: str" src/cfgs_jax/splat/render.py src/cfgs_jax/splat/config.py
+grep -n "^PALLAS_CHUNK\|num_warps: int\|scatter: str\|walk: str\|backend: str" src/cfgs_jax/splat/render.py src/cfgs_jax/splat/config.py
 if [ -n "$chosen" ]; then
+  timeout "${TEST_TIMEOUT:-120}" python3 -m pytest -p no:cacheprovider -n 2 --dist loadfile -q -o addopts="" -rfE \
+    --junitxml="$OUT/junit.xml" tests/test_pallas.py tests/test_splat.py 2>&1 | grep -v "Fatal\|^  File\|^Thread\|^$\|PytestBenchmark\|warner"
+  echo "pytest at $(( $(date +%s) - t0 )) s"
   # shellcheck disable=SC2086
   timeout "${BENCH_TIMEOUT:-240}" python3 benchmarks/bench_gsplat.py --out "$OUT" --no-sweep --no-dates --reps 5 \
     ${NO_GSPLAT:+--no-gsplat} --cases ${CASES:-100k@640x480 donut@640x480 1M@1920x1080 donut@1920x1080}

@@ -24,8 +24,23 @@ EMITS = {  # the backward kernel's gradient sums, by the text of their lines
     "features": "emit(GEOMETRY_ROWS + d + i * f + j, geo, jnp.sum(dt.w * gfg[i][j][None, :], axis=1))",
     "geometry": "emit(k, geo, value)",
 }
-BASE = {"dates": 1, "chunk": 32, "warps": 4, "scatter": "atomic", "prefix": "scan", "what": "grad", "cut": ()}
+BASE = {
+    "dates": 1,
+    "chunk": 32,
+    "warps": 4,
+    "scatter": "atomic",
+    "prefix": "scan",
+    "walk": "chunk",
+    "what": "grad",
+    "cut": (),
+}
 PROBES = {
+    "bwd_serial_k8": {"walk": "serial", "chunk": 8},
+    "bwd_serial_k8_partials": {"walk": "serial", "chunk": 8, "scatter": "partials"},
+    "bwd_serial_k2_T2": {"walk": "serial", "chunk": 2, "dates": 2},
+    "fwd_serial_statistics": {"walk": "serial", "chunk": 8, "what": "stats"},
+    "sums_serial": {"walk": "serial", "chunk": 8, "what": "sums"},
+    "sums_chunk": {"what": "sums"},
     "bwd_k1": {"chunk": 1},
     "bwd_k4": {"chunk": 4},
     "bwd_partials_k1": {"chunk": 1, "scatter": "partials"},
@@ -71,7 +86,7 @@ def probe(name: str) -> str:
     spec = {**BASE, **PROBES[name]}
     kernel = _kernel_module(spec["cut"])
     render_module = importlib.import_module("cfgs_jax.splat.render")
-    render_module.PallasOptions = lambda *a: kernel.PallasOptions(*a, prefix=spec["prefix"])
+    render_module.PallasOptions = lambda *a, **k: kernel.PallasOptions(*a, **k, prefix=spec["prefix"])
     render_module.composite_pallas = kernel.composite_pallas
     dates = spec["dates"]
     g, cam = scene(300, 3), camera(64, 48)
@@ -79,6 +94,7 @@ def probe(name: str) -> str:
     om = jnp.asarray(rng.uniform(0.3, 1.0, (dates, len(g))), jnp.float32)
     cm = jnp.asarray(rng.uniform(0.5, 1.5, (dates, len(g), 3)), jnp.float32)
     w = jnp.asarray(rng.normal(size=(dates, 48, 64, 3)), jnp.float32)
+    maps = jnp.asarray(rng.uniform(size=(2, dates, 48, 64)), jnp.float32)
     cap = splat.required_capacity(g, cam, om)
     out = {}
     for backend in ("xla", "pallas"):
@@ -89,6 +105,7 @@ def probe(name: str) -> str:
             chunk=spec["chunk"] if pallas else None,
             num_warps=spec["warps"],
             scatter=spec["scatter"],
+            walk=spec["walk"],
         )
         if spec["what"] == "grad":
 
@@ -97,6 +114,8 @@ def probe(name: str) -> str:
 
             f = jax.jit(jax.grad(loss, argnums=(0, 1, 2)))
             out[backend] = [np.asarray(x) for x in jax.tree_util.tree_leaves(f(g, om, cm))]
+        elif spec["what"] == "sums":
+            out[backend] = [np.asarray(splat.summed_weight_maps(g, cam, om, maps, config=cfg))]
         else:
             res = jax.jit(lambda g, om, cm, cfg=cfg: splat.render_dates(g, cam, om, cm, config=cfg))(g, om, cm)
             out[backend] = [np.asarray(res.image), np.asarray(res.max_weight), np.asarray(res.hits, np.float64)]
@@ -115,7 +134,7 @@ def main():
     procs = {n: run(n) for n in PROBES}
     for n, p in procs.items():
         try:
-            out, err = p.communicate(timeout=55)
+            out, err = p.communicate(timeout=90)
         except subprocess.TimeoutExpired:
             p.kill()
             print(f"{n}: TIMEOUT")

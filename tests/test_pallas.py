@@ -32,13 +32,21 @@ render_module = importlib.import_module("cfgs_jax.splat.render")
 PALLAS = splat.RenderConfig(backend="pallas")
 
 
-@pytest.mark.parametrize("n,seed,w,h,chunk", [(200, 0, 50, 37, None), (300, 3, 33, 40, 8), (150, 2, 17, 16, 64)])
-def test_forward_matches_float64_reference(n, seed, w, h, chunk):
+@pytest.mark.parametrize(
+    "n,seed,w,h,chunk,walk",
+    [
+        (200, 0, 50, 37, None, "chunk"),
+        (300, 3, 33, 40, 8, "chunk"),
+        (150, 2, 17, 16, 64, "chunk"),
+        (250, 1, 40, 30, 8, "serial"),
+    ],
+)
+def test_forward_matches_float64_reference(n, seed, w, h, chunk, walk):
     """Images, alpha, depth and the statistics; ``chunk`` 8 makes every busy tile's list span many
     loop steps, 64 leaves most lists inside one."""
     g = scene(n, seed)
     cam = camera(w, h)
-    cfg = dataclasses.replace(PALLAS, chunk=chunk)
+    cfg = dataclasses.replace(PALLAS, chunk=chunk, walk=walk)
     r = splat.render(g, cam, background=BG, with_depth=True, config=cfg)
     _, ties = assert_matches_reference(r.image, g, cam)
     ref = splat.reference.render(g, cam, background=BG)
@@ -52,7 +60,8 @@ def test_forward_matches_float64_reference(n, seed, w, h, chunk):
     assert float(ref.alpha.mean()) > 0.1
 
 
-def test_early_saturation_and_long_lists():
+@pytest.mark.parametrize("walk", ["chunk", "serial"])
+def test_early_saturation_and_long_lists(walk):
     """Opaque Gaussians stacked in front of one another: every pixel stops long before its list ends
     (INRIA's T < 1e-4 rule), in a chunk other than the first; the image equals the reference's."""
     rng = np.random.default_rng(5)
@@ -66,7 +75,7 @@ def test_early_saturation_and_long_lists():
         rng.uniform(0, 1, (n, 3)).astype(F32),
     )
     cam = cj.Camera.look_at([0, 0, -4.0], [0, 0, 0], up=(0, -1, 0), width=24, height=20, fov_x_deg=20)
-    cfg = dataclasses.replace(PALLAS, chunk=4)
+    cfg = dataclasses.replace(PALLAS, chunk=4, walk=walk)
     r = splat.render(g, cam, background=BG, config=cfg)
     assert_matches_reference(r.image, g, cam)
     assert float(jnp.min(r.alpha)) > 0.99  # (nearly) saturated everywhere
@@ -75,7 +84,8 @@ def test_early_saturation_and_long_lists():
     assert int(np.asarray(ref.hits).sum()) < int(r.num_composited) * 256 / 4  # most of the lists were skipped
 
 
-def test_dates_share_the_falloff():
+@pytest.mark.parametrize("walk", ["chunk", "serial"])
+def test_dates_share_the_falloff(walk):
     """T = 3 in one call equals three renders (per-date opacity and colour multipliers), statistics too."""
     g = scene(200, 4)
     cam = camera(40, 34)
@@ -83,7 +93,8 @@ def test_dates_share_the_falloff():
     om = rng.uniform(0.0, 1.0, (3, len(g))).astype(F32)
     om[1, : len(g) // 2] = 0.0
     cm = rng.uniform(0.3, 1.8, (3, len(g), 3)).astype(F32)
-    res = splat.render_dates(g, cam, om, cm, background=BG, config=PALLAS, with_depth=True)
+    cfg = dataclasses.replace(PALLAS, walk=walk, chunk=8)
+    res = splat.render_dates(g, cam, om, cm, background=BG, config=cfg, with_depth=True)
     xla = splat.render_dates(g, cam, om, cm, background=BG, config=splat.RenderConfig(backend="xla"), with_depth=True)
     for name in ("image", "alpha", "depth", "max_weight"):
         assert float(jnp.max(jnp.abs(getattr(res, name) - getattr(xla, name)))) <= 2e-5, name
@@ -93,13 +104,15 @@ def test_dates_share_the_falloff():
         assert float(np.max(np.abs(np.asarray(res.image[d]) - np.asarray(ref.image[0])))) <= 2e-5
 
 
-@pytest.mark.parametrize("tile_cull", [True, False])
-def test_float32_gradients_match_float64(grad_case, tile_cull):  # noqa: F811 (the imported fixture)
+@pytest.mark.parametrize(
+    "tile_cull,walk,scatter", [(True, "chunk", "atomic"), (False, "chunk", "partials"), (True, "serial", "partials")]
+)
+def test_float32_gradients_match_float64(grad_case, tile_cull, walk, scatter):  # noqa: F811 (the imported fixture)
     """Every gradient (means, quaternions, scales, opacity, colours, o and l multipliers) of the Pallas
     backend at T = 2 against float64 autodiff of the reference, the tolerance of the XLA backend."""
     g, om, cm, cam, w_img, w_a = grad_case
     *_, ref = _ref_grads(g, om, cm, cam, w_img, w_a)
-    cfg = dataclasses.replace(PALLAS, tile_cull=tile_cull, chunk=8)
+    cfg = dataclasses.replace(PALLAS, tile_cull=tile_cull, chunk=8, walk=walk, scatter=scatter)
     cfg = dataclasses.replace(cfg, capacity=splat.required_capacity(g, cam, om, config=cfg))
     f = lambda *a: _loss_fast(*a, cam, cfg, jnp.asarray(w_img, F32), jnp.asarray(w_a, F32), jnp.float32)
     grads = jax.grad(f, argnums=(0, 1, 2))(g, om, cm)
@@ -110,34 +123,36 @@ def test_float32_gradients_match_float64(grad_case, tile_cull):  # noqa: F811 (t
         assert np.abs(b).max() > 0, name
 
 
-def test_summed_weight_maps_equal_the_xla_backend():
+@pytest.mark.parametrize("walk", ["chunk", "serial"])
+def test_summed_weight_maps_equal_the_xla_backend(walk):
     g = scene(80, 3, log_scale=-1.9)
     cam = camera(40, 30)
     rng = np.random.default_rng(4)
     om = rng.uniform(0.2, 1.0, (2, len(g))).astype(F32)
     om[1, :20] = 0.0
     maps = rng.uniform(-1.0, 2.0, (3, 2, 30, 40)).astype(F32)
-    got = np.asarray(splat.summed_weight_maps(g, cam, om, maps, config=PALLAS))
+    got = np.asarray(splat.summed_weight_maps(g, cam, om, maps, config=dataclasses.replace(PALLAS, walk=walk, chunk=4)))
     want = np.asarray(splat.summed_weight_maps(g, cam, om, maps, config=splat.RenderConfig(backend="xla")))
     assert np.abs(want).max() > 1.0 and np.count_nonzero(got[:, 1, :20]) == 0
     np.testing.assert_allclose(got, want, rtol=2e-5, atol=2e-5)
 
 
-def _kernel_inputs(dates=2, features=4):
+def _kernel_inputs(dates=2, features=4, chunk=None):
     g = scene(120, 5)
     cam = camera(40, 30)
-    cfg = dataclasses.replace(PALLAS, capacity=4096)
+    cfg = dataclasses.replace(PALLAS, capacity=4096, chunk=chunk)
     om = jnp.ones((dates, len(g)))
     proj, opac, layout, bins = render_module._project_and_bin(g, cam, om, config=cfg, capacity=4096, statistics=True)
     feats = jnp.ones((dates, len(g), features))
     return layout, (proj.means2d, proj.conics, opac, feats), bins
 
 
-def test_triton_lowering_for_the_gpu():
+@pytest.mark.parametrize("walk,scatter", [("chunk", "atomic"), ("serial", "partials")])
+def test_triton_lowering_for_the_gpu(walk, scatter):
     """The forward and backward kernels and the weighted sums lower through Pallas' Triton backend for
     a CUDA device on a CPU-only install: a primitive that lowering lacks would raise here."""
-    layout, args, bins = _kernel_inputs()
-    triton = PallasOptions(interpret=False)
+    layout, args, bins = _kernel_inputs(chunk=4 if walk == "serial" else None)
+    triton = PallasOptions(interpret=False, scatter=scatter, walk=walk)
     lists = (bins.gaussian_ids, bins.tile_start, bins.tile_end)
 
     def loss(m2, con, op, ft):
@@ -156,5 +171,7 @@ def test_backend_choice_and_errors():
     assert splat.RenderConfig(backend="xla").resolved_backend() == "xla"
     with pytest.raises(InputError, match="render.backend"):
         splat.RenderConfig(backend="cuda")
+    with pytest.raises(InputError, match="render.walk"):
+        splat.RenderConfig(walk="tiles")
     with pytest.raises(InputError, match="render.num_warps"):
         splat.RenderConfig(num_warps=3)

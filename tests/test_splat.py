@@ -156,8 +156,8 @@ def _ref_grads(g, om, cm, cam, w_img, w_a):
         return f, args, float(val), [np.asarray(x) for x in jax.tree_util.tree_leaves(grads)]
 
 
-@pytest.mark.parametrize("backend", ["xla", "pallas"])
-def test_custom_vjp_equals_float64_autodiff(grad_case, backend):
+@pytest.mark.parametrize("backend,walk", [("xla", "chunk"), ("pallas", "chunk"), ("pallas", "serial")])
+def test_custom_vjp_equals_float64_autodiff(grad_case, backend, walk):
     """The fast path run in float64 must agree with plain autodiff of the reference to ~1e-12 (the
     Pallas compositor in interpret mode on a CPU, with chunks of 16: the backward formulas are exact)."""
     g, om, cm, cam, w_img, w_a = grad_case
@@ -165,8 +165,9 @@ def test_custom_vjp_equals_float64_autodiff(grad_case, backend):
     with jax.enable_x64(True):
         g64 = jax.tree_util.tree_map(lambda x: jnp.asarray(x, jnp.float64), g)
         om64, cm64 = jnp.asarray(om, jnp.float64), jnp.asarray(cm, jnp.float64)
-        chunk = 16 if backend == "pallas" else None
-        cfg = splat.RenderConfig(capacity=splat.required_capacity(g64, cam, om64), backend=backend, chunk=chunk)
+        chunk = {"chunk": 16, "serial": 4}[walk] if backend == "pallas" else None
+        cap = splat.required_capacity(g64, cam, om64)
+        cfg = splat.RenderConfig(capacity=cap, backend=backend, chunk=chunk, walk=walk)
         f = lambda *a: _loss_fast(*a, cam, cfg, jnp.asarray(w_img), jnp.asarray(w_a), jnp.float64)
         val, grads = jax.value_and_grad(f, argnums=(0, 1, 2))(g64, om64, cm64)
         fast = [np.asarray(x) for x in jax.tree_util.tree_leaves(grads)]

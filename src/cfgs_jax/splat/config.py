@@ -43,6 +43,7 @@ class RenderConfig:
     backend: str = "auto"
     num_warps: int = 4
     scatter: str = "atomic"
+    walk: str = "chunk"
 
     def __post_init__(self):
         from cfgs_jax.errors import InputError
@@ -65,6 +66,8 @@ class RenderConfig:
             raise InputError(f"must be 1, 2, 4, 8 or 16, got {self.num_warps!r}", field="render.num_warps")
         if self.scatter not in ("atomic", "partials"):
             raise InputError(f"unknown scatter {self.scatter!r}", field="render.scatter", fix="atomic or partials")
+        if self.walk not in ("chunk", "serial"):
+            raise InputError(f"unknown walk {self.walk!r}", field="render.walk", fix="chunk or serial")
         if not self.near > 0:
             raise InputError(f"must be > 0, got {self.near}", field="render.near")
 

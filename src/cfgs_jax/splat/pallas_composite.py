@@ -57,6 +57,10 @@ class PallasOptions(NamedTuple):
     # how the backward pass forms prefix sums along a chunk: "scan" (cumsum) or "dot" (a product with
     # the lower-triangular matrix of ones, at full float32 precision)
     prefix: str = "scan"
+    # how a program walks its tile's list: "chunk" (K × P blocks, prefix scans along the chunk, vector
+    # atomics of per-Gaussian sums) or "serial" (one Gaussian at a time across the P pixels, INRIA's
+    # sequential arithmetic, scalar sums and scalar atomics; K Gaussians per loop step, unrolled)
+    walk: str = "chunk"
 
 
 def _table(means2d, conics, opac, feats):
@@ -208,6 +212,154 @@ def _forward_kernel(start_ref, end_ref, ids_ref, table_ref, *refs, layout, d, f,
             fg_ref[i * f + j, tile, :] = fg[i * f + j]
 
 
+class _Serial(NamedTuple):
+    """One list slot of the serial walk: its Gaussian's scalars and falloff at the tile's P pixels."""
+
+    gid: jax.Array  # Gaussian (N, the zero column, past the range's end)
+    index: jax.Array  # list slot (the capacity, a spare slot, past the range's end)
+    dx: jax.Array  # [P] mean − pixel centre
+    dy: jax.Array
+    con: tuple  # (a, b, c) scalars
+    g: jax.Array  # [P] exp(power) where the pixel may composite the Gaussian, else 0
+
+
+def _serial_gaussian(table_ref, ids_ref, slot, end, px, py, n: int, capacity: int) -> _Serial:
+    in_range = slot < end
+    gid = jnp.where(in_range, ids_ref[jnp.minimum(slot, capacity - 1)], n)
+    mx, my = table_ref[0, gid], table_ref[1, gid]
+    ca, cb, cc = table_ref[2, gid], table_ref[3, gid], table_ref[4, gid]
+    dx, dy = mx - px, my - py
+    power = -0.5 * (ca * dx * dx + cc * dy * dy) - cb * dx * dy
+    g = jnp.where(power <= 0.0, jnp.exp(jnp.minimum(power, 0.0)), 0.0)
+    return _Serial(gid, jnp.where(in_range, slot, capacity), dx, dy, (ca, cb, cc), g)
+
+
+def _serial_date(layout: Layout, op, g, t_in, done_in):
+    """INRIA's per-pixel step for one Gaussian and date: (og, α, T before, w, T after, done after)."""
+    og = op * g
+    a = jnp.minimum(og, layout.max_alpha)
+    a = jnp.where(a >= layout.min_alpha, a, 0.0)
+    t_live = jnp.where(done_in > 0, 0.0, t_in)  # finished pixels start at 0 and so never contribute
+    after = t_live * (1.0 - a)
+    live = after >= layout.min_transmittance
+    w = jnp.where(live, a * t_live, 0.0)
+    return og, a, t_live, w, jnp.where(live, after, t_in), jnp.where(live, done_in, 1)
+
+
+def _serial_forward_kernel(start_ref, end_ref, ids_ref, table_ref, *refs, layout, d, f, n, capacity):
+    if layout.statistics:
+        _, _, fg_ref, t_ref, maxw_ref, hits_ref = refs
+    else:
+        fg_ref, t_ref = refs
+    tile = pl.program_id(0)
+    start, end = start_ref[tile], end_ref[tile]
+    px, py, inside = _pixels(layout, tile, table_ref.dtype)
+    t0, done0 = _start_carry(inside, d, table_ref.dtype)
+    fg0 = [jnp.zeros(inside.shape, table_ref.dtype) for _ in range(d * f)]
+
+    def body(c):
+        r, _, t, done, fg = c
+        t, done, fg = list(t), list(done), list(fg)
+        for k in range(layout.chunk):
+            gs = _serial_gaussian(table_ref, ids_ref, start + r * layout.chunk + k, end, px, py, n, capacity)
+            for i in range(d):
+                op = table_ref[GEOMETRY_ROWS + i, gs.gid]
+                _, _, _, w, t[i], done[i] = _serial_date(layout, op, gs.g, t[i], done[i])
+                for j in range(f):
+                    fg[i * f + j] = fg[i * f + j] + w * table_ref[GEOMETRY_ROWS + d + i * f + j, gs.gid]
+                if layout.statistics:
+                    plt.atomic_max(maxw_ref, (i * (n + 1) + gs.gid,), jnp.max(w))
+                    plt.atomic_add(
+                        hits_ref,
+                        (i * (n + 1) + gs.gid,),
+                        jnp.sum(jnp.where(w > 0, 1, 0).astype(jnp.int32), dtype=jnp.int32),
+                    )
+        return r + 1, _alive(done), t, done, fg
+
+    init = (jnp.int32(0), _alive(done0), t0, done0, fg0)
+    _, _, t, _, fg = jax.lax.while_loop(_running(_rounds(layout, start, end)), body, init)
+    for i in range(d):
+        t_ref[i, tile, :] = t[i]
+        for j in range(f):
+            fg_ref[i * f + j, tile, :] = fg[i * f + j]
+
+
+def _serial_backward_kernel(
+    start_ref, end_ref, ids_ref, table_ref, gfg_ref, gt_ref, fg_ref, t_ref, _, grad_ref, *, layout, d, f, n, capacity,
+    scatter, prefix,
+):  # fmt: skip
+    del prefix  # no prefix sums: the running sums are carried Gaussian by Gaussian
+    tile = pl.program_id(0)
+    start, end = start_ref[tile], end_ref[tile]
+    dtype = table_ref.dtype
+    px, py, inside = _pixels(layout, tile, dtype)
+    t0, done0 = _start_carry(inside, d, dtype)
+    gfg = [[gfg_ref[i * f + j, tile, :] for j in range(f)] for i in range(d)]
+    behind0 = [sum(gfg[i][j] * fg_ref[i * f + j, tile, :] for j in range(f)) for i in range(d)]
+    tail = [gt_ref[i, tile, :] * t_ref[i, tile, :] for i in range(d)]
+
+    def emit(r, gs, value):  # row r of the gradient, the scalar of one slot
+        if scatter == "atomic":
+            plt.atomic_add(grad_ref, (r * (n + 1) + gs.gid,), value)
+        else:
+            grad_ref[r * (capacity + 1) + gs.index] = value
+
+    def body(c):
+        r, _, t, done, behind = c
+        t, done, behind = list(t), list(done), list(behind)
+        for k in range(layout.chunk):
+            gs = _serial_gaussian(table_ref, ids_ref, start + r * layout.chunk + k, end, px, py, n, capacity)
+            d_power = jnp.zeros(gs.g.shape, dtype)
+            for i in range(d):
+                op = table_ref[GEOMETRY_ROWS + i, gs.gid]
+                og, a, tk, w, t[i], done[i] = _serial_date(layout, op, gs.g, t[i], done[i])
+                feats = [table_ref[GEOMETRY_ROWS + d + i * f + j, gs.gid] for j in range(f)]
+                gf = sum(gfg[i][j] * feats[j] for j in range(f))  # ∂L/∂fg · f_k  [P]
+                behind[i] = behind[i] - w * gf  # Σ_f ∂L/∂fg_f (fg_f − S_k,f)
+                d_alpha = jnp.where(w > 0, tk * gf - (behind[i] + tail[i]) / (1.0 - a), 0.0)
+                d_og = jnp.where(og < layout.max_alpha, d_alpha, 0.0)
+                emit(GEOMETRY_ROWS + i, gs, jnp.sum(d_og * gs.g))
+                for j in range(f):
+                    emit(GEOMETRY_ROWS + d + i * f + j, gs, jnp.sum(w * gfg[i][j]))
+                d_power = d_power + d_og * op
+            d_power = d_power * gs.g
+            dx, dy, (ca, cb, cc) = gs.dx, gs.dy, gs.con
+            emit(0, gs, jnp.sum(d_power * -(ca * dx + cb * dy)))
+            emit(1, gs, jnp.sum(d_power * -(cb * dx + cc * dy)))
+            emit(2, gs, jnp.sum(d_power * (-0.5 * dx * dx)))
+            emit(3, gs, jnp.sum(d_power * (-dx * dy)))
+            emit(4, gs, jnp.sum(d_power * (-0.5 * dy * dy)))
+        return r + 1, _alive(done), t, done, behind
+
+    init = (jnp.int32(0), _alive(done0), t0, done0, behind0)
+    jax.lax.while_loop(_running(_rounds(layout, start, end)), body, init)
+
+
+def _serial_weighted_sums_kernel(
+    start_ref, end_ref, ids_ref, table_ref, maps_ref, _, sums_ref, *, layout, d, m, n, capacity
+):
+    tile = pl.program_id(0)
+    start, end = start_ref[tile], end_ref[tile]
+    px, py, inside = _pixels(layout, tile, table_ref.dtype)
+    t0, done0 = _start_carry(inside, d, table_ref.dtype)
+    maps = [[maps_ref[a * d + i, tile, :] for a in range(m)] for i in range(d)]
+
+    def body(c):
+        r, _, t, done = c
+        t, done = list(t), list(done)
+        for k in range(layout.chunk):
+            gs = _serial_gaussian(table_ref, ids_ref, start + r * layout.chunk + k, end, px, py, n, capacity)
+            for i in range(d):
+                op = table_ref[GEOMETRY_ROWS + i, gs.gid]
+                _, _, _, w, t[i], done[i] = _serial_date(layout, op, gs.g, t[i], done[i])
+                for a in range(m):
+                    plt.atomic_add(sums_ref, ((a * d + i) * (n + 1) + gs.gid,), jnp.sum(w * maps[i][a]))
+        return r + 1, _alive(done), t, done
+
+    init = (jnp.int32(0), _alive(done0), t0, done0)
+    jax.lax.while_loop(_running(_rounds(layout, start, end)), body, init)
+
+
 def _compiler(options: PallasOptions):
     return plt.CompilerParams(num_warps=options.num_warps, num_stages=1)
 
@@ -217,7 +369,8 @@ def _forward(layout: Layout, options: PallasOptions, table, ids, tile_start, til
     n = table.shape[1] - 1
     tiles, p = layout.num_tiles, layout.tile_size**2
     dtype = table.dtype
-    kernel = functools.partial(_forward_kernel, layout=layout, d=d, f=f, n=n, capacity=ids.shape[0])
+    walk = _serial_forward_kernel if options.walk == "serial" else _forward_kernel
+    kernel = functools.partial(walk, layout=layout, d=d, f=f, n=n, capacity=ids.shape[0])
     out_shape = [jax.ShapeDtypeStruct((d * f, tiles, p), dtype), jax.ShapeDtypeStruct((d, tiles, p), dtype)]
     args = [tile_start, tile_end, ids, table]
     aliases = {}
@@ -346,7 +499,7 @@ def _composite_bwd(layout, options, res, cot):
     gt = _from_image(layout, g_t.astype(dtype))
     capacity = ids.shape[0]
     kernel = functools.partial(
-        _backward_kernel,
+        _serial_backward_kernel if options.walk == "serial" else _backward_kernel,
         layout=layout,
         d=d,
         f=f,
@@ -413,7 +566,8 @@ def weighted_sums_pallas(
     dtype = means2d.dtype
     table = _table(means2d, conics, opac, jnp.zeros((d, n, 0), dtype))
     maps_t = _from_image(layout, maps.astype(dtype)).reshape(m * d, layout.num_tiles, layout.tile_size**2)
-    kernel = functools.partial(_weighted_sums_kernel, layout=layout, d=d, m=m, n=n, capacity=ids.shape[0])
+    walk = _serial_weighted_sums_kernel if options.walk == "serial" else _weighted_sums_kernel
+    kernel = functools.partial(walk, layout=layout, d=d, m=m, n=n, capacity=ids.shape[0])
     sums = pl.pallas_call(
         kernel,
         grid=(layout.num_tiles,),

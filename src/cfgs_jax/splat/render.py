@@ -50,13 +50,13 @@ class RenderResult(eqx.Module):
         return self.num_intersections > self.capacity
 
 
-PALLAS_CHUNK = 32  # Gaussians per step of a tile's walk in the Pallas kernel
+PALLAS_CHUNK = {"chunk": 32, "serial": 8}  # Gaussians per step of a tile's walk in the Pallas kernel
 
 
 def _layout(camera: Camera, config: RenderConfig, dates: int, statistics: bool) -> Layout:
     gx, gy = tile_grid(camera, config)
     if config.resolved_backend() == "pallas":  # one program per tile: no tile batches
-        chunk = config.chunk or PALLAS_CHUNK
+        chunk = config.chunk or PALLAS_CHUNK[config.walk]
         return Layout(camera.width, camera.height, config.tile_size, gx, gy, 1, chunk, config.min_alpha,
                       config.max_alpha, config.min_transmittance, statistics)  # fmt: skip
     # CPU: one date: 32 tiles × 32 Gaussians per round; several: ~96 tile-dates × 16 Gaussians keep a
@@ -84,7 +84,7 @@ def _compositor(config: RenderConfig, layout: Layout):
     """The tile compositor of ``config.backend``: (means2d, conics, opac, feats, ids, start, end) →
     (fg, T, max α·T, hits), and the matching weighted-sums walk."""
     if config.resolved_backend() == "pallas":
-        options = PallasOptions(jax.default_backend() != "gpu", config.num_warps, config.scatter)
+        options = PallasOptions(jax.default_backend() != "gpu", config.num_warps, config.scatter, walk=config.walk)
         return (
             functools.partial(composite_pallas, layout, options),
             functools.partial(weighted_sums_pallas, layout, options),
