@@ -12,7 +12,9 @@ One densify-and-prune round is timed as well. Writes benchmarks/results/train.js
     python benchmarks/bench_train.py [--gaussians 50000] [--steps 30] [--width 320 --height 240]
     python benchmarks/bench_train.py --data DIR   # render the date into DIR once, reuse it after
 
-``--data`` lets the synthetic date be rendered (Mitsuba) on one machine and timed on another.
+``--data`` lets the synthetic date be rendered (Mitsuba) on one machine and timed on another: the date is
+also saved as ``DIR/d0.npz`` (cameras, images, SfM points), which is read first when present, so the
+machine that times it needs no COLMAP reader (pycolmap).
 """
 
 from __future__ import annotations
@@ -28,6 +30,8 @@ import tempfile
 import time
 from pathlib import Path
 
+import numpy as np
+
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_splat import RESULTS, backend_suffix, device_peak_gb, machine
 
@@ -39,6 +43,25 @@ def _timed(f, *args):
     out = f(*args)
     jax.block_until_ready(out)
     return time.perf_counter() - t0, out
+
+
+def _pack(path: Path, cameras, images, points, point_colors) -> None:
+    """The date as arrays (``DIR/d0.npz``), written beside its COLMAP folder for a machine without pycolmap."""
+    cams = np.stack([[float(c.fx), float(c.fy), float(c.cx), float(c.cy), c.width, c.height] for c in cameras])
+    views = np.stack([np.asarray(c.cam_from_world) for c in cameras])
+    pixels = np.round(np.stack(images) * 255.0).astype(np.uint8)  # the PNGs' own 8 bits
+    np.savez_compressed(path, intrinsics=cams, cam_from_world=views, images=pixels, points=points, colors=point_colors)
+
+
+def _unpack(path: Path):
+    import cfgs_jax as cj
+
+    z = np.load(path)
+    cameras = [
+        cj.Camera(fx, fy, cx, cy, int(w), int(h), m)
+        for (fx, fy, cx, cy, w, h), m in zip(z["intrinsics"], z["cam_from_world"])
+    ]
+    return cameras, list(z["images"].astype(np.float32) / 255.0), z["points"], z["colors"]
 
 
 def main():
@@ -54,7 +77,6 @@ def main():
 
     import jax
     import jax.numpy as jnp
-    import numpy as np
     from scipy.spatial import cKDTree
 
     import cfgs_jax as cj
@@ -62,34 +84,42 @@ def main():
     from cfgs_jax.model import gaussians_of
     from cfgs_jax.train.step import TrainState
 
-    with tempfile.TemporaryDirectory() as tmp:
-        data = args.data if args.data is not None else Path(tmp)
-        synth_s = None
-        if not (data / "d0").is_dir():
-            spec = synthetic.make_preset(
-                "corals", seed=0, width=args.width, height=args.height, images_per_date=args.views, spp=16
-            )
-            t0 = time.perf_counter()
-            synthetic.render_dataset(spec, data, dates=[0], progress=False)
-            synth_s = time.perf_counter() - t0
-        scene = cj.io.read_colmap(data / "d0", test_every=10**6)
-        images = [jnp.asarray(scene.load_image(i, with_alpha=True)) for i in range(len(scene))]
-    width, height = scene.cameras[0].width, scene.cameras[0].height
+    synth_s = None
+    packed = None if args.data is None else args.data / "d0.npz"
+    if packed is not None and packed.is_file():  # the date as arrays: no COLMAP reader (pycolmap) needed
+        cameras, images, pts, point_colors = _unpack(packed)
+    else:
+        with tempfile.TemporaryDirectory() as tmp:
+            data = args.data if args.data is not None else Path(tmp)
+            if not (data / "d0").is_dir():
+                spec = synthetic.make_preset(
+                    "corals", seed=0, width=args.width, height=args.height, images_per_date=args.views, spp=16
+                )
+                t0 = time.perf_counter()
+                synthetic.render_dataset(spec, data, dates=[0], progress=False)
+                synth_s = time.perf_counter() - t0
+            scene = cj.io.read_colmap(data / "d0", test_every=10**6)
+            cameras = list(cameras)
+            images = [np.asarray(scene.load_image(i, with_alpha=True)) for i in range(len(scene))]
+            pts, point_colors = np.asarray(scene.points, np.float64), np.asarray(scene.point_colors)
+            if packed is not None:
+                _pack(packed, cameras, images, pts, point_colors)
+    images = [jnp.asarray(x) for x in images]
+    width, height = cameras[0].width, cameras[0].height
 
     rng = np.random.default_rng(0)
-    pts = np.asarray(scene.points, np.float64)
     knn = np.sqrt(np.mean(cKDTree(pts).query(pts, k=4)[0][:, 1:] ** 2, axis=1))
     pick = rng.integers(0, len(pts), args.gaussians)
     jitter = rng.normal(size=(args.gaussians, 3)) * knn[pick, None]
-    g0 = train.init_from_points(pts[pick] + jitter, scene.point_colors[pick])
+    g0 = train.init_from_points(pts[pick] + jitter, point_colors[pick])
 
     config = train.TrainConfig(steps=30_000)
-    extent = train.scene_extent(scene.cameras)
+    extent = train.scene_extent(cameras)
     opt = train.make_optimizer(config, extent)
     state = TrainState.create(g0, opt, jax.random.key(0), capacity=train.capacity_bucket(len(g0)))
     g_buf = gaussians_of(state.params)
     mult = state.active.astype(jnp.float32)[None]
-    cap = max(splat.required_capacity(g_buf, c, mult) for c in scene.cameras)
+    cap = max(splat.required_capacity(g_buf, c, mult) for c in cameras)
     rc = splat.RenderConfig(capacity=cap)
     step = train.make_train_step(opt, config, rc)
 
@@ -105,15 +135,15 @@ def main():
 
     kernel = jax.jit(kernel_fwd_bwd)
 
-    compile_step, (state, _) = _timed(step, state, scene.cameras[0], images[0])
-    compile_kernel, _ = _timed(kernel, state.params, state.active, scene.cameras[0])
+    compile_step, (state, _) = _timed(step, state, cameras[0], images[0])
+    compile_kernel, _ = _timed(kernel, state.params, state.active, cameras[0])
     step_t, kernel_t = [], []
     for k in range(args.steps):
         v = k % len(images)
-        t, (state, stats) = _timed(step, state, scene.cameras[v], images[v])
+        t, (state, stats) = _timed(step, state, cameras[v], images[v])
         assert not bool(stats["overflowed"])
         step_t.append(t)
-        kernel_t.append(_timed(kernel, state.params, state.active, scene.cameras[v])[0])
+        kernel_t.append(_timed(kernel, state.params, state.active, cameras[v])[0])
     # one densify-and-prune round on statistics accumulated over the timed steps
     compile_densify, _ = _timed(lambda s: train.densify_step(s, config, extent, prune_big=False), state)
 

@@ -8,7 +8,9 @@
 #   [NO_GSPLAT=1] [CASES="100k@640x480 ..."] bash benchmarks/gpu_kernel.sh
 #
 # Needs, carried beside the tree: .whl/ (cp312 wheels of colour-science, dm-pix, msgspec, OpenEXR, plyfile
-# and gsplat==1.5.3, which the device image lacks). Writes under $OUT: log.txt, probe.txt,
+# and gsplat==1.5.3, which the device image lacks) and, for the training step, .carry/train_960/d0.npz
+# (`python benchmarks/bench_train.py --data .carry/train_960 --width 960 --height 540` writes it here,
+# after rendering the date with Mitsuba). Writes under $OUT: log.txt, probe.txt,
 # junit.xml, kernel_vs_gsplat_<chip>_gpu.{json,md} (and gsplat_build.txt). The whole run fits ~8 minutes.
 export PYTHONUNBUFFERED=1
 exec > >(tee -a "$OUT/log.txt") 2>&1
@@ -46,4 +48,11 @@ if [ -n "$chosen" ]; then
   timeout "${BENCH_TIMEOUT:-240}" python3 benchmarks/bench_gsplat.py --out "$OUT" --no-sweep --no-dates --reps 5 \
     ${NO_GSPLAT:+--no-gsplat} --cases ${CASES:-100k@640x480 donut@640x480 1M@1920x1080 donut@1920x1080}
   echo "bench_gsplat rc=$? at $(( $(date +%s) - t0 )) s"
+  if [ -f .carry/train_960/d0.npz ]; then  # the training step at 300k Gaussians, 960×540
+    rm -f benchmarks/results/train_960x540_300k_*_gpu.*
+    timeout "${TRAIN_TIMEOUT:-90}" python3 benchmarks/bench_train.py --data .carry/train_960 --gaussians 300000 \
+      --width 960 --height 540 --steps 20 --tag _960x540_300k_pallas
+    echo "bench_train rc=$? at $(( $(date +%s) - t0 )) s"
+    cp benchmarks/results/train_960x540_300k_pallas_*_gpu.* "$OUT/" 2>/dev/null
+  fi
 fi
