@@ -20,9 +20,9 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 
 EMITS = {  # the backward kernel's gradient sums, by the text of their lines
-    "opacity": "emit(GEOMETRY_ROWS + i, geo, jnp.sum(d_og * geo.g, axis=1))",
-    "features": "emit(GEOMETRY_ROWS + d + i * f + j, geo, jnp.sum(dt.w * gfg[i][j][None, :], axis=1))",
-    "geometry": "emit(k, geo, value)",
+    "opacity": "emit(GEOMETRY_ROWS + i, unit, jnp.sum(d_og * unit.g, axis=-1))",
+    "features": "emit(GEOMETRY_ROWS + d + i * f + j, unit, jnp.sum(dt.w * gfg[i][j], axis=-1))",
+    "geometry": "emit(row, unit, jnp.sum(d_power * dp, axis=-1))",
 }
 BASE = {
     "dates": 1,
