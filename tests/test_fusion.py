@@ -914,7 +914,7 @@ def test_render_and_export_cli_on_a_fused_run(fused_run, tmp_path):
 
 def test_readme_jax_snippet_runs_and_its_gradient_matches_finite_differences(fused_run):
     """The README "Use from JAX code" snippet, on a fused run; its gradient checked against a central
-    difference along a random direction."""
+    difference along a random direction; then the guide's refinement loop continuing it."""
     import re
 
     from conftest import REPO
@@ -930,8 +930,9 @@ def test_readme_jax_snippet_runs_and_its_gradient_matches_finite_differences(fus
     h = 1e-2
     fd = (float(loss(o + h * direction)) - float(loss(o - h * direction))) / (2 * h)
     assert fd == pytest.approx(float(jnp.sum(grad * direction)), rel=0.05, abs=1e-7)
-    # the optax snippet continues in the same namespace: Eq. 3 by hand lowers the loss on the same views
-    code = re.search(r"<!-- optax-snippet -->\n```python\n(.*?)```", text, re.S).group(1)
+    # the guide's optax snippet continues in the same namespace: Eq. 3 by hand lowers the loss on the same views
+    guide = (REPO / "docs" / "guide.md").read_text()
+    code = re.search(r"<!-- optax-snippet -->\n```python\n(.*?)```", guide, re.S).group(1)
     exec(compile(code, "README.md", "exec"), ns)
     losses, n = ns["losses"], len(ns["views"].cameras)
     assert np.all(np.isfinite(losses)) and np.mean(losses[-n:]) < np.mean(losses[:n])
