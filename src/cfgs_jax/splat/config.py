@@ -26,7 +26,12 @@ class RenderConfig:
     ``"pallas"`` (one Pallas program per tile, Triton on a GPU; on a CPU it runs in Pallas interpret
     mode, slowly, for tests) or ``"auto"`` (XLA: the Pallas backward pass does not yet compile through
     Triton on a GPU, so Pallas is opt-in). Both give the same images, statistics and gradients up to
-    float32 rounding. ``num_warps``: warps per Pallas program on a GPU.
+    float32 rounding. For the Pallas compositor: ``walk`` is ``"chunk"`` (``chunk`` Gaussians × the
+    tile's pixels as one block, transmittance by a log-space prefix scan) or ``"serial"`` (one Gaussian
+    at a time, INRIA's sequential arithmetic, ``chunk`` per loop step); ``scatter`` is ``"atomic"``
+    (each Gaussian's per-tile gradient sums added atomically) or ``"partials"`` (stored per intersection
+    and summed afterwards in a fixed order: deterministic, at one value per intersection and parameter);
+    ``num_warps`` is the Triton launch's warps per program.
     """
 
     near: float = 0.2
