@@ -80,6 +80,58 @@ def test_reference_training_output_tree_is_found(tmp_path):
     _same(read_fused(tmp_path / "run"), m)
 
 
+def _authors_stage(folder, rng, counts, *, activation=True):
+    """One folder of the reference code's run tree, written with plyfile after its naming (not by our
+    writer): point_cloud.ply (17 INRIA properties), activation.ply (opacity_t, then color_{r,g,b}_t) and
+    src_gaussian_info.json with the per-date counts. Returns the arrays written."""
+    import json
+
+    n, t = sum(counts), len(counts)
+    folder.mkdir(parents=True)
+    names = ["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2", "opacity"]
+    names += ["scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]
+    pc = np.zeros(n, dtype=[(k, "<f4") for k in names])
+    for k in names:
+        pc[k] = rng.normal(size=n)
+    for k in ("nx", "ny", "nz"):
+        pc[k] = 0.0
+    plyfile.PlyData([plyfile.PlyElement.describe(pc, "vertex")]).write(str(folder / "point_cloud.ply"))
+    act_names = [f"opacity_{i}" for i in range(t)] + [f"color_{c}_{i}" for i in range(t) for c in "rgb"]
+    act = np.zeros(n, dtype=[(k, "<f4") for k in act_names])
+    for k in act_names:
+        act[k] = rng.normal(size=n)
+    if activation:
+        plyfile.PlyData([plyfile.PlyElement.describe(act, "vertex")]).write(str(folder / "activation.ply"))
+    (folder / "src_gaussian_info.json").write_text(json.dumps({"num_gaussians_per_t": counts}))
+    return pc, act
+
+
+def test_the_reference_codes_run_tree_is_read_as_that_code_ranks_it(tmp_path):
+    """PROJECT/output/point_cloud/ holding a training iteration, the merged model (initial_*) and two
+    refinements (refined_*): the highest refinement is read, whichever folder of the tree is given, its
+    o and light logits and geometry as written, each Gaussian's date from the per-date counts."""
+    rng = np.random.default_rng(0)
+    tree = tmp_path / "project" / "output" / "point_cloud"
+    counts = [5, 7, 4]
+    _authors_stage(tree / "iteration_30000", rng, counts, activation=False)
+    _authors_stage(tree / "initial_0", rng, counts)
+    _authors_stage(tree / "refined_500", rng, counts)
+    pc, act = _authors_stage(tree / "refined_3000", rng, counts)
+    for where in (tmp_path / "project", tmp_path / "project" / "output", tree):
+        m = read_fused(where)
+        assert len(m) == 16 and m.date_names == ("t0", "t1", "t2")
+        assert np.array_equal(np.asarray(m.gaussians.means), np.stack([pc["x"], pc["y"], pc["z"]], 1))
+        assert np.array_equal(np.asarray(m.o_logits)[:, 1], act["opacity_1"])
+        assert np.array_equal(np.asarray(m.light_logits)[:, 2, 0], act["color_r_2"])
+        assert np.array_equal(np.asarray(m.origin), [0] * 5 + [1] * 7 + [2] * 4)
+    # counts that do not split the model are an error naming the file and field
+    import json
+
+    (tree / "refined_3000" / "src_gaussian_info.json").write_text(json.dumps({"num_gaussians_per_t": [5, 5, 5]}))
+    with pytest.raises(InputError, match="num_gaussians_per_t"):
+        read_fused(tree)
+
+
 def test_cfgs_layout_round_trip(tmp_path):
     m = random_temporal(120, 3, seed=9)
     out = write_fused(tmp_path / "model", m, config={"refine": {"steps": 6000}})

@@ -15,7 +15,10 @@
                        (l := exposure[origin, t] ⊙ l, clipped below 2, the layout's range);
   ``cfgs_dates.json``  optional sidecar we add (date metadata and the run-length-encoded origin), which
                        the reference code ignores. Without it, dates are named ``t0..t{T-1}`` and each
-                       Gaussian's origin is inferred as its date of largest o.
+                       Gaussian's origin comes from the reference code's ``src_gaussian_info.json``
+                       (per-date counts) where present, else it is its date of largest o.
+The reference code's run tree is found too: ``PROJECT/output/point_cloud/{refined,initial,iteration}_N/``,
+ranked as that code ranks them (refined > initial > iteration, then the largest N).
 Directories are written atomically as a whole (a temporary sibling renamed into place).
 """
 
@@ -44,6 +47,7 @@ FORMAT_NAME = "cfgs_jax.fused"
 FORMAT_VERSION = 2  # 2: model.json may carry an exposure table (version 1 readers would ignore it)
 CFGS_PLY, CFGS_JSON = "model.ply", "model.json"
 REF_PLY, REF_ACT, REF_SIDECAR = "point_cloud.ply", "activation.ply", "cfgs_dates.json"
+AUTHORS_INFO = "src_gaussian_info.json"  # the reference code's per-date Gaussian counts
 
 
 def reference_activation_names(num_dates: int) -> list[str]:
@@ -154,6 +158,27 @@ def _count_dates(names, prefix: str, *, path) -> int:
     return len(idx)
 
 
+AUTHORS_STAGES = ("iteration", "initial", "refined")  # the reference code's folder prefixes, lowest rank first
+
+
+def _authors_point_cloud(path: Path) -> Path | None:
+    """The folder the reference code itself would load from a run tree ``PROJECT/output/point_cloud/``
+    (``path`` the project, its ``output/`` or that ``point_cloud/``): among ``<stage>_<N>`` folders the
+    refined model ranks above the initial (merged) one, which ranks above a training iteration, and
+    within a stage the largest N wins. None if there is no such folder."""
+    for base in (path / "output" / "point_cloud", path / "point_cloud", path):
+        if base.name != "point_cloud" or not base.is_dir():
+            continue
+        ranked = []
+        for child in base.iterdir():
+            stage, _, number = child.name.partition("_")
+            if child.is_dir() and stage in AUTHORS_STAGES and number.isdigit():
+                ranked.append((AUTHORS_STAGES.index(stage), int(number), child))
+        if ranked:
+            return max(ranked)[2]
+    return None
+
+
 def _resolve(path: Path) -> tuple[str, Path]:
     if path.is_file():
         path = path.parent
@@ -163,12 +188,9 @@ def _resolve(path: Path) -> tuple[str, Path]:
         return "cfgs", path
     if (path / REF_PLY).is_file() or (path / REF_ACT).is_file():
         return "reference", path
-    iters = sorted(
-        (p for p in (path / "point_cloud").glob("iteration_*") if p.name[10:].isdigit()),
-        key=lambda p: int(p.name[10:]),
-    )
-    if iters:  # the reference code's training output: point_cloud/iteration_<N>/
-        return "reference", iters[-1]
+    found = _authors_point_cloud(path)
+    if found is not None:  # the reference code's run tree: [output/]point_cloud/<stage>_<N>/
+        return "reference", found
     raise InputError(
         f"neither {CFGS_JSON} + {CFGS_PLY} (cfgs layout) nor {REF_PLY} + {REF_ACT} (reference layout) found",
         path=path,
@@ -282,8 +304,28 @@ def _read_reference(root: Path, drop_invalid: bool) -> TemporalGaussians:
         origin = _from_run_length(meta.get("origin", []), len(table), path=sidecar)
     else:
         dates = tuple(DateInfo(f"t{i}") for i in range(t))
-        origin = np.argmax(o, axis=1)
+        origin = _origin_from_counts(root / AUTHORS_INFO, t, len(table))
+        if origin is None:
+            origin = np.argmax(o, axis=1)
     return _assemble(table, o, light, origin, dates, act_path, drop_invalid)
+
+
+def _origin_from_counts(path: Path, t: int, n: int) -> np.ndarray | None:
+    """Each Gaussian's date from the reference code's ``src_gaussian_info.json`` (its per-date counts
+    ``num_gaussians_per_t``, the dates' Gaussians stored one block after another), if present."""
+    if not path.is_file():
+        return None
+    counts = _load_json(path).get("num_gaussians_per_t")
+    if counts is None:
+        return None
+    if len(counts) != t or sum(int(c) for c in counts) != n or min(counts, default=0) < 0:
+        raise InputError(
+            f"num_gaussians_per_t {counts} does not split {n} Gaussians into {t} dates",
+            path=path,
+            field="num_gaussians_per_t",
+            fix="use the src_gaussian_info.json written with this model, or remove it (origins are then inferred)",
+        )
+    return np.repeat(np.arange(t), [int(c) for c in counts])
 
 
 def _assemble(table, o, light, origin, dates, path, drop_invalid, exposure=None) -> TemporalGaussians:
