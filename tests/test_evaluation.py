@@ -160,6 +160,12 @@ def test_eval_change_detection_and_resume(protocol):
     assert sweep["predicted_changed_share"][at_default[0]] == pytest.approx(pixels["predicted_changed_share"])
     assert np.all(np.diff(sweep["predicted_changed_share"]) <= 0)
     assert "Pixel masks at other shares of a changed region" in (out / "table.md").read_text()
+    # the baselines beside the detector, in closed form from the truth's prevalence on the same entries
+    ev_g = change["evidence"]["gaussians"]
+    pi = ev_g["gt_changed"]
+    assert ev_g["all_precision"] == pytest.approx(pi) and ev_g["all_f1"] == pytest.approx(2 * pi / (1 + pi))
+    assert pixels["all_iou"] == pytest.approx(pixels["gt_changed_share"])
+    assert "baseline: every pixel flagged" in (out / "table.md").read_text()
     # a second call resumes: no stage runs again and the table is unchanged
     before = json.loads((out / "table.json").read_text())
     seen = []

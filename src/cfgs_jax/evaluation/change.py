@@ -478,6 +478,7 @@ def evidence_detection(
     o_q = np.concatenate([table["pairs"][(p, q)]["o_q"][obs] for _, p, q, _, obs in entries])
     o_curve = precision_recall(1.0 - o_q, by_object, np.linspace(0.02, 0.98, 49))  # the o^q rule, same truth
     o_at = precision_recall(1.0 - o_q, by_object, [0.8])
+    every = precision_recall(np.ones(len(by_object)), by_object, [0.5])  # baseline: flag every entry
     valid = max(pixel["valid"], 1)
     return {
         "config": dataclasses.asdict(cfg),
@@ -491,9 +492,13 @@ def evidence_detection(
             "o_precision": float(o_at["precision"][0]),
             "o_recall": float(o_at["recall"][0]),
             "o_f1": float(o_at["f1"][0]),
+            "all_precision": float(every["precision"][0]),
+            "all_f1": float(every["f1"][0]),
         },
         "pixels": {
             "iou": pixel["inter"] / pixel["union"] if pixel["union"] else float("nan"),
+            # baseline: every evaluated pixel flagged (intersection = the truth, union = every pixel)
+            "all_iou": pixel["truth"] / pixel["valid"] if pixel["valid"] else float("nan"),
             "predicted_changed_share": pixel["predicted"] / valid,
             "gt_changed_share": pixel["truth"] / valid,
             "evaluated_pixels": pixel["valid"],

@@ -75,6 +75,19 @@ def _method_table(table: dict) -> list[str]:
     ]
 
 
+def _baseline_rows(g: dict, p: dict) -> list[str]:
+    """What a detector must beat, on the same entries and pixels: flag everything; the o^q rule."""
+    if "all_f1" not in g:  # figures written before the baselines were computed
+        return []
+    return [
+        f"| baseline: every Gaussian flagged | {g['all_precision']:.3f} | 1.000 | {g['all_f1']:.3f} | – | "
+        "100.00 % | – |",
+        f"| baseline: o^q < 0.2 (cross-init's persistence) | {g['o_precision']:.3f} | {g['o_recall']:.3f} | "
+        f"{g['o_f1']:.3f} | – | – | – |",
+        f"| baseline: every pixel flagged | – | – | – | {p['all_iou']:.3f} | 100.00 % | – |",
+    ]
+
+
 def _evidence_table(ev: dict) -> list[str]:
     """The residual-evidence detector (the `changes` command): per Gaussian, per pixel, per region."""
     g, p, r = ev["gaussians"], ev["pixels"], ev["regions"]
@@ -102,6 +115,7 @@ def _evidence_table(ev: dict) -> list[str]:
         f"| Pixels (test views, a changed region's share > {ev['config'].get('pixel_threshold', 0.5):g}) | – | – | – | "
         f"{p['iou']:.3f} | "
         f"{100 * p['predicted_changed_share']:.2f} % | {100 * p['gt_changed_share']:.1f} % |",
+        *_baseline_rows(g, p),
         "",
         f"Regions (3D, {r['pairs']} date pairs): {r['found_objects']} of {r['changed_objects']} changed objects "
         f"found (recall {_share(r['recall']) if r['changed_objects'] else '–'}), {r['regions']} regions, "
