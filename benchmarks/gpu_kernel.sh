@@ -41,11 +41,11 @@ done
 echo "backward variant: ${chosen:-none compiles} at $(( $(date +%s) - t0 )) s"
 grep -n "^PALLAS_CHUNK\|num_warps: int\|scatter: str\|walk: str\|backend: str" src/cfgs_jax/splat/render.py src/cfgs_jax/splat/config.py
 if [ -n "$chosen" ]; then
-  timeout "${TEST_TIMEOUT:-120}" python3 -m pytest -p no:cacheprovider -n 2 --dist loadfile -q -o addopts="" -rfE \
+  timeout "${TEST_TIMEOUT:-100}" python3 -m pytest -p no:cacheprovider -n 2 --dist loadfile -q -o addopts="" -rfE \
     --junitxml="$OUT/junit.xml" tests/test_pallas.py tests/test_splat.py 2>&1 | grep -v "Fatal\|^  File\|^Thread\|^$\|PytestBenchmark\|warner"
   echo "pytest at $(( $(date +%s) - t0 )) s"
   # shellcheck disable=SC2086
-  timeout "${BENCH_TIMEOUT:-240}" python3 benchmarks/bench_gsplat.py --out "$OUT" --no-sweep --no-dates --reps 5 \
+  timeout "${BENCH_TIMEOUT:-280}" python3 benchmarks/bench_gsplat.py --out "$OUT" --no-sweep --reps 5 \
     ${NO_GSPLAT:+--no-gsplat} --cases ${CASES:-100k@640x480 donut@640x480 1M@1920x1080 donut@1920x1080}
   echo "bench_gsplat rc=$? at $(( $(date +%s) - t0 )) s"
   if [ -f .carry/train_960/d0.npz ]; then  # the training step at 300k Gaussians, 960×540
