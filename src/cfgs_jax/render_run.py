@@ -86,12 +86,12 @@ class FusedRun:
 
     def test_cameras(self) -> list[tuple[str, Camera]]:
         """Every date's test views posed in the model's frame, named ``<date>_<image>``."""
-        from cfgs_jax.fusion.run import camera_in_frame, split_or_all
+        from cfgs_jax.fusion.run import registered_cameras
 
         return [
-            (f"{name}_{Path(scene.image_names[int(i)]).stem}", camera_in_frame(scene.cameras[int(i)], sim))
+            (f"{name}_{Path(scene.image_names[i]).stem}", camera)
             for name, scene, sim in zip(self.names, self.scenes, self.sims)
-            for i in split_or_all(scene, "test")
+            for i, camera in registered_cameras(scene, sim, "test")
         ]
 
     def date_views(self, date: int, split: str = "train"):

@@ -64,7 +64,7 @@ def detect_changes(
     """Detect the changes between the two dates of ``pair`` in the fused run ``run_dir`` and write the
     masks, scores, PLY and region list to ``out``; returns the region summary (``regions.json``).
     ``overrides``: values of the ``[changes]`` table over the run's configuration."""
-    from cfgs_jax.fusion.run import camera_in_frame, split_or_all
+    from cfgs_jax.fusion.run import registered_cameras
     from cfgs_jax.render_run import open_run
 
     run_dir, out = Path(run_dir), Path(out)
@@ -97,9 +97,8 @@ def detect_changes(
     in_region = (member >= 0).astype(np.float32)
     for d in (p, q):
         scene, sim = run.scenes[d], run.sims[d]
-        for i in split_or_all(scene, split):
-            name = Path(scene.image_names[int(i)]).stem
-            cam = camera_in_frame(scene.cameras[int(i)], sim)
+        for i, cam in registered_cameras(scene, sim, split):
+            name = Path(scene.image_names[i]).stem
             s, valid, mask = view_change(
                 model, cam, in_region, known, p, q, config.pixel_threshold, render_config=render_config
             )

@@ -30,7 +30,7 @@ from cfgs_jax.fusion.evaluate import evaluate_fused, weighted_mean
 from cfgs_jax.fusion.fuse import INVISIBLE_LOGIT
 from cfgs_jax.fusion.light import cold_warm_coefficient
 from cfgs_jax.fusion.refine import RefineConfig, refine
-from cfgs_jax.fusion.run import CONFIG_SECTIONS, camera_in_frame, date_views, run_fusion, split_or_all, validate_config
+from cfgs_jax.fusion.run import CONFIG_SECTIONS, date_views, registered_cameras, run_fusion, validate_config
 from cfgs_jax.io.atomic import check_resume, read_json, write_json, write_text
 from cfgs_jax.io.colmap import read_colmap
 from cfgs_jax.io.fused import read_fused
@@ -442,10 +442,11 @@ def date_masks(data: Path, scenes, sims, names: list[str], split: str = "train")
 
     out = []
     for p, (sc, sm) in enumerate(zip(scenes, sims)):
-        idx = split_or_all(sc, split)
-        cams = [camera_in_frame(sc.cameras[int(i)], sm) for i in idx]
+        views = registered_cameras(sc, sm, split)
         others = [n for n in names if n != names[p]]
-        out.append(change.read_date_masks(sc.root, [sc.image_names[int(i)] for i in idx], cams, others))
+        out.append(
+            change.read_date_masks(sc.root, [sc.image_names[i] for i, _ in views], [c for _, c in views], others)
+        )
     return out
 
 

@@ -9,7 +9,7 @@ import numpy as np
 
 from cfgs_jax import splat
 from cfgs_jax.fusion.evaluate import render_date
-from cfgs_jax.fusion.run import camera_in_frame, split_or_all
+from cfgs_jax.fusion.run import registered_cameras
 from cfgs_jax.io.fused import read_fused
 from cfgs_jax.io.ply import read_ply
 
@@ -239,10 +239,10 @@ def figure_grid(path: Path, run_dir: Path, scenes, sims, names, render_config) -
     model = read_fused(run_dir / "fused")
     rows = []
     for q, (sc, sm) in enumerate(zip(scenes, sims)):
-        i = int(split_or_all(sc, "test")[0])
+        i, camera = registered_cameras(sc, sm, "test")[0]
         g = read_ply(run_dir / "individual_plus" / names[q] / "point_cloud.ply")
         ind = np.asarray(splat.render(g, sc.cameras[i], config=render_config, statistics=False).image)
-        ours = np.asarray(render_date(model, q, camera_in_frame(sc.cameras[i], sm), config=render_config).image[0])
+        ours = np.asarray(render_date(model, q, camera, config=render_config).image[0])
         gt = np.asarray(over_background(sc.load_image(i, with_alpha=True), np.zeros(3, np.float32)))
         rows.append(np.concatenate([ind, ours, gt], 1))
     write_image(path, np.clip(np.concatenate(rows, 0), 0, 1))

@@ -96,17 +96,22 @@ def split_or_all(scene: Scene, split: str) -> np.ndarray:
     return idx if len(idx) else scene.indices("all")
 
 
+def registered_cameras(scene: Scene, sim3: Sim3, split: str = "train") -> list[tuple[int, Camera]]:
+    """A date's ``split`` (or all, where that split is empty) as (image index, camera posed in the
+    reference frame ``sim3`` maps the date into): the one place a split's cameras are registered."""
+    return [(int(i), camera_in_frame(scene.cameras[int(i)], sim3)) for i in split_or_all(scene, split)]
+
+
 def date_cameras(scene: Scene, sim3: Sim3, split: str = "train") -> list[Camera]:
     """A date's ``split`` cameras posed in the reference frame (no images read)."""
-    return [camera_in_frame(scene.cameras[int(i)], sim3) for i in split_or_all(scene, split)]
+    return [camera for _, camera in registered_cameras(scene, sim3, split)]
 
 
 def date_views(scene: Scene, sim3: Sim3, split: str = "train") -> DateViews:
     """A date's ``split`` views (RGBA images, alpha 1 where none) posed in the reference frame."""
-    idx = split_or_all(scene, split)
+    views = registered_cameras(scene, sim3, split)
     return DateViews(
-        tuple(camera_in_frame(scene.cameras[int(i)], sim3) for i in idx),
-        tuple(scene.load_image(int(i), with_alpha=True) for i in idx),
+        tuple(camera for _, camera in views), tuple(scene.load_image(i, with_alpha=True) for i, _ in views)
     )
 
 
