@@ -28,7 +28,7 @@ import traceback
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_splat import FIXTURE, RESULTS, backend_suffix, machine, synthetic
+from bench_splat import RESULTS, backend_suffix, machine, scene
 
 CASES = {
     "100k@640x480": ("synthetic", 100_000, 640, 480),
@@ -38,22 +38,6 @@ CASES = {
 }
 SWEEP_CASES = ("donut@1920x1080", "1M@1920x1080")
 SWEEP = [(16, 4), (32, 4), (64, 4), (32, 8)]  # (chunk, num_warps)
-
-
-def scene(kind: str, n: int | None, width: int, height: int):
-    """The Gaussians and camera of a case (as ``bench_splat`` and the kernel issue's figures)."""
-    import numpy as np
-
-    import cfgs_jax as cj
-
-    if kind == "donut":
-        g = cj.io.read_ply(FIXTURE)
-        c = np.asarray(g.means).mean(0)
-        cam = cj.Camera.look_at(c + np.array([0.22, -0.1, 0.16]), c, width=width, height=height, fov_x_deg=50)
-    else:
-        g = synthetic(n)
-        cam = cj.Camera.look_at([0, 0, -4.0], [0, 0, 0], up=(0, -1, 0), width=width, height=height, fov_x_deg=50)
-    return g, cam
 
 
 def _median_jax(f, args, reps: int) -> float:

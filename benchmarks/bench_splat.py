@@ -49,23 +49,31 @@ def synthetic(n: int, seed: int = 0):
     )
 
 
+def scene(kind: str, n: int | None, width: int, height: int):
+    """The Gaussians and camera of a case: the real donut seen from beside its centroid, or
+    ``synthetic(n)`` seen from z = −4 (fov_x 50° both)."""
+    import numpy as np
+
+    import cfgs_jax as cj
+
+    if kind == "donut":
+        g = cj.io.read_ply(FIXTURE)
+        c = np.asarray(g.means).mean(0)
+        return g, cj.Camera.look_at(c + np.array([0.22, -0.1, 0.16]), c, width=width, height=height, fov_x_deg=50)
+    cam = cj.Camera.look_at([0.0, 0.0, -4.0], [0.0, 0.0, 0.0], up=(0, -1, 0), width=width, height=height, fov_x_deg=50)
+    return synthetic(n), cam
+
+
 def _setup(spec: dict):
     """Scene, camera, multipliers and the jitted forward / forward+backward for one case."""
     import jax
     import jax.numpy as jnp
     import numpy as np
 
-    import cfgs_jax as cj
     from cfgs_jax import splat
 
     w, h, dates = spec["width"], spec["height"], spec.get("dates", 1)
-    if spec["scene"] == "donut":
-        g = cj.io.read_ply(FIXTURE)
-        c = np.asarray(g.means).mean(0)
-        cam = cj.Camera.look_at(c + np.array([0.22, -0.1, 0.16]), c, width=w, height=h, fov_x_deg=50)
-    else:
-        g = synthetic(spec["n"])
-        cam = cj.Camera.look_at([0.0, 0.0, -4.0], [0.0, 0.0, 0.0], up=(0, -1, 0), width=w, height=h, fov_x_deg=50)
+    g, cam = scene(spec["scene"], spec.get("n"), w, h)
     n = len(g)
     om = np.ones((dates, n), np.float32)
     if spec.get("inactive"):

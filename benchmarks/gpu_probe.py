@@ -1,7 +1,7 @@
 """Which variants of the Pallas kernels compile on this GPU and agree with the XLA backend: each probe
 runs in its own process (a compiler crash ends only that probe) and prints one line.
 
-A probe sets the kernel's options (dates, chunk, warps, scatter, prefix) and may cut gradient sums out
+A probe sets the kernel's options (dates, chunk, warps, scatter, walk) and may cut gradient sums out
 of the backward kernel (``cut``: which of its ``emit`` lines become no-ops; the module is rebuilt from
 its source with those lines removed), to bisect a compiler crash. A cut probe's gradients are
 incomplete, so it reports only whether it compiled and ran.
@@ -29,7 +29,6 @@ BASE = {
     "chunk": 32,
     "warps": 4,
     "scatter": "atomic",
-    "prefix": "scan",
     "walk": "chunk",
     "what": "grad",
     "cut": (),
@@ -86,7 +85,6 @@ def probe(name: str) -> str:
     spec = {**BASE, **PROBES[name]}
     kernel = _kernel_module(spec["cut"])
     render_module = importlib.import_module("cfgs_jax.splat.render")
-    render_module.PallasOptions = lambda *a, **k: kernel.PallasOptions(*a, **k, prefix=spec["prefix"])
     render_module.composite_pallas = kernel.composite_pallas
     dates = spec["dates"]
     g, cam = scene(300, 3), camera(64, 48)

@@ -58,10 +58,6 @@ class PallasOptions(NamedTuple):
     # Gaussian, tile and parameter) or "partials" (each list slot, one (Gaussian, tile) pair, stores
     # its tile's sums; a segment sum over the list adds them up afterwards: deterministic)
     scatter: str = "atomic"
-    # how the block walk forms prefix sums along a chunk: "scan" (cumsum) or "dot" (a product with the
-    # lower-triangular matrix of ones, at full float32 precision), or "dot_behind" (scan for T, dot for
-    # the backward's running sums)
-    prefix: str = "scan"
     # how a program walks its tile's list: "chunk" (K × P blocks, prefix scans along the chunk, vector
     # atomics of per-Gaussian sums) or "serial" (one Gaussian at a time across the P pixels, INRIA's
     # sequential arithmetic, scalar sums and scalar atomics; K Gaussians per loop step, unrolled)
@@ -111,22 +107,12 @@ class _Date(NamedTuple):
     done_out: jax.Array  # [P] int32, 1 where the pixel has stopped
 
 
-def _prefix_sum(x, how: str):
-    """Σ_{j≤k} x_j along the chunk axis (0) of x [K, P]."""
-    if how == "scan":
-        return jnp.cumsum(x, axis=0)
-    k = x.shape[0]
-    lower = (jnp.arange(k)[:, None] >= jnp.arange(k)[None, :]).astype(x.dtype)
-    return jnp.dot(lower, x, precision=jax.lax.Precision.HIGHEST, preferred_element_type=x.dtype)
-
-
 class _Walk(NamedTuple):
     """How a program steps through its tile's list (static): the units of one loop step, the per-unit
     sums along the Gaussians, and the running sums the backward pass carries."""
 
     layout: Layout
     serial: bool
-    prefix: str  # the block walk's prefix sums (PallasOptions.prefix)
     n: int  # Gaussians (the table's zero column)
     capacity: int  # list slots
 
@@ -158,7 +144,7 @@ class _Walk(NamedTuple):
 
     def running(self, x):
         """Σ_{j≤k} x_j over the unit's Gaussians (per pixel)."""
-        return x if self.serial else _prefix_sum(x, "scan" if self.prefix == "scan" else "dot")
+        return x if self.serial else jnp.cumsum(x, axis=0)
 
     def date(self, table_ref, unit: _Unit, d: int, t_in, done_in) -> _Date:
         """Eq. 1's α, T and weights of date ``d`` for the unit, and the (T, done) carry after it. The
@@ -176,8 +162,7 @@ class _Walk(NamedTuple):
             w = jnp.where(live, a * t_live, 0.0)
             return _Date(op, og, one_m, t_live, w, jnp.where(live, after, t_in), jnp.where(live, done_in, 1))
         log_one_m = jnp.log1p(-a)
-        how = "dot" if self.prefix == "dot" else "scan"
-        after = t_live * jnp.exp(_prefix_sum(log_one_m, how))  # T after each Gaussian
+        after = t_live * jnp.exp(jnp.cumsum(log_one_m, axis=0))  # T after each Gaussian
         tk = after / one_m  # 1 − α ≥ 0.01
         live = after >= layout.min_transmittance
         w = jnp.where(live, a * tk, 0.0)
@@ -251,7 +236,7 @@ def _forward_kernel(start_ref, end_ref, ids_ref, table_ref, *refs, walk: _Walk, 
 
 
 def _walk(layout: Layout, options: PallasOptions, n: int, ids) -> _Walk:
-    return _Walk(layout, options.walk == "serial", options.prefix, n, ids.shape[0])
+    return _Walk(layout, options.walk == "serial", n, ids.shape[0])
 
 
 def _compiler(options: PallasOptions):
