@@ -67,7 +67,7 @@ def _scene(args) -> tuple[Path, list[str], Path, dict]:
 
 def _path(args, raw, data, names, transforms, sims) -> None:
     """One fusion path in this process: ``scratch`` (all dates) or ``incremental`` (five, then extend)."""
-    from cfgs_jax.fusion.run import run_extend, run_fusion
+    from cfgs_jax.fusion import run_extend, run_fusion
     from cfgs_jax.sim3 import Sim3
 
     work = Path(args.work)
@@ -139,7 +139,7 @@ def main():
     args = ap.parse_args()
 
     from cfgs_jax.config import find_preset, load_config
-    from cfgs_jax.fusion.run import run_fusion
+    from cfgs_jax.fusion import run_fusion
 
     work = Path(args.work)
     work.mkdir(parents=True, exist_ok=True)

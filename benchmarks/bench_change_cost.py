@@ -102,8 +102,8 @@ def main():
     from cfgs_jax import splat
     from cfgs_jax.changes.evidence import observing_date_sums
     from cfgs_jax.config import section
-    from cfgs_jax.fusion.run import date_views
     from cfgs_jax.io.atomic import read_json, write_json, write_text
+    from cfgs_jax.io.run_dir import date_views
     from cfgs_jax.render_run import open_run
 
     run_dir = Path(args.run)

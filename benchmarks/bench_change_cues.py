@@ -78,7 +78,7 @@ def main():
 
     from cfgs_jax.changes import pair_statistics
     from cfgs_jax.evaluation import change
-    from cfgs_jax.fusion.run import date_cameras, date_views
+    from cfgs_jax.io.run_dir import date_cameras, date_views
     from cfgs_jax.splat.weights import fused_visibility
 
     data = Path(args.data)

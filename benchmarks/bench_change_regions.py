@@ -51,7 +51,7 @@ def _statistics(run, data: Path, cache: Path, changes_config, render_config):
     from cfgs_jax.changes import PairStatistics, pair_statistics
     from cfgs_jax.evaluation import change
     from cfgs_jax.evaluation.protocol import date_masks
-    from cfgs_jax.fusion.run import date_cameras, date_views
+    from cfgs_jax.io.run_dir import date_cameras, date_views
 
     cache.mkdir(parents=True, exist_ok=True)
     model = run.model
@@ -112,7 +112,7 @@ def _extent(region: dict) -> float:
 
 def view_cameras(run, config) -> list:
     """Each date's evidence views' cameras (``config.views``) in the fused frame."""
-    from cfgs_jax.fusion.run import date_views
+    from cfgs_jax.io.run_dir import date_views
 
     return [date_views(sc, sm, config.views).cameras for sc, sm in zip(run.scenes, run.sims)]
 
@@ -172,7 +172,7 @@ def score_default(run, data: Path, stats, config, render_config) -> dict:
     visibility of every Gaussian at every date and the ground-truth labels), not the o^q rules'."""
     from cfgs_jax.evaluation import change
     from cfgs_jax.evaluation.protocol import date_masks
-    from cfgs_jax.fusion.run import date_views
+    from cfgs_jax.io.run_dir import date_views
     from cfgs_jax.splat.weights import observed_matrix
 
     t0 = time.perf_counter()

@@ -109,8 +109,8 @@ def pre_refined(run: Path, copy: Path, compact: dict, steps: int) -> Path:
     the recovery settings of ``compact`` and nothing removed (no merge, no hidden-copy rule, no masks),
     marked as a finished, uncompacted fusion run again."""
     from cfgs_jax.config import section
+    from cfgs_jax.fusion import run_compact
     from cfgs_jax.fusion.compact import CompactConfig
-    from cfgs_jax.fusion.run import run_compact
     from cfgs_jax.io.atomic import read_json, write_json
 
     shutil.copytree(run, copy, ignore=shutil.ignore_patterns("snapshots", "ablations", "*.npz"))
@@ -178,8 +178,8 @@ def main():
         ap.error("--run is required (or --summary)")
 
     from cfgs_jax.config import apply_overrides, section
+    from cfgs_jax.fusion import run_compact
     from cfgs_jax.fusion.compact import CompactConfig
-    from cfgs_jax.fusion.run import run_compact
     from cfgs_jax.io.atomic import read_json, write_json
 
     base = dict((read_json(Path(args.run) / "run.json")["config"] or {}).get("compact", {}))

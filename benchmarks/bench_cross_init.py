@@ -41,11 +41,12 @@ def _preset(preset: str, args, raw: dict) -> dict:
     from cfgs_jax import splat
     from cfgs_jax.config import section
     from cfgs_jax.evaluation.protocol import cross_init_checks, date_masks
+    from cfgs_jax.fusion import run_fusion
     from cfgs_jax.fusion.cross_init import CrossInitConfig, cross_init
     from cfgs_jax.fusion.fuse import INVISIBLE_LOGIT
-    from cfgs_jax.fusion.run import date_views, run_fusion
     from cfgs_jax.io.colmap import read_colmap
     from cfgs_jax.io.fused import read_fused, write_fused
+    from cfgs_jax.io.run_dir import date_views
     from cfgs_jax.model import opacity_multipliers
     from cfgs_jax.sim3 import Sim3
     from cfgs_jax.train import TrainConfig

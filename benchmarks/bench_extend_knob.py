@@ -62,7 +62,7 @@ def prepare(run_dir: Path, data: Path, work: Path) -> Path:
     """WORK/prepared: the first T − 1 dates of the fusion ``run_dir`` fused again (its per-date models
     and configuration, ground-truth Sim(3)s), then extended by the last date; resumable."""
     from cfgs_jax import synthetic
-    from cfgs_jax.fusion.run import run_extend, run_fusion
+    from cfgs_jax.fusion import run_extend, run_fusion
     from cfgs_jax.io.atomic import read_json
     from cfgs_jax.sim3 import Sim3
 
@@ -95,7 +95,7 @@ def fuse_again(scratch: str, data: str, out: str) -> None:
     """The from-scratch fusion ``scratch`` run again into ``out`` from its per-date models and
     configuration, with the ground-truth Sim(3)s of ``data``, evaluation off (resumable)."""
     from cfgs_jax import synthetic
-    from cfgs_jax.fusion.run import run_fusion
+    from cfgs_jax.fusion import run_fusion
     from cfgs_jax.io.atomic import read_json
 
     scratch, data, out = Path(scratch), Path(data), Path(out)
@@ -127,7 +127,7 @@ def one_setting(prepared: Path, row_dir: Path, overrides: list[str], data: Path,
     (``row_dir``) under ``overrides``: their figures and the changes detector's unless ``change`` is
     false."""
     from cfgs_jax.config import apply_overrides
-    from cfgs_jax.fusion.run import run_extend
+    from cfgs_jax.fusion import run_extend
     from cfgs_jax.io.atomic import read_json, write_json
 
     shutil.rmtree(row_dir, ignore_errors=True)

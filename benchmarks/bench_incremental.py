@@ -46,7 +46,7 @@ def _fusion_seconds(run: Path, prefix: str = "") -> float:
 
 def _scratch(work, dirs, names, raw, models, transforms, sims, max_dates) -> dict:
     """Fuse dates 1..T from scratch for T = 2..max_dates (resumable); fusion seconds per T."""
-    from cfgs_jax.fusion.run import run_fusion
+    from cfgs_jax.fusion import run_fusion
 
     each, accumulated, acc = {}, {}, 0.0
     for t in range(2, max_dates + 1):
@@ -72,7 +72,7 @@ def _scratch(work, dirs, names, raw, models, transforms, sims, max_dates) -> dic
 
 def _incremental(work, dirs, names, raw, models, transforms, sims, max_dates) -> dict:
     """Fuse dates 1..2, then extend by dates 3..max_dates in turn (resumable); fusion seconds per step."""
-    from cfgs_jax.fusion.run import run_extend, run_fusion
+    from cfgs_jax.fusion import run_extend, run_fusion
     from cfgs_jax.sim3 import Sim3
 
     inc_dir = work / "incremental"
@@ -124,8 +124,8 @@ def main():
         raise SystemExit("--max-dates must lie in 3..6 (the reef preset has 6 dates)")
 
     from cfgs_jax.config import find_preset, load_config, section
+    from cfgs_jax.fusion import run_fusion
     from cfgs_jax.fusion.refine import RefineConfig
-    from cfgs_jax.fusion.run import run_fusion
 
     work = Path(args.work)
     data, names, transforms, sims = scene_dates("reef", args, args.max_dates)

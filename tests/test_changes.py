@@ -178,6 +178,34 @@ def test_a_removed_blob_is_changed_and_a_brightened_persistent_one_is_not():
     assert mask.sum() < 0.5 * (a >= 0.5).sum()
 
 
+def test_detect_finds_the_removed_blob_as_a_region_and_masks_its_pixels_only():
+    """``changes.detect``, the one entry point: on the hand-made scene (B removed at date 1, A kept
+    under a 1.4× exposure change) with regions of one Gaussian allowed, the pair (0, 1) asked as (1, 0)
+    holds one region, B alone, known at both dates and changed; only the ordered pairs it reads were
+    scored; the view's mask covers B's centre and not A's."""
+    from cfgs_jax.changes import detect
+
+    model, views = _two_date_scene(gain=1.4)
+    cfg = ChangesConfig(
+        neighbours=1, min_region_gaussians=1, min_region_share=0.0, min_region_pixels=1, complete_hops=0
+    )
+    found = detect(model, views, cfg, pairs=[(1, 0)])
+    assert list(found.pairs) == [(0, 1)]
+    change = found.pairs[(0, 1)]
+    assert change.in_region.tolist() == [False, True, False]
+    assert change.changed[1] and not change.changed[0]
+    assert len(change.regions) == 1 and change.regions[0]["gaussians"] == 1
+    assert found.evidence.computed[:2, 1].all() and found.evidence.computed[2, 0]
+    cam = views[0].cameras[0]
+    _, valid, mask = found.view(0, 1, cam)
+
+    def centre(i):
+        alone = np.asarray(reference.render_dates(model.gaussians, cam, np.eye(3)[i][None], np.ones((1, 3, 3))).alpha)
+        return np.unravel_index(np.argmax(alone[0]), alone.shape[1:])
+
+    assert mask[centre(1)] and not mask[centre(0)] and valid[centre(1)]
+
+
 def test_change_mask_thresholds_the_weighted_share_on_valid_pixels():
     """Hand-set maps: a pixel is changed when it is valid (alpha ≥ 0.5, known share ≥ 0.5) and the
     changed share exceeds the threshold, strictly."""

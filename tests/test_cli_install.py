@@ -117,8 +117,8 @@ def test_program_name_follows_how_it_was_called(capsys):
 
 
 def test_set_overrides_are_typed_and_checked():
+    from cfgs_jax.fusion.config import RunConfig
     from cfgs_jax.fusion.refine import RefineConfig
-    from cfgs_jax.fusion.run import validate_config
     from cfgs_jax.train import TrainConfig
 
     raw = load_config(find_preset("fast"))
@@ -133,7 +133,7 @@ def test_set_overrides_are_typed_and_checked():
         section(bad, "refine", RefineConfig)
     assert "--set refine.steps=abc" in str(e.value) and "refine.steps" in str(e.value) and "int" in str(e.value)
     with pytest.raises(InputError, match="did you mean 'steps'"):
-        validate_config(apply_overrides(raw, ["refine.stpes=3"]))
+        RunConfig.parse(apply_overrides(raw, ["refine.stpes=3"]))
     for item in ("refine", "steps=3", "refine.=3", ".steps=3"):
         with pytest.raises(InputError, match="TABLE.KEY=VALUE"):
             apply_overrides(raw, [item])

@@ -62,7 +62,7 @@ def _test_views(data, out, q, name):
     sc = read_colmap(data / name)
     reg = json.loads((out / "run" / "register.json").read_text())
     sim = Sim3.from_dict(reg[name]["transform"])
-    from cfgs_jax.fusion.run import camera_in_frame
+    from cfgs_jax.io.run_dir import camera_in_frame
 
     for i in sc.indices("test"):
         img = sc.load_image(int(i), with_alpha=True)

@@ -651,7 +651,7 @@ def fused_run(tiny_two_dates, tmp_path_factory):
 def test_fuse_cli_runs_every_stage_and_resumes_mid_cross_init(tiny_two_dates, fused_run, tmp_path):
     import json
 
-    from cfgs_jax.fusion.run import run_fusion
+    from cfgs_jax.fusion import run_fusion
     from cfgs_jax.pipeline import main
 
     root = tiny_two_dates
@@ -719,7 +719,7 @@ def test_fused_model_is_no_worse_than_the_merged_inputs(tiny_two_dates, fused_ru
     import json
 
     from cfgs_jax.fusion.evaluate import evaluate_fused
-    from cfgs_jax.fusion.run import date_views
+    from cfgs_jax.io.run_dir import date_views
 
     root = tiny_two_dates
     a_dir, _ = fused_run
@@ -740,7 +740,8 @@ def test_resume_refuses_another_configuration(tiny_two_dates, fused_run):
 
     from cfgs_jax.config import load_config
     from cfgs_jax.errors import InputError
-    from cfgs_jax.fusion.run import config_changes, run_fusion
+    from cfgs_jax.fusion import run_fusion
+    from cfgs_jax.io.run_dir import config_changes
 
     root = tiny_two_dates
     a_dir, _ = fused_run

@@ -121,7 +121,7 @@ def test_lpips_refuses_images_smaller_than_its_network_takes(tmp_path):
     ((31 + 4 − 11) // 4 + 1 = 7 → 3 → 1); VGG pools 4 times by 2 before its last tap: side 16."""
     from types import SimpleNamespace
 
-    from cfgs_jax.fusion.run import check_lpips_size
+    from cfgs_jax.fusion.stages import check_lpips_size
     from cfgs_jax.metrics.perceptual import minimum_side
 
     assert minimum_side("alex") == 31 and minimum_side("vgg") == 16

@@ -9,7 +9,7 @@ from cfgs_jax import InputError
 from cfgs_jax.config import load_config
 from cfgs_jax.evaluation.protocol import EVAL_SECTIONS, validate_eval_config
 from cfgs_jax.evaluation.sweep import parse_sweep
-from cfgs_jax.fusion.run import CONFIG_SECTIONS, validate_config
+from cfgs_jax.fusion.config import RUN_TABLES, RunConfig
 
 from conftest import REPO
 
@@ -21,10 +21,10 @@ def _validate(raw: dict) -> None:
     otherwise a fusion/training run configuration."""
     if "sweep" in raw:
         parse_sweep(raw)
-    elif set(raw) - {"__path__"} - set(CONFIG_SECTIONS):
+    elif set(raw) - {"__path__"} - set(RUN_TABLES):
         validate_eval_config(raw)
     else:
-        validate_config(raw)
+        RunConfig.parse(raw)
 
 
 def test_the_project_ships_the_presets_its_docs_name():
@@ -55,7 +55,7 @@ def test_a_value_of_the_wrong_type_names_file_key_and_expected_type(tmp_path, ta
     path = tmp_path / "bad.toml"
     path.write_text(f"[{table}]\n{line}\n")
     with pytest.raises(InputError, match=message) as err:
-        validate_config(load_config(path))
+        RunConfig.parse(load_config(path))
     assert str(path) in str(err.value) and "Fix:" in str(err.value)
 
 
@@ -63,7 +63,7 @@ def test_range_checks_run_after_the_type_checks(tmp_path):
     path = tmp_path / "r.toml"
     path.write_text("[cross_init]\nrate_reference_steps = -1\n")
     with pytest.raises(InputError, match=r"r\.toml: field 'cross_init\.rate_reference_steps': must be ≥ 0"):
-        validate_config(load_config(path))
+        RunConfig.parse(load_config(path))
 
 
 def test_eval_steps_must_be_integers(tmp_path):

@@ -12,34 +12,38 @@ import numpy as np
 
 from cfgs_jax.config import find_preset, load_config
 from cfgs_jax.errors import InputError
+from cfgs_jax.fusion.config import RunConfig
+from cfgs_jax.fusion.stages import run_fusion
 from cfgs_jax.io.atomic import check_resume, ensure_writable_dir, write_json, write_text
+from cfgs_jax.io.run_dir import RunDir
+from cfgs_jax.render_run import SelectionStyle, open_run, render_views
 
 
 def _fuse(scene_dir: Path, names: list[str], out: Path, raw: dict, progress: bool, log):
     """``run_fusion`` of the scene's dates into ``out/run``; when SfM registration of the small
     synthetic images falls short, continue with the scene's ground-truth Sim(3)s."""
-    from cfgs_jax import synthetic
-    from cfgs_jax.fusion.run import run_fusion
+    from cfgs_jax import synthetic  # needs Mitsuba (the synth extra)
 
     run_dir = out / "run"
     dates = [scene_dir / n for n in names]
+    config = RunConfig.parse(raw)
     try:
-        return run_fusion(dates, run_dir, raw, resume=(run_dir / "run.json").is_file(), progress=progress, log=log)
+        return run_fusion(dates, run_dir, config, resume=(run_dir / "run.json").is_file(), progress=progress, log=log)
     except InputError as exc:
-        state = json.loads((run_dir / "run.json").read_text()) if (run_dir / "run.json").is_file() else {}
-        if "train" not in state.get("done", ()) or "register" in state.get("done", ()):
+        if not (run_dir / "run.json").is_file():
+            raise
+        run = RunDir.open(run_dir, finished=False)
+        if not run.done("train") or run.done("register"):
             raise
         log(f"registration failed ({exc}); continuing with the scene's ground-truth Sim(3)s")
         gt_path = out / "ground_truth_transforms.json"
         write_json(gt_path, synthetic.reference_transforms(scene_dir, names))
-        return run_fusion(dates, run_dir, raw, resume=True, transforms=gt_path, progress=progress, log=log)
+        return run_fusion(dates, run_dir, config, resume=True, transforms=gt_path, progress=progress, log=log)
 
 
 def _render(run_dir: Path, names: list[str], out: Path) -> list[Path]:
     """Each date's test views (``out/renders/<date>``) and the change highlight of all dates over grey
     (``out/highlight``); returns the highlight images."""
-    from cfgs_jax.render_run import SelectionStyle, open_run, render_views
-
     fused = open_run(run_dir)
     cams = fused.test_cameras()
     for q, name in enumerate(names):

@@ -368,12 +368,37 @@ def exposure_rows(model: TemporalGaussians) -> Float[Array, "N T 3"]:
     return jnp.asarray(exposure_table(model))[model.origin]
 
 
+#: The largest light multiplier the model fits (stored logit ln 99 ≈ 4.6, where float32 round-trips
+#: l = 2·sigmoid(logit) to ~1e-7).
+MAX_LIGHT = 1.98
+#: The smallest multiplier ``light_logits`` stores (l = 0 would be an infinite logit).
+MIN_LIGHT = 1e-12
+
+
+def light_logits(l: Float[Array, "*N 3"]) -> Float[Array, "*N 3"]:
+    """The stored logits of multipliers l (l = 2·sigmoid(logit)), l clipped into [``MIN_LIGHT``,
+    ``MAX_LIGHT``] (the fitted range, so a fitted l survives the round trip to float32 precision)."""
+    return logit(jnp.clip(l / 2.0, MIN_LIGHT / 2.0, MAX_LIGHT / 2.0))
+
+
 def light_multipliers(model: TemporalGaussians) -> Float[Array, "N T 3"]:
     """The light each Gaussian is drawn with at each date: the paper's l = 2·sigmoid(light logit) ∈
     (0, 2), 1 = no change (§Implementation Details, Eq. 1), times the exposure of its origin date at
     that date (1 where the model has no exposure table)."""
     l = 2.0 * jax.nn.sigmoid(model.light_logits)
     return l if model.exposure is None else l * exposure_rows(model)
+
+
+@dataclasses.dataclass(frozen=True)
+class DateViews:
+    """One date's training views in the reference frame: cameras and images ([H, W, 3|4])."""
+
+    cameras: tuple[Camera, ...]
+    images: tuple[np.ndarray, ...]
+
+    def __post_init__(self):
+        if len(self.cameras) != len(self.images) or not self.cameras:
+            raise InputError(f"{len(self.cameras)} cameras for {len(self.images)} images", field="DateViews")
 
 
 def is_traced(*trees) -> bool:

@@ -224,16 +224,15 @@ def cmd_synth(args) -> int:
     return 0
 
 
-def _train_settings(args, raw: dict):
+def _train_settings(args, config):
     """The run's ``TrainConfig`` (``--seed``, ``--eval-every``, ``--steps`` applied; the continuation
     baseline's with ``--continue-from``) and the Gaussians it starts from (None: the SfM points)."""
     import dataclasses
 
     import cfgs_jax as cj
     from cfgs_jax import train
-    from cfgs_jax.config import section
 
-    config = section(raw, "train", train.TrainConfig)
+    config = config.train
     if args.seed is not None:
         config = dataclasses.replace(config, seed=args.seed)
     if args.eval_every is not None:
@@ -246,27 +245,14 @@ def _train_settings(args, raw: dict):
 
 def _write_train_outputs(args, out: Path, run, scene, config) -> None:
     """The trained model (``point_cloud.ply``, INRIA's layout) and ``train.json``; prints a summary."""
-    import dataclasses
-
     import cfgs_jax as cj
     from cfgs_jax.io.atomic import write_json
     from cfgs_jax.io.inria import write_inria_layout
 
     ply = cj.io.write_ply(out / "point_cloud.ply", run.gaussians)
     inria = write_inria_layout(out, run.gaussians, scene, config.steps, ply_of_gaussians=ply)
-    report = {
-        "scene": str(scene.root),
-        "steps": config.steps,
-        "gaussians": len(run.gaussians),
-        "seconds_this_session": run.seconds,
-        "final_loss": float(np.mean(run.losses[-50:])),
-        "growth": run.counts,
-        "test": run.metrics,
-        "test_history": run.eval_history,
-        "config": dataclasses.asdict(config),
-        "continued_from": str(args.continue_from) if args.continue_from else None,
-    }
-    write_json(out / "train.json", report)
+    continued = str(args.continue_from) if args.continue_from else None
+    write_json(out / "train.json", run.report(scene, continued_from=continued))
     console = _console()
     console.print(
         f"wrote {ply} ({len(run.gaussians):,} Gaussians), {out / 'train.json'} and INRIA's layout "
@@ -280,14 +266,12 @@ def _write_train_outputs(args, out: Path, run, scene, config) -> None:
 
 def cmd_train(args) -> int:
     import cfgs_jax as cj
-    from cfgs_jax import splat, train
-    from cfgs_jax.config import section
-    from cfgs_jax.fusion.run import validate_config
+    from cfgs_jax import train
+    from cfgs_jax.fusion.config import RunConfig
 
-    raw = _read_config(args)
-    validate_config(raw)
-    config, init = _train_settings(args, raw)
-    render_config = section(raw, "render", splat.RenderConfig)
+    run_config = RunConfig.parse(_read_config(args))
+    config, init = _train_settings(args, run_config)
+    render_config = run_config.render
     # the inputs are read (and checked) before anything is written
     scene = cj.io.read_colmap(args.scene, test_every=max(1, config.test_every), resolution=config.resolution)
     out = cj.io.ensure_writable_dir(args.out)
@@ -324,14 +308,15 @@ def cmd_train(args) -> int:
 
 
 def cmd_fuse(args) -> int:
-    from cfgs_jax.fusion.run import run_fusion
+    from cfgs_jax.fusion.config import RunConfig
+    from cfgs_jax.fusion.stages import run_fusion
 
-    raw = _read_config(args)
+    config = RunConfig.parse(_read_config(args))
     console = _console()
     run = run_fusion(
         [Path(d) for d in args.dates],
         Path(args.out),
-        raw,
+        config,
         models=args.models,
         resume=args.resume,
         transforms=Path(args.transforms) if args.transforms else None,
@@ -343,7 +328,7 @@ def cmd_fuse(args) -> int:
     )
     from rich.table import Table
 
-    t = Table(title=f"fusion run {run.out}")
+    t = Table(title=f"fusion run {run.path}")
     t.add_column("stage")
     t.add_column("wall time (s)", justify="right")
     for stage, sec in run.timings.items():
@@ -351,7 +336,7 @@ def cmd_fuse(args) -> int:
     console.print(t)
     rep = run.report.get("refine", {})
     console.print(
-        f"wrote {run.out / 'fused'} ({rep.get('gaussians_after_prune', '?')} Gaussians) and {run.out / 'reference'}"
+        f"wrote {run.path / 'fused'} ({rep.get('gaussians_after_prune', '?')} Gaussians) and {run.path / 'reference'}"
     )
     return 0
 
@@ -425,7 +410,7 @@ def cmd_sweep(args) -> int:
 def cmd_extend(args) -> int:
     import json
 
-    from cfgs_jax.fusion.run import run_extend
+    from cfgs_jax.fusion.stages import run_extend
     from cfgs_jax.sim3 import Sim3
 
     transform = None
@@ -451,30 +436,26 @@ def cmd_extend(args) -> int:
     prefix = f"extend:{name}:"
     stages = [(k[len(prefix) :], v) for k, v in run.timings.items() if k.startswith(prefix) and not k.endswith("total")]
     detail = ", ".join(f"{k} {v:.1f} s" for k, v in stages)
-    console.print(f"extended {run.out} by {name} in {run.timings.get(prefix + 'total', 0.0):.1f} s ({detail})")
+    console.print(f"extended {run.path} by {name} in {run.timings.get(prefix + 'total', 0.0):.1f} s ({detail})")
     return 0
 
 
 def cmd_compact(args) -> int:
-    from cfgs_jax.config import apply_overrides, section
-    from cfgs_jax.fusion.compact import CompactConfig
-    from cfgs_jax.fusion.run import run_compact
-    from cfgs_jax.io.atomic import read_json
+    from cfgs_jax.config import apply_overrides
+    from cfgs_jax.fusion.stages import run_compact
 
     bad = [o for o in args.overrides if not o.startswith("compact.")]
     if bad:
         raise InputError(
             f"only [compact] values can be set here, got {bad}", field="--set", fix="use --set compact.KEY=VALUE"
         )
-    state = read_json(Path(args.run) / "run.json") or {}
-    raw = apply_overrides({"compact": dict((state.get("config") or {}).get("compact", {}))}, args.overrides)
     console = _console()
-    config = section(raw, "compact", CompactConfig)
-    run = run_compact(Path(args.run), config, progress=not args.no_progress, log=console.print)
+    overrides = apply_overrides({"compact": {}}, args.overrides)["compact"]
+    run = run_compact(Path(args.run), overrides, progress=not args.no_progress, log=console.print)
     rep = run.report["compact"]
     before, after = rep["test_mean_before"], rep["test_mean_after"]
     console.print(
-        f"compacted {run.out}: {rep['gaussians_before']:,} → {rep['gaussians_after']:,} Gaussians; test PSNR "
+        f"compacted {run.path}: {rep['gaussians_before']:,} → {rep['gaussians_after']:,} Gaussians; test PSNR "
         f"{before['psnr']:.2f} → {after['psnr']:.2f} dB, SSIM {before['ssim']:.4f} → {after['ssim']:.4f}, "
         f"LPIPS {before.get('lpips', float('nan')):.4f} → {after.get('lpips', float('nan')):.4f} "
         "(per date: compact.json)"
@@ -487,21 +468,25 @@ def cmd_changes(args) -> int:
 
     from cfgs_jax.changes.report import detect_changes
     from cfgs_jax.config import apply_overrides
+    from cfgs_jax.fusion.config import RunConfig
+    from cfgs_jax.render_run import open_run
 
     bad = [o for o in args.overrides if not o.startswith("changes.")]
     if bad:
         raise InputError(
             f"only [changes] values can be set here, got {bad}", field="--set", fix="use --set changes.KEY=VALUE"
         )
-    overrides = apply_overrides({"changes": {}}, args.overrides)["changes"]
+    run = open_run(args.run)
+    tables = {"changes": dict(run.config.tables.get("changes", {})), "__path__": str(Path(args.run) / "run.json")}
+    config = RunConfig.parse(apply_overrides(tables, args.overrides)).changes
     console = _console()
     with Progress(console=console, disable=args.no_progress, transient=True) as bar:
         task = bar.add_task("change evidence (date pairs)", total=None)
         summary = detect_changes(
-            Path(args.run),
+            run,
             args.pair,
             Path(args.out),
-            overrides,
+            config,
             split=args.split,
             progress=lambda done, total: bar.update(task, completed=done, total=total),
             log=console.print,

@@ -10,23 +10,22 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-import json
 from pathlib import Path
 
 import numpy as np
 
-from cfgs_jax import viz
-from cfgs_jax.config import section
+from cfgs_jax import splat, viz
 from cfgs_jax.errors import InputError
+from cfgs_jax.fusion.config import RunConfig
 from cfgs_jax.io.atomic import ensure_writable_dir
 from cfgs_jax.io.colmap import Scene, read_colmap
 from cfgs_jax.io.fused import read_fused
 from cfgs_jax.io.images import write_image
 from cfgs_jax.io.ply import write_ply
+from cfgs_jax.io.run_dir import RunDir, camera_in_frame, date_cameras, date_views, registered_cameras
 from cfgs_jax.legend import legend_strip
-from cfgs_jax.model import Camera, TemporalGaussians
+from cfgs_jax.model import Camera, DateViews, Gaussians, TemporalGaussians
 from cfgs_jax.sim3 import Sim3
-from cfgs_jax.train.config import TrainConfig
 
 
 @dataclasses.dataclass(frozen=True)
@@ -75,6 +74,7 @@ class FusedRun:
 
     test_every: int = 8
     resolution: int = 1
+    config: RunConfig = dataclasses.field(default_factory=RunConfig)
 
     @functools.cached_property
     def scenes(self) -> list[Scene]:
@@ -86,58 +86,41 @@ class FusedRun:
 
     def test_cameras(self) -> list[tuple[str, Camera]]:
         """Every date's test views posed in the model's frame, named ``<date>_<image>``."""
-        from cfgs_jax.fusion.run import registered_cameras
-
         return [
             (f"{name}_{Path(scene.image_names[i]).stem}", camera)
             for name, scene, sim in zip(self.names, self.scenes, self.sims)
             for i, camera in registered_cameras(scene, sim, "test")
         ]
 
-    def date_views(self, date: int, split: str = "train"):
-        """Date ``date``'s ``split`` views (cameras posed in the model's frame, RGBA images): a
-        ``fusion.DateViews``, what cross-init and refinement optimise against."""
-        from cfgs_jax.fusion.run import date_views
-
+    def date_views(self, date: int, split: str = "train") -> DateViews:
+        """Date ``date``'s ``split`` views (cameras posed in the model's frame, RGBA images), what
+        cross-init and refinement optimise against."""
         return date_views(self.scenes[date], self.sims[date], split)
 
     def date_cameras(self, date: int, split: str = "train") -> list[Camera]:
         """Date ``date``'s ``split`` cameras posed in the model's frame (no images read)."""
-        from cfgs_jax.fusion.run import date_cameras
-
         return date_cameras(self.scenes[date], self.sims[date], split)
 
     def all_cameras(self) -> list[Camera]:
-        from cfgs_jax.fusion.run import camera_in_frame
-
         return [camera_in_frame(c, sim) for scene, sim in zip(self.scenes, self.sims) for c in scene.cameras]
 
 
 def open_run(run_dir: str | Path) -> FusedRun:
     """Open ``RUN/`` of ``fuse`` (its ``fused/`` model, ``run.json`` datasets, ``register.json``)."""
-    run_dir = Path(run_dir)
-    state_path, reg_path = run_dir / "run.json", run_dir / "register.json"
-    if not (run_dir / "fused").is_dir() or not state_path.is_file() or not reg_path.is_file():
-        raise InputError(
-            "not a finished fusion run (fused/, run.json, register.json)",
-            path=run_dir,
-            fix="run `python -m cfgs_jax.pipeline fuse` first, or --resume it",
-        )
-    state = json.loads(state_path.read_text())
-    reg = json.loads(reg_path.read_text())
-    model = read_fused(run_dir / "fused")
-    names = [d["name"] for d in state["dates"]]
-    if list(model.date_names) != names:
-        raise InputError(f"model dates {list(model.date_names)} differ from run dates {names}", path=run_dir / "fused")
-    tc = section(state.get("config", {}), "train", TrainConfig)
+    run = RunDir.open(run_dir)
+    config = RunConfig.parse(run.config | {"__path__": str(run / "run.json")})
+    model = read_fused(run / "fused")
+    if list(model.date_names) != run.names:
+        raise InputError(f"model dates {list(model.date_names)} differ from run dates {run.names}", path=run / "fused")
     return FusedRun(
-        run_dir,
+        run.path,
         model,
-        names,
-        [Path(d["path"]) for d in state["dates"]],
-        [Sim3.from_dict(reg[n]["transform"]) for n in names],
-        max(1, tc.test_every),
-        tc.resolution,
+        run.names,
+        run.dataset_paths,
+        run.sims(),
+        max(1, config.train.test_every),
+        config.train.resolution,
+        config,
     )
 
 
@@ -156,9 +139,6 @@ def render_views(
     """Render the selection at every camera: ``<name>.png`` (sRGB, legend below) and ``<name>.exr``
     (linear) under ``out``; with a ``mesh`` (``parallel.device_mesh``) as many views at once as it has
     devices, split over them. Returns the PNG paths."""
-    from cfgs_jax import splat
-    from cfgs_jax.model import Gaussians
-
     out = ensure_writable_dir(out)
     colours, mult = style.terms(run.model, t)
     g0 = run.model.gaussians

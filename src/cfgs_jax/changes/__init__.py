@@ -2,9 +2,10 @@
 change maps, and changed regions in 3D and in the image."""
 
 from cfgs_jax.changes.carried import carried_absence, covered_share
+from cfgs_jax.changes.config import ChangesConfig
+from cfgs_jax.changes.detect import Detection, PairChange, detect
 from cfgs_jax.changes.evidence import (
     ChangeEvidence,
-    ChangesConfig,
     PairStatistics,
     change_evidence,
     evidence_from,
@@ -18,6 +19,9 @@ from cfgs_jax.changes.evidence import (
 __all__ = [
     "ChangeEvidence",
     "ChangesConfig",
+    "Detection",
+    "PairChange",
+    "detect",
     "PairStatistics",
     "carried_absence",
     "change_evidence",

@@ -17,15 +17,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from cfgs_jax import splat
-from cfgs_jax.changes.evidence import ChangesConfig, change_evidence, pairs_for
-from cfgs_jax.changes.maps import view_change
-from cfgs_jax.changes.regions import every_pair_regions, image_regions
-from cfgs_jax.config import section
+from cfgs_jax.changes.config import ChangesConfig
+from cfgs_jax.changes.detect import Detection, detect
+from cfgs_jax.changes.regions import image_regions
 from cfgs_jax.errors import InputError
-from cfgs_jax.io.atomic import read_json, write_json, write_text
+from cfgs_jax.io.atomic import write_json, write_text
 from cfgs_jax.io.images import write_image
 from cfgs_jax.io.ply import write_ply
+from cfgs_jax.io.run_dir import registered_cameras
 
 OVERLAY_COLOUR = np.array([1.0, 0.0, 1.0], np.float32)  # magenta
 
@@ -59,71 +58,63 @@ def parse_pair(text: str, names: list[str]) -> tuple[int, int]:
 
 
 def detect_changes(
-    run_dir: Path, pair: str, out: Path, overrides: dict | None = None, *, split: str = "test", progress=None, log=print
+    run, pair: str, out: Path, config: ChangesConfig | None = None, *, split: str = "test", progress=None, log=print
 ) -> dict:
-    """Detect the changes between the two dates of ``pair`` in the fused run ``run_dir`` and write the
-    masks, scores, PLY and region list to ``out``; returns the region summary (``regions.json``).
-    ``overrides``: values of the ``[changes]`` table over the run's configuration."""
-    from cfgs_jax.fusion.run import registered_cameras
-    from cfgs_jax.render_run import open_run
-
-    run_dir, out = Path(run_dir), Path(out)
-    run = open_run(run_dir)
-    raw = (read_json(run_dir / "run.json") or {}).get("config") or {}
-    config = section({"changes": {**raw.get("changes", {}), **(overrides or {})}}, "changes", ChangesConfig)
-    render_config = section(raw, "render", splat.RenderConfig)
+    """Detect the changes between the two dates of ``pair`` in an opened fused run (``render_run.open_run``:
+    its model, dates, datasets and Sim(3)s) and write the masks, scores, overlays, PLY and region list
+    to ``out``; returns the region summary (``regions.json``). ``config``: the detector (default: the
+    run's ``[changes]`` table)."""
+    out = Path(out)
+    config = config or run.config.changes
     p, q = sorted(parse_pair(pair, run.names))
-    model = run.model
-    origin = np.asarray(model.origin)
+    model, dates = run.model, range(len(run.names))
     log(f"[changes] evidence of {run.names[p]} ↔ {run.names[q]} from the dates' {config.views} views")
-    views = [run.date_views(d, config.views) for d in range(len(run.names))]
-    evidence = change_evidence(
+    found = detect(
         model,
-        views,
+        [run.date_views(d, config.views) for d in dates],
         config,
-        pairs=pairs_for(len(run.names), p, q, carry_absence=config.carry_absence),
-        support_cameras=[run.date_cameras(d, "train") for d in range(len(run.names))],
-        render_config=render_config,
+        pairs=[(p, q)],
+        support_cameras=[run.date_cameras(d, "train") for d in dates],
+        render_config=run.config.render,
         progress=progress,
     )
-    difference, known, regions, member = every_pair_regions(
-        evidence, model, config, cameras=[v.cameras for v in views], render_config=render_config, pairs=[(p, q)]
-    )[(p, q)]
-    changed = known & (np.abs(difference) > 0.5)
-    rows = np.nonzero(member >= 0)[0]
-    g = jax.tree_util.tree_map(lambda x: jnp.asarray(x)[rows], model.gaussians)
-    write_ply(out / "changed.ply", g)
-    views_out = []
-    in_region = (member >= 0).astype(np.float32)
-    for d in (p, q):
-        scene, sim = run.scenes[d], run.sims[d]
-        for i, cam in registered_cameras(scene, sim, split):
-            name = Path(scene.image_names[i]).stem
-            s, valid, mask = view_change(
-                model, cam, in_region, known, p, q, config.pixel_threshold, render_config=render_config
-            )
-            areas, _ = image_regions(mask, s, config.min_region_pixels)
-            write_image(out / "masks" / run.names[d] / f"{name}.png", mask.astype(np.float32))
-            write_image(out / "scores" / run.names[d] / f"{name}.png", np.where(valid, s, 0.0))
-            image = scene.load_image(int(i))
-            write_image(out / "overlays" / run.names[d] / f"{name}.png", overlay(image, mask, valid))
-            views_out.append({"view": f"{run.names[d]}/{name}", "changed_pixels": int(mask.sum()), "regions": areas})
+    change = found.pairs[(p, q)]
+    rows = np.nonzero(change.in_region)[0]
+    write_ply(out / "changed.ply", jax.tree_util.tree_map(lambda x: jnp.asarray(x)[rows], model.gaussians))
+    views_out = [
+        _write_view(found, run, d, i, cam, out)
+        for d in (p, q)
+        for i, cam in registered_cameras(run.scenes[d], run.sims[d], split)
+    ]
     summary = {
-        "run": str(run_dir),
+        "run": str(run.path),
         "pair": [run.names[p], run.names[q]],
         "config": dataclasses.asdict(config),
         "gaussians": {
-            "total": int(len(origin)),
-            "observed_at_both": int(known.sum()),
-            "changed": int(changed.sum()),
+            "total": int(len(np.asarray(model.origin))),
+            "observed_at_both": int(change.known.sum()),
+            "changed": int(change.changed.sum()),
             "in_regions": int(len(rows)),
         },
-        "regions": regions,
+        "regions": change.regions,
         "views": views_out,
     }
     write_json(out / "regions.json", summary)
     write_text(out / "regions.md", regions_markdown(summary))
     return summary
+
+
+def _write_view(found: Detection, run, d: int, i: int, camera, out: Path) -> dict:
+    """The mask, score and overlay of view ``i`` of date ``d`` (``out/{masks,scores,overlays}/<date>/``)
+    and its entry of the summary."""
+    (p, q), scene = next(iter(found.pairs)), run.scenes[d]
+    name, date = Path(scene.image_names[i]).stem, run.names[d]
+    s, valid, mask = found.view(p, q, camera)
+    areas, _ = image_regions(mask, s, found.config.min_region_pixels)
+    write_image(out / "masks" / date / f"{name}.png", mask.astype(np.float32))
+    write_image(out / "scores" / date / f"{name}.png", np.where(valid, s, 0.0))
+    write_image(out / "overlays" / date / f"{name}.png", overlay(scene.load_image(int(i)), mask, valid))
+    return {"view": f"{date}/{name}", "changed_pixels": int(mask.sum()), "regions": areas}
 
 
 def regions_markdown(summary: dict) -> str:

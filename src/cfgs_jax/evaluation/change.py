@@ -39,6 +39,7 @@ import numpy as np
 from PIL import Image
 
 from cfgs_jax import splat, viz
+from cfgs_jax.changes.detect import Detection, detect
 from cfgs_jax.changes.maps import change_mask, rendered_scores, valid_pixels
 from cfgs_jax.errors import InputError
 from cfgs_jax.model import Camera, TemporalGaussians, light_multipliers, opacity_multipliers
@@ -401,7 +402,7 @@ def evidence_detection(
     render_config=None,
     statistics=None,
 ) -> dict:
-    """The residual-evidence detector (``cfgs_jax.changes``) scored against ground truth, as the
+    """The residual-evidence detector (``changes.detect``) scored against ground truth, as the
     ``changes`` command runs it: per Gaussian (the entries of ``table``: observed Gaussians of date p at
     q, predicted changed when in a region of the pair, or by s^q > 0.5 alone; true when the Gaussian's
     object changed between p and q, and, prefixed ``pixel_label_``, when most of its weight in its own
@@ -411,47 +412,58 @@ def evidence_detection(
     (``changed_objects[(p, q)]``: object ids whose presence differs, p < q). ``statistics``: precomputed
     ``changes.pair_statistics`` (computed from ``views`` and ``support_cameras``, each date's training
     cameras, when not given)."""
-    from cfgs_jax.changes import ChangesConfig, evidence_from, pair_statistics
-    from cfgs_jax.changes.maps import view_change
-    from cfgs_jax.changes.regions import every_pair_regions
-
-    cfg = config or ChangesConfig()
-    rc = render_config or splat.RenderConfig()
-    stats = statistics or pair_statistics(model, views, cfg, support_cameras=support_cameras, render_config=rc)
-    ev = evidence_from(stats, np.asarray(model.gaussians.means, np.float64), cfg)
+    found = detect(
+        model, views, config, support_cameras=support_cameras, render_config=render_config, statistics=statistics
+    )
     names = [d.name for d in model.dates]
     pixel = {"inter": 0, "union": 0, "predicted": 0, "truth": 0, "valid": 0}
-    per_pair, found, changed, false_regions, region_count = {}, 0, 0, 0, 0
-    t = model.num_dates
-    members = {}
-    for (p, q), (_, known, regions, member) in every_pair_regions(
-        ev, model, cfg, cameras=[v.cameras for v in views], render_config=rc
-    ).items():
-        members[(p, q)] = members[(q, p)] = member >= 0
-        objs = _region_scores(regions, member, table["objects"], changed_objects.get((p, q), set()))
+    per_pair, regions = {}, {"changed_objects": 0, "found_objects": 0, "false_regions": 0, "regions": 0}
+    for (p, q), change in found.pairs.items():
+        objs = _region_scores(change.regions, change.member, table["objects"], changed_objects.get((p, q), set()))
         n_changed = len(changed_objects.get((p, q), ()))
-        found += len(objs["found"])
-        changed += n_changed
-        false_regions += objs["false_regions"]
-        region_count += len(regions)
+        for key, value in (("changed_objects", n_changed), ("found_objects", len(objs["found"]))):
+            regions[key] += value
+        regions["false_regions"] += objs["false_regions"]
+        regions["regions"] += len(change.regions)
         pair: dict = {}
         for a, b in ((p, q), (q, p)):
             for cam, gt in zip(masks_test[a].cameras, masks_test[a].changed_vs[names[b]]):
-                s, valid, mask = view_change(
-                    model, cam, (member >= 0).astype(np.float32), known, p, q, cfg.pixel_threshold, render_config=rc
-                )
-                _add_counts(pair, _view_counts(s, valid, mask, gt, PIXEL_THRESHOLDS))
+                _add_counts(pair, _view_counts(*found.view(p, q, cam), gt, PIXEL_THRESHOLDS))
         _add_counts(pixel, pair)
         per_pair[f"{names[p]}↔{names[q]}"] = {
-            "regions": len(regions),
+            "regions": len(change.regions),
             "changed_objects": n_changed,
             "found_objects": len(objs["found"]),
             "false_regions": objs["false_regions"],
             "pixel_iou": pair["inter"] / pair["union"] if pair.get("union") else float("nan"),
-            "region_list": regions,
+            "region_list": change.regions,
         }
+    t, changed = model.num_dates, regions["changed_objects"]
+    return {
+        "config": dataclasses.asdict(found.config),
+        "gaussians": _gaussian_scores(found, table, changed_objects),
+        "pixels": _pixel_scores(pixel),
+        "regions": {
+            "changed_objects": changed,
+            "found_objects": regions["found_objects"],
+            "recall": regions["found_objects"] / changed if changed else float("nan"),
+            "false_regions": regions["false_regions"],
+            "regions": regions["regions"],
+            "pairs": t * (t - 1) // 2,
+        },
+        "per_pair": per_pair,
+    }
+
+
+def _gaussian_scores(found: Detection, table: dict, changed_objects: dict) -> dict:
+    """Per-Gaussian precision / recall / F1 of the detection (region membership and s^q > 0.5) against
+    the objects that changed and against the pixel labels, its curve over the score threshold, the o^q
+    rule's curve and the flag-everything baseline on the same entries."""
+    members = {pq: c.in_region for pq, c in found.pairs.items()} | {
+        (q, p): c.in_region for (p, q), c in found.pairs.items()
+    }
     entries = [(v["rows"], p, q, v["gt_changed"], v["observed"]) for (p, q), v in table["pairs"].items()]
-    score = np.concatenate([ev.score[r, q][obs] for r, _, q, _, obs in entries])
+    score = np.concatenate([found.evidence.score[r, q][obs] for r, _, q, _, obs in entries])
     in_region = np.concatenate([members[(p, q)][r][obs] for r, p, q, _, obs in entries])
     by_pixels = np.concatenate([gt[obs] for *_, gt, obs in entries])
     objects = np.asarray(table["objects"])
@@ -479,40 +491,31 @@ def evidence_detection(
     o_curve = precision_recall(1.0 - o_q, by_object, np.linspace(0.02, 0.98, 49))  # the o^q rule, same truth
     o_at = precision_recall(1.0 - o_q, by_object, [0.8])
     every = precision_recall(np.ones(len(by_object)), by_object, [0.5])  # baseline: flag every entry
+    return gaussians | {
+        "flagged_in_regions": float(in_region.mean()) if len(in_region) else 0.0,
+        "entries": int(len(score)),
+        "flagged_changed": float((score > 0.5).mean()) if len(score) else 0.0,
+        "curve": {k: v.tolist() for k, v in curve.items()},
+        "o_curve": {k: v.tolist() for k, v in o_curve.items()},
+        "o_precision": float(o_at["precision"][0]),
+        "o_recall": float(o_at["recall"][0]),
+        "o_f1": float(o_at["f1"][0]),
+        "all_precision": float(every["precision"][0]),
+        "all_f1": float(every["f1"][0]),
+    }
+
+
+def _pixel_scores(pixel: dict) -> dict:
+    """Pixel IoU of the summed counts, the flag-every-pixel baseline (intersection = the truth, union =
+    every evaluated pixel), the changed shares and the curve over the pixel threshold."""
     valid = max(pixel["valid"], 1)
     return {
-        "config": dataclasses.asdict(cfg),
-        "gaussians": gaussians
-        | {
-            "flagged_in_regions": float(in_region.mean()) if len(in_region) else 0.0,
-            "entries": int(len(score)),
-            "flagged_changed": float((score > 0.5).mean()) if len(score) else 0.0,
-            "curve": {k: v.tolist() for k, v in curve.items()},
-            "o_curve": {k: v.tolist() for k, v in o_curve.items()},
-            "o_precision": float(o_at["precision"][0]),
-            "o_recall": float(o_at["recall"][0]),
-            "o_f1": float(o_at["f1"][0]),
-            "all_precision": float(every["precision"][0]),
-            "all_f1": float(every["f1"][0]),
-        },
-        "pixels": {
-            "iou": pixel["inter"] / pixel["union"] if pixel["union"] else float("nan"),
-            # baseline: every evaluated pixel flagged (intersection = the truth, union = every pixel)
-            "all_iou": pixel["truth"] / pixel["valid"] if pixel["valid"] else float("nan"),
-            "predicted_changed_share": pixel["predicted"] / valid,
-            "gt_changed_share": pixel["truth"] / valid,
-            "evaluated_pixels": pixel["valid"],
-            "by_threshold": _sweep_curve(pixel, PIXEL_THRESHOLDS),
-        },
-        "regions": {
-            "changed_objects": changed,
-            "found_objects": found,
-            "recall": found / changed if changed else float("nan"),
-            "false_regions": false_regions,
-            "regions": region_count,
-            "pairs": t * (t - 1) // 2,
-        },
-        "per_pair": per_pair,
+        "iou": pixel["inter"] / pixel["union"] if pixel["union"] else float("nan"),
+        "all_iou": pixel["truth"] / pixel["valid"] if pixel["valid"] else float("nan"),
+        "predicted_changed_share": pixel["predicted"] / valid,
+        "gt_changed_share": pixel["truth"] / valid,
+        "evaluated_pixels": pixel["valid"],
+        "by_threshold": _sweep_curve(pixel, PIXEL_THRESHOLDS),
     }
 
 

@@ -19,24 +19,25 @@ from pathlib import Path
 
 import numpy as np
 
-from cfgs_jax import splat, train
+from cfgs_jax import train
 from cfgs_jax.changes import ChangesConfig
 from cfgs_jax.compiled_code import release_if_near_limit
-from cfgs_jax.config import section
+from cfgs_jax.config import check_sections, section
 from cfgs_jax.errors import InputError
+from cfgs_jax.evaluation import change
 from cfgs_jax.evaluation.change import ChangeConfig
 from cfgs_jax.evaluation.report import figure_grid, margins, pr_curve_plot, table_markdown
+from cfgs_jax.fusion.config import RUN_TABLES, RunConfig
 from cfgs_jax.fusion.evaluate import evaluate_fused, weighted_mean
 from cfgs_jax.fusion.fuse import INVISIBLE_LOGIT
 from cfgs_jax.fusion.light import cold_warm_coefficient
-from cfgs_jax.fusion.refine import RefineConfig, refine
-from cfgs_jax.fusion.run import CONFIG_SECTIONS, date_views, registered_cameras, run_fusion, validate_config
+from cfgs_jax.fusion.refine import refine
+from cfgs_jax.fusion.stages import run_fusion
 from cfgs_jax.io.atomic import check_resume, read_json, write_json, write_text
-from cfgs_jax.io.colmap import read_colmap
 from cfgs_jax.io.fused import read_fused
 from cfgs_jax.io.ply import read_ply, write_ply
+from cfgs_jax.io.run_dir import RunDir, date_cameras, date_views, registered_cameras
 from cfgs_jax.model import light_multipliers, opacity_multipliers
-from cfgs_jax.sim3 import Sim3
 from cfgs_jax.splat.weights import observed_matrix
 
 
@@ -74,22 +75,45 @@ ABLATIONS = {
     "freeze_alpha": ("Ours, α frozen", {"lr_alpha": 0.0, "halve_alpha": False}),
     "freeze_o": ("Ours, o frozen", {"lr_o": 0.0}),
 }
-EVAL_SECTIONS = {**CONFIG_SECTIONS, "eval": EvalConfig, "scene": SceneConfig, "change": ChangeConfig}
+EVAL_SECTIONS = {**RUN_TABLES, "eval": EvalConfig, "scene": SceneConfig, "change": ChangeConfig}
+
+
+@dataclasses.dataclass(frozen=True)
+class EvalSetup:
+    """An eval configuration, parsed once: the fusion run's tables (its refinement as long as the
+    largest ``eval.steps``), ``[eval]``, ``[scene]`` and ``[change]`` (the o^q rules)."""
+
+    fusion: RunConfig
+    eval: EvalConfig
+    scene: SceneConfig
+    change: ChangeConfig
+
+    @classmethod
+    def parse(cls, raw: dict | None) -> EvalSetup:
+        """Every table built and checked: bad tables, keys and values fail before any work."""
+        raw = raw or {}
+        check_sections(raw, EVAL_SECTIONS)
+        ec = section(raw, "eval", EvalConfig)
+        fusion = {k: v for k, v in raw.items() if k in RUN_TABLES or k == "__path__"}
+        fusion["refine"] = dict(fusion.get("refine", {})) | {"steps": max(ec.steps)}
+        return cls(
+            RunConfig.parse(fusion), ec, section(raw, "scene", SceneConfig), section(raw, "change", ChangeConfig)
+        )
 
 
 def validate_eval_config(raw: dict | None) -> None:
     """Every table of an eval configuration built once: bad keys fail before any work."""
-    validate_config(raw, EVAL_SECTIONS)
+    EvalSetup.parse(raw)
 
 
-def prepare_scene(scene: str, raw: dict | None, out: Path, *, progress: bool = True) -> Path:
+def prepare_scene(scene: str, config: SceneConfig, out: Path, *, progress: bool = True) -> Path:
     """A preset name → its dataset rendered under ``out/data`` (once); a directory → itself."""
     from cfgs_jax import synthetic
 
     if scene in synthetic.PRESETS:
         data = out / "data"
         if not (data / "ground_truth.json").is_file():
-            sc = section(raw, "scene", SceneConfig)
+            sc = config
             spec = synthetic.make_preset(
                 scene, seed=sc.seed, width=sc.width, height=sc.height, images_per_date=sc.images_per_date, spp=sc.spp
             )
@@ -133,13 +157,20 @@ def _row(name: str, metrics: dict, gaussians: int, **extra) -> dict:
 
 
 def _individual_plus(
-    run_dir: Path, scenes, raw, steps: tuple[int, ...], render_config, lpips_net, progress, log
+    run_dir: Path,
+    scenes,
+    train_config: train.TrainConfig,
+    steps: tuple[int, ...],
+    render_config,
+    lpips_net,
+    progress,
+    log,
 ) -> dict:
     """Each date's model trained ``max(steps)`` more steps (``continuation_config``), evaluated after
     every count in ``steps``; resumable per date (``RUN/individual_plus/<date>/``). A date evaluated at
     other step counts, or resumed from a checkpoint past a count to evaluate, is trained again from its
     own model."""
-    tc = train.continuation_config(dataclasses.replace(section(raw, "train", train.TrainConfig), steps=max(steps)))
+    tc = train.continuation_config(dataclasses.replace(train_config, steps=max(steps)))
     results = {}
     for sc in scenes:
         name = sc.root.name
@@ -186,12 +217,12 @@ def _individual_plus(
 
 
 def _ablation(
-    run_dir: Path, key: str, overrides: dict, views, scenes, test_views, raw, render_config, lpips_net, log
+    run_dir: Path, key: str, overrides: dict, views, scenes, test_views, config: RunConfig, lpips_net, log
 ) -> dict:
     path = run_dir / "ablations" / f"{key}.json"
     done = read_json(path)
     if done is None:
-        fc = dataclasses.replace(section(raw, "refine", RefineConfig), **overrides)
+        fc = dataclasses.replace(config.refine, **overrides)
         log(f"[eval] ablation {key}: {fc.steps:,} refinement steps")
         t0 = time.perf_counter()
         model, _ = refine(
@@ -199,11 +230,11 @@ def _ablation(
             views,
             fc,
             extent=train.scene_extent(scenes[0].cameras),
-            train_config=section(raw, "train", train.TrainConfig),
-            render_config=render_config,
+            train_config=config.train,
+            render_config=config.render,
             checkpoint=run_dir / "ablations" / f"{key}_checkpoint.npz",
         )
-        m = evaluate_fused(model, test_views, render_config=render_config, lpips_net=lpips_net)
+        m = evaluate_fused(model, test_views, render_config=config.render, lpips_net=lpips_net)
         done = {"metrics": m["mean"], "gaussians": len(model), "seconds": time.perf_counter() - t0}
         write_json(path, done)
         (run_dir / "ablations" / f"{key}_checkpoint.npz").unlink(missing_ok=True)
@@ -217,9 +248,7 @@ class _Evaluation:
 
     out: Path
     run_dir: Path
-    raw: dict
-    fusion_raw: dict
-    ec: EvalConfig
+    setup: EvalSetup
     names: list[str]
     scenes: list
     sims: list
@@ -227,7 +256,8 @@ class _Evaluation:
     mesh: object = None
 
     def __post_init__(self):
-        self.render_config = section(self.fusion_raw, "render", splat.RenderConfig)
+        self.ec = self.setup.eval
+        self.render_config = self.setup.fusion.render
         self.test_views = [date_views(sc, sm, "test") for sc, sm in zip(self.scenes, self.sims)]
         self.weights = [len(v.cameras) for v in self.test_views]
         self.evals = read_json(self.out / "rows.json", {})
@@ -260,7 +290,14 @@ class _Evaluation:
         """Individual +N: each date's model trained N more steps alone."""
         ec = self.ec
         plus = _individual_plus(
-            self.run_dir, self.scenes, self.fusion_raw, ec.steps, self.render_config, ec.lpips_net, progress, self.log
+            self.run_dir,
+            self.scenes,
+            self.setup.fusion.train,
+            ec.steps,
+            self.render_config,
+            ec.lpips_net,
+            progress,
+            self.log,
         )
         rows = []
         for k in ec.steps:
@@ -282,8 +319,7 @@ class _Evaluation:
                 views,
                 self.scenes,
                 self.test_views,
-                self.fusion_raw,
-                self.render_config,
+                self.setup.fusion,
                 self.ec.lpips_net,
                 self.log,
             )
@@ -302,8 +338,8 @@ class _Evaluation:
                 self.sims,
                 self.render_config,
                 cross_init=read_fused(self.run_dir / "cross_init"),
-                config=section(self.raw, "change", ChangeConfig),
-                changes_config=section(self.raw, "changes", ChangesConfig),
+                config=self.setup.change,
+                changes_config=self.setup.fusion.changes,
             )
             write_json(self.out / "change.json", change)
         pr_curve_plot(self.out / "change_pr.png", change, scene)
@@ -336,42 +372,42 @@ def _refine_again_for_snapshots(out: Path, snapshots, log) -> None:
     undone, and the rows and change detection read from the fused model are dropped, so the resumed run
     refines ``RUN/cross_init`` again and keeps every snapshot. An extended run cannot be refined again."""
     run_dir = out / "run"
-    state = read_json(run_dir / "run.json")
-    if state is None or "refine" not in state["done"]:
+    if not (run_dir / "run.json").is_file():
         return
-    missing = [k for k in snapshots if not (run_dir / "snapshots" / f"refine_{k}" / "model.json").is_file()]
+    run = RunDir.open(run_dir, finished=False)
+    if not run.done("refine"):
+        return
+    missing = [k for k in snapshots if not (run.snapshot_dir(k) / "model.json").is_file()]
     if not missing:
         return
-    after = state["done"][state["done"].index("refine") + 1 :]
+    after = run.stages_after("refine")
     if any(stage not in _AFTER_REFINE for stage in after):
         raise InputError(
             f"the run has no refinement snapshot at {missing} and was extended since ({', '.join(after)})",
-            path=run_dir / "run.json",
+            path=run / "run.json",
             field="eval.steps",
             fix="evaluate with the step counts it was refined for, or choose another --out",
         )
     log(f"[eval] the run has no refinement snapshot at {missing}: its refinement is run again to keep them")
-    state["done"] = [s for s in state["done"] if s != "refine" and s not in _AFTER_REFINE]
-    write_json(run_dir / "run.json", state)
+    run.undo(("refine", *_AFTER_REFINE))
     rows = read_json(out / "rows.json", {})
     write_json(out / "rows.json", {k: v for k, v in rows.items() if not k.startswith("ours_")})
     (out / "change.json").unlink(missing_ok=True)
 
 
-def _fuse(scene, raw, out: Path, ec: EvalConfig, progress: bool, log, mesh=None) -> tuple[Path, list, dict, float]:
+def _fuse(scene, setup: EvalSetup, out: Path, progress: bool, log, mesh=None) -> tuple[Path, list, float]:
     """Prepare the scene and run (or continue) its fusion with snapshots at the evaluation steps.
-    Returns the data directory, the date directories, the fusion configuration and the wall time."""
-    data = prepare_scene(scene, raw, out, progress=progress)
+    Returns the data directory, the date directories and the wall time."""
+    data = prepare_scene(scene, setup.scene, out, progress=progress)
     dirs = date_dirs(data)
-    fusion_raw = {k: v for k, v in (raw or {}).items() if k in CONFIG_SECTIONS or k == "__path__"}
-    fusion_raw["refine"] = dict(fusion_raw.get("refine", {})) | {"steps": max(ec.steps)}
+    ec = setup.eval
     run_dir = out / "run"
     _refine_again_for_snapshots(out, ec.steps[:-1], log)
     t0 = time.perf_counter()
     run_fusion(
         dirs,
         run_dir,
-        fusion_raw,
+        setup.fusion,
         resume=(run_dir / "run.json").is_file(),
         progress=progress,
         evaluate=False,
@@ -380,7 +416,7 @@ def _fuse(scene, raw, out: Path, ec: EvalConfig, progress: bool, log, mesh=None)
         log=log,
         mesh=mesh,
     )
-    return data, dirs, fusion_raw, time.perf_counter() - t0
+    return data, dirs, time.perf_counter() - t0
 
 
 def run_protocol(
@@ -397,19 +433,18 @@ def run_protocol(
     (and ``out/change.json`` where ground truth exists). Returns the table dict. An ``out`` holding an
     earlier evaluation is continued (finished stages skipped) only with ``resume=True``. ``mesh``: the
     devices the fusion and the evaluation of its rows split their batches over."""
-    validate_eval_config(raw)
-    ec = section(raw, "eval", EvalConfig)
+    setup = EvalSetup.parse(raw)
+    ec = setup.eval
     check_resume(out, resume)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    data, dirs, fusion_raw, fusion_seconds = _fuse(scene, raw, out, ec, progress, log, mesh)
-    run_dir = out / "run"
-    tc = section(fusion_raw, "train", train.TrainConfig)
-    scenes = [read_colmap(d, test_every=max(1, tc.test_every), resolution=tc.resolution) for d in dirs]
-    names = [d.name for d in dirs]
-    reg = read_json(run_dir / "register.json")
-    sims = [Sim3.from_dict(reg[n]["transform"]) for n in names]
-    ev = _Evaluation(out, run_dir, raw, fusion_raw, ec, names, scenes, sims, log, mesh)
+    data, dirs, fusion_seconds = _fuse(scene, setup, out, progress, log, mesh)
+    run = RunDir.open(out / "run")
+    run_dir = run.path
+    tc = setup.fusion.train
+    scenes = run.scenes(test_every=tc.test_every, resolution=tc.resolution)
+    names, sims = run.names, run.sims()
+    ev = _Evaluation(out, run_dir, setup, names, scenes, sims, log, mesh)
     rows = ev.ours_rows()
     release_if_near_limit()
     rows += ev.baseline_rows(progress)
@@ -438,8 +473,6 @@ def run_protocol(
 def date_masks(data: Path, scenes, sims, names: list[str], split: str = "train") -> list:
     """Each date's ground-truth object masks (``change.DateMasks``) of its ``split`` views, posed in the
     reference frame."""
-    from cfgs_jax.evaluation import change
-
     out = []
     for p, (sc, sm) in enumerate(zip(scenes, sims)):
         views = registered_cameras(sc, sm, split)
@@ -454,8 +487,6 @@ def cross_init_checks(model, data: Path, scenes, sims, render_config, masks=None
     """Issue 7's checks of a model after cross-init against the synthetic ground truth: by object
     (``object_persistence``, Gaussians labelled by their dominant object in the training views) and the
     light model per pair (``light_by_pair``)."""
-    from cfgs_jax.evaluation import change
-
     gt = json.loads((Path(data) / "ground_truth.json").read_text())
     masks = masks if masks is not None else date_masks(data, scenes, sims, [d.name for d in model.dates])
     labels = change.object_labels(model, masks, len(gt["objects"]), render_config=render_config)
@@ -479,9 +510,6 @@ def change_detection(
     ground truth: the residual-evidence detector (``changes_config``: the run's ``[changes]`` table,
     under ``"evidence"``; ``statistics``: its precomputed ``changes.pair_statistics``) and the o^q rules
     (``config``: the eval's ``[change]`` table)."""
-    from cfgs_jax.evaluation import change
-    from cfgs_jax.fusion.run import date_cameras, date_views
-
     gt = json.loads((data / "ground_truth.json").read_text())
     names = [d.name for d in model.dates]
     masks = date_masks(data, scenes, sims, names)

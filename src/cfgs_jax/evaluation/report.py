@@ -9,9 +9,12 @@ import numpy as np
 
 from cfgs_jax import splat
 from cfgs_jax.fusion.evaluate import render_date
-from cfgs_jax.fusion.run import registered_cameras
+from cfgs_jax.io.atomic import atomic_file
 from cfgs_jax.io.fused import read_fused
+from cfgs_jax.io.images import write_image
 from cfgs_jax.io.ply import read_ply
+from cfgs_jax.io.run_dir import registered_cameras
+from cfgs_jax.train.step import over_background
 
 
 def margins(rows: list[dict], n: int) -> dict:
@@ -233,8 +236,6 @@ def _change_notes(ch: dict) -> list[str]:
 
 def figure_grid(path: Path, run_dir: Path, scenes, sims, names, render_config) -> None:
     """One row per date (its first test view): Individual +N₃ | Ours N₃ | ground truth."""
-    from cfgs_jax.io.images import write_image
-    from cfgs_jax.train.step import over_background
 
     model = read_fused(run_dir / "fused")
     rows = []
@@ -256,8 +257,6 @@ def pr_curve_plot(path: Path, change: dict, scene: str) -> None:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-
-    from cfgs_jax.io.atomic import atomic_file
 
     fig, ax = plt.subplots(figsize=(4.6, 4.2))
     if "evidence" in change:

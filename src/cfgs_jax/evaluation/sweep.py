@@ -36,16 +36,12 @@ from pathlib import Path
 from cfgs_jax.compiled_code import release_if_near_limit
 from cfgs_jax.config import apply_overrides, find_preset, load_config
 from cfgs_jax.errors import InputError
-from cfgs_jax.evaluation.protocol import (
-    EvalConfig,
-    SceneConfig,
-    change_detection,
-    date_dirs,
-    prepare_scene,
-    validate_eval_config,
-)
-from cfgs_jax.fusion.run import CONFIG_SECTIONS, run_fusion, validate_config
+from cfgs_jax.evaluation.protocol import EvalSetup, change_detection, date_dirs, prepare_scene
+from cfgs_jax.fusion.config import RUN_TABLES, RunConfig
+from cfgs_jax.fusion.stages import run_fusion
 from cfgs_jax.io.atomic import check_resume, read_json, write_json, write_text
+from cfgs_jax.io.fused import read_fused
+from cfgs_jax.io.run_dir import RunDir
 
 
 @dataclasses.dataclass(frozen=True)
@@ -53,6 +49,7 @@ class Variant:
     """One point of the grid: its overrides ({"table.key": value}) and a stable id."""
 
     overrides: tuple[tuple[str, object], ...]
+    config: RunConfig | None = dataclasses.field(default=None, compare=False)  # parsed by ``parse_sweep``
 
     @property
     def id(self) -> str:
@@ -79,7 +76,7 @@ def parse_sweep(raw: dict, overrides: list[str] = ()) -> tuple[str, dict, list[V
     base = load_config(find_preset(sw.get("base", "eval")))
     base.update({k: v for k, v in raw.items() if k not in ("sweep", "__path__")})  # tables in the sweep file win
     base = apply_overrides(base, overrides)
-    validate_eval_config(base)  # the base's own tables (an eval base has [scene], [eval], [change])
+    EvalSetup.parse(base)  # the base's own tables (an eval base has [scene], [eval], [change])
     grid = sw.get("grid", {})
     if not isinstance(grid, dict) or any(not isinstance(v, list) or not v for v in grid.values()):
         raise InputError(
@@ -90,13 +87,12 @@ def parse_sweep(raw: dict, overrides: list[str] = ()) -> tuple[str, dict, list[V
         )
     for key in grid:
         table, _, field = key.partition(".")
-        if table not in CONFIG_SECTIONS or not field:
+        if table not in RUN_TABLES or not field:
             raise InputError(
-                f"{key!r} is not a table.key of {sorted(CONFIG_SECTIONS)}", path=where, field=f"sweep.grid.{key}"
+                f"{key!r} is not a table.key of {sorted(RUN_TABLES)}", path=where, field=f"sweep.grid.{key}"
             )
     variants = [Variant(tuple(zip(grid, values))) for values in itertools.product(*grid.values())]
-    for v in variants:
-        validate_config(variant_config(base, v))
+    variants = [dataclasses.replace(v, config=RunConfig.parse(variant_config(base, v))) for v in variants]
     return str(sw["scene"]), base, variants
 
 
@@ -105,7 +101,7 @@ def variant_config(base: dict, variant: Variant) -> dict:
 
     An evaluation base (one with ``[eval] steps``) that leaves ``[refine] steps`` unset refines each
     variant for its largest step count N₃, the steps the eval reports as "Ours N₃"."""
-    raw = copy.deepcopy({k: v for k, v in base.items() if k in CONFIG_SECTIONS or k == "__path__"})
+    raw = copy.deepcopy({k: v for k, v in base.items() if k in RUN_TABLES or k == "__path__"})
     eval_steps = base.get("eval", {}).get("steps")
     if eval_steps and "steps" not in raw.get("refine", {}):
         raw.setdefault("refine", {})["steps"] = max(eval_steps)
@@ -122,7 +118,7 @@ def _shared_base(out: Path, dirs, base: dict, transforms, progress: bool, log) -
     run_fusion(
         dirs,
         out / "base",
-        variant_config(base, Variant(())),
+        RunConfig.parse(variant_config(base, Variant(()))),
         resume=(out / "base" / "run.json").is_file(),
         transforms=transforms,
         progress=progress,
@@ -135,34 +131,28 @@ def _shared_base(out: Path, dirs, base: dict, transforms, progress: bool, log) -
     return [out / "base" / "dates" / d.name / "point_cloud.ply" for d in dirs], out / "base" / "transforms.json"
 
 
-def _variant_change(run_dir: Path, data: Path, dirs, raw: dict) -> dict:
+def _variant_change(run_dir: Path, data: Path, config: RunConfig) -> dict:
     """Change detection of a variant's fused model against the synthetic ground truth (F1, IoU)."""
-    from cfgs_jax import splat, train
-    from cfgs_jax.config import section
-    from cfgs_jax.io.colmap import read_colmap
-    from cfgs_jax.io.fused import read_fused
-    from cfgs_jax.sim3 import Sim3
-
-    tc = section(raw, "train", train.TrainConfig)
-    scenes = [read_colmap(d, test_every=max(1, tc.test_every), resolution=tc.resolution) for d in dirs]
-    reg = read_json(run_dir / "register.json")
-    sims = [Sim3.from_dict(reg[d.name]["transform"]) for d in dirs]
-    change = change_detection(
-        read_fused(run_dir / "fused"), data, scenes, sims, section(raw, "render", splat.RenderConfig)
-    )
+    run = RunDir.open(run_dir)
+    scenes = run.scenes(test_every=config.train.test_every, resolution=config.train.resolution)
+    change = change_detection(read_fused(run / "fused"), data, scenes, run.sims(), config.render)
     g = change["gaussians"]
     return {"f1": g["f1"], "iou": change["pixels"]["iou"], "flagged_changed": g["flagged_changed"]}
+
+
+def run_config_of(v: Variant, base: dict) -> RunConfig:
+    """The variant's run configuration (parsed once by ``parse_sweep``)."""
+    return v.config or RunConfig.parse(variant_config(base, v))
 
 
 def _run_variant(v: Variant, vdir: Path, base: dict, dirs, data: Path, *, models, transforms, progress, log) -> dict:
     """One variant's fusion (from the shared per-date models when ``models``), its metrics, Gaussian
     count, stage times and change detection → ``vdir/result.json``."""
-    raw = variant_config(base, v)
     t0 = time.perf_counter()
     run = run_fusion(
         dirs,
         vdir / "run",
-        raw,
+        run_config_of(v, base),
         models=models,
         transforms=transforms,
         resume=(vdir / "run" / "run.json").is_file(),
@@ -177,7 +167,7 @@ def _run_variant(v: Variant, vdir: Path, base: dict, dirs, data: Path, *, models
         "metrics": metrics["mean"],
         "gaussians": run.report.get("refine", {}).get("gaussians_after_prune"),
         "timings": {k: run.timings.get(k) for k in ("train", "register", "merge", "cross_init", "refine")},
-        "change": _variant_change(vdir / "run", data, dirs, raw) if has_truth else None,
+        "change": _variant_change(vdir / "run", data, run_config_of(v, base)) if has_truth else None,
         "wall_seconds": time.perf_counter() - t0,
     }
     write_json(vdir / "result.json", res)
@@ -195,21 +185,17 @@ def run_sweep(
 ) -> dict:
     """Every variant of the sweep → ``out/sweep.json``, ``sweep.md``, ``sweep.png``. With ``resume``
     an ``out`` holding an earlier sweep is continued (finished variants skipped); without, refused."""
-    from cfgs_jax.config import section
-
     scene, base, variants = parse_sweep(sweep_raw, overrides)
+    setup = EvalSetup.parse(base)
     check_resume(out, resume)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    scene_raw = {"scene": base["scene"]} if "scene" in base else {}
-    if scene_raw:
-        section(scene_raw, "scene", SceneConfig)
-    data = prepare_scene(scene, scene_raw, out, progress=progress)
+    data = prepare_scene(scene, setup.scene, out, progress=progress)
     dirs = date_dirs(data)
     shared_keys = ("train.", "register.", "render.")
     shares = [not any(k.startswith(shared_keys) for k, _ in v.overrides) for v in variants]
     models = transforms = None
-    known = section(base, "eval", EvalConfig).known_transforms if "eval" in base else False
+    known = setup.eval.known_transforms if "eval" in base else False
     if known:  # synthetic scenes: the exact Sim(3)s for every variant (as `eval` does)
         from cfgs_jax import synthetic
 

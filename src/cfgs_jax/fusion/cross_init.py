@@ -50,7 +50,7 @@ from cfgs_jax.fusion.fuse import INVISIBLE_LOGIT
 from cfgs_jax.fusion.light import REC709, gain_parameter, light_gain, light_logits, light_multiplier
 from cfgs_jax.fusion.updates import cross_init_optimizer
 from cfgs_jax.loop import run_steps, view_order
-from cfgs_jax.model import Camera, Gaussians, TemporalGaussians, exposure_table, logit
+from cfgs_jax.model import Camera, DateViews, Gaussians, TemporalGaussians, exposure_table, logit
 from cfgs_jax.train.step import over_background
 
 
@@ -160,18 +160,6 @@ class CrossInitConfig:
                 field="cross_init.batch_dates",
                 fix="lower it (e.g. 1) when memory is short",
             )
-
-
-@dataclasses.dataclass(frozen=True)
-class DateViews:
-    """One date's training views in the reference frame: cameras and images ([H, W, 3|4])."""
-
-    cameras: tuple[Camera, ...]
-    images: tuple[np.ndarray, ...]
-
-    def __post_init__(self):
-        if len(self.cameras) != len(self.images) or not self.cameras:
-            raise InputError(f"{len(self.cameras)} cameras for {len(self.images)} images", field="DateViews")
 
 
 def epsilon(lpips_map, step, config: CrossInitConfig):

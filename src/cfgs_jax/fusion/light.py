@@ -21,14 +21,9 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from cfgs_jax.colour import REC709_LUMA
-from cfgs_jax.model import logit
+from cfgs_jax.model import MAX_LIGHT, MIN_LIGHT, light_logits  # noqa: F401  (the model's light parameterisation)
 
 REC709 = np.asarray(REC709_LUMA)  # Rec.709 luma weights (linear RGB)
-#: The largest light multiplier the model fits (stored logit ln 99 ≈ 4.6, where float32 round-trips
-#: l = 2·sigmoid(logit) to ~1e-7).
-MAX_LIGHT = 1.98
-#: The smallest multiplier ``light_logits`` stores (l = 0 would be an infinite logit).
-MIN_LIGHT = 1e-12
 
 
 @functools.lru_cache(maxsize=4)
@@ -70,12 +65,6 @@ def light_multiplier(u: Float[Array, "*N"], w: Float[Array, "*N"], direction=Non
     room = jnp.minimum(1.0, (MAX_LIGHT / gain - 1.0) / reach)
     k = jnp.tanh(w) * room
     return gain[..., None] * (1.0 + k[..., None] * jnp.asarray(d, jnp.result_type(u)))
-
-
-def light_logits(l: Float[Array, "*N 3"]) -> Float[Array, "*N 3"]:
-    """The stored logits of multipliers l (l = 2·sigmoid(logit)), l clipped into [``MIN_LIGHT``,
-    ``MAX_LIGHT``] (the fitted range, so a fitted l survives the round trip to float32 precision)."""
-    return logit(jnp.clip(l / 2.0, MIN_LIGHT / 2.0, MAX_LIGHT / 2.0))
 
 
 def cold_warm_coefficient(l: Float[Array, "*N 3"], direction=None) -> np.ndarray:

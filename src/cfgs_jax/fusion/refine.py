@@ -53,11 +53,10 @@ from jaxtyping import Array, Float
 
 from cfgs_jax import metrics, parallel, splat
 from cfgs_jax.errors import InputError
-from cfgs_jax.fusion.cross_init import DateViews
 from cfgs_jax.fusion.updates import halve_alpha_of, refinement_optimizer, zero_invisible
 from cfgs_jax.io.checkpoint import read_meta, restore_tree, save_tree
 from cfgs_jax.loop import Progress, check_view_batch, run_steps, step_with_capacity, view_batch, view_order
-from cfgs_jax.model import TemporalGaussians, exposure_rows, gaussians_of, select, trainable, with_trainable
+from cfgs_jax.model import DateViews, TemporalGaussians, exposure_rows, gaussians_of, select, trainable, with_trainable
 from cfgs_jax.train.config import TrainConfig
 from cfgs_jax.train.step import over_background
 

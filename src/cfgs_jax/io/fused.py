@@ -41,7 +41,15 @@ from cfgs_jax.io.ply import (
     read_vertex_table,
     write_table,
 )
-from cfgs_jax.model import DateInfo, TemporalGaussians, exposure_problem, exposure_table, light_multipliers
+from cfgs_jax.model import (
+    MAX_LIGHT,
+    DateInfo,
+    TemporalGaussians,
+    exposure_problem,
+    exposure_table,
+    light_logits,
+    light_multipliers,
+)
 
 FORMAT_NAME = "cfgs_jax.fused"
 FORMAT_VERSION = 2  # 2: model.json may carry an exposure table (version 1 readers would ignore it)
@@ -101,8 +109,6 @@ def _model_arrays(model: TemporalGaussians, fold_exposure: bool = False):
     origin = np.asarray(model.origin, np.int32)
     folded = None
     if fold_exposure and model.exposure is not None:
-        from cfgs_jax.fusion.light import MAX_LIGHT, light_logits  # here: reading a model needs no fusion package
-
         drawn = light_multipliers(model)
         folded = {"clipped_channels": int(np.sum(np.asarray(drawn) > MAX_LIGHT)), "light_max": MAX_LIGHT}
         light = np.asarray(light_logits(drawn), np.float32)

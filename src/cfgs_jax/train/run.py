@@ -51,6 +51,22 @@ class TrainRun:
     seconds: float
     finished: bool
 
+    def report(self, scene: Scene, *, continued_from: str | None = None) -> dict:
+        """``train.json``: the dataset, the schedule, the Gaussians, the final loss (mean of the last 50
+        steps), the growth events, the test metrics and their history, the configuration."""
+        return {
+            "scene": str(scene.root),
+            "steps": self.config.steps,
+            "gaussians": len(self.gaussians),
+            "seconds_this_session": self.seconds,
+            "final_loss": float(np.mean(self.losses[-50:])) if self.losses else None,
+            "growth": self.counts,
+            "test": self.metrics,
+            "test_history": self.eval_history,
+            "config": dataclasses.asdict(self.config),
+            "continued_from": continued_from,
+        }
+
 
 def continuation_config(config: TrainConfig) -> TrainConfig:
     """The paper's "Individual +N" baseline: no densification, position lr held at its final value

@@ -1,0 +1,116 @@
+"""``[changes]``: the configuration of the residual-evidence change detector."""
+
+from __future__ import annotations
+
+import dataclasses
+
+from cfgs_jax.errors import InputError
+
+
+@dataclasses.dataclass(frozen=True)
+class ChangesConfig:
+    """``[changes]``: the residual-evidence change detector.
+
+    ``threshold`` τ is an RMS colour difference in linear RGB (0..1): a Gaussian counts as changed
+    between two dates when q's images are explained better without it by more than τ (score > 0.5).
+    ``views``: which of each date's views supply the evidence — ``"all"``, ``"train"``, or ``"test"``
+    (held out from training, so the "absent" residual is not lowered by the date's own Gaussians having
+    been fitted to those very images). ``neighbours`` k pools each Gaussian's evidence with its k − 1 nearest
+    Gaussians of the same date (1: none). ``gain_range`` bounds the per-Gaussian brightness gain of each hypothesis.
+    ``contribution_threshold`` is the visibility rule (α·T at some pixel of some view of q).
+    Regions: changed Gaussians closer than ``link_factor`` × the model's median nearest-neighbour
+    distance are linked, and so are Gaussians scored above ``grow_above`` (≤ 0.5) that touch them; a
+    region needs at least ``min_region_gaussians`` Gaussians scored > 0.5 and at least
+    ``min_region_share`` of the two dates' Gaussians as seeds (3D; the larger bound counts, so that a
+    denser reconstruction of the same scene, whose objects and whose noise patches both hold more
+    Gaussians, needs proportionally more), and ``min_region_pixels`` pixels (image).
+    ``pixel_threshold``: a pixel of a view counts as changed when the regions' Gaussians hold more than
+    this share of the compositing weight of what it shows (``maps.change_mask``).
+    ``carry_absence``: a Gaussian that another date pair found gone and that, at the pair's other
+    date, lies at or behind a surface that changed between the two dates is counted gone there too
+    (``changes.carried``; needs the regions of every pair that holds one of the two dates, so the
+    ``changes`` command then computes the evidence of those pairs as well).
+    ``max_view_angle`` (degrees): a view of q informs a Gaussian of p only from within this
+    angle of a direction one of p's training cameras saw it from (180: every view); at most
+    ``support_views`` of those cameras, spread out (``spread_cameras``), stand for them all.
+    ``complete_hops`` > 0 completes each region by colour (``regions.complete_by_colour``): a
+    Gaussian observed at both dates joins a region when it lies within that many steps of
+    ``complete_link`` × the median spacing from the region's Gaussians of its own date and its colour is
+    within ``complete_colour`` (RGB distance) of their median (0: no completion; the colour test lets completion
+    link farther than the evidence does); with ``complete_across_dates`` also Gaussians of the pair's other dates
+    (the other date's version of a changed object). ``dates_per_pass``: how many dates' Gaussians are tested against
+    one observing date in one pass over its views (they share each view's projection, sort and kernel walks; the
+    figures do not depend on it beyond float32 rounding, memory grows with it)."""
+
+    threshold: float = 0.06
+    views: str = "all"
+    neighbours: int = 32
+    gain_range: tuple[float, float] = (1.0 / 3.0, 3.0)
+    contribution_threshold: float = 0.01
+    link_factor: float = 4.0
+    grow_above: float = 0.35
+    min_region_gaussians: int = 16
+    min_region_share: float = 0.0015
+    min_region_pixels: int = 8
+    pixel_threshold: float = 0.35
+    max_view_angle: float = 20.0
+    support_views: int = 64
+    complete_hops: int = 16
+    complete_colour: float = 0.15
+    complete_link: float = 5.5
+    complete_across_dates: bool = False
+    dates_per_pass: int = 8
+    carry_absence: bool = True
+
+    def __post_init__(self):
+        if not 0.0 < self.threshold < 1.0:
+            raise InputError(f"must lie in (0, 1), got {self.threshold}", field="changes.threshold")
+        if self.views not in ("all", "train", "test"):
+            raise InputError(f"unknown split {self.views!r}", field="changes.views", fix='use "all", "train" or "test"')
+        if int(self.neighbours) < 1:
+            raise InputError(f"must be ≥ 1, got {self.neighbours}", field="changes.neighbours")
+        lo, hi = (float(v) for v in self.gain_range)
+        if not 0.0 < lo <= 1.0 <= hi:
+            raise InputError(
+                f"must satisfy 0 < low ≤ 1 ≤ high, got {self.gain_range}",
+                field="changes.gain_range",
+                fix="e.g. [0.333, 3.0]; [1, 1] fits no gain",
+            )
+        object.__setattr__(self, "gain_range", (lo, hi))
+        if not 0.0 < self.contribution_threshold < 1.0:
+            raise InputError(
+                f"must lie in (0, 1), got {self.contribution_threshold}", field="changes.contribution_threshold"
+            )
+        if not 0.0 < self.pixel_threshold < 1.0:
+            raise InputError(
+                f"must lie in (0, 1), got {self.pixel_threshold}", field="changes.pixel_threshold", fix="e.g. 0.35"
+            )
+        if not 0.0 < self.grow_above <= 0.5:
+            raise InputError(f"must lie in (0, 0.5], got {self.grow_above}", field="changes.grow_above")
+        if not 0.0 < self.max_view_angle <= 180.0:
+            raise InputError(
+                f"must lie in (0, 180] degrees, got {self.max_view_angle}",
+                field="changes.max_view_angle",
+                fix="e.g. 20; 180 lets every view count",
+            )
+        if int(self.support_views) < 1:
+            raise InputError(f"must be ≥ 1, got {self.support_views}", field="changes.support_views")
+        if int(self.complete_hops) < 0:
+            raise InputError(f"must be ≥ 0, got {self.complete_hops}", field="changes.complete_hops")
+        if not self.complete_link > 0:
+            raise InputError(f"must be > 0, got {self.complete_link}", field="changes.complete_link", fix="e.g. 5")
+        if not self.complete_colour > 0:
+            raise InputError(
+                f"must be > 0, got {self.complete_colour}", field="changes.complete_colour", fix="e.g. 0.1"
+            )
+        if not 0.0 <= self.min_region_share < 1.0:
+            raise InputError(
+                f"must lie in [0, 1), got {self.min_region_share}",
+                field="changes.min_region_share",
+                fix="e.g. 0.0015; 0: off",
+            )
+        if self.link_factor <= 0:
+            raise InputError(f"must be > 0, got {self.link_factor}", field="changes.link_factor")
+        for name in ("min_region_gaussians", "min_region_pixels", "dates_per_pass"):
+            if int(getattr(self, name)) < 1:
+                raise InputError(f"must be ≥ 1, got {getattr(self, name)}", field=f"changes.{name}")

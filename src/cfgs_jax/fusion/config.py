@@ -1,0 +1,61 @@
+"""The configuration of a fusion run: one frozen stage configuration per TOML table, parsed once at
+the boundary (the command line, a stored ``run.json``, an API call given a dict)."""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any
+
+from cfgs_jax.changes.config import ChangesConfig
+from cfgs_jax.config import check_sections, section
+from cfgs_jax.fusion.compact import CompactConfig
+from cfgs_jax.fusion.cross_init import CrossInitConfig
+from cfgs_jax.fusion.refine import RefineConfig
+from cfgs_jax.fusion.register import RegisterConfig
+from cfgs_jax.splat.config import RenderConfig
+from cfgs_jax.train.config import TrainConfig
+
+#: The tables a run configuration may hold, and the frozen dataclass each one builds.
+RUN_TABLES = {
+    "render": RenderConfig,
+    "train": TrainConfig,
+    "register": RegisterConfig,
+    "cross_init": CrossInitConfig,
+    "refine": RefineConfig,
+    "compact": CompactConfig,
+    "changes": ChangesConfig,
+}
+
+
+@dataclasses.dataclass(frozen=True)
+class RunConfig:
+    """Every stage's configuration of a fusion run (``fuse``, ``extend``, ``compact``, ``changes``).
+
+    ``tables`` keeps the TOML tables as they were given (what ``run.json`` stores, and what a resumed
+    run is compared against); ``source`` names where they came from (a file, ``--set`` values)."""
+
+    render: RenderConfig = dataclasses.field(default_factory=RenderConfig)
+    train: TrainConfig = dataclasses.field(default_factory=TrainConfig)
+    register: RegisterConfig = dataclasses.field(default_factory=RegisterConfig)
+    cross_init: CrossInitConfig = dataclasses.field(default_factory=CrossInitConfig)
+    refine: RefineConfig = dataclasses.field(default_factory=RefineConfig)
+    compact: CompactConfig = dataclasses.field(default_factory=CompactConfig)
+    changes: ChangesConfig = dataclasses.field(default_factory=ChangesConfig)
+    tables: dict[str, Any] = dataclasses.field(default_factory=dict, compare=False, repr=False)
+    source: str | None = dataclasses.field(default=None, compare=False)
+
+    @classmethod
+    def parse(cls, raw: dict[str, Any] | None) -> RunConfig:
+        """Build and check every table of ``raw`` (``config.load_config`` / ``apply_overrides`` output,
+        or ``run.json``'s ``config``): unknown tables or keys and bad values raise naming the file, the
+        key and the closest valid one, before any output exists."""
+        raw = raw or {}
+        check_sections(raw, RUN_TABLES)
+        stages = {name: section(raw, name, cls_) for name, cls_ in RUN_TABLES.items()}
+        tables = {k: v for k, v in raw.items() if k != "__path__"}
+        return cls(**stages, tables=tables, source=raw.get("__path__"))
+
+    @classmethod
+    def of(cls, config: RunConfig | dict[str, Any] | None) -> RunConfig:
+        """``config`` itself, or parsed when given as tables (a dict) or None (the defaults)."""
+        return config if isinstance(config, RunConfig) else cls.parse(config)
