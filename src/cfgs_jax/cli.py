@@ -13,9 +13,12 @@ import sys
 from importlib import metadata
 from pathlib import Path
 
+import jax.numpy as jnp
 import numpy as np
 
+from cfgs_jax import viz
 from cfgs_jax.errors import InputError
+from cfgs_jax.synthetic.presets import PRESETS
 
 
 def version() -> str:
@@ -174,7 +177,6 @@ def _add_metrics(sub, prog: str) -> None:
 
 
 def _add_synth(sub, prog: str) -> None:
-    from cfgs_jax.synthetic.presets import PRESETS
 
     s = _command(
         sub,
@@ -359,7 +361,6 @@ def _add_changes(sub, prog: str) -> None:
 
 
 def _add_eval(sub, prog: str) -> None:
-    from cfgs_jax.synthetic.presets import PRESETS
 
     s = _command(
         sub,
@@ -559,7 +560,6 @@ def parse_selection(text: str, names: list[str]) -> np.ndarray:
         ) from None
     if len(t) != len(names):
         raise InputError(f"{len(t)} entries for {len(names)} dates {names}", field="--t", fix="give one 0/1 per date")
-    from cfgs_jax import viz
 
     viz.normalize_selection(t)  # binary, not all zero
     return t
@@ -567,9 +567,6 @@ def parse_selection(text: str, names: list[str]) -> np.ndarray:
 
 def parse_stops(text: str | None):
     """``"r,g,b;r,g,b;..."`` (linear RGB), ``"rgb"`` for the full-RGB filter, or None for the default."""
-    import jax.numpy as jnp
-
-    from cfgs_jax import viz
 
     if text is None:
         return viz.DEFAULT_STOPS

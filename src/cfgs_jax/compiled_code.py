@@ -15,6 +15,8 @@ import gc
 import logging
 from pathlib import Path
 
+import jax
+
 log = logging.getLogger(__name__)
 
 
@@ -31,7 +33,6 @@ def map_usage() -> tuple[int, int] | None:
 
 def release() -> None:
     """Drop JAX's compiled executables now (their code is unmapped; functions recompile on demand)."""
-    import jax
 
     jax.clear_caches()
     gc.collect()

@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
+from cfgs_jax import synthetic
 from cfgs_jax.config import find_preset, load_config
 from cfgs_jax.errors import InputError
 from cfgs_jax.fusion.config import RunConfig
@@ -22,7 +23,6 @@ from cfgs_jax.render_run import SelectionStyle, open_run, render_views
 def _fuse(scene_dir: Path, names: list[str], out: Path, raw: dict, progress: bool, log):
     """``run_fusion`` of the scene's dates into ``out/run``; when SfM registration of the small
     synthetic images falls short, continue with the scene's ground-truth Sim(3)s."""
-    from cfgs_jax import synthetic  # needs Mitsuba (the synth extra)
 
     run_dir = out / "run"
     dates = [scene_dir / n for n in names]
@@ -87,7 +87,6 @@ def run_demo(
     """Run the demo into ``out``; returns the summary (also written to ``out/summary.json`` and
     ``out/summary.md``). ``config`` is a preset name, a TOML path or an already-read configuration;
     an ``out`` holding an earlier demo is continued only with ``resume=True``."""
-    from cfgs_jax import synthetic
 
     raw = config if isinstance(config, dict) else load_config(find_preset(config))
     check_resume(out, resume)

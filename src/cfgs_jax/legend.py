@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+from PIL import Image, ImageDraw, ImageFont
 
 from cfgs_jax import viz
 
@@ -10,7 +11,6 @@ from cfgs_jax import viz
 def legend_strip(names: list[str], t, width: int, *, highlight: bool, stops=viz.DEFAULT_STOPS) -> np.ndarray:
     """[h, width, 3] sRGB strip: the date names coloured by their highlight colour (white for plain
     blends); unselected dates grey and struck through."""
-    from PIL import Image, ImageDraw, ImageFont
 
     font = ImageFont.load_default()
     height = 16

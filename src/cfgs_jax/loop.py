@@ -15,6 +15,11 @@ from collections.abc import Callable
 from typing import Any, TypeVar
 
 import numpy as np
+from rich.progress import BarColumn, MofNCompleteColumn, TextColumn, TimeRemainingColumn
+from rich.progress import Progress as RichProgress
+
+from cfgs_jax import parallel
+from cfgs_jax.errors import InputError
 
 Carry = TypeVar("Carry")
 
@@ -38,8 +43,6 @@ def view_batch(seed: int | tuple[int, ...], step: int, batch: int, num_views: in
 def check_view_batch(batch: int, image_shapes, mesh, *, field: str, path=None) -> None:
     """Refuse a batch of views (``batch`` > 1) over images of several sizes, or one that does not split
     evenly over the devices of ``mesh``."""
-    from cfgs_jax import parallel
-    from cfgs_jax.errors import InputError
 
     if batch > 1 and len(set(image_shapes)) > 1:
         raise InputError("a batch of views needs one image size", path=path, field=field, fix=f"set {field} = 1")
@@ -114,8 +117,6 @@ class Progress:
         self.bar, self.total, self.every, self.label = None, total, every, label
         if not enabled:
             return
-        from rich.progress import BarColumn, MofNCompleteColumn, TextColumn, TimeRemainingColumn
-        from rich.progress import Progress as RichProgress
 
         self.bar = RichProgress(
             TextColumn(label),

@@ -7,19 +7,45 @@ the file, field and fix, and exit with status 2.
 
 from __future__ import annotations
 
+import dataclasses
+import json
 import logging
+import os
+import shutil
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
+from rich.console import Console
+from rich.progress import Progress, track
+from rich.table import Table
 
+import cfgs_jax as cj
+from cfgs_jax import metrics, parallel, synthetic, train
+from cfgs_jax.changes.report import detect_changes
+from cfgs_jax.cli import build_parser, parse_selection, parse_stops
+from cfgs_jax.config import apply_overrides, find_preset, load_config, preset_names
+from cfgs_jax.demo import run_demo
 from cfgs_jax.errors import InputError, OutputError
+from cfgs_jax.evaluation.protocol import run_protocol
+from cfgs_jax.evaluation.sweep import run_sweep
+from cfgs_jax.fusion.config import RunConfig
+from cfgs_jax.fusion.stages import run_compact, run_extend, run_fusion
+from cfgs_jax.io import atomic_file, read_image
+from cfgs_jax.io.atomic import write_json, write_text
+from cfgs_jax.io.images import EXR_SUFFIXES, PIL_SUFFIXES
+from cfgs_jax.io.inria import write_inria_layout
+from cfgs_jax.io.video import write_video
+from cfgs_jax.orbit import orbit_cameras
+from cfgs_jax.render_run import SelectionStyle, export_selection, open_run, render_views
+from cfgs_jax.sim3 import Sim3
+from cfgs_jax.viewer import serve
 
 
 def _read_config(args) -> dict:
     """The run configuration a command was given: ``--config`` (preset or file) with its ``--set``
     overrides, and ``-r N`` as the override ``train.resolution=N`` it stands for."""
-    from cfgs_jax.config import apply_overrides, find_preset, load_config
 
     overrides = list(getattr(args, "overrides", ()))
     if getattr(args, "resolution", 1) != 1:
@@ -28,13 +54,11 @@ def _read_config(args) -> dict:
 
 
 def _console():
-    from rich.console import Console
 
     return Console()
 
 
 def _stats_table(title: str, rows: list[tuple[str, np.ndarray]]):
-    from rich.table import Table
 
     t = Table(title=title)
     for col in ("field", "shape", "min", "mean", "max"):
@@ -46,7 +70,6 @@ def _stats_table(title: str, rows: list[tuple[str, np.ndarray]]):
 
 
 def _gaussian_rows(g) -> list[tuple[str, np.ndarray]]:
-    import cfgs_jax as cj
 
     return [
         ("means", np.asarray(g.means)),
@@ -58,7 +81,6 @@ def _gaussian_rows(g) -> list[tuple[str, np.ndarray]]:
 
 def describe(path: Path) -> tuple[str, list]:
     """What ``inspect`` prints: a title and a list of rich renderables."""
-    import cfgs_jax as cj
 
     if path.is_file() and path.suffix.lower() == ".ply":
         g = cj.io.read_ply(path)
@@ -71,7 +93,6 @@ def describe(path: Path) -> tuple[str, list]:
             ("o (sigmoid)", np.asarray(cj.opacity_multipliers(m))),
             ("l (2·sigmoid)", np.asarray(cj.light_multipliers(m))),
         ]
-        from rich.table import Table
 
         dates = Table(title="Dates")
         for col in ("index", "name", "captured", "Gaussians from it", "mean o"):
@@ -104,7 +125,6 @@ def cmd_inspect(args) -> int:
 
 
 def cmd_convert(args) -> int:
-    import cfgs_jax as cj
 
     src, dst = Path(args.src), Path(args.dst)
     if args.layout is None:  # from the destination: a .ply file, else a fused-model directory
@@ -128,7 +148,6 @@ def cmd_convert(args) -> int:
 
 def _image_pairs(a: Path, b: Path) -> list[tuple[str, Path, Path]]:
     """(name, a, b) for two image files, or for the images two folders share by file stem."""
-    from cfgs_jax.io.images import EXR_SUFFIXES, PIL_SUFFIXES
 
     suffixes = PIL_SUFFIXES | EXR_SUFFIXES
     for p in (a, b):
@@ -159,13 +178,6 @@ def _image_pairs(a: Path, b: Path) -> list[tuple[str, Path, Path]]:
 
 
 def cmd_metrics(args) -> int:
-    import json
-
-    from rich.progress import track
-    from rich.table import Table
-
-    from cfgs_jax import metrics
-    from cfgs_jax.io import atomic_file, read_image
 
     pairs = _image_pairs(Path(args.a), Path(args.b))
     rows = []
@@ -202,9 +214,6 @@ def cmd_metrics(args) -> int:
 
 
 def cmd_synth(args) -> int:
-    import time
-
-    from cfgs_jax import synthetic
 
     spec = synthetic.make_preset(
         args.preset,
@@ -227,10 +236,6 @@ def cmd_synth(args) -> int:
 def _train_settings(args, config):
     """The run's ``TrainConfig`` (``--seed``, ``--eval-every``, ``--steps`` applied; the continuation
     baseline's with ``--continue-from``) and the Gaussians it starts from (None: the SfM points)."""
-    import dataclasses
-
-    import cfgs_jax as cj
-    from cfgs_jax import train
 
     config = config.train
     if args.seed is not None:
@@ -245,9 +250,6 @@ def _train_settings(args, config):
 
 def _write_train_outputs(args, out: Path, run, scene, config) -> None:
     """The trained model (``point_cloud.ply``, INRIA's layout) and ``train.json``; prints a summary."""
-    import cfgs_jax as cj
-    from cfgs_jax.io.atomic import write_json
-    from cfgs_jax.io.inria import write_inria_layout
 
     ply = cj.io.write_ply(out / "point_cloud.ply", run.gaussians)
     inria = write_inria_layout(out, run.gaussians, scene, config.steps, ply_of_gaussians=ply)
@@ -265,9 +267,6 @@ def _write_train_outputs(args, out: Path, run, scene, config) -> None:
 
 
 def cmd_train(args) -> int:
-    import cfgs_jax as cj
-    from cfgs_jax import train
-    from cfgs_jax.fusion.config import RunConfig
 
     run_config = RunConfig.parse(_read_config(args))
     config, init = _train_settings(args, run_config)
@@ -308,8 +307,6 @@ def cmd_train(args) -> int:
 
 
 def cmd_fuse(args) -> int:
-    from cfgs_jax.fusion.config import RunConfig
-    from cfgs_jax.fusion.stages import run_fusion
 
     config = RunConfig.parse(_read_config(args))
     console = _console()
@@ -326,7 +323,6 @@ def cmd_fuse(args) -> int:
         log=console.print,
         mesh=_mesh(args),
     )
-    from rich.table import Table
 
     t = Table(title=f"fusion run {run.path}")
     t.add_column("stage")
@@ -342,7 +338,6 @@ def cmd_fuse(args) -> int:
 
 
 def cmd_eval(args) -> int:
-    from cfgs_jax.evaluation.protocol import run_protocol
 
     raw = _read_config(args)
     console = _console()
@@ -355,7 +350,6 @@ def cmd_eval(args) -> int:
         log=console.print,
         mesh=_mesh(args),
     )
-    from rich.table import Table
 
     t = Table(title=f"evaluation of {args.scene} ({len(table['dates'])} dates)")
     for c in ("method", "PSNR", "SSIM", "LPIPS", "Gaussians"):
@@ -375,8 +369,6 @@ def cmd_eval(args) -> int:
 
 
 def cmd_sweep(args) -> int:
-    from cfgs_jax.config import find_preset, load_config
-    from cfgs_jax.evaluation.sweep import run_sweep
 
     console = _console()
     summary = run_sweep(
@@ -387,7 +379,6 @@ def cmd_sweep(args) -> int:
         progress=not args.no_progress,
         log=console.print,
     )
-    from rich.table import Table
 
     t = Table(title=f"sweep on {summary['scene']} ({len(summary['variants'])} variants)")
     for c in ("variant", "PSNR", "SSIM", "LPIPS", "change F1", "cross-init + refine (s)"):
@@ -408,10 +399,6 @@ def cmd_sweep(args) -> int:
 
 
 def cmd_extend(args) -> int:
-    import json
-
-    from cfgs_jax.fusion.stages import run_extend
-    from cfgs_jax.sim3 import Sim3
 
     transform = None
     if args.transforms:
@@ -441,8 +428,6 @@ def cmd_extend(args) -> int:
 
 
 def cmd_compact(args) -> int:
-    from cfgs_jax.config import apply_overrides
-    from cfgs_jax.fusion.stages import run_compact
 
     bad = [o for o in args.overrides if not o.startswith("compact.")]
     if bad:
@@ -464,12 +449,6 @@ def cmd_compact(args) -> int:
 
 
 def cmd_changes(args) -> int:
-    from rich.progress import Progress
-
-    from cfgs_jax.changes.report import detect_changes
-    from cfgs_jax.config import apply_overrides
-    from cfgs_jax.fusion.config import RunConfig
-    from cfgs_jax.render_run import open_run
 
     bad = [o for o in args.overrides if not o.startswith("changes.")]
     if bad:
@@ -502,8 +481,6 @@ def cmd_changes(args) -> int:
 
 
 def _selection_style(args):
-    from cfgs_jax.cli import parse_stops
-    from cfgs_jax.render_run import SelectionStyle
 
     contrast = None
     if args.contrast:
@@ -524,11 +501,6 @@ def _selection_style(args):
 
 
 def cmd_render(args) -> int:
-    from rich.progress import Progress
-
-    from cfgs_jax.cli import parse_selection
-    from cfgs_jax.orbit import orbit_cameras
-    from cfgs_jax.render_run import open_run, render_views
 
     run = open_run(args.run)
     t = parse_selection(args.t, run.names)
@@ -546,17 +518,12 @@ def cmd_render(args) -> int:
         )
     console.print(f"wrote {len(paths)} views (PNG sRGB with legend + EXR linear) to {args.out}")
     if args.cameras == "orbit":
-        from cfgs_jax.io import read_image
-        from cfgs_jax.io.video import write_video
-
         video = write_video(Path(args.out) / "orbit.mp4", [read_image(p) for p in paths], fps=args.fps)
         console.print(f"wrote {video} ({len(paths)} frames at {args.fps} fps)")
     return 0
 
 
 def cmd_export(args) -> int:
-    from cfgs_jax.cli import parse_selection
-    from cfgs_jax.render_run import export_selection, open_run
 
     run = open_run(args.run)
     t = parse_selection(args.t, run.names)
@@ -568,7 +535,6 @@ def cmd_export(args) -> int:
 
 
 def cmd_view(args) -> int:
-    from cfgs_jax.viewer import serve
 
     _console().print(f"serving {args.run} on http://127.0.0.1:{args.port} (Ctrl-C to stop)")
     serve(args.run, port=args.port)
@@ -577,12 +543,8 @@ def cmd_view(args) -> int:
 
 def cmd_presets(args) -> int:
     """List the packaged presets (name and leading comment), or print / write one."""
-    from cfgs_jax.config import find_preset, preset_names
-    from cfgs_jax.io.atomic import write_text
 
     if args.name is None:
-        from rich.table import Table
-
         t = Table(title="packaged run configurations (--config NAME)")
         t.add_column("name")
         t.add_column("what it is")
@@ -610,9 +572,6 @@ def cmd_presets(args) -> int:
 
 def cmd_demo(args) -> int:
     """The embedded default job: the whole pipeline on a small synthetic scene (``cfgs_jax.demo``)."""
-    from rich.table import Table
-
-    from cfgs_jax.demo import run_demo
 
     console = _console()
     summary = run_demo(
@@ -674,7 +633,6 @@ COMMANDS = {
 
 def _mesh(args):
     """The one-axis device mesh of ``--devices``."""
-    from cfgs_jax import parallel
 
     return parallel.device_mesh(args.devices)
 
@@ -685,9 +643,6 @@ def _start_processes(args) -> None:
     of the outputs to ``OUT.process-k`` — and ``extend`` works on ``RUN.process-k``, copied from RUN
     before the processes meet (so before process 0 changes RUN) — so that no two processes write one
     file and each resumes from its own."""
-    import os
-
-    from cfgs_jax import parallel
 
     k = os.environ.get("JAX_PROCESS_ID", "0")
     if k not in ("", "0") and os.environ.get("JAX_NUM_PROCESSES"):
@@ -697,8 +652,6 @@ def _start_processes(args) -> None:
                 continue
             mine = Path(f"{path}.process-{k}")
             if name == "run" and not mine.exists():
-                import shutil
-
                 shutil.copytree(path, mine)
             setattr(args, name, str(mine))
     parallel.initialize_from_environment()
@@ -706,7 +659,6 @@ def _start_processes(args) -> None:
 
 def main(argv: list[str] | None = None, *, prog: str | None = None) -> int:
     """Run one command line; returns the exit status (2 for input/output errors, one line on stderr)."""
-    from cfgs_jax.cli import build_parser
 
     args = build_parser(prog).parse_args(argv)
     logger = logging.getLogger("cfgs_jax")

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import functools
 import threading
+import time
 from pathlib import Path
 
 import jax
@@ -135,8 +136,6 @@ def serve(run_dir: str | Path, *, port: int = 8080, block: bool = True) -> Viewe
     """Open ``RUN`` and serve the viewer on http://127.0.0.1:<port>; ``block`` waits until Ctrl-C."""
     viewer = Viewer(open_run(run_dir), port=port)
     if block:
-        import time
-
         try:
             while True:
                 time.sleep(3600)

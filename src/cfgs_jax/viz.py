@@ -29,7 +29,7 @@ import jax.scipy.special as jsp
 import numpy as np
 from jaxtyping import Array, Float
 
-from cfgs_jax import colour
+from cfgs_jax import colour, splat
 from cfgs_jax.errors import InputError
 from cfgs_jax.model import (
     Gaussians,
@@ -284,7 +284,6 @@ def render_selection(
 
     Gaussians whose selected opacity is 0 (dates with t_p = 0) are culled before binning, so they cost
     nothing. Returns the kernel's ``RenderResult`` (images only: no per-Gaussian statistics)."""
-    from cfgs_jax import splat
 
     colours, mult = selection_terms(model, t, mode=mode, highlight_changes=highlight_changes, **highlight_kwargs)
     g = model.gaussians

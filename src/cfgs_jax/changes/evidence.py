@@ -158,6 +158,34 @@ def direction_support(
     return (np.stack(seen, 1) if seen else np.zeros((int(own.sum()), 0), bool)), centres
 
 
+def _view_image(image: np.ndarray, cam: Camera) -> np.ndarray:
+    """``image`` premultiplied by its alpha, checked to have ``cam``'s size."""
+    ref = premultiplied(image)
+    if ref.shape[:2] != (int(cam.height), int(cam.width)):
+        raise InputError(
+            f"image {ref.shape[:2]} for a {int(cam.width)}×{int(cam.height)} camera",
+            field="images",
+            fix="give each view its camera's image",
+        )
+    return ref
+
+
+def _direction_supports(g: Gaussians, batch, rows, supports) -> dict:
+    """Per date k of ``batch``: its Gaussians' centres, which of p's support cameras saw each, and
+    those cameras' centres (``supports[p]``, checked against the Gaussian count)."""
+    direction = {}
+    for k, p in enumerate(batch):
+        seen_by_p, centres = supports[p]
+        if seen_by_p.shape[0] != len(rows[k]):
+            raise InputError(
+                f"support for {seen_by_p.shape[0]} Gaussians, date {p} has {len(rows[k])}",
+                field="support",
+                fix="pass direction_support(model, p, …) of the same model",
+            )
+        direction[k] = (jnp.asarray(g.means)[rows[k]], jnp.asarray(seen_by_p, bool), jnp.asarray(centres, jnp.float32))
+    return direction
+
+
 def observing_date_sums(
     model: TemporalGaussians,
     dates: Sequence[int],
@@ -194,31 +222,11 @@ def observing_date_sums(
         rows = [jnp.asarray(np.nonzero(mine)[0]) for mine in own]
         present = jnp.asarray(np.stack([np.where(mine, o[:, p], o[:, q]) for p, mine in zip(batch, own)]))
         absent = jnp.asarray(np.stack([np.where(mine, 0.0, o[:, q]) for mine in own]).astype(np.float32))
-        direction = {}
-        if restrict:
-            for k, p in enumerate(batch):
-                seen_by_p, centres = supports[p]
-                if seen_by_p.shape[0] != len(rows[k]):
-                    raise InputError(
-                        f"support for {seen_by_p.shape[0]} Gaussians, date {p} has {len(rows[k])}",
-                        field="support",
-                        fix="pass direction_support(model, p, …) of the same model",
-                    )
-                direction[k] = (
-                    jnp.asarray(g.means)[rows[k]],
-                    jnp.asarray(seen_by_p, bool),
-                    jnp.asarray(centres, jnp.float32),
-                )
+        direction = _direction_supports(g, batch, rows, supports) if restrict else {}
         total = [jnp.zeros((len(r), 6), jnp.float32) for r in rows]
         largest = [jnp.zeros(len(r), jnp.float32) for r in rows]
         for cam, image in zip(cameras, images):
-            ref = premultiplied(image)
-            if ref.shape[:2] != (int(cam.height), int(cam.width)):
-                raise InputError(
-                    f"image {ref.shape[:2]} for a {int(cam.width)}×{int(cam.height)} camera",
-                    field="images",
-                    fix="give each view its camera's image",
-                )
+            ref = _view_image(image, cam)
             cap = splat.required_capacity(g, cam, jnp.concatenate([present, absent]), config=rc)
             sums, weight = residual_sums(
                 g, cam, present, absent, light, jnp.asarray(ref), dataclasses.replace(rc, capacity=cap)

@@ -425,10 +425,7 @@ def evidence_detection(
             regions[key] += value
         regions["false_regions"] += objs["false_regions"]
         regions["regions"] += len(change.regions)
-        pair: dict = {}
-        for a, b in ((p, q), (q, p)):
-            for cam, gt in zip(masks_test[a].cameras, masks_test[a].changed_vs[names[b]]):
-                _add_counts(pair, _view_counts(*found.view(p, q, cam), gt, PIXEL_THRESHOLDS))
+        pair = _pair_pixel_counts(found, p, q, masks_test, names)
         _add_counts(pixel, pair)
         per_pair[f"{names[p]}↔{names[q]}"] = {
             "regions": len(change.regions),
@@ -453,6 +450,15 @@ def evidence_detection(
         },
         "per_pair": per_pair,
     }
+
+
+def _pair_pixel_counts(found: Detection, p: int, q: int, masks_test: Sequence[DateMasks], names) -> dict:
+    """The pixel counts (``_view_counts``) of the pair's masks over both dates' test views."""
+    pair: dict = {}
+    for a, b in ((p, q), (q, p)):
+        for cam, gt in zip(masks_test[a].cameras, masks_test[a].changed_vs[names[b]]):
+            _add_counts(pair, _view_counts(*found.view(p, q, cam), gt, PIXEL_THRESHOLDS))
+    return pair
 
 
 def _gaussian_scores(found: Detection, table: dict, changed_objects: dict) -> dict:

@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from cfgs_jax import train
+from cfgs_jax import synthetic, train
 from cfgs_jax.changes import ChangesConfig
 from cfgs_jax.compiled_code import release_if_near_limit
 from cfgs_jax.config import check_sections, section
@@ -108,7 +108,6 @@ def validate_eval_config(raw: dict | None) -> None:
 
 def prepare_scene(scene: str, config: SceneConfig, out: Path, *, progress: bool = True) -> Path:
     """A preset name → its dataset rendered under ``out/data`` (once); a directory → itself."""
-    from cfgs_jax import synthetic
 
     if scene in synthetic.PRESETS:
         data = out / "data"
@@ -348,7 +347,6 @@ class _Evaluation:
 
 def _known_transforms(data: Path, dirs, out: Path) -> Path:
     """The ground-truth Sim(3)s of a synthetic scene, written to ``out/transforms.json``."""
-    from cfgs_jax import synthetic
 
     if not (data / "ground_truth.json").is_file():
         raise InputError(

@@ -33,13 +33,14 @@ import json
 import time
 from pathlib import Path
 
+from cfgs_jax import synthetic
 from cfgs_jax.compiled_code import release_if_near_limit
 from cfgs_jax.config import apply_overrides, find_preset, load_config
 from cfgs_jax.errors import InputError
 from cfgs_jax.evaluation.protocol import EvalSetup, change_detection, date_dirs, prepare_scene
 from cfgs_jax.fusion.config import RUN_TABLES, RunConfig
 from cfgs_jax.fusion.stages import run_fusion
-from cfgs_jax.io.atomic import check_resume, read_json, write_json, write_text
+from cfgs_jax.io.atomic import atomic_file, check_resume, read_json, write_json, write_text
 from cfgs_jax.io.fused import read_fused
 from cfgs_jax.io.run_dir import RunDir
 
@@ -197,8 +198,6 @@ def run_sweep(
     models = transforms = None
     known = setup.eval.known_transforms if "eval" in base else False
     if known:  # synthetic scenes: the exact Sim(3)s for every variant (as `eval` does)
-        from cfgs_jax import synthetic
-
         transforms = out / "transforms.json"
         write_json(transforms, synthetic.reference_transforms(data, [d.name for d in dirs]))
     if any(shares):
@@ -276,8 +275,6 @@ def sweep_plot(path: Path, summary: dict) -> None:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-
-    from cfgs_jax.io.atomic import atomic_file
 
     rows = summary["variants"]
     fig, (a, b) = plt.subplots(1, 2, figsize=(11, 4.2))

@@ -82,7 +82,18 @@ from scipy.spatial.transform import Rotation
 from cfgs_jax.errors import InputError
 from cfgs_jax.fusion.light import light_logits
 from cfgs_jax.fusion.refine import RefineConfig
-from cfgs_jax.model import Gaussians, TemporalGaussians, exposure_table, light_multipliers, logit, rgb, select
+from cfgs_jax.model import (
+    Gaussians,
+    TemporalGaussians,
+    exposure_table,
+    light_multipliers,
+    logit,
+    opacity_multipliers,
+    rgb,
+    select,
+)
+from cfgs_jax.splat import RenderConfig
+from cfgs_jax.splat.weights import contribution_per_label, max_weight, observed_matrix, removal_change
 
 
 @dataclasses.dataclass(frozen=True)
@@ -304,9 +315,6 @@ def contributions(
     (α·T ≥ ``observed_threshold`` somewhere, the refinement's ``contribution_threshold``; ``Contributions``).
     With ``removal``, also what removing each changes there (at o^q and l^q, measured with
     ``max_alpha`` 0.9999 so that opaque Gaussians are not cut off by the clamp)."""
-    from cfgs_jax.model import opacity_multipliers
-    from cfgs_jax.splat import RenderConfig
-    from cfgs_jax.splat.weights import contribution_per_label, max_weight, observed_matrix, removal_change
 
     o, light = opacity_multipliers(model), light_multipliers(model)
     largest, total = np.zeros((len(model), model.num_dates)), np.zeros((len(model), model.num_dates))

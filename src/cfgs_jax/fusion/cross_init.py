@@ -43,12 +43,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
+from rich.progress import Progress
 
 from cfgs_jax import metrics, parallel, splat
 from cfgs_jax.errors import InputError
 from cfgs_jax.fusion.fuse import INVISIBLE_LOGIT
 from cfgs_jax.fusion.light import REC709, gain_parameter, light_gain, light_logits, light_multiplier
 from cfgs_jax.fusion.updates import cross_init_optimizer
+from cfgs_jax.io.colmap import downscale_image, downscaled_size, scale_camera
 from cfgs_jax.loop import run_steps, view_order
 from cfgs_jax.model import Camera, DateViews, Gaussians, TemporalGaussians, exposure_table, logit
 from cfgs_jax.train.step import over_background
@@ -455,7 +457,6 @@ def _mark_unseen(model: TemporalGaussians, pairs, rows, seen) -> tuple[TemporalG
 def coarse_steps(config: CrossInitConfig, width: int | None = None, height: int | None = None) -> int:
     """How many of the first steps run at 1/``coarse_factor`` resolution (the others at full); none for
     views of ``width`` × ``height`` whose downscaled shorter side falls below ``coarse_min_size``."""
-    from cfgs_jax.io.colmap import downscaled_size
 
     if config.coarse_fraction <= 0 or config.coarse_factor == 1:
         return 0
@@ -467,7 +468,6 @@ def coarse_steps(config: CrossInitConfig, width: int | None = None, height: int 
 def _coarse(pairs: _Pairs, eps_maps, factor: int) -> tuple[_Pairs, list]:
     """The pairs' views and ε maps at 1/``factor`` of the resolution: cameras scaled to the downscaled
     size, images and ε maps box-filtered; the intersection capacity recomputed for those cameras."""
-    from cfgs_jax.io.colmap import downscale_image, downscaled_size, scale_camera
 
     size = downscaled_size(pairs.cameras[0][0].width, pairs.cameras[0][0].height, factor)
     small = lambda x: jnp.asarray(downscale_image(np.asarray(x, np.float32), size))
@@ -696,7 +696,6 @@ def cross_init(
             raise InputError(f"invalid pair ({p}, {q}) for {t} dates", field="cross_init.pairs")
     net = metrics.load_lpips(config.lpips_net)
     reports = []
-    from rich.progress import Progress
 
     with Progress(disable=not progress, transient=True) as bar:
         task = bar.add_task("cross-timestep init", total=len(pairs) * config.steps)

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import functools
 
+import colour
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -31,7 +32,6 @@ def cold_warm_direction(warm_kelvin: float = 3500.0, cold_kelvin: float = 9500.0
     """d: linear-sRGB white of ``cold_kelvin`` minus that of ``warm_kelvin`` (each at unit Rec.709
     luminance; colour-science, Kang 2002 CCT → xy), so Y(d) = 0; scaled to |d|∞ = 0.5. Positive w
     turns colours colder (bluer), negative warmer."""
-    import colour
 
     srgb = colour.RGB_COLOURSPACES["sRGB"]
 

@@ -531,6 +531,59 @@ class _Refinement:
         return self.after_step(c, it)
 
 
+def _begin(
+    model,
+    views,
+    config,
+    train_config,
+    render_config,
+    extent,
+    snapshot_steps,
+    on_snapshot,
+    mesh,
+    new_dates,
+    maskable,
+    checkpoint,
+):
+    """The refinement's fixed inputs (checked) and its start: a fresh carry, or the checkpoint's.
+    Returns (refinement, carry, start step, the identity saved with checkpoints).
+
+    Learned masks (with ``config.mask_lambda`` > 0 and ``maskable``, an [N] bool): each maskable
+    Gaussian i gets a mask logit m_i (start ``MASK_INIT_LOGIT``), and the loss gains
+    ``mask_lambda`` · mean σ(m) over the maskable Gaussians. In the first ``mask_until`` of the steps
+    each such Gaussian is drawn with its opacity times σ(m_i), and the penalty lowers it as far as the
+    images let it; then the masks are fixed to M_i = [σ(m_i) > ½] (``learned_mask``), and the rest of
+    the steps recover with the set they chose. The Gaussians with M_i = 0 are removed with the final
+    prune (their count is the report's ``masked_out``)."""
+    if maskable is None and config.mask_lambda:
+        raise InputError(
+            "learned masks need the Gaussians they may remove (refine(..., maskable=...))",
+            field="refine.mask_lambda",
+            fix="leave refine.mask_lambda at 0; in a run, set compact.mask_lambda (the compaction's recovery learns them)",
+        )
+    new_dates = _check_inputs(model, views, new_dates)
+    run = _Refinement(
+        model,
+        views,
+        config,
+        train_config or TrainConfig(),
+        render_config or splat.RenderConfig(),
+        extent,
+        snapshot_steps,
+        on_snapshot,
+        mesh,
+        new_dates,
+        None if not config.mask_lambda else np.asarray(maskable, bool),
+    )
+    identity = _identity(run, new_dates)
+    carry, start = _start(run, new_dates, checkpoint, identity)
+    carry.params, carry.opt_state, carry.o_init = parallel.replicate(
+        (carry.params, carry.opt_state, carry.o_init), run.batch_mesh
+    )
+    carry.capacity = max(run.capacity_for(carry.params, q, v) for q, v in run.flat)
+    return run, carry, start, identity
+
+
 def refine(
     model: TemporalGaussians,
     views: Sequence[DateViews],
@@ -562,45 +615,34 @@ def refine(
     is called after each step k in ``snapshot_steps`` (< ``config.steps``) with the model as it stands,
     finally pruned (the visibility rule is left to its interval) — the paper's "saved iteration
     checkpoints". ``mesh`` (``parallel.device_mesh``): split each step's ``config.view_batch`` views
-    over its devices (the parameters replicated, the gradient all-reduced).
-
-    Learned masks (with ``config.mask_lambda`` > 0 and ``maskable``, an [N] bool): each maskable
-    Gaussian i gets a mask logit m_i (start ``MASK_INIT_LOGIT``), and the loss gains
-    ``mask_lambda`` · mean σ(m) over the maskable Gaussians. In the first ``mask_until`` of the steps
-    each such Gaussian is drawn with its opacity times σ(m_i), and the penalty lowers it as far as the
-    images let it; then the masks are fixed to M_i = [σ(m_i) > ½] (``learned_mask``), and the rest of
-    the steps recover with the set they chose. The Gaussians with M_i = 0 are removed with the final
-    prune (their count is the report's ``masked_out``)."""
+    over its devices (the parameters replicated, the gradient all-reduced). Learned masks
+    (``config.mask_lambda`` > 0, ``maskable`` an [N] bool): see ``_begin``."""
     config = config or RefineConfig()
-    if maskable is None and config.mask_lambda:
-        raise InputError(
-            "learned masks need the Gaussians they may remove (refine(..., maskable=...))",
-            field="refine.mask_lambda",
-            fix="leave refine.mask_lambda at 0; in a run, set compact.mask_lambda (the compaction's recovery learns them)",
-        )
-    train_config = train_config or TrainConfig()
-    new_dates = _check_inputs(model, views, new_dates)
-    run = _Refinement(
+    run, carry, start, identity = _begin(
         model,
         views,
         config,
         train_config,
-        render_config or splat.RenderConfig(),
+        render_config,
         extent,
         snapshot_steps,
         on_snapshot,
         mesh,
         new_dates,
-        None if not config.mask_lambda else np.asarray(maskable, bool),
+        maskable,
+        checkpoint,
     )
-    identity = _identity(run, new_dates)
-    carry, start = _start(run, new_dates, checkpoint, identity)
-    carry.params, carry.opt_state, carry.o_init = parallel.replicate(
-        (carry.params, carry.opt_state, carry.o_init), run.batch_mesh
-    )
-    carry.capacity = max(run.capacity_for(carry.params, q, v) for q, v in run.flat)
+    carry, done = _steps(run, carry, start, identity, checkpoint, stop_after, progress)
+    if done < config.steps:
+        return None, {"stopped_at": done}
+    pruned, report = _finish(model, carry, config, run.new_dates, run.last_checked)
+    return pruned, report | {"resumed_at_step": start, "seconds_before_resume": carry.seconds}
 
-    t0 = time.perf_counter()
+
+def _steps(run, carry: _Carry, start: int, identity: dict, checkpoint, stop_after, progress: bool):
+    """The refinement's steps from ``start`` (checkpointed every ``checkpoint_every`` steps when
+    ``checkpoint`` is a path) → (carry, steps done)."""
+    config, t0 = run.config, time.perf_counter()
 
     def save(c: _Carry, done: int):
         seconds = c.seconds + time.perf_counter() - t0
@@ -608,7 +650,7 @@ def refine(
         save_tree(checkpoint, c.arrays(), meta, format=CHECKPOINT_FORMAT)
 
     with Progress("refine", total=config.steps, completed=start, enabled=progress, transient=True) as bar:
-        carry, done = run_steps(
+        return run_steps(
             run.body,
             carry,
             start=start,
@@ -618,10 +660,6 @@ def refine(
             save=save if checkpoint is not None else None,
             progress=bar,
         )
-    if done < config.steps:
-        return None, {"stopped_at": done}
-    pruned, report = _finish(model, carry, config, new_dates, run.last_checked)
-    return pruned, report | {"resumed_at_step": start, "seconds_before_resume": carry.seconds}
 
 
 def _finish(model, carry: _Carry, config: RefineConfig, new_dates, checked) -> tuple[TemporalGaussians, dict]:

@@ -9,13 +9,17 @@ from __future__ import annotations
 import dataclasses
 import functools
 import logging
+import tempfile
 from pathlib import Path
 
 import jax
 import jax.numpy as jnp
 import numpy as np
+import optimistix as optx
+from scipy.spatial.transform import Rotation
 
 from cfgs_jax.errors import InputError
+from cfgs_jax.io.images import write_image
 from cfgs_jax.model import Gaussians
 from cfgs_jax.sim3 import Sim3, matrix_to_quat
 
@@ -121,7 +125,6 @@ def refine_sim3_pair(init_a: Sim3, init_b: Sim3, ref_pairs, date_pairs, extent: 
     Residuals: A(c_sfm) − c_ref and A(c_sfm) − B(c_date) over ``extent``; R_A·R_sfm − R_ref and
     R_A·R_sfm − R_B·R_date (world-from-camera rotations). Returns (A, B, converged): the two Sim3 and
     whether optimistix reported success with finite parameters within ``max_steps``."""
-    import optimistix as optx
 
     (c_rs, r_rs), (c_rr, r_rr) = ref_pairs
     (c_ds, r_ds), (c_dd, r_dd) = date_pairs
@@ -145,7 +148,6 @@ def refine_sim3_pair(init_a: Sim3, init_b: Sim3, ref_pairs, date_pairs, extent: 
         return jnp.concatenate(out)
 
     def pack(s: Sim3):
-        from scipy.spatial.transform import Rotation
 
         return np.concatenate([[np.log(s.scale)], Rotation.from_matrix(s.rotation).as_rotvec(), s.translation])
 
@@ -183,11 +185,8 @@ def _joint_sfm(reference, date, config: RegisterConfig, workdir) -> tuple:
     """One pycolmap SfM (SIFT, exhaustive matching, incremental mapping with the dates' pinhole
     intrinsics fixed) of ``images_per_date`` evenly spaced images of each date. Returns the largest
     reconstruction and {SfM image name: ("ref" | "new", image index)}."""
-    import tempfile
 
     import pycolmap
-
-    from cfgs_jax.io.images import write_image
 
     with tempfile.TemporaryDirectory(dir=workdir) as tmp:
         tmp = Path(tmp)

@@ -12,6 +12,8 @@ import datetime as dt
 import os
 from collections.abc import Sequence
 
+from PIL import Image
+
 from cfgs_jax.errors import InputError
 
 #: EXIF tags: DateTimeOriginal (in the Exif sub-IFD) and DateTime (IFD0).
@@ -36,7 +38,6 @@ def parse_captured(text: str, *, field: str = "captured") -> dt.datetime:
 def exif_with_capture_time(captured: str):
     """A Pillow ``Image.Exif`` holding ``captured`` as DateTimeOriginal and DateTime
     ("YYYY:MM:DD HH:MM:SS", UTC)."""
-    from PIL import Image
 
     stamp = parse_captured(captured).astimezone(dt.UTC).strftime("%Y:%m:%d %H:%M:%S")
     exif = Image.Exif()
@@ -47,7 +48,6 @@ def exif_with_capture_time(captured: str):
 
 def exif_captured(paths: Sequence[str | os.PathLike]) -> str | None:
     """The earliest EXIF capture time of ``paths`` as ISO 8601, or None when no image has one."""
-    from PIL import Image
 
     times = []
     for path in paths:

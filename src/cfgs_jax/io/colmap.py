@@ -26,6 +26,7 @@ import os
 from pathlib import Path
 
 import numpy as np
+from PIL import Image
 
 from cfgs_jax.errors import InputError
 from cfgs_jax.io.images import image_size, read_image
@@ -84,7 +85,6 @@ def downscaled_size(width: int, height: int, factor: int) -> tuple[int, int]:
 
 def downscale_image(img: np.ndarray, size: tuple[int, int]) -> np.ndarray:
     """Box-filter (area-average) ``img`` [H, W, C] to ``size`` = (width, height), channel by channel."""
-    from PIL import Image
 
     if (img.shape[1], img.shape[0]) == tuple(size):
         return img

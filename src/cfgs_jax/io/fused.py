@@ -24,6 +24,7 @@ Directories are written atomically as a whole (a temporary sibling renamed into 
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import json
 import os
@@ -72,8 +73,6 @@ def config_hash(config) -> str | None:
     if config is None:
         return None
     if hasattr(config, "__dataclass_fields__"):
-        import dataclasses
-
         config = dataclasses.asdict(config)
     blob = json.dumps(config, sort_keys=True, default=str).encode()
     return hashlib.sha256(blob).hexdigest()

@@ -12,10 +12,12 @@ import os
 from pathlib import Path
 
 import numpy as np
+from PIL import Image, UnidentifiedImageError
 
 from cfgs_jax.colour import linear_to_srgb, srgb_to_linear
 from cfgs_jax.errors import InputError
 from cfgs_jax.io.atomic import atomic_file
+from cfgs_jax.io.captured import exif_with_capture_time
 
 PIL_SUFFIXES = {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp"}
 EXR_SUFFIXES = {".exr"}
@@ -82,7 +84,6 @@ def image_size(path: str | os.PathLike) -> tuple[int, int]:
         except Exception as exc:
             raise InputError(f"unreadable EXR ({exc})", path=p, fix="the file is corrupt: replace it") from exc
         return int(x1 - x0 + 1), int(y1 - y0 + 1)
-    from PIL import Image, UnidentifiedImageError
 
     try:
         with Image.open(p) as im:
@@ -94,7 +95,6 @@ def image_size(path: str | os.PathLike) -> tuple[int, int]:
 
 
 def _read_pil(p: Path) -> np.ndarray:
-    from PIL import Image, UnidentifiedImageError
 
     try:
         with Image.open(p) as im:
@@ -153,16 +153,12 @@ def write_image(path: str | os.PathLike, img, *, linear: bool = False, captured:
         with atomic_file(p) as tmp:
             OpenEXR.File(header, channels).write(str(tmp))
     elif suffix in PIL_SUFFIXES:
-        from PIL import Image
-
         enc = _to_srgb(rgb) if linear else rgb
         out = np.concatenate([enc, alpha], axis=-1) if alpha.shape[-1] else enc
         u8 = np.round(np.clip(np.nan_to_num(out), 0.0, 1.0) * 255.0).astype(np.uint8)
         fmt = {".jpg": "JPEG", ".jpeg": "JPEG", ".tif": "TIFF", ".tiff": "TIFF"}.get(suffix, suffix[1:].upper())
         extra = {}
         if captured is not None:
-            from cfgs_jax.io.captured import exif_with_capture_time
-
             extra["exif"] = exif_with_capture_time(captured)
         with atomic_file(p) as tmp:
             Image.fromarray(u8).save(tmp, format=fmt, **extra)

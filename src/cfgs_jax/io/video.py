@@ -7,6 +7,7 @@ import warnings
 from collections.abc import Sequence
 from pathlib import Path
 
+import imageio.v2 as imageio
 import numpy as np
 
 from cfgs_jax.errors import InputError
@@ -18,7 +19,6 @@ def write_video(path: str | os.PathLike, frames: Sequence[np.ndarray], *, fps: i
 
     Frames are quantised to 8 bits; an odd width or height is padded by one black row/column, since
     yuv420p needs even sizes (players reject odd ones)."""
-    import imageio.v2 as imageio
 
     if not frames:
         raise InputError("no frames to write", path=path, fix="render at least one view")

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import dataclasses
 
+from cfgs_jax.errors import InputError
+
 BACKENDS = ("auto", "xla", "pallas")
 
 
@@ -51,7 +53,6 @@ class RenderConfig:
     walk: str = "chunk"
 
     def __post_init__(self):
-        from cfgs_jax.errors import InputError
 
         for name in ("tile_size", "chunk"):
             v = getattr(self, name)

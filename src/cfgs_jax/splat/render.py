@@ -19,6 +19,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, Int
 
+from cfgs_jax import parallel
 from cfgs_jax.errors import InputError
 from cfgs_jax.model import Camera, Gaussians, is_traced, opacities, rgb
 from cfgs_jax.splat.binning import bin_gaussians, listed_tiles
@@ -364,7 +365,6 @@ def render(
 
 @functools.partial(jax.jit, static_argnames=("config", "capacity", "mesh"))
 def _render_views_jit(gaussians, cameras, opacity_mult, color_mult, background, *, config, capacity, mesh):
-    from cfgs_jax import parallel
 
     def one(camera, shared):
         g, om, cm, bg = shared
@@ -392,7 +392,6 @@ def render_views(
     ``render_dates`` call per view; with one, as many consecutive views of one image size per call as
     the mesh has devices, split over them with the Gaussians replicated (``parallel.map_batch``) —
     the same images."""
-    from cfgs_jax import parallel
 
     if not parallel.is_parallel(mesh):
         for camera in cameras:
@@ -425,7 +424,6 @@ def render_views(
 
 def _render_chunk(shared, cameras: list[Camera], width: int, config: RenderConfig, mesh) -> np.ndarray:
     """Up to ``width`` views of one size at once (padded to ``width`` with the first)."""
-    from cfgs_jax import parallel
 
     g, om, cm, bg = shared
     stacked = parallel.shard_batch(parallel.stack(cameras + [cameras[0]] * (width - len(cameras))), mesh)

@@ -16,7 +16,10 @@ import json
 import logging
 from pathlib import Path
 
+import colour
 import numpy as np
+from PIL import Image
+from rich.progress import Progress
 
 from cfgs_jax.colour import REC709_LUMA
 from cfgs_jax.errors import InputError
@@ -53,7 +56,6 @@ def texture(spec: SceneSpec, obj_index: int, date: int) -> np.ndarray:
 
 def sun_rgb(cct_kelvin: float) -> np.ndarray:
     """Linear sRGB colour of a black-body-like illuminant at ``cct_kelvin``, unit luminance."""
-    import colour
 
     xy = colour.temperature.CCT_to_xy(cct_kelvin, method="Kang 2002")
     rgb = colour.XYZ_to_RGB(colour.xy_to_XYZ(xy), colour.RGB_COLOURSPACES["sRGB"], chromatic_adaptation_transform=None)
@@ -275,7 +277,6 @@ def render_dataset(
 ) -> Path:
     """Render the dates of ``spec`` (all, or the indices in ``dates``) and write their datasets and
     the ground truth under ``out``."""
-    from rich.progress import Progress
 
     out = ensure_writable_dir(out)
     nd = len(spec.dates)
@@ -318,13 +319,11 @@ def render_dataset(
 
 
 def _read_srgb(path: Path) -> np.ndarray:
-    from PIL import Image
 
     return np.asarray(Image.open(path).convert("RGB"))
 
 
 def _write_mask(path: Path, values: np.ndarray) -> None:
-    from PIL import Image
 
     v = np.asarray(values)
     if v.max(initial=0) > 255:

@@ -337,15 +337,5 @@ def fit(
     gaussians = carry.state.gaussians()
     metrics = run.evaluate(gaussians) if finished and evaluate_at_end and len(run.test_idx) else {}
     seconds = time.perf_counter() - t0
-    return TrainRun(
-        carry.state,
-        gaussians,
-        config,
-        run.extent,
-        carry.losses,
-        carry.counts,
-        metrics,
-        carry.eval_history,
-        seconds,
-        finished,
-    )
+    history = (carry.losses, carry.counts, metrics, carry.eval_history)
+    return TrainRun(carry.state, gaussians, config, run.extent, *history, seconds, finished)

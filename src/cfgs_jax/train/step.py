@@ -7,10 +7,11 @@ import dataclasses
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 import optax
 from jaxtyping import Array, Bool, Float, Int
 
-from cfgs_jax import metrics, splat
+from cfgs_jax import metrics, parallel, splat
 from cfgs_jax.model import Camera, Gaussians, gaussians_of, trainable
 from cfgs_jax.train.config import TrainConfig
 
@@ -63,7 +64,6 @@ class TrainState(eqx.Module):
 
     def gaussians(self) -> Gaussians:
         """The live Gaussians (outside jit)."""
-        import numpy as np
 
         idx = np.nonzero(np.asarray(self.active))[0]
         return gaussians_of({f: np.asarray(v)[idx] for f, v in self.params.items()})
@@ -162,7 +162,6 @@ def make_batch_train_step(
     device of ``mesh`` over its share: ``parallel.map_batch``; the sum across devices is an
     all-reduce). The densification statistics take each view's own screen-space gradient, as B
     single-view steps would."""
-    from cfgs_jax import parallel
 
     if render_config.capacity is None:
         raise ValueError("make_batch_train_step needs render_config.capacity (splat.required_capacity)")
