@@ -13,7 +13,7 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
-from bench_splat import machine
+from common import machine
 
 SUMMARY = re.compile(
     r"^=*\s*(?P<line>(\d+ (passed|failed|error|errors|skipped|deselected|xfailed|xpassed)[, ]*)+.*?)\s*=*$"

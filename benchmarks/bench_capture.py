@@ -34,16 +34,23 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_incremental import FUSION_STAGES, _quiet
-from bench_splat import RESULTS, machine
+from common import FUSION_STAGES, RESULTS, machine, quiet
 
 PATHS = ("scratch", "incremental")
 DATES = 6
 
 
 def _done(run: Path, stage: str) -> bool:
-    state = run / "run.json"
-    return state.is_file() and stage in json.loads(state.read_text())["done"]
+    from cfgs_jax.io import RunDir
+
+    found = RunDir.find(run)
+    return found is not None and found.done(stage)
+
+
+def _started(run: Path) -> bool:
+    from cfgs_jax.io import RunDir
+
+    return RunDir.find(run) is not None
 
 
 def _scene(args) -> tuple[Path, list[str], Path, dict]:
@@ -68,6 +75,7 @@ def _scene(args) -> tuple[Path, list[str], Path, dict]:
 def _path(args, raw, data, names, transforms, sims) -> None:
     """One fusion path in this process: ``scratch`` (all dates) or ``incremental`` (five, then extend)."""
     from cfgs_jax.fusion import run_extend, run_fusion
+    from cfgs_jax.io import RunDir
     from cfgs_jax.sim3 import Sim3
 
     work = Path(args.work)
@@ -77,22 +85,22 @@ def _path(args, raw, data, names, transforms, sims) -> None:
         run = work / "scratch"
         if not _done(run, "evaluate"):
             run_fusion(
-                dirs, run, raw, models=models, transforms=transforms, resume=(run / "run.json").is_file(),
-                progress=False, log=_quiet,
+                dirs, run, raw, models=models, transforms=transforms, resume=RunDir.find(run) is not None,
+                progress=False, log=quiet,
             )  # fmt: skip
         return
     run = work / "incremental"
     if not _done(run, "export"):
         run_fusion(
-            dirs[:-1], run, raw, models=models[:-1], transforms=transforms, resume=(run / "run.json").is_file(),
-            progress=False, evaluate=False, log=_quiet,
+            dirs[:-1], run, raw, models=models[:-1], transforms=transforms, resume=RunDir.find(run) is not None,
+            progress=False, evaluate=False, log=quiet,
         )  # fmt: skip
     last = names[-1]
     if not _done(run, f"extend:{last}:evaluate"):
-        state = json.loads((run / "run.json").read_text())
+        state = RunDir.open(run, finished=False).state
         run_extend(
             run, dirs[-1], model=models[-1], transform=Sim3.from_dict(sims[last]),
-            resume=any(s.startswith(f"extend:{last}:") for s in state["done"]), progress=False, log=_quiet,
+            resume=any(s.startswith(f"extend:{last}:") for s in state["done"]), progress=False, log=quiet,
         )  # fmt: skip
 
 
@@ -158,7 +166,7 @@ def main():
         print("training the per-date models", flush=True)
         run_fusion(
             [data / n for n in names], work / "models", raw, transforms=transforms,
-            resume=(work / "models" / "run.json").is_file(), progress=False, evaluate=False, until="train", log=_quiet,
+            resume=_started(work / "models"), progress=False, evaluate=False, until="train", log=quiet,
         )  # fmt: skip
     for path in ("scratch", "incremental", "change"):
         if path == "change" and (args.no_change or all((work / f"change_{p}.json").is_file() for p in PATHS)):
@@ -183,8 +191,8 @@ def write_results(args, work: Path, names) -> None:
         ),
     }
     scratch_s, extend_s = (
-        _fusion_seconds(rows["scratch"]),
-        _fusion_seconds(rows["incremental: extend by the last date"]),
+        fusion_seconds(rows["scratch"]),
+        fusion_seconds(rows["incremental: extend by the last date"]),
     )
     change = {
         p: json.loads((work / f"change_{p}.json").read_text()) for p in PATHS if (work / f"change_{p}.json").is_file()
@@ -220,7 +228,7 @@ def write_results(args, work: Path, names) -> None:
     print(markdown(result))
 
 
-def _fusion_seconds(rows: list[dict]) -> float:
+def fusion_seconds(rows: list[dict]) -> float:
     """The wall time of a path's fusion stages (merge, cross-init, refine, export)."""
     return sum(r["seconds"] for r in rows if r["stage"] in FUSION_STAGES)
 
@@ -236,7 +244,7 @@ def ratio_bound(rows: dict, scratch_report: dict, incremental_report: dict, pref
     refine_s, refine_e = scratch_report["refine"], incremental_report[prefix + "refine"]
     ci_s, ref_s = seconds(scratch, "cross_init"), seconds(scratch, "refine")
     ci_e, ref_e = seconds(extend, "cross_init"), seconds(extend, "refine")
-    total_s = _fusion_seconds(scratch)
+    total_s = fusion_seconds(scratch)
     step_share = refine_e["steps"] / refine_s["steps"]
     return {
         "pairs": {"scratch": pairs_s, "extend": pairs_e},

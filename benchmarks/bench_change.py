@@ -22,7 +22,7 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_splat import RESULTS, machine
+from common import RESULTS, machine
 
 VARIANTS = [  # (label, overrides of the default [changes] table)
     ("every view direction", {"max_view_angle": 180.0}),
@@ -161,20 +161,16 @@ def main():
     if not (args.run and args.data and args.scene):
         ap.error("--run, --data and --scene are required (or --summary)")
 
-    from cfgs_jax import splat
-    from cfgs_jax.changes import ChangesConfig, evidence_from, pair_statistics
-    from cfgs_jax.config import section
-    from cfgs_jax.evaluation import change as gt_change
+    from cfgs_jax.changes import evidence_from, pair_statistics
+    from cfgs_jax.evaluation import scoring as gt_change
     from cfgs_jax.evaluation.protocol import change_detection, date_masks
-    from cfgs_jax.evaluation.report import _change_table, _evidence_table, pr_curve_plot
-    from cfgs_jax.io.atomic import read_json, write_json, write_text
+    from cfgs_jax.evaluation.report import change_table, evidence_table, pr_curve_plot
+    from cfgs_jax.io.atomic import write_json, write_text
     from cfgs_jax.render_run import open_run
 
     run_dir, data = Path(args.run), Path(args.data)
     run = open_run(run_dir)
-    raw = (read_json(run_dir / "run.json") or {}).get("config") or {}
-    rc = section(raw, "render", splat.RenderConfig)
-    default = section(raw, "changes", ChangesConfig)
+    rc, default = run.config.render, run.config.changes
     views = [run.date_views(d, default.views) for d in range(len(run.names))]
     support = [run.date_cameras(d, "train") for d in range(len(run.names))]
     t0 = time.perf_counter()
@@ -185,8 +181,8 @@ def main():
     names = list(run.names)
     masks_test = date_masks(data, run.scenes, run.sims, names, "test")
     masks = date_masks(data, run.scenes, run.sims, names)
-    table = gt_change.gaussian_change_table(
-        run.model, masks, [m.cameras for m in masks], len(gt["objects"]), gt_change.ChangeConfig(surface_threshold=0)
+    table = gt_change.gaussianchange_table(
+        run.model, masks, [m.cameras for m in masks], len(gt["objects"]), gt_change.OqRuleConfig(surface_threshold=0)
     )
     rows = []
     other_stats = {}
@@ -256,7 +252,7 @@ def main():
         f"Machine: {out['machine']}. Date: {out['date']}. Command: `{out['command']}`. The residual sums of "
         f"all {len(stats.pairs)} ordered date pairs ({default.views} views) took {stats_s:.1f} s. PR curves: `{name}_pr.png`.",
     ]
-    lines += _evidence_table(result["evidence"])
+    lines += evidence_table(result["evidence"])
     lines += [
         "",
         "## Ablation (each row one setting for every scene; ground truth only scores)",
@@ -293,7 +289,7 @@ def main():
         f"{b['gaussians']:,} | {b['in_region']:,} | {b['mean_score']:.2f} |"
         for b in out["by_object"]
     ]
-    lines += _change_table(result)
+    lines += change_table(result)
     write_text(RESULTS / f"{name}.md", "\n".join(lines) + "\n")
     print("\n".join(lines[:16]))
 

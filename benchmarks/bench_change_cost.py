@@ -26,7 +26,7 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_splat import RESULTS, machine
+from common import RESULTS, machine
 
 
 def _gradient_sums(model, dates, q, cameras, images, rc):
@@ -99,16 +99,14 @@ def main():
 
     import numpy as np
 
-    from cfgs_jax import splat
     from cfgs_jax.changes.evidence import observing_date_sums
-    from cfgs_jax.config import section
-    from cfgs_jax.io.atomic import read_json, write_json, write_text
+    from cfgs_jax.io.atomic import write_json, write_text
     from cfgs_jax.io.run_dir import date_views
     from cfgs_jax.render_run import open_run
 
     run_dir = Path(args.run)
     run = open_run(run_dir)
-    rc = section(read_json(run_dir / "run.json")["config"] or {}, "render", splat.RenderConfig)
+    rc = run.config.render
     model, q = run.model, args.date
     views = date_views(run.scenes[q], run.sims[q], "all")
     cameras, images = list(views.cameras)[: args.views], list(views.images)[: args.views]

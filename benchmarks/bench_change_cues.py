@@ -31,7 +31,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_splat import RESULTS, machine
+from common import RESULTS, machine
 
 
 def depth_cues(model, observing, render_config) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -77,7 +77,7 @@ def main():
     from bench_change_regions import change_table, open_scored_run, regions_by_pair
 
     from cfgs_jax.changes import pair_statistics
-    from cfgs_jax.evaluation import change
+    from cfgs_jax.evaluation import scoring
     from cfgs_jax.io.run_dir import date_cameras, date_views
     from cfgs_jax.splat.weights import fused_visibility
 
@@ -100,7 +100,7 @@ def main():
     origin = np.asarray(model.origin)
     own = shown[np.arange(len(origin)), origin]
     free, behind, seen = depth_cues(model, observing, rc)
-    changed = change.changed_objects_by_pair(gt)
+    changed = scoring.changed_objects_by_pair(gt)
     rows_out = []
     for (p, q), v in table["pairs"].items():
         rows, obs = v["rows"], v["observed"]

@@ -29,7 +29,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_splat import RESULTS, machine
+from common import RESULTS, machine
 
 
 def f1_of(pred: np.ndarray, truth: np.ndarray) -> dict:
@@ -112,7 +112,7 @@ def main():
     from bench_change_cues import depth_cues
     from bench_change_regions import _statistics, change_table, open_scored_run, regions_by_pair, view_cameras
 
-    from cfgs_jax.evaluation import change
+    from cfgs_jax.evaluation import scoring
     from cfgs_jax.splat.weights import fused_visibility
 
     data = Path(args.data)
@@ -151,7 +151,7 @@ def main():
         m2 = np.einsum("nki,nki->nk", d, np.linalg.solve(both, d[..., None])[..., 0])
         mahalanobis[:, q] = np.sqrt(np.maximum(m2.min(1), 0.0))
     front = changed_front(model, observing, members, rc)
-    changed_objects = change.changed_objects_by_pair(gt)
+    changed_objects = scoring.changed_objects_by_pair(gt)
     objects = np.asarray(table["objects"])
 
     base, truth, gone_elsewhere, cover, ratio, apart, sigmas, detector_rule = ([] for _ in range(8))

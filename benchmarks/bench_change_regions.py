@@ -2,10 +2,10 @@
 ground truth, for a few region rules, without recomputing the residual sums per rule.
 
 The residual sums of every ordered date pair (``changes.pair_statistics``, the costly part) and each
-Gaussian's ground-truth object (``evaluation.change.object_labels``) are computed once and cached in
+Gaussian's ground-truth object (``evaluation.scoring.object_labels``) are computed once and cached in
 ``--cache`` (rerun the command with other ``--set`` rules and they are read back). For each rule the
 regions of every date pair are formed as the ``changes`` command forms them and scored as the
-evaluation scores them (``evaluation.change._region_scores``: a region is true when most of its
+evaluation scores them (``evaluation.scoring.region_scores``: a region is true when most of its
 Gaussians belong to an object whose presence differs between the two dates): changed objects found,
 false regions, and for every false region its size and its dominant object.
 
@@ -31,25 +31,21 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_splat import RESULTS, machine
+from common import RESULTS, machine
 
 
 def open_scored_run(run_dir: Path):
     """A finished run, its configuration, and its ``[render]`` and ``[changes]`` tables."""
-    from cfgs_jax import splat
-    from cfgs_jax.changes import ChangesConfig
-    from cfgs_jax.config import section
-    from cfgs_jax.io.atomic import read_json
     from cfgs_jax.render_run import open_run
 
-    raw = read_json(Path(run_dir) / "run.json")["config"] or {}
-    return open_run(run_dir), raw, section(raw, "render", splat.RenderConfig), section(raw, "changes", ChangesConfig)
+    run = open_run(run_dir)
+    return run, run.config.tables, run.config.render, run.config.changes
 
 
 def _statistics(run, data: Path, cache: Path, changes_config, render_config):
     """The pair statistics and object labels of the run, from the cache or computed and cached."""
     from cfgs_jax.changes import PairStatistics, pair_statistics
-    from cfgs_jax.evaluation import change
+    from cfgs_jax.evaluation import scoring
     from cfgs_jax.evaluation.protocol import date_masks
     from cfgs_jax.io.run_dir import date_cameras, date_views
 
@@ -61,7 +57,7 @@ def _statistics(run, data: Path, cache: Path, changes_config, render_config):
         t0 = time.perf_counter()
         gt = json.loads((data / "ground_truth.json").read_text())
         masks = date_masks(data, run.scenes, run.sims, [d.name for d in model.dates])
-        labels = change.object_labels(model, masks, len(gt["objects"]), render_config=render_config)
+        labels = scoring.object_labels(model, masks, len(gt["objects"]), render_config=render_config)
         np.save(labels_file, labels)
         seconds["object_labels"] = time.perf_counter() - t0
     if not stats_file.is_file():
@@ -88,8 +84,8 @@ def _statistics(run, data: Path, cache: Path, changes_config, render_config):
 
 def change_table(run, data: Path, render_config) -> tuple[dict, list, list, dict]:
     """The scene's ground truth, each date's masks and observing cameras, and the evaluation's table
-    of scored entries (``evaluation.change.gaussian_change_table``, observed with no surface bound)."""
-    from cfgs_jax.evaluation import change
+    of scored entries (``evaluation.scoring.gaussian_change_table``, observed with no surface bound)."""
+    from cfgs_jax.evaluation import scoring
     from cfgs_jax.evaluation.protocol import date_masks
     from cfgs_jax.splat.weights import observed_matrix
 
@@ -97,9 +93,9 @@ def change_table(run, data: Path, render_config) -> tuple[dict, list, list, dict
     gt = json.loads((data / "ground_truth.json").read_text())
     masks = date_masks(data, run.scenes, run.sims, [d.name for d in model.dates])
     observing = [m.cameras for m in masks]
-    reference = change.ChangeConfig(surface_threshold=0.0)
+    reference = scoring.OqRuleConfig(surface_threshold=0.0)
     observed = observed_matrix(model, observing, reference.contribution_threshold, render_config=render_config)
-    table = change.gaussian_change_table(
+    table = scoring.gaussian_change_table(
         model, masks, observing, len(gt["objects"]), reference, render_config=render_config, observed=observed
     )
     return gt, masks, observing, table
@@ -130,13 +126,13 @@ def regions_by_pair(model, stats, config, cameras, render_config=None) -> dict:
 
 def score_rule(model, stats, labels, changed_objects, config, cameras, render_config=None) -> dict:
     """Regions of every date pair under ``config`` (a ``ChangesConfig``), scored against the objects."""
-    from cfgs_jax.evaluation.change import _region_scores
+    from cfgs_jax.evaluation.scoring import region_scores
 
     names = [d.name for d in model.dates]
     per_pair, found, changed, false = {}, 0, 0, []
     for (p, q), (regions, member) in regions_by_pair(model, stats, config, cameras, render_config).items():
         truth = changed_objects.get((p, q), set())
-        objs = _region_scores(regions, member, labels, truth)
+        objs = region_scores(regions, member, labels, truth)
         found += len(objs["found"])
         changed += len(truth)
         pair_false = [
@@ -167,10 +163,10 @@ def score_rule(model, stats, labels, changed_objects, config, cameras, render_co
 
 def score_default(run, data: Path, stats, config, render_config) -> dict:
     """The ``changes`` detector under ``config`` scored as the evaluation scores it
-    (``evaluation.change.evidence_detection``: per Gaussian against the objects, per pixel of the test
+    (``evaluation.scoring.evidence_detection``: per Gaussian against the objects, per pixel of the test
     views, per region), from the cached sums; only the tables it needs are computed (the fused
     visibility of every Gaussian at every date and the ground-truth labels), not the o^q rules'."""
-    from cfgs_jax.evaluation import change
+    from cfgs_jax.evaluation import scoring
     from cfgs_jax.evaluation.protocol import date_masks
     from cfgs_jax.io.run_dir import date_views
     from cfgs_jax.splat.weights import observed_matrix
@@ -182,17 +178,17 @@ def score_default(run, data: Path, stats, config, render_config) -> dict:
     masks = date_masks(data, run.scenes, run.sims, names)
     masks_test = date_masks(data, run.scenes, run.sims, names, "test")
     observing = [m.cameras for m in masks]
-    reference = change.ChangeConfig(surface_threshold=0.0)
+    reference = scoring.OqRuleConfig(surface_threshold=0.0)
     observed = observed_matrix(model, observing, reference.contribution_threshold, render_config=render_config)
-    table = change.gaussian_change_table(
+    table = scoring.gaussian_change_table(
         model, masks, observing, len(gt["objects"]), reference, render_config=render_config, observed=observed
     )
-    ev = change.evidence_detection(
+    ev = scoring.evidence_detection(
         model,
         [date_views(sc, sm, config.views) for sc, sm in zip(run.scenes, run.sims)],
         table,
         masks_test,
-        change.changed_objects_by_pair(gt),
+        scoring.changed_objects_by_pair(gt),
         config,
         render_config=render_config,
         statistics=stats,
@@ -275,7 +271,7 @@ def main():
 
     from cfgs_jax.changes import ChangesConfig
     from cfgs_jax.config import apply_overrides, section
-    from cfgs_jax.evaluation.change import changed_objects_by_pair
+    from cfgs_jax.evaluation.scoring import changed_objects_by_pair
 
     data = Path(args.data)
     run, raw, render_config, base = open_scored_run(Path(args.run))

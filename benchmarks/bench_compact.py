@@ -1,15 +1,15 @@
 """Cross-timestep compaction against its price in error: for each value of one hidden-copy knob
-(``--knob``: ``hidden_threshold`` or ``hidden_share``), a copy of a finished fusion run is compacted
+(``--knob``: ``hidden_share``), a copy of a finished fusion run is compacted
 (``compact --run``) and refined ``--refine-steps`` more steps; the reference row is the same
 refinement without compaction (value 0, which still merges the few mutual-nearest copies). Reports Gaussians, test PSNR / SSIM / LPIPS (mean over dates and per date),
 the stage's wall time and the render time of a full selection (all dates, highlight) of the test
 views over the reference's, timed alternately in one process.
 
     python benchmarks/bench_compact.py --run RUN [--knob hidden_share] [--values 0 0.01 0.02] [--refine-steps 200]
-        [--set compact.hidden_rank=removal --set compact.hidden_rounds=3] [--noise-seeds 1 2]
+        [--set compact.mask_lambda=0.005 --set compact.recovery_rate_scale=10] [--noise-seeds 1 2]
 
 ``--row VALUE compact.KEY=VALUE …`` adds a row at that knob value with its own overrides on top of
-``--set`` (e.g. ``--row 0.02 compact.restore_hidden=true``), so that settings share one reference row.
+``--set`` (e.g. ``--row 0.06 compact.mask_lambda=0.005``), so that settings share one reference row.
 ``--pre-refine STEPS`` first refines a copy of the run STEPS steps with the ``--set`` settings and no
 compaction (merge and hidden-copy rules, masks off) and compacts that: a better-converged input, on which
 the reference row's recovery gains little. ``--summary SPEC … [--write STEM]`` prints (and writes as results/STEM.md) one table of chosen rows of
@@ -41,7 +41,7 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_splat import RESULTS, _timed, machine
+from common import RESULTS, machine, timed
 
 
 def selection_frames(run_dir: Path):
@@ -76,7 +76,7 @@ def render_ratios(dirs: list[Path], repeats: int = 7) -> list[float]:
     times = [[] for _ in fns]
     for _ in range(repeats):
         for k, f in enumerate(fns):
-            times[k].append(_timed(f, ()))
+            times[k].append(timed(f, ()))
     medians = [statistics.median(t) for t in times]
     return [m / medians[0] for m in medians]
 
@@ -85,15 +85,11 @@ def change_scores(run_dir: Path, data: Path) -> dict:
     """Per-Gaussian F1 and per-pixel IoU of the run's fused model against the scene's ground truth: the
     o^q rule (``f1``, ``iou``) and the residual-evidence detector of the ``changes`` command
     (``evidence_f1``, ``evidence_iou``, ``false_regions``)."""
-    from cfgs_jax import splat
-    from cfgs_jax.config import section
     from cfgs_jax.evaluation.protocol import change_detection
-    from cfgs_jax.io.atomic import read_json
     from cfgs_jax.render_run import open_run
 
     run = open_run(run_dir)
-    render_config = section(read_json(run_dir / "run.json")["config"] or {}, "render", splat.RenderConfig)
-    change = change_detection(run.model, data, run.scenes, run.sims, render_config)
+    change = change_detection(run.model, data, run.scenes, run.sims, run.config.render)
     ev = change["evidence"]
     return {
         "f1": change["gaussians"]["f1"],
@@ -108,18 +104,14 @@ def pre_refined(run: Path, copy: Path, compact: dict, steps: int) -> Path:
     """A copy of the finished fusion run ``run`` whose fused model was refined ``steps`` more steps with
     the recovery settings of ``compact`` and nothing removed (no merge, no hidden-copy rule, no masks),
     marked as a finished, uncompacted fusion run again."""
-    from cfgs_jax.config import section
-    from cfgs_jax.fusion import run_compact
-    from cfgs_jax.fusion.compact import CompactConfig
-    from cfgs_jax.io.atomic import read_json, write_json
+    from cfgs_jax.fusion import RunConfig, run_compact
+    from cfgs_jax.io import RunDir
 
     shutil.copytree(run, copy, ignore=shutil.ignore_patterns("snapshots", "ablations", "*.npz"))
-    keep = {"max_distance": 0.0, "hidden_threshold": 0.0, "hidden_share": 0.0, "mask_lambda": 0.0}
-    config = section({"compact": compact | keep | {"refine_steps": steps}}, "compact", CompactConfig)
+    keep = {"max_distance": 0.0, "hidden_share": 0.0, "mask_lambda": 0.0}
+    config = RunConfig.parse({"compact": compact | keep | {"refine_steps": steps}}).compact
     run_compact(copy, config, progress=False, log=lambda *a: None)
-    state = read_json(copy / "run.json")
-    state["done"] = [s for s in state["done"] if s != "compact"]
-    write_json(copy / "run.json", state)
+    RunDir.open(copy).undo(["compact"])
     (copy / "compact.json").unlink()
     shutil.rmtree(copy / "before_compact")
     return copy
@@ -128,7 +120,7 @@ def pre_refined(run: Path, copy: Path, compact: dict, steps: int) -> Path:
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--run", help="a finished fusion run (copied, never changed)")
-    ap.add_argument("--knob", choices=["hidden_threshold", "hidden_share"], default="hidden_threshold")
+    ap.add_argument("--knob", choices=["hidden_share"], default="hidden_share")
     ap.add_argument("--values", "--thresholds", type=float, nargs="+", default=[0.0, 0.02, 0.05, 0.1])
     ap.add_argument("--refine-steps", type=int, default=200)
     ap.add_argument("--data", default=None, help="the scene's dataset root: also score change detection")
@@ -138,7 +130,7 @@ def main():
         action="append",
         default=[],
         dest="overrides",
-        help="compact.KEY=VALUE for every row, e.g. compact.hidden_rank=removal",
+        help="compact.KEY=VALUE for every row, e.g. compact.mask_lambda=0.005",
     )
     ap.add_argument(
         "--noise-seeds",
@@ -177,12 +169,11 @@ def main():
     if not args.run:
         ap.error("--run is required (or --summary)")
 
-    from cfgs_jax.config import apply_overrides, section
-    from cfgs_jax.fusion import run_compact
-    from cfgs_jax.fusion.compact import CompactConfig
-    from cfgs_jax.io.atomic import read_json, write_json
+    from cfgs_jax.config import apply_overrides
+    from cfgs_jax.fusion import RunConfig, run_compact
+    from cfgs_jax.io import RunDir
 
-    base = dict((read_json(Path(args.run) / "run.json")["config"] or {}).get("compact", {}))
+    base = dict(RunDir.open(args.run).config.get("compact", {}))
     base = apply_overrides({"compact": base}, args.overrides)["compact"]
     rows, dirs = [], []
     with tempfile.TemporaryDirectory() as tmp:
@@ -195,18 +186,11 @@ def main():
             copy = Path(tmp) / f"run_{k}"
             shutil.copytree(args.run, copy, ignore=shutil.ignore_patterns("snapshots", "ablations", "*.npz"))
             if seed is not None:
-                state = read_json(copy / "run.json")
-                state["config"] = dict(state["config"] or {})
-                state["config"]["refine"] = dict(state["config"].get("refine", {})) | {"seed": seed}
-                write_json(copy / "run.json", state)
-            config = section(
-                {
-                    "compact": apply_overrides({"compact": base}, own)["compact"]
-                    | {args.knob: th, "refine_steps": args.refine_steps}
-                },
-                "compact",
-                CompactConfig,
-            )
+                reseeded = RunDir.open(copy, writable=True)  # the recovery's seed, as if the run had been fused with it
+                reseeded.config["refine"] = dict(reseeded.config.get("refine", {})) | {"seed": seed}
+                reseeded.save()
+            values = apply_overrides({"compact": base}, own)["compact"]
+            config = RunConfig.parse({"compact": values | {args.knob: th, "refine_steps": args.refine_steps}}).compact
             t0 = time.perf_counter()
             run = run_compact(copy, config, progress=False, log=lambda *a: None)
             seconds = time.perf_counter() - t0

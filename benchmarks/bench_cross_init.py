@@ -33,8 +33,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_scene import add_scene_args, scene_dates
-from bench_splat import RESULTS, machine
+from common import RESULTS, add_scene_args, machine, scene_dates
 
 
 def _preset(preset: str, args, raw: dict) -> dict:

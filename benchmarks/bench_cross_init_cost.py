@@ -29,7 +29,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_splat import RESULTS, machine
+from common import RESULTS, machine
 
 
 def one_row(merged, views, raw: dict, pairs: list[tuple[int, int]]) -> dict:
@@ -119,13 +119,12 @@ def main():
 
     from cfgs_jax.config import apply_overrides
     from cfgs_jax.io import read_fused
-    from cfgs_jax.io.atomic import read_json
     from cfgs_jax.render_run import open_run
 
     run_dir = Path(args.run)
     pairs = [tuple(int(x) for x in s.split(",")) for s in args.pairs]
-    base = read_json(run_dir / "run.json")["config"]
-    run = open_run(run_dir)  # read once: every row starts from the same merged model and views
+    run = open_run(run_dir)
+    base = dict(run.config.tables)  # read once: every row starts from the same merged model and views
     views = [run.date_views(d) for d in range(len(run.names))]
     merged = read_fused(run_dir / "merged")
     rows = []

@@ -27,8 +27,7 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_scene import add_scene_args, scene_dates
-from bench_splat import RESULTS, machine
+from common import RESULTS, add_scene_args, machine, scene_dates
 
 
 def _stage_seconds(run: Path, prefix: str = "") -> dict[str, float]:

@@ -43,9 +43,8 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_compact import change_scores
-from bench_incremental import _fusion_seconds, _quiet
 from bench_speed_vs_error import worst_date_change
-from bench_splat import RESULTS, machine
+from common import RESULTS, fusion_seconds, machine, quiet
 
 HERE = Path(__file__).resolve().parent
 
@@ -63,30 +62,30 @@ def prepare(run_dir: Path, data: Path, work: Path) -> Path:
     and configuration, ground-truth Sim(3)s), then extended by the last date; resumable."""
     from cfgs_jax import synthetic
     from cfgs_jax.fusion import run_extend, run_fusion
-    from cfgs_jax.io.atomic import read_json
+    from cfgs_jax.io import RunDir
     from cfgs_jax.sim3 import Sim3
 
-    state = read_json(run_dir / "run.json")
-    names = [d["name"] for d in state["dates"]]
-    dirs = [Path(d["path"]) for d in state["dates"]]
+    run = RunDir.open(run_dir)
+    names, dirs = run.names, run.dataset_paths
     models = [run_dir / "dates" / n / "point_cloud.ply" for n in names]
     sims = synthetic.reference_transforms(data, names)
     work.mkdir(parents=True, exist_ok=True)
     transforms = work / "transforms.json"
     transforms.write_text(json.dumps(sims))
     out = work / "prepared"
-    done = read_json(out / "run.json")["done"] if (out / "run.json").is_file() else []
+    found = RunDir.find(out)
+    done = found.state["done"] if found else []
     if "export" not in done:
         run_fusion(
-            dirs[:-1], out, state["config"], models=models[:-1], transforms=transforms,
-            resume=(out / "run.json").is_file(), progress=False, evaluate=False, log=_quiet,
+            dirs[:-1], out, run.config, models=models[:-1], transforms=transforms,
+            resume=found is not None, progress=False, evaluate=False, log=quiet,
         )  # fmt: skip
-        done = read_json(out / "run.json")["done"]
+        done = RunDir.open(out).state["done"]
     last = names[-1]
     if f"extend:{last}:evaluate" not in done:
         run_extend(
             out, dirs[-1], model=models[-1], transform=Sim3.from_dict(sims[last]),
-            resume=any(s.startswith(f"extend:{last}:") for s in done), progress=False, log=_quiet,
+            resume=any(s.startswith(f"extend:{last}:") for s in done), progress=False, log=quiet,
         )  # fmt: skip
     return out
 
@@ -96,27 +95,28 @@ def fuse_again(scratch: str, data: str, out: str) -> None:
     configuration, with the ground-truth Sim(3)s of ``data``, evaluation off (resumable)."""
     from cfgs_jax import synthetic
     from cfgs_jax.fusion import run_fusion
-    from cfgs_jax.io.atomic import read_json
+    from cfgs_jax.io import RunDir
 
     scratch, data, out = Path(scratch), Path(data), Path(out)
-    state = read_json(scratch / "run.json")
-    names = [d["name"] for d in state["dates"]]
-    models = state.get("models") or [scratch / "dates" / n / "point_cloud.ply" for n in names]
+    run = RunDir.open(scratch)
+    names, models = run.names, run.model_paths()
     transforms = out.parent / "scratch_transforms.json"
     out.parent.mkdir(parents=True, exist_ok=True)
     transforms.write_text(json.dumps(synthetic.reference_transforms(data, names)))
     run_fusion(
-        [Path(d["path"]) for d in state["dates"]], out, state["config"], models=models, transforms=transforms,
-        resume=(out / "run.json").is_file(), progress=False, evaluate=False, log=_quiet,
+        run.dataset_paths, out, run.config, models=models, transforms=transforms,
+        resume=RunDir.find(out) is not None, progress=False, evaluate=False, log=quiet,
     )  # fmt: skip
 
 
 def retime_scratch(scratch: Path, data: Path, work: Path) -> Path:
     """WORK/scratch: ``fuse_again`` in a process of its own (no compiled code shared with the rows); a
     finished one is kept."""
+    from cfgs_jax.io import RunDir
+
     out = work / "scratch"
-    state = out / "run.json"
-    if not (state.is_file() and "export" in json.loads(state.read_text())["done"]):
+    found = RunDir.find(out)
+    if not (found and found.done("export")):
         code = f"import bench_extend_knob as b; b.fuse_again({str(scratch)!r}, {str(data)!r}, {str(out)!r})"
         subprocess.run([sys.executable, "-c", code], cwd=HERE, check=True)
     return out
@@ -128,27 +128,26 @@ def one_setting(prepared: Path, row_dir: Path, overrides: list[str], data: Path,
     false."""
     from cfgs_jax.config import apply_overrides
     from cfgs_jax.fusion import run_extend
-    from cfgs_jax.io.atomic import read_json, write_json
+    from cfgs_jax.io import RunDir
+    from cfgs_jax.io.atomic import read_json
 
     shutil.rmtree(row_dir, ignore_errors=True)
     shutil.copytree(prepared, row_dir)
-    state = read_json(row_dir / "run.json")
-    name = extension_date(state)
+    run = RunDir.open(row_dir)
+    name = extension_date(run.state)
     prefix = f"extend:{name}:"
-    state["done"] = [s for s in state["done"] if s not in {prefix + "refine", prefix + "compact", prefix + "evaluate"}]
-    config = apply_overrides(state["config"], overrides)
-    state["config"] = {key: v for key, v in config.items() if key != "__path__"}  # as run.json keeps it
-    write_json(row_dir / "run.json", state)
-    k = [d["name"] for d in state["dates"]].index(name)
-    model = state["models"][k] if state.get("models") else None
-    run_extend(row_dir, Path(state["dates"][k]["path"]), model=model, resume=True, progress=False, log=_quiet)
+    again = [prefix + "refine", prefix + "compact", prefix + "evaluate"]
+    run.undo(again, config=apply_overrides(run.config, overrides))  # they run again, under the overrides
+    k = run.names.index(name)
+    model = run.models[k] if run.models else None
+    run_extend(row_dir, run.dataset_paths[k], model=model, resume=True, progress=False, log=quiet)
 
-    timings = read_json(row_dir / "timings.json")
-    report = read_json(row_dir / "report.json")[prefix + "refine"]
+    finished = RunDir.open(row_dir)
+    timings, report = finished.timings, finished.report[prefix + "refine"]
     metrics = read_json(row_dir / "metrics.json")
     row = {
         "refine_s": timings[prefix + "refine"],
-        "fusion_s": _fusion_seconds(row_dir, prefix),
+        "fusion_s": fusion_seconds(row_dir, prefix),
         "views_completed": report["views_completed"],
         "zeroed_per_date": report["zeroed_per_date"],
         "visibility_dates": report.get("visibility_dates"),
@@ -243,7 +242,9 @@ def main():
     if args.retime_scratch:
         scratch = retime_scratch(Path(args.scratch), data, work)
     prepared = Path(args.extended) if args.extended else prepare(Path(args.run), data, work)
-    state = json.loads((prepared / "run.json").read_text())
+    from cfgs_jax.io import RunDir
+
+    state = RunDir.open(prepared).state
     rows = []
     for i, value in enumerate(args.values):
         overrides = [*args.overrides, f"{args.knob}={value}"]
@@ -263,10 +264,10 @@ def main():
         "prepared": str(prepared),
         "date_added": extension_date(state),
         "scratch": str(scratch) if scratch else None,
-        "scratch_s": _fusion_seconds(scratch) if scratch else None,
+        "scratch_s": fusion_seconds(scratch) if scratch else None,
         "scratch_retimed": bool(args.retime_scratch),
         "retimed_from": args.scratch if args.retime_scratch else None,
-        "scratch_s_before": _fusion_seconds(Path(args.scratch)) if args.retime_scratch else None,
+        "scratch_s_before": fusion_seconds(Path(args.scratch)) if args.retime_scratch else None,
         "rows": rows,
     }
     RESULTS.mkdir(exist_ok=True)

@@ -31,7 +31,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_extend_knob import extension_date
-from bench_splat import RESULTS, machine
+from common import RESULTS, machine
 
 
 def main():
@@ -46,13 +46,13 @@ def main():
     from cfgs_jax.config import section
     from cfgs_jax.fusion.evaluate import evaluate_fused
     from cfgs_jax.fusion.refine import refine
-    from cfgs_jax.io import read_fused
+    from cfgs_jax.io import RunDir, read_fused
     from cfgs_jax.model import opacity_multipliers
     from cfgs_jax.render_run import open_run
     from cfgs_jax.splat.weights import max_weight
 
     prepared = Path(args.prepared)
-    state = json.loads((prepared / "run.json").read_text())
+    state = RunDir.open(prepared).state
     added = extension_date(state)
     run = open_run(prepared)
     names = run.names

@@ -28,7 +28,8 @@ import traceback
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_splat import RESULTS, backend_suffix, machine, scene
+from bench_splat import scene
+from common import RESULTS, backend_suffix, machine
 
 CASES = {
     "100k@640x480": ("synthetic", 100_000, 640, 480),

@@ -29,41 +29,31 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_scene import add_scene_args, scene_dates
-from bench_splat import RESULTS, machine
-
-FUSION_STAGES = ("merge", "cross_init", "refine", "export")
-
-
-def _quiet(*args, **kwargs) -> None:
-    """A ``log`` for the fusion runs: the benchmark prints its own lines."""
-
-
-def _fusion_seconds(run: Path, prefix: str = "") -> float:
-    t = json.loads((run / "timings.json").read_text())
-    return float(sum(t.get(prefix + s, 0.0) for s in FUSION_STAGES))
+from common import RESULTS, add_scene_args, fusion_seconds, machine, quiet, scene_dates
 
 
 def _scratch(work, dirs, names, raw, models, transforms, sims, max_dates) -> dict:
     """Fuse dates 1..T from scratch for T = 2..max_dates (resumable); fusion seconds per T."""
     from cfgs_jax.fusion import run_fusion
+    from cfgs_jax.io import RunDir
 
     each, accumulated, acc = {}, {}, 0.0
     for t in range(2, max_dates + 1):
         run = work / f"scratch_{t}"
-        if not (run / "run.json").is_file() or "export" not in json.loads((run / "run.json").read_text())["done"]:
+        found = RunDir.find(run)
+        if found is None or not found.done("export"):
             run_fusion(
                 dirs[:t],
                 run,
                 raw,
                 models=models[:t],
                 transforms=transforms,
-                resume=(run / "run.json").is_file(),
+                resume=found is not None,
                 progress=False,
                 evaluate=(t == max_dates),
-                log=_quiet,
+                log=quiet,
             )
-        each[t] = _fusion_seconds(run)
+        each[t] = fusion_seconds(run)
         acc += each[t]
         accumulated[t] = acc
         print(f"from scratch T={t}: {each[t]:.1f} s (accumulated {acc:.1f} s)", flush=True)
@@ -73,6 +63,7 @@ def _scratch(work, dirs, names, raw, models, transforms, sims, max_dates) -> dic
 def _incremental(work, dirs, names, raw, models, transforms, sims, max_dates) -> dict:
     """Fuse dates 1..2, then extend by dates 3..max_dates in turn (resumable); fusion seconds per step."""
     from cfgs_jax.fusion import run_extend, run_fusion
+    from cfgs_jax.io import RunDir
     from cfgs_jax.sim3 import Sim3
 
     inc_dir = work / "incremental"
@@ -82,15 +73,15 @@ def _incremental(work, dirs, names, raw, models, transforms, sims, max_dates) ->
         raw,
         models=models[:2],
         transforms=transforms,
-        resume=(inc_dir / "run.json").is_file(),
+        resume=RunDir.find(inc_dir) is not None,
         progress=False,
         evaluate=False,
-        log=_quiet,
+        log=quiet,
     )
-    each, accumulated = {2: _fusion_seconds(inc_dir)}, {2: _fusion_seconds(inc_dir)}
+    each, accumulated = {2: fusion_seconds(inc_dir)}, {2: fusion_seconds(inc_dir)}
     for t in range(3, max_dates + 1):
         name = names[t - 1]
-        state = json.loads((inc_dir / "run.json").read_text())
+        state = RunDir.open(inc_dir, finished=False).state
         if f"extend:{name}:export" not in state["done"]:
             run_extend(
                 inc_dir,
@@ -100,9 +91,9 @@ def _incremental(work, dirs, names, raw, models, transforms, sims, max_dates) ->
                 resume=any(s.startswith(f"extend:{name}:") for s in state["done"]),
                 progress=False,
                 evaluate=(t == max_dates),
-                log=_quiet,
+                log=quiet,
             )
-        each[t] = _fusion_seconds(inc_dir, f"extend:{name}:")
+        each[t] = fusion_seconds(inc_dir, f"extend:{name}:")
         accumulated[t] = accumulated[t - 1] + each[t]
         print(f"incremental T={t}: +{each[t]:.1f} s (accumulated {accumulated[t]:.1f} s)", flush=True)
     return {"each": each, "accumulated": accumulated}
@@ -152,7 +143,7 @@ def main():
         progress=False,
         evaluate=False,
         until="train",
-        log=_quiet,
+        log=quiet,
     )
     train_s = trained.report["train"]["per_date_seconds"]
     paths = {}

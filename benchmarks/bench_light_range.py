@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_splat import RESULTS, machine
+from common import RESULTS, machine
 
 
 def pair_table(run_dir: Path, at: float, model_dir: Path | None = None) -> dict:

@@ -36,7 +36,7 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_splat import RESULTS, machine
+from common import RESULTS, machine
 
 HERE = Path(__file__).resolve()
 

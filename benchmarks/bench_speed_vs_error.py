@@ -23,7 +23,7 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_splat import RESULTS, machine
+from common import RESULTS, machine
 
 
 def one_setting(run_dir: Path, data: Path, raw: dict, change: bool = True, save: Path | None = None) -> dict:
@@ -120,10 +120,10 @@ def main():
         ap.error("--run, --data, --knob and --values are required (or --summary)")
 
     from cfgs_jax.config import apply_overrides
-    from cfgs_jax.io.atomic import read_json
+    from cfgs_jax.io import RunDir
 
     run_dir, data = Path(args.run), Path(args.data)
-    base = apply_overrides(read_json(run_dir / "run.json")["config"], args.overrides)
+    base = apply_overrides(dict(RunDir.open(run_dir).config), args.overrides)
     rows = []
     for value in args.values:
         raw = apply_overrides(base, [f"{args.knob}={value}"])

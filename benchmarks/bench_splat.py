@@ -17,8 +17,6 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
-import os
-import platform
 import resource
 import statistics
 import subprocess
@@ -26,7 +24,8 @@ import sys
 import time
 from pathlib import Path
 
-RESULTS = Path(__file__).resolve().parent / "results"
+from common import RESULTS, backend_suffix, device_peak_gb, machine, timed
+
 FIXTURE = Path(__file__).resolve().parents[1] / "tests" / "data" / "real_3dgs_donut_dc_only.ply"
 
 
@@ -92,14 +91,6 @@ def _setup(spec: dict):
     return g, cam, om, cm, fwd, fwd_bwd
 
 
-def _timed(f, args) -> float:
-    import jax
-
-    t0 = time.perf_counter()
-    jax.block_until_ready(f(*args))
-    return time.perf_counter() - t0
-
-
 def run_case(spec: dict) -> dict:
     import jax.numpy as jnp
     import numpy as np
@@ -110,7 +101,7 @@ def run_case(spec: dict) -> dict:
     w, h, dates = spec["width"], spec["height"], spec.get("dates", 1)
     args = (g, om, cm)
     inria = int(splat.render_dates(g, cam, om, cm, config=splat.RenderConfig(tile_cull=False)).num_composited)
-    compile_fwd = _timed(fwd, args)
+    compile_fwd = timed(fwd, args)
     res = splat.render_dates(
         g, cam, om, cm, config=splat.RenderConfig(tile_cull=spec.get("tile_cull", True))
     )  # with statistics, for the counts
@@ -118,7 +109,7 @@ def run_case(spec: dict) -> dict:
         **spec,
         "num_gaussians": len(g),
         "compile_fwd_s": compile_fwd,
-        "fwd_s": statistics.median(_timed(fwd, args) for _ in range(spec.get("reps", 5))),
+        "fwd_s": statistics.median(timed(fwd, args) for _ in range(spec.get("reps", 5))),
         "intersections": int(res.num_composited),
         "intersections_per_tile": int(res.num_composited) / (-(-w // 16) * -(-h // 16)),
         "inria_intersections_per_tile": inria / (-(-w // 16) * -(-h // 16)),
@@ -128,66 +119,22 @@ def run_case(spec: dict) -> dict:
         ref = splat.render_dates(g, cam, om, cm, config=splat.RenderConfig(tile_cull=False))
         out["max_abs_diff_vs_inria_lists"] = float(jnp.max(jnp.abs(res.image - ref.image)))
     if spec.get("backward", True):
-        out["compile_fwd_bwd_s"] = _timed(fwd_bwd, args)
-        out["fwd_bwd_s"] = statistics.median(_timed(fwd_bwd, args) for _ in range(spec.get("reps", 5)))
+        out["compile_fwd_bwd_s"] = timed(fwd_bwd, args)
+        out["fwd_bwd_s"] = statistics.median(timed(fwd_bwd, args) for _ in range(spec.get("reps", 5)))
     if spec.get("baseline"):  # a ratio case: time it against its baseline, interleaved, in this process
         base_g, _, base_om, base_cm, base_fwd, base_fwd_bwd = _setup(CASES[spec["baseline"]])
         base_args = (base_g, base_om, base_cm)
         pairs = [("fwd", fwd, base_fwd)] + ([("fwd_bwd", fwd_bwd, base_fwd_bwd)] if spec.get("backward", True) else [])
         for name, f_case, f_base in pairs:
-            _timed(f_base, base_args)  # compile
+            timed(f_base, base_args)  # compile
             case_t, base_t = [], []
             for _ in range(2 * spec.get("reps", 5) + 1):
-                base_t.append(_timed(f_base, base_args))
-                case_t.append(_timed(f_case, args))
+                base_t.append(timed(f_base, base_args))
+                case_t.append(timed(f_case, args))
             out[f"ratio_{name}"] = statistics.median(case_t) / statistics.median(base_t)
     out["peak_rss_gb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e6
     out["device_peak_gb"] = device_peak_gb()
     return out
-
-
-def machine() -> str:
-    import jax
-
-    cpu = platform.processor() or platform.machine()
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    dev = jax.devices()[0]
-    if dev.platform != "cpu":
-        return f"{dev.device_kind} ({dev.platform}), host {cpu}, {os.cpu_count()} cores, jax {jax.__version__}"
-    return f"{cpu}, {os.cpu_count()} cores, jax {jax.__version__} on {jax.default_backend()}"
-
-
-def backend_suffix() -> str:
-    """The result files' suffix: empty on the CPU; on an accelerator the chip and the backend, e.g.
-    ``_h200_gpu``, so that an accelerator run never overwrites the CPU tables nor another chip's."""
-    import re
-
-    import jax
-
-    backend = jax.default_backend()
-    if backend == "cpu":
-        return ""
-    kind = jax.devices()[0].device_kind  # e.g. "NVIDIA H100 80GB HBM3", "NVIDIA H200"
-    chip = re.search(r"\b([A-Z]+\d+[A-Za-z]*)\b", kind)
-    name = chip.group(1) if chip else re.sub(r"[^A-Za-z0-9]+", "", kind) or "device"
-    return f"_{name.lower()}_{backend}"
-
-
-def device_peak_gb() -> float | None:
-    """Peak memory in use on the first accelerator (its allocator's count), or None on the CPU."""
-    import jax
-
-    dev = jax.devices()[0]
-    if dev.platform == "cpu":
-        return None
-    stats = dev.memory_stats() or {}
-    return stats.get("peak_bytes_in_use", 0) / 1e9 if stats else None
 
 
 def _synthetic(n: int, width: int, height: int, **extra) -> dict:

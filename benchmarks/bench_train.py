@@ -33,10 +33,10 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_splat import RESULTS, backend_suffix, device_peak_gb, machine
+from common import RESULTS, backend_suffix, device_peak_gb, machine
 
 
-def _timed(f, *args):
+def timed(f, *args):
     import jax
 
     t0 = time.perf_counter()
@@ -135,17 +135,17 @@ def main():
 
     kernel = jax.jit(kernel_fwd_bwd)
 
-    compile_step, (state, _) = _timed(step, state, cameras[0], images[0])
-    compile_kernel, _ = _timed(kernel, state.params, state.active, cameras[0])
+    compile_step, (state, _) = timed(step, state, cameras[0], images[0])
+    compile_kernel, _ = timed(kernel, state.params, state.active, cameras[0])
     step_t, kernel_t = [], []
     for k in range(args.steps):
         v = k % len(images)
-        t, (state, stats) = _timed(step, state, cameras[v], images[v])
+        t, (state, stats) = timed(step, state, cameras[v], images[v])
         assert not bool(stats["overflowed"])
         step_t.append(t)
-        kernel_t.append(_timed(kernel, state.params, state.active, cameras[v])[0])
+        kernel_t.append(timed(kernel, state.params, state.active, cameras[v])[0])
     # one densify-and-prune round on statistics accumulated over the timed steps
-    compile_densify, _ = _timed(lambda s: train.densify_step(s, config, extent, prune_big=False), state)
+    compile_densify, _ = timed(lambda s: train.densify_step(s, config, extent, prune_big=False), state)
 
     step_s = statistics.median(step_t)
     kernel_s = statistics.median(kernel_t)

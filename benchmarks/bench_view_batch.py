@@ -25,7 +25,7 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_splat import RESULTS, machine
+from common import RESULTS, machine
 
 
 def main():
@@ -36,16 +36,12 @@ def main():
     args = ap.parse_args()
 
     from cfgs_jax import fusion, train
-    from cfgs_jax.config import section
     from cfgs_jax.fusion.evaluate import evaluate_fused
     from cfgs_jax.io import read_fused
-    from cfgs_jax.io.atomic import read_json
     from cfgs_jax.render_run import open_run
 
     run = open_run(args.run)
-    raw = read_json(Path(args.run) / "run.json")["config"]
-    refine_config = section(raw, "refine", fusion.RefineConfig)
-    train_config = section(raw, "train", train.TrainConfig)
+    refine_config, train_config = run.config.refine, run.config.train
     start = read_fused(Path(args.run) / "cross_init")
     views = [run.date_views(d) for d in range(len(run.names))]
     tests = [run.date_views(d, "test") for d in range(len(run.names))]

@@ -22,7 +22,8 @@ import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_splat import RESULTS, _timed, machine, synthetic
+from bench_splat import synthetic
+from common import RESULTS, machine, timed
 
 
 def temporal_model(n: int = 20_000, dates: int = 4, seed: int = 0):
@@ -73,11 +74,11 @@ def main():
             return viz.render_selection(m, cam, t, highlight_changes=hl, config=cfg).image
 
         frames[name] = jax.jit(frame)
-        _timed(frames[name], (model,))  # compile
+        timed(frames[name], (model,))  # compile
     times = {name: [] for name in cases}
     for _ in range(args.repeats):  # interleaved: the machine's noise hits every case alike
         for name, f in frames.items():
-            times[name].append(_timed(f, (model,)))
+            times[name].append(timed(f, (model,)))
     med = {k: statistics.median(v) for k, v in times.items()}
     base = med["C (blend, all 4 dates)"]
     res = {

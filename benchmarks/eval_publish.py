@@ -22,7 +22,7 @@ import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_splat import RESULTS, machine
+from common import RESULTS, machine
 
 CHANGE_SECTION = "## Change detection against ground truth (residual evidence"
 
@@ -135,7 +135,9 @@ def main():
     out = Path(args.out)
     table_md = (out / "table.md").read_text()
     table = json.loads((out / "table.json").read_text())
-    run = json.loads((out / "run" / "run.json").read_text())
+    from cfgs_jax.io import RunDir
+
+    run = RunDir.open(out / "run").state
     code = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True).stdout.strip()
     timings = json.loads((out / "run" / "timings.json").read_text())
     header = (

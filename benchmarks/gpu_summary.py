@@ -13,7 +13,7 @@ import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_splat import RESULTS
+from common import RESULTS
 
 # (row label, result stem without the device suffix, what to read)
 KERNEL_ROWS = [

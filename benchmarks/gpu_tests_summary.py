@@ -23,7 +23,7 @@ import xml.etree.ElementTree as ET
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_splat import RESULTS
+from common import RESULTS
 
 
 def outcomes(run_dir: Path, pattern: str) -> dict[str, tuple[str, str]]:

@@ -7,8 +7,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from test_change import _weights64
 from test_compact import _model
+from test_scoring import _weights64
 
 import cfgs_jax as cj
 from cfgs_jax import splat

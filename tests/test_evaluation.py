@@ -27,7 +27,7 @@ densify_interval = 50
 steps = 100
 [refine]
 visibility_interval = 60
-[change]
+[oq_rule]
 surface_threshold = 0.08
 """
 # 100 cross-init steps run at 30× the paper's rates (rate_reference_steps = 3000 by default), so o^q can
@@ -245,15 +245,16 @@ def test_eval_refuses_to_refine_an_extended_run_again(tmp_path):
     assert list(json.loads((tmp_path / "rows.json").read_text())) == ["merged"]
 
 
-def test_eval_change_table_is_checked_before_any_work():
+def test_eval_oq_rule_table_is_checked_before_any_work_and_its_old_name_reads():
     from cfgs_jax import InputError
-    from cfgs_jax.evaluation.protocol import validate_eval_config
+    from cfgs_jax.evaluation.protocol import EvalSetup, validate_eval_config
 
-    with pytest.raises(InputError, match=r"change\.surface_threshold"):
-        validate_eval_config({"change": {"surface_threshold": 1.5}})
+    with pytest.raises(InputError, match=r"oq_rule\.surface_threshold"):
+        validate_eval_config({"oq_rule": {"surface_threshold": 1.5}})
     with pytest.raises(InputError, match="surfce"):
-        validate_eval_config({"change": {"surfce_threshold": 0.1}})
-    validate_eval_config({"change": {"surface_threshold": 0.0, "absent_below": 0.3}})
+        validate_eval_config({"oq_rule": {"surfce_threshold": 0.1}})
+    setup = EvalSetup.parse({"change": {"surface_threshold": 0.0, "absent_below": 0.3}})  # [change]: the old name
+    assert setup.oq_rule.absent_below == 0.3 and setup.oq_rule.surface_threshold == 0.0
 
 
 def test_sweep_file_errors_name_the_key(tmp_path):

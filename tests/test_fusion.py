@@ -1152,12 +1152,12 @@ def test_a_compacted_run_round_trips_both_layouts_and_can_be_extended(tiny_two_d
     root = tiny_two_dates
     run = tmp_path / "run"
     shutil.copytree(fused_run[0], run)
-    sets = ["--set", "compact.hidden_threshold=0.05", "--set", "compact.refine_steps=2"]
+    sets = ["--set", "compact.hidden_share=0.2", "--set", "compact.refine_steps=2"]
     assert main(["compact", "--run", str(run), *sets, "--no-progress"]) == 0
     compacted = read_fused(run / "fused")
     report = json.loads((run / "compact.json").read_text())
     assert report["hidden_pruned"] > 0
-    assert report["config"]["hidden_threshold"] == 0.05 and report["config"]["refine_steps"] == 2
+    assert report["config"]["hidden_share"] == 0.2 and report["config"]["refine_steps"] == 2
     for layout in ("cfgs", "reference"):
         write_fused(tmp_path / layout, compacted, layout=layout)
         back = read_fused(tmp_path / layout)

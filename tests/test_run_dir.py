@@ -52,3 +52,13 @@ def test_run_config_parses_every_table_once_and_keeps_the_tables_as_given():
         RunConfig.parse({"refine": {"stesp": 3}})
     with pytest.raises(InputError, match="changes.threshold"):
         RunConfig.parse({"changes": {"threshold": 2.0}})
+
+
+def test_a_removed_setting_reads_at_its_old_default_and_is_refused_otherwise():
+    """A compaction variant that was removed: a stored run or file that sets it to the value that
+    behaves as the code now does still reads; any other value stops with the setting named."""
+    config = RunConfig.parse({"compact": {"hidden_rank": "weight", "hidden_rounds": 1, "hidden_share": 0.1}})
+    assert config.compact.hidden_share == 0.1 and config.tables == {"compact": {"hidden_share": 0.1}}
+    with pytest.raises(InputError, match="compact.hidden_rank") as err:
+        RunConfig.parse({"compact": {"hidden_rank": "removal"}, "__path__": "old.toml"})
+    assert "old.toml" in str(err.value) and "delete compact.hidden_rank" in str(err.value)

@@ -151,7 +151,7 @@ def test_quake_moves_one_object_and_collapses_another(tmp_path):
     """The geometric-change preset: object_0 placed elsewhere from d1 on, object_1 flattened at d2.
     The ground truth names exactly those objects per date pair, and the change masks mark moved
     geometry (content differs) while the untouched objects stay unmarked."""
-    from cfgs_jax.evaluation.change import changed_objects_by_pair
+    from cfgs_jax.evaluation.scoring import changed_objects_by_pair
 
     spec = synthetic.make_preset("quake", seed=1, width=48, height=36, images_per_date=3, spp=2)
     out = synthetic.render_dataset(spec, tmp_path / "quake", progress=False)

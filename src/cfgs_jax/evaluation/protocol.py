@@ -24,9 +24,9 @@ from cfgs_jax.changes import ChangesConfig
 from cfgs_jax.compiled_code import release_if_near_limit
 from cfgs_jax.config import check_sections, section
 from cfgs_jax.errors import InputError
-from cfgs_jax.evaluation import change
-from cfgs_jax.evaluation.change import ChangeConfig
+from cfgs_jax.evaluation import scoring
 from cfgs_jax.evaluation.report import figure_grid, margins, pr_curve_plot, table_markdown
+from cfgs_jax.evaluation.scoring import OqRuleConfig
 from cfgs_jax.fusion.config import RUN_TABLES, RunConfig
 from cfgs_jax.fusion.evaluate import evaluate_fused, weighted_mean
 from cfgs_jax.fusion.fuse import INVISIBLE_LOGIT
@@ -75,29 +75,31 @@ ABLATIONS = {
     "freeze_alpha": ("Ours, α frozen", {"lr_alpha": 0.0, "halve_alpha": False}),
     "freeze_o": ("Ours, o frozen", {"lr_o": 0.0}),
 }
-EVAL_SECTIONS = {**RUN_TABLES, "eval": EvalConfig, "scene": SceneConfig, "change": ChangeConfig}
+EVAL_SECTIONS = {**RUN_TABLES, "eval": EvalConfig, "scene": SceneConfig, "oq_rule": OqRuleConfig}
+#: Tables of an eval configuration that were renamed: old name → new name (the old one still reads).
+RENAMED_TABLES = {"change": "oq_rule"}
 
 
 @dataclasses.dataclass(frozen=True)
 class EvalSetup:
     """An eval configuration, parsed once: the fusion run's tables (its refinement as long as the
-    largest ``eval.steps``), ``[eval]``, ``[scene]`` and ``[change]`` (the o^q rules)."""
+    largest ``eval.steps``), ``[eval]``, ``[scene]`` and ``[oq_rule]`` (the o^q rules)."""
 
     fusion: RunConfig
     eval: EvalConfig
     scene: SceneConfig
-    change: ChangeConfig
+    oq_rule: OqRuleConfig
 
     @classmethod
     def parse(cls, raw: dict | None) -> EvalSetup:
         """Every table built and checked: bad tables, keys and values fail before any work."""
-        raw = raw or {}
+        raw = {RENAMED_TABLES.get(k, k): v for k, v in (raw or {}).items()}
         check_sections(raw, EVAL_SECTIONS)
         ec = section(raw, "eval", EvalConfig)
         fusion = {k: v for k, v in raw.items() if k in RUN_TABLES or k == "__path__"}
         fusion["refine"] = dict(fusion.get("refine", {})) | {"steps": max(ec.steps)}
         return cls(
-            RunConfig.parse(fusion), ec, section(raw, "scene", SceneConfig), section(raw, "change", ChangeConfig)
+            RunConfig.parse(fusion), ec, section(raw, "scene", SceneConfig), section(raw, "oq_rule", OqRuleConfig)
         )
 
 
@@ -337,7 +339,7 @@ class _Evaluation:
                 self.sims,
                 self.render_config,
                 cross_init=read_fused(self.run_dir / "cross_init"),
-                config=self.setup.change,
+                config=self.setup.oq_rule,
                 changes_config=self.setup.fusion.changes,
             )
             write_json(self.out / "change.json", change)
@@ -469,14 +471,14 @@ def run_protocol(
 
 
 def date_masks(data: Path, scenes, sims, names: list[str], split: str = "train") -> list:
-    """Each date's ground-truth object masks (``change.DateMasks``) of its ``split`` views, posed in the
+    """Each date's ground-truth object masks (``scoring.DateMasks``) of its ``split`` views, posed in the
     reference frame."""
     out = []
     for p, (sc, sm) in enumerate(zip(scenes, sims)):
         views = registered_cameras(sc, sm, split)
         others = [n for n in names if n != names[p]]
         out.append(
-            change.read_date_masks(sc.root, [sc.image_names[i] for i, _ in views], [c for _, c in views], others)
+            scoring.read_date_masks(sc.root, [sc.image_names[i] for i, _ in views], [c for _, c in views], others)
         )
     return out
 
@@ -487,7 +489,7 @@ def cross_init_checks(model, data: Path, scenes, sims, render_config, masks=None
     light model per pair (``light_by_pair``)."""
     gt = json.loads((Path(data) / "ground_truth.json").read_text())
     masks = masks if masks is not None else date_masks(data, scenes, sims, [d.name for d in model.dates])
-    labels = change.object_labels(model, masks, len(gt["objects"]), render_config=render_config)
+    labels = scoring.object_labels(model, masks, len(gt["objects"]), render_config=render_config)
     objects = object_persistence(model, labels, gt)
     objects.pop("absent_by_object")
     return {"objects": objects, "light": light_by_pair(model, gt)}
@@ -500,25 +502,25 @@ def change_detection(
     sims,
     render_config,
     cross_init=None,
-    config: ChangeConfig | None = None,
+    config: OqRuleConfig | None = None,
     changes_config: ChangesConfig | None = None,
     statistics=None,
 ) -> dict:
     """Per-Gaussian, per-pixel and per-region change detection of the fused model against the synthetic
     ground truth: the residual-evidence detector (``changes_config``: the run's ``[changes]`` table,
     under ``"evidence"``; ``statistics``: its precomputed ``changes.pair_statistics``) and the o^q rules
-    (``config``: the eval's ``[change]`` table)."""
+    (``config``: the eval's ``[oq_rule]`` table)."""
     gt = json.loads((data / "ground_truth.json").read_text())
     names = [d.name for d in model.dates]
     masks = date_masks(data, scenes, sims, names)
     masks_test = date_masks(data, scenes, sims, names, "test")
     observing = [m.cameras for m in masks]
-    cfg = config or ChangeConfig()
+    cfg = config or OqRuleConfig()
     observed = observed_matrix(model, observing, cfg.contribution_threshold, render_config=render_config)
-    table = change.gaussian_change_table(
+    table = scoring.gaussian_change_table(
         model, masks, observing, len(gt["objects"]), cfg, render_config=render_config, observed=observed
     )
-    summary = change.summarise_gaussians(table, cfg)
+    summary = scoring.summarise_gaussians(table, cfg)
     # how much the fused occlusion rule matters: entries seen with their own date's Gaussians alone but
     # hidden in the fused model at q, and how many of those are absent (would count as changed otherwise)
     alone = observed_matrix(
@@ -531,18 +533,18 @@ def change_detection(
     summary["hidden_in_fused"] = float(hidden.mean())
     summary["hidden_in_fused_absent"] = float((hidden & (o_q < cfg.absent_below)).mean())
     summary["flagged_changed_own_date_rule"] = float((seen_alone & (o_q < cfg.absent_below)).mean())
-    pixels = change.pixel_change_iou(model, masks_test, observing, cfg, render_config=render_config, observed=observed)
+    pixels = scoring.pixel_change_iou(model, masks_test, observing, cfg, render_config=render_config, observed=observed)
     fused = object_persistence(model, table["objects"], gt)
     summary["absent_objects_below_0.2"] = fused.pop("absent_by_object")
     result = {"gaussians": summary, "pixels": pixels, "config": dataclasses.asdict(cfg), "objects_fused": fused}
     split = (changes_config or ChangesConfig()).views
     views = [date_views(sc, sm, split) for sc, sm in zip(scenes, sims)]
-    result["evidence"] = change.evidence_detection(
+    result["evidence"] = scoring.evidence_detection(
         model,
         views,
         table,
         masks_test,
-        change.changed_objects_by_pair(gt),
+        scoring.changed_objects_by_pair(gt),
         changes_config,
         support_cameras=[date_cameras(sc, sm) for sc, sm in zip(scenes, sims)],
         render_config=render_config,

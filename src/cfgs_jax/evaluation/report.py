@@ -38,8 +38,8 @@ def table_markdown(table: dict) -> str:
     lines = _method_table(table)
     ch = table.get("change")
     if ch:
-        lines += _evidence_table(ch["evidence"]) if "evidence" in ch else []
-        lines += _change_table(ch) + _change_notes(ch)
+        lines += evidence_table(ch["evidence"]) if "evidence" in ch else []
+        lines += change_table(ch) + _change_notes(ch)
     return "\n".join(lines) + "\n"
 
 
@@ -91,7 +91,7 @@ def _baseline_rows(g: dict, p: dict) -> list[str]:
     ]
 
 
-def _evidence_table(ev: dict) -> list[str]:
+def evidence_table(ev: dict) -> list[str]:
     """The residual-evidence detector (the `changes` command): per Gaussian, per pixel, per region."""
     g, p, r = ev["gaussians"], ev["pixels"], ev["regions"]
     tau, k = ev["config"]["threshold"], ev["config"]["neighbours"]
@@ -153,7 +153,7 @@ def _sweep_cells(curve: dict, also: float | None = None) -> list[str]:
     ]
 
 
-def _change_table(ch: dict) -> list[str]:
+def change_table(ch: dict) -> list[str]:
     """Precision / recall / F1 per Gaussian (with and without the surface rule, weighted) and pixel IoU."""
     g, p = ch["gaussians"], ch["pixels"]
     lines = [

@@ -77,7 +77,7 @@ def parse_sweep(raw: dict, overrides: list[str] = ()) -> tuple[str, dict, list[V
     base = load_config(find_preset(sw.get("base", "eval")))
     base.update({k: v for k, v in raw.items() if k not in ("sweep", "__path__")})  # tables in the sweep file win
     base = apply_overrides(base, overrides)
-    EvalSetup.parse(base)  # the base's own tables (an eval base has [scene], [eval], [change])
+    EvalSetup.parse(base)  # the base's own tables (an eval base has [scene], [eval], [oq_rule])
     grid = sw.get("grid", {})
     if not isinstance(grid, dict) or any(not isinstance(v, list) or not v for v in grid.values()):
         raise InputError(

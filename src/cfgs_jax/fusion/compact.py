@@ -20,37 +20,12 @@ centre, colour and light the α-weighted means, covariance the α-weighted momen
 member. The light averaged is the light drawn (the exposure of each member's origin times its l); the
 merged l is that mean over the exposure of the kept origin.
 
-With ``hidden_threshold`` > 0, Gaussians shown at every date (o ≥ ``present`` everywhere) whose
-largest compositing weight min(0.99, α·o^q·G)·T over every training view of every date stays below
-the threshold are dropped first: the copies of a persistent surface hidden behind other copies. A
-Gaussian that marks a change (o low at some date) is never dropped by this rule.
-
 With ``hidden_share`` > 0, the Gaussians that mark no change (at every date shown, o ≥ ``present``, or
 not observed by that date's views: the refinement's visibility rule) are ranked by their summed
 compositing weight Σ w over every training view of every date, and the least-shown are dropped while
 together they draw at most that share of the weight of all Gaussians. A copy hidden behind another copy
 of the same surface draws little, and where it does show, the copy behind it takes its place in the
 recovery refinement. A Gaussian whose o is low at a date whose views observe it is never dropped.
-With ``hidden_rank = "removal"`` the same candidates are ranked instead by what removing each changes
-in the training views, Σ_q Σ_views Σ_RGB |Σ_pixels (C − C_without_i)| (``splat.weights.removal_change``,
-at each date's o^q and l^q): a copy in front of a matching copy changes little, a copy whose colour
-differs from what shows through it changes much, whatever their weights. The share then bounds the
-summed removal change of the dropped ones, against 3 × the summed weight of all; with
-``hidden_budget = "per_date"`` it bounds each date's part alone, Σ_dropped change_i^q ≤ share · 3 · Σ_all w^q
-for every date q, and the candidates are ranked by their largest change_i^q over that bound, so that
-no date pays for the others. Two overlapping Gaussians
-(centres closer than s̄_i + s̄_j) are never both dropped in one round, since each
-was measured with the other in place; ``hidden_rounds`` > 1 splits the share over rounds and measures
-again after each.
-
-With ``restore_hidden``, the copies hidden at a date get their presence there back before the ranking:
-the refinement's visibility rule sets o^q := 0 for a Gaussian that no view of q sees (here: one behind
-another copy of the same surface), so removing the copy in front would leave a hole although a copy
-of the surface lies right behind it. For a Gaussian that marks no change, every date q whose views do
-not observe it gets o^q := max_r o^r over the dates r that do (its own date's o where none does). The
-render at q does not change (the restored copy stays hidden, up to the α·T < ``contribution_threshold``
-it may add), but the removal change of the copy in front is then measured with the copy behind shown,
-at the light multiplier l^q that cross-initialisation fitted for it.
 
 A short refinement afterwards (``CompactConfig.refine_steps``) recovers what the merge and the drop
 moved; with ``lr_light`` > 0 it also fits the light multipliers l^q, so that a copy of one date that
@@ -68,7 +43,7 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Callable
-from typing import Literal, NamedTuple
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -92,8 +67,7 @@ from cfgs_jax.model import (
     rgb,
     select,
 )
-from cfgs_jax.splat import RenderConfig
-from cfgs_jax.splat.weights import contribution_per_label, max_weight, observed_matrix, removal_change
+from cfgs_jax.splat.weights import contribution_per_label, max_weight, observed_matrix
 
 
 @dataclasses.dataclass(frozen=True)
@@ -109,14 +83,7 @@ class CompactConfig:
     max_colour_difference: float = 0.1
     max_opacity_difference: float = 0.3
     max_alpha: float = 0.99
-    hidden_threshold: float = 0.0  # also drop persistent Gaussians whose largest compositing weight is below (0: off)
     hidden_share: float = 0.0  # also drop the least-shown Gaussians that mark no change, up to this share (0: off)
-    hidden_rank: Literal["weight", "removal"] = (
-        "weight"  # rank hidden_share's candidates by summed weight or by removal change
-    )
-    hidden_rounds: int = 1  # hidden_share split over this many rounds, measured again after each
-    restore_hidden: bool = False  # give the copies hidden at a date their o there back before the ranking
-    hidden_budget: Literal["total", "per_date"] = "total"  # the removal share: of all dates' change, or each date's
     refine_steps: int = 500
     lr_light: float = 0.0  # light rate of the recovery refinement (0: l frozen, as in the fusion's refinement)
     recovery_rate_scale: float = 1.0  # × the refinement's colour, opacity, scale and rotation rates in the recovery
@@ -130,7 +97,6 @@ class CompactConfig:
             "max_o_difference",
             "max_colour_difference",
             "max_opacity_difference",
-            "hidden_threshold",
             "hidden_share",
         ):
             if not 0 <= getattr(self, name) <= 1:
@@ -157,21 +123,11 @@ class CompactConfig:
                 field="compact.recovery_rate_scale",
                 fix="1 keeps the refinement's rates",
             )
-        if self.hidden_rank not in ("weight", "removal"):
-            raise InputError(
-                f"unknown ranking {self.hidden_rank!r}", field="compact.hidden_rank", fix='use "weight" or "removal"'
-            )
-        if self.hidden_budget not in ("total", "per_date"):
-            raise InputError(
-                f"unknown budget {self.hidden_budget!r}", field="compact.hidden_budget", fix='use "total" or "per_date"'
-            )
-        if self.hidden_rounds < 1:
-            raise InputError(f"must be ≥ 1, got {self.hidden_rounds}", field="compact.hidden_rounds")
 
     @property
     def prunes_hidden(self) -> bool:
-        """Whether a hidden-copy rule is on (it needs the Gaussians' ``contributions``)."""
-        return self.hidden_threshold > 0 or self.hidden_share > 0
+        """Whether the hidden-copy rule is on (it needs the Gaussians' ``contributions``)."""
+        return self.hidden_share > 0
 
 
 def _attributes(model: TemporalGaussians) -> dict:
@@ -298,28 +254,21 @@ def merge_groups(model: TemporalGaussians, labels: np.ndarray, config: CompactCo
 class Contributions(NamedTuple):
     """Per Gaussian and date q, over the pixels of every view of date q: the largest compositing weight
     w = min(0.99, α·o^q·G)·T, the sum of w (a Gaussian's share of what the views show), and whether the
-    views of q observe it (the refinement's visibility rule, ``splat.weights.observed_matrix``); and,
-    where measured, what removing it changes in those views, Σ_views Σ_RGB |Σ_pixels (C − C_without_i)|."""
+    views of q observe it (the refinement's visibility rule, ``splat.weights.observed_matrix``)."""
 
     largest: Float[np.ndarray, "N T"]
     total: Float[np.ndarray, "N T"]
     observed: Bool[np.ndarray, "N T"]
-    removal: Float[np.ndarray, "N T"] | None = None
 
 
 def contributions(
-    model: TemporalGaussians, views, render_config=None, observed_threshold: float = 0.01, removal: bool = False
+    model: TemporalGaussians, views, render_config=None, observed_threshold: float = 0.01
 ) -> Contributions:
     """Every Gaussian's largest and summed compositing weight per date q over date q's views
     (``views[q]``, a ``DateViews``), rendered at date q's o^q, and whether q's views observe it
-    (α·T ≥ ``observed_threshold`` somewhere, the refinement's ``contribution_threshold``; ``Contributions``).
-    With ``removal``, also what removing each changes there (at o^q and l^q, measured with
-    ``max_alpha`` 0.9999 so that opaque Gaussians are not cut off by the clamp)."""
-
-    o, light = opacity_multipliers(model), light_multipliers(model)
+    (α·T ≥ ``observed_threshold`` somewhere, the refinement's ``contribution_threshold``; ``Contributions``)."""
+    o = opacity_multipliers(model)
     largest, total = np.zeros((len(model), model.num_dates)), np.zeros((len(model), model.num_dates))
-    change = np.zeros((len(model), model.num_dates)) if removal else None
-    unclamped = dataclasses.replace(render_config or RenderConfig(), max_alpha=0.9999)
     for q, dv in enumerate(views):
         cams = dv.cameras
         unlabelled = [np.zeros((int(c.height), int(c.width)), np.int64) for c in cams]
@@ -327,11 +276,8 @@ def contributions(
         total[:, q] = contribution_per_label(
             model.gaussians, o[:, q], cams, unlabelled, 1, render_config=render_config
         )[:, 0]
-        if removal:
-            per_view = removal_change(model.gaussians, o[:, q], light[:, q], cams, render_config=unclamped)
-            change[:, q] = np.sum(np.abs(per_view), axis=(0, 2))
     observed = observed_matrix(model, [dv.cameras for dv in views], observed_threshold, render_config=render_config)
-    return Contributions(largest, total, observed, change)
+    return Contributions(largest, total, observed)
 
 
 def marks_no_change(model: TemporalGaussians, observed: Bool[np.ndarray, "N T"], present: float) -> np.ndarray:
@@ -341,101 +287,18 @@ def marks_no_change(model: TemporalGaussians, observed: Bool[np.ndarray, "N T"],
     return np.all((o >= present) | ~np.asarray(observed, bool), axis=1)
 
 
-def restore_hidden_copies(
-    model: TemporalGaussians,
-    observed: Bool[np.ndarray, "N T"],
-    present: float,
-    observe: Callable[[TemporalGaussians], Bool[np.ndarray, "N T"]] | None = None,
-) -> tuple[TemporalGaussians, Bool[np.ndarray, "N T"]]:
-    """The model with the presence of its hidden copies restored, and the [N, T] mask of the entries
-    restored: for every Gaussian that marks no change (``marks_no_change``), o^q := max over the dates r
-    whose views observe it of o^r, at each date q whose views do not (its own date's o^p where no date's
-    views do). With ``observe`` (the visibility rule, as ``observed`` was measured), an entry that the
-    views of q then observe is set back: it would show, so the render at q would change. Other entries
-    are unchanged."""
-    observed = np.asarray(observed, bool)
-    logits = np.asarray(model.o_logits)
-    restore = marks_no_change(model, observed, present)[:, None] & ~observed
-    if not restore.any():
-        return model, restore
-    origin = np.asarray(model.origin)
-    own = logits[np.arange(len(logits)), origin]
-    best = np.max(np.where(observed, logits, -np.inf), axis=1)
-    best = np.where(np.isfinite(best), best, own)
-
-    def restored(mask):
-        return dataclasses.replace(
-            model, o_logits=jnp.asarray(np.where(mask, best[:, None], logits).astype(logits.dtype))
-        )
-
-    if observe is not None:
-        restore &= ~np.asarray(observe(restored(restore)), bool)
-    return restored(restore), restore
-
-
-def _overlapping(means: np.ndarray, radius: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """CSR (indptr, indices) of the pairs of rows whose centres lie within radius_i + radius_j."""
-    found = cKDTree(means).query_ball_point(means, 2.0 * radius)  # the larger one's ball holds the pair
-    a = np.repeat(np.arange(len(means)), [len(f) for f in found])
-    b = np.concatenate([np.asarray(f, np.int64) for f in found]) if len(found) else np.zeros(0, np.int64)
-    keep = (a != b) & (np.linalg.norm(means[a] - means[b], axis=-1) <= radius[a] + radius[b])
-    graph = coo_matrix((np.ones(int(keep.sum())), (a[keep], b[keep])), shape=(len(means),) * 2).tocsr()
-    graph = (graph + graph.T).tocsr()
-    return graph.indptr, graph.indices
-
-
-def hidden_persistent(
-    model: TemporalGaussians, contribution: Contributions, config: CompactConfig, share: float | None = None
-) -> np.ndarray:
+def hidden_persistent(model: TemporalGaussians, contribution: Contributions, config: CompactConfig) -> np.ndarray:
     """[N] mask of the Gaussians that mark no change but that the views barely show: copies of a
-    persistent surface that the other copies in front of them hide. Either rule drops a Gaussian:
-    ``hidden_threshold``: shown at every date (o ≥ ``present``) and its largest compositing weight over
-    every view of every date stays below the threshold; ``hidden_share`` (or ``share``, one round's
-    part): it marks no change (``marks_no_change``) and is among the lowest-ranked such Gaussians that
-    together draw at most this share of the weight all Gaussians draw. ``hidden_rank = "weight"`` ranks
-    by summed weight over all views of all dates; ``"removal"`` by the removal change
-    (``contribution.removal``), skipping a Gaussian that overlaps one already dropped, while the
-    dropped ones together change the views by at most the share of 3 × the summed weight of all
-    Gaussians (what a change of 1 in every channel of every covered pixel would be)."""
-    o = np.asarray(jax.nn.sigmoid(model.o_logits))
-    persistent = np.all(o >= config.present, axis=1)
-    hidden = persistent & (np.max(contribution.largest, axis=1) < config.hidden_threshold)
-    share = config.hidden_share if share is None else share
-    if share <= 0:
+    persistent surface that the other copies in front of them hide. Those that mark no change
+    (``marks_no_change``) are ranked by their summed weight over all views of all dates, and the
+    lowest-ranked go while together they draw at most ``hidden_share`` of the weight all Gaussians draw."""
+    hidden = np.zeros(len(model), bool)
+    if config.hidden_share <= 0:
         return hidden
     total = np.sum(contribution.total, axis=1)
     rows = np.nonzero(marks_no_change(model, contribution.observed, config.present))[0]
-    if not len(rows):
-        return hidden
-    if config.hidden_rank == "weight":
-        order = rows[np.argsort(total[rows], kind="stable")]
-        hidden[order[np.cumsum(total[order]) <= share * np.sum(total)]] = True
-        return hidden
-    if contribution.removal is None:
-        raise InputError('hidden_rank = "removal" needs contributions(..., removal=True)', field="compact.hidden_rank")
-    per_date = config.hidden_budget == "per_date"
-    if per_date:  # each date's change against that date's own coverage
-        cost = contribution.removal[rows]
-        budget = share * 3.0 * np.sum(contribution.total, axis=0)
-        order = np.argsort(np.max(cost / np.maximum(budget, 1e-30), axis=1), kind="stable")
-    else:  # colour change, L1 over RGB, against the coverage the views show
-        cost = np.sum(contribution.removal[rows], axis=1, keepdims=True)
-        budget = share * 3.0 * np.sum(total, keepdims=True)
-        order = np.argsort(cost[:, 0], kind="stable")
-    radius = np.exp(np.mean(np.asarray(model.gaussians.log_scales, np.float64)[rows], axis=-1))
-    indptr, indices = _overlapping(np.asarray(model.gaussians.means, np.float64)[rows], radius)
-    taken = np.zeros(len(rows), bool)
-    spent = np.zeros_like(budget)
-    for k in order:
-        if np.any(spent + cost[k] > budget):
-            if per_date:
-                continue  # a later candidate may cost nothing at the dates whose budget is spent
-            break
-        if taken[indices[indptr[k] : indptr[k + 1]]].any():
-            continue
-        taken[k] = True
-        spent += cost[k]
-    hidden[rows[taken]] = True
+    order = rows[np.argsort(total[rows], kind="stable")]
+    hidden[order[np.cumsum(total[order]) <= config.hidden_share * np.sum(total)]] = True
     return hidden
 
 
@@ -477,40 +340,21 @@ def compact(
     model: TemporalGaussians,
     config: CompactConfig | None = None,
     contribution: Contributions | Callable[[TemporalGaussians], Contributions] | None = None,
-    observe: Callable[[TemporalGaussians], Bool[np.ndarray, "N T"]] | None = None,
 ) -> tuple[TemporalGaussians, dict]:
-    """The model without its hidden persistent copies (``hidden_persistent``, when ``hidden_threshold``
-    or ``hidden_share`` > 0) and with every group of ``duplicate_groups`` merged into one Gaussian
-    (``merge_groups``), the others unchanged; and a report (Gaussians before/after per origin date and
-    in all). ``contribution``: the model's ``contributions``, or a function that measures them for a
-    model (needed for ``hidden_rounds`` > 1: each round drops up to hidden_share / hidden_rounds of
-    the weight the model then draws, and the next round measures the model that is left).
-    ``observe``: the visibility rule alone for a model ([N, T] observed), used by ``restore_hidden``
-    (default: the ``observed`` of ``contribution``)."""
+    """The model without its hidden persistent copies (``hidden_persistent``, when ``hidden_share`` > 0)
+    and with every group of ``duplicate_groups`` merged into one Gaussian (``merge_groups``), the others
+    unchanged; and a report (Gaussians before/after per origin date and in all). ``contribution``: the
+    model's ``contributions``, or a function that measures them for a model."""
     config = config or CompactConfig()
     full = model
-    hidden_count = restored_count = 0
+    hidden_count = 0
     if config.prunes_hidden:
-        if contribution is None or (config.hidden_rounds > 1 and not callable(contribution)):
-            raise InputError(
-                "hidden_threshold and hidden_share need the Gaussians' contributions (a function that measures "
-                "them, for hidden_rounds > 1)",
-                field="compact.contribution",
-            )
-        if config.restore_hidden:
-            if not callable(contribution):
-                raise InputError(
-                    "restore_hidden needs a function that measures the contributions (they change with o)",
-                    field="compact.contribution",
-                )
-            observe = observe or (lambda m: contribution(m).observed)
-            model, restored = restore_hidden_copies(model, observe(model), config.present, observe)
-            restored_count = int(restored.sum())
-        for _ in range(config.hidden_rounds):
-            measured = contribution(model) if callable(contribution) else contribution
-            hidden = hidden_persistent(model, measured, config, config.hidden_share / config.hidden_rounds)
-            hidden_count += int(hidden.sum())
-            model = select(model, np.nonzero(~hidden)[0])
+        if contribution is None:
+            raise InputError("hidden_share needs the Gaussians' contributions", field="compact.contribution")
+        measured = contribution(model) if callable(contribution) else contribution
+        hidden = hidden_persistent(model, measured, config)
+        hidden_count = int(hidden.sum())
+        model = select(model, np.nonzero(~hidden)[0])
     labels = duplicate_groups(model, config)
     merged, kept = merge_groups(model, labels, config)
     out = select(merged, np.nonzero(kept)[0])
@@ -518,7 +362,6 @@ def compact(
         "gaussians_before": len(full),
         "gaussians_after": len(out),
         "hidden_pruned": hidden_count,
-        "presence_restored": restored_count,
         "groups_merged": int(np.sum(np.bincount(labels) > 1)),
         "per_date_before": per_date_counts(full),
         "per_date_after": per_date_counts(out),

@@ -8,6 +8,7 @@ from typing import Any
 
 from cfgs_jax.changes.config import ChangesConfig
 from cfgs_jax.config import check_sections, section
+from cfgs_jax.errors import InputError
 from cfgs_jax.fusion.compact import CompactConfig
 from cfgs_jax.fusion.cross_init import CrossInitConfig
 from cfgs_jax.fusion.refine import RefineConfig
@@ -25,6 +26,40 @@ RUN_TABLES = {
     "compact": CompactConfig,
     "changes": ChangesConfig,
 }
+
+
+#: Settings removed with the variants they chose (their measurements stay in ``docs/decisions.md``),
+#: with the value that left the behaviour as it is now: a file or a stored run that sets one to that
+#: value still reads; any other value is refused, naming the setting.
+RETIRED = {
+    "compact": {
+        "hidden_threshold": 0.0,
+        "hidden_rank": "weight",
+        "hidden_rounds": 1,
+        "restore_hidden": False,
+        "hidden_budget": "total",
+    }
+}
+
+
+def without_retired(raw: dict[str, Any]) -> dict[str, Any]:
+    """``raw`` without the ``RETIRED`` settings that keep today's behaviour; one that would not raises."""
+    out = dict(raw)
+    for table, settings in RETIRED.items():
+        values = raw.get(table)
+        if not isinstance(values, dict) or not set(values) & set(settings):
+            continue
+        for key in set(values) & set(settings):
+            if values[key] != settings[key]:
+                raise InputError(
+                    f"{table}.{key} = {values[key]!r} is a variant that was removed (it lost to the rules kept; "
+                    "its measurements are in docs/decisions.md)",
+                    path=raw.get("__path__"),
+                    field=f"{table}.{key}",
+                    fix=f"delete {table}.{key}",
+                )
+        out[table] = {k: v for k, v in values.items() if k not in settings}
+    return out
 
 
 @dataclasses.dataclass(frozen=True)
@@ -49,7 +84,7 @@ class RunConfig:
         """Build and check every table of ``raw`` (``config.load_config`` / ``apply_overrides`` output,
         or ``run.json``'s ``config``): unknown tables or keys and bad values raise naming the file, the
         key and the closest valid one, before any output exists."""
-        raw = raw or {}
+        raw = without_retired(raw or {})
         check_sections(raw, RUN_TABLES)
         stages = {name: section(raw, name, cls_) for name, cls_ in RUN_TABLES.items()}
         tables = {k: v for k, v in raw.items() if k != "__path__"}

@@ -404,12 +404,12 @@ def compact_stage(job: Job, config: CompactConfig, views, scenes, sims) -> dict:
     threshold = job.config.refine.contribution_threshold  # "observed" by the refinement's own visibility rule
 
     def measure(m):
-        return contributions(m, views, render_config, threshold, removal=config.hidden_rank == "removal")
+        return contributions(m, views, render_config, threshold)
 
     def observe(m):
         return observed_matrix(m, [dv.cameras for dv in views], threshold, render_config=render_config)
 
-    compacted, report = compact(model, config, measure if config.prunes_hidden else None, observe)
+    compacted, report = compact(model, config, measure if config.prunes_hidden else None)
     report["config"] = dataclasses.asdict(config)  # the [compact] settings this run was compacted with
     job.log(
         f"[compact] {report['gaussians_before']:,} → {report['gaussians_after']:,} Gaussians "

@@ -171,9 +171,9 @@ class RunDir:
 
     @classmethod
     def open(cls, path: str | Path, *, finished: bool = True, writable: bool = False) -> RunDir:
-        """The run folder at ``path``; ``finished``: it must hold a refined model (``fused/``, the
-        refinement done, ``register.json``). ``writable``: its stage bookkeeping is continued (peak
-        memory measured from here on, files rewritten)."""
+        """The run folder at ``path`` with its bookkeeping (timings, peak memory, reports); ``finished``:
+        it must hold a refined model (``fused/``, the refinement done, ``register.json``). ``writable``:
+        its stage bookkeeping is continued (peak memory measured from here on, files rewritten)."""
         path = Path(path)
         state = read_json(path / "run.json")
         complete = (
@@ -188,7 +188,20 @@ class RunDir:
                 path=path,
                 fix="run `python -m cfgs_jax.pipeline fuse` first, or --resume it",
             )
-        return cls._resumed(path, state) if writable else cls(path, state)
+        if writable:
+            return cls._resumed(path, state)
+        return cls(
+            path,
+            state,
+            read_json(path / "timings.json", {}),
+            read_json(path / "peak_rss.json", {}),
+            read_json(path / "report.json", {}),
+        )
+
+    @classmethod
+    def find(cls, path: str | Path) -> RunDir | None:
+        """The run folder at ``path`` as it stands (finished or not), or None where no run was started."""
+        return cls.open(path, finished=False) if (Path(path) / "run.json").is_file() else None
 
     # -- what the run holds --------------------------------------------------------------------
 
@@ -276,10 +289,13 @@ class RunDir:
         done = self.state["done"]
         return done[done.index(stage) + 1 :] if stage in done else []
 
-    def undo(self, stages: Iterable[str]) -> None:
-        """Mark ``stages`` as not done (their outputs stay until the stages run again)."""
+    def undo(self, stages: Iterable[str], *, config: dict | None = None) -> None:
+        """Mark ``stages`` as not done (their outputs stay until the stages run again); with ``config``
+        (configuration tables) they run again under it, which the run then records as its own."""
         stages = set(stages)
         self.state["done"] = [s for s in self.state["done"] if s not in stages]
+        if config is not None:
+            self.state["config"] = {k: v for k, v in config.items() if k != "__path__"}
         write_json(self.path / "run.json", self.state)
 
     def stage(self, name: str, work: Callable[[], dict | None]) -> None:

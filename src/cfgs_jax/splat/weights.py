@@ -32,48 +32,6 @@ def summed_weights(
     return jnp.moveaxis(sums[:, 0].reshape(m, c, len(g)), 1, 2)
 
 
-@functools.partial(jax.jit, static_argnames=("config",))
-def _removal_change_one_view(
-    g: Gaussians, camera: Camera, opacity: Float[Array, " N"], light: Float[Array, "N 3"], config
-) -> Float[Array, "N 3"]:
-    n = len(g)
-
-    def channel_sums(mult):  # copy k of the render carries opacity mult[k]·opacity; keep its channel k
-        res = render_dates(
-            g, camera, mult * opacity, jnp.broadcast_to(light, (3, n, 3)), config=config, statistics=False
-        )
-        return jnp.sum(res.image[0, ..., 0]) + jnp.sum(res.image[1, ..., 1]) + jnp.sum(res.image[2, ..., 2])
-
-    return jax.grad(channel_sums)(jnp.ones((3, n), opacity.dtype)).T
-
-
-def removal_change(
-    g: Gaussians,
-    opacity: Float[Array, " N"],
-    light: Float[Array, "N 3"],
-    cameras: Sequence[Camera],
-    *,
-    render_config: RenderConfig | None = None,
-) -> np.ndarray:
-    """[V, N, 3] float64: per view and Gaussian i, Σ over pixels of the change of the image (over black)
-    when Gaussian i is removed, C − C_without_i = w_i·(l_i⊙c_i − B_i), B_i the colour composited behind
-    i (normalised by the transmittance after it).
-
-    The image is linear in each Gaussian's opacity multiplier m_i (α_i = min(max_alpha, m_i·α·o·G)
-    scales the light behind it by 1 − α_i), so the removal change equals m_i·∂C/∂m_i at m = 1; one
-    backward pass of the kernel gives it for every Gaussian, per channel (three copies of the render,
-    copy k differentiated on channel k). Where α·o·G reaches ``max_alpha`` the derivative is zero, so
-    the returned change misses those pixels: pass a ``render_config`` with ``max_alpha`` near 1 to
-    measure opaque Gaussians."""
-    rc = render_config or RenderConfig()
-    out = np.zeros((len(cameras), len(g), 3), np.float64)
-    opacity, light = jnp.asarray(opacity), jnp.asarray(light)
-    for v, cam in enumerate(cameras):
-        cap = required_capacity(g, cam, jnp.broadcast_to(opacity, (1, len(g))), config=rc)
-        out[v] = np.asarray(_removal_change_one_view(g, cam, opacity, light, dataclasses.replace(rc, capacity=cap)))
-    return out
-
-
 def contribution_per_label(
     g: Gaussians,
     opacity: Float[Array, " N"],

@@ -1,4 +1,4 @@
-"""Change detection (evaluation.change) against the float64 reference renderer and hand cases."""
+"""Change detection (evaluation.scoring) against the float64 reference renderer and hand cases."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import numpy as np
 from test_splat import camera, scene
 
 import cfgs_jax as cj
-from cfgs_jax.evaluation import change
+from cfgs_jax.evaluation import scoring
 from cfgs_jax.splat import reference, weights
 
 
@@ -49,7 +49,7 @@ def test_observed_from_is_the_visibility_rule():
 def test_precision_recall_hand_case():
     scores = np.array([0.9, 0.8, 0.6, 0.4, 0.1])
     labels = np.array([True, False, True, True, False])
-    r = change.precision_recall(scores, labels, [0.5, 0.85, 0.95])
+    r = scoring.precision_recall(scores, labels, [0.5, 0.85, 0.95])
     # ≥0.5: predicted {0,1,2}: tp 2, fp 1, fn 1 → P = R = 2/3; ≥0.85: {0}: P 1, R 1/3; ≥0.95: none
     assert np.allclose(r["precision"], [2 / 3, 1.0, 1.0])
     assert np.allclose(r["recall"], [2 / 3, 1 / 3, 0.0])
@@ -66,15 +66,15 @@ def test_summary_gates_changes_by_observation():
             }
         }
     }
-    s = change.summarise_gaussians(table)
+    s = scoring.summarise_gaussians(table)
     # observed rows 0, 1, 3, 4: predicted changed (o < τ = 0.2) only row 0 — row 4 drifted below the
     # cross-init start 0.5 but not to "absent" → P 1, R 1/2
-    assert change.ChangeConfig().absent_below == 0.2
+    assert scoring.OqRuleConfig().absent_below == 0.2
     assert np.isclose(s["precision"], 1.0) and np.isclose(s["recall"], 0.5) and np.isclose(s["f1"], 2 / 3)
     assert np.isclose(s["flagged_changed"], 0.2) and s["unobserved_marked_absent"] == 1.0
     assert np.isclose(s["observed"], 0.8) and "weighted_flagged_changed" not in s
     table["pairs"][(0, 1)]["weight"] = np.array([1.0, 2.0, 5.0, 3.0, 4.0])
-    w = change.summarise_gaussians(table)
+    w = scoring.summarise_gaussians(table)
     # observed weights 1, 2, 3, 4 (row 2 unobserved); flagged: row 0 → 1/10
     assert np.isclose(w["weighted_flagged_changed"], 0.1) and np.isclose(w["weighted_recall"], 0.25)
 
@@ -128,7 +128,7 @@ def test_observed_at_a_date_is_visibility_behind_that_dates_model():
     assert alone[:2, 1].all() and alone[:, 0].all() == fused[:2, 0].all()
     # the hidden blob is absent at b but not flagged changed; the removed one is
     table = {"pairs": {(0, 1): {"gt_changed": np.array([False, True]), "observed": fused[:2, 1], "o_q": o[:2, 1]}}}
-    s = change.summarise_gaussians(table)
+    s = scoring.summarise_gaussians(table)
     assert np.isclose(s["flagged_changed"], 0.5) and np.isclose(s["precision"], 1.0) and np.isclose(s["recall"], 1.0)
 
 
@@ -139,17 +139,17 @@ def test_pixel_iou_of_a_removed_blob():
     truth = w[0] > 0.5 * np.maximum(w.sum(0), 1e-9)  # pixels the left blob dominates
     assert truth.sum() > 20
     masks = [
-        change.DateMasks((cam,), (np.zeros((20, 40), np.int64),), {"b": (truth,)}),
-        change.DateMasks((cam,), (np.zeros((20, 40), np.int64),), {"a": (truth,)}),
+        scoring.DateMasks((cam,), (np.zeros((20, 40), np.int64),), {"b": (truth,)}),
+        scoring.DateMasks((cam,), (np.zeros((20, 40), np.int64),), {"a": (truth,)}),
     ]
-    r = change.pixel_change_iou(model, masks, [(cam,), (cam,)])
+    r = scoring.pixel_change_iou(model, masks, [(cam,), (cam,)])
     assert r["iou"] > 0.8, r
     assert r["per_pair"]["a→b"] > 0.8 and r["per_pair"]["b→a"] > 0.8
     # the right blob persists: nothing flagged where it dominates
     assert r["predicted_changed_share"] < truth.sum() / r["evaluated_pixels"] * 1.3
     # the threshold sweep: at the default threshold it is the reported IoU; fewer pixels flagged as it rises
     c = r["curve"]
-    at = c["threshold"].index(change.ChangeConfig().pixel_threshold)
+    at = c["threshold"].index(scoring.OqRuleConfig().pixel_threshold)
     assert np.isclose(c["iou"][at], r["iou"]) and np.isclose(
         c["predicted_changed_share"][at], r["predicted_changed_share"]
     )
@@ -160,7 +160,7 @@ def test_weighted_precision_recall_counts_each_entry_by_its_weight():
     scores = np.array([0.9, 0.8, 0.2])
     labels = np.array([True, False, True])
     w = np.array([3.0, 1.0, 2.0])
-    r = change.precision_recall(scores, labels, [0.5], w)
+    r = scoring.precision_recall(scores, labels, [0.5], w)
     # predicted {0, 1}: tp 3, fp 1, fn 2 → P 3/4, R 3/5
     assert np.isclose(r["precision"][0], 0.75) and np.isclose(r["recall"][0], 0.6)
     assert np.isclose(r["f1"][0], 2 * 0.75 * 0.6 / 1.35)
@@ -227,7 +227,7 @@ def test_change_table_truth_is_the_weight_share_on_changed_pixels():
     cams = [tuple(cj.Camera.look_at([0.4 * v - 0.2, -3.5, 0.3], [0, 0, 0], width=32, height=24) for v in range(2))] * 3
     xs = np.arange(32)[None, :].repeat(24, 0)
     masks = [
-        change.DateMasks(
+        scoring.DateMasks(
             cams[p],
             tuple(np.zeros((24, 32), np.int64) for _ in cams[p]),
             {qn: tuple(xs < 8 + 8 * q + 4 * v for v in range(2)) for q, qn in enumerate(names) if q != p},
@@ -235,8 +235,8 @@ def test_change_table_truth_is_the_weight_share_on_changed_pixels():
         for p in range(3)
     ]
     observed = np.ones((n, 3), bool)
-    table = change.gaussian_change_table(
-        model, masks, cams, 0, change.ChangeConfig(surface_threshold=0.0), observed=observed
+    table = scoring.gaussian_change_table(
+        model, masks, cams, 0, scoring.OqRuleConfig(surface_threshold=0.0), observed=observed
     )
     o = np.asarray(cj.opacity_multipliers(model), np.float64)
     assert sorted(table["pairs"]) == [(p, q) for p in range(3) for q in range(3) if p != q]
@@ -270,7 +270,7 @@ def test_surface_effect_of_every_date_pair_matches_float64_renders():
     origin = np.repeat(np.arange(3), 3).astype(np.int32)
     model = cj.TemporalGaussians(g, o_logits, light_logits, origin, tuple(cj.DateInfo(f"d{t}") for t in range(3)))
     cams = [(cj.Camera.look_at([0.3 * t, -3.5, 0.4], [0, 0, 0], width=32, height=24, fov_x_deg=50),) for t in range(3)]
-    got = change.surface_effect(model, cams)
+    got = scoring.surface_effect(model, cams)
     o = np.asarray(cj.opacity_multipliers(model), np.float64)
     light = np.asarray(cj.light_multipliers(model), np.float64)
     for p in range(3):
@@ -310,7 +310,7 @@ def test_surface_effect_separates_a_dropped_front_layer_from_a_removed_object():
         g, o_logits, np.zeros((3, 2, 3), np.float32), np.zeros(3, np.int32), (cj.DateInfo("a"), cj.DateInfo("b"))
     )
     cam = cj.Camera.look_at([0, -4, 0], [0, 0, 0], width=40, height=20, fov_x_deg=50)
-    got = change.surface_effect(model, [(cam,), (cam,)])
+    got = scoring.surface_effect(model, [(cam,), (cam,)])
     o = 1 / (1 + np.exp(-o_logits.astype(np.float64)))
     full, as_is = o[:, 0], o[:, 1]  # every Gaussian is date a's: at b, "full" puts them at o^a
     imgs = [np.asarray(reference.render_dates(g, cam, m[None], np.ones((1, 3, 3))).image[0]) for m in (full, as_is)]
@@ -333,6 +333,6 @@ def test_surface_effect_separates_a_dropped_front_layer_from_a_removed_object():
             }
         }
     }
-    s = change.summarise_gaussians(table)
+    s = scoring.summarise_gaussians(table)
     assert np.isclose(s["flagged_changed"], 1 / 3) and np.isclose(s["precision"], 1.0) and np.isclose(s["recall"], 1.0)
     assert np.isclose(s["flagged_changed_o_only"], 2 / 3) and np.isclose(s["precision_o_only"], 0.5)

@@ -47,8 +47,9 @@ from cfgs_jax.splat.weights import contribution_per_label, observed_matrix
 
 
 @dataclasses.dataclass(frozen=True)
-class ChangeConfig:
-    """Thresholds: τ on o^q (absent below), the per-pixel |S − 1| score, and the visibility rule.
+class OqRuleConfig:
+    """``[oq_rule]`` of an eval configuration (``[change]`` before): τ on o^q (absent below), the
+    per-pixel |S − 1| score, and the visibility rule.
 
     τ = 0.2 is the "absent" bound of the cross-init checks (``benchmarks/bench_cross_init.py``), and lies well below
     the cross-init's uninformed start δ·o^p (δ = 0.8 by default): a Gaussian counts as absent only where the images
@@ -66,9 +67,9 @@ class ChangeConfig:
         for name in ("absent_below", "pixel_threshold", "contribution_threshold", "majority"):
             v = getattr(self, name)
             if not 0.0 < v < 1.0:
-                raise InputError(f"must lie in (0, 1), got {v}", field=f"change.{name}")
+                raise InputError(f"must lie in (0, 1), got {v}", field=f"oq_rule.{name}")
         if not 0.0 <= self.surface_threshold < 1.0:
-            raise InputError(f"must lie in [0, 1), got {self.surface_threshold}", field="change.surface_threshold")
+            raise InputError(f"must lie in [0, 1), got {self.surface_threshold}", field="oq_rule.surface_threshold")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -169,7 +170,7 @@ def gaussian_change_table(
     masks: Sequence[DateMasks],
     observing: Sequence[Sequence[Camera]],
     num_objects: int,
-    config: ChangeConfig = ChangeConfig(),
+    config: OqRuleConfig = OqRuleConfig(),
     *,
     render_config=None,
     observed: np.ndarray | None = None,
@@ -235,7 +236,7 @@ def precision_recall(scores: np.ndarray, labels: np.ndarray, thresholds: np.ndar
     return {"threshold": np.asarray(thresholds, np.float64), "precision": precision, "recall": recall, "f1": f1}
 
 
-def summarise_gaussians(table: dict, config: ChangeConfig = ChangeConfig(), thresholds=None) -> dict:
+def summarise_gaussians(table: dict, config: OqRuleConfig = OqRuleConfig(), thresholds=None) -> dict:
     """Micro-averaged over all pairs: PR curve of the "changed" score (1 − o^q, observed Gaussians
     only), F1 at τ, and the shares flagged changed / absent / unobserved."""
     thresholds = np.linspace(0.02, 0.98, 49) if thresholds is None else np.asarray(thresholds)
@@ -327,7 +328,7 @@ def pixel_change_iou(
     model: TemporalGaussians,
     masks: Sequence[DateMasks],
     observing: Sequence[Sequence[Camera]],
-    config: ChangeConfig = ChangeConfig(),
+    config: OqRuleConfig = OqRuleConfig(),
     *,
     render_config=None,
     observed: np.ndarray | None = None,
@@ -374,7 +375,7 @@ def pixel_change_iou(
     }
 
 
-def _region_scores(regions: list[dict], member: np.ndarray, objects: np.ndarray, changed_objects: set) -> dict:
+def region_scores(regions: list[dict], member: np.ndarray, objects: np.ndarray, changed_objects: set) -> dict:
     """A region is true when most of its Gaussians belong to an object whose presence differs between
     the two dates (``objects``: [N] ground-truth object id per Gaussian, −1 unknown)."""
     found, false = set(), 0
@@ -419,7 +420,7 @@ def evidence_detection(
     pixel = {"inter": 0, "union": 0, "predicted": 0, "truth": 0, "valid": 0}
     per_pair, regions = {}, {"changed_objects": 0, "found_objects": 0, "false_regions": 0, "regions": 0}
     for (p, q), change in found.pairs.items():
-        objs = _region_scores(change.regions, change.member, table["objects"], changed_objects.get((p, q), set()))
+        objs = region_scores(change.regions, change.member, table["objects"], changed_objects.get((p, q), set()))
         n_changed = len(changed_objects.get((p, q), ()))
         for key, value in (("changed_objects", n_changed), ("found_objects", len(objs["found"]))):
             regions[key] += value

@@ -1,0 +1,109 @@
+"""What the benchmarks share: where results go and which machine wrote them, timing and memory
+helpers, the quiet log of the fusion runs, and the synthetic multi-date scene of the fusion benchmarks
+(command-line size options, rendering the first dates once, the ground-truth Sim(3)s)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import re
+import time
+from pathlib import Path
+
+RESULTS = Path(__file__).resolve().parent / "results"
+#: The fusion stages whose wall times make a fusion's cost.
+FUSION_STAGES = ("merge", "cross_init", "refine", "export")
+
+
+def timed(f, args) -> float:
+    """Wall seconds of one call of ``f(*args)``, its outputs ready."""
+    import jax
+
+    t0 = time.perf_counter()
+    jax.block_until_ready(f(*args))
+    return time.perf_counter() - t0
+
+
+def machine() -> str:
+    """The CPU (or accelerator and host), core count and JAX version, for the results' headers."""
+    import jax
+
+    cpu = platform.processor() or platform.machine()
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    dev = jax.devices()[0]
+    if dev.platform != "cpu":
+        return f"{dev.device_kind} ({dev.platform}), host {cpu}, {os.cpu_count()} cores, jax {jax.__version__}"
+    return f"{cpu}, {os.cpu_count()} cores, jax {jax.__version__} on {jax.default_backend()}"
+
+
+def backend_suffix() -> str:
+    """The result files' suffix: empty on the CPU; on an accelerator the chip and the backend, e.g.
+    ``_h200_gpu``, so that an accelerator run never overwrites the CPU tables nor another chip's."""
+    import jax
+
+    backend = jax.default_backend()
+    if backend == "cpu":
+        return ""
+    kind = jax.devices()[0].device_kind  # e.g. "NVIDIA H100 80GB HBM3", "NVIDIA H200"
+    chip = re.search(r"\b([A-Z]+\d+[A-Za-z]*)\b", kind)
+    name = chip.group(1) if chip else re.sub(r"[^A-Za-z0-9]+", "", kind) or "device"
+    return f"_{name.lower()}_{backend}"
+
+
+def device_peak_gb() -> float | None:
+    """Peak memory in use on the first accelerator (its allocator's count), or None on the CPU."""
+    import jax
+
+    dev = jax.devices()[0]
+    if dev.platform == "cpu":
+        return None
+    stats = dev.memory_stats() or {}
+    return stats.get("peak_bytes_in_use", 0) / 1e9 if stats else None
+
+
+def quiet(*args, **kwargs) -> None:
+    """A ``log`` for the fusion runs: the benchmark prints its own lines."""
+
+
+def fusion_seconds(run: Path, prefix: str = "") -> float:
+    """The wall seconds of the run's fusion stages (``prefix``: an extension's, ``extend:<date>:``)."""
+    t = json.loads((run / "timings.json").read_text())
+    return float(sum(t.get(prefix + s, 0.0) for s in FUSION_STAGES))
+
+
+def add_scene_args(
+    ap: argparse.ArgumentParser, *, width: int, height: int, images_per_date: int, spp: int, work: str
+) -> None:
+    """``--width --height --images-per-date --spp --config --work`` with this benchmark's defaults."""
+    ap.add_argument("--width", type=int, default=width)
+    ap.add_argument("--height", type=int, default=height)
+    ap.add_argument("--images-per-date", type=int, default=images_per_date)
+    ap.add_argument("--spp", type=int, default=spp)
+    ap.add_argument("--config", default="demo")
+    ap.add_argument("--work", default=work)
+
+
+def scene_dates(preset: str, args: argparse.Namespace, count: int) -> tuple[Path, list[str], Path, dict]:
+    """Render the preset's first ``count`` dates into WORK/data (once) and write their ground-truth
+    Sim(3)s to WORK/data/transforms.json → (data dir, date names, transforms path, Sim(3) dicts)."""
+    from cfgs_jax import synthetic
+
+    data = Path(args.work) / "data"
+    spec = synthetic.make_preset(
+        preset, seed=0, width=args.width, height=args.height, images_per_date=args.images_per_date, spp=args.spp
+    )
+    names = [d.name for d in spec.dates][:count]
+    if not (data / "ground_truth.json").is_file():
+        synthetic.render_dataset(spec, data, dates=list(range(count)), progress=False)
+    sims = synthetic.reference_transforms(data, names)
+    transforms = data / "transforms.json"
+    transforms.write_text(json.dumps(sims))
+    return data, names, transforms, sims
