@@ -104,11 +104,15 @@ def _full_layout_fields(n, seed=0, degree=3):
 
 
 @pytest.mark.parametrize("text", [False, True])
-def test_full_sh_layout_drops_rest_with_note(tmp_path, caplog, text):
+def test_full_sh_layout_keeps_every_coefficient_or_drops_them_with_a_note(tmp_path, caplog, text):
     fields = _full_layout_fields(50)
     _write_raw(tmp_path / "full.ply", fields, text=text)
+    kept = read_ply(tmp_path / "full.ply")
+    assert kept.sh_degree == 3
+    np.testing.assert_array_equal(np.asarray(kept.sh_rest[:, 4, 2]), fields["f_rest_34"].astype(np.float32))
     with caplog.at_level(logging.INFO, logger="cfgs_jax.io"):
-        g = read_ply(tmp_path / "full.ply")
+        g = read_ply(tmp_path / "full.ply", sh_degree=0)
+    assert g.sh_rest is None
     assert "dropped SH degree 1..3 (45 coefficients per Gaussian)" in caplog.text
     assert caplog.records[-1].levelno == logging.WARNING  # shown by the CLI without --verbose
     f_dc = np.stack([fields[f"f_dc_{i}"] for i in range(3)], 1).astype(np.float32).astype(np.float64)
@@ -123,7 +127,7 @@ def test_dropped_view_dependent_colour_is_measured(tmp_path, caplog):
     fields = _full_layout_fields(40, seed=3, degree=1)
     _write_raw(tmp_path / "deg1.ply", fields)
     with caplog.at_level(logging.WARNING, logger="cfgs_jax.io"):
-        read_ply(tmp_path / "deg1.ply")
+        read_ply(tmp_path / "deg1.ply", sh_degree=0)
     m = re.search(r"dropped SH degree 1\.\.1 \(9 coefficients per Gaussian\).*RMS (\d+\.\d+)", caplog.text)
     assert m, caplog.text
     f = np.stack([fields[f"f_rest_{i}"] for i in range(9)], 1).astype(np.float32).astype(np.float64).reshape(40, 3, 3)

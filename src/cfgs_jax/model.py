@@ -11,9 +11,13 @@ field               shape                activation
 ``quats``           [N, 4] wxyz          normalised on use (``normalized_quats``)
 ``log_scales``      [N, 3]               ``exp`` (``scales``)
 ``opacity_logits``  [N]                  ``sigmoid`` (``opacities``), the paper's α
-``colors``          [N, 3]               view-independent colour c = 0.5 + C0·f_dc, stored
-                                         unclamped; ``max(c, 0)`` on use (``rgb``), where INRIA
-                                         clamps inside its SH evaluation
+``colors``          [N, 3]               the DC colour c = 0.5 + C0·f_dc, stored unclamped;
+                                         ``max(c, 0)`` on use (``rgb``), where INRIA clamps inside
+                                         its SH evaluation
+``sh_rest``         [N, K, 3] or None    the SH coefficients above DC, K = (D + 1)² − 1 for degree
+                                         D ≤ 3, INRIA's order (``f_rest``, transposed to [K, 3]);
+                                         seen along d: max(c + Σ_k Y_k(d)·f_k, 0) (``splat.sh``).
+                                         None: degree 0, view-independent colour
 ``o_logits``        [N, T]               ``sigmoid`` (``opacity_multipliers``), the paper's o
 ``light_logits``    [N, T, 3]            ``2·sigmoid`` (``light_multipliers``), the paper's l
 ``origin``          [N] int32            index of the date a Gaussian was trained on
@@ -70,6 +74,14 @@ def _check_trailing(where: str, name: str, x, trailing: tuple[int, ...]) -> tupl
 def _as_float(x):
     x = jnp.asarray(x)
     return x if jnp.issubdtype(x.dtype, jnp.floating) else x.astype(jnp.float32)
+
+
+def _as_float_or_none(x):
+    return None if x is None else _as_float(x)
+
+
+#: The SH coefficients per channel above DC of degree 0, 1, 2, 3.
+SH_REST_COUNTS = (0, 3, 8, 15)
 
 
 def exposure_problem(table, t: int) -> str | None:
@@ -193,6 +205,7 @@ class Gaussians(eqx.Module):
     log_scales: Float[Array, "N 3"] = eqx.field(converter=_as_float)
     opacity_logits: Float[Array, " N"] = eqx.field(converter=_as_float)
     colors: Float[Array, "N 3"] = eqx.field(converter=_as_float)
+    sh_rest: Float[Array, "N K 3"] | None = eqx.field(default=None, converter=_as_float_or_none)
 
     def __check_init__(self):
         lead = {
@@ -202,6 +215,15 @@ class Gaussians(eqx.Module):
             "opacity_logits": _check_trailing("Gaussians", "opacity_logits", self.opacity_logits, ()),
             "colors": _check_trailing("Gaussians", "colors", self.colors, (3,)),
         }
+        if self.sh_rest is not None:
+            lead["sh_rest"] = _check_trailing("Gaussians", "sh_rest", self.sh_rest, (-1, 3))
+            k = _shape(self.sh_rest)[-2]
+            if k not in SH_REST_COUNTS[1:]:
+                raise InputError(
+                    f"{k} SH coefficients per channel above DC is no degree 1..3",
+                    field="Gaussians.sh_rest",
+                    fix="give (D + 1)² − 1 = 3, 8 or 15 coefficients per channel (None for degree 0)",
+                )
         ref = lead["means"]
         for name, s in lead.items():
             if s != ref:
@@ -215,6 +237,11 @@ class Gaussians(eqx.Module):
     @property
     def num_gaussians(self) -> int:
         return _shape(self.means)[-2]
+
+    @property
+    def sh_degree(self) -> int:
+        """D: the degree of the view-dependent colour (0: view-independent)."""
+        return 0 if self.sh_rest is None else SH_REST_COUNTS.index(_shape(self.sh_rest)[-2])
 
     def __len__(self) -> int:
         return self.num_gaussians
@@ -503,7 +530,37 @@ def concatenate(models: Sequence):
                 field="concatenate.models",
                 fix="concatenate models of one fusion (one exposure table)",
             )
+    degree = max(_gaussians_of(m).sh_degree for m in models)
+    models = [_with_sh_degree(m, degree) for m in models]
     return jax.tree_util.tree_map(lambda *xs: jnp.concatenate(xs, axis=0), *models)
+
+
+def _gaussians_of(model) -> Gaussians:
+    return model.gaussians if isinstance(model, TemporalGaussians) else model
+
+
+def with_sh_degree(g: Gaussians, degree: int) -> Gaussians:
+    """``g`` with view-dependent colour of ``degree``: coefficients above its own degree are zero
+    (the same colours), those above ``degree`` dropped (degree 0: ``sh_rest`` None)."""
+    if not 0 <= degree < len(SH_REST_COUNTS):
+        raise InputError(f"SH degree {degree}", field="sh_degree", fix="use 0, 1, 2 or 3")
+    k = SH_REST_COUNTS[degree]
+    if g.sh_degree == degree:
+        return g
+    if k == 0:
+        return dataclasses.replace(g, sh_rest=None)
+    rest = jnp.zeros((*_shape(g.colors)[:-1], 0, 3), g.colors.dtype) if g.sh_rest is None else g.sh_rest
+    have = _shape(rest)[-2]
+    if have >= k:
+        return dataclasses.replace(g, sh_rest=rest[..., :k, :])
+    pad = [(0, 0)] * (rest.ndim - 2) + [(0, k - have), (0, 0)]
+    return dataclasses.replace(g, sh_rest=jnp.pad(rest, pad))
+
+
+def _with_sh_degree(model, degree: int):
+    if isinstance(model, TemporalGaussians):
+        return dataclasses.replace(model, gaussians=with_sh_degree(model.gaussians, degree))
+    return with_sh_degree(model, degree)
 
 
 def num_dates(model: TemporalGaussians) -> int:

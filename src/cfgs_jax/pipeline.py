@@ -243,7 +243,7 @@ def _train_settings(args, config):
     if args.eval_every is not None:
         config = dataclasses.replace(config, eval_every=args.eval_every)
     if args.continue_from:
-        init = cj.io.read_ply(args.continue_from)
+        init = cj.io.read_ply(args.continue_from, sh_degree=0)  # training optimises the DC colour
         return train.continuation_config(dataclasses.replace(config, steps=args.steps or config.steps)), init
     return (config.scaled(args.steps) if args.steps else config), None
 

@@ -183,7 +183,7 @@ def _individual_plus(
             done = None
         if done is None:
             log(f"[eval] Individual +{max(steps):,}: date {name}")
-            g = read_ply(run_dir / "dates" / name / "point_cloud.ply")
+            g = read_ply(run_dir / "dates" / name / "point_cloud.ply", sh_degree=0)
             t0 = time.perf_counter()
 
             def fit():

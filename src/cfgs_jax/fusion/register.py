@@ -22,6 +22,7 @@ from cfgs_jax.errors import InputError
 from cfgs_jax.io.images import write_image
 from cfgs_jax.model import Gaussians
 from cfgs_jax.sim3 import Sim3, matrix_to_quat
+from cfgs_jax.splat.sh import rotate
 
 
 def quat_multiply(a, b):
@@ -41,7 +42,8 @@ def quat_multiply(a, b):
 
 def transform_gaussians(g: Gaussians, sim3: Sim3) -> Gaussians:
     """The splats of ``g`` moved by x ↦ s·R·x + t: means s·R·μ + t, quaternions q_R ⊗ q (Σ ↦ s²·R·Σ·Rᵀ),
-    log-scales + log s; opacity and colour unchanged. Float64 transform, result in ``g``'s dtype."""
+    log-scales + log s, the view-dependent colour turned with them (``splat.sh.rotate``: seen along R·d
+    as before along d); opacity and DC colour unchanged. Float64 transform, result in ``g``'s dtype."""
     dtype = jnp.result_type(g.means)
     means = sim3.apply(np.asarray(g.means, np.float64))
     q_r = jnp.asarray(matrix_to_quat(sim3.rotation), jnp.float64 if dtype == jnp.float64 else jnp.float32)
@@ -52,6 +54,7 @@ def transform_gaussians(g: Gaussians, sim3: Sim3) -> Gaussians:
         jnp.asarray(g.log_scales, dtype) + jnp.asarray(np.log(sim3.scale), dtype),
         g.opacity_logits,
         g.colors,
+        None if g.sh_rest is None else jnp.asarray(rotate(g.sh_rest, sim3.rotation), dtype),
     )
 
 

@@ -53,7 +53,9 @@ from cfgs_jax.model import (
 )
 
 FORMAT_NAME = "cfgs_jax.fused"
-FORMAT_VERSION = 2  # 2: model.json may carry an exposure table (version 1 readers would ignore it)
+#: 2: model.json may carry an exposure table (version 1 readers would ignore it); 3: the PLY may carry
+#: ``f_rest_*`` (view-dependent colour, which a version 2 reader would drop).
+FORMAT_VERSION = 3
 CFGS_PLY, CFGS_JSON = "model.ply", "model.json"
 REF_PLY, REF_ACT, REF_SIDECAR = "point_cloud.ply", "activation.ply", "cfgs_dates.json"
 AUTHORS_INFO = "src_gaussian_info.json"  # the reference code's per-date Gaussian counts
@@ -124,7 +126,7 @@ def write_fused(path: str | os.PathLike, model: TemporalGaussians, layout: str =
     t = model.num_dates
     meta = {
         "format": FORMAT_NAME,
-        "format_version": FORMAT_VERSION if model.exposure is not None else 1,
+        "format_version": 3 if model.gaussians.sh_degree else 2 if model.exposure is not None else 1,
         "layout": layout,
         "num_gaussians": model.num_gaussians,
         "num_dates": t,

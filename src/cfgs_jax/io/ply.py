@@ -1,12 +1,12 @@
-"""INRIA 3DGS PLY files (via plyfile): read the full SH layout or the DC-only layout, write DC-only.
+"""INRIA 3DGS PLY files (via plyfile): the full SH layout of any degree ≤ 3, or the DC-only layout.
 
 Layouts read (property names, any order; binary or ASCII; any extra properties are ignored):
-  full     x y z nx ny nz f_dc_0..2 f_rest_0..(3·((d+1)²−1)−1) opacity scale_0..2 rot_0..3
+  full     x y z nx ny nz f_dc_0..2 f_rest_0..(3K−1) opacity scale_0..2 rot_0..3, K = (D+1)²−1
   DC-only  x y z [nx ny nz] f_dc_0..2 opacity scale_0..2 rot_0..3
-Higher SH bands (``f_rest_*``) are dropped, with a warning that says how much view-dependent colour
-they held (RMS over view directions): our colours are view-independent.
-Written: the 17-property DC-only layout ``x y z nx ny nz f_dc_0..2 opacity scale_0..2 rot_0..3``
-(normals zero), binary little-endian, which every 3DGS viewer reads.
+``f_rest_*`` are channel-major, as INRIA and gsplat write them (K coefficients of red, then green,
+then blue); they become ``Gaussians.sh_rest`` [N, K, 3].
+Written: INRIA's layout, ``x y z nx ny nz f_dc_0..2 [f_rest_0..3K−1] opacity scale_0..2 rot_0..3``
+(normals zero; 17 properties for degree 0), binary little-endian, which every 3DGS viewer reads.
 
 Colour: c = 0.5 + C0·f_dc on import, rounded once to float32 and stored unclamped; the writer inverts
 it exactly (``model.sh_dc_from_colors``), so write → read is bit-exact for every field.
@@ -24,7 +24,7 @@ import plyfile
 
 from cfgs_jax.errors import InputError
 from cfgs_jax.io.atomic import atomic_file
-from cfgs_jax.model import Gaussians, colors_from_sh_dc, sh_dc_from_colors
+from cfgs_jax.model import SH_REST_COUNTS, Gaussians, colors_from_sh_dc, sh_dc_from_colors, with_sh_degree
 
 log = logging.getLogger("cfgs_jax.io")
 
@@ -130,16 +130,33 @@ def view_dependent_rms(f_rest: np.ndarray) -> float:
     return float(np.sqrt(np.mean(np.sum(f.reshape(len(f), 3, -1) ** 2, axis=-1)) / (4 * np.pi)))
 
 
-def dropped_sh_note(table: np.ndarray, rest: Sequence[str], *, path) -> str:
-    """One line saying how much view-dependent appearance importing drops (the SH bands above DC)."""
-    order = sorted(rest, key=lambda n: int(n.rsplit("_", 1)[1]))
-    bands = int(round(np.sqrt(len(order) // 3 + 1))) - 1
-    rms = view_dependent_rms(np.stack([np.asarray(table[n], np.float64) for n in order], axis=1))
-    return (
-        f"{path}: dropped SH degree 1..{bands} ({len(order)} coefficients per Gaussian); the view-dependent "
-        f"colour they held has RMS {rms:.4f} (in [0, 1] colour units, over view directions and Gaussians); "
-        "colours are the DC term only"
-    )
+def channel_major(sh_rest: np.ndarray) -> np.ndarray:
+    """[N, 3K]: ``sh_rest`` [N, K, 3] in the PLY's ``f_rest_*`` order (K of red, then green, then blue)."""
+    a = np.asarray(sh_rest)
+    return np.transpose(a, (0, 2, 1)).reshape(len(a), -1)
+
+
+def from_channel_major(f_rest: np.ndarray) -> np.ndarray:
+    """[N, K, 3] from the PLY's [N, 3K] ``f_rest_*`` columns (``channel_major`` inverted)."""
+    a = np.asarray(f_rest)
+    return np.transpose(a.reshape(len(a), 3, -1), (0, 2, 1))
+
+
+def f_rest_names(table: np.ndarray, *, path) -> list[str]:
+    """The ``f_rest_*`` properties of a vertex table in coefficient order (checked: 3K of them, K the
+    count of a degree 1..3, numbered 0..3K−1)."""
+    rest = sorted((n for n in table.dtype.names if n.startswith("f_rest_")), key=lambda n: int(n.rsplit("_", 1)[1]))
+    if not rest:
+        return []
+    counts = [3 * k for k in SH_REST_COUNTS[1:]]
+    if len(rest) not in counts or rest != [f"f_rest_{i}" for i in range(len(rest))]:
+        raise InputError(
+            f"{len(rest)} f_rest properties (f_rest_0 .. f_rest_{len(rest) - 1} expected, {counts} of them)",
+            path=path,
+            field="f_rest",
+            fix="export the model with SH degree 1, 2 or 3 (INRIA's f_rest layout), or without f_rest",
+        )
+    return rest
 
 
 def gaussians_from_table(table: np.ndarray, *, path: str | os.PathLike, drop_invalid: bool = False):
@@ -149,16 +166,17 @@ def gaussians_from_table(table: np.ndarray, *, path: str | os.PathLike, drop_inv
     opacity = columns(table, OPACITY, path=path)[:, 0]
     log_scales = columns(table, SCALE, path=path)
     quats = columns(table, ROTATION, path=path)
-    rest = [n for n in table.dtype.names if n.startswith("f_rest_")]
-    if rest:
-        log.warning("%s", dropped_sh_note(table, rest, path=path))
+    rest = f_rest_names(table, path=path)
+    f_rest = columns(table, rest, path=path) if rest else np.zeros((len(means), 0), np.float32)
     keep = check_finite(
-        {"x/y/z": means, "f_dc": f_dc, "opacity": opacity, "scale": log_scales, "rot": quats},
+        {"x/y/z": means, "f_dc": f_dc, "f_rest": f_rest, "opacity": opacity, "scale": log_scales, "rot": quats},
         path=path,
         drop_invalid=drop_invalid,
     )
     if keep is not None:
-        means, f_dc, opacity, log_scales, quats = (a[keep] for a in (means, f_dc, opacity, log_scales, quats))
+        means, f_dc, f_rest, opacity, log_scales, quats = (
+            a[keep] for a in (means, f_dc, f_rest, opacity, log_scales, quats)
+        )
     zero_q = ~np.any(quats != 0, axis=1)
     if zero_q.any():
         raise InputError(
@@ -168,29 +186,58 @@ def gaussians_from_table(table: np.ndarray, *, path: str | os.PathLike, drop_inv
             field="rot_0..rot_3",
             fix="a zero quaternion has no rotation: repair or drop those Gaussians",
         )
-    g = Gaussians(means, quats, log_scales, opacity, colors_from_sh_dc(f_dc))
+    sh_rest = from_channel_major(f_rest) if rest else None
+    g = Gaussians(means, quats, log_scales, opacity, colors_from_sh_dc(f_dc), sh_rest)
     return g, keep
 
 
-def read_ply(path: str | os.PathLike, *, drop_invalid: bool = False) -> Gaussians:
-    """Read an INRIA 3DGS PLY (full SH or DC-only layout) into ``Gaussians``."""
+def read_ply(path: str | os.PathLike, *, drop_invalid: bool = False, sh_degree: int | None = None) -> Gaussians:
+    """Read an INRIA 3DGS PLY (full SH layout of any degree ≤ 3, or DC-only) into ``Gaussians``.
+    ``sh_degree``: the degree wanted (None: the file's); coefficients above it are dropped, with a
+    warning that says how much view-dependent colour they held, and missing ones are zero."""
     table = read_vertex_table(path)
     g, _ = gaussians_from_table(table, path=path, drop_invalid=drop_invalid)
-    return g
+    if sh_degree is None or sh_degree == g.sh_degree:
+        return g
+    if sh_degree < g.sh_degree:
+        kept = SH_REST_COUNTS[sh_degree]
+        dropped = channel_major(np.asarray(g.sh_rest)[:, kept:])
+        log.warning(
+            "%s: dropped SH degree %d..%d (%d coefficients per Gaussian); the view-dependent colour they held "
+            "has RMS %.4f (in [0, 1] colour units, over view directions and Gaussians)",
+            path,
+            sh_degree + 1,
+            g.sh_degree,
+            dropped.shape[1],
+            view_dependent_rms(dropped),
+        )
+    return with_sh_degree(g, sh_degree)
+
+
+def layout(degree: int) -> tuple[str, ...]:
+    """INRIA's property names for SH degree ``degree`` (17 for degree 0, 17 + 3·((D+1)²−1) above)."""
+    rest = tuple(f"f_rest_{i}" for i in range(3 * SH_REST_COUNTS[degree]))
+    return POSITION + NORMALS + F_DC + rest + OPACITY + SCALE + ROTATION
 
 
 def gaussians_table(g: Gaussians, extra: dict[str, np.ndarray] | None = None) -> np.ndarray:
-    """The 17-property DC-only vertex table of ``g`` (plus ``extra`` columns appended, in order)."""
+    """The vertex table of ``g`` in INRIA's layout of its SH degree (plus ``extra`` columns appended,
+    in order)."""
     n = len(g)
     extra = extra or {}
-    dtype = [(name, "<f4") for name in DC_ONLY_LAYOUT] + [(k, np.asarray(v).dtype.str) for k, v in extra.items()]
+    names = layout(g.sh_degree)
+    dtype = [(name, "<f4") for name in names] + [(k, np.asarray(v).dtype.str) for k, v in extra.items()]
     table = np.zeros(n, dtype=dtype)
-    for names, arr in (
+    rest = names[len(POSITION + NORMALS + F_DC) : len(names) - len(OPACITY + SCALE + ROTATION)]
+    columns_of = [
         (POSITION, g.means),
         (F_DC, sh_dc_from_colors(g.colors)),
         (SCALE, g.log_scales),
         (ROTATION, g.quats),
-    ):
+    ]
+    if rest:
+        columns_of.append((rest, channel_major(np.asarray(g.sh_rest, np.float32))))
+    for names, arr in columns_of:
         a = np.asarray(arr, np.float32).reshape(n, len(names))
         for i, name in enumerate(names):
             table[name] = a[:, i]
@@ -210,7 +257,8 @@ def write_table(path: str | os.PathLike, table: np.ndarray, *, element: str = "v
 
 
 def write_ply(path: str | os.PathLike, gaussians: Gaussians) -> Path:
-    """Write ``gaussians`` as a standard 17-property DC-only INRIA 3DGS PLY (atomically)."""
+    """Write ``gaussians`` as an INRIA 3DGS PLY of their SH degree (17 properties for degree 0;
+    atomically)."""
     if len(np.shape(gaussians.means)) != 2:
         raise InputError(
             f"expected unbatched Gaussians [N, 3], got means of shape {list(np.shape(gaussians.means))}",

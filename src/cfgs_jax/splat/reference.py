@@ -17,6 +17,7 @@ import jax.numpy as jnp
 
 from cfgs_jax.model import Camera, Gaussians
 from cfgs_jax.splat.config import RenderConfig
+from cfgs_jax.splat.sh import view_colours
 
 
 class ReferenceResult(NamedTuple):
@@ -91,7 +92,11 @@ def _render64(g: Gaussians, camera: Camera, opacity_mult, color_mult, background
     f64 = jnp.float64
     alpha0 = jax.nn.sigmoid(g.opacity_logits.astype(f64))
     opac = alpha0[None] * opacity_mult.astype(f64)  # [T, N]
-    feats = jnp.maximum(g.colors.astype(f64), 0.0)[None] * color_mult.astype(f64)  # [T, N, 3]
+    rest = None if g.sh_rest is None else g.sh_rest.astype(f64)
+    cam = camera.cam_from_world.astype(f64)
+    centre = -jnp.sum(cam[:3, :3] * cam[:3, 3][:, None], axis=0)  # −Rᵀt
+    colours = view_colours(g.colors.astype(f64), rest, g.means.astype(f64), centre)
+    feats = colours[None] * color_mult.astype(f64)  # [T, N, 3]
     p = _project64(g, camera, opac, config)
     z, mean2d, inv, lo, hi, visible = (p[k] for k in ("z", "mean2d", "inv", "lo", "hi", "visible"))
     w_, h_, ts = camera.width, camera.height, config.tile_size

@@ -21,12 +21,13 @@ from jaxtyping import Array, Float, Int
 
 from cfgs_jax import parallel
 from cfgs_jax.errors import InputError
-from cfgs_jax.model import Camera, Gaussians, is_traced, opacities, rgb
+from cfgs_jax.model import Camera, Gaussians, is_traced, opacities
 from cfgs_jax.splat.binning import bin_gaussians, listed_tiles
 from cfgs_jax.splat.composite import Layout, composite, weighted_sums
 from cfgs_jax.splat.config import RenderConfig
 from cfgs_jax.splat.pallas_composite import PallasOptions, composite_pallas, weighted_sums_pallas
 from cfgs_jax.splat.project import project, tile_grid
+from cfgs_jax.splat.sh import view_colours
 
 MIN_CAPACITY = 1 << 12
 
@@ -127,7 +128,7 @@ def _render_impl(
     proj, opac, layout, bins = _project_and_bin(
         gaussians, camera, opacity_mult, config=config, capacity=capacity, statistics=statistics
     )
-    feats = rgb(gaussians)[None] * color_mult
+    feats = view_colours(gaussians.colors, gaussians.sh_rest, gaussians.means, camera.center)[None] * color_mult
     if with_depth:
         feats = jnp.concatenate([feats, jnp.broadcast_to(proj.depths[None, :, None], feats.shape[:2] + (1,))], -1)
     means2d = proj.means2d if means2d_offset is None else proj.means2d + means2d_offset
