@@ -12,8 +12,8 @@ from scipy.spatial.transform import Rotation
 
 import cfgs_jax as cj
 from cfgs_jax import InputError, splat, synthetic, train
-from cfgs_jax.io import read_colmap
-from cfgs_jax.model import gaussians_of
+from cfgs_jax.io import read_colmap, read_ply, write_ply
+from cfgs_jax.model import gaussians_of, trainable, with_sh_degree
 from cfgs_jax.train.step import TrainState, make_train_step
 
 
@@ -506,3 +506,32 @@ def test_train_cli_killed_mid_run_resumes_to_the_uninterrupted_result(corals, tm
     assert len(a) == len(b)
     for x, y in zip(jax.tree_util.tree_leaves(a), jax.tree_util.tree_leaves(b)):  # bit-identical
         np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+
+
+def test_sh_training_raises_one_band_per_interval_carries_the_coefficients_and_resumes(corals, tmp_path):
+    """With ``sh_degree`` 2 and a band every 20 steps: the first 19 steps give the coefficients no
+    gradient (degree 0), steps 19–38 move only band 1, later steps band 2 too; densification carries
+    the coefficients (one row per live Gaussian); the SH rate is 1/20 of the f_dc rate; the PLY keeps
+    them; a stopped run resumes to the uninterrupted result."""
+    from cfgs_jax.train.step import sh_degree_at
+
+    cfg = dataclasses.replace(_short(60), sh_degree=2, sh_interval=20)
+    assert [int(sh_degree_at(s, cfg)) for s in (0, 18, 19, 38, 39, 59)] == [0, 0, 1, 1, 2, 2]
+    opt = train.make_optimizer(cfg, 1.0)
+    grads = {f: jnp.ones_like(v) for f, v in trainable(with_sh_degree(cj.Gaussians.empty(2), 2)).items()}
+    updates, _ = opt.update(grads, opt.init(grads), grads)
+    np.testing.assert_allclose(np.asarray(updates["sh_rest"]), -cfg.color_lr / 20, rtol=1e-5)
+    scene = read_colmap(corals)
+    run = tmp_path / "b"
+    early = train.fit(scene, cfg, out=run, progress=False, stop_after=19, evaluate_at_end=False)
+    assert early.gaussians.sh_degree == 2 and not np.any(np.asarray(early.gaussians.sh_rest))
+    mid = train.fit(scene, cfg, out=run, resume=True, progress=False, stop_after=38, evaluate_at_end=False)
+    rest = np.asarray(mid.gaussians.sh_rest)
+    assert np.any(rest[:, :3]) and not np.any(rest[:, 3:])
+    done = train.fit(scene, cfg, out=run, resume=True, progress=False, evaluate_at_end=False)
+    full = train.fit(scene, cfg, out=tmp_path / "a", progress=False, evaluate_at_end=False)
+    rest = np.asarray(full.gaussians.sh_rest)
+    assert len(full.counts) > 2 and rest.shape == (len(full.gaussians), 8, 3) and np.any(rest[:, 3:])
+    write_ply(tmp_path / "sh.ply", full.gaussians)
+    np.testing.assert_array_equal(np.asarray(read_ply(tmp_path / "sh.ply").sh_rest), rest)
+    np.testing.assert_array_equal(np.asarray(done.state.params["sh_rest"]), np.asarray(full.state.params["sh_rest"]))

@@ -4,6 +4,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
+import pytest
 
 import cfgs_jax as cj
 from cfgs_jax import fusion, loop
@@ -85,6 +86,13 @@ def test_refinement_optimizer_freezes_positions_at_scale_zero():
     upd, _ = opt.update(grads, opt.init(params), params)
     assert np.all(np.asarray(upd["means"]) == 0)
     np.testing.assert_allclose(upd["o_logits"], -2.5e-6, rtol=1e-5)
+    assert "sh_rest" not in upd  # a DC-only model: the SH rate names a field it does not have
+    with_sh = params | {"sh_rest": jnp.ones((n, 8, 3))}
+    config = fusion.RefineConfig()
+    upd, _ = opt.update(jax.tree_util.tree_map(jnp.ones_like, with_sh), opt.init(with_sh), with_sh)
+    np.testing.assert_allclose(upd["sh_rest"], -config.lr_color / 20, rtol=1e-5)  # INRIA's f_rest rate
+    with pytest.raises(ValueError):
+        opt.init(params | {"nosuch": jnp.ones(n)})  # a field without a rate is an error
 
 
 def test_halve_alpha_of_halves_only_the_given_rows():

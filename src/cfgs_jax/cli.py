@@ -239,6 +239,13 @@ def _add_train(sub, prog: str) -> None:
     _resume_arg(s, "training")
     s.add_argument("--seed", type=int, help="random seed (default: [train] seed)")
     s.add_argument(
+        "--sh-degree",
+        type=int,
+        choices=(0, 1, 2, 3),
+        help="view-dependent colour: the SH degree trained, one band more every [train] sh_interval steps "
+        "(default: [train] sh_degree; the PLY keeps the coefficients, INRIA's f_rest)",
+    )
+    s.add_argument(
         "--stop-after", type=int, metavar="STEP", help="stop (with a checkpoint) after this many total steps"
     )
     s.add_argument("--eval-every", type=int, metavar="N", help="also evaluate on the test split every N steps")

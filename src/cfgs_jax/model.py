@@ -333,17 +333,19 @@ GAUSSIAN_FIELDS = ("means", "quats", "log_scales", "opacity_logits", "colors")
 
 
 def trainable(model: Gaussians | TemporalGaussians) -> dict[str, Array]:
-    """The leaves an optimiser updates, by field name: a ``Gaussians``' five fields; a
-    ``TemporalGaussians``' Gaussian fields and ``o_logits`` (its light ``l``, origin and dates stay fixed)."""
+    """The leaves an optimiser updates, by field name: a ``Gaussians``' five fields (and ``sh_rest``
+    where it has view-dependent colour); a ``TemporalGaussians``' Gaussian fields and ``o_logits`` (its
+    light ``l``, origin and dates stay fixed)."""
     if isinstance(model, TemporalGaussians):
         return trainable(model.gaussians) | {"o_logits": model.o_logits}
-    return {f: getattr(model, f) for f in GAUSSIAN_FIELDS}
+    params = {f: getattr(model, f) for f in GAUSSIAN_FIELDS}
+    return params if model.sh_rest is None else params | {"sh_rest": model.sh_rest}
 
 
 def gaussians_of(params: dict[str, Array]) -> Gaussians:
     """The ``Gaussians`` whose fields are ``params[GAUSSIAN_FIELDS]`` (other keys, such as o-logits, are
     ignored): the model a loss renders from an optimiser's parameters."""
-    return Gaussians(*(params[f] for f in GAUSSIAN_FIELDS))
+    return Gaussians(*(params[f] for f in GAUSSIAN_FIELDS), params.get("sh_rest"))
 
 
 def with_trainable(like: Gaussians | TemporalGaussians, params: dict[str, Array]):

@@ -240,6 +240,8 @@ def _train_settings(args, config):
     config = config.train
     if args.seed is not None:
         config = dataclasses.replace(config, seed=args.seed)
+    if args.sh_degree is not None:
+        config = dataclasses.replace(config, sh_degree=args.sh_degree)
     if args.eval_every is not None:
         config = dataclasses.replace(config, eval_every=args.eval_every)
     if args.continue_from:

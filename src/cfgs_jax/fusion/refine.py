@@ -531,22 +531,11 @@ class _Refinement:
         return self.after_step(c, it)
 
 
-def _begin(
-    model,
-    views,
-    config,
-    train_config,
-    render_config,
-    extent,
-    snapshot_steps,
-    on_snapshot,
-    mesh,
-    new_dates,
-    maskable,
-    checkpoint,
-):
+def _begin(model, views, config, options: tuple, checkpoint):
     """The refinement's fixed inputs (checked) and its start: a fresh carry, or the checkpoint's.
-    Returns (refinement, carry, start step, the identity saved with checkpoints).
+    Returns (refinement, carry, start step, the identity saved with checkpoints). ``options``:
+    ``refine``'s (train_config, render_config, extent, snapshot_steps, on_snapshot, mesh, new_dates,
+    maskable).
 
     Learned masks (with ``config.mask_lambda`` > 0 and ``maskable``, an [N] bool): each maskable
     Gaussian i gets a mask logit m_i (start ``MASK_INIT_LOGIT``), and the loss gains
@@ -555,6 +544,7 @@ def _begin(
     images let it; then the masks are fixed to M_i = [σ(m_i) > ½] (``learned_mask``), and the rest of
     the steps recover with the set they chose. The Gaussians with M_i = 0 are removed with the final
     prune (their count is the report's ``masked_out``)."""
+    train_config, render_config, extent, snapshot_steps, on_snapshot, mesh, new_dates, maskable = options
     if maskable is None and config.mask_lambda:
         raise InputError(
             "learned masks need the Gaussians they may remove (refine(..., maskable=...))",
@@ -618,20 +608,8 @@ def refine(
     over its devices (the parameters replicated, the gradient all-reduced). Learned masks
     (``config.mask_lambda`` > 0, ``maskable`` an [N] bool): see ``_begin``."""
     config = config or RefineConfig()
-    run, carry, start, identity = _begin(
-        model,
-        views,
-        config,
-        train_config,
-        render_config,
-        extent,
-        snapshot_steps,
-        on_snapshot,
-        mesh,
-        new_dates,
-        maskable,
-        checkpoint,
-    )
+    options = (train_config, render_config, extent, snapshot_steps, on_snapshot, mesh, new_dates, maskable)
+    run, carry, start, identity = _begin(model, views, config, options, checkpoint)
     carry, done = _steps(run, carry, start, identity, checkpoint, stop_after, progress)
     if done < config.steps:
         return None, {"stopped_at": done}

@@ -75,6 +75,21 @@ class Job:
     def extent(self, scenes: list[Scene]) -> float:
         return train.scene_extent(scenes[self.run.reference].cameras)
 
+    def refine(self, model, views, config, scenes, **options):
+        """Eq. 3 refinement (``fusion.refine``) of ``model`` with this run's extent, training schedule,
+        render settings, progress bars and devices."""
+        return refine(
+            model,
+            views,
+            config,
+            extent=self.extent(scenes),
+            train_config=self.config.train,
+            render_config=self.config.render,
+            progress=self.progress,
+            mesh=self.mesh,
+            **options,
+        )
+
 
 def check_lpips_size(scene: Scene, config: RunConfig | dict | None) -> None:
     """Cross-init's ε comes from LPIPS maps of the training views: refuse, before any work, a date whose
@@ -183,19 +198,15 @@ def _refine_stage(
     def snapshot(k, m):
         write_fused(run.snapshot_dir(k), m, config=run.config)
 
-    model, rep = refine(
+    model, rep = job.refine(
         model,
         views,
         fc,
-        extent=job.extent(scenes),
-        train_config=job.config.train,
+        scenes,
         new_dates=new_dates,
-        render_config=job.config.render,
-        progress=job.progress,
         checkpoint=ckpt,
         snapshot_steps=tuple(snapshots),
         on_snapshot=snapshot,
-        mesh=job.mesh,
     )
     write_fused(run / "fused", model, config=run.config)
     run.finish(stage, time.perf_counter() - t0 + rep["seconds_before_resume"], rep)  # a resumed stage's whole time
@@ -374,18 +385,7 @@ def _recover(job: Job, compacted, views, scenes, observe, config: CompactConfig,
     merge moved; the report gains the refinement's and the counts after it."""
     rc = recovery_config(job.config.refine, config)
     maskable = marks_no_change(compacted, observe(compacted), config.present) if config.mask_lambda else None
-    compacted, refined = refine(
-        compacted,
-        views,
-        rc,
-        extent=job.extent(scenes),
-        train_config=job.config.train,
-        new_dates=[],
-        render_config=job.config.render,
-        progress=job.progress,
-        mesh=job.mesh,
-        maskable=maskable,
-    )
+    compacted, refined = job.refine(compacted, views, rc, scenes, new_dates=[], maskable=maskable)
     report["refine"] = refined
     report["masked_out"] = refined["masked_out"]
     report["gaussians_after"] = len(compacted)

@@ -92,6 +92,7 @@ def refinement_optimizer(
         "log_scales": config.lr_other,
         "opacity_logits": config.lr_alpha,
         "colors": config.lr_color * SH_C0,
+        "sh_rest": config.lr_color / 20.0,  # INRIA's f_rest rate, for a model with view-dependent colour
         "o_logits": config.lr_o,
     }
     if config.lr_light:  # l trained too (the paper keeps it frozen)

@@ -11,7 +11,7 @@ most web viewers) holds::
 "fy"}`` with ``position`` the camera centre in world coordinates and ``rotation`` the 3×3
 camera→world rotation (rows), i.e. the inverse of COLMAP's world→camera pose; test cameras come first,
 then training cameras, as INRIA writes them. ``cfg_args`` names the source dataset, the model path, the
-image folder, the resolution and ``sh_degree`` (0: our PLYs hold the DC term only).
+image folder, the resolution and ``sh_degree`` (the model's: the PLY's ``f_rest`` bands).
 """
 
 from __future__ import annotations
@@ -67,7 +67,7 @@ def write_inria_layout(
         images=scene.image_dir.name,
         model_path=str(root.resolve()),
         resolution=-1 if scene.resolution == 1 else scene.resolution,
-        sh_degree=0,
+        sh_degree=gaussians.sh_degree,
         source_path=str(Path(scene.root).resolve()),
         white_background=False,
     )

@@ -91,6 +91,14 @@ def view_colours(
     return jnp.maximum(colors + jnp.sum(y[..., None] * sh_rest, axis=-2), 0.0)
 
 
+def up_to_degree(sh_rest: Float[Array, "N K 3"], degree) -> Float[Array, "N K 3"]:
+    """``sh_rest`` with the bands above ``degree`` (a traced integer allowed) zeroed: the colour of a
+    model whose training has reached that band (INRIA's active SH degree)."""
+    counts = jnp.asarray([coefficient_count(d) for d in range(MAX_DEGREE + 1)])
+    keep = jnp.arange(sh_rest.shape[-2]) < counts[jnp.clip(degree, 0, MAX_DEGREE)]
+    return sh_rest * keep[:, None].astype(sh_rest.dtype)
+
+
 def _sphere(count: int = 64) -> np.ndarray:
     """``count`` unit directions spread over the sphere (a Fibonacci lattice)."""
     i = np.arange(count) + 0.5

@@ -22,6 +22,8 @@ class TrainConfig:
     scale_lr: float = 5e-3
     rotation_lr: float = 1e-3
     color_lr: float = 2.5e-3  # f_dc units
+    sh_degree: int = 0  # view-dependent colour: SH degree 0..3 (INRIA's --sh_degree), 1/20 of color_lr
+    sh_interval: int = 1000  # one SH band more every this many steps (INRIA's oneupSHdegree)
     adam_eps: float = 1e-15
     lambda_dssim: float = 0.2
     random_background: bool = True
@@ -47,7 +49,7 @@ class TrainConfig:
 
     def scaled(self, steps: int) -> TrainConfig:
         """This schedule with every iteration count scaled by ``steps / self.steps`` (for short runs):
-        the densification window, interval and opacity-reset period shrink in proportion."""
+        the densification window, interval, opacity-reset period and SH band interval shrink in proportion."""
         f = steps / self.steps
 
         def s(n):
@@ -60,6 +62,7 @@ class TrainConfig:
             densify_until=s(self.densify_until),
             densify_interval=s(self.densify_interval),
             opacity_reset_interval=s(self.opacity_reset_interval),
+            sh_interval=s(self.sh_interval),
         )
 
     def __post_init__(self):
@@ -69,7 +72,16 @@ class TrainConfig:
             raise InputError(f"must be in (0, 1), got {self.init_opacity}", field="train.init_opacity")
         if not 0 <= self.lambda_dssim <= 1:
             raise InputError(f"must be in [0, 1], got {self.lambda_dssim}", field="train.lambda_dssim")
-        for name in ("densify_interval", "opacity_reset_interval", "checkpoint_every", "resolution", "view_batch"):
+        if self.sh_degree not in (0, 1, 2, 3):
+            raise InputError(f"must be 0, 1, 2 or 3, got {self.sh_degree}", field="train.sh_degree")
+        for name in (
+            "densify_interval",
+            "opacity_reset_interval",
+            "checkpoint_every",
+            "resolution",
+            "view_batch",
+            "sh_interval",
+        ):
             if getattr(self, name) <= 0:
                 raise InputError(f"must be positive, got {getattr(self, name)}", field=f"train.{name}")
         for name in ("position_lr_init", "position_lr_final"):

@@ -22,7 +22,7 @@ from jaxtyping import Array, Bool
 
 from cfgs_jax.model import logit, quat_to_rotmat
 from cfgs_jax.train.config import TrainConfig
-from cfgs_jax.train.optim import FIELDS, restart_moments
+from cfgs_jax.train.optim import restart_moments
 from cfgs_jax.train.step import TrainState
 
 #: INRIA's split: N = 2 children, each scaled by 1 / (0.8·N).
@@ -109,7 +109,7 @@ def densify_and_prune(state: TrainState, config: TrainConfig, extent, prune_big,
     valid = jnp.concatenate([plan["keep"], plan["clone"]] + [plan["split"]] * SPLIT_CHILDREN)
 
     params = {}
-    for f in FIELDS:
+    for f in p:  # every trainable field, the SH coefficients too
         fill = INERT.get(f, 0.0)
         params[f] = _scatter([p[f], p[f]] + [c[f] for c in children], valid, out_capacity, fill)
     n_new = jnp.sum(valid)

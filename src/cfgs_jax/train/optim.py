@@ -35,21 +35,22 @@ def per_field_adam(
     rates: Mapping[str, float | Callable], *, eps: float = 1e-8, labels: Mapping[str, str] | None = None
 ) -> optax.GradientTransformation:
     """``optax.multi_transform`` of one Adam per entry of ``rates`` (a constant or an optax schedule),
-    over a params dict whose keys are ``labels``' keys (default: ``rates``' keys, each its own label).
-    A rate of exactly 0 freezes its leaves (``optax.set_to_zero``: no update, no Adam state)."""
+    over a params dict whose keys are ``labels``' keys (default: each key of the params its own label,
+    so ``rates`` may name fields a model does not have, such as ``sh_rest``; a field without a rate is
+    an error). A rate of exactly 0 freezes its leaves (``optax.set_to_zero``: no update, no Adam state)."""
 
     def transform(rate):
         frozen = not callable(rate) and rate == 0.0
         return optax.set_to_zero() if frozen else optax.adam(rate, eps=eps)
 
-    labels = dict(labels) if labels is not None else {name: name for name in rates}
+    labels = dict(labels) if labels is not None else (lambda params: {name: name for name in params})
     return optax.multi_transform({name: transform(rate) for name, rate in rates.items()}, labels)
 
 
 def make_optimizer(config: TrainConfig, extent: float) -> optax.GradientTransformation:
     """Adam (eps ``adam_eps``) per Gaussian field with INRIA's rates: the position's decayed by
     ``position_lr``, the opacity's halved with ``low_opacity_lr``, the colour's converted from f_dc to
-    RGB units (× C0)."""
+    RGB units (× C0), the SH coefficients above DC (``sh_degree`` > 0) at 1/20 of the f_dc rate."""
     opacity_lr = config.opacity_lr * (0.5 if config.low_opacity_lr else 1.0)
     rates = {
         "means": position_lr(config, extent),
@@ -58,6 +59,8 @@ def make_optimizer(config: TrainConfig, extent: float) -> optax.GradientTransfor
         "opacity_logits": opacity_lr,
         "colors": config.color_lr * SH_C0,  # f_dc rate → RGB
     }
+    if config.sh_degree:
+        rates["sh_rest"] = config.color_lr / 20.0  # INRIA's f_rest rate (coefficients are stored as f_rest)
     return per_field_adam(rates, eps=config.adam_eps)
 
 

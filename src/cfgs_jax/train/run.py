@@ -24,7 +24,7 @@ from cfgs_jax.io.atomic import ensure_writable_dir
 from cfgs_jax.io.checkpoint import read_meta, restore_tree, save_tree
 from cfgs_jax.io.colmap import Scene
 from cfgs_jax.loop import Progress, check_view_batch, run_steps, step_with_capacity, view_batch
-from cfgs_jax.model import Gaussians, gaussians_of
+from cfgs_jax.model import Gaussians, gaussians_of, with_sh_degree
 from cfgs_jax.train.config import TrainConfig
 from cfgs_jax.train.densify import capacity_bucket, densify_step, reset_opacity
 from cfgs_jax.train.evaluate import evaluate
@@ -113,7 +113,9 @@ def load_checkpoint(path: Path, optimizer, config: TrainConfig):
     meta, arrays = read_meta(path, format=FORMAT)
     saved = meta["config"]
     now = _config_dict(config)
-    diff = sorted(k for k in set(saved) | set(now) if saved.get(k) != now.get(k))
+    defaults = _config_dict(TrainConfig())
+    # a setting added since the checkpoint was written counts as its default
+    diff = sorted(k for k in set(saved) | set(now) if saved.get(k, defaults.get(k)) != now.get(k))
     if diff:
         raise InputError(
             f"the run was started with a different configuration ({', '.join(f'{k}: {saved.get(k)} → {now.get(k)}' for k in diff)})",
@@ -121,7 +123,9 @@ def load_checkpoint(path: Path, optimizer, config: TrainConfig):
             field=f"train.{diff[0]}",
             fix="resume with the original settings or start a new --out",
         )
-    template = TrainState.create(_dummy(1), optimizer, jax.random.key(0), capacity=meta["capacity"])
+    template = TrainState.create(
+        with_sh_degree(_dummy(1), config.sh_degree), optimizer, jax.random.key(0), capacity=meta["capacity"]
+    )
     state = restore_tree(path, arrays, dataclasses.replace(template, key=jax.random.key_data(template.key)))
     state = dataclasses.replace(state, key=jax.random.wrap_key_data(state.key))
     return state, meta
@@ -181,6 +185,7 @@ def _start(scene, config, init, ckpt, optimizer, cameras, render_config) -> _Car
         counts = [tuple(c) for c in meta["counts"]]
         return _Carry(state, meta["render_capacity"], meta["losses"], counts, meta.get("eval_history", []))
     g0 = init if init is not None else init_from_points(scene.points, scene.point_colors, opacity=config.init_opacity)
+    g0 = with_sh_degree(g0, config.sh_degree)
     state = TrainState.create(g0, optimizer, jax.random.key(config.seed), capacity=capacity_bucket(len(g0)))
     return _Carry(state, _render_capacity(state, cameras, render_config), [], [(0, len(g0))], [])
 

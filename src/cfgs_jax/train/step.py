@@ -13,6 +13,7 @@ from jaxtyping import Array, Bool, Float, Int
 
 from cfgs_jax import metrics, parallel, splat
 from cfgs_jax.model import Camera, Gaussians, gaussians_of, trainable
+from cfgs_jax.splat.sh import up_to_degree
 from cfgs_jax.train.config import TrainConfig
 
 
@@ -87,11 +88,15 @@ def loss_fn(
     config: TrainConfig,
     render_config: splat.RenderConfig,
     means2d_offset=None,
+    sh_active=None,
 ):
     """(1 − λ)·L1 + λ·D-SSIM of the render of the active Gaussians over ``background``; also the render.
     ``means2d_offset`` (zeros) exposes the screen-space positional gradient for densification.
-    ``image`` is RGB or RGBA (composited over ``background``: ``over_background``)."""
+    ``image`` is RGB or RGBA (composited over ``background``: ``over_background``). ``sh_active``: the
+    SH degree reached so far (the bands above it are left out of the render, and get no gradient)."""
     g = gaussians_of(params)
+    if g.sh_rest is not None and sh_active is not None:
+        g = dataclasses.replace(g, sh_rest=up_to_degree(g.sh_rest, sh_active))
     image = over_background(image, background)
     n = active.shape[0]
     res = splat.render_dates(
@@ -111,6 +116,12 @@ def loss_fn(
     return loss, res
 
 
+def sh_degree_at(step, config: TrainConfig):
+    """The SH degree a training step renders with: one band more every ``sh_interval`` steps, up to
+    ``sh_degree`` (INRIA raises it before iterations 1000, 2000, 3000; ``step`` counts from 0)."""
+    return jnp.minimum(config.sh_degree, (step + 1) // config.sh_interval)
+
+
 def make_train_step(optimizer: optax.GradientTransformation, config: TrainConfig, render_config: splat.RenderConfig):
     """A jitted ``(state, camera, image) → (state, stats)``; ``render_config.capacity`` must be set
     (``stats["overflowed"]`` tells the caller to grow it and rebuild)."""
@@ -125,9 +136,10 @@ def make_train_step(optimizer: optax.GradientTransformation, config: TrainConfig
         else:
             background = jnp.zeros((3,), image.dtype)
         offset = jnp.zeros_like(state.params["means"][:, :2])
+        sh_active = sh_degree_at(state.step, config)
 
         def objective(params, offset):
-            return loss_fn(params, state.active, camera, image, background, config, render_config, offset)
+            return loss_fn(params, state.active, camera, image, background, config, render_config, offset, sh_active)
 
         (loss, res), (grads, d_offset) = jax.value_and_grad(objective, argnums=(0, 1), has_aux=True)(
             state.params, offset
@@ -168,7 +180,7 @@ def make_batch_train_step(
 
     def one(view, shared):
         camera, image, key = view
-        params, active = shared
+        params, active, sh_active = shared
         if config.random_background:
             background = jax.random.uniform(key, (3,), image.dtype)
         else:
@@ -176,7 +188,7 @@ def make_batch_train_step(
         offset = jnp.zeros_like(params["means"][:, :2])
 
         def objective(params, offset):
-            return loss_fn(params, active, camera, image, background, config, render_config, offset)
+            return loss_fn(params, active, camera, image, background, config, render_config, offset, sh_active)
 
         (loss, res), (grads, d_offset) = jax.value_and_grad(objective, argnums=(0, 1), has_aux=True)(params, offset)
         ndc = d_offset * (0.5 * jnp.asarray([camera.width, camera.height], d_offset.dtype))
@@ -191,7 +203,7 @@ def make_batch_train_step(
         keys = jax.random.split(state.key, b + 1)
         views = (cameras, images, keys[1:])
         loss, grads, norm, visible, radii, psnr, overflowed = parallel.map_batch(
-            one, views, (state.params, state.active), mesh
+            one, views, (state.params, state.active, sh_degree_at(state.step, config)), mesh
         )
         grads = jax.tree_util.tree_map(lambda g: jnp.mean(g, axis=0), grads)
         updates, opt_state = optimizer.update(grads, state.opt_state, state.params)
