@@ -62,3 +62,20 @@ def test_a_removed_setting_reads_at_its_old_default_and_is_refused_otherwise():
     with pytest.raises(InputError, match="compact.hidden_rank") as err:
         RunConfig.parse({"compact": {"hidden_rank": "removal"}, "__path__": "old.toml"})
     assert "old.toml" in str(err.value) and "delete compact.hidden_rank" in str(err.value)
+
+
+def test_declared_bounds_give_one_message_from_a_file_and_from_python():
+    """A bound declared on a field (``Annotated[float, msgspec.Meta(...)]``) is checked by msgspec when a
+    table is read and by ``Checked`` when a configuration is built in Python; both say the whole range
+    and the value, naming the table and key (and the file)."""
+    from cfgs_jax.changes import ChangesConfig
+    from cfgs_jax.config import describe_bounds, msgspec
+
+    assert describe_bounds(msgspec.Meta(gt=0, le=0.5)) == "in (0, 0.5]" and describe_bounds(msgspec.Meta(ge=1)) == "≥ 1"
+    with pytest.raises(InputError, match=r"mine\.toml: field 'changes\.grow_above': must be in \(0, 0\.5\], got 0\.7"):
+        RunConfig.parse({"changes": {"grow_above": 0.7}, "__path__": "mine.toml"})
+    with pytest.raises(InputError, match=r"field 'changes\.grow_above': must be in \(0, 0\.5\], got 0\.7"):
+        ChangesConfig(grow_above=0.7)
+    with pytest.raises(InputError, match=r"field 'train\.densify_interval': must be > 0, got 0"):
+        RunConfig.parse({"train": {"densify_interval": 0}})
+    assert RunConfig.parse({"changes": {"grow_above": 0.5}}).changes.grow_above == 0.5  # the bound itself

@@ -123,6 +123,69 @@ def _tuples(value: Any) -> Any:
 
 
 _TYPE_ERROR = re.compile(r"^(?P<what>.*?) - at `\$(?P<where>[^`]*)`$")
+_BOUND_ERROR = re.compile(r"^Expected `\w+` (?P<op>>=|>|<=|<) (?P<bound>\S+)$")
+_SYMBOL = {">=": "≥", ">": ">", "<=": "≤", "<": "<"}
+
+#: Bounds to declare on configuration fields, ``Annotated[float, UNIT]``: msgspec checks them when a
+#: table is read, ``Checked`` when a configuration is built in Python, with the same message.
+POSITIVE = msgspec.Meta(gt=0)
+NON_NEGATIVE = msgspec.Meta(ge=0)
+UNIT = msgspec.Meta(ge=0, le=1)
+OPEN_UNIT = msgspec.Meta(gt=0, lt=1)
+AT_LEAST_ONE = msgspec.Meta(ge=1)
+
+
+def describe_bounds(meta: msgspec.Meta) -> str:
+    """``msgspec.Meta`` bounds in words: "in (0, 1)", "in [0, 1]", "> 0", "≥ 1", ..."""
+    lo = ("(", meta.gt) if meta.gt is not None else ("[", meta.ge) if meta.ge is not None else None
+    hi = (")", meta.lt) if meta.lt is not None else ("]", meta.le) if meta.le is not None else None
+    if lo and hi:
+        return f"in {lo[0]}{lo[1]}, {hi[1]}{hi[0]}"
+    if lo:
+        return f"{'>' if lo[0] == '(' else '≥'} {lo[1]}"
+    return f"{'<' if hi[0] == ')' else '≤'} {hi[1]}"
+
+
+def _within(value, meta: msgspec.Meta) -> bool:
+    checks = (
+        (meta.gt, lambda b: value > b),
+        (meta.ge, lambda b: value >= b),
+        (meta.lt, lambda b: value < b),
+        (meta.le, lambda b: value <= b),
+    )
+    return all(test(bound) for bound, test in checks if bound is not None)
+
+
+class Checked:
+    """Mixin of frozen configuration dataclasses: ``__post_init__`` checks the bounds declared on the
+    fields (``Annotated[T, msgspec.Meta(...)]``), naming ``TABLE.field``. A subclass with checks of its
+    own calls ``super().__post_init__()`` first."""
+
+    TABLE: typing.ClassVar[str] = "config"
+
+    def __post_init__(self):
+        for name, hint in typing.get_type_hints(type(self), include_extras=True).items():
+            if typing.get_origin(hint) is not typing.Annotated:
+                continue
+            value = getattr(self, name)
+            for meta in typing.get_args(hint)[1:]:
+                if isinstance(meta, msgspec.Meta) and value is not None and not _within(value, meta):
+                    raise InputError(f"must be {describe_bounds(meta)}, got {value!r}", field=f"{self.TABLE}.{name}")
+
+
+def _bound_problem(cls: type, what: str, values: dict[str, Any], where: str) -> str | None:
+    """msgspec's "Expected `int` >= 1" for a bound declared on a field of ``cls``, as "must be in (0, 1),
+    got 2.0" (the field's whole declared range; None for any other error)."""
+    m = _BOUND_ERROR.match(what)
+    if m is None:
+        return None
+    value: Any = values
+    for part in where.strip(".").split("."):
+        value = value.get(part) if isinstance(value, dict) else None
+    hint = typing.get_type_hints(cls, include_extras=True).get(where.strip(".").split(".")[0])
+    metas = [a for a in typing.get_args(hint)[1:] if isinstance(a, msgspec.Meta)] if hint is not None else []
+    bounds = describe_bounds(metas[0]) if metas else f"{_SYMBOL[m['op']]} {m['bound']}"
+    return f"must be {bounds}, got {value!r}"
 
 
 def from_dict(cls: type[T], values: dict[str, Any], *, where: str = "config", path=None) -> T:
@@ -141,6 +204,9 @@ def from_dict(cls: type[T], values: dict[str, Any], *, where: str = "config", pa
                 raise InputError(cause.problem, path=path, field=cause.field or where, fix=cause.fix) from exc
             raise InputError(str(cause or exc), path=path, field=where) from exc
         key = where + m["where"] if m["where"] else where
+        bound = _bound_problem(cls, m["what"], values, m["where"])
+        if bound is not None:
+            raise InputError(bound, path=path, field=key) from exc
         what = m["what"].replace("`", "")
         expected = what[len("Expected ") :].split(",")[0] if what.startswith("Expected ") else "a valid value"
         top = re.match(r"\.(\w+)", m["where"])

@@ -3,12 +3,16 @@
 from __future__ import annotations
 
 import dataclasses
+from typing import Annotated
 
+import msgspec
+
+from cfgs_jax.config import AT_LEAST_ONE, NON_NEGATIVE, OPEN_UNIT, POSITIVE, Checked
 from cfgs_jax.errors import InputError
 
 
 @dataclasses.dataclass(frozen=True)
-class ChangesConfig:
+class ChangesConfig(Checked):
     """``[changes]``: the residual-evidence change detector.
 
     ``threshold`` τ is an RMS colour difference in linear RGB (0..1): a Gaussian counts as changed
@@ -42,33 +46,32 @@ class ChangesConfig:
     one observing date in one pass over its views (they share each view's projection, sort and kernel walks; the
     figures do not depend on it beyond float32 rounding, memory grows with it)."""
 
-    threshold: float = 0.06
+    threshold: Annotated[float, OPEN_UNIT] = 0.06
     views: str = "all"
-    neighbours: int = 32
+    neighbours: Annotated[int, AT_LEAST_ONE] = 32
     gain_range: tuple[float, float] = (1.0 / 3.0, 3.0)
-    contribution_threshold: float = 0.01
-    link_factor: float = 4.0
-    grow_above: float = 0.35
-    min_region_gaussians: int = 16
-    min_region_share: float = 0.0015
-    min_region_pixels: int = 8
-    pixel_threshold: float = 0.35
-    max_view_angle: float = 20.0
-    support_views: int = 64
-    complete_hops: int = 16
-    complete_colour: float = 0.15
-    complete_link: float = 5.5
+    contribution_threshold: Annotated[float, OPEN_UNIT] = 0.01
+    link_factor: Annotated[float, POSITIVE] = 4.0
+    grow_above: Annotated[float, msgspec.Meta(gt=0, le=0.5)] = 0.35
+    min_region_gaussians: Annotated[int, AT_LEAST_ONE] = 16
+    min_region_share: Annotated[float, msgspec.Meta(ge=0, lt=1)] = 0.0015
+    min_region_pixels: Annotated[int, AT_LEAST_ONE] = 8
+    pixel_threshold: Annotated[float, OPEN_UNIT] = 0.35
+    max_view_angle: Annotated[float, msgspec.Meta(gt=0, le=180)] = 20.0
+    support_views: Annotated[int, AT_LEAST_ONE] = 64
+    complete_hops: Annotated[int, NON_NEGATIVE] = 16
+    complete_colour: Annotated[float, POSITIVE] = 0.15
+    complete_link: Annotated[float, POSITIVE] = 5.5
     complete_across_dates: bool = False
-    dates_per_pass: int = 8
+    dates_per_pass: Annotated[int, AT_LEAST_ONE] = 8
     carry_absence: bool = True
 
+    TABLE = "changes"
+
     def __post_init__(self):
-        if not 0.0 < self.threshold < 1.0:
-            raise InputError(f"must lie in (0, 1), got {self.threshold}", field="changes.threshold")
+        super().__post_init__()
         if self.views not in ("all", "train", "test"):
             raise InputError(f"unknown split {self.views!r}", field="changes.views", fix='use "all", "train" or "test"')
-        if int(self.neighbours) < 1:
-            raise InputError(f"must be ≥ 1, got {self.neighbours}", field="changes.neighbours")
         lo, hi = (float(v) for v in self.gain_range)
         if not 0.0 < lo <= 1.0 <= hi:
             raise InputError(
@@ -77,40 +80,3 @@ class ChangesConfig:
                 fix="e.g. [0.333, 3.0]; [1, 1] fits no gain",
             )
         object.__setattr__(self, "gain_range", (lo, hi))
-        if not 0.0 < self.contribution_threshold < 1.0:
-            raise InputError(
-                f"must lie in (0, 1), got {self.contribution_threshold}", field="changes.contribution_threshold"
-            )
-        if not 0.0 < self.pixel_threshold < 1.0:
-            raise InputError(
-                f"must lie in (0, 1), got {self.pixel_threshold}", field="changes.pixel_threshold", fix="e.g. 0.35"
-            )
-        if not 0.0 < self.grow_above <= 0.5:
-            raise InputError(f"must lie in (0, 0.5], got {self.grow_above}", field="changes.grow_above")
-        if not 0.0 < self.max_view_angle <= 180.0:
-            raise InputError(
-                f"must lie in (0, 180] degrees, got {self.max_view_angle}",
-                field="changes.max_view_angle",
-                fix="e.g. 20; 180 lets every view count",
-            )
-        if int(self.support_views) < 1:
-            raise InputError(f"must be ≥ 1, got {self.support_views}", field="changes.support_views")
-        if int(self.complete_hops) < 0:
-            raise InputError(f"must be ≥ 0, got {self.complete_hops}", field="changes.complete_hops")
-        if not self.complete_link > 0:
-            raise InputError(f"must be > 0, got {self.complete_link}", field="changes.complete_link", fix="e.g. 5")
-        if not self.complete_colour > 0:
-            raise InputError(
-                f"must be > 0, got {self.complete_colour}", field="changes.complete_colour", fix="e.g. 0.1"
-            )
-        if not 0.0 <= self.min_region_share < 1.0:
-            raise InputError(
-                f"must lie in [0, 1), got {self.min_region_share}",
-                field="changes.min_region_share",
-                fix="e.g. 0.0015; 0: off",
-            )
-        if self.link_factor <= 0:
-            raise InputError(f"must be > 0, got {self.link_factor}", field="changes.link_factor")
-        for name in ("min_region_gaussians", "min_region_pixels", "dates_per_pass"):
-            if int(getattr(self, name)) < 1:
-                raise InputError(f"must be ≥ 1, got {getattr(self, name)}", field=f"changes.{name}")

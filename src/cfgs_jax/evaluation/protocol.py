@@ -16,13 +16,14 @@ import dataclasses
 import json
 import time
 from pathlib import Path
+from typing import Annotated
 
 import numpy as np
 
 from cfgs_jax import synthetic, train
 from cfgs_jax.changes import ChangesConfig
 from cfgs_jax.compiled_code import release_if_near_limit
-from cfgs_jax.config import check_sections, section
+from cfgs_jax.config import AT_LEAST_ONE, Checked, check_sections, section
 from cfgs_jax.errors import InputError
 from cfgs_jax.evaluation import scoring
 from cfgs_jax.evaluation.report import figure_grid, margins, pr_curve_plot, table_markdown
@@ -42,7 +43,7 @@ from cfgs_jax.splat.weights import observed_matrix
 
 
 @dataclasses.dataclass(frozen=True)
-class EvalConfig:
+class EvalConfig(Checked):
     """``[eval]``: refinement step counts N (the paper: 6k, 15k, 30k), ablations and change detection."""
 
     steps: tuple[int, ...] = (6000, 15000, 30000)
@@ -51,7 +52,10 @@ class EvalConfig:
     lpips_net: str = "alex"
     known_transforms: bool = False  # synthetic scenes: the exact Sim(3)s instead of SfM registration
 
+    TABLE = "eval"
+
     def __post_init__(self):
+        super().__post_init__()
         steps = tuple(int(s) for s in self.steps)
         if not steps or any(s <= 0 for s in steps) or list(steps) != sorted(set(steps)):
             raise InputError(f"need increasing positive step counts, got {list(self.steps)}", field="eval.steps")
@@ -59,14 +63,16 @@ class EvalConfig:
 
 
 @dataclasses.dataclass(frozen=True)
-class SceneConfig:
+class SceneConfig(Checked):
     """``[scene]``: the synthetic preset's size when ``--scene`` names a preset."""
 
-    width: int = 128
-    height: int = 96
-    images_per_date: int = 16
-    spp: int = 16
+    width: Annotated[int, AT_LEAST_ONE] = 128
+    height: Annotated[int, AT_LEAST_ONE] = 96
+    images_per_date: Annotated[int, AT_LEAST_ONE] = 16
+    spp: Annotated[int, AT_LEAST_ONE] = 16
     seed: int = 0
+
+    TABLE = "scene"
 
 
 #: The ablation rows: key → (label, the [refine] values it overrides). Freezing α keeps it at its

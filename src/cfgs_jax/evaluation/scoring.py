@@ -32,22 +32,25 @@ from __future__ import annotations
 import dataclasses
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Annotated
 
 import jax
 import jax.numpy as jnp
+import msgspec
 import numpy as np
 from PIL import Image
 
 from cfgs_jax import splat, viz
 from cfgs_jax.changes.detect import Detection, detect
 from cfgs_jax.changes.maps import change_mask, rendered_scores, valid_pixels
+from cfgs_jax.config import OPEN_UNIT, Checked
 from cfgs_jax.errors import InputError
 from cfgs_jax.model import Camera, TemporalGaussians, light_multipliers, opacity_multipliers
 from cfgs_jax.splat.weights import contribution_per_label, observed_matrix
 
 
 @dataclasses.dataclass(frozen=True)
-class OqRuleConfig:
+class OqRuleConfig(Checked):
     """``[oq_rule]`` of an eval configuration (``[change]`` before): τ on o^q (absent below), the
     per-pixel |S − 1| score, and the visibility rule.
 
@@ -57,19 +60,17 @@ class OqRuleConfig:
     same decision for a Gaussian present at p (o^p = 1): for the selection {p, q}, S ≈ [1, (1 + o^q)/2, o^q], so
     |S − 1|_∞ = 1 − o^q > 0.8 ⇔ o^q < 0.2."""
 
-    absent_below: float = 0.2
-    pixel_threshold: float = 0.8
-    contribution_threshold: float = 0.01
-    majority: float = 0.5  # a Gaussian is "changed" when this share of its weight lies on changed pixels
-    surface_threshold: float = 0.1  # flagged only where its absence changes date q's render by more (0: o^q alone)
+    absent_below: Annotated[float, OPEN_UNIT] = 0.2
+    pixel_threshold: Annotated[float, OPEN_UNIT] = 0.8
+    contribution_threshold: Annotated[float, OPEN_UNIT] = 0.01
+    majority: Annotated[float, OPEN_UNIT] = (
+        0.5  # a Gaussian is "changed" when this share of its weight lies on changed pixels
+    )
+    surface_threshold: Annotated[float, msgspec.Meta(ge=0, lt=1)] = (
+        0.1  # flagged only where its absence changes date q's render by more (0: o^q alone)
+    )
 
-    def __post_init__(self):
-        for name in ("absent_below", "pixel_threshold", "contribution_threshold", "majority"):
-            v = getattr(self, name)
-            if not 0.0 < v < 1.0:
-                raise InputError(f"must lie in (0, 1), got {v}", field=f"oq_rule.{name}")
-        if not 0.0 <= self.surface_threshold < 1.0:
-            raise InputError(f"must lie in [0, 1), got {self.surface_threshold}", field="oq_rule.surface_threshold")
+    TABLE = "oq_rule"
 
 
 @dataclasses.dataclass(frozen=True)

@@ -43,10 +43,11 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Callable
-from typing import NamedTuple
+from typing import Annotated, NamedTuple
 
 import jax
 import jax.numpy as jnp
+import msgspec
 import numpy as np
 from jaxtyping import Bool, Float
 from scipy.sparse import coo_matrix
@@ -54,6 +55,7 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
+from cfgs_jax.config import NON_NEGATIVE, OPEN_UNIT, POSITIVE, UNIT, Checked
 from cfgs_jax.errors import InputError
 from cfgs_jax.fusion.light import light_logits
 from cfgs_jax.fusion.refine import RefineConfig
@@ -71,58 +73,35 @@ from cfgs_jax.splat.weights import contribution_per_label, max_weight, observed_
 
 
 @dataclasses.dataclass(frozen=True)
-class CompactConfig:
+class CompactConfig(Checked):
     """When two dates' Gaussians count as one persistent surface (the module docstring), and the
     refinement that follows. ``enabled``: run the stage in ``fuse``/``extend`` after refinement."""
 
     enabled: bool = False
-    present: float = 0.5
-    max_o_difference: float = 0.2
-    max_distance: float = 0.5
-    max_log_scale_ratio: float = 0.7
-    max_colour_difference: float = 0.1
-    max_opacity_difference: float = 0.3
-    max_alpha: float = 0.99
-    hidden_share: float = 0.0  # also drop the least-shown Gaussians that mark no change, up to this share (0: off)
-    refine_steps: int = 500
-    lr_light: float = 0.0  # light rate of the recovery refinement (0: l frozen, as in the fusion's refinement)
-    recovery_rate_scale: float = 1.0  # × the refinement's colour, opacity, scale and rotation rates in the recovery
-    mask_lambda: float = 0.0  # learned masks in the recovery: weight of their penalty (0: off)
-    lr_mask: float = 0.02  # Adam rate of the recovery's mask logits
-    mask_until: float = 0.6  # the share of the recovery in which the masks learn (then fixed 0/1)
+    present: Annotated[float, UNIT] = 0.5
+    max_o_difference: Annotated[float, UNIT] = 0.2
+    max_distance: Annotated[float, NON_NEGATIVE] = 0.5
+    max_log_scale_ratio: Annotated[float, NON_NEGATIVE] = 0.7
+    max_colour_difference: Annotated[float, UNIT] = 0.1
+    max_opacity_difference: Annotated[float, UNIT] = 0.3
+    max_alpha: Annotated[float, OPEN_UNIT] = 0.99
+    hidden_share: Annotated[float, UNIT] = (
+        0.0  # also drop the least-shown Gaussians that mark no change, up to this share (0: off)
+    )
+    refine_steps: Annotated[int, NON_NEGATIVE] = 500
+    lr_light: Annotated[float, NON_NEGATIVE] = (
+        0.0  # light rate of the recovery refinement (0: l frozen, as in the fusion's refinement)
+    )
+    recovery_rate_scale: Annotated[float, POSITIVE] = (
+        1.0  # × the refinement's colour, opacity, scale and rotation rates in the recovery
+    )
+    mask_lambda: Annotated[float, NON_NEGATIVE] = 0.0  # learned masks in the recovery: weight of their penalty (0: off)
+    lr_mask: Annotated[float, POSITIVE] = 0.02  # Adam rate of the recovery's mask logits
+    mask_until: Annotated[float, msgspec.Meta(gt=0, le=1)] = (
+        0.6  # the share of the recovery in which the masks learn (then fixed 0/1)
+    )
 
-    def __post_init__(self):
-        for name in (
-            "present",
-            "max_o_difference",
-            "max_colour_difference",
-            "max_opacity_difference",
-            "hidden_share",
-        ):
-            if not 0 <= getattr(self, name) <= 1:
-                raise InputError(f"must be in [0, 1], got {getattr(self, name)}", field=f"compact.{name}")
-        for name in ("max_distance", "max_log_scale_ratio"):
-            if getattr(self, name) < 0:
-                raise InputError(f"must be ≥ 0, got {getattr(self, name)}", field=f"compact.{name}")
-        if not 0 < self.max_alpha < 1:
-            raise InputError(f"must be in (0, 1), got {self.max_alpha}", field="compact.max_alpha")
-        if self.refine_steps < 0:
-            raise InputError(f"must be ≥ 0, got {self.refine_steps}", field="compact.refine_steps")
-        if self.lr_light < 0:
-            raise InputError(f"must be ≥ 0 (0: l frozen), got {self.lr_light}", field="compact.lr_light")
-        if self.mask_lambda < 0 or self.lr_mask <= 0:
-            raise InputError(
-                f"mask_lambda must be ≥ 0 and lr_mask > 0, got {self.mask_lambda} and {self.lr_mask}",
-                field="compact.mask_lambda",
-            )
-        if not 0 < self.mask_until <= 1:
-            raise InputError(f"must be in (0, 1], got {self.mask_until}", field="compact.mask_until")
-        if self.recovery_rate_scale <= 0:
-            raise InputError(
-                f"must be > 0, got {self.recovery_rate_scale}",
-                field="compact.recovery_rate_scale",
-                fix="1 keeps the refinement's rates",
-            )
+    TABLE = "compact"
 
     @property
     def prunes_hidden(self) -> bool:

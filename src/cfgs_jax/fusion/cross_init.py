@@ -37,15 +37,17 @@ from __future__ import annotations
 import dataclasses
 import functools
 from collections.abc import Sequence
-from typing import Literal
+from typing import Annotated, Literal
 
 import jax
 import jax.numpy as jnp
+import msgspec
 import numpy as np
 import optax
 from rich.progress import Progress
 
 from cfgs_jax import metrics, parallel, splat
+from cfgs_jax.config import AT_LEAST_ONE, NON_NEGATIVE, POSITIVE, Checked
 from cfgs_jax.errors import InputError
 from cfgs_jax.fusion.fuse import INVISIBLE_LOGIT
 from cfgs_jax.fusion.light import REC709, gain_parameter, light_gain, light_logits, light_multiplier
@@ -57,7 +59,7 @@ from cfgs_jax.train.step import over_background
 
 
 @dataclasses.dataclass(frozen=True)
-class CrossInitConfig:
+class CrossInitConfig(Checked):
     """The paper's rates (Adam lr 0.0075 for o, 0.00375 for l, meant for 3000 steps per pair) over 500
     steps per pair (the paper: 3000; ``paper.toml`` keeps them); ours where it is silent: δ = 0.8 (it
     says δ < 1) and gains starting at the pair's exposure (the README's "Where we depart from the
@@ -84,57 +86,60 @@ class CrossInitConfig:
     step at full resolution: there a changed object shrinks to a few pixels and the box-filtered ε maps
     no longer single it out."""
 
-    steps: int = 500  # the paper: 3000 (same error at a sixth of the time, the README's "Run time against error")
+    steps: Annotated[int, POSITIVE] = (
+        500  # the paper: 3000 (same error at a sixth of the time, the README's "Run time against error")
+    )
     lr_o: float = 0.0075
     lr_light: float = 0.00375
-    delta: float = 0.8  # the paper gives only δ < 1; 0.8 leaves unidentified o^q on the "persistent" side (the README's "Where we depart from the paper")
+    delta: Annotated[float, msgspec.Meta(gt=0, le=1)] = (
+        0.8  # the paper gives only δ < 1; 0.8 leaves unidentified o^q on the "persistent" side (the README's "Where we depart from the paper")
+    )
     epsilon_schedule: Literal["paper", "reference"] = "paper"
-    ramp_fraction: float = 0.5
+    ramp_fraction: Annotated[float, msgspec.Meta(gt=0, le=1)] = 0.5
     lpips_net: Literal["alex", "vgg"] = "alex"
     lpips_scale: float = 1.0  # ε_LPIPS = clip(map / lpips_scale, 0, 1)
-    background_anneal: float = 1.0  # fraction of the steps over which b's range shrinks to black
-    batch_dates: int = 0  # pairs (p, q) optimised together per step (one call, ``pair_groups``); 0: no limit
+    background_anneal: Annotated[float, msgspec.Meta(gt=0, le=1)] = (
+        1.0  # fraction of the steps over which b's range shrinks to black
+    )
+    batch_dates: Annotated[int, NON_NEGATIVE] = (
+        0  # pairs (p, q) optimised together per step (one call, ``pair_groups``); 0: no limit
+    )
     exposure_init: bool = True  # start the gains at the pair's least-squares exposure, not 1
-    exposure_range_ev: float = (
+    exposure_range_ev: Annotated[float, NON_NEGATIVE] = (
         2.0  # the start exposure is clipped to ± this many stops (a dark image is not a gain of 0)
     )
     pair_exposure: bool = (
         False  # the start exposure goes to the model's exposure table; l^q fits around it, not from it
     )
-    rate_reference_steps: int = 3000  # the step count the rates are meant for; fewer steps scale them up (0: off)
-    early_stop_tolerance: float = 0.0  # stop a group of pairs once nothing moves more than this (0: off)
-    early_stop_every: int = 100  # steps between the convergence checks
-    early_stop_quantile: float = 1.0  # the share of values that must have settled (1: all of them)
+    rate_reference_steps: Annotated[int, NON_NEGATIVE] = (
+        3000  # the step count the rates are meant for; fewer steps scale them up (0: off)
+    )
+    early_stop_tolerance: Annotated[float, NON_NEGATIVE] = (
+        0.0  # stop a group of pairs once nothing moves more than this (0: off)
+    )
+    early_stop_every: Annotated[int, POSITIVE] = 100  # steps between the convergence checks
+    early_stop_quantile: Annotated[float, msgspec.Meta(gt=0, le=1)] = (
+        1.0  # the share of values that must have settled (1: all of them)
+    )
     early_stop_on: Literal["updates", "loss"] = "updates"  # what must settle: o^q / l^q moves, or the loss (relative)
-    coarse_fraction: float = 0.0  # the first steps, this share of them, at 1/coarse_factor resolution (0: off)
-    coarse_factor: int = 2
-    coarse_min_size: int = 120  # no coarse steps where the downscaled shorter side would fall below this (pixels)
+    coarse_fraction: Annotated[float, msgspec.Meta(ge=0, lt=1)] = (
+        0.0  # the first steps, this share of them, at 1/coarse_factor resolution (0: off)
+    )
+    coarse_factor: Annotated[int, AT_LEAST_ONE] = 2
+    coarse_min_size: Annotated[int, NON_NEGATIVE] = (
+        120  # no coarse steps where the downscaled shorter side would fall below this (pixels)
+    )
     seed: int = 0
 
+    TABLE = "cross_init"
+
     def __post_init__(self):
-        if self.steps <= 0:
-            raise InputError(f"must be positive, got {self.steps}", field="cross_init.steps")
-        if not 0 < self.delta <= 1:
-            raise InputError(f"must be in (0, 1], got {self.delta}", field="cross_init.delta")
+        super().__post_init__()
         if self.epsilon_schedule not in ("paper", "reference"):
             raise InputError(
                 f"unknown schedule {self.epsilon_schedule!r}",
                 field="cross_init.epsilon_schedule",
                 fix='use "paper" or "reference"',
-            )
-        if not 0 < self.ramp_fraction <= 1 or not 0 < self.background_anneal <= 1:
-            raise InputError("ramp_fraction and background_anneal must be in (0, 1]", field="cross_init")
-        if self.exposure_range_ev < 0:
-            raise InputError(f"must be ≥ 0, got {self.exposure_range_ev}", field="cross_init.exposure_range_ev")
-        if self.rate_reference_steps < 0:
-            raise InputError(
-                f"must be ≥ 0 (0: the rates as given), got {self.rate_reference_steps}",
-                field="cross_init.rate_reference_steps",
-            )
-        if self.early_stop_tolerance < 0 or self.early_stop_every <= 0 or not 0 < self.early_stop_quantile <= 1:
-            raise InputError(
-                "early_stop_tolerance must be ≥ 0 (0: off), early_stop_every positive, early_stop_quantile in (0, 1]",
-                field="cross_init.early_stop_tolerance",
             )
         if self.early_stop_tolerance > 0 and max(self.ramp_fraction, self.background_anneal) >= 1:
             raise InputError(
@@ -148,19 +153,6 @@ class CrossInitConfig:
                 f"unknown criterion {self.early_stop_on!r}",
                 field="cross_init.early_stop_on",
                 fix='use "updates" or "loss"',
-            )
-        if not 0 <= self.coarse_fraction < 1 or self.coarse_factor < 1 or self.coarse_min_size < 0:
-            raise InputError(
-                f"coarse_fraction must be in [0, 1) (the last steps run at full resolution), got "
-                f"{self.coarse_fraction}; coarse_factor ≥ 1, got {self.coarse_factor}; coarse_min_size ≥ 0, got "
-                f"{self.coarse_min_size}",
-                field="cross_init.coarse_fraction",
-            )
-        if self.batch_dates < 0:
-            raise InputError(
-                f"must be ≥ 0 (0: no limit on the pairs run together), got {self.batch_dates}",
-                field="cross_init.batch_dates",
-                fix="lower it (e.g. 1) when memory is short",
             )
 
 

@@ -44,14 +44,17 @@ import functools
 import time
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Annotated
 
 import jax
 import jax.numpy as jnp
+import msgspec
 import numpy as np
 import optax
 from jaxtyping import Array, Float
 
 from cfgs_jax import metrics, parallel, splat
+from cfgs_jax.config import AT_LEAST_ONE, NON_NEGATIVE, POSITIVE, Checked
 from cfgs_jax.errors import InputError
 from cfgs_jax.fusion.updates import halve_alpha_of, refinement_optimizer, zero_invisible
 from cfgs_jax.io.checkpoint import read_meta, restore_tree, save_tree
@@ -64,62 +67,56 @@ EXTEND_VISIBILITY = ("all", "added", "drawn")
 
 
 @dataclasses.dataclass(frozen=True)
-class RefineConfig:
+class RefineConfig(Checked):
     """The paper's refinement values. ``lr_color`` is in f_dc units like ``[train] color_lr``; the
     position rate is the input training's schedule (``[train]``) times ``position_lr_scale``."""
 
-    steps: int = 6000
-    extend_steps: int = 0  # refinement steps when `extend` adds a date (0: ``steps``; the paper is silent)
+    steps: Annotated[int, NON_NEGATIVE] = 6000
+    extend_steps: Annotated[int, NON_NEGATIVE] = (
+        0  # refinement steps when `extend` adds a date (0: ``steps``; the paper is silent)
+    )
     lr_o: float = 2.5e-6
     lr_alpha: float = 0.005
     lr_color: float = 2e-5  # f_dc units: the RGB colour moves C0 times this
     lr_other: float = 5e-5
-    position_lr_scale: float = 1.0  # × [train]'s position schedule (0 freezes the positions)
-    lr_light: float = 0.0  # Adam rate of the light logits l (0: frozen, the paper's refinement)
+    position_lr_scale: Annotated[float, NON_NEGATIVE] = 1.0  # × [train]'s position schedule (0 freezes the positions)
+    lr_light: Annotated[float, NON_NEGATIVE] = (
+        0.0  # Adam rate of the light logits l (0: frozen, the paper's refinement)
+    )
     lambda_dssim: float = 0.2
     lambda_change: float = 0.1
     halve_alpha: bool = True
-    visibility_interval: int = 2000
+    visibility_interval: Annotated[int, POSITIVE] = 2000
     extend_visibility: str = "drawn"  # "all" | "added" | "drawn": the older dates a check covers when a date is added
     contribution_threshold: float = 0.01
     random_background: bool = True
     prune_threshold: float = 1.0 / 255.0
     checkpoint_every: int = 500
-    view_batch: int = 1  # training views per step (their mean loss; split over the devices of a mesh)
+    view_batch: Annotated[int, AT_LEAST_ONE] = (
+        1  # training views per step (their mean loss; split over the devices of a mesh)
+    )
     seed: int = 0
-    mask_lambda: float = 0.0  # weight of the learned-mask penalty on the maskable Gaussians (0: no masks)
-    lr_mask: float = 0.02  # Adam rate of the mask logits
-    mask_until: float = 0.6  # the share of the steps in which the masks learn; then they stay as they are
+    mask_lambda: Annotated[float, NON_NEGATIVE] = (
+        0.0  # weight of the learned-mask penalty on the maskable Gaussians (0: no masks)
+    )
+    lr_mask: Annotated[float, POSITIVE] = 0.02  # Adam rate of the mask logits
+    mask_until: Annotated[float, msgspec.Meta(gt=0, le=1)] = (
+        0.6  # the share of the steps in which the masks learn; then they stay as they are
+    )
 
     @property
     def mask_steps(self) -> int:
         """The steps in which learned masks learn (``mask_until`` of ``steps``); they are fixed after."""
         return int(round(self.mask_until * self.steps))
 
+    TABLE = "refine"
+
     def __post_init__(self):
-        if self.steps < 0:
-            raise InputError(f"must be ≥ 0, got {self.steps}", field="refine.steps")
-        if self.view_batch < 1:
-            raise InputError(f"must be ≥ 1, got {self.view_batch}", field="refine.view_batch")
-        if self.extend_steps < 0:
-            raise InputError(f"must be ≥ 0 (0: refine.steps), got {self.extend_steps}", field="refine.extend_steps")
+        super().__post_init__()
         if self.extend_visibility not in EXTEND_VISIBILITY:
             raise InputError(
                 f"must be one of {', '.join(map(repr, EXTEND_VISIBILITY))}, got {self.extend_visibility!r}",
                 field="refine.extend_visibility",
-            )
-        if self.visibility_interval <= 0:
-            raise InputError(f"must be positive, got {self.visibility_interval}", field="refine.visibility_interval")
-        if self.position_lr_scale < 0:
-            raise InputError(f"must be ≥ 0, got {self.position_lr_scale}", field="refine.position_lr_scale")
-        if self.lr_light < 0:
-            raise InputError(f"must be ≥ 0 (0: l frozen), got {self.lr_light}", field="refine.lr_light")
-        if not 0 < self.mask_until <= 1:
-            raise InputError(f"must be in (0, 1], got {self.mask_until}", field="refine.mask_until")
-        if self.mask_lambda < 0 or self.lr_mask <= 0:
-            raise InputError(
-                f"mask_lambda must be ≥ 0 and lr_mask > 0, got {self.mask_lambda} and {self.lr_mask}",
-                field="refine.mask_lambda",
             )
 
 

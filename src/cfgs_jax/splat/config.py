@@ -3,14 +3,16 @@
 from __future__ import annotations
 
 import dataclasses
+from typing import Annotated
 
+from cfgs_jax.config import NON_NEGATIVE, OPEN_UNIT, POSITIVE, Checked
 from cfgs_jax.errors import InputError
 
 BACKENDS = ("auto", "xla", "pallas")
 
 
 @dataclasses.dataclass(frozen=True)
-class RenderConfig:
+class RenderConfig(Checked):
     """Knobs of the splatting kernel. Defaults reproduce INRIA 3DGS exactly.
 
     ``capacity``: intersection-buffer size (None: sized automatically, grown in power-of-two buckets
@@ -36,13 +38,13 @@ class RenderConfig:
     ``num_warps`` is the Triton launch's warps per program.
     """
 
-    near: float = 0.2
+    near: Annotated[float, POSITIVE] = 0.2
     tile_size: int = 16
-    eps2d: float = 0.3
-    clamp_fov: float = 1.3
-    min_alpha: float = 1.0 / 255.0
-    max_alpha: float = 0.99
-    min_transmittance: float = 1e-4
+    eps2d: Annotated[float, NON_NEGATIVE] = 0.3
+    clamp_fov: Annotated[float, POSITIVE] = 1.3
+    min_alpha: Annotated[float, OPEN_UNIT] = 1.0 / 255.0
+    max_alpha: Annotated[float, OPEN_UNIT] = 0.99
+    min_transmittance: Annotated[float, OPEN_UNIT] = 1e-4
     chunk: int | None = None
     tile_cull: bool = True
     tile_batch: int | None = None
@@ -52,8 +54,10 @@ class RenderConfig:
     scatter: str = "atomic"
     walk: str = "chunk"
 
-    def __post_init__(self):
+    TABLE = "render"
 
+    def __post_init__(self):
+        super().__post_init__()
         for name in ("tile_size", "chunk"):
             v = getattr(self, name)
             if name == "chunk" and v is None:
@@ -74,8 +78,6 @@ class RenderConfig:
             raise InputError(f"unknown scatter {self.scatter!r}", field="render.scatter", fix="atomic or partials")
         if self.walk not in ("chunk", "serial"):
             raise InputError(f"unknown walk {self.walk!r}", field="render.walk", fix="chunk or serial")
-        if not self.near > 0:
-            raise InputError(f"must be > 0, got {self.near}", field="render.near")
 
     def resolved_backend(self) -> str:
         """``"xla"`` or ``"pallas"``: what ``backend`` means on the default JAX device."""

@@ -3,17 +3,19 @@
 from __future__ import annotations
 
 import dataclasses
+from typing import Annotated
 
+from cfgs_jax.config import NON_NEGATIVE, OPEN_UNIT, POSITIVE, UNIT, Checked
 from cfgs_jax.errors import InputError
 
 
 @dataclasses.dataclass(frozen=True)
-class TrainConfig:
+class TrainConfig(Checked):
     """Learning rates are INRIA's, in INRIA's units: ``color_lr`` is the f_dc rate (colours are stored
     as RGB c = 0.5 + C0·f_dc, so the optimiser steps c by C0 times it). ``large_scale`` divides the
     position rates by 10 and ``low_opacity_lr`` halves the opacity rate (the paper's options)."""
 
-    steps: int = 30_000
+    steps: Annotated[int, POSITIVE] = 30_000
     position_lr_init: float = 1.6e-4
     position_lr_final: float = 1.6e-6
     large_scale: bool = False
@@ -23,29 +25,31 @@ class TrainConfig:
     rotation_lr: float = 1e-3
     color_lr: float = 2.5e-3  # f_dc units
     sh_degree: int = 0  # view-dependent colour: SH degree 0..3 (INRIA's --sh_degree), 1/20 of color_lr
-    sh_interval: int = 1000  # one SH band more every this many steps (INRIA's oneupSHdegree)
+    sh_interval: Annotated[int, POSITIVE] = 1000  # one SH band more every this many steps (INRIA's oneupSHdegree)
     adam_eps: float = 1e-15
-    lambda_dssim: float = 0.2
+    lambda_dssim: Annotated[float, UNIT] = 0.2
     random_background: bool = True
-    init_opacity: float = 0.1
+    init_opacity: Annotated[float, OPEN_UNIT] = 0.1
     seed: int = 0
     # adaptive density control (INRIA defaults; iteration numbers are 1-based like INRIA's loop)
     densify: bool = True
-    densify_from: int = 500
-    densify_until: int = 15_000
-    densify_interval: int = 100
-    opacity_reset_interval: int = 3000
+    densify_from: Annotated[int, NON_NEGATIVE] = 500
+    densify_until: Annotated[int, NON_NEGATIVE] = 15_000
+    densify_interval: Annotated[int, POSITIVE] = 100
+    opacity_reset_interval: Annotated[int, POSITIVE] = 3000
     densify_grad_threshold: float = 2e-4
     percent_dense: float = 0.01
     min_opacity: float = 0.005
     max_screen_size: float = 20.0
     max_world_size: float = 0.1
     # data and bookkeeping
-    resolution: int = 1  # images downscaled by this factor, cameras scaled to match (INRIA's -r)
-    test_every: int = 8
-    checkpoint_every: int = 1000
-    eval_every: int = 0
-    view_batch: int = 1  # training views per step (their mean loss; split over the devices of a mesh)
+    resolution: Annotated[int, POSITIVE] = 1  # images downscaled by this factor, cameras scaled to match (INRIA's -r)
+    test_every: Annotated[int, NON_NEGATIVE] = 8
+    checkpoint_every: Annotated[int, POSITIVE] = 1000
+    eval_every: Annotated[int, NON_NEGATIVE] = 0
+    view_batch: Annotated[int, POSITIVE] = (
+        1  # training views per step (their mean loss; split over the devices of a mesh)
+    )
 
     def scaled(self, steps: int) -> TrainConfig:
         """This schedule with every iteration count scaled by ``steps / self.steps`` (for short runs):
@@ -65,25 +69,12 @@ class TrainConfig:
             sh_interval=s(self.sh_interval),
         )
 
+    TABLE = "train"
+
     def __post_init__(self):
-        if self.steps <= 0:
-            raise InputError(f"must be positive, got {self.steps}", field="train.steps")
-        if not 0 < self.init_opacity < 1:
-            raise InputError(f"must be in (0, 1), got {self.init_opacity}", field="train.init_opacity")
-        if not 0 <= self.lambda_dssim <= 1:
-            raise InputError(f"must be in [0, 1], got {self.lambda_dssim}", field="train.lambda_dssim")
+        super().__post_init__()
         if self.sh_degree not in (0, 1, 2, 3):
             raise InputError(f"must be 0, 1, 2 or 3, got {self.sh_degree}", field="train.sh_degree")
-        for name in (
-            "densify_interval",
-            "opacity_reset_interval",
-            "checkpoint_every",
-            "resolution",
-            "view_batch",
-            "sh_interval",
-        ):
-            if getattr(self, name) <= 0:
-                raise InputError(f"must be positive, got {getattr(self, name)}", field=f"train.{name}")
         for name in ("position_lr_init", "position_lr_final"):
             if getattr(self, name) <= 0:
                 raise InputError(
@@ -91,6 +82,3 @@ class TrainConfig:
                     field=f"train.{name}",
                     fix="freeze positions in refinement with refine.position_lr_scale = 0",
                 )
-        for name in ("densify_from", "densify_until", "eval_every", "test_every"):
-            if getattr(self, name) < 0:
-                raise InputError(f"must be ≥ 0, got {getattr(self, name)}", field=f"train.{name}")
