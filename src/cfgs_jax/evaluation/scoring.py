@@ -63,12 +63,10 @@ class OqRuleConfig(Checked):
     absent_below: Annotated[float, OPEN_UNIT] = 0.2
     pixel_threshold: Annotated[float, OPEN_UNIT] = 0.8
     contribution_threshold: Annotated[float, OPEN_UNIT] = 0.01
-    majority: Annotated[float, OPEN_UNIT] = (
-        0.5  # a Gaussian is "changed" when this share of its weight lies on changed pixels
-    )
-    surface_threshold: Annotated[float, msgspec.Meta(ge=0, lt=1)] = (
-        0.1  # flagged only where its absence changes date q's render by more (0: o^q alone)
-    )
+    # a Gaussian is "changed" when this share of its weight lies on changed pixels
+    majority: Annotated[float, OPEN_UNIT] = 0.5
+    # flagged only where its absence changes date q's render by more (0: o^q alone)
+    surface_threshold: Annotated[float, msgspec.Meta(ge=0, lt=1)] = 0.1
 
     TABLE = "oq_rule"
 

@@ -85,21 +85,17 @@ class CompactConfig(Checked):
     max_colour_difference: Annotated[float, UNIT] = 0.1
     max_opacity_difference: Annotated[float, UNIT] = 0.3
     max_alpha: Annotated[float, OPEN_UNIT] = 0.99
-    hidden_share: Annotated[float, UNIT] = (
-        0.0  # also drop the least-shown Gaussians that mark no change, up to this share (0: off)
-    )
+    # also drop the least-shown Gaussians that mark no change, up to this share of all weight (0: off)
+    hidden_share: Annotated[float, UNIT] = 0.0
     refine_steps: Annotated[int, NON_NEGATIVE] = 500
-    lr_light: Annotated[float, NON_NEGATIVE] = (
-        0.0  # light rate of the recovery refinement (0: l frozen, as in the fusion's refinement)
-    )
-    recovery_rate_scale: Annotated[float, POSITIVE] = (
-        1.0  # × the refinement's colour, opacity, scale and rotation rates in the recovery
-    )
+    # light rate of the recovery refinement (0: l frozen, as in the fusion's refinement)
+    lr_light: Annotated[float, NON_NEGATIVE] = 0.0
+    # × the refinement's colour, opacity, scale and rotation rates in the recovery
+    recovery_rate_scale: Annotated[float, POSITIVE] = 1.0
     mask_lambda: Annotated[float, NON_NEGATIVE] = 0.0  # learned masks in the recovery: weight of their penalty (0: off)
     lr_mask: Annotated[float, POSITIVE] = 0.02  # Adam rate of the recovery's mask logits
-    mask_until: Annotated[float, msgspec.Meta(gt=0, le=1)] = (
-        0.6  # the share of the recovery in which the masks learn (then fixed 0/1)
-    )
+    # the share of the recovery in which the masks learn (then fixed 0/1)
+    mask_until: Annotated[float, msgspec.Meta(gt=0, le=1)] = 0.6
 
     TABLE = "compact"
 

@@ -86,49 +86,39 @@ class CrossInitConfig(Checked):
     step at full resolution: there a changed object shrinks to a few pixels and the box-filtered ε maps
     no longer single it out."""
 
-    steps: Annotated[int, POSITIVE] = (
-        500  # the paper: 3000 (same error at a sixth of the time, the README's "Run time against error")
-    )
+    # the paper: 3000 (same error at a sixth of the time, the README's "Run time against error")
+    steps: Annotated[int, POSITIVE] = 500
     lr_o: float = 0.0075
     lr_light: float = 0.00375
-    delta: Annotated[float, msgspec.Meta(gt=0, le=1)] = (
-        0.8  # the paper gives only δ < 1; 0.8 leaves unidentified o^q on the "persistent" side (the README's "Where we depart from the paper")
-    )
+    # the paper gives only δ < 1; 0.8 leaves unidentified o^q on the "persistent" side (the README's "Where we depart from the paper")
+    delta: Annotated[float, msgspec.Meta(gt=0, le=1)] = 0.8
     epsilon_schedule: Literal["paper", "reference"] = "paper"
     ramp_fraction: Annotated[float, msgspec.Meta(gt=0, le=1)] = 0.5
     lpips_net: Literal["alex", "vgg"] = "alex"
     lpips_scale: float = 1.0  # ε_LPIPS = clip(map / lpips_scale, 0, 1)
-    background_anneal: Annotated[float, msgspec.Meta(gt=0, le=1)] = (
-        1.0  # fraction of the steps over which b's range shrinks to black
-    )
-    batch_dates: Annotated[int, NON_NEGATIVE] = (
-        0  # pairs (p, q) optimised together per step (one call, ``pair_groups``); 0: no limit
-    )
+    # fraction of the steps over which b's range shrinks to black
+    background_anneal: Annotated[float, msgspec.Meta(gt=0, le=1)] = 1.0
+    # pairs (p, q) optimised together per step (one call, ``pair_groups``); 0: no limit
+    batch_dates: Annotated[int, NON_NEGATIVE] = 0
     exposure_init: bool = True  # start the gains at the pair's least-squares exposure, not 1
-    exposure_range_ev: Annotated[float, NON_NEGATIVE] = (
-        2.0  # the start exposure is clipped to ± this many stops (a dark image is not a gain of 0)
-    )
+    # the start exposure is clipped to ± this many stops (a dark image is not a gain of 0)
+    exposure_range_ev: Annotated[float, NON_NEGATIVE] = 2.0
     pair_exposure: bool = (
         False  # the start exposure goes to the model's exposure table; l^q fits around it, not from it
     )
-    rate_reference_steps: Annotated[int, NON_NEGATIVE] = (
-        3000  # the step count the rates are meant for; fewer steps scale them up (0: off)
-    )
-    early_stop_tolerance: Annotated[float, NON_NEGATIVE] = (
-        0.0  # stop a group of pairs once nothing moves more than this (0: off)
-    )
+    # the step count the rates are meant for; fewer steps scale them up (0: off)
+    rate_reference_steps: Annotated[int, NON_NEGATIVE] = 3000
+    # stop a group of pairs once nothing moves more than this (0: off)
+    early_stop_tolerance: Annotated[float, NON_NEGATIVE] = 0.0
     early_stop_every: Annotated[int, POSITIVE] = 100  # steps between the convergence checks
-    early_stop_quantile: Annotated[float, msgspec.Meta(gt=0, le=1)] = (
-        1.0  # the share of values that must have settled (1: all of them)
-    )
+    # the share of values that must have settled (1: all of them)
+    early_stop_quantile: Annotated[float, msgspec.Meta(gt=0, le=1)] = 1.0
     early_stop_on: Literal["updates", "loss"] = "updates"  # what must settle: o^q / l^q moves, or the loss (relative)
-    coarse_fraction: Annotated[float, msgspec.Meta(ge=0, lt=1)] = (
-        0.0  # the first steps, this share of them, at 1/coarse_factor resolution (0: off)
-    )
+    # the first steps, this share of them, at 1/coarse_factor resolution (0: off)
+    coarse_fraction: Annotated[float, msgspec.Meta(ge=0, lt=1)] = 0.0
     coarse_factor: Annotated[int, AT_LEAST_ONE] = 2
-    coarse_min_size: Annotated[int, NON_NEGATIVE] = (
-        120  # no coarse steps where the downscaled shorter side would fall below this (pixels)
-    )
+    # no coarse steps where the downscaled shorter side would fall below this (pixels)
+    coarse_min_size: Annotated[int, NON_NEGATIVE] = 120
     seed: int = 0
 
     TABLE = "cross_init"

@@ -72,17 +72,15 @@ class RefineConfig(Checked):
     position rate is the input training's schedule (``[train]``) times ``position_lr_scale``."""
 
     steps: Annotated[int, NON_NEGATIVE] = 6000
-    extend_steps: Annotated[int, NON_NEGATIVE] = (
-        0  # refinement steps when `extend` adds a date (0: ``steps``; the paper is silent)
-    )
+    # refinement steps when `extend` adds a date (0: ``steps``; the paper is silent)
+    extend_steps: Annotated[int, NON_NEGATIVE] = 0
     lr_o: float = 2.5e-6
     lr_alpha: float = 0.005
     lr_color: float = 2e-5  # f_dc units: the RGB colour moves C0 times this
     lr_other: float = 5e-5
     position_lr_scale: Annotated[float, NON_NEGATIVE] = 1.0  # × [train]'s position schedule (0 freezes the positions)
-    lr_light: Annotated[float, NON_NEGATIVE] = (
-        0.0  # Adam rate of the light logits l (0: frozen, the paper's refinement)
-    )
+    # Adam rate of the light logits l (0: frozen, the paper's refinement)
+    lr_light: Annotated[float, NON_NEGATIVE] = 0.0
     lambda_dssim: float = 0.2
     lambda_change: float = 0.1
     halve_alpha: bool = True
@@ -92,17 +90,14 @@ class RefineConfig(Checked):
     random_background: bool = True
     prune_threshold: float = 1.0 / 255.0
     checkpoint_every: int = 500
-    view_batch: Annotated[int, AT_LEAST_ONE] = (
-        1  # training views per step (their mean loss; split over the devices of a mesh)
-    )
+    # training views per step (their mean loss; split over the devices of a mesh)
+    view_batch: Annotated[int, AT_LEAST_ONE] = 1
     seed: int = 0
-    mask_lambda: Annotated[float, NON_NEGATIVE] = (
-        0.0  # weight of the learned-mask penalty on the maskable Gaussians (0: no masks)
-    )
+    # weight of the learned-mask penalty on the maskable Gaussians (0: no masks)
+    mask_lambda: Annotated[float, NON_NEGATIVE] = 0.0
     lr_mask: Annotated[float, POSITIVE] = 0.02  # Adam rate of the mask logits
-    mask_until: Annotated[float, msgspec.Meta(gt=0, le=1)] = (
-        0.6  # the share of the steps in which the masks learn; then they stay as they are
-    )
+    # the share of the steps in which the masks learn; then they stay as they are
+    mask_until: Annotated[float, msgspec.Meta(gt=0, le=1)] = 0.6
 
     @property
     def mask_steps(self) -> int:

@@ -47,9 +47,8 @@ class TrainConfig(Checked):
     test_every: Annotated[int, NON_NEGATIVE] = 8
     checkpoint_every: Annotated[int, POSITIVE] = 1000
     eval_every: Annotated[int, NON_NEGATIVE] = 0
-    view_batch: Annotated[int, POSITIVE] = (
-        1  # training views per step (their mean loss; split over the devices of a mesh)
-    )
+    # training views per step (their mean loss; split over the devices of a mesh)
+    view_batch: Annotated[int, POSITIVE] = 1
 
     def scaled(self, steps: int) -> TrainConfig:
         """This schedule with every iteration count scaled by ``steps / self.steps`` (for short runs):
