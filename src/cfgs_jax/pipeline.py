@@ -274,7 +274,7 @@ def cmd_train(args) -> int:
     config, init = _train_settings(args, run_config)
     render_config = run_config.render
     # the inputs are read (and checked) before anything is written
-    scene = cj.io.read_colmap(args.scene, test_every=max(1, config.test_every), resolution=config.resolution)
+    scene = train.read_scene(args.scene, config)
     out = cj.io.ensure_writable_dir(args.out)
     ckpt = out / train.CHECKPOINT
     if ckpt.exists() and not args.resume:

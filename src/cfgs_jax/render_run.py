@@ -14,11 +14,11 @@ from pathlib import Path
 
 import numpy as np
 
-from cfgs_jax import splat, viz
+from cfgs_jax import splat, train, viz
 from cfgs_jax.errors import InputError
 from cfgs_jax.fusion.config import RunConfig
 from cfgs_jax.io.atomic import ensure_writable_dir
-from cfgs_jax.io.colmap import Scene, read_colmap
+from cfgs_jax.io.colmap import Scene
 from cfgs_jax.io.fused import read_fused
 from cfgs_jax.io.images import write_image
 from cfgs_jax.io.ply import write_ply
@@ -64,7 +64,8 @@ class SelectionStyle:
 
 @dataclasses.dataclass(frozen=True)
 class FusedRun:
-    """A fused run opened for rendering: the model, the date datasets and their Sim(3)s."""
+    """A fused run opened for rendering: the model, the date datasets, their Sim(3)s and the run's
+    configuration."""
 
     path: Path
     model: TemporalGaussians
@@ -72,17 +73,12 @@ class FusedRun:
     dataset_paths: list[Path]
     sims: list[Sim3]
 
-    test_every: int = 8
-    resolution: int = 1
     config: RunConfig = dataclasses.field(default_factory=RunConfig)
 
     @functools.cached_property
     def scenes(self) -> list[Scene]:
-        """The dates' datasets, split and downscaled as the run used them (every ``test_every``-th image
-        is a test view)."""
-        return [
-            read_colmap(path, test_every=self.test_every, resolution=self.resolution) for path in self.dataset_paths
-        ]
+        """The dates' datasets, split and downscaled as the run used them (``[train]``)."""
+        return [train.read_scene(path, self.config.train) for path in self.dataset_paths]
 
     def test_cameras(self) -> list[tuple[str, Camera]]:
         """Every date's test views posed in the model's frame, named ``<date>_<image>``."""
@@ -108,7 +104,7 @@ class FusedRun:
 def open_run(run_dir: str | Path) -> FusedRun:
     """Open ``RUN/`` of ``fuse`` (its ``fused/`` model, ``run.json`` datasets, ``register.json``)."""
     run = RunDir.open(run_dir)
-    config = RunConfig.parse(run.config | {"__path__": str(run / "run.json")})
+    config = RunConfig.of_run(run)
     model = read_fused(run / "fused")
     if list(model.date_names) != run.names:
         raise InputError(f"model dates {list(model.date_names)} differ from run dates {run.names}", path=run / "fused")
@@ -118,8 +114,6 @@ def open_run(run_dir: str | Path) -> FusedRun:
         run.names,
         run.dataset_paths,
         run.sims(),
-        max(1, config.train.test_every),
-        config.train.resolution,
         config,
     )
 

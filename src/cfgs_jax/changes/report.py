@@ -82,7 +82,7 @@ def detect_changes(
     rows = np.nonzero(change.in_region)[0]
     write_ply(out / "changed.ply", jax.tree_util.tree_map(lambda x: jnp.asarray(x)[rows], model.gaussians))
     views_out = [
-        _write_view(found, run, d, i, cam, out)
+        _write_view(found, (p, q), run, d, i, cam, out)
         for d in (p, q)
         for i, cam in registered_cameras(run.scenes[d], run.sims[d], split)
     ]
@@ -104,10 +104,10 @@ def detect_changes(
     return summary
 
 
-def _write_view(found: Detection, run, d: int, i: int, camera, out: Path) -> dict:
-    """The mask, score and overlay of view ``i`` of date ``d`` (``out/{masks,scores,overlays}/<date>/``)
-    and its entry of the summary."""
-    (p, q), scene = next(iter(found.pairs)), run.scenes[d]
+def _write_view(found: Detection, pair: tuple[int, int], run, d: int, i: int, camera, out: Path) -> dict:
+    """The mask, score and overlay of ``pair``'s change in view ``i`` of date ``d``
+    (``out/{masks,scores,overlays}/<date>/``) and its entry of the summary."""
+    (p, q), scene = pair, run.scenes[d]
     name, date = Path(scene.image_names[i]).stem, run.names[d]
     s, valid, mask = found.view(p, q, camera)
     areas, _ = image_regions(mask, s, found.config.min_region_pixels)

@@ -448,7 +448,7 @@ def run_protocol(
     run = RunDir.open(out / "run")
     run_dir = run.path
     tc = setup.fusion.train
-    scenes = run.scenes(test_every=tc.test_every, resolution=tc.resolution)
+    scenes = [train.read_scene(p, tc) for p in run.dataset_paths]
     names, sims = run.names, run.sims()
     ev = _Evaluation(out, run_dir, setup, names, scenes, sims, log, mesh)
     rows = ev.ours_rows()

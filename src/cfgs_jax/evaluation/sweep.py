@@ -33,7 +33,7 @@ import json
 import time
 from pathlib import Path
 
-from cfgs_jax import synthetic
+from cfgs_jax import synthetic, train
 from cfgs_jax.compiled_code import release_if_near_limit
 from cfgs_jax.config import apply_overrides, find_preset, load_config
 from cfgs_jax.errors import InputError
@@ -135,7 +135,7 @@ def _shared_base(out: Path, dirs, base: dict, transforms, progress: bool, log) -
 def _variant_change(run_dir: Path, data: Path, config: RunConfig) -> dict:
     """Change detection of a variant's fused model against the synthetic ground truth (F1, IoU)."""
     run = RunDir.open(run_dir)
-    scenes = run.scenes(test_every=config.train.test_every, resolution=config.train.resolution)
+    scenes = [train.read_scene(p, config.train) for p in run.dataset_paths]
     change = change_detection(read_fused(run / "fused"), data, scenes, run.sims(), config.render)
     g = change["gaussians"]
     return {"f1": g["f1"], "iou": change["pixels"]["iou"], "flagged_changed": g["flagged_changed"]}

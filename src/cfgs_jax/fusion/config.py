@@ -13,6 +13,7 @@ from cfgs_jax.fusion.compact import CompactConfig
 from cfgs_jax.fusion.cross_init import CrossInitConfig
 from cfgs_jax.fusion.refine import RefineConfig
 from cfgs_jax.fusion.register import RegisterConfig
+from cfgs_jax.io.run_dir import RunDir
 from cfgs_jax.splat.config import RenderConfig
 from cfgs_jax.train.config import TrainConfig
 
@@ -89,6 +90,15 @@ class RunConfig:
         stages = {name: section(raw, name, cls_) for name, cls_ in RUN_TABLES.items()}
         tables = {k: v for k, v in raw.items() if k != "__path__"}
         return cls(**stages, tables=tables, source=raw.get("__path__"))
+
+    @classmethod
+    def of_run(cls, run: RunDir, **overrides: dict[str, Any]) -> RunConfig:
+        """The configuration ``run`` was started with (its ``run.json``), each table of ``overrides``
+        (values) over the stored one."""
+        tables = dict(run.config) | {"__path__": str(run / "run.json")}
+        for name, values in overrides.items():
+            tables[name] = {**tables.get(name, {}), **values}
+        return cls.parse(tables)
 
     @classmethod
     def of(cls, config: RunConfig | dict[str, Any] | None) -> RunConfig:

@@ -39,7 +39,7 @@ from cfgs_jax.fusion.refine import refine
 from cfgs_jax.fusion.register import register_date
 from cfgs_jax.io.atomic import read_json, write_json
 from cfgs_jax.io.captured import exif_captured, insert_position, parse_captured, time_order
-from cfgs_jax.io.colmap import Scene, read_colmap
+from cfgs_jax.io.colmap import Scene
 from cfgs_jax.io.fused import read_fused, write_fused
 from cfgs_jax.io.ply import read_ply, write_ply
 from cfgs_jax.io.run_dir import RunDir, date_views
@@ -69,8 +69,7 @@ class Job:
 
     def scenes(self) -> list[Scene]:
         """The run's dates as datasets, split and downscaled as ``[train]`` says."""
-        tc = self.config.train
-        return self.run.scenes(test_every=tc.test_every, resolution=tc.resolution)
+        return [train.read_scene(p, self.config.train) for p in self.run.dataset_paths]
 
     def extent(self, scenes: list[Scene]) -> float:
         return train.scene_extent(scenes[self.run.reference].cameras)
@@ -319,8 +318,7 @@ def _read_inputs(dates, config: RunConfig, models, captured, drop_invalid: bool,
     """Every input of a fusion run, read and checked before anything is written: the datasets (in
     capture-time order), their capture times, the given models (same order) → (dates, scenes, times,
     model paths, models read)."""
-    tc = config.train
-    scenes = [read_colmap(d, test_every=max(1, tc.test_every), resolution=tc.resolution) for d in dates]
+    scenes = [train.read_scene(d, config.train) for d in dates]
     times = capture_times(scenes, captured)
     order = time_order(times, [Path(d).name for d in dates])
     if not any(times):
@@ -456,10 +454,7 @@ def run_compact(
             "this run is compacted already", path=run / "compact.json", fix="compact a copy of the run before it"
         )
     run = RunDir.open(run_dir, writable=True)
-    tables = dict(run.config) | {"__path__": str(run / "run.json")}
-    if isinstance(compact, dict):
-        tables["compact"] = {**tables.get("compact", {}), **compact}
-    config = RunConfig.parse(tables)
+    config = RunConfig.of_run(run, compact=compact) if isinstance(compact, dict) else RunConfig.of_run(run)
     if isinstance(compact, CompactConfig):
         config = dataclasses.replace(config, compact=compact)
     job = Job(run, config, progress, log, mesh)
@@ -505,8 +500,7 @@ def _check_extension(run: RunDir, config: RunConfig, date: Path, model, captured
         raise InputError(f"the run already has a date named {name!r}", path=run.path, field="--date")
     if started and not resume:
         raise InputError(f"an extension by {name!r} was started here", path=run.path, fix="pass --resume")
-    tc = config.train
-    new_scene = read_colmap(date, test_every=max(1, tc.test_every), resolution=tc.resolution)
+    new_scene = train.read_scene(date, config.train)
     check_lpips_size(new_scene, config)  # fails before the run is touched
     if model is not None:
         read_ply(model)
@@ -575,7 +569,7 @@ def run_extend(
     name = Path(date).name
     prefix = f"extend:{name}:"
     run = RunDir.open(run_dir)
-    config = RunConfig.parse(run.config | {"__path__": str(run / "run.json")})
+    config = RunConfig.of_run(run)
     new_scene = _check_extension(run, config, date, model, captured, resume)
     run = RunDir.open(run_dir, writable=True)
     if not any(s.startswith(prefix) for s in run.state["done"]):

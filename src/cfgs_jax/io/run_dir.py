@@ -34,7 +34,7 @@ import numpy as np
 
 from cfgs_jax.errors import InputError
 from cfgs_jax.io.atomic import ensure_writable_dir, read_json, write_json
-from cfgs_jax.io.colmap import Scene, read_colmap
+from cfgs_jax.io.colmap import Scene
 from cfgs_jax.model import Camera, DateInfo, DateViews
 from cfgs_jax.resources import peak_rss_bytes, reset_peak_rss
 from cfgs_jax.sim3 import Sim3
@@ -157,14 +157,19 @@ class RunDir:
         return cls._resumed(path, state)
 
     @classmethod
-    def _resumed(cls, path: Path, state: dict) -> RunDir:
-        run = cls(
+    def _read(cls, path: Path, state: dict) -> RunDir:
+        """The run with ``state`` and the bookkeeping files found at ``path``."""
+        return cls(
             path,
             state,
             read_json(path / "timings.json", {}),
             read_json(path / "peak_rss.json", {}),
             read_json(path / "report.json", {}),
         )
+
+    @classmethod
+    def _resumed(cls, path: Path, state: dict) -> RunDir:
+        run = cls._read(path, state)
         run.save()
         reset_peak_rss()  # each stage's peak from here on
         return run
@@ -188,15 +193,7 @@ class RunDir:
                 path=path,
                 fix="run `python -m cfgs_jax.pipeline fuse` first, or --resume it",
             )
-        if writable:
-            return cls._resumed(path, state)
-        return cls(
-            path,
-            state,
-            read_json(path / "timings.json", {}),
-            read_json(path / "peak_rss.json", {}),
-            read_json(path / "report.json", {}),
-        )
+        return cls._resumed(path, state) if writable else cls._read(path, state)
 
     @classmethod
     def find(cls, path: str | Path) -> RunDir | None:
@@ -240,13 +237,6 @@ class RunDir:
         """Each date's date → reference Sim(3), from ``register.json``."""
         reg = read_json(self.path / "register.json")
         return [Sim3.from_dict(reg[n]["transform"]) for n in self.names]
-
-    def registration(self) -> dict:
-        return read_json(self.path / "register.json", {})
-
-    def scenes(self, *, test_every: int, resolution: int) -> list[Scene]:
-        """The dates' datasets, split and downscaled as the run uses them."""
-        return [read_colmap(p, test_every=max(1, test_every), resolution=resolution) for p in self.dataset_paths]
 
     # -- layout --------------------------------------------------------------------------------
 

@@ -15,8 +15,8 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from cfgs_jax.errors import InputError
+from cfgs_jax.model import SH_REST_COUNTS
 
-C0 = 0.28209479177387814
 C1 = 0.4886025119029199
 C2 = (1.0925484305920792, -1.0925484305920792, 0.31539156525252005, -1.0925484305920792, 0.5462742152960396)
 C3 = (
@@ -29,19 +29,18 @@ C3 = (
     -0.5900435899266435,
 )
 #: The largest SH degree read, kept and rendered.
-MAX_DEGREE = 3
+MAX_DEGREE = len(SH_REST_COUNTS) - 1
 
 
 def coefficient_count(degree: int) -> int:
     """(D + 1)² − 1: the coefficients per channel above the DC term of degree D."""
-    return (degree + 1) ** 2 - 1
+    return SH_REST_COUNTS[degree]
 
 
 def degree_of(count: int, *, field: str = "sh_rest") -> int:
     """The SH degree D with ``count`` = (D + 1)² − 1 coefficients per channel above DC."""
-    for degree in range(MAX_DEGREE + 1):
-        if coefficient_count(degree) == count:
-            return degree
+    if count in SH_REST_COUNTS:
+        return SH_REST_COUNTS.index(count)
     raise InputError(
         f"{count} SH coefficients per channel above DC is no degree ≤ {MAX_DEGREE} (3, 8 or 15 expected)",
         field=field,
@@ -81,7 +80,7 @@ def view_colours(
 ) -> Float[Array, "N 3"]:
     """Each Gaussian's colour seen from ``camera_center``: max(c + Σ_k Y_k(d)·f_k, 0), d the unit
     direction from the camera centre to the mean (max(c, 0) where ``sh_rest`` is None: degree 0)."""
-    if sh_rest is None or sh_rest.shape[-2] == 0:
+    if sh_rest is None:
         return jnp.maximum(colors, 0.0)
     degree = degree_of(int(sh_rest.shape[-2]))
     offset = means - jnp.asarray(camera_center, means.dtype)
@@ -94,7 +93,7 @@ def view_colours(
 def up_to_degree(sh_rest: Float[Array, "N K 3"], degree) -> Float[Array, "N K 3"]:
     """``sh_rest`` with the bands above ``degree`` (a traced integer allowed) zeroed: the colour of a
     model whose training has reached that band (INRIA's active SH degree)."""
-    counts = jnp.asarray([coefficient_count(d) for d in range(MAX_DEGREE + 1)])
+    counts = jnp.asarray(SH_REST_COUNTS)
     keep = jnp.arange(sh_rest.shape[-2]) < counts[jnp.clip(degree, 0, MAX_DEGREE)]
     return sh_rest * keep[:, None].astype(sh_rest.dtype)
 

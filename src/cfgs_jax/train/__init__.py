@@ -22,6 +22,7 @@ from cfgs_jax.train.run import (
     continuation_config,
     fit,
     load_checkpoint,
+    read_scene,
     save_checkpoint,
 )
 from cfgs_jax.train.step import TrainState, loss_fn, make_train_step
@@ -45,6 +46,7 @@ __all__ = [
     "make_optimizer",
     "make_train_step",
     "position_lr",
+    "read_scene",
     "reset_opacity",
     "save_checkpoint",
     "scene_extent",

@@ -22,7 +22,7 @@ from cfgs_jax import parallel, splat
 from cfgs_jax.errors import InputError
 from cfgs_jax.io.atomic import ensure_writable_dir
 from cfgs_jax.io.checkpoint import read_meta, restore_tree, save_tree
-from cfgs_jax.io.colmap import Scene
+from cfgs_jax.io.colmap import Scene, read_colmap
 from cfgs_jax.loop import Progress, check_view_batch, run_steps, step_with_capacity, view_batch
 from cfgs_jax.model import Gaussians, gaussians_of, with_sh_degree
 from cfgs_jax.train.config import TrainConfig
@@ -66,6 +66,12 @@ class TrainRun:
             "config": dataclasses.asdict(self.config),
             "continued_from": continued_from,
         }
+
+
+def read_scene(path: str | Path, config: TrainConfig) -> Scene:
+    """A date's COLMAP dataset as ``config`` trains on it: every ``test_every``-th image a test view
+    (every image trains when it is 0), downscaled by ``resolution``."""
+    return read_colmap(path, test_every=max(1, config.test_every), resolution=config.resolution)
 
 
 def continuation_config(config: TrainConfig) -> TrainConfig:
