@@ -269,9 +269,9 @@ def main():
     )
     args = ap.parse_args()
 
-    from cfgs_jax.changes import ChangesConfig
-    from cfgs_jax.config import apply_overrides, section
+    from cfgs_jax.config import apply_overrides
     from cfgs_jax.evaluation.scoring import changed_objects_by_pair
+    from cfgs_jax.fusion import RunConfig
 
     data = Path(args.data)
     run, raw, render_config, base = open_scored_run(Path(args.run))
@@ -280,7 +280,7 @@ def main():
     changed = changed_objects_by_pair(gt)
     rules = {"default": base}
     for label, *overrides in args.rule:
-        rules[label] = section(apply_overrides(raw, overrides), "changes", ChangesConfig)
+        rules[label] = RunConfig.parse(apply_overrides(raw, overrides)).changes
     out = {
         "scene": args.scene,
         "command": shlex.join(["python", "benchmarks/bench_change_regions.py", *sys.argv[1:]]),

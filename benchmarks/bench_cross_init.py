@@ -37,18 +37,15 @@ from common import RESULTS, add_scene_args, machine, scene_dates
 
 
 def _preset(preset: str, args, raw: dict) -> dict:
-    from cfgs_jax import splat
-    from cfgs_jax.config import section
+    from cfgs_jax import train
     from cfgs_jax.evaluation.protocol import cross_init_checks, date_masks
-    from cfgs_jax.fusion import run_fusion
-    from cfgs_jax.fusion.cross_init import CrossInitConfig, cross_init
+    from cfgs_jax.fusion import RunConfig, run_fusion
+    from cfgs_jax.fusion.cross_init import cross_init
     from cfgs_jax.fusion.fuse import INVISIBLE_LOGIT
-    from cfgs_jax.io.colmap import read_colmap
     from cfgs_jax.io.fused import read_fused, write_fused
     from cfgs_jax.io.run_dir import date_views
     from cfgs_jax.model import opacity_multipliers
     from cfgs_jax.sim3 import Sim3
-    from cfgs_jax.train import TrainConfig
 
     sub = argparse.Namespace(**{**vars(args), "work": str(Path(args.work) / preset)})
     data, names, transforms, sims = scene_dates(preset, sub, args.dates)
@@ -64,9 +61,9 @@ def _preset(preset: str, args, raw: dict) -> dict:
         progress=False,
         log=lambda *a: None,
     )
-    render_config = section(raw, "render", splat.RenderConfig)
-    base = section(raw, "cross_init", CrossInitConfig)
-    scenes = [read_colmap(d, test_every=max(1, section(raw, "train", TrainConfig).test_every)) for d in dirs]
+    config = RunConfig.parse(raw)
+    render_config, base = config.render, config.cross_init
+    scenes = [train.read_scene(d, config.train) for d in dirs]
     sim3s = [Sim3.from_dict(sims[n]) for n in names]
     views = [date_views(sc, sm) for sc, sm in zip(scenes, sim3s)]
     masks = date_masks(data, scenes, sim3s, names)

@@ -35,15 +35,13 @@ from common import RESULTS, machine
 def one_row(merged, views, raw: dict, pairs: list[tuple[int, int]]) -> dict:
     """Eq. 2 for ``pairs`` of the run's merged model under the configuration ``raw``: the wall time,
     the steps each pair ran, and the o^q / l^q of each pair's Gaussians of date p."""
-    from cfgs_jax import fusion, splat
-    from cfgs_jax.config import section
+    from cfgs_jax import fusion
     from cfgs_jax.model import light_multipliers, opacity_multipliers
 
-    config = section(raw, "cross_init", fusion.CrossInitConfig)
+    parsed = fusion.RunConfig.parse(raw)
+    config = parsed.cross_init
     t0 = time.perf_counter()
-    model, reports = fusion.cross_init(
-        merged, views, config, pairs=pairs, render_config=section(raw, "render", splat.RenderConfig)
-    )
+    model, reports = fusion.cross_init(merged, views, config, pairs=pairs, render_config=parsed.render)
     seconds = time.perf_counter() - t0
     origin = np.asarray(model.origin)
     o = np.asarray(opacity_multipliers(model), np.float64)

@@ -42,8 +42,7 @@ def main():
 
     import jax.numpy as jnp
 
-    from cfgs_jax import fusion, splat, train
-    from cfgs_jax.config import section
+    from cfgs_jax import fusion, train
     from cfgs_jax.fusion.evaluate import evaluate_fused
     from cfgs_jax.fusion.refine import refine
     from cfgs_jax.io import RunDir, read_fused
@@ -57,9 +56,8 @@ def main():
     run = open_run(prepared)
     names = run.names
     k = names.index(added)
-    raw = state["config"]
-    render_config = section(raw, "render", splat.RenderConfig)
-    fc = section(raw, "refine", fusion.RefineConfig)
+    config = run.config
+    render_config, fc = config.render, config.refine
     fc = dataclasses.replace(fc, steps=fc.extend_steps or fc.steps, prune_threshold=-1.0)
     start = read_fused(prepared / "cross_init")
     views = [run.date_views(d) for d in range(len(names))]
@@ -72,7 +70,7 @@ def main():
             views,
             dataclasses.replace(fc, extend_visibility=setting),
             extent=extent,
-            train_config=section(raw, "train", train.TrainConfig),
+            train_config=config.train,
             new_dates=[k],
             render_config=render_config,
         )

@@ -114,16 +114,15 @@ def main():
     if not 3 <= args.max_dates <= 6:
         raise SystemExit("--max-dates must lie in 3..6 (the reef preset has 6 dates)")
 
-    from cfgs_jax.config import find_preset, load_config, section
-    from cfgs_jax.fusion import run_fusion
-    from cfgs_jax.fusion.refine import RefineConfig
+    from cfgs_jax.config import find_preset, load_config
+    from cfgs_jax.fusion import RunConfig, run_fusion
 
     work = Path(args.work)
     data, names, transforms, sims = scene_dates("reef", args, args.max_dates)
     raw = load_config(find_preset(args.config))
     if args.extend_steps is not None:
         raw["refine"] = dict(raw.get("refine", {})) | {"extend_steps": args.extend_steps}
-    refine = section(raw, "refine", RefineConfig)
+    refine = RunConfig.parse(raw).refine
     refine_steps, extend_steps = refine.steps, refine.extend_steps or refine.steps
     dirs = [data / n for n in names]
 

@@ -30,8 +30,7 @@ def one_setting(run_dir: Path, data: Path, raw: dict, change: bool = True, save:
     """Cross-init + refinement + evaluation of the run's merged model under the configuration ``raw``;
     change detection against the ground truth unless ``change`` is false; the refined model written
     to ``save`` (our layout) when given."""
-    from cfgs_jax import fusion, splat, train
-    from cfgs_jax.config import section
+    from cfgs_jax import fusion, train
     from cfgs_jax.evaluation.protocol import change_detection
     from cfgs_jax.fusion.evaluate import evaluate_fused
     from cfgs_jax.io import read_fused, write_fused
@@ -40,12 +39,13 @@ def one_setting(run_dir: Path, data: Path, raw: dict, change: bool = True, save:
     run = open_run(run_dir)
     views = [run.date_views(d) for d in range(len(run.names))]
     tests = [run.date_views(d, "test") for d in range(len(run.names))]
-    render_config = section(raw, "render", splat.RenderConfig)
+    config = fusion.RunConfig.parse(raw)
+    render_config = config.render
     t0 = time.perf_counter()
     model, reports = fusion.cross_init(
         read_fused(run_dir / "merged"),
         views,
-        section(raw, "cross_init", fusion.CrossInitConfig),
+        config.cross_init,
         render_config=render_config,
     )
     cross_s = time.perf_counter() - t0
@@ -53,9 +53,9 @@ def one_setting(run_dir: Path, data: Path, raw: dict, change: bool = True, save:
     refined, _ = fusion.refine(
         model,
         views,
-        section(raw, "refine", fusion.RefineConfig),
+        config.refine,
         extent=train.scene_extent(run.scenes[0].cameras),
-        train_config=section(raw, "train", train.TrainConfig),
+        train_config=config.train,
         render_config=render_config,
     )
     refine_s = time.perf_counter() - t0
