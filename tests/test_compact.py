@@ -83,11 +83,14 @@ def test_a_persistent_pair_merges_and_a_changed_one_does_not():
 
 def test_merge_is_the_alpha_weighted_moment_match():
     """Two overlapping copies at different centres and orientations: the merged centre is Σ wμ, the
-    covariance Σ w(Σ_k + (μ_k − μ)(μ_k − μ)ᵀ) with w ∝ α (computed here by hand in float64)."""
+    covariance Σ w(Σ_k + (μ_k − μ)(μ_k − μ)ᵀ), the SH coefficients Σ w f, with w ∝ α (computed here by
+    hand in float64)."""
     q = Rotation.from_euler("xyz", [[0, 0, 0], [0.3, -0.2, 0.5]]).as_quat(scalar_first=True)
     means = np.array([[0.0, 0.0, 0.0], [0.01, -0.005, 0.004]])
     log_scales = np.log([[0.05, 0.03, 0.02], [0.04, 0.05, 0.02]])
     model = _model(means, log_scales, [0.5, 0.8], [[0.5, 0.5, 0.5]] * 2, [[0.99, 0.97], [0.97, 0.99]], [0, 1], q)
+    sh_rest = np.random.default_rng(0).normal(0, 0.2, (2, 8, 3))  # SH degree 2
+    model = dataclasses.replace(model, gaussians=dataclasses.replace(model.gaussians, sh_rest=sh_rest))
     merged, kept = merge_groups(model, np.array([0, 0]))
     assert kept.tolist() == [False, True]  # the more opaque member's place
     w = np.array([0.5, 0.8]) / 1.3
@@ -103,6 +106,7 @@ def test_merge_is_the_alpha_weighted_moment_match():
     np.testing.assert_allclose(np.asarray(got.means)[1], mu, atol=1e-7)
     np.testing.assert_allclose(np.asarray(cj.covariances(got))[1], sigma, rtol=1e-4, atol=1e-9)
     np.testing.assert_allclose(np.asarray(cj.opacities(got))[1], 1 - 0.5 * 0.2, rtol=1e-5)
+    np.testing.assert_allclose(np.asarray(got.sh_rest)[1], np.einsum("k,kic->ic", w, sh_rest), atol=1e-6)
 
 
 def test_summed_weights_match_one_hot_float64_renders():

@@ -619,6 +619,7 @@ def tiny_two_dates(tmp_path_factory):
     toml = root / "tiny.toml"
     toml.write_text(
         "[train]\nsteps = 60\ndensify_from = 20\ndensify_until = 50\ndensify_interval = 20\n"
+        "sh_degree = 2\nsh_interval = 20\n"  # view-dependent colour through every stage
         "[cross_init]\nsteps = 15\nrate_reference_steps = 0\n[refine]\nsteps = 20\nvisibility_interval = 10\n"
     )  # the rates as given: 15 steps at 200× would saturate every o^q (the README snippet's FD check needs slopes)
     return root
@@ -667,6 +668,8 @@ def test_fuse_cli_runs_every_stage_and_resumes_mid_cross_init(tiny_two_dates, fu
     assert set(metrics_json["dates"]) == {"d0", "d1"} and np.isfinite(metrics_json["mean"]["psnr"])
     assert a.num_dates == 2 and [d.name for d in a.dates] == ["d0", "d1"]
     assert np.array_equal(np.asarray(ref.o_logits), np.asarray(a.o_logits)) and len(ref) == len(a)
+    # the dates' view-dependent colour is kept through every stage, in both layouts
+    assert a.gaussians.sh_degree == ref.gaussians.sh_degree == 2 and np.abs(np.asarray(a.gaussians.sh_rest)).max() > 0
     report = json.loads((a_dir / "report.json").read_text())
     assert [r["pair"] for r in report["cross_init"]] == [[0, 1], [1, 0]]
     assert main(args) == 2  # refuses to overwrite a run without --resume
@@ -903,11 +906,19 @@ def test_render_and_export_cli_on_a_fused_run(fused_run, tmp_path):
     frames = [f for f in imageio.get_reader(str(tmp_path / "d0" / "orbit.mp4"), format="FFMPEG")]  # noqa: C416 - list() fails: len() is inf
     assert len(frames) == 2 and frames[0].shape == a.shape
     assert np.abs(frames[0] / 255.0 - a).mean() < 0.03
-    # export: a plain 3DGS PLY that renders like the in-memory selection
+    # export: a plain 3DGS PLY that renders like the in-memory selection: a highlight of the DC colours
+    # (DC-only), a blend with the model's SH
     assert main(["export", "--run", str(run_dir), "--t", "all", "--out", str(tmp_path / "hl.ply")]) == 0
     g = cj.io.read_ply(tmp_path / "hl.ply")
-    want = viz.render_selection(run.model, cams[0][1], [1, 1], **SelectionStyle().kwargs()).image
-    assert np.abs(np.asarray(splat.render(g, cams[0][1]).image) - np.asarray(want)).max() <= 1e-5
+    dc = dataclasses.replace(run.model, gaussians=run.model.gaussians.recoloured(run.model.gaussians.colors))
+    want = viz.render_selection(dc, cams[0][1], [1, 1], **SelectionStyle().kwargs()).image
+    assert g.sh_degree == 0 and np.abs(np.asarray(splat.render(g, cams[0][1]).image) - np.asarray(want)).max() <= 1e-5
+    assert (
+        main(["export", "--run", str(run_dir), "--t", "all", "--mode", "blend", "--out", str(tmp_path / "b.ply")]) == 0
+    )
+    g = cj.io.read_ply(tmp_path / "b.ply")
+    want = viz.render_selection(run.model, cams[0][1], [1, 1]).image
+    assert g.sh_degree == 2 and np.abs(np.asarray(splat.render(g, cams[0][1]).image) - np.asarray(want)).max() <= 1e-5
     # bad selections end with a clear error
     assert main(["render", "--run", str(run_dir), "--t", "0,0", "--out", str(tmp_path / "x")]) == 2
     assert main(["export", "--run", str(run_dir), "--t", "1,0,1", "--out", str(tmp_path / "x.ply")]) == 2

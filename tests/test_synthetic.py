@@ -199,3 +199,40 @@ def test_synth_cli_writes_a_dataset_and_rejects_bad_sizes(tmp_path, capsys):
     assert "4 dates × 3 images at 32×24" in " ".join(capsys.readouterr().out.split())
     assert main(args + ["--images-per-date", "2"]) == 2  # too few views: a clear error, exit 2
     assert "images per date" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("material", ["diffuse", "plastic", "metal"])
+def test_glossy_materials_shine_towards_the_mirror_direction_and_diffuse_does_not(material):
+    """A textured square under a sun at 45°, seen at 45° from the mirror direction and from the sun's
+    side: the glossy materials are brighter (a specular lobe), the Lambertian one the same (to noise)."""
+    from cfgs_jax.synthetic.dataset import _bsdf, _mitsuba
+
+    mi = _mitsuba()
+    sun = np.array([-1.0, 0.0, 1.0]) / np.sqrt(2)  # towards the sun
+
+    def radiance(eye):
+        scene = mi.load_dict(
+            {
+                "type": "scene",
+                "integrator": {"type": "path", "max_depth": 2},
+                "sun": {"type": "directional", "direction": (-sun).tolist(), "irradiance": {"type": "rgb", "value": 1.0}},
+                "square": {
+                    "type": "rectangle",
+                    "bsdf": _bsdf(material, mi.Bitmap(np.full((4, 4, 3), 0.5, np.float32))),
+                },
+                "sensor": {
+                    "type": "perspective",
+                    "fov": 2.0,
+                    "to_world": mi.ScalarTransform4f().look_at(origin=eye, target=[0, 0, 0], up=[0, 0, 1]),
+                    "film": {"type": "hdrfilm", "width": 4, "height": 4, "rfilter": {"type": "box"}},
+                    "sampler": {"type": "independent", "sample_count": 64},
+                },
+            }
+        )
+        return float(np.mean(np.asarray(mi.render(scene))))
+
+    mirror, back = radiance([3.0, 0.0, 3.0]), radiance([-3.0, 0.0, 3.0])
+    if material == "diffuse":
+        assert abs(mirror / back - 1) < 0.02
+    else:
+        assert mirror > 1.5 * back

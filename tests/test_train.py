@@ -535,3 +535,11 @@ def test_sh_training_raises_one_band_per_interval_carries_the_coefficients_and_r
     write_ply(tmp_path / "sh.ply", full.gaussians)
     np.testing.assert_array_equal(np.asarray(read_ply(tmp_path / "sh.ply").sh_rest), rest)
     np.testing.assert_array_equal(np.asarray(done.state.params["sh_rest"]), np.asarray(full.state.params["sh_rest"]))
+    # continuing the trained model: every band trains from the first step, the model's degree kept
+    more = train.continuation_config(dataclasses.replace(cfg, sh_degree=0), full.gaussians.sh_degree)
+    assert more.sh_interval == 0 and [int(sh_degree_at(s, more)) for s in (0, 1, 500)] == [2, 2, 2]
+    cont = train.fit(
+        scene, dataclasses.replace(more, steps=1), init=full.gaussians, progress=False, evaluate_at_end=False
+    )
+    moved = np.abs(np.asarray(cont.gaussians.sh_rest) - rest)
+    assert cont.gaussians.sh_degree == 2 and moved[:, 3:].max() > 0  # band 2 moved on the first step

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import colorsys
+import dataclasses
 import math
 
 import jax
@@ -267,8 +268,100 @@ def test_viewer_terms_are_the_viz_functions_under_jit():
     t = np.asarray([1.0, 0, 1])
     for stops in (GRADIENTS["blue-red (authors')"], None):
         rgb, alpha = splat_terms(
-            model, jnp.asarray(t), 0.25, 3.0, 0.4, mode="highlight", base="grey", stops=stops, use_contrast=True
+            model,
+            jnp.asarray(t),
+            jnp.zeros(3),
+            0.25,
+            3.0,
+            0.4,
+            mode="highlight",
+            base="grey",
+            stops=stops,
+            use_contrast=True,
         )
         want, want_alpha = viz.highlight(model, t, base="grey", sigma=0.25, contrast=(3.0, 0.4), stops=stops)
         np.testing.assert_allclose(rgb, np.clip(want, 0, 1), atol=1e-6)
         np.testing.assert_allclose(alpha, want_alpha, rtol=1e-6)
+
+
+def _with_sh(model, degree=3, seed=0):
+    """``model`` with random SH coefficients above DC (the size of a trained model's)."""
+    rng = np.random.default_rng(seed)
+    k = (degree + 1) ** 2 - 1
+    rest = rng.normal(0, 0.15, (len(model), k, 3)).astype(np.float32)
+    return dataclasses.replace(model, gaussians=dataclasses.replace(model.gaussians, sh_rest=rest))
+
+
+def _seen_colours(model, centre):
+    """[N, 3] float64: each Gaussian's colour seen from ``centre``, max(c + Σ Y_k(d)·f_k, 0) with d the
+    unit ray from ``centre`` to its mean and Y_k the closed-form real spherical harmonics (scipy)."""
+    from test_sh import real_sh
+
+    g = model.gaussians
+    d = np.asarray(g.means, np.float64) - np.asarray(centre, np.float64)
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    y = np.stack([real_sh(v, g.sh_degree) for v in d])
+    c = np.asarray(g.colors, np.float64) + np.einsum("nk,nkc->nc", y, np.asarray(g.sh_rest, np.float64))
+    return np.maximum(c, 0.0)
+
+
+def _seen_model(model, centre):
+    """The DC-only model whose colours are those ``model`` shows from ``centre`` (``_seen_colours``)."""
+    g = model.gaussians.recoloured(_seen_colours(model, centre).astype(np.float32))
+    return dataclasses.replace(model, gaussians=g)
+
+
+def test_a_blend_keeps_the_view_dependent_colour_in_the_render_and_the_exported_ply(scene_model, tmp_path):
+    """A blend of a model with SH 3 draws, at each camera, (l·t̂) ⊙ its SH colour seen from there (closed
+    form), and the exported PLY (SH kept) renders the same from cameras on either side."""
+    model, cam = scene_model
+    model = _with_sh(model)
+    t = [1, 0, 1]
+    path = cj.io.write_ply(tmp_path / "blend.ply", viz.bake(model, t))
+    baked = cj.io.read_ply(path)
+    assert baked.sh_degree == 3
+    for eye in ([0, -4, 1], [3, -2.5, 0.5]):
+        camera = cj.Camera.look_at(eye=eye, target=[0, 0, 0], width=64, height=48, fov_x_deg=60)
+        want = np.asarray(viz.render_selection(_seen_model(model, camera.center), camera, t).image)
+        got = np.asarray(viz.render_selection(model, camera, t).image)
+        assert np.abs(got - want).max() <= 1e-5
+        assert np.abs(np.asarray(splat.render(baked, camera).image) - want).max() <= 1e-5
+        dc_only = dataclasses.replace(model, gaussians=model.gaussians.recoloured(model.gaussians.colors))
+        assert np.abs(np.asarray(viz.render_selection(dc_only, camera, t).image) - want).max() > 0.02
+
+
+def test_a_highlight_colours_what_each_view_shows_and_exports_the_dc_colour(scene_model, tmp_path):
+    model, cam = scene_model
+    model = _with_sh(model, degree=2, seed=1)
+    t = [1, 1, 1]
+    want = viz.render_selection(_seen_model(model, cam.center), cam, t, highlight_changes=True, base="grey").image
+    got = viz.render_selection(model, cam, t, highlight_changes=True, base="grey").image
+    np.testing.assert_allclose(got, want, atol=1e-5)
+    baked = viz.bake(model, t, highlight_changes=True)
+    dc = dataclasses.replace(model, gaussians=model.gaussians.recoloured(model.gaussians.colors))
+    assert baked.sh_degree == 0
+    np.testing.assert_allclose(baked.colors, viz.bake(dc, t, highlight_changes=True).colors, atol=1e-7)
+
+
+def test_the_viewer_colours_the_sh_seen_from_its_camera():
+    from cfgs_jax.viewer import splat_terms
+
+    model = _with_sh(random_temporal(30, 3, seed=9), degree=1, seed=2)
+    centre = np.asarray([0.5, -3.0, 1.0])
+    t = np.asarray([1.0, 1, 0])
+    for mode in ("highlight", "blend"):
+        rgb, _ = splat_terms(
+            model,
+            jnp.asarray(t),
+            jnp.asarray(centre),
+            0.18,
+            4.0,
+            0.5,
+            mode=mode,
+            base="colour",
+            stops=None,
+            use_contrast=False,
+        )
+        seen = _seen_model(model, centre)
+        want = viz.highlight(seen, t, stops=None)[0] if mode == "highlight" else viz.blend(seen, t)[0]
+        np.testing.assert_allclose(rgb, np.clip(want, 0, 1), atol=1e-5)

@@ -452,7 +452,9 @@ def _add_export(sub, prog: str) -> None:
         sub,
         "export",
         "bake a time selection or highlight into a standard 3DGS PLY",
-        "The PLY holds each Gaussian's opacity and colour as seen under the selection, so any 3DGS viewer shows it.",
+        "The PLY holds each Gaussian's opacity and colour as seen under the selection, so any 3DGS viewer "
+        "shows it. Blend and max keep the model's SH (view-dependent colour) exactly; a highlight is written "
+        "DC-only, from each Gaussian's colour averaged over view directions (render draws it per view).",
         ["--run runs/corals --t d0,d2 --mode highlight --out highlight.ply"],
         prog,
     )

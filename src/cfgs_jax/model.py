@@ -198,7 +198,8 @@ class Camera(eqx.Module):
 
 
 class Gaussians(eqx.Module):
-    """A 3D Gaussian Splatting model with view-independent (DC-only) colour; see the module table."""
+    """A 3D Gaussian Splatting model, colour view-independent (DC) or with SH up to degree 3; see the
+    module table."""
 
     means: Float[Array, "N 3"] = eqx.field(converter=_as_float)
     quats: Float[Array, "N 4"] = eqx.field(converter=_as_float)
@@ -245,6 +246,10 @@ class Gaussians(eqx.Module):
 
     def __len__(self) -> int:
         return self.num_gaussians
+
+    def recoloured(self, colours: Float[Array, "N 3"]) -> Gaussians:
+        """The same Gaussians with view-independent ``colours`` (any SH coefficients above DC dropped)."""
+        return dataclasses.replace(self, colors=colours, sh_rest=None)
 
     @classmethod
     def empty(cls, n: int = 0, dtype=jnp.float32) -> Gaussians:

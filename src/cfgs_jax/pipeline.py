@@ -76,7 +76,7 @@ def _gaussian_rows(g) -> list[tuple[str, np.ndarray]]:
         ("scales (exp)", np.asarray(cj.scales(g))),
         ("opacity α (sigmoid)", np.asarray(cj.opacities(g))),
         ("colour c", np.asarray(g.colors)),
-    ]
+    ] + ([(f"SH above DC (degree {g.sh_degree})", np.asarray(g.sh_rest))] if g.sh_degree else [])
 
 
 def describe(path: Path) -> tuple[str, list]:
@@ -244,9 +244,10 @@ def _train_settings(args, config):
         config = dataclasses.replace(config, sh_degree=args.sh_degree)
     if args.eval_every is not None:
         config = dataclasses.replace(config, eval_every=args.eval_every)
-    if args.continue_from:
-        init = cj.io.read_ply(args.continue_from, sh_degree=0)  # training optimises the DC colour
-        return train.continuation_config(dataclasses.replace(config, steps=args.steps or config.steps)), init
+    if args.continue_from:  # the model keeps its SH degree unless --sh-degree says otherwise
+        init = cj.io.read_ply(args.continue_from, sh_degree=args.sh_degree)
+        config = dataclasses.replace(config, steps=args.steps or config.steps)
+        return train.continuation_config(config, init.sh_degree), init
     return (config.scaled(args.steps) if args.steps else config), None
 
 
@@ -529,9 +530,12 @@ def cmd_export(args) -> int:
 
     run = open_run(args.run)
     t = parse_selection(args.t, run.names)
-    path = export_selection(run, t, _selection_style(args), args.out)
+    style = _selection_style(args)
+    path = export_selection(run, t, style, args.out)
+    degree = 0 if style.mode == "highlight" else run.model.gaussians.sh_degree
+    kind = f"SH degree {degree}" if degree else "DC-only"
     _console().print(
-        f"wrote {path}: {len(run.model)} Gaussians, DC-only 3DGS PLY of {args.mode} t={t.astype(int).tolist()}"
+        f"wrote {path}: {len(run.model)} Gaussians, {kind} 3DGS PLY of {args.mode} t={t.astype(int).tolist()}"
     )
     return 0
 

@@ -3,7 +3,9 @@
 ``render`` draws a selection t (Eq. 4, blend or max) or its change highlight (Eq. 5) at the test views
 of every date (posed in the reference frame) or on an orbit around the scene, writing an sRGB PNG with
 a legend (the date names, coloured by their highlight colour, unselected dates struck through) and a
-linear EXR per view. ``export`` bakes the same per-Gaussian colours/opacities into a DC-only 3DGS PLY.
+linear EXR per view. ``export`` bakes the same per-Gaussian colours/opacities into a 3DGS PLY: a
+blend keeps the model's SH (view-dependent colour, exact); a highlight is drawn per view from the colour
+each Gaussian shows that camera, and exported from the DC colour (view-independent).
 """
 
 from __future__ import annotations
@@ -24,7 +26,7 @@ from cfgs_jax.io.images import write_image
 from cfgs_jax.io.ply import write_ply
 from cfgs_jax.io.run_dir import RunDir, camera_in_frame, date_cameras, date_views, registered_cameras
 from cfgs_jax.legend import legend_strip
-from cfgs_jax.model import Camera, DateViews, Gaussians, TemporalGaussians
+from cfgs_jax.model import Camera, DateViews, TemporalGaussians
 from cfgs_jax.sim3 import Sim3
 
 
@@ -45,8 +47,13 @@ class SelectionStyle:
             raise InputError(f"unknown mode {self.mode!r}", field="--mode", fix="use blend, max or highlight")
 
     def terms(self, model: TemporalGaussians, t):
-        """(colours, opacity multipliers) per Gaussian for this style."""
+        """(colours, opacity multipliers) per Gaussian for this style (view-independent: give a model
+        with SH through ``viz.at_view`` for a camera's colours)."""
         return viz.selection_terms(model, t, **self.kwargs())
+
+    def gaussians(self, model: TemporalGaussians, t):
+        """(Gaussians, opacity multipliers) that draw this style with the kernel (``viz.selection_gaussians``)."""
+        return viz.selection_gaussians(model, t, **self.kwargs())
 
     def kwargs(self) -> dict:
         """The keyword arguments of ``viz.selection_terms`` / ``render_selection`` / ``bake``."""
@@ -134,21 +141,9 @@ def render_views(
     (linear) under ``out``; with a ``mesh`` (``parallel.device_mesh``) as many views at once as it has
     devices, split over them. Returns the PNG paths."""
     out = ensure_writable_dir(out)
-    colours, mult = style.terms(run.model, t)
-    g0 = run.model.gaussians
-    g = Gaussians(g0.means, g0.quats, g0.log_scales, g0.opacity_logits, colours)
     written = []
     strip = None
-    n = len(g)
-    images = splat.render_views(
-        g,
-        [c for _, c in cameras],
-        np.ones((1, n), np.float32) if mult is None else np.reshape(np.asarray(mult, np.float32), (1, n)),
-        np.ones((1, n, 3), np.float32),
-        background=background,
-        mesh=mesh,
-    )
-    for (name, _), img in zip(cameras, (np.asarray(im[0]) for im in images)):
+    for (name, _), img in zip(cameras, _selection_images(run.model, t, style, cameras, background, mesh)):
         write_image(out / f"{name}.exr", img)
         if legend:
             if strip is None or strip.shape[1] != img.shape[1]:
@@ -166,6 +161,26 @@ def render_views(
     return written
 
 
+def _selection_images(model: TemporalGaussians, t, style: SelectionStyle, cameras, background, mesh):
+    """[H, W, 3] images of the selection at ``cameras``: one set of Gaussians for all views, or, for a
+    highlight of a model with SH, each view's own (``viz.at_view``)."""
+    per_view = style.mode == "highlight" and model.gaussians.sh_rest is not None
+    groups = [[c] for _, c in cameras] if per_view else [[c for _, c in cameras]]
+    for group in groups:
+        g, mult = style.gaussians(viz.at_view(model, group[0].center) if per_view else model, t)
+        n = len(g)
+        images = splat.render_views(
+            g,
+            group,
+            np.reshape(np.asarray(mult, np.float32), (1, n)),
+            np.ones((1, n, 3), np.float32),
+            background=background,
+            mesh=mesh,
+        )
+        yield from (np.asarray(im[0]) for im in images)
+
+
 def export_selection(run: FusedRun, t, style: SelectionStyle, path: str | Path) -> Path:
-    """Bake the selection (or highlight) into a standard DC-only 3DGS PLY."""
+    """Bake the selection (or highlight) into a standard 3DGS PLY (``viz.bake``: a blend with the model's
+    SH degree, a highlight DC-only)."""
     return write_ply(path, viz.bake(run.model, t, **style.kwargs()))

@@ -3,7 +3,9 @@
 Controls: a checkbox per date (the time selection t), the mode (blend / max / highlight), a grey-base
 toggle, σ of the persistence filter, the contrast sigmoid (on/off, k, b) and the highlight gradient.
 Every change recomputes the per-Gaussian colours and opacities with one jitted function of
-``cfgs_jax.viz`` and updates the splats in place. The server listens on 127.0.0.1 only.
+``cfgs_jax.viz`` and updates the splats in place; for a model with SH (view-dependent colour) a camera
+move does too, the colours evaluated from the moved camera's position (``viz.at_view``; with several
+browsers open, the last one moved). The server listens on 127.0.0.1 only.
 """
 
 from __future__ import annotations
@@ -34,10 +36,11 @@ MODES = ("highlight", "blend", "max")
 
 
 @functools.partial(jax.jit, static_argnames=("mode", "base", "stops", "use_contrast"))
-def splat_terms(model, t, sigma, k, b, *, mode: str, base: str, stops, use_contrast: bool):
-    """(rgb [N,3] in [0,1], opacity [N]) of the viewer's current settings (Eq. 4 / Eq. 5)."""
+def splat_terms(model, t, centre, sigma, k, b, *, mode: str, base: str, stops, use_contrast: bool):
+    """(rgb [N,3] in [0,1], opacity [N]) of the viewer's current settings (Eq. 4 / Eq. 5) seen from the
+    camera position ``centre``."""
     style = SelectionStyle(mode=mode, base=base, sigma=sigma, contrast=(k, b) if use_contrast else None, stops=stops)
-    colours, mult = style.terms(model, t)
+    colours, mult = style.terms(viz.at_view(model, centre), t)
     return jnp.clip(colours, 0.0, 1.0), opacities(model.gaussians) * mult
 
 
@@ -59,6 +62,7 @@ class Viewer:
         g = model.gaussians
         target, up, e1, e2, radius, height = orbit_geometry(run.all_cameras())
         self._eye = target + height * up + radius * e1
+        self._centre = np.asarray(self._eye, np.float32)  # where the colours are seen from
         self._target, self._up = target, up
         self.server.scene.set_up_direction(tuple(float(v) for v in up))
         gui = self.server.gui
@@ -97,6 +101,8 @@ class Viewer:
             client.camera.up_direction = tuple(float(v) for v in self._up)
             client.camera.position = tuple(float(v) for v in self._eye)
             client.camera.look_at = tuple(float(v) for v in self._target)
+            if g.sh_rest is not None:
+                client.camera.on_update(self.moved)
 
     def selection(self) -> np.ndarray:
         return np.asarray([float(box.value) for box in self.date_boxes])
@@ -111,6 +117,7 @@ class Viewer:
         rgb, alpha = splat_terms(
             self.run.model,
             jnp.asarray(t, jnp.float32),
+            jnp.asarray(self._centre),
             float(self.sigma.value),
             float(self.k.value),
             float(self.b.value),
@@ -127,6 +134,11 @@ class Viewer:
             rgb, alpha = self._terms()
             self.splats.rgbs = rgb
             self.splats.opacities = alpha[:, None]
+
+    def moved(self, camera) -> None:
+        """A browser's camera moved: the view-dependent colours are seen from its new position."""
+        self._centre = np.asarray(camera.position, np.float32)
+        self.update()
 
     def stop(self) -> None:
         self.server.stop()

@@ -2,7 +2,7 @@
 
 Every function maps per-Gaussian quantities to per-Gaussian colour/opacity, so a time selection or a
 change highlight is rendered by the ordinary splatting kernel (``render_selection``) or baked into a
-standard DC-only 3DGS PLY (``bake``). All of it is differentiable (``jax.grad`` through ``highlight``
+standard 3DGS PLY (``bake``). All of it is differentiable (``jax.grad`` through ``highlight``
 and the kernel w.r.t. the opacity multipliers o works) and jit-able; ``o`` and ``S`` are plain arrays
 (last axis dates / RGB), so research code can call the math without a model.
 
@@ -13,6 +13,11 @@ Conventions:
   never NaN.
 - Colours: 3DGS colours are display-referred (sRGB-encoded); the highlight product B ⊙ S is formed in
   linear RGB (decode, multiply, encode), grey = Rec.709 luminance of the linear colour.
+- View-dependent colour (SH above DC): a blend keeps it exactly, as the selection's light l·t̂ ≥ 0
+  scales the DC colour and every coefficient alike (l ⊙ max(c + Σ Y_k f_k, 0) = max(l ⊙ c + Σ Y_k
+  l ⊙ f_k, 0)). The highlight is nonlinear in the colour: ``render_selection`` highlights the colour
+  each Gaussian shows the camera (``at_view``), exact per view; ``bake`` and ``selection_terms``, with
+  no camera, highlight the DC colour (the colour averaged over directions), view-independent.
 - The contrast sigmoid φ (Eq. 8) is evaluated in the algebraically identical logit form
   φ(x) = sigmoid(k·(logit x − log((1 − b)/b))), which is exact, overflow-free and has finite gradients
   at x → 0 and 1. As written in the paper, φ(1 − b) = 0.5 (not φ(b)); we keep it verbatim.
@@ -20,6 +25,7 @@ Conventions:
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Sequence
 from typing import Literal
 
@@ -41,6 +47,7 @@ from cfgs_jax.model import (
     opacity_multipliers,
     rgb,
 )
+from cfgs_jax.splat.sh import view_colours
 
 #: The authors' "blue-red" gradient (linear RGB): blue → magenta → orange.
 DEFAULT_STOPS: tuple[tuple[float, float, float], ...] = ((0.10, 0.074, 1.0), (1.0, 0.347, 0.731), (1.0, 0.347, 0.0))
@@ -102,13 +109,27 @@ def blend(
 ) -> tuple[Float[Array, "N 3"], Float[Array, " N"]]:
     """Per-Gaussian (colour, opacity) of a time selection (Eq. 4): ((l·t̂) ⊙ c, α·(o·t̂)) or, for
     ``mode="max"``, opacity α·max(o ⊙ t)."""
-    t_hat = normalize_selection(t)
-    o = opacity_multipliers(model)
-    _check_dates(o, t_hat)
-    light = jnp.einsum(
-        "ntc,t->nc", light_multipliers(model), t_hat.astype(o.dtype), precision=jax.lax.Precision.HIGHEST
+    return selection_light(model, t) * rgb(model.gaussians), opacities(model.gaussians) * selection_opacity(
+        opacity_multipliers(model), t, mode
     )
-    return light * rgb(model.gaussians), opacities(model.gaussians) * selection_opacity(o, t, mode)
+
+
+def selection_light(model: TemporalGaussians, t: Float[Array, " T"]) -> Float[Array, "N 3"]:
+    """The light multiplier of a selection, l·t̂ (Eq. 4): what a blend multiplies each colour by."""
+    t_hat = normalize_selection(t)
+    light = light_multipliers(model)
+    _check_dates(light[..., 0], t_hat)
+    return jnp.einsum("ntc,t->nc", light, t_hat.astype(light.dtype), precision=jax.lax.Precision.HIGHEST)
+
+
+def at_view(model: TemporalGaussians, centre: Float[Array, " 3"]) -> TemporalGaussians:
+    """The model as seen from the camera centre ``centre``: each colour its SH colour along the ray from
+    ``centre`` to the Gaussian's mean (INRIA's rule), view-independent; a DC-only model is returned as is."""
+    g = model.gaussians
+    if g.sh_rest is None:
+        return model
+    colours = view_colours(g.colors, g.sh_rest, g.means, jnp.asarray(centre, jnp.result_type(g.means)))
+    return dataclasses.replace(model, gaussians=g.recoloured(colours))
 
 
 def lambda_integrals(
@@ -269,6 +290,20 @@ def selection_terms(
     return colours, selection_opacity(opacity_multipliers(model), t, mode)
 
 
+def selection_gaussians(
+    model: TemporalGaussians, t, *, mode: Mode = "mean", highlight_changes: bool = False, **highlight_kwargs
+) -> tuple[Gaussians, Float[Array, " N"]]:
+    """(Gaussians, opacity multipliers [N]) that draw a selection (Eq. 4) or its highlight (Eq. 5) with
+    the kernel: the colours replace the Gaussians' own (a blend's SH scaled by the selection's light,
+    exact from every view; a highlight's DC-only, see the module notes), the multiplier scales α."""
+    colours, mult = selection_terms(model, t, mode=mode, highlight_changes=highlight_changes, **highlight_kwargs)
+    g = model.gaussians
+    if g.sh_rest is None or highlight_changes:
+        return g.recoloured(colours), mult
+    light = selection_light(model, t)
+    return dataclasses.replace(g, colors=light * g.colors, sh_rest=light[:, None, :] * g.sh_rest), mult
+
+
 def render_selection(
     model: TemporalGaussians,
     camera,
@@ -280,28 +315,26 @@ def render_selection(
     config=None,
     **highlight_kwargs,
 ):
-    """Render a time selection (Eq. 4) or its change highlight (Eq. 5) with the splatting kernel.
+    """Render a time selection (Eq. 4) or its change highlight (Eq. 5) with the splatting kernel; a
+    highlight of a model with SH colours the colour each Gaussian shows this camera (``at_view``).
 
     Gaussians whose selected opacity is 0 (dates with t_p = 0) are culled before binning, so they cost
     nothing. Returns the kernel's ``RenderResult`` (images only: no per-Gaussian statistics)."""
-
-    colours, mult = selection_terms(model, t, mode=mode, highlight_changes=highlight_changes, **highlight_kwargs)
-    g = model.gaussians
-    g = Gaussians(g.means, g.quats, g.log_scales, g.opacity_logits, colours)
+    if highlight_changes:
+        model = at_view(model, camera.center)
+    g, mult = selection_gaussians(model, t, mode=mode, highlight_changes=highlight_changes, **highlight_kwargs)
     return splat.render(g, camera, opacity_mult=mult, background=background, config=config, statistics=False)
 
 
 def bake(
     model: TemporalGaussians, t, *, mode: Mode = "mean", highlight_changes: bool = False, **highlight_kwargs
 ) -> Gaussians:
-    """A standard single-date ``Gaussians`` showing the selection/highlight: colours replaced, α·m baked
-        into the opacity logit (α·m clipped into [1e-7, 1 − 1e-7]: below the kernel's 1/255 skip and above
-    its 0.99 clamp, so nothing visible changes). Writing it with
-        ``io.write_ply`` gives a DC-only 3DGS PLY any viewer opens."""
-    colours, mult = selection_terms(model, t, mode=mode, highlight_changes=highlight_changes, **highlight_kwargs)
-    alpha = opacities(model.gaussians) * mult
-    g = model.gaussians
-    return Gaussians(g.means, g.quats, g.log_scales, logit(alpha, 1e-7), colours)
+    """A standard single-date ``Gaussians`` showing the selection/highlight (``selection_gaussians``), α·m
+    baked into the opacity logit (α·m clipped into [1e-7, 1 − 1e-7]: below the kernel's 1/255 skip and
+    above its 0.99 clamp, so nothing visible changes). ``io.write_ply`` writes it as a 3DGS PLY any
+    viewer opens: a blend with the model's SH degree, a highlight DC-only."""
+    g, mult = selection_gaussians(model, t, mode=mode, highlight_changes=highlight_changes, **highlight_kwargs)
+    return dataclasses.replace(g, opacity_logits=logit(opacities(g) * mult, 1e-7))
 
 
 __all__ = [
@@ -316,7 +349,10 @@ __all__ = [
     "normalize_selection",
     "persistence_filter",
     "remap_to_gradient",
+    "at_view",
     "render_selection",
+    "selection_gaussians",
+    "selection_light",
     "selection_opacity",
     "selection_terms",
 ]

@@ -24,7 +24,6 @@ from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 
-import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
@@ -73,7 +72,7 @@ def covered_share(
     origin = np.asarray(model.origin)
     own = np.where(origin == q, np.asarray(opacity_multipliers(model))[:, q], 0.0).astype(np.float32)[None]
     colour = np.repeat(covering.astype(np.float32)[None, :, None], 3, axis=2)
-    white = eqx.tree_at(lambda g: g.colors, model.gaussians, jnp.ones((n, 3), jnp.float32))
+    white = model.gaussians.recoloured(jnp.ones((n, 3), jnp.float32))
     means = np.asarray(model.gaussians.means, np.float64)[rows]
     cov = np.asarray(covariances(model.gaussians), np.float64)[rows]
     covered, seen = np.zeros(len(rows)), np.zeros(len(rows))

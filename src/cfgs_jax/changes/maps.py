@@ -32,7 +32,7 @@ def rendered_scores(
     config: splat.RenderConfig,
 ) -> tuple[Float[Array, "H W"], Float[Array, "H W"], Float[Array, "H W"]]:
     """(Σ w·score / Σ w, Σ w·known / Σ w, Σ w) per pixel, w = α·opacity·T (``config`` with capacity)."""
-    ones = dataclasses.replace(g, colors=jnp.ones_like(g.colors))
+    ones = g.recoloured(jnp.ones_like(g.colors))
     mult = jnp.stack([score, known, jnp.zeros_like(score)], -1)[None]
     res = splat.render_dates(ones, camera, opacity[None], mult, config=config, statistics=False)
     alpha = res.alpha[0]

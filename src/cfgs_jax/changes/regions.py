@@ -320,7 +320,7 @@ def every_pair_regions(
     origin = np.asarray(model.origin)
     t = model.num_dates
     spacing = median_spacing(means)
-    colors = np.asarray(rgb(model.gaussians), np.float64)
+    colors = np.asarray(rgb(model.gaussians), np.float64)  # DC: each colour averaged over view directions
     wanted = [(p, q) for p in range(t) for q in range(p + 1, t)] if pairs is None else sorted(set(pairs))
     carry = bool(config.carry_absence) and t > 2
     if carry and cameras is None:

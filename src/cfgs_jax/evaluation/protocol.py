@@ -177,7 +177,7 @@ def _individual_plus(
     every count in ``steps``; resumable per date (``RUN/individual_plus/<date>/``). A date evaluated at
     other step counts, or resumed from a checkpoint past a count to evaluate, is trained again from its
     own model."""
-    tc = train.continuation_config(dataclasses.replace(train_config, steps=max(steps)))
+    longer = dataclasses.replace(train_config, steps=max(steps))
     results = {}
     for sc in scenes:
         name = sc.root.name
@@ -189,7 +189,8 @@ def _individual_plus(
             done = None
         if done is None:
             log(f"[eval] Individual +{max(steps):,}: date {name}")
-            g = read_ply(run_dir / "dates" / name / "point_cloud.ply", sh_degree=0)
+            g = read_ply(run_dir / "dates" / name / "point_cloud.ply")
+            tc = train.continuation_config(longer, g.sh_degree)
             t0 = time.perf_counter()
 
             def fit():

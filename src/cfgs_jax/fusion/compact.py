@@ -9,12 +9,13 @@ copies of one persistent surface when all of these hold:
   that marks a change is never merged with one that does not);
 - they overlap: |μ_i − μ_j| ≤ ``max_distance`` · (s̄_i + s̄_j)/2, with s̄ the geometric mean of a
   Gaussian's three scales, and |log s̄_i − log s̄_j| ≤ ``max_log_scale_ratio``;
-- they look alike: max over RGB of |c_i − c_j| ≤ ``max_colour_difference`` and
+- they look alike: max over RGB of |c_i − c_j| ≤ ``max_colour_difference`` (c the DC colour, the
+  colour averaged over view directions) and
   |α_i − α_j| ≤ ``max_opacity_difference``;
 - they are mutual nearest neighbours (by centre) among date p's and date q's candidates.
 
 Pairs join into groups (connected components over all date pairs). A group becomes one Gaussian:
-centre, colour and light the α-weighted means, covariance the α-weighted moment match
+centre, colour (DC and every SH coefficient above it) and light the α-weighted means, covariance the α-weighted moment match
 Σ = Σ_k w_k (Σ_k + (μ_k − μ)(μ_k − μ)ᵀ), opacity the stack's coverage 1 − Π_k (1 − α_k) (at most
 ``max_alpha``), o^r the largest of the group's at each date r, and the origin of its most opaque
 member. The light averaged is the light drawn (the exposure of each member's origin times its l); the
@@ -192,6 +193,8 @@ def merge_groups(model: TemporalGaussians, labels: np.ndarray, config: CompactCo
     vec = vec * np.where(np.linalg.det(vec) < 0, -1.0, 1.0)[:, None, None]  # a proper rotation
     coverage = np.minimum(1.0 - np.exp(group_sum(np.log1p(-np.minimum(a["alpha"], 1 - 1e-12)))), config.max_alpha)
     colour = group_sum(weight[:, None] * np.asarray(model.gaussians.colors, np.float64))
+    rest = model.gaussians.sh_rest  # the SH coefficients are averaged like the DC colour they extend
+    rest = None if rest is None else group_sum(weight[:, None, None] * np.asarray(rest, np.float64))
     # the light the members are drawn with (exposure of their origin included), averaged, then made
     # relative to the exposure row of the keeper's origin
     light = group_sum(weight[:, None, None] * np.asarray(light_multipliers(model), np.float64))
@@ -219,6 +222,7 @@ def merge_groups(model: TemporalGaussians, labels: np.ndarray, config: CompactCo
             put(g.log_scales, 0.5 * np.log(np.maximum(var, 1e-30))),
             put(g.opacity_logits, np.asarray(logit(coverage))),
             put(g.colors, colour),
+            None if rest is None else put(g.sh_rest, rest),
         ),
         o_logits=put(model.o_logits, o_logits),
         light_logits=put(model.light_logits, np.asarray(light_logits(jnp.asarray(light)))),

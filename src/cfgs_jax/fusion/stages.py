@@ -51,9 +51,6 @@ from cfgs_jax.splat.weights import observed_matrix
 #: o-logit of every Gaussian of a one-date "fusion": σ(30) rounds to exactly 1.0 in float32, so the
 #: fused model renders bit-identically to its input.
 IDENTITY_LOGIT = 30.0
-#: The SH degree the fusion stages optimise: the DC colour only so far (a date's coefficients above it
-#: are dropped when the date is read, with a warning that says how much colour they held).
-STAGE_SH_DEGREE = 0
 
 
 @dataclasses.dataclass(frozen=True)
@@ -308,7 +305,7 @@ def _fuse_merged(job: Job, scenes, sims, snapshots, evaluate: bool) -> None:
 def _merge_dates(run: RunDir, given, sims, drop_invalid: bool) -> dict:
     """The per-date models (``given``, else read from the run's model paths) in the reference frame,
     merged → ``RUN/merged``."""
-    models = given or [read_ply(m, drop_invalid=drop_invalid, sh_degree=STAGE_SH_DEGREE) for m in run.model_paths()]
+    models = given or [read_ply(m, drop_invalid=drop_invalid) for m in run.model_paths()]
     merged = merge(models, run.date_infos(), sims)
     write_fused(run / "merged", merged)
     return {"gaussians": len(merged)}
@@ -336,7 +333,7 @@ def _read_inputs(dates, config: RunConfig, models, captured, drop_invalid: bool,
             field="--models",
             fix="give one PLY per date, in the order of --dates",
         )
-    given = [read_ply(m, drop_invalid=drop_invalid, sh_degree=STAGE_SH_DEGREE) for m in models or ()]
+    given = [read_ply(m, drop_invalid=drop_invalid) for m in models or ()]
     if len(dates) == 1:
         msg = f"fusing a single date ({Path(dates[0]).name}): the result is that date's model unchanged (identity)"
         warnings.warn(msg, UserWarning, stacklevel=3)
@@ -542,7 +539,7 @@ def _register_added(job: Job, scenes, k: int, transform: Sim3 | None) -> None:
 def _add_to_fused(run: RunDir, ply: Path, k: int, sim: Sim3) -> None:
     """The fused model with the added date's Gaussians inserted as date k (``add_date``) →
     ``RUN/cross_init``, the start of the extension's cross-init."""
-    new = read_ply(ply, sh_degree=STAGE_SH_DEGREE)
+    new = read_ply(ply)
     merged = add_date(read_fused(run / "fused"), new, run.date_infos()[k], sim, position=k)
     write_fused(run / "cross_init", merged)
     write_json(run / "cross_init_pairs.json", {"pairs": [], "reports": [], "seconds": 0.0})

@@ -133,13 +133,13 @@ def view_dependent_rms(f_rest: np.ndarray) -> float:
 def channel_major(sh_rest: np.ndarray) -> np.ndarray:
     """[N, 3K]: ``sh_rest`` [N, K, 3] in the PLY's ``f_rest_*`` order (K of red, then green, then blue)."""
     a = np.asarray(sh_rest)
-    return np.transpose(a, (0, 2, 1)).reshape(len(a), -1)
+    return np.transpose(a, (0, 2, 1)).reshape(len(a), 3 * a.shape[1])
 
 
 def from_channel_major(f_rest: np.ndarray) -> np.ndarray:
     """[N, K, 3] from the PLY's [N, 3K] ``f_rest_*`` columns (``channel_major`` inverted)."""
     a = np.asarray(f_rest)
-    return np.transpose(a.reshape(len(a), 3, -1), (0, 2, 1))
+    return np.transpose(a.reshape(len(a), 3, a.shape[1] // 3), (0, 2, 1))
 
 
 def f_rest_names(table: np.ndarray, *, path) -> list[str]:

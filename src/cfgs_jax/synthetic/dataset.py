@@ -135,13 +135,38 @@ def scene_dict(spec: SceneSpec, state: int, cam_date: int, *, aov: bool) -> dict
         if not o.present[state]:
             continue
         shape = _shape(mi, o, o.to_world[state])
-        tex = mi.Bitmap(texture(spec, k, state))
-        shape["bsdf"] = {
-            "type": "diffuse",
-            "reflectance": {"type": "bitmap", "bitmap": tex, "raw": True, "filter_type": "bilinear"},
-        }
+        shape["bsdf"] = _bsdf(o.material, mi.Bitmap(texture(spec, k, state)))
         out[f"obj_{k:03d}_{o.name}"] = shape
     return out
+
+
+#: GGX roughness α of the glossy materials: wide enough lobes that SH of degree 3 can follow them.
+GLOSSY_ALPHA = {"plastic": 0.2, "metal": 0.3}
+
+
+def _bsdf(material: str, bitmap) -> dict:
+    """The Mitsuba BSDF of an object's ``material`` with its texture: Lambertian (``diffuse``), a
+    dielectric coat over the textured diffuse base (``plastic``: GGX, IOR 1.49), or a rough aluminium
+    tinted by the texture (``metal``)."""
+    tex = {"type": "bitmap", "bitmap": bitmap, "raw": True, "filter_type": "bilinear"}
+    if material == "diffuse":
+        return {"type": "diffuse", "reflectance": tex}
+    if material == "plastic":
+        return {
+            "type": "roughplastic",
+            "distribution": "ggx",
+            "alpha": GLOSSY_ALPHA["plastic"],
+            "diffuse_reflectance": tex,
+        }
+    if material == "metal":
+        return {
+            "type": "roughconductor",
+            "distribution": "ggx",
+            "alpha": GLOSSY_ALPHA["metal"],
+            "material": "Al",
+            "specular_reflectance": tex,
+        }
+    raise InputError(f"unknown material {material!r}", field="material", fix="use diffuse, plastic or metal")
 
 
 class _Loaded:

@@ -24,6 +24,7 @@ class ObjectSpec:
     texture_seed: int
     present: tuple[bool, ...]  # per date
     variant: tuple[int, ...]  # per date: texture variant (cracks level); placement changes via to_world
+    material: str = "diffuse"  # "diffuse" | "plastic" (textured, glossy) | "metal" (textured rough conductor)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -139,7 +140,7 @@ def _dates(rng, names, n_images, *, lighting, coverage=None) -> tuple[DateSpec, 
 def make_preset(
     name: str, *, seed: int = 0, width: int = 320, height: int = 240, images_per_date: int = 32, spp: int = 32
 ) -> SceneSpec:
-    """The named preset (vase, corals, flood, coverage, light, reef, quake) at the given size and quality
+    """The named preset (vase, corals, flood, coverage, light, reef, quake, glossy) at the given size and quality
     (``spp`` is rounded up to a power of two for the low-discrepancy sampler)."""
     if name not in PRESETS:
         raise InputError(f"unknown preset {name!r}", field="--preset", fix=f"use one of {', '.join(PRESETS)}")
@@ -249,6 +250,19 @@ def _quake(rng, seed, k):
     return objs, _dates(rng, ["d0", "d1", "d2"], k, lighting=light)
 
 
+def _glossy(rng, seed, k):
+    """The corals' kinds of change on view-dependent materials: a glossy ground, rough plastic and rough
+    metal objects, whose highlights move with the camera (what SH colour is for)."""
+    d = 4
+    objs = [dataclasses.replace(_ground(d, seed * 100 + 1), material="plastic")]
+    presence = [(1, 1, 1, 1), (1, 1, 0, 0), (1, 0, 0, 1), (0, 1, 1, 1), (1, 1, 1, 1), (1, 1, 1, 0)]
+    for i, xy in enumerate(_placements(rng, len(presence))):
+        thing = _thing(rng, f"object_{i}", xy, d, [bool(p) for p in presence[i]], seed * 100 + 10 + i)
+        objs.append(dataclasses.replace(thing, material=("plastic", "metal")[i % 2]))
+    light = [(30, 55, 5600, 0.0), (60, 50, 5400, 0.0), (90, 58, 5800, 0.0), (120, 52, 5500, 0.0)]
+    return objs, _dates(rng, ["d0", "d1", "d2", "d3"], k, lighting=light)
+
+
 PRESETS = {
     "vase": _vase,
     "corals": _corals,
@@ -257,4 +271,5 @@ PRESETS = {
     "light": _light,
     "reef": _reef,
     "quake": _quake,
+    "glossy": _glossy,
 }

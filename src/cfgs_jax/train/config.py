@@ -25,7 +25,7 @@ class TrainConfig(Checked):
     rotation_lr: float = 1e-3
     color_lr: float = 2.5e-3  # f_dc units
     sh_degree: int = 0  # view-dependent colour: SH degree 0..3 (INRIA's --sh_degree), 1/20 of color_lr
-    sh_interval: Annotated[int, POSITIVE] = 1000  # one SH band more every this many steps (INRIA's oneupSHdegree)
+    sh_interval: Annotated[int, NON_NEGATIVE] = 1000  # one SH band more every this many steps (0: all from the start)
     adam_eps: float = 1e-15
     lambda_dssim: Annotated[float, UNIT] = 0.2
     random_background: bool = True
@@ -65,7 +65,7 @@ class TrainConfig(Checked):
             densify_until=s(self.densify_until),
             densify_interval=s(self.densify_interval),
             opacity_reset_interval=s(self.opacity_reset_interval),
-            sh_interval=s(self.sh_interval),
+            sh_interval=s(self.sh_interval) if self.sh_interval else 0,
         )
 
     TABLE = "train"

@@ -74,10 +74,14 @@ def read_scene(path: str | Path, config: TrainConfig) -> Scene:
     return read_colmap(path, test_every=max(1, config.test_every), resolution=config.resolution)
 
 
-def continuation_config(config: TrainConfig) -> TrainConfig:
+def continuation_config(config: TrainConfig, sh_degree: int | None = None) -> TrainConfig:
     """The paper's "Individual +N" baseline: no densification, position lr held at its final value
-    (where INRIA's schedule ends; a PLY carries no optimiser state, so Adam restarts)."""
-    return dataclasses.replace(config, densify=False, position_lr_init=config.position_lr_final)
+    (where INRIA's schedule ends; a PLY carries no optimiser state, so Adam restarts), every SH band of
+    ``sh_degree`` (the continued model's; None: ``config``'s) trained from the first step."""
+    degree = config.sh_degree if sh_degree is None else sh_degree
+    return dataclasses.replace(
+        config, densify=False, position_lr_init=config.position_lr_final, sh_degree=degree, sh_interval=0
+    )
 
 
 # --------------------------------------------------------------------------------------------- checkpoints

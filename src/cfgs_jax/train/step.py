@@ -118,7 +118,10 @@ def loss_fn(
 
 def sh_degree_at(step, config: TrainConfig):
     """The SH degree a training step renders with: one band more every ``sh_interval`` steps, up to
-    ``sh_degree`` (INRIA raises it before iterations 1000, 2000, 3000; ``step`` counts from 0)."""
+    ``sh_degree`` (INRIA raises it before iterations 1000, 2000, 3000; ``step`` counts from 0); every
+    band from the first step with ``sh_interval`` 0 (a trained model continued)."""
+    if not config.sh_interval:
+        return jnp.asarray(config.sh_degree)
     return jnp.minimum(config.sh_degree, (step + 1) // config.sh_interval)
 
 
