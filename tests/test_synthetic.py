@@ -215,7 +215,11 @@ def test_glossy_materials_shine_towards_the_mirror_direction_and_diffuse_does_no
             {
                 "type": "scene",
                 "integrator": {"type": "path", "max_depth": 2},
-                "sun": {"type": "directional", "direction": (-sun).tolist(), "irradiance": {"type": "rgb", "value": 1.0}},
+                "sun": {
+                    "type": "directional",
+                    "direction": (-sun).tolist(),
+                    "irradiance": {"type": "rgb", "value": 1.0},
+                },
                 "square": {
                     "type": "rectangle",
                     "bsdf": _bsdf(material, mi.Bitmap(np.full((4, 4, 3), 0.5, np.float32))),
