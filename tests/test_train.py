@@ -423,7 +423,8 @@ def test_train_cli_speaks_inria(corals, tmp_path):
     assert (
         cfg_args.startswith("Namespace(")
         and f"source_path='{corals.resolve()}'" in cfg_args
-        and "sh_degree=0" in cfg_args
+        and f"sh_degree={cj.io.read_ply(out / 'point_cloud.ply').sh_degree}" in cfg_args
+        and "sh_degree=3" in cfg_args  # INRIA's default, and ours
     )
 
 

@@ -243,7 +243,8 @@ def _add_train(sub, prog: str) -> None:
         type=int,
         choices=(0, 1, 2, 3),
         help="view-dependent colour: the SH degree trained, one band more every [train] sh_interval steps "
-        "(default: [train] sh_degree; the PLY keeps the coefficients, INRIA's f_rest)",
+        "(default: [train] sh_degree, 3 as INRIA's; 0: view-independent colour; the PLY keeps the "
+        "coefficients, INRIA's f_rest; with --continue-from: the model's degree)",
     )
     s.add_argument(
         "--stop-after", type=int, metavar="STEP", help="stop (with a checkpoint) after this many total steps"

@@ -24,7 +24,7 @@ class TrainConfig(Checked):
     scale_lr: float = 5e-3
     rotation_lr: float = 1e-3
     color_lr: float = 2.5e-3  # f_dc units
-    sh_degree: int = 0  # view-dependent colour: SH degree 0..3 (INRIA's --sh_degree), 1/20 of color_lr
+    sh_degree: int = 3  # view-dependent colour: SH degree 0..3 (INRIA's --sh_degree), 1/20 of color_lr
     sh_interval: Annotated[int, NON_NEGATIVE] = 1000  # one SH band more every this many steps (0: all from the start)
     adam_eps: float = 1e-15
     lambda_dssim: Annotated[float, UNIT] = 0.2
