@@ -122,22 +122,54 @@ def test_registration_recovers_the_ground_truth_sim3(two_dates):
 
 
 def test_cold_warm_direction_is_zero_luminance_and_bluer_when_colder():
-    from cfgs_jax.fusion.light import cold_warm_direction, light_logits, light_multiplier
+    from cfgs_jax.fusion.light import cold_warm_coefficient, cold_warm_direction, light_logits, light_multiplier
 
     d = cold_warm_direction()
     assert abs(d @ [0.2126, 0.7152, 0.0722]) < 1e-12 and np.isclose(np.abs(d).max(), 0.5)
     assert d[2] > 0 > d[0]  # colder = more blue, less red
     u1 = 0.3  # gain 1.98·σ(0.3) ≈ 1.13 < 1.98 / 1.5: the shift keeps its full range
-    l = light_multiplier(jnp.asarray([np.log(1 / 0.98), u1]), jnp.asarray([0.0, -0.7]))
+    grey = jnp.full((2, 3), 0.4)  # a grey's own direction is d itself
+    l = light_multiplier(jnp.asarray([np.log(1 / 0.98), u1]), jnp.asarray([0.0, -0.7]), grey)
     assert np.allclose(np.asarray(l[0]), 1.0)
     assert np.allclose(np.asarray(l[1]), 1.98 / (1 + np.exp(-u1)) * (1 + np.tanh(-0.7) * d), atol=1e-6)
     back = 2 / (1 + np.exp(-np.asarray(light_logits(l))))
     assert np.allclose(back, np.asarray(l), atol=1e-5)
-    from cfgs_jax.fusion.light import cold_warm_coefficient  # the inverse: recovers tanh(w) whatever the gain
-
+    # the inverse recovers tanh(w) whatever the gain and the colour
     w = np.linspace(-2.0, 2.0, 9)
-    k = cold_warm_coefficient(light_multiplier(jnp.linspace(-1.0, 0.6, 9), jnp.asarray(w, jnp.float32)))
-    assert np.allclose(k, np.tanh(w), atol=1e-6)
+    colours = np.random.default_rng(1).uniform(0.0, 1.0, (9, 3))
+    lights = light_multiplier(jnp.linspace(-1.0, 0.6, 9), jnp.asarray(w, jnp.float32), jnp.asarray(colours))
+    assert np.allclose(cold_warm_coefficient(lights, colours), np.tanh(w), atol=1e-5)
+
+
+def test_a_cold_warm_shift_keeps_each_colours_luminance_where_the_model_composites():
+    """The kernel blends sRGB-encoded colours times l; their luminance Y' (Rec.709 weights on the
+    encoded values) must move by the gain alone: |Y'(l ⊙ c) / (g·Y'(c)) − 1| ≤ 1e-3 for k in
+    [−0.5, 0.5] over random colours, here in closed form and through a render of one opaque splat. A
+    fixed direction d would not do: saturated colours move by −25 % to +15 %."""
+    from cfgs_jax.fusion.light import cold_warm_direction, light_gain, light_multiplier
+
+    luma = np.asarray([0.2126, 0.7152, 0.0722])
+    rng = np.random.default_rng(3)
+    colours = rng.uniform(0.0, 1.0, (20000, 3))
+    colours[:2000] *= rng.uniform(0.0, 1.0, (2000, 3)) ** 4  # saturated ones too
+    u = rng.uniform(-2.0, 0.3, len(colours))
+    for k in (-0.5, -0.2, 0.2, 0.5):
+        w = np.full(len(colours), np.arctanh(k))
+        l = np.asarray(light_multiplier(jnp.asarray(u, jnp.float32), jnp.asarray(w, jnp.float32), colours), np.float64)
+        g = np.asarray(light_gain(jnp.asarray(u, jnp.float32)), np.float64)
+        lit = colours @ luma > 1e-3
+        rel = ((l * colours) @ luma)[lit] / (g * (colours @ luma))[lit] - 1
+        assert np.abs(rel).max() <= 1e-3
+        assert np.abs(l / g[:, None] - 1).max() > 0.1  # the hue did move
+        fixed = 1 + k * cold_warm_direction()  # the old rule, for the record of what it missed
+        assert np.abs(((fixed * colours) @ luma)[lit] / (colours @ luma)[lit] - 1).max() > 0.05
+    c = np.float32([[0.9, 0.2, 0.05]])  # one opaque splat filling the view: the pixel is l ⊙ c
+    g = cj.Gaussians(np.float32([[0, 0, 0]]), np.float32([[1, 0, 0, 0]]), np.float32([[1.0, 1.0, 1.0]]), [8.0], c)
+    cam = cj.Camera.look_at([0, 0, -3.0], [0, 0, 0], width=8, height=8, fov_x_deg=10)
+    l = light_multiplier(jnp.asarray([0.2]), jnp.asarray([np.arctanh(0.5)]), c)
+    pixel = np.asarray(splat.render_dates(g, cam, jnp.ones((1, 1)), l[None]).image[0, 4, 4], np.float64)
+    gain = float(light_gain(jnp.asarray(0.2)))
+    assert abs(pixel @ luma / (0.99 * gain * float(c[0] @ luma)) - 1) <= 1e-3
 
 
 def test_cross_init_keeps_what_date_q_shows_and_drops_what_it_lacks():

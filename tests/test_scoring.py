@@ -181,10 +181,11 @@ def test_light_by_pair_hand_case():
     model = random_temporal(6, 2)
     origin = np.array([0, 0, 0, 1, 1, 1])
     o = np.array([[2.0, 0.0], [2.0, 1.0], [2.0, INVISIBLE_LOGIT], [-1.0, 2.0], [0.5, 2.0], [3.0, 2.0]], np.float32)
-    colder = np.asarray(light_logits(light_multiplier(jnp.float32(0.3), jnp.float32(0.5))))
+    colours = np.asarray(cj.rgb(model.gaussians))  # each Gaussian's shift is along its own colour's direction
+    colder = np.asarray(light_logits(light_multiplier(jnp.full(6, 0.3), jnp.full(6, 0.5), colours)))
     light = np.zeros((6, 2, 3), np.float32)
-    light[:3, 1] = colder  # date 0's Gaussians at date 1
-    light[3:, 0] = colder  # date 1's Gaussians at date 0
+    light[:3, 1] = colder[:3]  # date 0's Gaussians at date 1
+    light[3:, 0] = colder[3:]  # date 1's Gaussians at date 0
     model = dataclasses.replace(
         model, o_logits=jnp.asarray(o), light_logits=jnp.asarray(light), origin=jnp.asarray(origin)
     )

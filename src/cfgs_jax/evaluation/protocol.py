@@ -38,7 +38,7 @@ from cfgs_jax.io.atomic import check_resume, read_json, write_json, write_text
 from cfgs_jax.io.fused import read_fused
 from cfgs_jax.io.ply import read_ply, write_ply
 from cfgs_jax.io.run_dir import RunDir, date_cameras, date_views, registered_cameras
-from cfgs_jax.model import light_multipliers, opacity_multipliers
+from cfgs_jax.model import light_multipliers, opacity_multipliers, rgb
 from cfgs_jax.splat.weights import observed_matrix
 
 
@@ -570,6 +570,7 @@ def light_by_pair(model, gt: dict) -> dict:
     bluer light at q needs k > 0); also mean o^q over every such entry."""
     o = np.asarray(opacity_multipliers(model))
     light = np.asarray(light_multipliers(model))
+    colours = np.asarray(rgb(model.gaussians))
     seen = np.asarray(model.o_logits) != np.float32(INVISIBLE_LOGIT)  # cross-init's mark: no view of q sees it
     origin = np.asarray(model.origin)
     pairs, o_all = [], []
@@ -578,7 +579,7 @@ def light_by_pair(model, gt: dict) -> dict:
             rows = (origin == p) & seen[:, q]
             if p == q or not rows.any():
                 continue
-            k = float(np.median(cold_warm_coefficient(light[rows, q])))
+            k = float(np.median(cold_warm_coefficient(light[rows, q], colours[rows])))
             dcct = dq["lighting"]["cct_kelvin"] - dp["lighting"]["cct_kelvin"]
             pairs.append(
                 {

@@ -54,8 +54,11 @@ from cfgs_jax.fusion.light import REC709, gain_parameter, light_gain, light_logi
 from cfgs_jax.fusion.updates import cross_init_optimizer
 from cfgs_jax.io.colmap import downscale_image, downscaled_size, scale_camera
 from cfgs_jax.loop import run_steps, view_order
-from cfgs_jax.model import Camera, DateViews, Gaussians, TemporalGaussians, exposure_table, logit
+from cfgs_jax.model import Camera, DateViews, Gaussians, TemporalGaussians, exposure_table, logit, rgb
 from cfgs_jax.train.step import over_background
+
+#: sRGB's encoding as a power law: a gain of 2^(EV/2.2) on encoded colours is about EV stops of light.
+ENCODING_GAMMA = 2.2
 
 
 @dataclasses.dataclass(frozen=True)
@@ -101,8 +104,9 @@ class CrossInitConfig(Checked):
     # pairs (p, q) optimised together per step (one call, ``pair_groups``); 0: no limit
     batch_dates: Annotated[int, NON_NEGATIVE] = 0
     exposure_init: bool = True  # start the gains at the pair's least-squares exposure, not 1
-    # the start exposure is clipped to ± this many stops (a dark image is not a gain of 0)
-    exposure_range_ev: Annotated[float, NON_NEGATIVE] = 2.0
+    # the start exposure is clipped to ± this many stops of linear light (a dark image is not a gain of
+    # 0): the gain multiplies encoded colours, so it is clipped to 2^(±EV / 2.2), sRGB's power law
+    exposure_range_ev: Annotated[float, NON_NEGATIVE] = 4.4  # a gain of 1/4 … 4 on encoded colours
     pair_exposure: bool = (
         False  # the start exposure goes to the model's exposure table; l^q fits around it, not from it
     )
@@ -202,7 +206,7 @@ def pair_loss(
     """Eq. 2 for one view: the mean over pixels and channels; also the render (light: the pair's
     ``exposure`` times l^q)."""
     o = jax.nn.sigmoid(params["o_logit"])
-    light = exposure * light_multiplier(params["u"], params["w"])
+    light = exposure * light_multiplier(params["u"], params["w"], rgb(g))
     res = splat.render_dates(g, camera, o[None], light[None], background=b, config=render_config, statistics=False)
     c = res.image[0]
     target = over_background(image, b)
@@ -349,7 +353,7 @@ def _start_values(pairs: _Pairs, config: CrossInitConfig, lpips_net) -> tuple[di
         [own_render(pairs.gaussians(j), pairs.o_p[j] * pairs.mask[j], c, rc) for c in pairs.cameras[j]]
         for j in range(k)
     ]
-    lo, hi = 2.0**-config.exposure_range_ev, 2.0**config.exposure_range_ev
+    lo, hi = 2.0 ** (-config.exposure_range_ev / ENCODING_GAMMA), 2.0 ** (config.exposure_range_ev / ENCODING_GAMMA)
     start_gains = [
         float(np.clip(exposure_gain(owns[j], pairs.images[j]), lo, hi)) if config.exposure_init else 1.0
         for j in range(k)
@@ -499,6 +503,8 @@ def _optimise(
     g = parallel.replicate(pairs.g, mesh) if pairs.shared else on_devices(pairs.g)
     keys = jax.random.wrap_key_data(keys)
     seen = parallel.pad_rows(np.asarray(pairs.mask) > 0, width)[..., None]  # [pairs, m, 1]
+    colours = np.broadcast_to(np.asarray(rgb(pairs.g)), (k, *np.shape(pairs.g.colors)[-2:]))
+    colours = parallel.pad_rows(colours, width)  # [pairs, m, 3]
 
     def body(carry, it):
         params, opt_state, keys, losses = carry
@@ -521,23 +527,25 @@ def _optimise(
         (params, opt_state, keys, []),
         start=0,
         steps=config.steps,
-        converged=_convergence_test(config, seen) if config.early_stop_tolerance > 0 else None,
+        converged=_convergence_test(config, seen, colours) if config.early_stop_tolerance > 0 else None,
     )
     params, losses = parallel.to_host((params, jnp.stack(losses)))
     return jax.tree_util.tree_map(lambda x: x[:k], params), losses[:, :k]
 
 
-def _settled(params) -> jax.Array:
-    """Each pair's o^q as opacities and l^q as multipliers, side by side ([pairs, m, 4])."""
+def _settled(params, colours) -> jax.Array:
+    """Each pair's o^q as opacities and l^q as multipliers of the ``colours`` of its Gaussians, side by
+    side ([pairs, m, 4])."""
     o = jax.nn.sigmoid(params["o_logit"])[..., None]
-    return jnp.concatenate([o, light_multiplier(params["u"], params["w"])], axis=-1)
+    return jnp.concatenate([o, light_multiplier(params["u"], params["w"], colours)], axis=-1)
 
 
-def _convergence_test(config: CrossInitConfig, seen):
+def _convergence_test(config: CrossInitConfig, seen, colours):
     """``converged(carry, done)`` for ``run_steps``: true at a check (every ``early_stop_every`` steps
     after the ε ramp and the background anneal) when no o^q or light channel of any pair moved by more
     than ``early_stop_tolerance`` since the previous check (or their ``early_stop_quantile``-quantile
-    did not; ``seen`` [pairs, m, 1]: the rows each pair optimises); with ``early_stop_on = "loss"``,
+    did not; ``seen`` [pairs, m, 1]: the rows each pair optimises, ``colours`` [pairs, m, 3] their
+    colours); with ``early_stop_on = "loss"``,
     when no pair's mean loss over the window since the previous check fell by more than the
     tolerance times the previous window's (both windows after the start)."""
     start = int(np.ceil(max(config.ramp_fraction, config.background_anneal) * config.steps))
@@ -552,7 +560,7 @@ def _convergence_test(config: CrossInitConfig, seen):
             if done - start < 2 * config.early_stop_every:  # the window before began before the start
                 return False
             return bool(jnp.all(previous - window <= config.early_stop_tolerance * previous))
-        values, previous = _settled(carry[0]), last["values"]
+        values, previous = _settled(carry[0], colours), last["values"]
         last["values"] = values
         if previous is None:
             return False
@@ -579,7 +587,8 @@ def _write_back(
         sel = np.asarray(pairs.mask[j, : len(idx)]) > 0
         o_fit, u, w = (np.asarray(params[name][j, : len(idx)])[sel] for name in ("o_logit", "u", "w"))
         o_logits[idx[sel], q] = o_fit
-        l_logits[idx[sel], q] = np.asarray(light_logits(light_multiplier(jnp.asarray(u), jnp.asarray(w))))
+        colours = rgb(model.gaussians)[idx[sel]]
+        l_logits[idx[sel], q] = np.asarray(light_logits(light_multiplier(jnp.asarray(u), jnp.asarray(w), colours)))
         reports[j] |= {
             "skipped": False,
             "steps_run": int(losses.shape[0]),
