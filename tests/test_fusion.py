@@ -121,6 +121,44 @@ def test_registration_recovers_the_ground_truth_sim3(two_dates):
     assert str(two_dates / "d1") in str(failed.value)  # names the date
 
 
+def test_a_date_that_overlaps_only_a_later_date_registers_into_the_sfm_of_both(tmp_path):
+    """Three corals dates: d0 looks down at the west half, d2 at the east half, d1 orbits the whole.
+    d2 shares no view with d0, so registering it to d0 alone fails; registered into the joint SfM of
+    d0 and of d1 (posed by its own registration), it recovers the ground-truth Sim(3)."""
+    import json
+
+    from cfgs_jax import synthetic
+    from cfgs_jax.fusion.register import _angle
+    from cfgs_jax.synthetic.presets import orbit
+
+    spec = synthetic.make_preset("corals", seed=2, width=160, height=120, images_per_date=12, spp=8)
+    half = lambda x, phase: orbit(12, radius=0.8, heights=(2.6, 3.0), phase_deg=phase, arc_deg=120, target=(x, 0, 0))
+    cams = (half(-1.8, -60), orbit(12, radius=3.0, heights=(2.8, 3.2), phase_deg=20, target=(0, 0, 0)), half(1.8, 120))
+    spec = dataclasses.replace(
+        spec, dates=tuple(dataclasses.replace(d, cam_from_world=c) for d, c in zip(spec.dates, cams))
+    )
+    root = synthetic.render_dataset(spec, tmp_path, dates=[0, 1, 2], progress=False)
+    gt = json.loads((root / "ground_truth.json").read_text())["dates"]
+    want = [
+        Sim3.from_dict(gt[0]["date_from_world"]).compose(Sim3.from_dict(gt[k]["world_from_date"])) for k in range(3)
+    ]
+    d0, d1, d2 = (cj.io.read_colmap(root / f"d{k}") for k in range(3))
+    with pytest.raises(cj.InputError, match="registered in the joint SfM|no reconstruction"):
+        fusion.register_date(d0, d2)
+    r1 = fusion.register_date(d0, d1)
+    r2 = fusion.register_date([(d0, Sim3.identity()), (d1, r1.transform)], d2)
+    assert r2.registered_date == 12 and r2.registered_reference >= 12
+    # the scene's size in the reference frame: how far d1's orbit lies from its centre
+    orbit_ref = want[1].apply(np.stack([np.asarray(c.center, np.float64) for c in d1.cameras]))
+    extent = np.max(np.linalg.norm(orbit_ref - orbit_ref.mean(0), axis=1))
+    for r, k, scene in ((r1, 1, d1), (r2, 2, d2)):
+        got, centres = r.transform, np.stack([np.asarray(c.center, np.float64) for c in scene.cameras])
+        assert np.degrees(_angle(got.rotation, want[k].rotation)) < 1.0
+        assert abs(got.scale / want[k].scale - 1) < 0.01
+        moved = np.linalg.norm(got.apply(centres) - want[k].apply(centres), axis=1)  # where its cameras land
+        assert moved.max() / extent < 0.03
+
+
 def test_cold_warm_direction_is_zero_luminance_and_bluer_when_colder():
     from cfgs_jax.fusion.light import cold_warm_coefficient, cold_warm_direction, light_logits, light_multiplier
 

@@ -22,7 +22,9 @@ from scipy.spatial.transform import Rotation
 
 from cfgs_jax.config import AT_LEAST_ONE, POSITIVE, Checked
 from cfgs_jax.errors import InputError
+from cfgs_jax.io.colmap import Scene
 from cfgs_jax.io.images import write_image
+from cfgs_jax.io.run_dir import camera_in_frame
 from cfgs_jax.model import Gaussians
 from cfgs_jax.sim3 import Sim3, matrix_to_quat
 from cfgs_jax.splat.sh import rotate
@@ -189,24 +191,26 @@ def _sim3_from_pycolmap(s) -> Sim3:
     return Sim3(scale, m[:, :3] / scale, m[:, 3].copy())
 
 
-def _joint_sfm(reference, date, config: RegisterConfig, workdir) -> tuple:
+def _joint_sfm(anchors, date, config: RegisterConfig, workdir) -> tuple:
     """One pycolmap SfM (SIFT, exhaustive matching, incremental mapping with the dates' pinhole
-    intrinsics fixed) of ``images_per_date`` evenly spaced images of each date. Returns the largest
-    reconstruction and {SfM image name: ("ref" | "new", image index)}."""
+    intrinsics fixed) of ``images_per_date`` evenly spaced images of each registered date (``anchors``)
+    and of ``date``. Returns the largest reconstruction and {SfM image name: (tag, image index)}, tag
+    "ref<j>" for anchor j and "new" for the date."""
 
     import pycolmap
 
+    sides = [(f"ref{j}", scene) for j, (scene, _) in enumerate(anchors)] + [("new", date)]
     with tempfile.TemporaryDirectory(dir=workdir) as tmp:
         tmp = Path(tmp)
         picked = {}
-        for tag, scene in (("ref", reference), ("new", date)):
+        for tag, scene in sides:
             (tmp / "images" / tag).mkdir(parents=True)
             for i in _evenly(len(scene), config.images_per_date):
                 name = f"{tag}/{i:05d}.png"
                 write_image(tmp / "images" / name, scene.load_image(i))  # RGB, at the cameras' size
                 picked[name] = (tag, i)
         db = tmp / "database.db"
-        for tag, scene in (("ref", reference), ("new", date)):
+        for tag, scene in sides:
             cam = scene.cameras[0]
             reader = pycolmap.ImageReaderOptions(
                 camera_model="PINHOLE", camera_params=",".join(str(float(x)) for x in (cam.fx, cam.fy, cam.cx, cam.cy))
@@ -236,7 +240,7 @@ def _joint_sfm(reference, date, config: RegisterConfig, workdir) -> tuple:
         maps = pycolmap.incremental_mapping(db, tmp / "images", tmp / "sfm", options=opts)
     if not maps:
         raise InputError(
-            "joint SfM of the two dates found no reconstruction",
+            "joint SfM of the date and the registered dates found no reconstruction",
             path=date.root,
             field="images",
             fix="the dates share too little; pass known transforms with --transforms JSON",
@@ -244,24 +248,31 @@ def _joint_sfm(reference, date, config: RegisterConfig, workdir) -> tuple:
     return max(maps.values(), key=lambda r: r.num_reg_images()), picked
 
 
-def _registered_poses(rec, picked: dict, reference, date, config: RegisterConfig) -> tuple[list, list]:
-    """For the registered images of each date: [SfM centres, SfM rotations, own centres, own
-    rotations] (world-from-camera), the reference's then the date's; too few registered is an error."""
+def _registered_poses(rec, picked: dict, anchors, date, config: RegisterConfig) -> tuple[list, list]:
+    """For the registered images of the registered dates (their cameras posed in the reference frame)
+    and of ``date``: [SfM centres, SfM rotations, own centres, own rotations] (world-from-camera), the
+    registered dates' then the date's; too few registered is an error."""
     pairs = {"ref": ([], [], [], []), "new": ([], [], [], [])}
     for img in rec.images.values():
         if not img.has_pose or img.name not in picked:
             continue
         tag, i = picked[img.name]
-        scene = reference if tag == "ref" else date
+        if tag == "new":
+            camera = date.cameras[i]
+        else:
+            scene, sim = anchors[int(tag[3:])]
+            camera = camera_in_frame(scene.cameras[i], sim)
+        key = "new" if tag == "new" else "ref"
         w_sfm = _world_from_cam(img.cam_from_world().matrix().tolist() + [[0, 0, 0, 1]])
-        w_own = _world_from_cam(scene.cameras[i].cam_from_world)
-        for lst, v in zip(pairs[tag], (w_sfm[:3, 3], w_sfm[:3, :3], w_own[:3, 3], w_own[:3, :3])):
+        w_own = _world_from_cam(camera.cam_from_world)
+        for lst, v in zip(pairs[key], (w_sfm[:3, 3], w_sfm[:3, :3], w_own[:3, 3], w_own[:3, :3])):
             lst.append(v)
     n_ref, n_new = len(pairs["ref"][0]), len(pairs["new"][0])
     if min(n_ref, n_new) < config.min_registered:
         raise InputError(
             f"only {n_new} of {len([t for t, _ in picked.values() if t == 'new'])} images of this date and "
-            f"{n_ref} reference images registered in the joint SfM (need ≥ {config.min_registered} each)",
+            f"{n_ref} images of the registered dates registered in the joint SfM (need ≥ {config.min_registered} "
+            "each)",
             path=date.root,
             field="images",
             fix="use more overlapping images (RegisterConfig.images_per_date) or pass --transforms JSON",
@@ -294,12 +305,16 @@ def _robust_start(ref, new, date, config: RegisterConfig, extent: float) -> tupl
 def register_date(
     reference, date, *, config: RegisterConfig | None = None, workdir=None, progress=None
 ) -> Registration:
-    """The Sim(3) that brings ``date`` (a ``Scene``) into ``reference``'s frame.
+    """The Sim(3) that brings ``date`` (a ``Scene``) into the reference frame.
 
-    A subset of both dates' images goes through one joint SfM (pycolmap: SIFT, exhaustive matching,
-    incremental mapping with the dates' own pinhole intrinsics held fixed). Registered reference
-    images tie the SfM frame to the reference frame and registered date images tie it to the date's
-    frame, both through the camera poses the datasets already have: a robust closed-form Sim(3)
+    ``reference``: the reference date's ``Scene``, or every date registered so far as (``Scene``, its
+    Sim(3) into the reference frame) pairs, the reference date first: the images of the whole fused
+    model, as the paper registers a new date into the SfM model of all of them, so a date that shares
+    views only with a later date still joins. A subset of every date's images goes through one joint
+    SfM (pycolmap: SIFT, exhaustive matching, incremental mapping with the dates' own pinhole intrinsics
+    held fixed). The registered dates' images tie the SfM frame to the reference frame (their cameras
+    posed there) and the date's images tie it to the date's frame, both through the camera poses the
+    datasets already have: a robust closed-form Sim(3)
     (pycolmap ``estimate_sim3d_robust`` on camera centres) initialises a joint optimistix
     Levenberg–Marquardt over centres and orientations. Fewer than ``min_registered`` images of
     either date registered, or a fit that does not converge, is an error naming the date."""
@@ -308,10 +323,13 @@ def register_date(
     config = config or RegisterConfig()
     if not logging.getLogger("cfgs_jax").isEnabledFor(logging.INFO):
         pycolmap.logging.minloglevel = 2  # COLMAP's per-image INFO lines only with --verbose
-    rec, picked = _joint_sfm(reference, date, config, workdir)
-    ref, new = _registered_poses(rec, picked, reference, date, config)
+    anchors = [(reference, Sim3.identity())] if isinstance(reference, Scene) else list(reference)
+    rec, picked = _joint_sfm(anchors, date, config, workdir)
+    ref, new = _registered_poses(rec, picked, anchors, date, config)
     n_ref, n_new = len(ref[0]), len(new[0])
-    centres = np.stack([np.asarray(c.center, np.float64) for c in reference.cameras])
+    centres = np.stack(
+        [np.asarray(camera_in_frame(c, anchors[0][1]).center, np.float64) for c in anchors[0][0].cameras]
+    )
     extent = float(np.max(np.linalg.norm(centres - centres.mean(0), axis=1)))
     a0, b0 = _robust_start(ref, new, date, config, extent)
     a, b, converged = refine_sim3_pair(

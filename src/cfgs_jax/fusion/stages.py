@@ -136,15 +136,16 @@ def _train_date(job: Job, scene: Scene, name: str, tag: str) -> None:
     write_json(d / "train.json", r.report(scene))
 
 
-def _register(job: Job, reference: Scene, date: Scene, name: str, ref_name: str, tag: str) -> dict:
-    """Register one date to the reference by joint SfM (``register_date``); its register.json entry."""
-    job.log(f"[{tag}] date {name} → {ref_name}")
-    r = register_date(reference, date, config=job.config.register)
+def _register(job: Job, anchors: list[tuple[Scene, Sim3]], date: Scene, name: str, names: list[str], tag: str) -> dict:
+    """Register one date into the reference frame by joint SfM with the dates registered so far
+    (``anchors``, named ``names``, the reference first: ``register_date``); its register.json entry."""
+    job.log(f"[{tag}] date {name} → the SfM of {', '.join(names)}")
+    r = register_date(anchors, date, config=job.config.register)
     job.log(
         f"  {r.registered_reference} + {r.registered_date} images registered; centre residual "
         f"{100 * r.centre_residual:.2f} % of the extent, rotation {r.rotation_residual_deg:.2f}°"
     )
-    return r.to_dict() | {"source": "joint SfM"}
+    return r.to_dict() | {"source": "joint SfM", "with": list(names)}
 
 
 def _cross_init_pairs(job: Job, start: Path, pairs, views: list[DateViews], stage: str, tag: str) -> None:
@@ -354,15 +355,17 @@ def _train_dates(job: Job, scenes) -> dict:
 
 
 def _register_dates(job: Job, scenes, transforms: Path | None) -> None:
-    """Every date → reference Sim(3): from ``transforms`` when given, else by joint SfM → register.json."""
+    """Every date → reference Sim(3): from ``transforms`` when given, else by joint SfM of each date with
+    the dates before it, already registered → register.json."""
     names = job.run.names
     if transforms is not None:
         sims = load_transforms(transforms, names)
         reg = {n: {"transform": sims[n].to_dict(), "source": str(transforms)} for n in names}
     else:
         reg = {names[0]: {"transform": Sim3.identity().to_dict(), "source": "reference"}}
-        for i in range(1, len(names)):
-            reg[names[i]] = _register(job, scenes[0], scenes[i], names[i], names[0], "register")
+        for i in range(1, len(names)):  # in time order, each into the SfM of every date before it
+            anchors = [(scenes[j], Sim3.from_dict(reg[names[j]]["transform"])) for j in range(i)]
+            reg[names[i]] = _register(job, anchors, scenes[i], names[i], names[:i], "register")
     write_json(job.run / "register.json", reg)
 
 
@@ -525,14 +528,17 @@ def _insert_date(run: RunDir, date: Path, new_scene: Scene, model, captured, log
 
 
 def _register_added(job: Job, scenes, k: int, transform: Sim3 | None) -> None:
-    """The added date k's Sim(3) to the reference (given, or by joint SfM) → ``register.json``."""
+    """The added date k's Sim(3) to the reference (given, or by joint SfM with every date of the run,
+    the reference first) → ``register.json``."""
     run = job.run
     name, ref = run.names[k], run.reference
     reg = read_json(run / "register.json")
     if transform is not None:
         reg[name] = {"transform": transform.to_dict(), "source": "given"}
     else:
-        reg[name] = _register(job, scenes[ref], scenes[k], name, run.names[ref], "extend/register")
+        others = [ref] + [j for j in range(len(run.names)) if j not in (ref, k)]
+        anchors = [(scenes[j], Sim3.from_dict(reg[run.names[j]]["transform"])) for j in others]
+        reg[name] = _register(job, anchors, scenes[k], name, [run.names[j] for j in others], "extend/register")
     write_json(run / "register.json", reg)
 
 
