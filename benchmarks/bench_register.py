@@ -1,0 +1,129 @@
+"""Registration against ground truth: every date of each synthetic preset registered by SfM as ``fuse``
+registers it (in time order, into the joint SfM of the dates before it), its Sim(3) compared with
+the preset's exact one.
+
+Per date: images registered (the date's / the earlier dates'), rotation error (degrees), scale error
+(%), and translation error as the largest distance between where the found and the true Sim(3) put
+the date's camera centres, in % of the scene's extent (the largest distance of the reference date's
+cameras from their mean, in the reference frame); the targets are ≤ 0.5°, ≤ 1 % and ≤ 1 %.
+
+    python benchmarks/bench_register.py [--presets vase corals flood quake glossy] [--width 160 --height 120]
+        [--images-per-date 24] [--spp 16] [--work runs/bench_register] [--name register]
+
+Writes benchmarks/results/NAME.json and NAME.md.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import json
+import shlex
+import sys
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from common import RESULTS, add_scene_args, machine, scene_dates
+
+TARGETS = {"rotation_deg": 0.5, "scale_pct": 1.0, "translation_pct": 1.0}
+
+
+def _angle_deg(r1, r2) -> float:
+    c = (np.trace(np.asarray(r1) @ np.asarray(r2).T) - 1.0) / 2.0
+    return float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
+
+
+def register_preset(preset: str, args) -> list[dict]:
+    """Each date after the first registered into the SfM of the dates before it, against the truth."""
+    from cfgs_jax import fusion, synthetic
+    from cfgs_jax.io import read_colmap
+    from cfgs_jax.sim3 import Sim3
+
+    spec = synthetic.make_preset(preset, width=args.width, height=args.height, images_per_date=args.images_per_date)
+    sub = argparse.Namespace(**{**vars(args), "work": str(Path(args.work) / preset)})
+    data, names, _, truth = scene_dates(preset, sub, len(spec.dates))
+    scenes = [read_colmap(data / n) for n in names]
+    true = [Sim3.from_dict(truth[n]) for n in names]
+    ref_centres = np.stack([np.asarray(c.center, np.float64) for c in scenes[0].cameras])
+    extent = float(np.max(np.linalg.norm(ref_centres - ref_centres.mean(0), axis=1)))
+    picked = fusion.RegisterConfig().images_per_date  # the images of each date that go into the SfM
+    found, rows = [Sim3.identity()], []
+    for k in range(1, len(names)):
+        row = {"preset": preset, "date": names[k], "with": names[:k]}
+        try:
+            r = fusion.register_date(list(zip(scenes[:k], found)), scenes[k])
+        except Exception as exc:  # a failed registration is a result: the row says why
+            rows.append(row | {"error": str(exc).splitlines()[0][:160]})
+            found.append(true[k])  # the later dates register against the truth instead
+            continue
+        found.append(r.transform)
+        centres = np.stack([np.asarray(c.center, np.float64) for c in scenes[k].cameras])
+        moved = np.linalg.norm(r.transform.apply(centres) - true[k].apply(centres), axis=1)
+        rows.append(
+            row
+            | {
+                "registered": [r.registered_date, r.registered_reference],
+                "images": [min(len(scenes[k]), picked), sum(min(len(s), picked) for s in scenes[:k])],
+                "rotation_deg": _angle_deg(r.transform.rotation, true[k].rotation),
+                "scale_pct": 100 * abs(r.transform.scale / true[k].scale - 1),
+                "translation_pct": 100 * float(moved.max()) / extent,
+            }
+        )
+    return rows
+
+
+def table(result: dict) -> str:
+    a = result["args"]
+    lines = [
+        f"# Registration against ground truth ({result['date']})",
+        "",
+        f"`{result['command']}`",
+        "",
+        f"Machine: {result['machine']}. Synthetic presets at {a['width']}×{a['height']}, {a['images_per_date']} "
+        f"images per date ({a['spp']} spp); each date registered by joint SfM with the dates before it "
+        "(`fusion.register_date`, the default `[register]`). Targets: rotation ≤ 0.5°, scale ≤ 1 %, "
+        "translation ≤ 1 % of the scene's extent.",
+        "",
+        "| preset | date | with | images registered (date / earlier) | rotation (°) | scale (%) | translation (% extent) | within targets |",
+        "|---|---|---|---|---:|---:|---:|---|",
+    ]
+    for row in result["rows"]:
+        with_ = ", ".join(row["with"])
+        if "error" in row:
+            lines.append(f"| {row['preset']} | {row['date']} | {with_} | failed: {row['error']} | | | | no |")
+            continue
+        ok = all(row[k] <= v for k, v in TARGETS.items())
+        reg, imgs = row["registered"], row["images"]
+        lines.append(
+            f"| {row['preset']} | {row['date']} | {with_} | {reg[0]}/{imgs[0]} / "
+            f"{reg[1]}/{imgs[1]} | {row['rotation_deg']:.3f} | {row['scale_pct']:.3f} | "
+            f"{row['translation_pct']:.3f} | {'yes' if ok else 'no'} |"
+        )
+    return "\n".join(lines) + "\n"
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--presets", nargs="+", default=["vase", "corals", "flood", "quake", "glossy"])
+    ap.add_argument("--name", default="register")
+    add_scene_args(ap, width=160, height=120, images_per_date=24, spp=16, work="runs/bench_register")
+    args = ap.parse_args()
+    result = {
+        "command": "python benchmarks/bench_register.py " + " ".join(shlex.quote(a) for a in sys.argv[1:]),
+        "date": datetime.date.today().isoformat(),
+        "machine": machine(),
+        "args": vars(args),
+        "rows": [],
+    }
+    for preset in args.presets:
+        result["rows"] += register_preset(preset, args)
+        print(table(result), flush=True)
+    RESULTS.mkdir(exist_ok=True)
+    (RESULTS / f"{args.name}.json").write_text(json.dumps(result, indent=1))
+    (RESULTS / f"{args.name}.md").write_text(table(result))
+
+
+if __name__ == "__main__":
+    main()
