@@ -16,16 +16,13 @@ Writes benchmarks/results/NAME.json and NAME.md.
 from __future__ import annotations
 
 import argparse
-import datetime
-import json
-import shlex
 import sys
 from pathlib import Path
 
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import RESULTS, add_scene_args, machine, scene_dates
+from common import add_scene_args, result_header, scene_dates, write_result
 
 TARGETS = {"rotation_deg": 0.5, "scale_pct": 1.0, "translation_pct": 1.0}
 
@@ -110,19 +107,11 @@ def main() -> None:
     ap.add_argument("--name", default="register")
     add_scene_args(ap, width=160, height=120, images_per_date=24, spp=16, work="runs/bench_register")
     args = ap.parse_args()
-    result = {
-        "command": "python benchmarks/bench_register.py " + " ".join(shlex.quote(a) for a in sys.argv[1:]),
-        "date": datetime.date.today().isoformat(),
-        "machine": machine(),
-        "args": vars(args),
-        "rows": [],
-    }
+    result = result_header(args) | {"rows": []}
     for preset in args.presets:
         result["rows"] += register_preset(preset, args)
         print(table(result), flush=True)
-    RESULTS.mkdir(exist_ok=True)
-    (RESULTS / f"{args.name}.json").write_text(json.dumps(result, indent=1))
-    (RESULTS / f"{args.name}.md").write_text(table(result))
+    write_result(args.name, result, table(result))
 
 
 if __name__ == "__main__":

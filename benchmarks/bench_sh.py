@@ -20,9 +20,7 @@ Writes benchmarks/results/sh.json and sh.md (``--name``; an accelerator adds its
 from __future__ import annotations
 
 import argparse
-import datetime
 import json
-import shlex
 import statistics
 import sys
 import time
@@ -31,7 +29,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import RESULTS, add_scene_args, backend_suffix, fusion_seconds, machine, quiet, scene_dates
+from common import add_scene_args, backend_suffix, fusion_seconds, quiet, result_header, scene_dates, write_result
 
 METRICS = ("psnr", "ssim", "lpips")
 
@@ -171,12 +169,7 @@ def main() -> None:
     ap.add_argument("--name", default="sh")
     add_scene_args(ap, width=160, height=120, images_per_date=40, spp=32, work="runs/bench_sh")
     args = ap.parse_args()
-    result = {
-        "command": "python benchmarks/bench_sh.py " + " ".join(shlex.quote(a) for a in sys.argv[1:]),
-        "date": datetime.date.today().isoformat(),
-        "machine": machine(),
-        "args": vars(args),
-    }
+    result = result_header(args)
     if args.only != "kernel":
         result["quality"] = {}
         for preset in args.presets:
@@ -184,11 +177,7 @@ def main() -> None:
             print(table(result), flush=True)
     if args.only != "quality":
         result["kernel"] = kernel_times(args)
-    name = args.name + backend_suffix()
-    RESULTS.mkdir(exist_ok=True)
-    (RESULTS / f"{name}.json").write_text(json.dumps(result, indent=1))
-    (RESULTS / f"{name}.md").write_text(table(result))
-    print(table(result))
+    write_result(args.name + backend_suffix(), result, table(result))
 
 
 if __name__ == "__main__":

@@ -107,3 +107,26 @@ def scene_dates(preset: str, args: argparse.Namespace, count: int) -> tuple[Path
     transforms = data / "transforms.json"
     transforms.write_text(json.dumps(sims))
     return data, names, transforms, sims
+
+
+def result_header(args: argparse.Namespace) -> dict:
+    """The header every result file starts with: the command that made it (this script and its
+    arguments), the date, the machine and the parsed arguments."""
+    import datetime
+    import shlex
+    import sys
+
+    return {
+        "command": "python benchmarks/" + Path(sys.argv[0]).name + " " + " ".join(shlex.quote(a) for a in sys.argv[1:]),
+        "date": datetime.date.today().isoformat(),
+        "machine": machine(),
+        "args": vars(args),
+    }
+
+
+def write_result(stem: str, result: dict, markdown: str) -> None:
+    """``results/STEM.json`` (the result) and ``results/STEM.md`` (its table); the table is printed."""
+    RESULTS.mkdir(exist_ok=True)
+    (RESULTS / f"{stem}.json").write_text(json.dumps(result, indent=1))
+    (RESULTS / f"{stem}.md").write_text(markdown)
+    print(markdown)
