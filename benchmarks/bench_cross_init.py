@@ -47,9 +47,9 @@ def _preset(preset: str, args, raw: dict) -> dict:
     from cfgs_jax.model import opacity_multipliers
     from cfgs_jax.sim3 import Sim3
 
-    sub = argparse.Namespace(**{**vars(args), "work": str(Path(args.work) / preset)})
-    data, names, transforms, sims = scene_dates(preset, sub, args.dates)
-    run_dir = Path(sub.work) / "run"
+    work = Path(args.work) / preset
+    data, names, transforms, sims = scene_dates(preset, args, args.dates, work=work)
+    run_dir = work / "run"
     dirs = [data / n for n in names]
     run_fusion(
         dirs,
@@ -70,7 +70,7 @@ def _preset(preset: str, args, raw: dict) -> dict:
     merged = read_fused(run_dir / "merged")
     out = {"dates": names, "gaussians": len(merged), "runs": []}
     for steps in args.steps:
-        folder = Path(sub.work) / f"cross_init_{steps}"
+        folder = work / f"cross_init_{steps}"
         timing = folder / "seconds.json"
         if timing.is_file():
             model, seconds = read_fused(folder), json.loads(timing.read_text())["seconds"]

@@ -40,13 +40,11 @@ def _angle_deg(r1, r2) -> float:
 
 def register_preset(preset: str, args) -> list[dict]:
     """Each date after the first registered into the SfM of the dates before it, against the truth."""
-    from cfgs_jax import fusion, synthetic
+    from cfgs_jax import fusion
     from cfgs_jax.io import read_colmap
     from cfgs_jax.sim3 import Sim3
 
-    spec = synthetic.make_preset(preset, width=args.width, height=args.height, images_per_date=args.images_per_date)
-    sub = argparse.Namespace(**{**vars(args), "work": str(Path(args.work) / preset)})
-    data, names, _, truth = scene_dates(preset, sub, len(spec.dates))
+    data, names, _, truth = scene_dates(preset, args, work=Path(args.work) / preset)
     scenes = [read_colmap(data / n) for n in names]
     true = [Sim3.from_dict(truth[n]) for n in names]
     ref_centres = np.stack([np.asarray(c.center, np.float64) for c in scenes[0].cameras])
@@ -83,10 +81,10 @@ def fuse_both(preset: str, args) -> dict:
     from cfgs_jax.config import find_preset, load_config
     from cfgs_jax.fusion import run_fusion
 
-    sub = argparse.Namespace(**{**vars(args), "work": str(Path(args.work) / preset)})
-    data, names, transforms, _ = scene_dates(preset, sub, args.dates)
+    work = Path(args.work) / preset
+    data, names, transforms, _ = scene_dates(preset, args, args.dates, work=work)
     tables = load_config(find_preset(args.config))
-    known, sfm = Path(sub.work) / "fused_known", Path(sub.work) / "fused_sfm"
+    known, sfm = work / "fused_known", work / "fused_sfm"
     run_fusion(
         [data / n for n in names],
         known,

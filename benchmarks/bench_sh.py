@@ -40,10 +40,10 @@ def fused_pair(preset: str, args, degree: int) -> dict:
     from cfgs_jax.config import apply_overrides, find_preset, load_config
     from cfgs_jax.fusion import run_fusion
 
-    sub = argparse.Namespace(**{**vars(args), "work": str(Path(args.work) / preset)})
-    data, names, transforms, _ = scene_dates(preset, sub, args.dates)
+    work = Path(args.work) / preset
+    data, names, transforms, _ = scene_dates(preset, args, args.dates, work=work)
     tables = apply_overrides(load_config(find_preset(args.config)), [*args.set, f"train.sh_degree={degree}"])
-    out = Path(sub.work) / f"sh{degree}"
+    out = work / f"sh{degree}"
     run_fusion(
         [data / n for n in names], out, tables, transforms=transforms, resume=out.exists(), progress=False, log=quiet
     )

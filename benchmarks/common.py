@@ -91,15 +91,19 @@ def add_scene_args(
     ap.add_argument("--work", default=work)
 
 
-def scene_dates(preset: str, args: argparse.Namespace, count: int) -> tuple[Path, list[str], Path, dict]:
-    """Render the preset's first ``count`` dates into WORK/data (once) and write their ground-truth
-    Sim(3)s to WORK/data/transforms.json → (data dir, date names, transforms path, Sim(3) dicts)."""
+def scene_dates(
+    preset: str, args: argparse.Namespace, count: int | None = None, *, work: str | Path | None = None
+) -> tuple[Path, list[str], Path, dict]:
+    """Render the preset's first ``count`` dates (None: all) into WORK/data (once; WORK: ``work``, else
+    ``--work``) and write their ground-truth Sim(3)s to WORK/data/transforms.json → (data dir, date
+    names, transforms path, Sim(3) dicts)."""
     from cfgs_jax import synthetic
 
-    data = Path(args.work) / "data"
+    data = Path(args.work if work is None else work) / "data"
     spec = synthetic.make_preset(
         preset, seed=0, width=args.width, height=args.height, images_per_date=args.images_per_date, spp=args.spp
     )
+    count = len(spec.dates) if count is None else count
     names = [d.name for d in spec.dates][:count]
     if not (data / "ground_truth.json").is_file():
         synthetic.render_dataset(spec, data, dates=list(range(count)), progress=False)

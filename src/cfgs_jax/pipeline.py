@@ -530,10 +530,8 @@ def cmd_export(args) -> int:
 
     run = open_run(args.run)
     t = parse_selection(args.t, run.names)
-    style = _selection_style(args)
-    path = export_selection(run, t, style, args.out)
-    degree = 0 if style.mode == "highlight" else run.model.gaussians.sh_degree
-    kind = f"SH degree {degree}" if degree else "DC-only"
+    path, baked = export_selection(run, t, _selection_style(args), args.out)
+    kind = f"SH degree {baked.sh_degree}" if baked.sh_degree else "DC-only"
     _console().print(
         f"wrote {path}: {len(run.model)} Gaussians, {kind} 3DGS PLY of {args.mode} t={t.astype(int).tolist()}"
     )

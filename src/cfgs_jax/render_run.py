@@ -26,7 +26,7 @@ from cfgs_jax.io.images import write_image
 from cfgs_jax.io.ply import write_ply
 from cfgs_jax.io.run_dir import RunDir, camera_in_frame, date_cameras, date_views, registered_cameras
 from cfgs_jax.legend import legend_strip
-from cfgs_jax.model import Camera, DateViews, TemporalGaussians
+from cfgs_jax.model import Camera, DateViews, Gaussians, TemporalGaussians
 from cfgs_jax.sim3 import Sim3
 
 
@@ -180,7 +180,8 @@ def _selection_images(model: TemporalGaussians, t, style: SelectionStyle, camera
         yield from (np.asarray(im[0]) for im in images)
 
 
-def export_selection(run: FusedRun, t, style: SelectionStyle, path: str | Path) -> Path:
+def export_selection(run: FusedRun, t, style: SelectionStyle, path: str | Path) -> tuple[Path, Gaussians]:
     """Bake the selection (or highlight) into a standard 3DGS PLY (``viz.bake``: a blend with the model's
-    SH degree, a highlight DC-only)."""
-    return write_ply(path, viz.bake(run.model, t, **style.kwargs()))
+    SH degree, a highlight DC-only); returns the file and the Gaussians it holds."""
+    baked = viz.bake(run.model, t, **style.kwargs())
+    return write_ply(path, baked), baked

@@ -582,13 +582,14 @@ def _write_back(
     o_logits = np.asarray(model.o_logits).copy()
     l_logits = np.asarray(model.light_logits).copy()
     table = exposure_table(model).copy()
+    colours = np.asarray(rgb(model.gaussians))  # what each Gaussian's cold/warm direction is taken along
     for j, (p, q) in enumerate(pairs.pairs):
         idx = pairs.idx[j]
         sel = np.asarray(pairs.mask[j, : len(idx)]) > 0
         o_fit, u, w = (np.asarray(params[name][j, : len(idx)])[sel] for name in ("o_logit", "u", "w"))
         o_logits[idx[sel], q] = o_fit
-        colours = rgb(model.gaussians)[idx[sel]]
-        l_logits[idx[sel], q] = np.asarray(light_logits(light_multiplier(jnp.asarray(u), jnp.asarray(w), colours)))
+        light = light_multiplier(jnp.asarray(u), jnp.asarray(w), colours[idx[sel]])
+        l_logits[idx[sel], q] = np.asarray(light_logits(light))
         reports[j] |= {
             "skipped": False,
             "steps_run": int(losses.shape[0]),
