@@ -176,6 +176,64 @@ def test_eval_change_detection_and_resume(protocol):
 
 
 @pytest.mark.slow
+def test_eval_reports_registration_error_and_fuses_again_with_the_exact_transforms(protocol, tmp_path):
+    """A finished run whose d1 was registered 1° / 2 % / a shift off the truth (register.json written by
+    hand, as an SfM result would be): the eval reports those errors against the ground truth, and fuses the
+    same per-date models again with the exact Sim(3)s for the side-by-side rows."""
+    import shutil
+
+    from cfgs_jax import synthetic
+    from cfgs_jax.evaluation.protocol import run_protocol
+    from cfgs_jax.sim3 import quat_to_matrix
+
+    data, out, raw = protocol
+    copy = tmp_path / "out"
+    shutil.copytree(out, copy)
+    reg_path = copy / "run" / "register.json"
+    reg = json.loads(reg_path.read_text())
+    exact = Sim3.from_dict(reg["d1"]["transform"])
+    half = np.radians(1.0) / 2  # 1° about the unit axis (1, 2, 2) / 3
+    turn = quat_to_matrix([np.cos(half), *(np.sin(half) * np.array([1.0, 2.0, 2.0]) / 3)])
+    shift = np.array([0.03, -0.02, 0.01])
+    off = Sim3(exact.scale * 1.02, turn @ exact.rotation, exact.translation + shift)
+    reg["d1"] |= {"transform": off.to_dict(), "source": "joint SfM", "with": ["d0"]}
+    reg_path.write_text(json.dumps(reg))
+    settings = {**raw, "eval": {**raw["eval"], "known_transforms": False, "compare_known_transforms": True}}
+    settings["eval"]["change_detection"] = False
+    seen = []
+    table = run_protocol(str(data), copy, settings, resume=True, progress=False, log=seen.append)
+
+    (err,) = table["registration"]
+    assert err["date"] == "d1" and err["with"] == ["d0"]
+    assert err["rotation_deg"] == pytest.approx(1.0, abs=1e-6) and err["scale_pct"] == pytest.approx(2.0, abs=1e-9)
+    # translation error by hand: the largest distance between the two images of d1's camera centres,
+    # over the largest distance of d0's cameras from their mean
+    d0, d1 = read_colmap(data / "d0"), read_colmap(data / "d1")
+    c1 = np.stack([np.asarray(c.center, np.float64) for c in d1.cameras])
+    c0 = np.stack([np.asarray(c.center, np.float64) for c in d0.cameras])
+    gap = max(np.linalg.norm(off.scale * off.rotation @ c + off.translation - exact.apply(c)) for c in c1)
+    extent = max(np.linalg.norm(c - c0.mean(0)) for c in c0)
+    assert err["translation_pct"] == pytest.approx(100 * gap / extent, rel=1e-9)
+    assert not err["within_targets"]  # 1° and 2 % are over the 0.5° / 1 % targets
+
+    # the comparison run: the main run's per-date models, registered by the exact Sim(3)s of the truth
+    known = copy / "known_transforms" / "run"
+    assert json.loads((known / "run.json").read_text())["models"] == [
+        str(copy / "run" / "dates" / n / "point_cloud.ply") for n in ("d0", "d1")
+    ]
+    truth = synthetic.reference_transforms(data, ["d0", "d1"])
+    got = Sim3.from_dict(json.loads((known / "register.json").read_text())["d1"]["transform"])
+    np.testing.assert_allclose(got.rotation, Sim3.from_dict(truth["d1"]).rotation, atol=1e-9)
+    assert got.scale == pytest.approx(truth["d1"]["scale"])
+    last = raw["eval"]["steps"][-1]
+    row = table["known_transforms"]["row"]
+    assert row["row"] == f"Ours {last:,}" and row["gaussians"] == len(read_fused(known / "fused"))
+    md = (copy / "table.md").read_text()
+    assert "Registration against ground truth" in md and "SfM − exact" in md
+    assert "the visibility rule set o^p := 0" in md
+
+
+@pytest.mark.slow
 def test_eval_refines_again_when_the_run_lacks_a_snapshot(protocol, tmp_path):
     """A run refined without the snapshot an evaluation asks for (its N₁ row) is refined again from its
     cross-init on resume: the snapshot comes back, and with it a fused model equal to the first one
@@ -255,6 +313,16 @@ def test_eval_oq_rule_table_is_checked_before_any_work_and_its_old_name_reads():
         validate_eval_config({"oq_rule": {"surfce_threshold": 0.1}})
     setup = EvalSetup.parse({"change": {"surface_threshold": 0.0, "absent_below": 0.3}})  # [change]: the old name
     assert setup.oq_rule.absent_below == 0.3 and setup.oq_rule.surface_threshold == 0.0
+    # ablations: all, none, or a list of their names; the known-transforms comparison needs SfM registration
+    assert EvalSetup.parse({"eval": {"ablations": ["freeze_o", "freeze_alpha"]}}).eval.ablation_keys == (
+        "freeze_alpha",
+        "freeze_o",
+    )
+    assert EvalSetup.parse({"eval": {"ablations": False}}).eval.ablation_keys == ()
+    with pytest.raises(InputError, match=r"eval\.ablations.*freeze_alpha"):
+        validate_eval_config({"eval": {"ablations": ["freeze_beta"]}})
+    with pytest.raises(InputError, match=r"eval\.compare_known_transforms.*known_transforms = false"):
+        validate_eval_config({"eval": {"known_transforms": True, "compare_known_transforms": True}})
 
 
 def test_sweep_file_errors_name_the_key(tmp_path):

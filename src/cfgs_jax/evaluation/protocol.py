@@ -25,7 +25,7 @@ from cfgs_jax.changes import ChangesConfig
 from cfgs_jax.compiled_code import release_if_near_limit
 from cfgs_jax.config import AT_LEAST_ONE, Checked, check_sections, section
 from cfgs_jax.errors import InputError
-from cfgs_jax.evaluation import scoring
+from cfgs_jax.evaluation import registration, scoring
 from cfgs_jax.evaluation.report import figure_grid, margins, pr_curve_plot, table_markdown
 from cfgs_jax.evaluation.scoring import OqRuleConfig
 from cfgs_jax.fusion.config import RUN_TABLES, RunConfig
@@ -39,6 +39,7 @@ from cfgs_jax.io.fused import read_fused
 from cfgs_jax.io.ply import read_ply, write_ply
 from cfgs_jax.io.run_dir import RunDir, date_cameras, date_views, registered_cameras
 from cfgs_jax.model import light_multipliers, opacity_multipliers, rgb
+from cfgs_jax.sim3 import Sim3
 from cfgs_jax.splat.weights import observed_matrix
 
 
@@ -47,10 +48,11 @@ class EvalConfig(Checked):
     """``[eval]``: refinement step counts N (the paper: 6k, 15k, 30k), ablations and change detection."""
 
     steps: tuple[int, ...] = (6000, 15000, 30000)
-    ablations: bool = True
+    ablations: bool | tuple[str, ...] = True  # true: every one of ABLATIONS; or a list of their keys
     change_detection: bool = True
     lpips_net: str = "alex"
     known_transforms: bool = False  # synthetic scenes: the exact Sim(3)s instead of SfM registration
+    compare_known_transforms: bool = False  # SfM registration, and the fusion again with the exact Sim(3)s
 
     TABLE = "eval"
 
@@ -60,6 +62,28 @@ class EvalConfig(Checked):
         if not steps or any(s <= 0 for s in steps) or list(steps) != sorted(set(steps)):
             raise InputError(f"need increasing positive step counts, got {list(self.steps)}", field="eval.steps")
         object.__setattr__(self, "steps", steps)
+        if not isinstance(self.ablations, bool):
+            unknown = [a for a in self.ablations if a not in ABLATIONS]
+            if unknown:
+                raise InputError(
+                    f"unknown ablations {unknown}",
+                    field="eval.ablations",
+                    fix=f"use true, false or a list of {', '.join(ABLATIONS)}",
+                )
+        if self.known_transforms and self.compare_known_transforms:
+            raise InputError(
+                "compare_known_transforms compares SfM registration with the exact Sim(3)s, but "
+                "known_transforms = true skips SfM registration",
+                field="eval.compare_known_transforms",
+                fix="set known_transforms = false",
+            )
+
+    @property
+    def ablation_keys(self) -> tuple[str, ...]:
+        """The ablations to run, in ``ABLATIONS`` order."""
+        if isinstance(self.ablations, bool):
+            return tuple(ABLATIONS) if self.ablations else ()
+        return tuple(k for k in ABLATIONS if k in self.ablations)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -319,7 +343,8 @@ class _Evaluation:
         last = self.ec.steps[-1]
         views = [date_views(sc, sm) for sc, sm in zip(self.scenes, self.sims)]
         rows = []
-        for key, (label, over) in ABLATIONS.items():
+        for key in self.ec.ablation_keys:
+            label, over = ABLATIONS[key]
             a = _ablation(
                 self.run_dir,
                 key,
@@ -333,6 +358,22 @@ class _Evaluation:
             )
             rows.append(_row(f"{label} {last:,}", a["metrics"], a["gaussians"], group="ablation", steps=last))
         return rows
+
+    def registration(self, data: Path, run: RunDir) -> list[dict]:
+        """Each date's SfM registration against the synthetic scene's exact Sim(3)
+        (``registration.date_errors``), with the dates it was registered with."""
+        ref = run.reference
+        others = [n for k, n in enumerate(self.names) if k != ref]
+        exact = synthetic.reference_transforms(data, [self.names[ref], *others])
+        errors = registration.date_errors(
+            self.names,
+            ref,
+            self.sims,
+            [Sim3.from_dict(exact[n]) for n in self.names],
+            [np.stack([np.asarray(c.center, np.float64) for c in sc.cameras]) for sc in self.scenes],
+        )
+        reg = read_json(run.path / "register.json")
+        return [e | {"with": reg[e["date"]].get("with", [])} for e in errors]
 
     def change(self, data: Path, scene: str) -> dict:
         """Change detection against the synthetic scene's ground truth (``change.json``), and its PR plot."""
@@ -352,6 +393,38 @@ class _Evaluation:
             write_json(self.out / "change.json", change)
         pr_curve_plot(self.out / "change_pr.png", change, scene)
         return change
+
+
+def _refine_counts(run_dir: Path) -> dict | None:
+    """The refinement's visibility and prune counts from the run's report (None: not recorded)."""
+    refine = read_json(run_dir / "report.json", {}).get("refine")
+    keys = ("zeroed_per_date", "gaussians_before_prune", "gaussians_after_prune")
+    return {k: refine[k] for k in keys} if refine and all(k in refine for k in keys) else None
+
+
+def _with_known_transforms(ev: _Evaluation, data: Path, scene: str, run: RunDir, progress: bool, mesh) -> dict:
+    """The fusion again from the same per-date models with the synthetic scene's exact Sim(3)s
+    (``OUT/known_transforms/``: its run, rows and change detection, resumable): its last Ours row and,
+    with ``change_detection``, its change figures, beside the SfM-registered run's."""
+    out = ev.out / "known_transforms"
+    run_dir = out / "run"
+    run_fusion(
+        run.dataset_paths,
+        run_dir,
+        ev.setup.fusion,
+        models=[run.date_dir(n) / "point_cloud.ply" for n in run.names],
+        transforms=_known_transforms(data, run.dataset_paths, out),
+        resume=(run_dir / "run.json").is_file(),
+        progress=progress,
+        evaluate=False,
+        log=ev.log,
+        mesh=mesh,
+    )
+    known = _Evaluation(out, run_dir, ev.setup, ev.names, ev.scenes, RunDir.open(run_dir).sims(), ev.log, mesh)
+    last = ev.ec.steps[-1]
+    row = known.fused_row(f"ours_{last}", f"Ours {last:,}", run_dir / "fused")
+    change = known.change(data, scene) if ev.ec.change_detection else None
+    return {"row": row, "change": change}
 
 
 def _known_transforms(data: Path, dirs, out: Path) -> Path:
@@ -455,10 +528,13 @@ def run_protocol(
     rows = ev.ours_rows()
     release_if_near_limit()
     rows += ev.baseline_rows(progress)
-    if ec.ablations:
+    if ec.ablation_keys:
         release_if_near_limit()
         rows += ev.ablation_rows()
-    change = ev.change(data, scene) if ec.change_detection and (data / "ground_truth.json").is_file() else None
+    truth = (data / "ground_truth.json").is_file()
+    change = ev.change(data, scene) if ec.change_detection and truth else None
+    registered = ev.registration(data, run) if truth and not ec.known_transforms else None
+    known = _with_known_transforms(ev, data, scene, run, progress, mesh) if ec.compare_known_transforms else None
     timings = read_json(run_dir / "timings.json", {})
     table = {
         "scene": scene,
@@ -470,6 +546,9 @@ def run_protocol(
         "fusion_wall_seconds_this_call": fusion_seconds,
         "change": change,
         "margins": margins(rows, ec.steps[-1]),
+        "refine": _refine_counts(run_dir),
+        "registration": registered,
+        "known_transforms": known,
     }
     write_json(out / "table.json", table)
     write_text(out / "table.md", table_markdown(table))
