@@ -570,7 +570,7 @@ def date_masks(data: Path, scenes, sims, names: list[str], split: str = "train")
 
 
 def cross_init_checks(model, data: Path, scenes, sims, render_config, masks=None) -> dict:
-    """Issue 7's checks of a model after cross-init against the synthetic ground truth: by object
+    """The checks of a model after cross-init against the synthetic ground truth: by object
     (``object_persistence``, Gaussians labelled by their dominant object in the training views) and the
     light model per pair (``light_by_pair``)."""
     gt = json.loads((Path(data) / "ground_truth.json").read_text())
@@ -643,7 +643,7 @@ def change_detection(
 
 
 def light_by_pair(model, gt: dict) -> dict:
-    """Issue 7's lighting check after cross-init, per ordered pair (p, q) over date p's Gaussians seen
+    """The lighting check after cross-init, per ordered pair (p, q) over date p's Gaussians seen
     from q: mean o^q and the median fitted cold/warm coefficient k (``light.cold_warm_coefficient``)
     against the true colour-temperature change (k should share the sign of CCT_q − CCT_p: a colder,
     bluer light at q needs k > 0); also mean o^q over every such entry."""
@@ -680,7 +680,7 @@ def light_by_pair(model, gt: dict) -> dict:
 
 
 def object_persistence(model, objects: np.ndarray, gt: dict) -> dict:
-    """Issue 7's check by ground-truth object: for every ordered pair (p, q), the Gaussians of date p
+    """The check by ground-truth object: for every ordered pair (p, q), the Gaussians of date p
     labelled with an object absent at q should have o^q < 0.2, those of an object present and
     unchanged at both dates (the ground plane included) o^q > 0.6. Shares over all such entries, and
     per absent object and pair ("absent_by_object")."""
