@@ -9,7 +9,7 @@ cameras from their mean, in the reference frame); the targets are ≤ 0.5°, ≤
 
     python benchmarks/bench_register.py [--presets vase corals flood quake glossy] [--width 160 --height 120]
         [--images-per-date 24] [--spp 16] [--work runs/bench_register] [--name register]
-        [--fuse corals --dates 2 --config demo]
+        [--register-images N] [--fuse corals --dates 2 --config demo]
 
 ``--fuse PRESET`` also fuses that preset's first ``--dates`` dates twice from the same per-date models,
 with the exact Sim(3)s and with SfM registration, and reports the fused model's test PSNR / SSIM /
@@ -43,12 +43,13 @@ def register_preset(preset: str, args) -> list[dict]:
     true = [Sim3.from_dict(truth[n]) for n in names]
     centres = [np.stack([np.asarray(c.center, np.float64) for c in sc.cameras]) for sc in scenes]
     extent = registration.camera_extent(centres[0])
-    picked = fusion.RegisterConfig().images_per_date  # the images of each date that go into the SfM
+    config = fusion.RegisterConfig(**({"images_per_date": args.register_images} if args.register_images else {}))
+    picked = config.images_per_date  # the images of each date that go into the SfM
     found, rows = [Sim3.identity()], []
     for k in range(1, len(names)):
         row = {"preset": preset, "date": names[k], "with": names[:k]}
         try:
-            r = fusion.register_date(list(zip(scenes[:k], found)), scenes[k])
+            r = fusion.register_date(list(zip(scenes[:k], found)), scenes[k], config=config)
         except Exception as exc:  # a failed registration is a result: the row says why
             rows.append(row | {"error": str(exc).splitlines()[0][:160]})
             found.append(true[k])  # the later dates register against the truth instead
@@ -99,7 +100,8 @@ def table(result: dict) -> str:
         "",
         f"Machine: {result['machine']}. Synthetic presets at {a['width']}×{a['height']}, {a['images_per_date']} "
         f"images per date ({a['spp']} spp); each date registered by joint SfM with the dates before it "
-        "(`fusion.register_date`, the default `[register]`). Targets: rotation ≤ 0.5°, scale ≤ 1 %, "
+        f"(`fusion.register_date`, {a.get('register_images') or 'the default'} images per date in the SfM). "
+        "Targets: rotation ≤ 0.5°, scale ≤ 1 %, "
         "translation ≤ 1 % of the scene's extent.",
         "",
         "| preset | date | with | images registered (date / earlier) | rotation (°) | scale (%) | translation (% extent) | within targets |",
@@ -142,6 +144,7 @@ def main() -> None:
     ap.add_argument("--name", default="register")
     ap.add_argument("--fuse", metavar="PRESET", help="also fuse this preset with exact and with SfM transforms")
     ap.add_argument("--dates", type=int, default=2, help="dates fused with --fuse")
+    ap.add_argument("--register-images", type=int, help="[register] images_per_date (default: its default)")
     add_scene_args(ap, width=160, height=120, images_per_date=24, spp=16, work="runs/bench_register")
     args = ap.parse_args()
     result = result_header(args) | {"rows": []}

@@ -373,7 +373,8 @@ class _Evaluation:
             [np.stack([np.asarray(c.center, np.float64) for c in sc.cameras]) for sc in self.scenes],
         )
         reg = read_json(run.path / "register.json")
-        return [e | {"with": reg[e["date"]].get("with", [])} for e in errors]
+        keys = ("with", "rotation_residual_deg", "centre_residual_rel")
+        return [e | {k: reg[e["date"]][k] for k in keys if k in reg[e["date"]]} for e in errors]
 
     def change(self, data: Path, scene: str) -> dict:
         """Change detection against the synthetic scene's ground truth (``change.json``), and its PR plot."""

@@ -59,15 +59,26 @@ def registration_table(errors: list[dict]) -> list[str]:
         f"distance between where the found and the exact Sim(3) put the date's cameras) ≤ "
         f"{t['translation_pct']} % of the scene's extent.",
         "",
-        "| date | registered with | rotation (°) | scale (%) | translation (% extent) | within targets |",
-        "|---|---|---:|---:|---:|---|",
+        "| date | registered with | rotation (°) | scale (%) | translation (% extent) | within targets | "
+        "fit residual: rotation (°) / centres (% extent) |",
+        "|---|---|---:|---:|---:|---|---|",
     ]
     for e in errors:
+        residual = (
+            f"{e['rotation_residual_deg']:.3f} / {100 * e['centre_residual_rel']:.3f}"
+            if "rotation_residual_deg" in e
+            else "–"
+        )
         lines.append(
             f"| {e['date']} | {', '.join(e.get('with', [])) or '–'} | {e['rotation_deg']:.3f} | "
-            f"{e['scale_pct']:.3f} | {e['translation_pct']:.3f} | {'yes' if e['within_targets'] else 'no'} |"
+            f"{e['scale_pct']:.3f} | {e['translation_pct']:.3f} | {'yes' if e['within_targets'] else 'no'} | "
+            f"{residual} |"
         )
-    return lines
+    return lines + [
+        "",
+        "The fit residual needs no ground truth (`register.json`): how far the date's cameras in the joint SfM "
+        "are from one Sim(3) of its own poses.",
+    ]
 
 
 def _change_summary(ch: dict | None) -> dict[str, str]:

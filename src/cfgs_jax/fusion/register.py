@@ -275,7 +275,9 @@ def _registered_poses(rec, picked: dict, anchors, date, config: RegisterConfig) 
             "each)",
             path=date.root,
             field="images",
-            fix="use more overlapping images (RegisterConfig.images_per_date) or pass --transforms JSON",
+            fix=f"put more images of each date into the joint SfM ([register] images_per_date, now "
+            f"{config.images_per_date}: e.g. --set register.images_per_date={2 * config.images_per_date}), "
+            "or pass known transforms with --transforms JSON",
         )
     return [np.asarray(x) for x in pairs["ref"]], [np.asarray(x) for x in pairs["new"]]
 
