@@ -1,8 +1,9 @@
-"""Write ``benchmarks/results/eval_S.md`` from a finished evaluation: a header naming the machine, the date,
+"""Write ``benchmarks/results/eval_S.md`` (or ``NAME.md``) from a finished evaluation: a header naming the machine, the date,
 the command, the code and the run's stage times; the run's own ``table.md``; and a block comparing its
 figures with those of the file it replaces, each marked better or worse.
 
     python benchmarks/eval_publish.py --scene corals --out DIR --config benchmarks/eval_small.toml [--note TEXT]
+        [--name NAME]
 
 DIR: the ``--out`` of ``python -m cfgs_jax.pipeline eval --scene S --config CFG --out DIR`` (finished:
 ``table.md`` and ``table.json`` present). ``--note`` adds one paragraph on how that run was made (for
@@ -131,6 +132,7 @@ def main():
     ap.add_argument("--out", required=True, help="the finished evaluation folder")
     ap.add_argument("--config", required=True, help="the eval's configuration (e.g. benchmarks/eval_small.toml)")
     ap.add_argument("--note", default="", help="one paragraph on how the run was made")
+    ap.add_argument("--name", help="the result file's stem (default: eval_SCENE)")
     args = ap.parse_args()
     out = Path(args.out)
     table_md = (out / "table.md").read_text()
@@ -144,10 +146,12 @@ def main():
         f"Machine: {machine()}. Date: {datetime.date.today().isoformat()}. Command: `python -m cfgs_jax.pipeline "
         f"eval --scene {args.scene} --config {args.config} --out DIR` (steps {table['steps']}; the configuration's "
         f"values are in DIR/run/run.json); written at code {code} by `python benchmarks/eval_publish.py --scene "
-        f"{args.scene} --out DIR --config {args.config}`. Stages done: {', '.join(run['done'])}; stage wall times "
+        f"{args.scene} --out DIR --config {args.config}"
+        + (f" --name {args.name}" if args.name else "")
+        + f"`. Stages done: {', '.join(run['done'])}; stage wall times "
         "(s): " + ", ".join(f"{k} {v:.0f}" for k, v in timings.items()) + "."
     )
-    target = RESULTS / f"eval_{args.scene}.md"
+    target = RESULTS / f"{args.name or 'eval_' + args.scene}.md"
     old = target.read_text() if target.is_file() else ""
     parts = (
         [header] + ([args.note.strip()] if args.note.strip() else []) + [table_md.rstrip(), comparison(old, table_md)]
