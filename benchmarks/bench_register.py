@@ -42,7 +42,7 @@ def register_preset(preset: str, args) -> list[dict]:
     scenes = [read_colmap(data / n) for n in names]
     true = [Sim3.from_dict(truth[n]) for n in names]
     centres = [np.stack([np.asarray(c.center, np.float64) for c in sc.cameras]) for sc in scenes]
-    extent = registration.camera_extent(centres[0])
+    extent = fusion.register.centre_extent(centres[0])
     config = fusion.RegisterConfig(**({"images_per_date": args.register_images} if args.register_images else {}))
     picked = config.images_per_date  # the images of each date that go into the SfM
     found, rows = [Sim3.identity()], []

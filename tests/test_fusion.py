@@ -98,7 +98,7 @@ def two_dates(tmp_path_factory):
 def test_registration_recovers_the_ground_truth_sim3(two_dates):
     import json
 
-    from cfgs_jax.fusion.register import _angle
+    from cfgs_jax.fusion.register import rotation_angle
 
     gt = json.loads((two_dates / "ground_truth.json").read_text())["dates"]
     want = Sim3.from_dict(gt[0]["date_from_world"]).compose(Sim3.from_dict(gt[1]["world_from_date"]))
@@ -108,7 +108,7 @@ def test_registration_recovers_the_ground_truth_sim3(two_dates):
     centres = np.stack([np.asarray(c.center, np.float64) for c in ref.cameras])
     extent = np.max(np.linalg.norm(centres - centres.mean(0), axis=1))
     assert reg.registered_reference >= 6 and reg.registered_date >= 6
-    assert np.degrees(_angle(got.rotation, want.rotation)) < 0.5
+    assert np.degrees(rotation_angle(got.rotation, want.rotation)) < 0.5
     assert abs(got.scale / want.scale - 1) < 0.01
     assert np.linalg.norm(got.translation - want.translation) / extent < 0.01
     assert reg.centre_residual < 0.05 and reg.rotation_residual_deg < 2.0
@@ -129,7 +129,7 @@ def test_a_date_that_overlaps_only_a_later_date_registers_into_the_sfm_of_both(t
     import json
 
     from cfgs_jax import synthetic
-    from cfgs_jax.fusion.register import _angle
+    from cfgs_jax.fusion.register import rotation_angle
     from cfgs_jax.synthetic.presets import orbit
 
     spec = synthetic.make_preset("corals", seed=2, width=160, height=120, images_per_date=12, spp=8)
@@ -154,7 +154,7 @@ def test_a_date_that_overlaps_only_a_later_date_registers_into_the_sfm_of_both(t
     extent = np.max(np.linalg.norm(orbit_ref - orbit_ref.mean(0), axis=1))
     for r, k, scene in ((r1, 1, d1), (r2, 2, d2)):
         got, centres = r.transform, np.stack([np.asarray(c.center, np.float64) for c in scene.cameras])
-        assert np.degrees(_angle(got.rotation, want[k].rotation)) < 1.0
+        assert np.degrees(rotation_angle(got.rotation, want[k].rotation)) < 1.0
         assert abs(got.scale / want[k].scale - 1) < 0.01
         moved = np.linalg.norm(got.apply(centres) - want[k].apply(centres), axis=1)  # where its cameras land
         assert moved.max() / extent < 0.03

@@ -14,22 +14,11 @@ from collections.abc import Sequence
 import numpy as np
 from jaxtyping import Float
 
+from cfgs_jax.fusion.register import centre_extent, rotation_angle
 from cfgs_jax.sim3 import Sim3
 
 #: The registration accuracy a fused model needs: rotation (°), scale (%), translation (% of extent).
 TARGETS = {"rotation_deg": 0.5, "scale_pct": 1.0, "translation_pct": 1.0}
-
-
-def rotation_angle_deg(r1: Float[np.ndarray, "3 3"], r2: Float[np.ndarray, "3 3"]) -> float:
-    """The angle of the rotation R₁R₂ᵀ in degrees: arccos((tr(R₁R₂ᵀ) − 1) / 2)."""
-    c = (np.trace(np.asarray(r1, np.float64) @ np.asarray(r2, np.float64).T) - 1.0) / 2.0
-    return float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
-
-
-def camera_extent(centres: Float[np.ndarray, "n 3"]) -> float:
-    """The largest distance of camera centres from their mean."""
-    c = np.asarray(centres, np.float64)
-    return float(np.max(np.linalg.norm(c - c.mean(0), axis=1)))
 
 
 def registration_error(found: Sim3, true: Sim3, centres: Float[np.ndarray, "n 3"], extent: float) -> dict:
@@ -38,7 +27,7 @@ def registration_error(found: Sim3, true: Sim3, centres: Float[np.ndarray, "n 3"
     c = np.asarray(centres, np.float64)
     moved = np.linalg.norm(found.apply(c) - true.apply(c), axis=1)
     err = {
-        "rotation_deg": rotation_angle_deg(found.rotation, true.rotation),
+        "rotation_deg": float(np.degrees(rotation_angle(found.rotation, true.rotation))),
         "scale_pct": 100.0 * abs(found.scale / true.scale - 1.0),
         "translation_pct": 100.0 * float(moved.max()) / extent,
     }
@@ -54,7 +43,7 @@ def date_errors(
 ) -> list[dict]:
     """``registration_error`` of every date but the ``reference`` (whose Sim(3) is the identity by
     definition), the extent taken from the reference date's cameras."""
-    extent = camera_extent(true[reference].apply(np.asarray(centres[reference], np.float64)))
+    extent = centre_extent(true[reference].apply(np.asarray(centres[reference], np.float64)))
     return [
         {"date": name} | registration_error(f, t, c, extent)
         for k, (name, f, t, c) in enumerate(zip(names, found, true, centres))

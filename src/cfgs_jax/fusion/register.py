@@ -332,7 +332,7 @@ def register_date(
     centres = np.stack(
         [np.asarray(camera_in_frame(c, anchors[0][1]).center, np.float64) for c in anchors[0][0].cameras]
     )
-    extent = float(np.max(np.linalg.norm(centres - centres.mean(0), axis=1)))
+    extent = centre_extent(centres)
     a0, b0 = _robust_start(ref, new, date, config, extent)
     a, b, converged = refine_sim3_pair(
         a0, b0, ((ref[0], ref[1]), (ref[2], ref[3])), ((new[0], new[1]), (new[2], new[3])), extent, config.lm_max_steps
@@ -347,12 +347,20 @@ def register_date(
             fix="raise [register] lm_max_steps, check the date's COLMAP poses, or pass --transforms JSON",
         )
     c_err = np.concatenate([a.apply(ref[0]) - ref[2], a.apply(new[0]) - b.apply(new[2])])
-    r_err = [np.degrees(_angle(a.rotation @ r1, r2)) for r1, r2 in zip(ref[1], ref[3])]
-    r_err += [np.degrees(_angle(a.rotation @ r1, b.rotation @ r2)) for r1, r2 in zip(new[1], new[3])]
+    r_err = [np.degrees(rotation_angle(a.rotation @ r1, r2)) for r1, r2 in zip(ref[1], ref[3])]
+    r_err += [np.degrees(rotation_angle(a.rotation @ r1, b.rotation @ r2)) for r1, r2 in zip(new[1], new[3])]
     rms_centre = float(np.sqrt(np.mean(np.sum(c_err**2, axis=1))) / extent)
     return Registration(b, n_ref, n_new, rms_centre, float(np.sqrt(np.mean(np.square(r_err)))))
 
 
-def _angle(r1, r2) -> float:
-    c = (np.trace(r1 @ r2.T) - 1.0) / 2.0
+def rotation_angle(r1, r2) -> float:
+    """The angle of the rotation R₁R₂ᵀ in radians: arccos((tr(R₁R₂ᵀ) − 1) / 2)."""
+    c = (np.trace(np.asarray(r1, np.float64) @ np.asarray(r2, np.float64).T) - 1.0) / 2.0
     return float(np.arccos(np.clip(c, -1.0, 1.0)))
+
+
+def centre_extent(centres) -> float:
+    """The largest distance of camera centres from their mean: the scale registration residuals and
+    errors are measured in."""
+    c = np.asarray(centres, np.float64)
+    return float(np.max(np.linalg.norm(c - c.mean(0), axis=1)))
