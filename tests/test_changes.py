@@ -321,6 +321,28 @@ def test_dates_tested_in_one_pass_equal_one_pair_at_a_time():
             np.testing.assert_array_equal(shared.pairs[pair][2], seen)
 
 
+def test_link_by_extent_joins_touching_splats_only():
+    """With reaches, points link where reach_i + reach_j exceeds their distance, else only within the
+    radius: a row of points 1 apart with reach 0.6 is one component, with reach 0.4 five; one point with
+    a long reach links to a far neighbour; the brute-force graph over every pair agrees on random points."""
+    row = np.stack([np.arange(5.0), np.zeros(5), np.zeros(5)], axis=1)
+    assert len(np.unique(cluster_labels(row, 0.5, np.full(5, 0.6)))) == 1
+    assert len(np.unique(cluster_labels(row, 0.5, np.full(5, 0.4)))) == 5
+    pair = np.array([[0.0, 0, 0], [3.0, 0, 0]])
+    assert len(np.unique(cluster_labels(pair, 0.5, np.array([2.9, 0.2])))) == 1  # 2.9 + 0.2 > 3
+    assert len(np.unique(cluster_labels(pair, 0.5, np.array([2.7, 0.2])))) == 2
+    rng = np.random.default_rng(3)
+    pts, reach = rng.uniform(0, 10, (300, 3)), rng.exponential(0.3, 300)
+    d = np.linalg.norm(pts[:, None] - pts[None], axis=-1)
+    linked = (d < 0.4) | (d < reach[:, None] + reach[None])
+    from scipy.sparse.csgraph import connected_components as components
+
+    _, truth = components(linked, directed=False)
+    got = cluster_labels(pts, 0.4, reach)
+    same = got[:, None] == got[None]
+    np.testing.assert_array_equal(same, truth[:, None] == truth[None])
+
+
 def test_regions_hand_cases():
     """Two point clouds 10 apart are two regions (the small third cloud too few); kinds follow the sign
     of the presence difference; hull volume of the unit cube's corners is 1; image areas by hand."""

@@ -268,6 +268,22 @@ def test_eval_refines_again_when_the_run_lacks_a_snapshot(protocol, tmp_path):
     assert any("date d0 was evaluated at other steps" in m for m in seen), seen
     assert json.loads(result.read_text())["steps"]["60"]["psnr"] == pytest.approx(kept["steps"]["60"]["psnr"], abs=1e-4)
     assert [r["row"] for r in third["rows"]] == [r["row"] for r in before["rows"]]
+    # longer [eval] steps: the refinement runs again to the new length from the same cross-init, and
+    # the ablations and the baseline follow; the per-date models and the cross-init are kept
+    import copy as copy_module
+
+    longer = copy_module.deepcopy(raw)
+    longer["eval"]["steps"] = [60, 150]
+    cross_init = (copy / "run" / "cross_init" / "model.ply").stat().st_mtime_ns
+    seen = []
+    fourth = run_protocol(str(data), copy, longer, resume=True, progress=False, log=seen.append)
+    assert any("a refinement of 120 steps: its refinement is run again to 150 steps" in m for m in seen), seen
+    assert json.loads((copy / "run" / "run.json").read_text())["config"]["refine"]["steps"] == 150
+    assert (copy / "run" / "cross_init" / "model.ply").stat().st_mtime_ns == cross_init
+    rows = {r["row"]: r for r in fourth["rows"]}
+    assert {"Ours 150", "Individual +150", "Ours, α frozen 150", "Ours, o frozen 150"} <= set(rows)
+    assert not any("120" in r for r in rows)
+    assert json.loads((copy / "run" / "ablations" / "freeze_alpha.json").read_text())["steps"] == 150
     # and one left with no result but a checkpoint past N₁ taken by a call that did not evaluate N₁
     import dataclasses
 
@@ -289,18 +305,49 @@ def test_eval_refines_again_when_the_run_lacks_a_snapshot(protocol, tmp_path):
 
 def test_eval_refuses_to_refine_an_extended_run_again(tmp_path):
     from cfgs_jax import InputError
-    from cfgs_jax.evaluation.protocol import _refine_again_for_snapshots
+    from cfgs_jax.evaluation.protocol import _refine_again_for_steps
     from cfgs_jax.io.atomic import write_json
 
     done = ["train", "register", "merge", "cross_init", "refine", "export", "extend:d2:train"]
-    write_json(tmp_path / "run" / "run.json", {"done": done})
+    tables = {"refine": {"steps": 800}}
+    write_json(tmp_path / "run" / "run.json", {"done": done, "config": tables})
     with pytest.raises(InputError, match=r"extend:d2:train"):
-        _refine_again_for_snapshots(tmp_path, (150,), print)
-    write_json(tmp_path / "run" / "run.json", {"done": done[:-1]})
+        _refine_again_for_steps(tmp_path, tables, (150,), print)
+    write_json(tmp_path / "run" / "run.json", {"done": done[:-1], "config": tables})
     write_json(tmp_path / "rows.json", {"merged": {"psnr": 1.0}, "ours_800": {"psnr": 2.0}})
-    _refine_again_for_snapshots(tmp_path, (150,), print)
+    _refine_again_for_steps(tmp_path, tables, (150,), print)
     assert json.loads((tmp_path / "run" / "run.json").read_text())["done"] == done[:4]
     assert list(json.loads((tmp_path / "rows.json").read_text())) == ["merged"]
+
+
+def test_eval_takes_a_new_refinement_length_and_nothing_else(tmp_path):
+    """A run started for other [eval] steps takes the new refinement length (refined again where it was
+    refined); a change of any other value is left alone, for the resumed run to refuse."""
+    from cfgs_jax.evaluation.protocol import _refine_again_for_steps
+    from cfgs_jax.io.atomic import write_json
+
+    started = {"refine": {"steps": 800, "lr_o": 1e-5}, "cross_init": {"steps": 50}}
+    run_json = tmp_path / "run" / "run.json"
+    write_json(run_json, {"done": ["train", "register", "merge", "cross_init"], "config": started})
+    (tmp_path / "run" / "refine_checkpoint.npz").write_bytes(b"a checkpoint of the 800-step refinement")
+    other = {"refine": {"steps": 3000, "lr_o": 1e-5}, "cross_init": {"steps": 60}}
+    _refine_again_for_steps(tmp_path, other, (), print)
+    assert json.loads(run_json.read_text())["config"] == started  # cross_init changed too: untouched
+    longer = {"refine": {"steps": 3000, "lr_o": 1e-5}, "cross_init": {"steps": 50}}
+    seen = []
+    _refine_again_for_steps(tmp_path, longer, (1000,), seen.append)
+    state = json.loads(run_json.read_text())
+    assert state["config"] == longer and state["done"] == ["train", "register", "merge", "cross_init"]
+    assert not (tmp_path / "run" / "refine_checkpoint.npz").exists() and "3,000 steps" in seen[0]
+    # refined already: refinement and export undone, the fused rows and change detection dropped
+    write_json(run_json, {"done": ["train", "register", "merge", "cross_init", "refine", "export"], "config": started})
+    write_json(tmp_path / "rows.json", {"merged": {"psnr": 1.0}, "ours_800": {"psnr": 2.0}})
+    write_json(tmp_path / "change.json", {})
+    _refine_again_for_steps(tmp_path, longer, (), print)
+    state = json.loads(run_json.read_text())
+    assert state["config"] == longer and state["done"] == ["train", "register", "merge", "cross_init"]
+    assert list(json.loads((tmp_path / "rows.json").read_text())) == ["merged"]
+    assert not (tmp_path / "change.json").exists()
 
 
 def test_eval_oq_rule_table_is_checked_before_any_work_and_its_old_name_reads():

@@ -23,7 +23,9 @@ class ChangesConfig(Checked):
     Gaussians of the same date (1: none). ``gain_range`` bounds the per-Gaussian brightness gain of each hypothesis.
     ``contribution_threshold`` is the visibility rule (α·T at some pixel of some view of q).
     Regions: changed Gaussians closer than ``link_factor`` × the model's median nearest-neighbour
-    distance are linked, and so are Gaussians scored above ``grow_above`` (≤ 0.5) that touch them; a
+    distance are linked — with ``link_extent`` > 0 also those closer than ``link_extent`` × the sum of
+    their largest standard deviations (each at most the link distance: large, sparse splats such as a
+    water surface's touch where their centres lie far apart) — and so are Gaussians scored above ``grow_above`` (≤ 0.5) that touch them; a
     region needs at least ``min_region_gaussians`` Gaussians scored > 0.5 and at least
     ``min_region_share`` of the two dates' Gaussians as seeds (3D; the larger bound counts, so that a
     denser reconstruction of the same scene, whose objects and whose noise patches both hold more
@@ -52,6 +54,7 @@ class ChangesConfig(Checked):
     gain_range: tuple[float, float] = (1.0 / 3.0, 3.0)
     contribution_threshold: Annotated[float, OPEN_UNIT] = 0.01
     link_factor: Annotated[float, POSITIVE] = 4.0
+    link_extent: Annotated[float, NON_NEGATIVE] = 0.0
     grow_above: Annotated[float, msgspec.Meta(gt=0, le=0.5)] = 0.35
     min_region_gaussians: Annotated[int, AT_LEAST_ONE] = 16
     min_region_share: Annotated[float, msgspec.Meta(ge=0, lt=1)] = 0.0015

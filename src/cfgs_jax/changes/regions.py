@@ -34,7 +34,7 @@ from scipy.spatial import ConvexHull, QhullError, cKDTree
 from cfgs_jax.changes.carried import carried_absence
 from cfgs_jax.changes.evidence import ChangeEvidence, ChangesConfig, pair_known, presence_difference
 from cfgs_jax.errors import InputError
-from cfgs_jax.model import Camera, rgb
+from cfgs_jax.model import Camera, rgb, scales
 
 
 def median_spacing(means: np.ndarray) -> float:
@@ -46,12 +46,24 @@ def median_spacing(means: np.ndarray) -> float:
     return float(np.median(d[:, 1]))
 
 
-def cluster_labels(points: np.ndarray, radius: float) -> np.ndarray:
-    """[M] component id of each point in the graph linking points closer than ``radius``."""
+def cluster_labels(points: np.ndarray, radius: float, reach: np.ndarray | None = None) -> np.ndarray:
+    """[M] component id of each point in the graph linking points closer than ``radius``; with ``reach``
+    ([M] ≥ 0) also points i, j closer than reach_i + reach_j (two splats whose extents touch)."""
     points = np.asarray(points, np.float64)
     if len(points) == 0:
         return np.zeros(0, np.int64)
-    pairs = cKDTree(points).query_pairs(radius, output_type="ndarray") if radius > 0 else np.zeros((0, 2), int)
+    tree = cKDTree(points)
+    if reach is None or not np.any(np.asarray(reach) > radius / 2):
+        pairs = tree.query_pairs(radius, output_type="ndarray") if radius > 0 else np.zeros((0, 2), int)
+    else:
+        # a pair linked by reach lies within 2·max(reach_i, reach_j) of the point with the larger reach
+        reach = np.asarray(reach, np.float64)
+        near = tree.query_ball_point(points, np.maximum(radius, 2.0 * reach))
+        i = np.repeat(np.arange(len(points)), [len(n) for n in near])
+        j = np.concatenate([np.asarray(n, np.int64) for n in near]) if len(i) else np.zeros(0, np.int64)
+        d = np.linalg.norm(points[i] - points[j], axis=1)
+        keep = (i != j) & ((d < radius) | (d < reach[i] + reach[j]))  # each pair once or twice
+        pairs = np.stack([i[keep], j[keep]], axis=1)
     graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(len(points), len(points)))
     _, labels = connected_components(graph, directed=False)
     return labels.astype(np.int64)
@@ -184,6 +196,7 @@ def regions_3d(
     spacing: float,
     candidates: np.ndarray | None = None,
     link_factor: float = 5.0,
+    reach: np.ndarray | None = None,
     min_gaussians: int = 16,
     completion: dict | None = None,
 ) -> tuple[list[dict], np.ndarray]:
@@ -193,7 +206,8 @@ def regions_3d(
     component of the candidates holding ≥ ``min_gaussians`` seeds; the components of what disappeared,
     difference > 0, and of what appeared are formed apart, then joined where they occupy the same
     place, ``merge_colocated``); ``difference``: [N] presence at p minus presence at q
-    (``evidence.presence_difference``); ``spacing``: ``median_spacing``. ``completion``: the keyword
+    (``evidence.presence_difference``); ``spacing``: ``median_spacing``; ``reach``: [N] or None, each
+    Gaussian's reach, linking two whose reaches touch as well (``cluster_labels``). ``completion``: the keyword
     arguments ``colors``, ``origin``, ``eligible``, ``tolerance``, ``hops``, ``across_dates`` and
     optionally ``radius`` (default the link radius, ``link_factor`` × ``spacing``) of
     ``complete_by_colour``, applied to the regions before they are described (None: no completion)."""
@@ -206,7 +220,7 @@ def regions_3d(
     sides = []
     for side in (difference > 0, difference <= 0):  # what disappeared and what appeared, apart
         rows = np.nonzero(candidates & side)[0]
-        labels = cluster_labels(means[rows], radius)
+        labels = cluster_labels(means[rows], radius, None if reach is None else np.asarray(reach)[rows])
         sides.append([rows[labels == k] for k in np.unique(labels)])
     groups = merge_colocated(means, *sides, radius)
     groups = sorted((g for g in groups if seeds[g].sum() >= min_gaussians), key=len, reverse=True)
@@ -255,6 +269,7 @@ def pair_regions(
     spacing: float,
     colors: np.ndarray | None = None,
     carried: np.ndarray | None = None,
+    extents: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray, list[dict], np.ndarray]:
     """The changed regions of dates p < q from their evidence, as the ``changes`` command reports them:
     (presence difference [N], known at both dates [N] bool, regions, [N] region index or −1).
@@ -263,7 +278,10 @@ def pair_regions(
     date x (``min_region_seeds``). With ``config.complete_hops`` > 0 the regions are completed by colour
     over the known Gaussians, in steps of ``config.complete_link`` × ``spacing`` (``colors``: [N, 3], the
     model's colours, then required). ``carried``: [N] bool, Gaussians of p or q counted gone at the
-    other date (``carried.carried_absence``): presence difference ±1, known."""
+    other date (``carried.carried_absence``): presence difference ±1, known. ``extents``: [N], each
+    Gaussian's largest standard deviation, needed with ``config.link_extent`` > 0 (two scored Gaussians
+    then also link where their centres lie closer than ``link_extent`` × the sum of their extents, each
+    extent at most ``link_factor`` × ``spacing``)."""
     difference = presence_difference(evidence, origin, p, q)
     known = pair_known(evidence, origin, p, q)
     if carried is not None:
@@ -288,6 +306,15 @@ def pair_regions(
             "hops": int(config.complete_hops),
             "across_dates": bool(config.complete_across_dates),
         }
+    reach = None
+    if config.link_extent > 0:
+        if extents is None:
+            raise InputError(
+                "linking by extent needs the Gaussians' extents",
+                field="extents",
+                fix="pass extents=model.scales(model.gaussians).max(1), or set changes.link_extent = 0",
+            )
+        reach = config.link_extent * np.minimum(np.asarray(extents, np.float64), config.link_factor * spacing)
     regions, member = regions_3d(
         means,
         known & (score > 0.5),
@@ -295,6 +322,7 @@ def pair_regions(
         spacing=spacing,
         candidates=known & (score > config.grow_above),
         link_factor=config.link_factor,
+        reach=reach,
         min_gaussians=min_region_seeds(origin, p, q, config),
         completion=completion,
     )
@@ -321,6 +349,7 @@ def every_pair_regions(
     t = model.num_dates
     spacing = median_spacing(means)
     colors = np.asarray(rgb(model.gaussians), np.float64)  # DC: each colour averaged over view directions
+    extents = np.asarray(scales(model.gaussians), np.float64).max(axis=1)
     wanted = [(p, q) for p in range(t) for q in range(p + 1, t)] if pairs is None else sorted(set(pairs))
     carry = bool(config.carry_absence) and t > 2
     if carry and cameras is None:
@@ -333,7 +362,7 @@ def every_pair_regions(
         {(min(a, r), max(a, r)) for p, q in wanted for a in (p, q) for r in range(t) if r != a} if carry else set()
     )
     first = {
-        pair: pair_regions(evidence, origin, means, *pair, config, spacing=spacing, colors=colors)
+        pair: pair_regions(evidence, origin, means, *pair, config, spacing=spacing, colors=colors, extents=extents)
         for pair in sorted(first_pairs | set(wanted))
     }
     if not carry:
@@ -345,7 +374,9 @@ def every_pair_regions(
             model, cameras, members, p, q, support_views=config.support_views, render_config=render_config
         )
         out[(p, q)] = (
-            pair_regions(evidence, origin, means, p, q, config, spacing=spacing, colors=colors, carried=carried)
+            pair_regions(
+                evidence, origin, means, p, q, config, spacing=spacing, colors=colors, carried=carried, extents=extents
+            )
             if carried.any()
             else first[(p, q)]
         )

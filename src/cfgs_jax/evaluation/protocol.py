@@ -32,12 +32,12 @@ from cfgs_jax.fusion.config import RUN_TABLES, RunConfig
 from cfgs_jax.fusion.evaluate import evaluate_fused, weighted_mean
 from cfgs_jax.fusion.fuse import INVISIBLE_LOGIT
 from cfgs_jax.fusion.light import cold_warm_coefficient
-from cfgs_jax.fusion.refine import refine
+from cfgs_jax.fusion.refine import RefineConfig, refine
 from cfgs_jax.fusion.stages import run_fusion
 from cfgs_jax.io.atomic import check_resume, read_json, write_json, write_text
 from cfgs_jax.io.fused import read_fused
 from cfgs_jax.io.ply import read_ply, write_ply
-from cfgs_jax.io.run_dir import RunDir, date_cameras, date_views, registered_cameras
+from cfgs_jax.io.run_dir import RunDir, config_changes, date_cameras, date_views, registered_cameras
 from cfgs_jax.model import light_multipliers, opacity_multipliers, rgb
 from cfgs_jax.sim3 import Sim3
 from cfgs_jax.splat.weights import observed_matrix
@@ -253,6 +253,8 @@ def _ablation(
 ) -> dict:
     path = run_dir / "ablations" / f"{key}.json"
     done = read_json(path)
+    if done is not None and done.get("steps", overrides["steps"]) != overrides["steps"]:
+        done = None  # run for another [eval] step count
     if done is None:
         fc = dataclasses.replace(config.refine, **overrides)
         log(f"[eval] ablation {key}: {fc.steps:,} refinement steps")
@@ -267,7 +269,7 @@ def _ablation(
             checkpoint=run_dir / "ablations" / f"{key}_checkpoint.npz",
         )
         m = evaluate_fused(model, test_views, render_config=config.render, lpips_net=lpips_net)
-        done = {"metrics": m["mean"], "gaussians": len(model), "seconds": time.perf_counter() - t0}
+        done = {"metrics": m["mean"], "gaussians": len(model), "seconds": time.perf_counter() - t0, "steps": fc.steps}
         write_json(path, done)
         (run_dir / "ablations" / f"{key}_checkpoint.npz").unlink(missing_ok=True)
     return done
@@ -409,6 +411,7 @@ def _with_known_transforms(ev: _Evaluation, data: Path, scene: str, run: RunDir,
     with ``change_detection``, its change figures, beside the SfM-registered run's."""
     out = ev.out / "known_transforms"
     run_dir = out / "run"
+    _refine_again_for_steps(out, ev.setup.fusion.tables, (), ev.log)
     run_fusion(
         run.dataset_paths,
         run_dir,
@@ -447,30 +450,53 @@ def _known_transforms(data: Path, dirs, out: Path) -> Path:
 _AFTER_REFINE = ("compact", "export", "evaluate")
 
 
-def _refine_again_for_snapshots(out: Path, snapshots, log) -> None:
-    """Prepare a finished fusion run in ``out/run`` that lacks a refinement snapshot the evaluation asks
-    for (it was refined under other ``[eval] steps``): the refinement and the stages after it are marked
-    undone, and the rows and change detection read from the fused model are dropped, so the resumed run
-    refines ``RUN/cross_init`` again and keeps every snapshot. An extended run cannot be refined again."""
+def _without_refine_steps(tables: dict) -> dict:
+    """Configuration tables with ``refine.steps`` left out (the one value an evaluation may change)."""
+    out = {k: v for k, v in tables.items() if k not in ("refine", "__path__")}
+    refine = {k: v for k, v in dict(tables.get("refine", {})).items() if k != "steps"}
+    return out | ({"refine": refine} if refine else {})
+
+
+def _refine_again_for_steps(out: Path, tables: dict, snapshots, log) -> None:
+    """Prepare the fusion run in ``out/run`` for the evaluation's step counts: a run started with another
+    refinement length (``refine.steps``, the largest ``[eval] steps``) and the same configuration
+    otherwise takes the new length, and a finished refinement that lacks a snapshot the evaluation asks
+    for, or ran to another length, is run again from ``RUN/cross_init``. The refinement and the stages
+    after it are then marked undone and the rows and change detection read from the fused model are
+    dropped. Any other configuration change is left for the resumed run to refuse. An extended run
+    cannot be refined again."""
     run_dir = out / "run"
     if not (run_dir / "run.json").is_file():
         return
     run = RunDir.open(run_dir, finished=False)
-    if not run.done("refine"):
+    started = run.config
+    before = dict(started.get("refine", {})).get("steps", RefineConfig().steps)
+    steps = tables["refine"]["steps"]
+    config = None
+    if before != steps:
+        if config_changes(_without_refine_steps(started), _without_refine_steps(tables)):
+            return
+        config = tables
+    refined = run.done("refine")
+    missing = [k for k in snapshots if not (run.snapshot_dir(k) / "model.json").is_file()] if refined else []
+    if config is None and not missing:
         return
-    missing = [k for k in snapshots if not (run.snapshot_dir(k) / "model.json").is_file()]
-    if not missing:
+    if not refined:
+        log(f"[eval] the refinement will run {steps:,} steps (the run was started with {before:,})")
+        run.checkpoint("refine").unlink(missing_ok=True)
+        run.undo((), config=config)
         return
+    why = f"no refinement snapshot at {missing}" if config is None else f"a refinement of {before:,} steps"
     after = run.stages_after("refine")
     if any(stage not in _AFTER_REFINE for stage in after):
         raise InputError(
-            f"the run has no refinement snapshot at {missing} and was extended since ({', '.join(after)})",
+            f"the run has {why} and was extended since ({', '.join(after)}): it cannot be refined again",
             path=run / "run.json",
             field="eval.steps",
             fix="evaluate with the step counts it was refined for, or choose another --out",
         )
-    log(f"[eval] the run has no refinement snapshot at {missing}: its refinement is run again to keep them")
-    run.undo(("refine", *_AFTER_REFINE))
+    log(f"[eval] the run has {why}: its refinement is run again to {steps:,} steps")
+    run.undo(("refine", *_AFTER_REFINE), config=config)
     rows = read_json(out / "rows.json", {})
     write_json(out / "rows.json", {k: v for k, v in rows.items() if not k.startswith("ours_")})
     (out / "change.json").unlink(missing_ok=True)
@@ -483,7 +509,7 @@ def _fuse(scene, setup: EvalSetup, out: Path, progress: bool, log, mesh=None) ->
     dirs = date_dirs(data)
     ec = setup.eval
     run_dir = out / "run"
-    _refine_again_for_snapshots(out, ec.steps[:-1], log)
+    _refine_again_for_steps(out, setup.fusion.tables, ec.steps[:-1], log)
     t0 = time.perf_counter()
     run_fusion(
         dirs,

@@ -1,0 +1,168 @@
+"""The combined refinement's length and rates, from one cross-initialised model of a finished evaluation,
+against Individual +N at the same step counts.
+
+    python benchmarks/bench_refine_length.py --eval DIR --steps 1000 3000 --name refine_length_flood
+    python benchmarks/bench_refine_length.py --eval DIR --steps 1000 --variant 'α rate 0.05|lr_alpha=0.05'
+
+DIR: the ``--out`` of ``python -m cfgs_jax.pipeline eval`` (its ``run/``, or with ``--known-transforms``
+its ``known_transforms/run/``). Each variant (the run's own ``[refine]`` table, then each ``--variant
+'LABEL|key=value,…'`` of it) refines ``RUN/cross_init`` once for ``max(--steps)`` steps and is evaluated
+on the test views after every count in ``--steps`` (the eval's snapshots: the position schedule decays over
+the whole run). Individual +N trains each date's own model ``max(--steps)`` more steps (the eval's
+baseline) in WORK. Every row states α's median and the share of Gaussians with α > 0.9 (refinement starts
+with α halved, and α's rate bounds how fast it comes back). Resumable: finished variants are read from
+WORK. Writes benchmarks/results/NAME.{md,json}.
+"""
+
+from __future__ import annotations
+
+import argparse
+import ast
+import dataclasses
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from common import result_header, write_result
+
+
+def parse_variant(text: str) -> tuple[str, dict]:
+    """'LABEL|key=value,key=value' → (label, {key: value}) with Python literals as values."""
+    label, _, body = text.partition("|")
+    over = {}
+    for item in filter(None, body.split(",")):
+        key, _, value = item.partition("=")
+        over[key.strip()] = ast.literal_eval(value.strip())
+    return label.strip(), over
+
+
+def alpha_summary(model) -> dict:
+    from cfgs_jax.model import opacities
+
+    a = np.asarray(opacities(model.gaussians), np.float64)
+    return {"alpha_median": float(np.median(a)), "alpha_above_0.9": float(np.mean(a > 0.9))}
+
+
+def row(label: str, steps: int, metrics: dict, model=None, **extra) -> dict:
+    out = {"label": label, "steps": steps} | {k: metrics["mean"][k] for k in ("psnr", "ssim", "lpips")}
+    out["dates"] = {n: {k: d[k] for k in ("psnr", "ssim", "lpips")} for n, d in metrics["dates"].items()}
+    return out | (alpha_summary(model) if model is not None else {}) | extra
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--eval", required=True, help="an evaluation's --out folder")
+    ap.add_argument("--known-transforms", action="store_true", help="use its known_transforms/run")
+    ap.add_argument("--steps", type=int, nargs="+", required=True)
+    ap.add_argument("--variant", action="append", default=[], help="'LABEL|key=value,…' over [refine]")
+    ap.add_argument("--no-baseline", action="store_true", help="skip Individual +N")
+    ap.add_argument("--work", default=None, help="default: DIR/refine_length")
+    ap.add_argument("--name", default="refine_length")
+    args = ap.parse_args()
+
+    from cfgs_jax import train
+    from cfgs_jax.evaluation.protocol import _individual_plus
+    from cfgs_jax.fusion.config import RunConfig
+    from cfgs_jax.fusion.evaluate import evaluate_fused, weighted_mean
+    from cfgs_jax.fusion.refine import refine
+    from cfgs_jax.io.fused import read_fused
+    from cfgs_jax.io.run_dir import RunDir, date_views
+
+    steps = sorted(set(args.steps))
+    eval_dir = Path(args.eval)
+    run_dir = eval_dir / ("known_transforms/run" if args.known_transforms else "run")
+    work = Path(args.work or eval_dir / "refine_length")
+    work.mkdir(parents=True, exist_ok=True)
+    run = RunDir.open(run_dir)
+    config = RunConfig.parse(run.config)
+    scenes = [train.read_scene(p, config.train) for p in run.dataset_paths]
+    sims = run.sims()
+    views = [date_views(sc, sm) for sc, sm in zip(scenes, sims)]
+    test = [date_views(sc, sm, "test") for sc, sm in zip(scenes, sims)]
+    weights = [len(v.cameras) for v in test]
+    extent = train.scene_extent(scenes[0].cameras)
+
+    def evaluate(model) -> dict:
+        return evaluate_fused(model, test, render_config=config.render, lpips_net="alex")
+
+    rows = []
+    merged = read_fused(run_dir / "merged")
+    rows.append(row("Merged (each date's own model)", 0, evaluate(merged), merged))
+    cross = read_fused(run_dir / "cross_init")
+    rows.append(row("after cross-init (no refinement)", 0, evaluate(cross), cross))
+
+    variants = [("Ours", {})] + [parse_variant(v) for v in args.variant]
+    for k, (label, over) in enumerate(variants):
+        cache = work / f"variant_{k}.json"
+        done = json.loads(cache.read_text()) if cache.is_file() else None
+        if done is not None and (done["overrides"] != over or done["steps"] != steps):
+            done = None
+        if done is None:
+            fc = dataclasses.replace(config.refine, **(over | {"steps": max(steps)}))
+            got = []
+
+            def snapshot(n, model, label=label, got=got):
+                got.append(row(f"{label} {n:,}", n, evaluate(model), model, group=label))
+                print(json.dumps(got[-1])[:300], flush=True)
+
+            t0 = time.perf_counter()
+            model, report = refine(
+                cross,
+                views,
+                fc,
+                extent=extent,
+                train_config=config.train,
+                render_config=config.render,
+                snapshot_steps=tuple(s for s in steps if s < max(steps)),
+                on_snapshot=snapshot,
+                checkpoint=work / f"variant_{k}_checkpoint.npz",
+            )
+            snapshot(max(steps), model)
+            done = {"overrides": over, "steps": steps, "rows": got, "seconds": time.perf_counter() - t0}
+            done["zeroed_per_date"] = report.get("zeroed_per_date")
+            cache.write_text(json.dumps(done))
+            (work / f"variant_{k}_checkpoint.npz").unlink(missing_ok=True)
+        rows += [r | {"overrides": over} for r in done["rows"]]
+
+    if not args.no_baseline:
+        base = work / "individual"
+        base.mkdir(exist_ok=True)
+        if not (base / "dates").exists():
+            (base / "dates").symlink_to((eval_dir / "run" / "dates").resolve())  # the per-date models
+        plus = _individual_plus(
+            base, scenes, config.train, tuple(steps), config.render, "alex", False, lambda *a, **k: None
+        )
+        for n in steps:
+            per = {sc.root.name: plus[sc.root.name]["steps"][str(n)] for sc in scenes}
+            m = weighted_mean(list(per.values()), weights)
+            rows.append(row(f"Individual +{n:,}", n, {"mean": m, "dates": per}, group="Individual"))
+
+    result = result_header(args) | {"run": str(run_dir), "dates": run.names, "rows": rows}
+    write_result(args.name, result, markdown(result))
+
+
+def markdown(result: dict) -> str:
+    names = result["dates"]
+    lines = [
+        f"# Refinement length and rates from one cross-init: `{result['run']}`",
+        "",
+        f"`{result['command']}` — {result['date']}, {result['machine']}.",
+        "",
+        "Mean over each date's test views (weighted by their count); α: median and share above 0.9.",
+        "",
+        "| row | PSNR ↑ | SSIM ↑ | LPIPS ↓ | " + " | ".join(f"{n} PSNR" for n in names) + " | α median | α > 0.9 |",
+        "|---|---:|---:|---:|" + "---:|" * len(names) + "---:|---:|",
+    ]
+    for r in result["rows"]:
+        per = " | ".join(f"{r['dates'][n]['psnr']:.2f}" for n in names)
+        alpha = f"{r['alpha_median']:.3f} | {100 * r['alpha_above_0.9']:.1f} %" if "alpha_median" in r else "– | –"
+        lines.append(f"| {r['label']} | {r['psnr']:.2f} | {r['ssim']:.4f} | {r['lpips']:.4f} | {per} | {alpha} |")
+    return "\n".join(lines) + "\n"
+
+
+if __name__ == "__main__":
+    main()
