@@ -53,11 +53,11 @@ def cluster_labels(points: np.ndarray, radius: float, reach: np.ndarray | None =
     if len(points) == 0:
         return np.zeros(0, np.int64)
     tree = cKDTree(points)
-    if reach is None or not np.any(np.asarray(reach) > radius / 2):
+    reach = None if reach is None else np.asarray(reach, np.float64)
+    if reach is None or not np.any(reach > radius / 2):  # reach_i + reach_j ≤ radius: the radius decides
         pairs = tree.query_pairs(radius, output_type="ndarray") if radius > 0 else np.zeros((0, 2), int)
     else:
         # a pair linked by reach lies within 2·max(reach_i, reach_j) of the point with the larger reach
-        reach = np.asarray(reach, np.float64)
         near = tree.query_ball_point(points, np.maximum(radius, 2.0 * reach))
         i = np.repeat(np.arange(len(points)), [len(n) for n in near])
         j = np.concatenate([np.asarray(n, np.int64) for n in near]) if len(i) else np.zeros(0, np.int64)
