@@ -9,7 +9,7 @@ its ``known_transforms/run/``). Each variant (the run's own ``[refine]`` table, 
 'LABEL|key=value,…'`` of it) refines ``RUN/cross_init`` once for ``max(--steps)`` steps and is evaluated
 on the test views after every count in ``--steps`` (the eval's snapshots: the position schedule decays over
 the whole run). Individual +N trains each date's own model ``max(--steps)`` more steps (the eval's
-baseline) in WORK. Every row states α's median and the share of Gaussians with α > 0.9 (refinement starts
+baseline) in WORK, or is read from the eval's own when it evaluated every count. Every row states α's median and the share of Gaussians with α > 0.9 (refinement starts
 with α halved, and α's rate bounds how fast it comes back). Resumable: finished variants are read from
 WORK. Writes benchmarks/results/NAME.{md,json}.
 """
@@ -65,10 +65,11 @@ def main() -> None:
     args = ap.parse_args()
 
     from cfgs_jax import train
-    from cfgs_jax.evaluation.protocol import _individual_plus
+    from cfgs_jax.evaluation.protocol import individual_plus
     from cfgs_jax.fusion.config import RunConfig
     from cfgs_jax.fusion.evaluate import evaluate_fused, weighted_mean
     from cfgs_jax.fusion.refine import refine
+    from cfgs_jax.io.atomic import read_json
     from cfgs_jax.io.fused import read_fused
     from cfgs_jax.io.run_dir import RunDir, date_views
 
@@ -129,11 +130,17 @@ def main() -> None:
         rows += [r | {"overrides": over} for r in done["rows"]]
 
     if not args.no_baseline:
-        base = work / "individual"
+        own = eval_dir / "run"  # the eval's own Individual +N, where it was evaluated at every count
+        covered = all(
+            str(n) in (read_json(own / "individual_plus" / sc.root.name / "result.json") or {}).get("steps", {})
+            for sc in scenes
+            for n in steps
+        )
+        base = own if covered else work / "individual"
         base.mkdir(exist_ok=True)
         if not (base / "dates").exists():
             (base / "dates").symlink_to((eval_dir / "run" / "dates").resolve())  # the per-date models
-        plus = _individual_plus(
+        plus = individual_plus(
             base, scenes, config.train, tuple(steps), config.render, "alex", False, lambda *a, **k: None
         )
         for n in steps:

@@ -187,7 +187,7 @@ def _row(name: str, metrics: dict, gaussians: int, **extra) -> dict:
     } | extra
 
 
-def _individual_plus(
+def individual_plus(
     run_dir: Path,
     scenes,
     train_config: train.TrainConfig,
@@ -323,7 +323,7 @@ class _Evaluation:
     def baseline_rows(self, progress: bool) -> list[dict]:
         """Individual +N: each date's model trained N more steps alone."""
         ec = self.ec
-        plus = _individual_plus(
+        plus = individual_plus(
             self.run_dir,
             self.scenes,
             self.setup.fusion.train,
