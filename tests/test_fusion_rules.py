@@ -470,3 +470,23 @@ def test_add_date_inserts_a_date_at_its_place_in_time():
     assert not np.any(np.asarray(out.light_logits)[:, 1]) and not np.any(np.asarray(out.light_logits)[2:])
     assert np.asarray(out.origin).tolist() == [0, 2, 1, 1]
     np.testing.assert_array_equal(np.asarray(out.gaussians.means)[2:], np.asarray(b.means))
+
+
+def test_a_new_date_is_posed_only_on_points_two_registered_dates_see():
+    """Hand case: of the date's observations only those of points whose track holds images of at least
+    two distinct registered dates remain (two images of one registered date are one date; the date's own
+    images do not count)."""
+    from cfgs_jax.fusion.register import persistent_observations
+
+    tracks = {
+        1: {"ref0", "ref1", "new"},  # seen by both registered dates: kept
+        2: {"ref1", "new"},  # one registered date (a surface that may have changed since): dropped
+        3: {"ref0", "new"},
+        4: {"ref0", "ref2", "new"},
+        5: {"new"},
+    }
+    images = [(10, [(0, 1), (1, 2), (2, 3), (7, 5)]), (11, [(0, 4), (5, 2)]), (12, [(3, 2)])]
+    assert persistent_observations(tracks, images) == {10: [(0, 1)], 11: [(0, 4)], 12: []}
+    assert persistent_observations(tracks, images, min_dates=3) == {10: [], 11: [], 12: []}
+    everything = persistent_observations(tracks, images, min_dates=1)
+    assert everything == {10: [(0, 1), (1, 2), (2, 3)], 11: [(0, 4), (5, 2)], 12: [(3, 2)]}

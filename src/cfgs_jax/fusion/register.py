@@ -70,7 +70,9 @@ def transform_gaussians(g: Gaussians, sim3: Sim3) -> Gaussians:
 class RegisterConfig(Checked):
     """``images_per_date``: evenly spaced images of each date put into the joint SfM (more: slower,
     more robust). ``min_registered``: fewer registered images of either date is an error.
-    ``seed``: COLMAP's RANSAC/mapper seed (runs are deterministic)."""
+    ``seed``: COLMAP's RANSAC/mapper seed (runs are deterministic). ``persistent_structure``: with two
+    or more dates registered, pose the date's images against only the points at least two of them see,
+    triangulated without the date (a surface that changed since one registered date cannot drag it)."""
 
     images_per_date: Annotated[int, msgspec.Meta(ge=2)] = 12
     min_registered: Annotated[int, AT_LEAST_ONE] = 3
@@ -82,6 +84,7 @@ class RegisterConfig(Checked):
     abs_pose_min_num_inliers: Annotated[int, AT_LEAST_ONE] = 15
     init_min_tri_angle: Annotated[float, POSITIVE] = 4.0
     min_num_matches: Annotated[int, AT_LEAST_ONE] = 10
+    persistent_structure: bool = True
 
     TABLE = "register"
 
@@ -248,22 +251,85 @@ def _joint_sfm(anchors, date, config: RegisterConfig, workdir) -> tuple:
     return max(maps.values(), key=lambda r: r.num_reg_images()), picked
 
 
-def _registered_poses(rec, picked: dict, anchors, date, config: RegisterConfig) -> tuple[list, list]:
+def persistent_observations(tracks: dict, date_images: list, min_dates: int = 2) -> dict:
+    """{image: [(keypoint index, point id)]} of the ``date_images`` keeping only the points whose
+    track holds images of at least ``min_dates`` distinct registered dates. ``tracks``: {point id:
+    set of the tags ("ref<j>" for registered date j, "new" for the date) of the images that see it};
+    ``date_images``: (image, [(keypoint index, point id)]) pairs. A point the registered dates agree on
+    persisted between their captures; one that only a single registered date sees may lie on a surface
+    that has changed since, which would drag the date towards that date's state."""
+    keep = {pid for pid, tags in tracks.items() if len({t for t in tags if t.startswith("ref")}) >= min_dates}
+    return {image: [(k, pid) for k, pid in obs if pid in keep] for image, obs in date_images}
+
+
+def _pose_on_persistent_structure(rec, picked: dict, config: RegisterConfig) -> dict | None:
+    """The date's images posed against the structure at least two registered dates see, that
+    structure bundle-adjusted from the registered dates' images alone: {SfM image name: cam_from_world
+    4×4} of those and of the registered dates' images in the adjusted frame, or None when fewer than ``min_registered`` of the date's images pose (or fewer than two
+    dates are registered): the joint SfM's own poses then stand."""
+    import pycolmap
+
+    tag_of = {i: picked[img.name][0] for i, img in rec.images.items() if img.name in picked}
+    if len({t for t in tag_of.values() if t != "new"}) < 2:
+        return None
+    tracks = {pid: {tag_of.get(e.image_id, "") for e in p.track.elements} for pid, p in rec.points3D.items()}
+    date_images = [
+        (i, [(k, p.point3D_id) for k, p in enumerate(img.points2D) if p.has_point3D()])
+        for i, img in rec.images.items()
+        if tag_of.get(i) == "new" and img.has_pose
+    ]
+    observations = persistent_observations(tracks, date_images)
+    anchored = pycolmap.Reconstruction(rec)
+    for i, _ in date_images:
+        anchored.deregister_frame(anchored.images[i].frame_id)
+    options = pycolmap.BundleAdjustmentOptions()
+    options.print_summary = False
+    options.refine_focal_length = options.refine_principal_point = options.refine_extra_params = False
+    pycolmap.bundle_adjustment(anchored, options)
+    poses = {}
+    for i, obs in observations.items():
+        obs = [(k, pid) for k, pid in obs if anchored.exists_point3D(pid)]
+        if len(obs) < config.abs_pose_min_num_inliers:
+            continue
+        img = rec.images[i]
+        options = pycolmap.AbsolutePoseEstimationOptions()
+        options.ransac.random_seed = config.seed
+        got = pycolmap.estimate_and_refine_absolute_pose(
+            np.array([img.points2D[k].xy for k, _ in obs], np.float64),
+            np.array([anchored.points3D[pid].xyz for _, pid in obs], np.float64),
+            rec.cameras[img.camera_id],
+            options,
+        )
+        if got is not None and got["num_inliers"] >= config.abs_pose_min_num_inliers:
+            poses[img.name] = got["cam_from_world"].matrix().tolist() + [[0, 0, 0, 1]]
+    if len(poses) < config.min_registered:
+        return None
+    for img in anchored.images.values():  # the registered dates' images, in the same adjusted frame
+        if img.has_pose and img.name in picked:
+            poses[img.name] = img.cam_from_world().matrix().tolist() + [[0, 0, 0, 1]]
+    return poses
+
+
+def _registered_poses(rec, picked: dict, anchors, date, config: RegisterConfig, poses=None) -> tuple[list, list]:
     """For the registered images of the registered dates (their cameras posed in the reference frame)
     and of ``date``: [SfM centres, SfM rotations, own centres, own rotations] (world-from-camera), the
-    registered dates' then the date's; too few registered is an error."""
+    registered dates' then the date's; too few registered is an error. ``poses``: {image name:
+    cam_from_world} replacing the SfM's poses (only those images then count)."""
     pairs = {"ref": ([], [], [], []), "new": ([], [], [], [])}
     for img in rec.images.values():
         if not img.has_pose or img.name not in picked:
             continue
         tag, i = picked[img.name]
+        if poses is not None and img.name not in poses:
+            continue
         if tag == "new":
             camera = date.cameras[i]
         else:
             scene, sim = anchors[int(tag[3:])]
             camera = camera_in_frame(scene.cameras[i], sim)
         key = "new" if tag == "new" else "ref"
-        w_sfm = _world_from_cam(img.cam_from_world().matrix().tolist() + [[0, 0, 0, 1]])
+        pose = img.cam_from_world().matrix().tolist() + [[0, 0, 0, 1]] if poses is None else poses[img.name]
+        w_sfm = _world_from_cam(pose)
         w_own = _world_from_cam(camera.cam_from_world)
         for lst, v in zip(pairs[key], (w_sfm[:3, 3], w_sfm[:3, :3], w_own[:3, 3], w_own[:3, :3])):
             lst.append(v)
@@ -318,7 +384,10 @@ def register_date(
     posed there) and the date's images tie it to the date's frame, both through the camera poses the
     datasets already have: a robust closed-form Sim(3)
     (pycolmap ``estimate_sim3d_robust`` on camera centres) initialises a joint optimistix
-    Levenberg–Marquardt over centres and orientations. Fewer than ``min_registered`` images of
+    Levenberg–Marquardt over centres and orientations. With two or more dates registered, the date's
+    images are first posed again against the points at least two of them see, bundle-adjusted without
+    the date (``persistent_structure``): features on a surface that changed after one registered date
+    (risen water) match across dates and would otherwise drag the date's cameras. Fewer than ``min_registered`` images of
     either date registered, or a fit that does not converge, is an error naming the date."""
     import pycolmap
 
@@ -327,7 +396,8 @@ def register_date(
         pycolmap.logging.minloglevel = 2  # COLMAP's per-image INFO lines only with --verbose
     anchors = [(reference, Sim3.identity())] if isinstance(reference, Scene) else list(reference)
     rec, picked = _joint_sfm(anchors, date, config, workdir)
-    ref, new = _registered_poses(rec, picked, anchors, date, config)
+    poses = _pose_on_persistent_structure(rec, picked, config) if config.persistent_structure else None
+    ref, new = _registered_poses(rec, picked, anchors, date, config, poses)
     n_ref, n_new = len(ref[0]), len(new[0])
     centres = np.stack(
         [np.asarray(camera_in_frame(c, anchors[0][1]).center, np.float64) for c in anchors[0][0].cameras]
