@@ -70,9 +70,10 @@ def transform_gaussians(g: Gaussians, sim3: Sim3) -> Gaussians:
 class RegisterConfig(Checked):
     """``images_per_date``: evenly spaced images of each date put into the joint SfM (more: slower,
     more robust). ``min_registered``: fewer registered images of either date is an error.
-    ``seed``: COLMAP's RANSAC/mapper seed (runs are deterministic). ``persistent_structure``: with two
-    or more dates registered, pose the date's images against only the points at least two of them see,
-    triangulated without the date (a surface that changed since one registered date cannot drag it)."""
+    ``seed``: COLMAP's RANSAC/mapper seed (its threaded matching and mapping still vary slightly from
+    run to run). ``persistent_structure``: with two or more dates registered, pose the date's images
+    against only the points at least two of them see, triangulated without the date (a surface that
+    changed since one registered date cannot drag it)."""
 
     images_per_date: Annotated[int, msgspec.Meta(ge=2)] = 12
     min_registered: Annotated[int, AT_LEAST_ONE] = 3
