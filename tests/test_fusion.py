@@ -95,6 +95,36 @@ def two_dates(tmp_path_factory):
     return synthetic.render_dataset(spec, tmp_path_factory.mktemp("two"), dates=[0, 1], progress=False)
 
 
+def test_a_third_date_is_posed_on_what_both_registered_dates_see(tmp_path):
+    """Three corals dates orbiting the whole scene: the third registers into the SfM of the first two
+    (their true Sim(3)s), its images posed by PnP on the points both see, bundle-adjusted without it; it
+    lands within 0.5° / 1 % / 1 % of the extent of the truth, as the joint SfM's own poses do."""
+    import json
+
+    from cfgs_jax import synthetic
+    from cfgs_jax.fusion.register import rotation_angle
+
+    spec = synthetic.make_preset("corals", seed=1, width=160, height=120, images_per_date=12, spp=8)
+    root = synthetic.render_dataset(spec, tmp_path, dates=[0, 1, 2], progress=False)
+    gt = json.loads((root / "ground_truth.json").read_text())["dates"]
+    want = [
+        Sim3.from_dict(gt[0]["date_from_world"]).compose(Sim3.from_dict(gt[k]["world_from_date"])) for k in range(3)
+    ]
+    scenes = [cj.io.read_colmap(root / f"d{k}") for k in range(3)]
+    centres = np.stack([np.asarray(c.center, np.float64) for c in scenes[2].cameras])
+    reference = np.stack([np.asarray(c.center, np.float64) for c in scenes[0].cameras])  # its frame is the reference
+    extent = np.max(np.linalg.norm(reference - reference.mean(0), axis=1))
+    anchors = [(scenes[0], want[0]), (scenes[1], want[1])]
+    for persistent in (True, False):
+        r = fusion.register_date(anchors, scenes[2], config=fusion.RegisterConfig(persistent_structure=persistent))
+        assert r.posed_on_persistent == persistent and r.registered_date >= 6
+        assert r.to_dict()["posed_on_persistent"] == persistent
+        assert np.degrees(rotation_angle(r.transform.rotation, want[2].rotation)) < 0.5
+        assert abs(r.transform.scale / want[2].scale - 1) < 0.01
+        moved = np.linalg.norm(r.transform.apply(centres) - want[2].apply(centres), axis=1)
+        assert moved.max() / extent < 0.01
+
+
 def test_registration_recovers_the_ground_truth_sim3(two_dates):
     import json
 
@@ -149,6 +179,8 @@ def test_a_date_that_overlaps_only_a_later_date_registers_into_the_sfm_of_both(t
     r1 = fusion.register_date(d0, d1)
     r2 = fusion.register_date([(d0, Sim3.identity()), (d1, r1.transform)], d2)
     assert r2.registered_date == 12 and r2.registered_reference >= 12
+    assert not r1.posed_on_persistent  # one registered date: nothing to agree with
+    assert not r2.posed_on_persistent  # d2 sees too little of what d0 and d1 both see: the joint SfM's poses
     # the scene's size in the reference frame: how far d1's orbit lies from its centre
     orbit_ref = want[1].apply(np.stack([np.asarray(c.center, np.float64) for c in d1.cameras]))
     extent = np.max(np.linalg.norm(orbit_ref - orbit_ref.mean(0), axis=1))

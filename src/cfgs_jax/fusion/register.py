@@ -93,13 +93,16 @@ class RegisterConfig(Checked):
 @dataclasses.dataclass(frozen=True)
 class Registration:
     """``transform``: date frame → reference frame. Residuals are RMS camera-centre misfits after the
-    fit, as a fraction of the reference cameras' extent, and RMS orientation misfits in degrees."""
+    fit, as a fraction of the reference cameras' extent, and RMS orientation misfits in degrees.
+    ``posed_on_persistent``: the date's images were posed on the structure at least two registered
+    dates see (``RegisterConfig.persistent_structure``), not taken from the joint SfM."""
 
     transform: Sim3
     registered_reference: int
     registered_date: int
     centre_residual: float
     rotation_residual_deg: float
+    posed_on_persistent: bool = False
 
     def to_dict(self) -> dict:
         return {
@@ -108,6 +111,7 @@ class Registration:
             "registered_date": self.registered_date,
             "centre_residual_rel": self.centre_residual,
             "rotation_residual_deg": self.rotation_residual_deg,
+            "posed_on_persistent": self.posed_on_persistent,
         }
 
 
@@ -421,7 +425,7 @@ def register_date(
     r_err = [np.degrees(rotation_angle(a.rotation @ r1, r2)) for r1, r2 in zip(ref[1], ref[3])]
     r_err += [np.degrees(rotation_angle(a.rotation @ r1, b.rotation @ r2)) for r1, r2 in zip(new[1], new[3])]
     rms_centre = float(np.sqrt(np.mean(np.sum(c_err**2, axis=1))) / extent)
-    return Registration(b, n_ref, n_new, rms_centre, float(np.sqrt(np.mean(np.square(r_err)))))
+    return Registration(b, n_ref, n_new, rms_centre, float(np.sqrt(np.mean(np.square(r_err)))), poses is not None)
 
 
 def rotation_angle(r1, r2) -> float:

@@ -144,6 +144,7 @@ def _register(job: Job, anchors: list[tuple[Scene, Sim3]], date: Scene, name: st
     job.log(
         f"  {r.registered_reference} + {r.registered_date} images registered; centre residual "
         f"{100 * r.centre_residual:.2f} % of the extent, rotation {r.rotation_residual_deg:.2f}°"
+        + ("; the date posed on the points the registered dates share" if r.posed_on_persistent else "")
     )
     return r.to_dict() | {"source": "joint SfM", "with": list(names)}
 
