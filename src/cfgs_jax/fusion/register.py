@@ -270,8 +270,9 @@ def persistent_observations(tracks: dict, date_images: list, min_dates: int = 2)
 def _pose_on_persistent_structure(rec, picked: dict, config: RegisterConfig) -> dict | None:
     """The date's images posed against the structure at least two registered dates see, that
     structure bundle-adjusted from the registered dates' images alone: {SfM image name: cam_from_world
-    4×4} of those and of the registered dates' images in the adjusted frame, or None when fewer than ``min_registered`` of the date's images pose (or fewer than two
-    dates are registered): the joint SfM's own poses then stand."""
+    4×4} of those and of the registered dates' images in the adjusted frame; None when fewer than
+    ``min_registered`` of the date's images pose, or fewer than two dates are registered (the joint
+    SfM's own poses then stand)."""
     import pycolmap
 
     tag_of = {i: picked[img.name][0] for i, img in rec.images.items() if img.name in picked}
@@ -287,23 +288,23 @@ def _pose_on_persistent_structure(rec, picked: dict, config: RegisterConfig) -> 
     anchored = pycolmap.Reconstruction(rec)
     for i, _ in date_images:
         anchored.deregister_frame(anchored.images[i].frame_id)
-    options = pycolmap.BundleAdjustmentOptions()
-    options.print_summary = False
-    options.refine_focal_length = options.refine_principal_point = options.refine_extra_params = False
-    pycolmap.bundle_adjustment(anchored, options)
+    adjust = pycolmap.BundleAdjustmentOptions()
+    adjust.print_summary = False
+    adjust.refine_focal_length = adjust.refine_principal_point = adjust.refine_extra_params = False  # as the mapper
+    pycolmap.bundle_adjustment(anchored, adjust)
+    pnp = pycolmap.AbsolutePoseEstimationOptions()
+    pnp.ransac.random_seed = config.seed
     poses = {}
     for i, obs in observations.items():
         obs = [(k, pid) for k, pid in obs if anchored.exists_point3D(pid)]
         if len(obs) < config.abs_pose_min_num_inliers:
             continue
         img = rec.images[i]
-        options = pycolmap.AbsolutePoseEstimationOptions()
-        options.ransac.random_seed = config.seed
         got = pycolmap.estimate_and_refine_absolute_pose(
             np.array([img.points2D[k].xy for k, _ in obs], np.float64),
             np.array([anchored.points3D[pid].xyz for _, pid in obs], np.float64),
             rec.cameras[img.camera_id],
-            options,
+            pnp,
         )
         if got is not None and got["num_inliers"] >= config.abs_pose_min_num_inliers:
             poses[img.name] = got["cam_from_world"].matrix().tolist() + [[0, 0, 0, 1]]
