@@ -9,8 +9,9 @@ its ``known_transforms/run/``). Each variant (the run's own ``[refine]`` table, 
 'LABEL|key=value,…'`` of it) refines ``RUN/cross_init`` once for ``max(--steps)`` steps and is evaluated
 on the test views after every count in ``--steps`` (the eval's snapshots: the position schedule decays over
 the whole run). Individual +N trains each date's own model ``max(--steps)`` more steps (the eval's
-baseline) in WORK, or is read from the eval's own when it evaluated every count. Every row states α's median and the share of Gaussians with α > 0.9 (refinement starts
-with α halved, and α's rate bounds how fast it comes back). Resumable: finished variants are read from
+baseline) in WORK, or is read from the eval's own when it evaluated every count. Every row states α's
+median and the share of Gaussians with α > 0.9 (refinement starts with α halved, and α's rate bounds how
+fast it comes back). Resumable: finished variants are read from
 WORK. Writes benchmarks/results/NAME.{md,json}.
 """
 

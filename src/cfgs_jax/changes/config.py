@@ -26,9 +26,9 @@ class ChangesConfig(Checked):
     distance are linked — with ``link_extent`` > 0 also those closer than ``link_extent`` × the sum of
     their largest standard deviations (each at most the link distance: large, sparse splats such as a
     water surface's touch where their centres lie far apart) — and so are Gaussians scored above
-    ``grow_above`` (≤ 0.5) that touch them; a region needs at least ``min_region_gaussians`` Gaussians scored > 0.5 and at least
-    ``min_region_share`` of the two dates' Gaussians as seeds (3D; the larger bound counts, so that a
-    denser reconstruction of the same scene, whose objects and whose noise patches both hold more
+    ``grow_above`` (≤ 0.5) that touch them; a region needs at least ``min_region_gaussians`` Gaussians
+    scored > 0.5 and at least ``min_region_share`` of the two dates' Gaussians as seeds (3D; the larger
+    bound counts, so that a denser reconstruction of the same scene, whose objects and whose noise patches both hold more
     Gaussians, needs proportionally more), and ``min_region_pixels`` pixels (image).
     ``pixel_threshold``: a pixel of a view counts as changed when the regions' Gaussians hold more than
     this share of the compositing weight of what it shows (``maps.change_mask``).

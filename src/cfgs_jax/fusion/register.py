@@ -119,6 +119,11 @@ def _evenly(n: int, k: int) -> list[int]:
     return sorted({int(round(x)) for x in np.linspace(0, n - 1, min(n, k))})
 
 
+def _matrix4(rigid) -> np.ndarray:
+    """A pycolmap ``Rigid3d`` as a 4×4 homogeneous matrix."""
+    return np.vstack([np.asarray(rigid.matrix(), np.float64), [0.0, 0.0, 0.0, 1.0]])
+
+
 def _world_from_cam(cam_from_world) -> np.ndarray:
     return np.linalg.inv(np.asarray(cam_from_world, np.float64))
 
@@ -307,12 +312,12 @@ def _pose_on_persistent_structure(rec, picked: dict, config: RegisterConfig) -> 
             pnp,
         )
         if got is not None and got["num_inliers"] >= config.abs_pose_min_num_inliers:
-            poses[img.name] = got["cam_from_world"].matrix().tolist() + [[0, 0, 0, 1]]
+            poses[img.name] = _matrix4(got["cam_from_world"])
     if len(poses) < config.min_registered:
         return None
     for img in anchored.images.values():  # the registered dates' images, in the same adjusted frame
         if img.has_pose and img.name in picked:
-            poses[img.name] = img.cam_from_world().matrix().tolist() + [[0, 0, 0, 1]]
+            poses[img.name] = _matrix4(img.cam_from_world())
     return poses
 
 
@@ -334,8 +339,7 @@ def _registered_poses(rec, picked: dict, anchors, date, config: RegisterConfig, 
             scene, sim = anchors[int(tag[3:])]
             camera = camera_in_frame(scene.cameras[i], sim)
         key = "new" if tag == "new" else "ref"
-        pose = img.cam_from_world().matrix().tolist() + [[0, 0, 0, 1]] if poses is None else poses[img.name]
-        w_sfm = _world_from_cam(pose)
+        w_sfm = _world_from_cam(_matrix4(img.cam_from_world()) if poses is None else poses[img.name])
         w_own = _world_from_cam(camera.cam_from_world)
         for lst, v in zip(pairs[key], (w_sfm[:3, 3], w_sfm[:3, :3], w_own[:3, 3], w_own[:3, :3])):
             lst.append(v)
@@ -393,8 +397,9 @@ def register_date(
     Levenberg–Marquardt over centres and orientations. With two or more dates registered, the date's
     images are first posed again against the points at least two of them see, bundle-adjusted without
     the date (``persistent_structure``): features on a surface that changed after one registered date
-    (risen water) match across dates and would otherwise drag the date's cameras. Fewer than ``min_registered`` images of
-    either date registered, or a fit that does not converge, is an error naming the date."""
+    (risen water) match across dates and would otherwise drag the date's cameras. Fewer than
+    ``min_registered`` images of either date registered, or a fit that does not converge, is an error
+    naming the date."""
     import pycolmap
 
     config = config or RegisterConfig()
