@@ -196,7 +196,13 @@ def test_eval_reports_registration_error_and_fuses_again_with_the_exact_transfor
     turn = quat_to_matrix([np.cos(half), *(np.sin(half) * np.array([1.0, 2.0, 2.0]) / 3)])
     shift = np.array([0.03, -0.02, 0.01])
     off = Sim3(exact.scale * 1.02, turn @ exact.rotation, exact.translation + shift)
-    reg["d1"] |= {"transform": off.to_dict(), "source": "joint SfM", "with": ["d0"]}
+    reg["d1"] |= {
+        "transform": off.to_dict(),
+        "source": "joint SfM",
+        "with": ["d0"],
+        "posed_on_persistent": True,
+        "registered_date": 5,
+    }
     reg_path.write_text(json.dumps(reg))
     settings = {**raw, "eval": {**raw["eval"], "known_transforms": False, "compare_known_transforms": True}}
     settings["eval"]["change_detection"] = False
@@ -205,6 +211,7 @@ def test_eval_reports_registration_error_and_fuses_again_with_the_exact_transfor
 
     (err,) = table["registration"]
     assert err["date"] == "d1" and err["with"] == ["d0"]
+    assert err["posed_on_persistent"] and err["registered_date"] == 5
     assert err["rotation_deg"] == pytest.approx(1.0, abs=1e-6) and err["scale_pct"] == pytest.approx(2.0, abs=1e-9)
     # translation error by hand: the largest distance between the two images of d1's camera centres,
     # over the largest distance of d0's cameras from their mean
@@ -230,6 +237,7 @@ def test_eval_reports_registration_error_and_fuses_again_with_the_exact_transfor
     assert row["row"] == f"Ours {last:,}" and row["gaussians"] == len(read_fused(known / "fused"))
     md = (copy / "table.md").read_text()
     assert "Registration against ground truth" in md and "SfM − exact" in md
+    assert "| d1 | d0 | shared points (5 images) |" in md
     assert "the visibility rule set o^p := 0" in md
 
 

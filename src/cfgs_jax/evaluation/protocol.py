@@ -375,7 +375,7 @@ class _Evaluation:
             [np.stack([np.asarray(c.center, np.float64) for c in sc.cameras]) for sc in self.scenes],
         )
         reg = read_json(run.path / "register.json")
-        keys = ("with", "rotation_residual_deg", "centre_residual_rel")
+        keys = ("with", "rotation_residual_deg", "centre_residual_rel", "posed_on_persistent", "registered_date")
         return [e | {k: reg[e["date"]][k] for k in keys if k in reg[e["date"]]} for e in errors]
 
     def change(self, data: Path, scene: str) -> dict:

@@ -59,9 +59,9 @@ def registration_table(errors: list[dict]) -> list[str]:
         f"distance between where the found and the exact Sim(3) put the date's cameras) ≤ "
         f"{t['translation_pct']} % of the scene's extent.",
         "",
-        "| date | registered with | rotation (°) | scale (%) | translation (% extent) | within targets | "
+        "| date | registered with | posed on | rotation (°) | scale (%) | translation (% extent) | within targets | "
         "fit residual: rotation (°) / centres (% extent) |",
-        "|---|---|---:|---:|---:|---|---|",
+        "|---|---|---|---:|---:|---:|---|---|",
     ]
     for e in errors:
         residual = (
@@ -70,15 +70,25 @@ def registration_table(errors: list[dict]) -> list[str]:
             else "–"
         )
         lines.append(
-            f"| {e['date']} | {', '.join(e.get('with', [])) or '–'} | {e['rotation_deg']:.3f} | "
+            f"| {e['date']} | {', '.join(e.get('with', [])) or '–'} | {_posed_on(e)} | {e['rotation_deg']:.3f} | "
             f"{e['scale_pct']:.3f} | {e['translation_pct']:.3f} | {'yes' if e['within_targets'] else 'no'} | "
             f"{residual} |"
         )
     return lines + [
         "",
         "The fit residual needs no ground truth (`register.json`): how far the date's cameras in the joint SfM "
-        "are from one Sim(3) of its own poses.",
+        "are from one Sim(3) of its own poses. Posed on: where the date's camera poses came from — the joint "
+        "SfM, or PnP on only the points that two or more registered dates see "
+        "(`register.persistent_structure`), with the number of the date's images posed.",
     ]
+
+
+def _posed_on(e: dict) -> str:
+    """Where a registered date's poses came from, as a table cell (``register.json``)."""
+    if "posed_on_persistent" not in e:
+        return "–"
+    where = "shared points" if e["posed_on_persistent"] else "joint SfM"
+    return f"{where} ({e['registered_date']} images)" if "registered_date" in e else where
 
 
 def _change_summary(ch: dict | None) -> dict[str, str]:
