@@ -92,10 +92,18 @@ def test_eval_rows_are_the_weighted_test_psnr_of_each_model(protocol):
     ours, ind, w = [], [], []
     for q, name in enumerate(dates):
         plus = read_ply(out / "run" / "individual_plus" / name / "point_cloud.ply")
+        first = len(w)
         for cam_own, cam_ref, gt in _test_views(data, out, q, name):
             ours.append(_psnr_np(render_date(fused, q, cam_ref).image[0], gt))
             ind.append(_psnr_np(splat.render(plus, cam_own).image, gt))
             w.append(1.0)
+        # each date's own figures, in the rows and in the per-date table
+        date_ours, date_ind = np.mean(ours[first:]), np.mean(ind[first:])
+        assert row["Ours 120"]["per_date"][name]["psnr"] == pytest.approx(date_ours, abs=1e-3)
+        assert row["Individual +120"]["per_date"][name]["psnr"] == pytest.approx(date_ind, abs=1e-3)
+        line = next(x for x in (out / "table.md").read_text().splitlines() if x.startswith(f"| {name} | "))
+        cells = [c.split(" / ")[0].removesuffix(" dB") for c in line.strip("|").split(" | ")[1:]]
+        assert [float(c) for c in cells] == pytest.approx([date_ind, date_ours, date_ours - date_ind], abs=0.006)
     assert len(w) == sum(table["test_views"].values()) == 4  # 12 views per date: every 8th is 0 and 8
     assert np.isclose(row["Ours 120"]["psnr"], np.average(ours, weights=w), atol=1e-3)
     assert np.isclose(row["Individual +120"]["psnr"], np.average(ind, weights=w), atol=1e-3)

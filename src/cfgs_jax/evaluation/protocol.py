@@ -337,7 +337,8 @@ class _Evaluation:
         for k in ec.steps:
             m = weighted_mean([plus[n]["steps"][str(k)] for n in self.names], self.weights)
             gaussians = sum(plus[n]["gaussians"] for n in self.names)
-            rows.append(_row(f"Individual +{k:,}", m, gaussians, group="baseline", steps=k))
+            per_date = {n: plus[n]["steps"][str(k)] for n in self.names}
+            rows.append(_row(f"Individual +{k:,}", m, gaussians, group="baseline", steps=k, per_date=per_date))
         return rows
 
     def ablation_rows(self) -> list[dict]:

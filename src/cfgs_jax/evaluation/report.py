@@ -159,10 +159,34 @@ def _method_table(table: dict) -> list[str]:
         "",
         f"Ours − Individual at N = {m['steps']:,}: PSNR {m['psnr']:+.2f} dB, SSIM {m['ssim']:+.4f}, "
         f"LPIPS {m['lpips']:+.4f} (positive: ours better).",
+        *_per_date_margins(table),
         "",
         *_refinement_counts(table.get("refine")),
         "Stage wall times (s): " + ", ".join(f"{k} {v:.1f}" for k, v in table["timings"].items() if v is not None),
     ]
+
+
+def _per_date_margins(table: dict) -> list[str]:
+    """Ours N against Individual +N date by date at the largest N, where both rows carry each date's
+    test metrics (PSNR / SSIM / LPIPS; margins signed so that positive is ours better)."""
+    n = table["margins"]["steps"]
+    rows = {r["row"]: r for r in table["rows"]}
+    ours, ind = rows.get(f"Ours {n:,}", {}), rows.get(f"Individual +{n:,}", {})
+    if "per_date" not in ours or "per_date" not in ind:
+        return []
+    three = lambda r: f"{r['psnr']:.2f} / {r['ssim']:.4f} / {r['lpips']:.4f}"
+    lines = [
+        "",
+        f"| date | Individual +{n:,}: PSNR / SSIM / LPIPS | Ours {n:,} | Ours − Individual (positive: ours better) |",
+        "|---|---|---|---|",
+    ]
+    for d in table["dates"]:
+        a, b = ind["per_date"][d], ours["per_date"][d]
+        lines.append(
+            f"| {d} | {three(a)} | {three(b)} | {b['psnr'] - a['psnr']:+.2f} dB / {b['ssim'] - a['ssim']:+.4f} / "
+            f"{a['lpips'] - b['lpips']:+.4f} |"
+        )
+    return lines
 
 
 def _refinement_counts(refine: dict | None) -> list[str]:
