@@ -101,7 +101,8 @@ def main() -> None:
     for k, (label, over) in enumerate(variants):
         cache = work / f"variant_{k}.json"
         done = json.loads(cache.read_text()) if cache.is_file() else None
-        if done is not None and (done["overrides"] != over or done["steps"] != steps):
+        stale = done is not None and done.get("run", str(run_dir)) != str(run_dir)  # another run's cross-init
+        if done is not None and (stale or done["overrides"] != over or done["steps"] != steps):
             done = None
         if done is None:
             fc = dataclasses.replace(config.refine, **(over | {"steps": max(steps)}))
@@ -125,6 +126,7 @@ def main() -> None:
             )
             snapshot(max(steps), model)
             done = {"overrides": over, "steps": steps, "rows": got, "seconds": time.perf_counter() - t0}
+            done["run"] = str(run_dir)
             done["zeroed_per_date"] = report.get("zeroed_per_date")
             cache.write_text(json.dumps(done))
             (work / f"variant_{k}_checkpoint.npz").unlink(missing_ok=True)
