@@ -28,8 +28,8 @@ class ChangesConfig(Checked):
     water surface's touch where their centres lie far apart) — and so are Gaussians scored above
     ``grow_above`` (≤ 0.5) that touch them; a region needs at least ``min_region_gaussians`` Gaussians
     scored > 0.5 and at least ``min_region_share`` of the two dates' Gaussians as seeds (3D; the larger
-    bound counts, so that a denser reconstruction of the same scene, whose objects and whose noise patches both hold more
-    Gaussians, needs proportionally more), and ``min_region_pixels`` pixels (image).
+    bound counts, so that a denser reconstruction of the same scene, whose objects and whose noise patches
+    both hold more Gaussians, needs proportionally more), and ``min_region_pixels`` pixels (image).
     ``pixel_threshold``: a pixel of a view counts as changed when the regions' Gaussians hold more than
     this share of the compositing weight of what it shows (``maps.change_mask``).
     ``carry_absence``: a Gaussian that another date pair found gone and that, at the pair's other

@@ -335,9 +335,9 @@ class _Evaluation:
         )
         rows = []
         for k in ec.steps:
-            m = weighted_mean([plus[n]["steps"][str(k)] for n in self.names], self.weights)
-            gaussians = sum(plus[n]["gaussians"] for n in self.names)
             per_date = {n: plus[n]["steps"][str(k)] for n in self.names}
+            m = weighted_mean(list(per_date.values()), self.weights)
+            gaussians = sum(plus[n]["gaussians"] for n in self.names)
             rows.append(_row(f"Individual +{k:,}", m, gaussians, group="baseline", steps=k, per_date=per_date))
         return rows
 

@@ -18,16 +18,20 @@ from cfgs_jax.io.run_dir import registered_cameras
 from cfgs_jax.train.step import over_background
 
 
-def margins(rows: list[dict], n: int) -> dict:
-    """Ours N − Individual +N at the largest N (PSNR dB, SSIM; LPIPS as Individual − Ours: > 0 is better)."""
-    ours = next(r for r in rows if r["row"] == f"Ours {n:,}")
-    ind = next(r for r in rows if r["row"] == f"Individual +{n:,}")
+def _margin(ours: dict, ind: dict) -> dict:
+    """Ours − Individual on PSNR (dB) and SSIM, Individual − Ours on LPIPS: each > 0 where ours is better."""
     return {
-        "steps": n,
         "psnr": ours["psnr"] - ind["psnr"],
         "ssim": ours["ssim"] - ind["ssim"],
         "lpips": ind["lpips"] - ours["lpips"],
     }
+
+
+def margins(rows: list[dict], n: int) -> dict:
+    """Ours N against Individual +N at the largest N (``_margin``: > 0 is better)."""
+    ours = next(r for r in rows if r["row"] == f"Ours {n:,}")
+    ind = next(r for r in rows if r["row"] == f"Individual +{n:,}")
+    return {"steps": n} | _margin(ours, ind)
 
 
 def _share(x) -> str:
@@ -182,10 +186,8 @@ def _per_date_margins(table: dict) -> list[str]:
     ]
     for d in table["dates"]:
         a, b = ind["per_date"][d], ours["per_date"][d]
-        lines.append(
-            f"| {d} | {three(a)} | {three(b)} | {b['psnr'] - a['psnr']:+.2f} dB / {b['ssim'] - a['ssim']:+.4f} / "
-            f"{a['lpips'] - b['lpips']:+.4f} |"
-        )
+        m = _margin(b, a)
+        lines.append(f"| {d} | {three(a)} | {three(b)} | {m['psnr']:+.2f} dB / {m['ssim']:+.4f} / {m['lpips']:+.4f} |")
     return lines
 
 
