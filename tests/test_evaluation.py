@@ -243,7 +243,13 @@ def test_eval_reports_registration_error_and_fuses_again_with_the_exact_transfor
     last = raw["eval"]["steps"][-1]
     row = table["known_transforms"]["row"]
     assert row["row"] == f"Ours {last:,}" and row["gaussians"] == len(read_fused(known / "fused"))
+    # and at every step count: the earlier ones from the exact-Sim(3) run's own snapshots
+    first = raw["eval"]["steps"][0]
+    rows = table["known_transforms"]["rows"]
+    assert [r["row"] for r in rows] == [f"Ours {k:,}" for k in raw["eval"]["steps"]] and rows[-1] == row
+    assert rows[0]["gaussians"] == len(read_fused(known / "snapshots" / f"refine_{first}"))
     md = (copy / "table.md").read_text()
+    assert f"| Ours {first:,}, exact Sim(3)s |" in md and f"| Ours {last:,}, exact Sim(3)s |" in md
     assert "Registration against ground truth" in md and "SfM − exact" in md
     assert "| d1 | d0 | shared points (5 images) |" in md
     assert "the visibility rule set o^p := 0" in md

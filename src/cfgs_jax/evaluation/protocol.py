@@ -408,11 +408,13 @@ def _refine_counts(run_dir: Path) -> dict | None:
 
 def _with_known_transforms(ev: _Evaluation, data: Path, scene: str, run: RunDir, progress: bool, mesh) -> dict:
     """The fusion again from the same per-date models with the synthetic scene's exact Sim(3)s
-    (``OUT/known_transforms/``: its run, rows and change detection, resumable): its last Ours row and,
-    with ``change_detection``, its change figures, beside the SfM-registered run's."""
+    (``OUT/known_transforms/``: its run, rows and change detection, resumable): its Ours row at every
+    step count of the evaluation (``rows``; ``row``, the last) and, with ``change_detection``, its change
+    figures, beside the SfM-registered run's."""
     out = ev.out / "known_transforms"
     run_dir = out / "run"
-    _refine_again_for_steps(out, ev.setup.fusion.tables, (), ev.log)
+    steps = ev.ec.steps
+    _refine_again_for_steps(out, ev.setup.fusion.tables, steps[:-1], ev.log)
     run_fusion(
         run.dataset_paths,
         run_dir,
@@ -422,14 +424,18 @@ def _with_known_transforms(ev: _Evaluation, data: Path, scene: str, run: RunDir,
         resume=(run_dir / "run.json").is_file(),
         progress=progress,
         evaluate=False,
+        snapshots=steps[:-1],
         log=ev.log,
         mesh=mesh,
     )
-    known = _Evaluation(out, run_dir, ev.setup, ev.names, ev.scenes, RunDir.open(run_dir).sims(), ev.log, mesh)
-    last = ev.ec.steps[-1]
-    row = known.fused_row(f"ours_{last}", f"Ours {last:,}", run_dir / "fused")
+    exact = RunDir.open(run_dir)
+    known = _Evaluation(out, run_dir, ev.setup, ev.names, ev.scenes, exact.sims(), ev.log, mesh)
+    rows = [
+        known.fused_row(f"ours_{k}", f"Ours {k:,}", run_dir / "fused" if k == steps[-1] else exact.snapshot_dir(k))
+        for k in steps
+    ]
     change = known.change(data, scene) if ev.ec.change_detection else None
-    return {"row": row, "change": change}
+    return {"row": rows[-1], "rows": rows, "change": change}
 
 
 def _known_transforms(data: Path, dirs, out: Path) -> Path:
