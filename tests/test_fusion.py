@@ -671,6 +671,48 @@ def test_refine_with_trainable_light_fits_a_dimmer_date_that_frozen_light_cannot
         rf.RefineConfig(lr_light=-1.0)
 
 
+def test_refine_with_frame_corrections_undoes_a_registration_error():
+    """Two dates of one scene; date 1 was registered 2° / 2 % / 0.05 off (its Gaussians and its cameras
+    both carry the error E, so it is consistent with itself). With ``lr_frame`` the refinement finds
+    date 1's correction F ≈ E⁻¹ (F ∘ E within 0.3° and 0.5 % of the identity), date 0's frame stays
+    exact, and the loss ends lower than with the registration kept; without it no correction is made."""
+    rf = importlib.import_module("cfgs_jax.fusion.refine")
+    ci = importlib.import_module("cfgs_jax.fusion.cross_init")
+    from cfgs_jax.fusion.register import transform_gaussians
+    from cfgs_jax.io.run_dir import camera_in_frame
+    from cfgs_jax.sim3 import Sim3, quat_to_matrix
+
+    g = _random_gaussians(80, seed=21)
+    cams = tuple(
+        cj.Camera.look_at([x, y, -2.6], [0, 0, 0], up=(0, -1, 0), width=48, height=36, fov_x_deg=60)
+        for x in (-0.5, 0.0, 0.5)
+        for y in (-0.4, 0.3)
+    )
+    images = tuple(np.asarray(splat.render(g, c).image) for c in cams)
+    half = np.radians(2.0) / 2
+    error = Sim3(
+        1.02,
+        quat_to_matrix([np.cos(half), *(np.sin(half) * np.array([2.0, 1.0, 2.0]) / 3)]),
+        np.array([0.05, -0.03, 0.02]),
+    )
+    model = fusion.merge([g, transform_gaussians(g, error)], ["a", "b"])
+    model = dataclasses.replace(model, o_logits=jnp.full_like(jnp.asarray(model.o_logits), 6.0))
+    views = [ci.DateViews(cams, images), ci.DateViews(tuple(camera_in_frame(c, error) for c in cams), images)]
+    common = dict(
+        steps=300, visibility_interval=1000, random_background=False, halve_alpha=False, position_lr_scale=0.0
+    )
+    kept, rep_kept = rf.refine(model, views, rf.RefineConfig(**common), extent=1.0)
+    moved, rep = rf.refine(model, views, rf.RefineConfig(lr_frame=2e-3, **common), extent=1.0)
+    assert "frames" not in rep_kept
+    f0, f1 = (Sim3.from_dict(d) for d in rep["frames"])
+    assert f0.scale == 1.0 and np.array_equal(f0.rotation, np.eye(3)) and not f0.translation.any()
+    residual = f1.compose(error)
+    angle = np.degrees(np.arccos(np.clip((np.trace(residual.rotation) - 1) / 2, -1, 1)))
+    assert angle < 0.3 and abs(residual.scale - 1) < 0.005, (angle, residual.scale)
+    assert np.linalg.norm(residual.apply(np.zeros(3))) < 0.01  # the scene's centre lands within 1 % of its size
+    assert rep["loss_last"] < 0.8 * rep_kept["loss_last"], (rep["loss_last"], rep_kept["loss_last"])
+
+
 def test_refine_with_learned_masks_switches_off_a_redundant_copy_and_keeps_the_renders():
     """Two dates, each drawn by the same 60 Gaussians stacked on each other (two copies of one surface);
     both dates' images are one copy's render. With learned masks on date 1's copies alone, the masks
@@ -813,6 +855,64 @@ def test_fuse_cli_runs_every_stage_and_resumes_mid_cross_init(tiny_two_dates, fu
         np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
     for x, y in zip(jax.tree_util.tree_leaves(a), jax.tree_util.tree_leaves(b)):  # both pairs in one group: rounding
         np.testing.assert_allclose(np.asarray(x), np.asarray(y), rtol=1e-3, atol=1e-3)
+
+
+def test_a_run_refined_with_frame_corrections_poses_its_dates_by_them(tiny_two_dates, fused_run, tmp_path):
+    """``refine.lr_frame`` in a run: d1 registered 2° off; the fused model and its snapshot record d1's
+    frame correction (the reference d0 none), ``RunDir.sims`` poses d1 by it (the merged model's by the
+    registration), and the run's evaluation and the eval's registration table use the posed cameras."""
+    import json
+
+    from cfgs_jax.config import load_config
+    from cfgs_jax.fusion import run_fusion
+    from cfgs_jax.fusion.config import RunConfig
+    from cfgs_jax.fusion.evaluate import evaluate_fused
+    from cfgs_jax.io.run_dir import RunDir, date_views
+    from cfgs_jax.sim3 import Sim3, quat_to_matrix
+
+    root, (run_dir, _) = tiny_two_dates, fused_run
+    truth = json.loads((root / "transforms.json").read_text())
+    half = np.radians(2.0) / 2
+    turn = quat_to_matrix([np.cos(half), *(np.sin(half) * np.array([1.0, 2.0, 2.0]) / 3)])
+    d1 = Sim3.from_dict(truth["d1"])
+    off = {"d0": truth["d0"], "d1": Sim3(d1.scale, turn @ d1.rotation, d1.translation).to_dict()}
+    (tmp_path / "off.json").write_text(json.dumps(off))
+    tables = load_config(root / "tiny.toml")
+    tables["refine"] = dict(tables["refine"]) | {"lr_frame": 5e-3}
+    out = tmp_path / "run"
+    run_fusion(
+        [root / "d0", root / "d1"],
+        out,
+        tables,
+        models=[run_dir / "dates" / n / "point_cloud.ply" for n in ("d0", "d1")],
+        transforms=tmp_path / "off.json",
+        progress=False,
+        snapshots=(10,),
+    )
+    run = RunDir.open(out)
+    for where in (out / "fused", out / "snapshots" / "refine_10"):
+        dates = json.loads((where / "model.json").read_text())["dates"]
+        assert "frame" not in dates[0] and len(dates[1]["frame"]) == 13
+    x = json.loads((out / "fused" / "model.json").read_text())["dates"][1]["frame"]
+    frame = Sim3(x[0], np.reshape(x[1:10], (3, 3)), np.asarray(x[10:]))
+    registered, posed = run.registered(), run.sims()
+    assert not np.allclose(frame.rotation, np.eye(3), atol=1e-6)
+    np.testing.assert_allclose(posed[1].rotation, (frame.rotation @ registered[1].rotation), atol=1e-12)
+    np.testing.assert_allclose(posed[0].rotation, registered[0].rotation, atol=0)
+    merged = run.sims(out / "merged")
+    np.testing.assert_allclose(merged[1].rotation, registered[1].rotation, atol=0)
+    # the run's own evaluation posed the test views by the corrected frames
+    config = RunConfig.of_run(run)
+    scenes = [cj.train.read_scene(p, config.train) for p in run.dataset_paths]
+    model = cj.io.read_fused(out / "fused")
+    metrics = json.loads((out / "metrics.json").read_text())
+
+    def psnr(sims):
+        views = [date_views(sc, sm, "test") for sc, sm in zip(scenes, sims)]
+        return evaluate_fused(model, views, render_config=config.render, lpips_net=None)["dates"]["d1"]["psnr"]
+
+    assert metrics["dates"]["d1"]["psnr"] == pytest.approx(psnr(posed), abs=1e-4)
+    assert abs(psnr(registered) - psnr(posed)) > 1e-3
 
 
 def test_fused_model_is_no_worse_than_the_merged_inputs(tiny_two_dates, fused_run):

@@ -104,18 +104,25 @@ def _as_exposure(x):
 
 @dataclasses.dataclass(frozen=True)
 class DateInfo:
-    """Metadata of one capture date (timestep): a name, an optional ISO capture date, source files."""
+    """Metadata of one capture date (timestep): a name, an optional ISO capture date, source files, and
+    the correction a refinement made to its frame (``frame``: the Sim(3) F as (s, R row-major, t), 13
+    numbers, empty for none; its cameras are posed by F ∘ its registration, ``fusion.frames``)."""
 
     name: str
     captured: str | None = None
     sources: tuple[str, ...] = ()
+    frame: tuple[float, ...] = ()
 
     def to_json(self) -> dict:
-        return {"name": self.name, "captured": self.captured, "sources": list(self.sources)}
+        out = {"name": self.name, "captured": self.captured, "sources": list(self.sources)}
+        return out | ({"frame": list(self.frame)} if self.frame else {})
 
     @classmethod
     def from_json(cls, d: dict) -> DateInfo:
-        return cls(name=str(d["name"]), captured=d.get("captured"), sources=tuple(d.get("sources", ())))
+        frame = tuple(float(x) for x in d.get("frame", ()))
+        if frame and len(frame) != 13:
+            raise InputError(f"expected 13 numbers (s, R, t), got {len(frame)}", field="dates[].frame")
+        return cls(str(d["name"]), d.get("captured"), tuple(d.get("sources", ())), frame)
 
 
 class Camera(eqx.Module):

@@ -30,6 +30,7 @@ from cfgs_jax.evaluation.report import figure_grid, margins, pr_curve_plot, tabl
 from cfgs_jax.evaluation.scoring import OqRuleConfig
 from cfgs_jax.fusion.config import RUN_TABLES, RunConfig
 from cfgs_jax.fusion.evaluate import evaluate_fused, weighted_mean
+from cfgs_jax.fusion.frames import as_frame
 from cfgs_jax.fusion.fuse import INVISIBLE_LOGIT
 from cfgs_jax.fusion.light import cold_warm_coefficient
 from cfgs_jax.fusion.refine import RefineConfig, refine
@@ -296,13 +297,24 @@ class _Evaluation:
         self.weights = [len(v.cameras) for v in self.test_views]
         self.evals = read_json(self.out / "rows.json", {})
 
+    def test_views_of(self, path: Path) -> list:
+        """The test views posed for the model at ``path``: by the run's registration after the frame
+        corrections that model records (a snapshot's are not the final model's; the merged model has none)."""
+        sims = RunDir.open(self.run_dir, finished=False).sims(path)
+        same = all(np.allclose(as_frame(a), as_frame(b), rtol=0, atol=1e-12) for a, b in zip(sims, self.sims))
+        return self.test_views if same else [date_views(sc, sm, "test") for sc, sm in zip(self.scenes, sims)]
+
     def fused_row(self, key: str, label: str, path: Path, **extra) -> dict:
         """The row of the fused model at ``path`` (evaluated once, then read from ``rows.json``)."""
         if key not in self.evals:
             model = read_fused(path)
             self.log(f"[eval] {label}")
             m = evaluate_fused(
-                model, self.test_views, render_config=self.render_config, lpips_net=self.ec.lpips_net, mesh=self.mesh
+                model,
+                self.test_views_of(path),
+                render_config=self.render_config,
+                lpips_net=self.ec.lpips_net,
+                mesh=self.mesh,
             )
             self.evals[key] = _row(label, m["mean"], len(model), **extra) | {"per_date": m["dates"]}
             write_json(self.out / "rows.json", self.evals)
@@ -368,13 +380,12 @@ class _Evaluation:
         ref = run.reference
         others = [n for k, n in enumerate(self.names) if k != ref]
         exact = synthetic.reference_transforms(data, [self.names[ref], *others])
-        errors = registration.date_errors(
-            self.names,
-            ref,
-            self.sims,
-            [Sim3.from_dict(exact[n]) for n in self.names],
-            [np.stack([np.asarray(c.center, np.float64) for c in sc.cameras]) for sc in self.scenes],
-        )
+        truth = [Sim3.from_dict(exact[n]) for n in self.names]
+        centres = [np.stack([np.asarray(c.center, np.float64) for c in sc.cameras]) for sc in self.scenes]
+        errors = registration.date_errors(self.names, ref, run.registered(), truth, centres)
+        refined = registration.date_errors(self.names, ref, self.sims, truth, centres)
+        if any(a != b for a, b in zip(errors, refined)):  # the refinement corrected the dates' frames
+            errors = [e | {"refined": {k: r[k] for k in registration.TARGETS}} for e, r in zip(errors, refined)]
         reg = read_json(run.path / "register.json")
         keys = ("with", "rotation_residual_deg", "centre_residual_rel", "posed_on_persistent", "registered_date")
         return [e | {k: reg[e["date"]][k] for k in keys if k in reg[e["date"]]} for e in errors]

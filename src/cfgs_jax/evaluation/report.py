@@ -78,6 +78,20 @@ def registration_table(errors: list[dict]) -> list[str]:
             f"{e['scale_pct']:.3f} | {e['translation_pct']:.3f} | {'yes' if e['within_targets'] else 'no'} | "
             f"{residual} |"
         )
+    refined = [e for e in errors if "refined" in e]
+    if refined:
+        lines += [
+            "",
+            "After the refinement's frame corrections (`refine.lr_frame`):",
+            "",
+            "| date | rotation (°) | scale (%) | translation (% extent) |",
+            "|---|---:|---:|---:|",
+        ]
+        lines += [
+            f"| {e['date']} | {e['refined']['rotation_deg']:.3f} | {e['refined']['scale_pct']:.3f} | "
+            f"{e['refined']['translation_pct']:.3f} |"
+            for e in refined
+        ]
     return lines + [
         "",
         "The fit residual needs no ground truth (`register.json`): how far the date's cameras in the joint SfM "

@@ -62,3 +62,80 @@ def as_sim3(p, centre, extent: float) -> Sim3:
     q = np.concatenate([[1.0], 0.5 * p[1:4]])
     s, r = float(np.exp(p[0])), quat_to_matrix(q / np.linalg.norm(q))
     return Sim3(s, r, c - s * (r @ c) + extent * p[4:7])
+
+
+# ------------------------------------------------------------------------------ in the refinement
+
+#: The parameters ``frame_params`` adds to a refinement's: the corrections (trained), and what they
+#: need, held fixed: which dates' corrections are free, each Gaussian's date as a one-hot row, the centre
+#: and the extent.
+FRAME_KEYS = ("frames", "frame_free", "frame_onehot", "frame_centre", "frame_extent")
+
+
+def frame_params(model, frame_dates, extent: float) -> dict:
+    """The refinement's frame parameters for ``model`` (a ``TemporalGaussians``): a zero correction per
+    date, free for ``frame_dates`` (the others, the reference among them, stay where registration put
+    them), each Gaussian moved by its origin date's; the centre is the Gaussians' mean."""
+    t = model.num_dates
+    free = np.zeros(t, np.float32)
+    free[list(frame_dates)] = 1.0
+    onehot = np.eye(t, dtype=np.float32)[np.asarray(model.origin)]
+    return {
+        "frames": jnp.zeros((t, FRAME_SIZE), jnp.float32),
+        "frame_free": jnp.asarray(free),
+        "frame_onehot": jnp.asarray(onehot),
+        "frame_centre": jnp.mean(jnp.asarray(model.gaussians.means, jnp.float32), axis=0),
+        "frame_extent": jnp.asarray(extent, jnp.float32),
+    }
+
+
+def _corrections(params) -> Float[Array, "T 7"]:
+    return params["frames"] * params["frame_free"][:, None]
+
+
+def framed(params, gaussians: Gaussians, camera: Camera, date) -> tuple[Gaussians, Camera]:
+    """The Gaussians each moved by its origin date's correction and ``camera`` (of ``date``) by its
+    date's, as a refinement with frame parameters draws them."""
+    p = _corrections(params)
+    rows = jnp.matmul(params["frame_onehot"], p, precision=HIGHEST)
+    centre, extent = params["frame_centre"], params["frame_extent"]
+    return move_gaussians(gaussians, rows, centre, extent), move_camera(camera, p[date], centre, extent)
+
+
+def as_frame(f: Sim3) -> tuple[float, ...]:
+    """A ``Sim3`` as ``DateInfo.frame``'s 13 numbers (s, R row-major, t)."""
+    return (float(f.scale), *map(float, np.ravel(f.rotation)), *map(float, f.translation))
+
+
+def frame_of(frame: tuple[float, ...]) -> Sim3:
+    """``DateInfo.frame`` as a ``Sim3`` (the identity where it is empty)."""
+    if not frame:
+        return Sim3.identity()
+    x = np.asarray(frame, np.float64)
+    return Sim3(float(x[0]), x[1:10].reshape(3, 3), x[10:13].copy())
+
+
+def posed(sims, names, frames: dict) -> list[Sim3]:
+    """Each date's registration ``sims[i]`` after its frame correction ``frames[names[i]]`` (a
+    ``DateInfo.frame``; none: unchanged): F ∘ S, the Sim(3) that poses its cameras with the model."""
+    return [frame_of(frames.get(n, ())).compose(s) for n, s in zip(names, sims)]
+
+
+def baked(model, params) -> tuple:
+    """``model`` (with the refinement's other parameters already in it) with its Gaussians moved by their
+    dates' corrections and each corrected date's ``DateInfo.frame`` composed with its correction, and
+    each date's correction as a ``Sim3`` (identity where it was held): the model a refinement with frame
+    parameters drew, in the frame its corrected registrations F_p ∘ S_p pose the dates' cameras in."""
+    import dataclasses
+
+    p = np.asarray(_corrections(params), np.float64)
+    centre, extent = np.asarray(params["frame_centre"], np.float64), float(params["frame_extent"])
+    rows = jnp.matmul(params["frame_onehot"], jnp.asarray(p, jnp.float32), precision=HIGHEST)
+    moved = move_gaussians(model.gaussians, rows, params["frame_centre"], params["frame_extent"])
+    corrections = [as_sim3(row, centre, extent) for row in p]
+    free = np.asarray(params["frame_free"]) > 0
+    dates = tuple(
+        dataclasses.replace(d, frame=as_frame(f.compose(frame_of(d.frame)))) if on else d
+        for d, f, on in zip(model.dates, corrections, free)
+    )
+    return dataclasses.replace(model, gaussians=moved, dates=dates), corrections

@@ -56,6 +56,7 @@ from jaxtyping import Array, Float
 from cfgs_jax import metrics, parallel, splat
 from cfgs_jax.config import AT_LEAST_ONE, NON_NEGATIVE, POSITIVE, Checked
 from cfgs_jax.errors import InputError
+from cfgs_jax.fusion.frames import baked, frame_params, framed
 from cfgs_jax.fusion.updates import halve_alpha_of, refinement_optimizer, zero_invisible
 from cfgs_jax.io.checkpoint import read_meta, restore_tree, save_tree
 from cfgs_jax.loop import Progress, check_view_batch, run_steps, step_with_capacity, view_batch, view_order
@@ -81,6 +82,9 @@ class RefineConfig(Checked):
     position_lr_scale: Annotated[float, NON_NEGATIVE] = 1.0  # × [train]'s position schedule (0 freezes the positions)
     # Adam rate of the light logits l (0: frozen, the paper's refinement)
     lr_light: Annotated[float, NON_NEGATIVE] = 0.0
+    # Adam rate of each registered date's frame correction (log-scale, rotation in radians, translation in
+    # extents; 0: the registration is kept, the paper's refinement). See ``fusion.frames``.
+    lr_frame: Annotated[float, NON_NEGATIVE] = 0.0
     lambda_dssim: float = 0.2
     lambda_change: float = 0.1
     halve_alpha: bool = True
@@ -166,6 +170,8 @@ def _date_render(params, light_logits, camera, date, background, render_config):
     ``params`` where it is trained, else the frozen ``light_logits``; ``frozen_light``: with an
     exposure row per Gaussian, l times it; times the ``learned_mask`` where ``params`` has masks)."""
     g = gaussians_of(params)
+    if "frames" in params:  # each date's Gaussians and cameras moved by its frame correction
+        g, camera = framed(params, g, camera, date)
     o = jax.nn.sigmoid(params["o_logits"][:, date])
     if "mask_logits" in params:
         o = o * learned_mask(params)
@@ -282,7 +288,10 @@ CHECKPOINT_FORMAT = "cfgs_jax.refine_checkpoint/2"
 def _load_checkpoint(path: Path, template: dict, meta_now: dict) -> tuple[dict, dict]:
     """(state, meta) of a refinement checkpoint, refused unless it was written by the same refinement."""
     meta, arrays = read_meta(path, format=CHECKPOINT_FORMAT)
-    bad = [k for k, v in meta_now.items() if meta.get(k) != v]
+    # a checkpoint written before a setting existed was written at that setting's default
+    saved = meta | {"config": dataclasses.asdict(RefineConfig()) | meta.get("config", {})}
+    saved.setdefault("frame_dates", [])
+    bad = [k for k, v in meta_now.items() if saved.get(k) != v]
     if bad:
         raise InputError(
             f"the checkpoint belongs to another refinement (differs in {', '.join(bad)})",
@@ -326,6 +335,23 @@ def _check_inputs(model: TemporalGaussians, views, new_dates) -> list[int]:
     return new_dates
 
 
+def _check_frame_dates(model: TemporalGaussians, config: RefineConfig, new_dates, frame_dates) -> list[int]:
+    """The dates whose frames a refinement with ``lr_frame`` corrects (none without it)."""
+    if not config.lr_frame:
+        return []
+    t = model.num_dates
+    if frame_dates is None:
+        frame_dates = new_dates if len(new_dates) < t else range(1, t)
+    frame_dates = sorted({int(d) for d in frame_dates})
+    if any(not 0 <= d < t for d in frame_dates) or len(frame_dates) == t:
+        raise InputError(
+            f"frame corrections for dates {frame_dates} of a model of {t} dates: at least one date must keep "
+            "its frame (the reference)",
+            field="refine.frame_dates",
+        )
+    return frame_dates
+
+
 def _start(run: _Refinement, new_dates, checkpoint, identity: dict) -> tuple[_Carry, int]:
     """The carry at the start (α halved on ``new_dates``' Gaussians), or as the checkpoint left it
     (refused unless its ``identity`` matches); and the step to start from."""
@@ -335,6 +361,8 @@ def _start(run: _Refinement, new_dates, checkpoint, identity: dict) -> tuple[_Ca
         maskable = jnp.asarray(np.asarray(run.maskable, np.float32))
         start = jnp.full(len(model), MASK_INIT_LOGIT, jnp.float32)
         params |= {"mask_logits": start, "maskable": maskable, "mask_hard": jnp.zeros((), jnp.float32)}
+    if config.lr_frame:
+        params |= frame_params(model, run.frame_dates, run.extent)
     if config.halve_alpha and new_dates:
         params = halve_alpha_of(params, np.isin(np.asarray(model.origin), new_dates))
     n, t = len(model), model.num_dates
@@ -374,6 +402,7 @@ def _identity(run: _Refinement, new_dates) -> dict:
         "extent": float(run.extent),
         "new_dates": new_dates,
         "maskable": None if run.maskable is None else int(np.sum(run.maskable)),
+        "frame_dates": list(run.frame_dates),
     }
 
 
@@ -394,6 +423,7 @@ class _Refinement:
     mesh: object = None
     new_dates: Sequence[int] = ()
     maskable: np.ndarray | None = None  # [N] bool: the Gaussians whose masks are learnt (mask_lambda > 0)
+    frame_dates: Sequence[int] = ()  # the dates whose frames are corrected (lr_frame > 0)
 
     def __post_init__(self):
         self.light_logits = frozen_light(self.model)
@@ -498,7 +528,9 @@ class _Refinement:
             c = self.check_visibility(c)
             c.params, c.opt_state, c.o_init = parallel.replicate((c.params, c.opt_state, c.o_init), self.batch_mesh)
         if self.on_snapshot is not None and done in self.snapshot_steps and done < config.steps:
-            self.on_snapshot(done, final_prune(with_trainable(self.model, c.params), config.prune_threshold))
+            model = with_trainable(self.model, c.params)
+            model = baked(model, c.params)[0] if "frames" in c.params else model
+            self.on_snapshot(done, final_prune(model, config.prune_threshold))
         return c
 
     def body(self, c: _Carry, it: int) -> _Carry:
@@ -536,7 +568,7 @@ def _begin(model, views, config, options: tuple, checkpoint):
     images let it; then the masks are fixed to M_i = [σ(m_i) > ½] (``learned_mask``), and the rest of
     the steps recover with the set they chose. The Gaussians with M_i = 0 are removed with the final
     prune (their count is the report's ``masked_out``)."""
-    train_config, render_config, extent, snapshot_steps, on_snapshot, mesh, new_dates, maskable = options
+    train_config, render_config, extent, snapshot_steps, on_snapshot, mesh, new_dates, maskable, frame_dates = options
     if maskable is None and config.mask_lambda:
         raise InputError(
             "learned masks need the Gaussians they may remove (refine(..., maskable=...))",
@@ -544,6 +576,7 @@ def _begin(model, views, config, options: tuple, checkpoint):
             fix="leave refine.mask_lambda at 0; in a run, set compact.mask_lambda (the compaction's recovery learns them)",
         )
     new_dates = _check_inputs(model, views, new_dates)
+    frame_dates = _check_frame_dates(model, config, new_dates, frame_dates)
     run = _Refinement(
         model,
         views,
@@ -556,6 +589,7 @@ def _begin(model, views, config, options: tuple, checkpoint):
         mesh,
         new_dates,
         None if not config.mask_lambda else np.asarray(maskable, bool),
+        frame_dates,
     )
     identity = _identity(run, new_dates)
     carry, start = _start(run, new_dates, checkpoint, identity)
@@ -582,6 +616,7 @@ def refine(
     on_snapshot=None,
     mesh=None,
     maskable=None,
+    frame_dates: Sequence[int] | None = None,
 ):
     """Eq. 3 refinement of a cross-initialised model on all dates' training views, the visibility
     rule every ``visibility_interval`` steps and at the end, then the final prune. Returns the model
@@ -598,9 +633,17 @@ def refine(
     finally pruned (the visibility rule is left to its interval) — the paper's "saved iteration
     checkpoints". ``mesh`` (``parallel.device_mesh``): split each step's ``config.view_batch`` views
     over its devices (the parameters replicated, the gradient all-reduced). Learned masks
-    (``config.mask_lambda`` > 0, ``maskable`` an [N] bool): see ``_begin``."""
+    (``config.mask_lambda`` > 0, ``maskable`` an [N] bool): see ``_begin``.
+
+    Frame corrections (``config.lr_frame`` > 0): the dates in ``frame_dates`` (default: every date but
+    the first, or the ``new_dates`` when they are fewer) each get a Sim(3) correction of their frame,
+    moving their Gaussians (by origin) and their cameras together (``fusion.frames``), trained with the
+    rest: the images refine the registration where the dates' Gaussians overlap. The model returned (and
+    each snapshot) is in the corrected frame and records each corrected date's frame (``DateInfo.frame``),
+    so that date p's cameras are posed by F_p ∘ S_p; ``report["frames"]`` holds this refinement's
+    corrections (``Sim3.to_dict``, identity for the dates held)."""
     config = config or RefineConfig()
-    options = (train_config, render_config, extent, snapshot_steps, on_snapshot, mesh, new_dates, maskable)
+    options = (train_config, render_config, extent, snapshot_steps, on_snapshot, mesh, new_dates, maskable, frame_dates)
     run, carry, start, identity = _begin(model, views, config, options, checkpoint)
     carry, done = _steps(run, carry, start, identity, checkpoint, stop_after, progress)
     if done < config.steps:
@@ -635,7 +678,9 @@ def _steps(run, carry: _Carry, start: int, identity: dict, checkpoint, stop_afte
 def _finish(model, carry: _Carry, config: RefineConfig, new_dates, checked) -> tuple[TemporalGaussians, dict]:
     """The refined model finally pruned, and the report (``checked``: the dates the last visibility check
     covered)."""
-    refined, masked_out = with_trainable(model, carry.params), 0
+    refined, masked_out, corrections = with_trainable(model, carry.params), 0, None
+    if "frames" in carry.params:
+        refined, corrections = baked(refined, carry.params)
     if "mask_logits" in carry.params:
         off = (np.asarray(learned_mask(carry.params)) <= 0.5) & (np.asarray(carry.params["maskable"]) > 0)
         refined, masked_out = select(refined, np.nonzero(~off)[0]), int(off.sum())
@@ -653,4 +698,6 @@ def _finish(model, carry: _Carry, config: RefineConfig, new_dates, checked) -> t
         "gaussians_after_prune": len(pruned),
         "masked_out": masked_out,
     }
+    if corrections is not None:
+        report["frames"] = [f.to_dict() for f in corrections]
     return pruned, report

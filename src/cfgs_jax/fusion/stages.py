@@ -18,6 +18,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 import jax.numpy as jnp
+import numpy as np
 
 from cfgs_jax import train
 from cfgs_jax.compiled_code import release_if_near_limit
@@ -34,6 +35,7 @@ from cfgs_jax.fusion.compact import (
 from cfgs_jax.fusion.config import RunConfig
 from cfgs_jax.fusion.cross_init import init_pairs, pair_groups
 from cfgs_jax.fusion.evaluate import evaluate_fused
+from cfgs_jax.fusion.frames import as_frame, posed
 from cfgs_jax.fusion.fuse import add_date, merge
 from cfgs_jax.fusion.refine import refine
 from cfgs_jax.fusion.register import register_date
@@ -196,12 +198,15 @@ def _refine_stage(
     def snapshot(k, m):
         write_fused(run.snapshot_dir(k), m, config=run.config)
 
+    # frame corrections (refine.lr_frame): every date but the reference when fusing, the added dates when extending
+    frame_dates = None if extension else [i for i in range(len(run.names)) if i != run.reference]
     model, rep = job.refine(
         model,
         views,
         fc,
         scenes,
         new_dates=new_dates,
+        frame_dates=frame_dates,
         checkpoint=ckpt,
         snapshot_steps=tuple(snapshots),
         on_snapshot=snapshot,
@@ -288,6 +293,15 @@ def run_fusion(
     return run
 
 
+def _as_refined(run: RunDir, scenes, sims, views) -> tuple[list, list]:
+    """(views, sims) as the refined model poses the dates: ``views`` and ``sims`` again where the
+    refinement corrected a date's frame (``refine.lr_frame``), else as they are."""
+    now = run.sims()
+    if all(np.allclose(as_frame(a), as_frame(b), rtol=0, atol=1e-12) for a, b in zip(now, sims)):
+        return views, sims
+    return [date_views(sc, sm) for sc, sm in zip(scenes, now)], now
+
+
 def _fuse_merged(job: Job, scenes, sims, snapshots, evaluate: bool) -> None:
     """The stages after the merge: cross-timestep initialisation of every ordered pair (resumable per
     pair), refinement and final prune, the export in the authors' layout, and the evaluation."""
@@ -299,9 +313,10 @@ def _fuse_merged(job: Job, scenes, sims, snapshots, evaluate: bool) -> None:
     if not run.done("refine"):
         _refine_stage(job, views, scenes, "refine", snapshots)
     if t > 1:
+        views, sims = _as_refined(run, scenes, sims, views)
         _compact_if_enabled(job, "compact", views, scenes, sims)
     run.stage("export", lambda: _export_reference(run))
-    _evaluate_stage(job, scenes, sims, evaluate)
+    _evaluate_stage(job, scenes, evaluate)
 
 
 def _merge_dates(run: RunDir, given, sims, drop_invalid: bool) -> dict:
@@ -471,14 +486,15 @@ def _export_reference(run: RunDir) -> None:
     write_fused(run / "reference", read_fused(run / "fused"), layout="reference")
 
 
-def _evaluate_stage(job: Job, scenes, sims, enabled: bool, stage="evaluate"):
-    """Test-split PSNR / SSIM / LPIPS of the fused model per date → RUN/metrics.json."""
+def _evaluate_stage(job: Job, scenes, enabled: bool, stage="evaluate"):
+    """Test-split PSNR / SSIM / LPIPS of the fused model per date → RUN/metrics.json (the dates posed
+    as the fused model poses them: ``RunDir.sims``)."""
     if not enabled:
         return
 
     def evaluate():
         model = read_fused(job.run / "fused")
-        test_views = [date_views(sc, sm, "test") for sc, sm in zip(scenes, sims)]
+        test_views = [date_views(sc, sm, "test") for sc, sm in zip(scenes, job.run.sims())]
         m = evaluate_fused(model, test_views, render_config=job.config.render, mesh=job.mesh)
         write_json(job.run / "metrics.json", m)
         mean = m["mean"]
@@ -538,7 +554,11 @@ def _register_added(job: Job, scenes, k: int, transform: Sim3 | None) -> None:
         reg[name] = {"transform": transform.to_dict(), "source": "given"}
     else:
         others = [ref] + [j for j in range(len(run.names)) if j not in (ref, k)]
-        anchors = [(scenes[j], Sim3.from_dict(reg[run.names[j]]["transform"])) for j in others]
+        names = [run.names[j] for j in others]
+        # the registered dates posed as the fused model poses them (after its frame corrections)
+        frames = {d["name"]: tuple(d.get("frame", ())) for d in read_json(run / "fused" / "model.json")["dates"]}
+        sims = posed([Sim3.from_dict(reg[n]["transform"]) for n in names], names, frames)
+        anchors = [(scenes[j], sim) for j, sim in zip(others, sims)]
         reg[name] = _register(job, anchors, scenes[k], name, [run.names[j] for j in others], "extend/register")
     write_json(run / "register.json", reg)
 
@@ -599,8 +619,9 @@ def run_extend(
     if not run.done(prefix + "refine"):
         _refine_stage(job, views, scenes, prefix + "refine", extension=True, new_dates=[k])
         _export_reference(run)
+    views, sims = _as_refined(run, scenes, sims, views)
     _compact_if_enabled(job, prefix + "compact", views, scenes, sims)
-    _evaluate_stage(job, scenes, sims, evaluate, stage=prefix + "evaluate")
+    _evaluate_stage(job, scenes, evaluate, stage=prefix + "evaluate")
     run.timings[f"extend:{name}:total"] = sum(v for key, v in run.timings.items() if key.startswith(prefix))
     run.save()
     return run

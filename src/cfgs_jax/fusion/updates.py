@@ -37,6 +37,7 @@ import numpy as np
 import optax
 from jaxtyping import Array, Bool, Float
 
+from cfgs_jax.fusion.frames import FRAME_KEYS
 from cfgs_jax.fusion.fuse import INVISIBLE_LOGIT
 from cfgs_jax.model import SH_C0, logit
 from cfgs_jax.train.config import TrainConfig
@@ -97,6 +98,8 @@ def refinement_optimizer(
     }
     if config.lr_light:  # l trained too (the paper keeps it frozen)
         rates["light_logits"] = config.lr_light
+    if config.lr_frame:  # each date's frame correction trained; what it needs held
+        rates |= {"frames": config.lr_frame} | dict.fromkeys(FRAME_KEYS[1:], 0.0)
     if config.mask_lambda:  # learned masks: their logits trained for the first mask_until of the steps
         mask_rate = optax.piecewise_constant_schedule(config.lr_mask, {config.mask_steps: 0.0})
         rates |= {"mask_logits": mask_rate, "maskable": 0.0, "mask_hard": 0.0}

@@ -233,10 +233,23 @@ class RunDir:
     def date_infos(self) -> list[DateInfo]:
         return [DateInfo(d["name"], captured=d.get("captured"), sources=(d["path"],)) for d in self.state["dates"]]
 
-    def sims(self) -> list[Sim3]:
-        """Each date's date → reference Sim(3), from ``register.json``."""
+    def registered(self) -> list[Sim3]:
+        """Each date's date → reference Sim(3) as registration found it (``register.json``)."""
         reg = read_json(self.path / "register.json")
         return [Sim3.from_dict(reg[n]["transform"]) for n in self.names]
+
+    def sims(self, model_dir: str | Path | None = None) -> list[Sim3]:
+        """Each date's date → reference Sim(3): its registration (``register.json``) after the frame
+        correction the fused model records for it (``DateInfo.frame``, once the refinement is done), or
+        the one the model in ``model_dir`` records (a snapshot's, the merged model's: none)."""
+        base = self.registered()
+        source = Path(model_dir) if model_dir is not None else self.path / "fused" if self.done("refine") else None
+        meta = read_json(source / "model.json") if source is not None else None
+        if not meta:
+            return base
+        from cfgs_jax.fusion.frames import posed
+
+        return posed(base, self.names, {d["name"]: tuple(d.get("frame", ())) for d in meta.get("dates", [])})
 
     # -- layout --------------------------------------------------------------------------------
 
