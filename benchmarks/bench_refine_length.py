@@ -69,6 +69,7 @@ def main() -> None:
     from cfgs_jax.evaluation.protocol import individual_plus
     from cfgs_jax.fusion.config import RunConfig
     from cfgs_jax.fusion.evaluate import evaluate_fused, weighted_mean
+    from cfgs_jax.fusion.frames import posed
     from cfgs_jax.fusion.refine import refine
     from cfgs_jax.io.atomic import read_json
     from cfgs_jax.io.fused import read_fused
@@ -82,14 +83,19 @@ def main() -> None:
     run = RunDir.open(run_dir)
     config = RunConfig.parse(run.config)
     scenes = [train.read_scene(p, config.train) for p in run.dataset_paths]
-    sims = run.sims()
+    sims = run.registered()  # the cross-init's frame
     views = [date_views(sc, sm) for sc, sm in zip(scenes, sims)]
     test = [date_views(sc, sm, "test") for sc, sm in zip(scenes, sims)]
     weights = [len(v.cameras) for v in test]
     extent = train.scene_extent(scenes[0].cameras)
 
     def evaluate(model) -> dict:
-        return evaluate_fused(model, test, render_config=config.render, lpips_net="alex")
+        """Test metrics, the views posed as the model poses its dates (``refine.lr_frame``: corrected)."""
+        frames = {d.name: d.frame for d in model.dates}
+        posed_test = test
+        if any(frames.values()):
+            posed_test = [date_views(sc, sm, "test") for sc, sm in zip(scenes, posed(sims, run.names, frames))]
+        return evaluate_fused(model, posed_test, render_config=config.render, lpips_net="alex")
 
     rows = []
     merged = read_fused(run_dir / "merged")
@@ -123,6 +129,7 @@ def main() -> None:
                 snapshot_steps=tuple(s for s in steps if s < max(steps)),
                 on_snapshot=snapshot,
                 checkpoint=work / f"variant_{k}_checkpoint.npz",
+                frame_dates=[i for i in range(len(run.names)) if i != run.reference],
             )
             snapshot(max(steps), model)
             done = {"overrides": over, "steps": steps, "rows": got, "seconds": time.perf_counter() - t0}
