@@ -913,6 +913,13 @@ def test_a_run_refined_with_frame_corrections_poses_its_dates_by_them(tiny_two_d
 
     assert metrics["dates"]["d1"]["psnr"] == pytest.approx(psnr(posed), abs=1e-4)
     assert abs(psnr(registered) - psnr(posed)) > 1e-3
+    # extended by d2: d2's frame is corrected, d1's kept as the run left it, d0 still held
+    from cfgs_jax.fusion import run_extend
+
+    given = run_dir / "dates" / "d1" / "point_cloud.ply"  # any model: the plumbing is what is checked here
+    run_extend(out, root / "d2", model=given, transform=Sim3.from_dict(truth["d2"]), progress=False)
+    dates = json.loads((out / "fused" / "model.json").read_text())["dates"]
+    assert "frame" not in dates[0] and dates[1]["frame"] == x and len(dates[2]["frame"]) == 13
 
 
 def test_fused_model_is_no_worse_than_the_merged_inputs(tiny_two_dates, fused_run):
