@@ -65,8 +65,9 @@ def main() -> None:
     ap.add_argument("--name", default="refine_length")
     args = ap.parse_args()
 
-    from cfgs_jax import train
+    from cfgs_jax import synthetic, train
     from cfgs_jax.evaluation.protocol import individual_plus
+    from cfgs_jax.evaluation.registration import date_errors
     from cfgs_jax.fusion.config import RunConfig
     from cfgs_jax.fusion.evaluate import evaluate_fused, weighted_mean
     from cfgs_jax.fusion.frames import posed
@@ -74,6 +75,7 @@ def main() -> None:
     from cfgs_jax.io.atomic import read_json
     from cfgs_jax.io.fused import read_fused
     from cfgs_jax.io.run_dir import RunDir, date_views
+    from cfgs_jax.sim3 import Sim3
 
     steps = sorted(set(args.steps))
     eval_dir = Path(args.eval)
@@ -97,6 +99,26 @@ def main() -> None:
             posed_test = [date_views(sc, sm, "test") for sc, sm in zip(scenes, posed(sims, run.names, frames))]
         return evaluate_fused(model, posed_test, render_config=config.render, lpips_net="alex")
 
+    def frame_errors(model) -> dict:
+        """Where the model corrected the dates' frames and the data has ground truth: each date's
+        registration error before and after the correction (``evaluation.registration``)."""
+        frames = {d.name: d.frame for d in model.dates}
+        truth_file = eval_dir / "data" / "ground_truth.json"
+        if not any(frames.values()) or not truth_file.is_file():
+            return {}
+        ref = run.names[run.reference]
+        exact = synthetic.reference_transforms(eval_dir / "data", [ref, *(n for n in run.names if n != ref)])
+        truth = [Sim3.from_dict(exact[n]) for n in run.names]
+        centres = [np.stack([np.asarray(c.center, np.float64) for c in sc.cameras]) for sc in scenes]
+        keys = ("rotation_deg", "scale_pct", "translation_pct")
+
+        def errors(found):
+            return {
+                e["date"]: {k: e[k] for k in keys} for e in date_errors(run.names, run.reference, found, truth, centres)
+            }
+
+        return {"registration": errors(sims), "corrected": errors(posed(sims, run.names, frames))}
+
     rows = []
     merged = read_fused(run_dir / "merged")
     rows.append(row("Merged (each date's own model)", 0, evaluate(merged), merged))
@@ -115,7 +137,7 @@ def main() -> None:
             got = []
 
             def snapshot(n, model, label=label, got=got):
-                got.append(row(f"{label} {n:,}", n, evaluate(model), model, group=label))
+                got.append(row(f"{label} {n:,}", n, evaluate(model), model, group=label) | frame_errors(model))
                 print(json.dumps(got[-1])[:300], flush=True)
 
             t0 = time.perf_counter()
@@ -178,6 +200,21 @@ def markdown(result: dict) -> str:
         per = " | ".join(f"{r['dates'][n]['psnr']:.2f}" for n in names)
         alpha = f"{r['alpha_median']:.3f} | {100 * r['alpha_above_0.9']:.1f} %" if "alpha_median" in r else "– | –"
         lines.append(f"| {r['label']} | {r['psnr']:.2f} | {r['ssim']:.4f} | {r['lpips']:.4f} | {per} | {alpha} |")
+    corrected = [r for r in result["rows"] if "corrected" in r]
+    if corrected:
+        lines += [
+            "",
+            "Registration error against the exact Sim(3)s (rotation ° / scale % / translation % of the extent), as "
+            "registered and after the refinement's frame corrections:",
+            "",
+            "| row | date | registered | corrected |",
+            "|---|---|---:|---:|",
+        ]
+        cell = lambda e: f"{e['rotation_deg']:.3f} / {e['scale_pct']:.3f} / {e['translation_pct']:.3f}"
+        for r in corrected:
+            lines += [
+                f"| {r['label']} | {d} | {cell(e)} | {cell(r['corrected'][d])} |" for d, e in r["registration"].items()
+            ]
     return "\n".join(lines) + "\n"
 
 
