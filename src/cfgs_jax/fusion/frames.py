@@ -1,5 +1,5 @@
-"""Small Sim(3) corrections of a date's frame, as differentiable parameters (registration refined by the
-images: the building block of a refinement that moves each date's Gaussians and cameras together).
+"""Small Sim(3) corrections of each date's frame, as differentiable parameters: registration refined by the
+images during the combined refinement (``refine.lr_frame``; beyond the paper, which keeps the registration).
 
 A correction is p = (log s, ω, τ) ∈ R⁷ acting on the reference frame as
 
@@ -14,6 +14,8 @@ images of its own Gaussians are unchanged and only its alignment with the other 
 """
 
 from __future__ import annotations
+
+import dataclasses
 
 import jax
 import jax.numpy as jnp
@@ -126,8 +128,6 @@ def baked(model, params) -> tuple:
     dates' corrections and each corrected date's ``DateInfo.frame`` composed with its correction, and
     each date's correction as a ``Sim3`` (identity where it was held): the model a refinement with frame
     parameters drew, in the frame its corrected registrations F_p ∘ S_p pose the dates' cameras in."""
-    import dataclasses
-
     p = np.asarray(_corrections(params), np.float64)
     centre, extent = np.asarray(params["frame_centre"], np.float64), float(params["frame_extent"])
     rows = jnp.matmul(params["frame_onehot"], jnp.asarray(p, jnp.float32), precision=HIGHEST)
