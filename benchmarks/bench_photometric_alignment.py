@@ -29,18 +29,6 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import result_header, write_result
 
 
-def correction(p, centre, extent):
-    """(s, R, quaternion, translation) of F(x) = s·R·(x − c) + c + e·τ from p = (log s, ω, τ)."""
-    import jax.numpy as jnp
-
-    from cfgs_jax.model import quat_to_rotmat
-
-    q = jnp.concatenate([jnp.ones(1, p.dtype), 0.5 * p[1:4]])
-    q = q / jnp.linalg.norm(q)
-    s, r = jnp.exp(p[0]), quat_to_rotmat(q)
-    return s, r, q, centre - s * r @ centre + extent * p[4:7]
-
-
 def align(gaussians, o_mult, c_mult, cameras, images, render_config, extent, args, on_step):
     """Fit p = (log s, ω, τ) as the module docstring says; ``on_step(step, p, loss, c)`` every 10 steps."""
     import jax
@@ -48,18 +36,14 @@ def align(gaussians, o_mult, c_mult, cameras, images, render_config, extent, arg
     import optax
 
     from cfgs_jax import splat
-    from cfgs_jax.fusion.register import quat_multiply
-    from cfgs_jax.model import Gaussians
+    from cfgs_jax.fusion.frames import move_gaussians
 
     centre = jnp.mean(gaussians.means, axis=0)
     cap = max(int(splat.required_capacity(gaussians, c, o_mult, config=render_config)) for c in cameras)
     rc = dataclasses.replace(render_config, capacity=int(1.5 * cap))
 
     def loss(p, camera, image):
-        s, r, q, t = correction(p, centre, extent)
-        g = gaussians
-        moved = Gaussians(g.means @ (s * r).T + t, quat_multiply(q, g.quats), g.log_scales + p[0], g.opacity_logits,
-                          g.colors, None)  # fmt: skip
+        moved = move_gaussians(gaussians, jnp.tile(p, (len(gaussians), 1)), centre, extent)
         res = splat.render_dates(moved, camera, o_mult, c_mult, config=rc, statistics=False)
         w = (jax.lax.stop_gradient(res.alpha[0]) > args.alpha_min).astype(image.dtype)
         rho = jnp.log1p(jnp.sum((res.image[0] - image) ** 2, axis=-1) / args.robust**2)
@@ -99,6 +83,7 @@ def main() -> None:
     from cfgs_jax.config import load_config
     from cfgs_jax.evaluation.protocol import EvalSetup
     from cfgs_jax.evaluation.registration import registration_error
+    from cfgs_jax.fusion.frames import as_sim3
     from cfgs_jax.fusion.register import centre_extent
     from cfgs_jax.io.fused import read_fused
     from cfgs_jax.io.run_dir import RunDir, camera_in_frame
@@ -107,7 +92,7 @@ def main() -> None:
 
     out = Path(args.eval)
     setup = EvalSetup.parse(load_config(args.config))
-    run = RunDir.open(out / "run")
+    run = RunDir.open(out / "run", finished=False)  # its cross-init is what is read
     names, sims = run.names, run.sims()
     scenes = [train.read_scene(p, setup.fusion.train) for p in run.dataset_paths]
     ref = names[run.reference]
@@ -131,9 +116,7 @@ def main() -> None:
         t0 = time.perf_counter()
 
         def on_step(step, p, loss, centre, d=d, keep=keep, pair=pair, t0=t0):
-            s, r, _, t = correction(p, centre, extent)
-            f = Sim3(float(s), np.asarray(r, np.float64), np.asarray(t, np.float64))
-            found = f.inverse().compose(sims[d])
+            found = as_sim3(p, centre, extent).inverse().compose(sims[d])
             err = registration_error(found, exact[names[d]], centres[d], extent)
             rows.append({"pair": pair, "anchor_gaussians": len(keep), "step": step, "loss": loss,
                          "seconds": time.perf_counter() - t0} | err)  # fmt: skip

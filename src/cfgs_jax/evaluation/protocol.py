@@ -30,7 +30,6 @@ from cfgs_jax.evaluation.report import figure_grid, margins, pr_curve_plot, tabl
 from cfgs_jax.evaluation.scoring import OqRuleConfig
 from cfgs_jax.fusion.config import RUN_TABLES, RunConfig
 from cfgs_jax.fusion.evaluate import evaluate_fused, weighted_mean
-from cfgs_jax.fusion.frames import as_frame
 from cfgs_jax.fusion.fuse import INVISIBLE_LOGIT
 from cfgs_jax.fusion.light import cold_warm_coefficient
 from cfgs_jax.fusion.refine import RefineConfig, refine
@@ -300,9 +299,10 @@ class _Evaluation:
     def test_views_of(self, path: Path) -> list:
         """The test views posed for the model at ``path``: by the run's registration after the frame
         corrections that model records (a snapshot's are not the final model's; the merged model has none)."""
-        sims = RunDir.open(self.run_dir, finished=False).sims(path)
-        same = all(np.allclose(as_frame(a), as_frame(b), rtol=0, atol=1e-12) for a, b in zip(sims, self.sims))
-        return self.test_views if same else [date_views(sc, sm, "test") for sc, sm in zip(self.scenes, sims)]
+        run = RunDir.open(self.run_dir, finished=False)
+        if run.frames(path) == run.frames():  # posed as the run's fused model poses them (``self.sims``)
+            return self.test_views
+        return [date_views(sc, sm, "test") for sc, sm in zip(self.scenes, run.sims(path))]
 
     def fused_row(self, key: str, label: str, path: Path, **extra) -> dict:
         """The row of the fused model at ``path`` (evaluated once, then read from ``rows.json``)."""

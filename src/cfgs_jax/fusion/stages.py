@@ -556,8 +556,7 @@ def _register_added(job: Job, scenes, k: int, transform: Sim3 | None) -> None:
         others = [ref] + [j for j in range(len(run.names)) if j not in (ref, k)]
         names = [run.names[j] for j in others]
         # the registered dates posed as the fused model poses them (after its frame corrections)
-        frames = {d["name"]: tuple(d.get("frame", ())) for d in read_json(run / "fused" / "model.json")["dates"]}
-        sims = posed([Sim3.from_dict(reg[n]["transform"]) for n in names], names, frames)
+        sims = posed([Sim3.from_dict(reg[n]["transform"]) for n in names], names, run.frames(run / "fused"))
         anchors = [(scenes[j], sim) for j, sim in zip(others, sims)]
         reg[name] = _register(job, anchors, scenes[k], name, [run.names[j] for j in others], "extend/register")
     write_json(run / "register.json", reg)

@@ -238,18 +238,23 @@ class RunDir:
         reg = read_json(self.path / "register.json")
         return [Sim3.from_dict(reg[n]["transform"]) for n in self.names]
 
+    def frames(self, model_dir: str | Path | None = None) -> dict[str, tuple[float, ...]]:
+        """The frame corrections (``DateInfo.frame``) the fused model records, once the refinement is
+        done, or those of the model in ``model_dir`` (a snapshot's; the merged model has none), by date
+        name; dates without one are left out."""
+        source = Path(model_dir) if model_dir is not None else self.path / "fused" if self.done("refine") else None
+        meta = read_json(source / "model.json", {}) if source is not None else {}
+        return {d["name"]: tuple(d["frame"]) for d in meta.get("dates", []) if d.get("frame")}
+
     def sims(self, model_dir: str | Path | None = None) -> list[Sim3]:
         """Each date's date → reference Sim(3): its registration (``register.json``) after the frame
-        correction the fused model records for it (``DateInfo.frame``, once the refinement is done), or
-        the one the model in ``model_dir`` records (a snapshot's, the merged model's: none)."""
-        base = self.registered()
-        source = Path(model_dir) if model_dir is not None else self.path / "fused" if self.done("refine") else None
-        meta = read_json(source / "model.json") if source is not None else None
-        if not meta:
+        correction the model records for it (``frames``: the fused model's, or ``model_dir``'s)."""
+        base, frames = self.registered(), self.frames(model_dir)
+        if not frames:
             return base
         from cfgs_jax.fusion.frames import posed
 
-        return posed(base, self.names, {d["name"]: tuple(d.get("frame", ())) for d in meta.get("dates", [])})
+        return posed(base, self.names, frames)
 
     # -- layout --------------------------------------------------------------------------------
 
