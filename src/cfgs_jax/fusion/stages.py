@@ -18,7 +18,6 @@ from collections.abc import Callable
 from pathlib import Path
 
 import jax.numpy as jnp
-import numpy as np
 
 from cfgs_jax import train
 from cfgs_jax.compiled_code import release_if_near_limit
@@ -35,7 +34,7 @@ from cfgs_jax.fusion.compact import (
 from cfgs_jax.fusion.config import RunConfig
 from cfgs_jax.fusion.cross_init import init_pairs, pair_groups
 from cfgs_jax.fusion.evaluate import evaluate_fused
-from cfgs_jax.fusion.frames import as_frame, posed
+from cfgs_jax.fusion.frames import posed
 from cfgs_jax.fusion.fuse import add_date, merge
 from cfgs_jax.fusion.refine import refine
 from cfgs_jax.fusion.register import register_date
@@ -44,7 +43,7 @@ from cfgs_jax.io.captured import exif_captured, insert_position, parse_captured,
 from cfgs_jax.io.colmap import Scene
 from cfgs_jax.io.fused import read_fused, write_fused
 from cfgs_jax.io.ply import read_ply, write_ply
-from cfgs_jax.io.run_dir import RunDir, date_views
+from cfgs_jax.io.run_dir import RunDir, date_cameras, date_views
 from cfgs_jax.metrics.perceptual import minimum_side
 from cfgs_jax.model import DateViews
 from cfgs_jax.sim3 import Sim3
@@ -293,13 +292,13 @@ def run_fusion(
     return run
 
 
-def _as_refined(run: RunDir, scenes, sims, views) -> tuple[list, list]:
-    """(views, sims) as the refined model poses the dates: ``views`` and ``sims`` again where the
-    refinement corrected a date's frame (``refine.lr_frame``), else as they are."""
-    now = run.sims()
-    if all(np.allclose(as_frame(a), as_frame(b), rtol=0, atol=1e-12) for a, b in zip(now, sims)):
-        return views, sims
-    return [date_views(sc, sm) for sc, sm in zip(scenes, now)], now
+def _as_refined(run: RunDir, scenes, views) -> tuple[list, list]:
+    """(views, sims) as the refined model poses the dates (``RunDir.sims``: registration, then the frame
+    corrections of ``refine.lr_frame`` where the refinement made any): ``views``' cameras posed again,
+    their images kept."""
+    sims = run.sims()
+    posed_views = [DateViews(tuple(date_cameras(sc, sm)), v.images) for sc, sm, v in zip(scenes, sims, views)]
+    return posed_views, sims
 
 
 def _fuse_merged(job: Job, scenes, sims, snapshots, evaluate: bool) -> None:
@@ -313,7 +312,7 @@ def _fuse_merged(job: Job, scenes, sims, snapshots, evaluate: bool) -> None:
     if not run.done("refine"):
         _refine_stage(job, views, scenes, "refine", snapshots)
     if t > 1:
-        views, sims = _as_refined(run, scenes, sims, views)
+        views, sims = _as_refined(run, scenes, views)
         _compact_if_enabled(job, "compact", views, scenes, sims)
     run.stage("export", lambda: _export_reference(run))
     _evaluate_stage(job, scenes, evaluate)
@@ -618,7 +617,7 @@ def run_extend(
     if not run.done(prefix + "refine"):
         _refine_stage(job, views, scenes, prefix + "refine", extension=True, new_dates=[k])
         _export_reference(run)
-    views, sims = _as_refined(run, scenes, sims, views)
+    views, sims = _as_refined(run, scenes, views)
     _compact_if_enabled(job, prefix + "compact", views, scenes, sims)
     _evaluate_stage(job, scenes, evaluate, stage=prefix + "evaluate")
     run.timings[f"extend:{name}:total"] = sum(v for key, v in run.timings.items() if key.startswith(prefix))
