@@ -12,7 +12,9 @@ transmittance T_k before it and running foreground sum S_k = Σ_{j≤k} w_j f_j,
 
 so only per-pixel residuals (fg, T_N) are stored, never per-pixel × per-Gaussian intermediates.
 The running Σ_f ∂L/∂fg_f (fg_f − S_k,f) is carried as one scalar per pixel and date. Gradients are
-scatter-added per Gaussian as each chunk is processed.
+scatter-added per Gaussian as each chunk is processed. Where neither the 2D means nor the conics are
+differentiated (only opacities and features, as in cross-timestep initialisation), the walk leaves out
+∂/∂power and the footprint's five sums (the VJP is defined with symbolic zeros, so it knows).
 
 CPU performance notes (XLA:CPU, measured): a round's arrays are laid out Gaussian-major
 [K, D, B, P] with features as separate planes; prefix products/sums along K are explicit chains
@@ -274,7 +276,24 @@ def _composite_fwd(layout, means2d, conics, opac, feats, ids, tile_start, tile_e
     return out, res
 
 
-def _composite_bwd(layout, res, cot):
+def _composite_fwd_marked(layout, *primals):
+    """The forward for the VJP, with a mark in the residuals (an empty tuple, or None) of whether the
+    footprint (``means2d`` or ``conics``) is differentiated at all."""
+    values = [p.value for p in primals]
+    out, res = _composite_fwd(layout, *values)
+    return out, (res, () if primals[0].perturbed or primals[1].perturbed else None)
+
+
+def _composite_bwd_marked(layout, marked, cot):
+    res, footprint = marked
+    zero = jax.custom_derivatives.SymbolicZero
+    cot = tuple(jnp.zeros(c.shape, c.dtype) if isinstance(c, zero) else c for c in cot)
+    return _composite_bwd(layout, res, cot, footprint=footprint is not None)
+
+
+def _composite_bwd(layout, res, cot, footprint: bool = True):
+    """The front-to-back walk of the VJP. ``footprint=False`` leaves out the gradients of ``means2d`` and
+    ``conics`` (returned as zeros): what a caller that optimises only opacities and features needs."""
     means2d, conics, opac, planes, ids, tile_start, tile_end, fg_img, t_b, order = res
     g_fg, g_t, _, _ = cot
     f, d, n = planes.shape
@@ -297,47 +316,48 @@ def _composite_bwd(layout, res, cot):
             d_alpha = jnp.where(ch.w > 0, ch.tk * gf - (behind_k + tail) / ch.one_m, 0.0)
             d_og = jnp.where(ch.og < layout.max_alpha, d_alpha, 0.0)
             d_op = _reduce_last(d_og * ch.g[:, None])  # [K, D, B]
-            d_power = _sum_leading_of(lambda j: d_og[:, j] * ch.op[:, j, :, None], d) * ch.g  # [K, B, P]
-            dx, dy, (ca, cb, cc) = ch.dx, ch.dy, ch.con
-            d_con = jnp.stack(
-                [
-                    _reduce_last(d_power * (-0.5 * dx * dx)),
-                    _reduce_last(d_power * (-dx * dy)),
-                    _reduce_last(d_power * (-0.5 * dy * dy)),
-                ],
-                axis=-1,
-            )
-            d_mean = jnp.stack(
-                [
-                    _reduce_last(d_power * -(ca[..., None] * dx + cb[..., None] * dy)),
-                    _reduce_last(d_power * -(cb[..., None] * dx + cc[..., None] * dy)),
-                ],
-                axis=-1,
-            )
             d_feat = jnp.stack([_reduce_last(ch.w * gfg[i][None]) for i in range(f)])  # [F, K, D, B]
-            grads = (
-                dm.at[ch.gid].add(d_mean),
-                dc.at[ch.gid].add(d_con),
-                do.at[:, ch.gid].add(jnp.moveaxis(d_op, 1, 0)),
-                dfeat.at[:, :, ch.gid].add(jnp.moveaxis(d_feat, 2, 1)),
-            )
-            return r + 1, ch.t_out, ch.done_out, behind_k[-1], grads
+            do = do.at[:, ch.gid].add(jnp.moveaxis(d_op, 1, 0))
+            dfeat = dfeat.at[:, :, ch.gid].add(jnp.moveaxis(d_feat, 2, 1))
+            if footprint:
+                d_power = _sum_leading_of(lambda j: d_og[:, j] * ch.op[:, j, :, None], d) * ch.g  # [K, B, P]
+                dx, dy, (ca, cb, cc) = ch.dx, ch.dy, ch.con
+                d_con = jnp.stack(
+                    [
+                        _reduce_last(d_power * (-0.5 * dx * dx)),
+                        _reduce_last(d_power * (-dx * dy)),
+                        _reduce_last(d_power * (-0.5 * dy * dy)),
+                    ],
+                    axis=-1,
+                )
+                d_mean = jnp.stack(
+                    [
+                        _reduce_last(d_power * -(ca[..., None] * dx + cb[..., None] * dy)),
+                        _reduce_last(d_power * -(cb[..., None] * dx + cc[..., None] * dy)),
+                    ],
+                    axis=-1,
+                )
+                dm, dc = dm.at[ch.gid].add(d_mean), dc.at[ch.gid].add(d_con)
+            return r + 1, ch.t_out, ch.done_out, behind_k[-1], (dm, dc, do, dfeat)
 
         init = (jnp.int32(0), t0, done0, behind0, carry)
         *_, grads = jax.lax.while_loop(_still_running(n_rounds), body, init)
         return grads, None
 
+    footprint_shape = ((n, 2), (n, 3)) if footprint else ((0, 2), (0, 3))  # not carried when left out
     zeros = (
-        jnp.zeros((n, 2), dtype),
-        jnp.zeros((n, 3), dtype),
+        jnp.zeros(footprint_shape[0], dtype),
+        jnp.zeros(footprint_shape[1], dtype),
         jnp.zeros((d, n), dtype),
         jnp.zeros((f, d, n), dtype),
     )
     (dm, dc, do, dfeat), _ = jax.lax.scan(batch_step, zeros, (order, g_fg_b, g_t_b, behind_b, t_b))
+    if not footprint:
+        dm, dc = jnp.zeros_like(means2d), jnp.zeros_like(conics)
     return dm, dc, do, jnp.moveaxis(dfeat, 0, -1), None, None, None
 
 
-composite.defvjp(_composite_fwd, _composite_bwd)
+composite.defvjp(_composite_fwd_marked, _composite_bwd_marked, symbolic_zeros=True)
 
 
 def weighted_sums(layout: Layout, means2d, conics, opac, ids, tile_start, tile_end, maps):
