@@ -287,7 +287,8 @@ def _composite_fwd_marked(layout, *primals):
 def _composite_bwd_marked(layout, marked, cot):
     res, footprint = marked
     zero = jax.custom_derivatives.SymbolicZero
-    cot = tuple(jnp.zeros(c.shape, c.dtype) if isinstance(c, zero) else c for c in cot)
+    # the image and transmittance cotangents as arrays; the statistics' (never differentiated) as they come
+    cot = tuple(jnp.zeros(c.shape, c.dtype) if isinstance(c, zero) else c for c in cot[:2]) + tuple(cot[2:])
     return _composite_bwd(layout, res, cot, footprint=footprint is not None)
 
 
