@@ -79,26 +79,23 @@ def main() -> None:
 
     import jax.numpy as jnp
 
-    from cfgs_jax import synthetic, train
+    from cfgs_jax import train
     from cfgs_jax.config import load_config
     from cfgs_jax.evaluation.protocol import EvalSetup
-    from cfgs_jax.evaluation.registration import registration_error
+    from cfgs_jax.evaluation.registration import ground_truth, registration_error
     from cfgs_jax.fusion.frames import as_sim3
     from cfgs_jax.fusion.register import centre_extent
     from cfgs_jax.io.fused import read_fused
     from cfgs_jax.io.run_dir import RunDir, camera_in_frame
     from cfgs_jax.model import Gaussians, light_multipliers, opacity_multipliers, select
-    from cfgs_jax.sim3 import Sim3
 
     out = Path(args.eval)
     setup = EvalSetup.parse(load_config(args.config))
     run = RunDir.open(out / "run", finished=False)  # its cross-init is what is read
     names, sims = run.names, run.sims()
     scenes = [train.read_scene(p, setup.fusion.train) for p in run.dataset_paths]
-    ref = names[run.reference]
-    exact = synthetic.reference_transforms(out / "data", [ref, *(n for n in names if n != ref)])
-    exact = {n: Sim3.from_dict(v) for n, v in exact.items()}
-    centres = [np.stack([np.asarray(c.center, np.float64) for c in sc.cameras]) for sc in scenes]
+    truth, centres = ground_truth(out / "data", names, run.reference, scenes)
+    exact = dict(zip(names, truth))
     extent = centre_extent(exact[names[run.reference]].apply(centres[run.reference]))
     fused = read_fused(run.path / "cross_init")
     o, light, origin = (np.asarray(x) for x in (opacity_multipliers(fused), light_multipliers(fused), fused.origin))

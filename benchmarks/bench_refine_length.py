@@ -65,9 +65,9 @@ def main() -> None:
     ap.add_argument("--name", default="refine_length")
     args = ap.parse_args()
 
-    from cfgs_jax import synthetic, train
+    from cfgs_jax import train
     from cfgs_jax.evaluation.protocol import individual_plus
-    from cfgs_jax.evaluation.registration import date_errors
+    from cfgs_jax.evaluation.registration import date_errors, ground_truth
     from cfgs_jax.fusion.config import RunConfig
     from cfgs_jax.fusion.evaluate import evaluate_fused, weighted_mean
     from cfgs_jax.fusion.frames import posed
@@ -75,7 +75,6 @@ def main() -> None:
     from cfgs_jax.io.atomic import read_json
     from cfgs_jax.io.fused import read_fused
     from cfgs_jax.io.run_dir import RunDir, date_views
-    from cfgs_jax.sim3 import Sim3
 
     steps = sorted(set(args.steps))
     eval_dir = Path(args.eval)
@@ -106,10 +105,7 @@ def main() -> None:
         truth_file = eval_dir / "data" / "ground_truth.json"
         if not any(frames.values()) or not truth_file.is_file():
             return {}
-        ref = run.names[run.reference]
-        exact = synthetic.reference_transforms(eval_dir / "data", [ref, *(n for n in run.names if n != ref)])
-        truth = [Sim3.from_dict(exact[n]) for n in run.names]
-        centres = [np.stack([np.asarray(c.center, np.float64) for c in sc.cameras]) for sc in scenes]
+        truth, centres = ground_truth(eval_dir / "data", run.names, run.reference, scenes)
         keys = ("rotation_deg", "scale_pct", "translation_pct")
 
         def errors(found):

@@ -39,7 +39,6 @@ from cfgs_jax.io.fused import read_fused
 from cfgs_jax.io.ply import read_ply, write_ply
 from cfgs_jax.io.run_dir import RunDir, config_changes, date_cameras, date_views, registered_cameras
 from cfgs_jax.model import light_multipliers, opacity_multipliers, rgb
-from cfgs_jax.sim3 import Sim3
 from cfgs_jax.splat.weights import observed_matrix
 
 
@@ -378,10 +377,7 @@ class _Evaluation:
         """Each date's SfM registration against the synthetic scene's exact Sim(3)
         (``registration.date_errors``), with the dates it was registered with."""
         ref = run.reference
-        others = [n for k, n in enumerate(self.names) if k != ref]
-        exact = synthetic.reference_transforms(data, [self.names[ref], *others])
-        truth = [Sim3.from_dict(exact[n]) for n in self.names]
-        centres = [np.stack([np.asarray(c.center, np.float64) for c in sc.cameras]) for sc in self.scenes]
+        truth, centres = registration.ground_truth(data, self.names, ref, self.scenes)
         errors = registration.date_errors(self.names, ref, run.registered(), truth, centres)
         refined = registration.date_errors(self.names, ref, self.sims, truth, centres)
         if any(a != b for a, b in zip(errors, refined)):  # the refinement corrected the dates' frames

@@ -10,10 +10,12 @@ reference frame) — so it includes what a rotation or scale error does at the c
 from __future__ import annotations
 
 from collections.abc import Sequence
+from pathlib import Path
 
 import numpy as np
 from jaxtyping import Float
 
+from cfgs_jax import synthetic
 from cfgs_jax.fusion.register import centre_extent, rotation_angle
 from cfgs_jax.sim3 import Sim3
 
@@ -49,3 +51,16 @@ def date_errors(
         for k, (name, f, t, c) in enumerate(zip(names, found, true, centres))
         if k != reference
     ]
+
+
+def ground_truth(
+    data: str | Path, names: Sequence[str], reference: int, scenes
+) -> tuple[list[Sim3], list[Float[np.ndarray, "n 3"]]]:
+    """What ``date_errors`` compares a run's registration with on a synthetic scene in ``data``: each
+    date's exact date → reference Sim(3) (``synthetic.reference_transforms``, ``names[reference]`` the
+    reference) and its cameras' centres in its own frame (``scenes``, one per name)."""
+    exact = synthetic.reference_transforms(
+        data, [names[reference], *(n for k, n in enumerate(names) if k != reference)]
+    )
+    truth = [Sim3.from_dict(exact[n]) for n in names]
+    return truth, [np.stack([np.asarray(c.center, np.float64) for c in sc.cameras]) for sc in scenes]
