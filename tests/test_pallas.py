@@ -166,6 +166,61 @@ def test_triton_lowering_for_the_gpu(walk, scatter):
     assert "__gpu$xla.gpu.triton" in ws.trace(*args[:3]).lower(lowering_platforms=("cuda",)).as_text()
 
 
+def _sub_jaxprs(eqn):
+    for v in eqn.params.values():
+        for x in v if isinstance(v, (tuple, list)) else (v,):
+            if isinstance(x, jax.extend.core.ClosedJaxpr):
+                yield x.jaxpr
+            elif isinstance(x, jax.extend.core.Jaxpr):
+                yield x
+
+
+def _eqns(jaxpr, name):
+    """Every equation of primitive ``name`` in ``jaxpr`` and the jaxprs nested in it."""
+    for eqn in jaxpr.eqns:
+        if eqn.primitive.name == name:
+            yield eqn
+        for sub in _sub_jaxprs(eqn):
+            yield from _eqns(sub, name)
+
+
+def _read(jaxpr, var) -> bool:
+    return any(var in eqn.invars for eqn in jaxpr.eqns) or var in jaxpr.outvars
+
+
+@pytest.mark.parametrize("walk", ["chunk", "serial"])
+def test_kernel_loops_carry_nothing_that_only_their_condition_reads(walk):
+    """Triton's layout pass (``TritonGPURemoveLayoutConversions``; Triton 3.6, and the Triton bundled
+    with jaxlib on the H100) indexes a ``scf.while``'s results by its operands. Canonicalisation drops
+    a carried value that only the condition reads from the results, after which the pass fails an
+    assertion or crashes on the backward kernel. So in every loop of the three kernels, each carried
+    value the condition reads must also be read by the body (the pass-through of a loop-invariant
+    value counts: canonicalisation hoists those out of the loop instead)."""
+    layout, args, bins = _kernel_inputs(chunk=4 if walk == "serial" else None)
+    triton = PallasOptions(interpret=False, walk=walk)
+    lists = (bins.gaussian_ids, bins.tile_start, bins.tile_end)
+
+    def loss(m2, con, op, ft):
+        fg, t, maxw, _ = composite_pallas(layout, triton, m2, con, op, ft, *lists)
+        return jnp.sum(fg) + jnp.sum(t) + jnp.sum(maxw)
+
+    maps = jnp.ones((3, 2, 30, 40))
+    traced = [
+        jax.make_jaxpr(jax.grad(loss, argnums=(0, 1, 2, 3)))(*args).jaxpr,
+        jax.make_jaxpr(lambda *a: weighted_sums_pallas(layout, triton, *a, *lists, maps))(*args[:3]).jaxpr,
+    ]
+    kernels = [eqn.params["jaxpr"] for j in traced for eqn in _eqns(j, "pallas_call")]
+    assert len(kernels) == 3  # forward, backward, weighted sums
+    loops = [eqn for k in kernels for eqn in _eqns(k, "while")]
+    assert len(loops) >= 3
+    for eqn in loops:
+        cond, body = eqn.params["cond_jaxpr"].jaxpr, eqn.params["body_jaxpr"].jaxpr
+        cond_carry = cond.invars[eqn.params["cond_nconsts"] :]
+        body_carry = body.invars[eqn.params["body_nconsts"] :]
+        only_cond = [i for i, (c, b) in enumerate(zip(cond_carry, body_carry)) if _read(cond, c) and not _read(body, b)]
+        assert not only_cond, f"carried values {only_cond} are read by the loop's condition alone"
+
+
 def test_backend_choice_and_errors():
     assert splat.RenderConfig().resolved_backend() == "xla"
     assert splat.RenderConfig(backend="xla").resolved_backend() == "xla"

@@ -184,7 +184,12 @@ def _alive(done: list) -> jax.Array:
 
 def _tile_walk(layout: Layout, start_ref, end_ref, table_ref, d: int, step, extra):
     """Run ``step(r, t, done, extra) -> (t, done, extra)`` over the program's tile until its range is
-    exhausted or every pixel of every date has stopped; returns (tile, T, extra)."""
+    exhausted or every pixel of every date has stopped; returns (tile, T, extra).
+
+    Once every pixel has stopped the round counter jumps to the round count, so the loop's condition
+    reads the counter alone. A carried flag that only the condition read would be dropped from the
+    ``scf.while`` results by Triton's canonicalisation, and Triton's layout pass (3.6, and the one
+    jaxlib bundles) then maps results to the wrong operands and crashes on the backward kernel."""
     tile = pl.program_id(0)
     start, end = start_ref[tile], end_ref[tile]
     n_rounds = _rounds(layout, start, end)
@@ -193,12 +198,12 @@ def _tile_walk(layout: Layout, start_ref, end_ref, table_ref, d: int, step, extr
     done0 = [jnp.where(inside, 0, 1).astype(jnp.int32) for _ in range(d)]
 
     def body(c):
-        r, _, t, done, carried = c
+        r, t, done, carried = c
         t, done, carried = step(r, start, end, list(t), list(done), carried)
-        return r + 1, _alive(done), t, done, carried
+        return jnp.where(_alive(done) > 0, r + 1, n_rounds), t, done, carried
 
-    cond = lambda c: (c[0] < n_rounds) & (c[1] > 0)
-    _, _, t, _, extra = jax.lax.while_loop(cond, body, (jnp.int32(0), _alive(done0), t0, done0, extra))
+    r0 = jnp.where(_alive(done0) > 0, 0, n_rounds)
+    _, t, _, extra = jax.lax.while_loop(lambda c: c[0] < n_rounds, body, (r0, t0, done0, extra))
     return tile, t, extra
 
 

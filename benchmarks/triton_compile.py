@@ -1,0 +1,170 @@
+"""Compile the Pallas kernels for a CUDA GPU without one: Triton's own pipeline, from a CPU-only install.
+
+Each kernel variant (the forward with statistics, the backward by atomic adds or per-slot partials, the
+block and the serial walk, one to three dates, the weighted sums) is lowered for CUDA on this machine
+(Pallas' Triton lowering: ``jax.jit(f).trace(...).lower(lowering_platforms=("cuda",))``) and each Triton
+module it holds, as text, is compiled by the ``triton`` package for a CUDA target (TTIR → TTGIR → LLVM IR →
+PTX → cubin with the package's ptxas), each in a child process, so that a compiler crash ends only its own
+compile. On a GPU, JAX compiles these modules with the Triton that jaxlib bundles; the ``triton`` wheel of
+the same vintage (the one PyTorch brings onto the GPU machines) fails where that one crashed, so a module
+that compiles here is one worth a GPU's time.
+
+    python benchmarks/triton_compile.py [--triton-python PY] [--arch 90] [--name STEM]
+
+``--triton-python``: the interpreter whose ``triton`` package compiles (default: this one), e.g. a
+virtual environment with ``pip install triton==3.6.0``. Writes results/STEM.{json,md} (default
+``triton_compile_<triton version>``); the code revision of the cfgs_jax it imports is in the header.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import re
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+sys.path.append(str(Path(__file__).resolve().parents[1] / "tests"))
+from common import result_header, write_result
+
+#: (name, walk, scatter, chunk, dates, what): ``what`` "grad" lowers the forward and the backward kernel
+VARIANTS = [
+    ("block walk, atomic adds, K=32, T=1", "chunk", "atomic", 32, 1, "grad"),
+    ("block walk, per-slot partials, K=32, T=1", "chunk", "partials", 32, 1, "grad"),
+    ("block walk, atomic adds, K=8, T=3", "chunk", "atomic", 8, 3, "grad"),
+    ("serial walk, atomic adds, K=8, T=1", "serial", "atomic", 8, 1, "grad"),
+    ("serial walk, per-slot partials, K=8, T=1", "serial", "partials", 8, 1, "grad"),
+    ("serial walk, atomic adds, K=2, T=2", "serial", "atomic", 2, 2, "grad"),
+    ("weighted sums, block walk, T=2", "chunk", "atomic", 32, 2, "sums"),
+    ("weighted sums, serial walk, T=1", "serial", "atomic", 8, 1, "sums"),
+]
+
+COMPILE = """
+import sys, triton
+from triton.backends.compiler import GPUTarget
+k = triton.compile(sys.argv[1], target=GPUTarget("cuda", int(sys.argv[2]), 32),
+                   options={"num_warps": int(sys.argv[3]), "num_stages": 1})
+print("ptx bytes", len(k.asm["ptx"]), "cubin bytes", len(k.asm["cubin"]), "shared", k.metadata.shared)
+"""
+
+
+def triton_modules(walk: str, scatter: str, chunk: int, dates: int, what: str) -> dict[str, str]:
+    """The Triton modules (name → MLIR text) of one variant, lowered for CUDA on this machine."""
+    import dataclasses
+    import importlib
+
+    import jax
+    import jax.numpy as jnp
+    from jax._src.pallas.triton import lowering
+    from test_splat import camera, scene
+
+    from cfgs_jax import splat
+    from cfgs_jax.splat.pallas_composite import PallasOptions, composite_pallas, weighted_sums_pallas
+
+    render_module = importlib.import_module("cfgs_jax.splat.render")
+    modules: dict[str, str] = {}
+    lower = lowering.lower_jaxpr_to_triton_module
+
+    def capture(*args, **kwargs):
+        result = lower(*args, **kwargs)
+        op = result.module.operation
+        modules[op.attributes["sym_name"].value] = op.get_asm(enable_debug_info=False)
+        return result
+
+    g, cam = scene(120, 5), camera(40, 30)
+    cfg = dataclasses.replace(splat.RenderConfig(backend="pallas"), capacity=4096, chunk=chunk)
+    om = jnp.ones((dates, len(g)))
+    proj, opac, layout, bins = render_module._project_and_bin(g, cam, om, config=cfg, capacity=4096, statistics=True)
+    feats = jnp.ones((dates, len(g), 3))
+    lists = (bins.gaussian_ids, bins.tile_start, bins.tile_end)
+    options = PallasOptions(interpret=False, scatter=scatter, walk=walk)
+    args = (proj.means2d, proj.conics, opac, feats)
+
+    def loss(m2, con, op, ft):
+        fg, t, maxw, _ = composite_pallas(layout, options, m2, con, op, ft, *lists)
+        return jnp.sum(fg) + jnp.sum(t) + jnp.sum(maxw)
+
+    lowering.lower_jaxpr_to_triton_module = capture
+    try:
+        if what == "grad":
+            f = jax.jit(jax.grad(loss, argnums=(0, 1, 2, 3)))
+            f.trace(*args).lower(lowering_platforms=("cuda",))
+        else:
+            maps = jnp.ones((2, dates, cam.height, cam.width))
+            f = jax.jit(lambda *a: weighted_sums_pallas(layout, options, *a, *lists, maps))
+            f.trace(*args[:3]).lower(lowering_platforms=("cuda",))
+    finally:
+        lowering.lower_jaxpr_to_triton_module = lower
+    return modules
+
+
+def compile_module(python: str, text: str, arch: int, warps: int, work: Path, stem: str) -> dict:
+    """Compile one module's text in a child process → {"ok", "detail"} (the failing pass, or sizes)."""
+    path = work / f"{stem}.ttir"
+    path.write_text(text)
+    env = {**os.environ, "TRITON_CACHE_DIR": str(work / "cache"), "TRITON_DEFAULT_FP_FUSION": "1"}
+    p = subprocess.run(
+        [python, "-c", COMPILE, str(path), str(arch), str(warps)],
+        capture_output=True,
+        text=True,
+        timeout=900,
+        env=env,
+    )
+    if p.returncode == 0:
+        return {"ok": True, "detail": p.stdout.strip().splitlines()[-1]}
+    err = p.stdout + p.stderr
+    failed = re.search(r"Pipeline failed while executing \[`(\w+)`", err)
+    assertion = re.search(r"Assertion `(.*?)' failed", err)
+    detail = "; ".join(
+        x
+        for x in (failed and f"failed in pass {failed.group(1)}", assertion and f"assertion {assertion.group(1)}")
+        if x
+    )
+    detail = detail or (err.strip().splitlines() or [""])[-1]
+    return {"ok": False, "detail": f"exit {p.returncode}: {detail[:400]}"}
+
+
+def main():
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--triton-python", default=sys.executable, help="interpreter whose triton package compiles")
+    ap.add_argument("--arch", type=int, default=90, help="CUDA compute capability (90: H100/H200)")
+    ap.add_argument("--warps", type=int, default=4)
+    ap.add_argument("--name", help="results/NAME.{json,md} (default triton_compile_<triton version>)")
+    args = ap.parse_args()
+
+    import cfgs_jax
+
+    version = subprocess.run(
+        [args.triton_python, "-c", "import triton; print(triton.__version__)"], capture_output=True, text=True
+    ).stdout.strip()
+    if not version:
+        sys.exit(f"no triton package importable by {args.triton_python}: give --triton-python")
+    src = Path(cfgs_jax.__file__).resolve().parents[2]
+    rev = subprocess.run(["git", "-C", str(src), "rev-parse", "--short", "HEAD"], capture_output=True, text=True)
+    dirty = subprocess.run(["git", "-C", str(src), "status", "--porcelain", "src"], capture_output=True, text=True)
+    code = (rev.stdout.strip() or "unknown") + (" with uncommitted changes" if dirty.stdout.strip() else "")
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for i, (name, walk, scatter, chunk, dates, what) in enumerate(VARIANTS):
+            for kernel, text in triton_modules(walk, scatter, chunk, dates, what).items():
+                res = compile_module(args.triton_python, text, args.arch, args.warps, Path(tmp), f"v{i}_{kernel}")
+                rows.append({"variant": name, "kernel": kernel, **res})
+                print(f"{name} / {kernel}: {'OK' if res['ok'] else 'FAILED'} {res['detail']}", flush=True)
+    result = {**result_header(args), "triton": version, "code": code, "rows": rows}
+    md = [
+        "# The Pallas kernels through Triton's compiler, without a GPU",
+        "",
+        f"Machine: {result['machine']}. Date: {result['date']}. Command: `{result['command']}`. "
+        f"Triton {version}, target sm_{args.arch}, {args.warps} warps; cfgs_jax at {code}.",
+        "",
+        "| variant | kernel | compiles | detail |",
+        "|---|---|---|---|",
+    ]
+    md += [f"| {r['variant']} | {r['kernel']} | {'yes' if r['ok'] else '**no**'} | {r['detail']} |" for r in rows]
+    write_result(args.name or f"triton_compile_{version}", result, "\n".join(md) + "\n")
+
+
+if __name__ == "__main__":
+    main()
