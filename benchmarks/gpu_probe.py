@@ -34,22 +34,18 @@ BASE = {
     "cut": (),
 }
 PROBES = {
+    "bwd_k32": {},
+    "bwd_k32_warps8": {"warps": 8},
+    "bwd_k4": {"chunk": 4},
+    "bwd_partials_k32": {"scatter": "partials"},
+    "bwd_k8_T2": {"chunk": 8, "dates": 2},
     "bwd_serial_k8": {"walk": "serial", "chunk": 8},
     "bwd_serial_k8_partials": {"walk": "serial", "chunk": 8, "scatter": "partials"},
     "bwd_serial_k2_T2": {"walk": "serial", "chunk": 2, "dates": 2},
-    "fwd_serial_statistics": {"walk": "serial", "chunk": 8, "what": "stats"},
-    "sums_serial": {"walk": "serial", "chunk": 8, "what": "sums"},
-    "sums_chunk": {"what": "sums"},
-    "bwd_k1": {"chunk": 1},
-    "bwd_k4": {"chunk": 4},
-    "bwd_partials_k1": {"chunk": 1, "scatter": "partials"},
-    "bwd_k32_warps8": {"warps": 8},
-    "bwd_k32_warps1": {"warps": 1},
-    "bwd_cut_all": {"cut": ("opacity", "features", "geometry")},
-    "bwd_only_opacity": {"cut": ("features", "geometry")},
-    "bwd_only_features": {"cut": ("opacity", "geometry")},
-    "bwd_only_geometry": {"cut": ("opacity", "features")},
     "fwd_statistics": {"what": "stats"},
+    "fwd_serial_statistics": {"walk": "serial", "chunk": 8, "what": "stats"},
+    "sums_chunk": {"what": "sums"},
+    "sums_serial": {"walk": "serial", "chunk": 8, "what": "sums"},
 }
 
 

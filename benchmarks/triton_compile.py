@@ -41,6 +41,9 @@ VARIANTS = [
     ("weighted sums, serial walk, T=1", "serial", "atomic", 8, 1, "sums"),
 ]
 
+#: an atomic float add into integers (Pallas lowers an atomic add of an integer vector so)
+INTEGER_FADD = re.compile(r"tt\.atomic_rmw fadd,[^:]*: \((tensor<\d+x)?!tt\.ptr<i\d+>")
+
 COMPILE = """
 import sys, triton
 from triton.backends.compiler import GPUTarget
@@ -150,6 +153,7 @@ def main():
         for i, (name, walk, scatter, chunk, dates, what) in enumerate(VARIANTS):
             for kernel, text in triton_modules(walk, scatter, chunk, dates, what).items():
                 res = compile_module(args.triton_python, text, args.arch, args.warps, Path(tmp), f"v{i}_{kernel}")
+                res["integer_fadd"] = len(INTEGER_FADD.findall(text))
                 rows.append({"variant": name, "kernel": kernel, **res})
                 print(f"{name} / {kernel}: {'OK' if res['ok'] else 'FAILED'} {res['detail']}", flush=True)
     result = {**result_header(args), "triton": version, "code": code, "rows": rows}
@@ -159,10 +163,13 @@ def main():
         f"Machine: {result['machine']}. Date: {result['date']}. Command: `{result['command']}`. "
         f"Triton {version}, target sm_{args.arch}, {args.warps} warps; cfgs_jax at {code}.",
         "",
-        "| variant | kernel | compiles | detail |",
-        "|---|---|---|---|",
+        "| variant | kernel | compiles | atomic float adds into integers | detail |",
+        "|---|---|---|---:|---|",
     ]
-    md += [f"| {r['variant']} | {r['kernel']} | {'yes' if r['ok'] else '**no**'} | {r['detail']} |" for r in rows]
+    md += [
+        f"| {r['variant']} | {r['kernel']} | {'yes' if r['ok'] else '**no**'} | {r['integer_fadd']} | {r['detail']} |"
+        for r in rows
+    ]
     write_result(args.name or f"triton_compile_{version}", result, "\n".join(md) + "\n")
 
 

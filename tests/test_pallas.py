@@ -188,14 +188,8 @@ def _read(jaxpr, var) -> bool:
     return any(var in eqn.invars for eqn in jaxpr.eqns) or var in jaxpr.outvars
 
 
-@pytest.mark.parametrize("walk", ["chunk", "serial"])
-def test_kernel_loops_carry_nothing_that_only_their_condition_reads(walk):
-    """Triton's layout pass (``TritonGPURemoveLayoutConversions``; Triton 3.6, and the Triton bundled
-    with jaxlib on the H100) indexes a ``scf.while``'s results by its operands. Canonicalisation drops
-    a carried value that only the condition reads from the results, after which the pass fails an
-    assertion or crashes on the backward kernel. So in every loop of the three kernels, each carried
-    value the condition reads must also be read by the body (the pass-through of a loop-invariant
-    value counts: canonicalisation hoists those out of the loop instead)."""
+def _kernel_jaxprs(walk):
+    """The jaxprs of the forward, backward and weighted-sums kernels as lowered for a GPU."""
     layout, args, bins = _kernel_inputs(chunk=4 if walk == "serial" else None)
     triton = PallasOptions(interpret=False, walk=walk)
     lists = (bins.gaussian_ids, bins.tile_start, bins.tile_end)
@@ -211,7 +205,18 @@ def test_kernel_loops_carry_nothing_that_only_their_condition_reads(walk):
     ]
     kernels = [eqn.params["jaxpr"] for j in traced for eqn in _eqns(j, "pallas_call")]
     assert len(kernels) == 3  # forward, backward, weighted sums
-    loops = [eqn for k in kernels for eqn in _eqns(k, "while")]
+    return kernels
+
+
+@pytest.mark.parametrize("walk", ["chunk", "serial"])
+def test_kernel_loops_carry_nothing_that_only_their_condition_reads(walk):
+    """Triton's layout pass (``TritonGPURemoveLayoutConversions``; Triton 3.6, and the Triton bundled
+    with jaxlib on the H100) indexes a ``scf.while``'s results by its operands. Canonicalisation drops
+    a carried value that only the condition reads from the results, after which the pass fails an
+    assertion or crashes on the backward kernel. So in every loop of the three kernels, each carried
+    value the condition reads must also be read by the body (the pass-through of a loop-invariant
+    value counts: canonicalisation hoists those out of the loop instead)."""
+    loops = [eqn for k in _kernel_jaxprs(walk) for eqn in _eqns(k, "while")]
     assert len(loops) >= 3
     for eqn in loops:
         cond, body = eqn.params["cond_jaxpr"].jaxpr, eqn.params["body_jaxpr"].jaxpr
@@ -219,6 +224,22 @@ def test_kernel_loops_carry_nothing_that_only_their_condition_reads(walk):
         body_carry = body.invars[eqn.params["body_nconsts"] :]
         only_cond = [i for i, (c, b) in enumerate(zip(cond_carry, body_carry)) if _read(cond, c) and not _read(body, b)]
         assert not only_cond, f"carried values {only_cond} are read by the loop's condition alone"
+
+
+@pytest.mark.parametrize("walk", ["chunk", "serial"])
+def test_kernels_add_no_integer_vectors_atomically(walk):
+    """Pallas' Triton lowering picks the float add for an atomic add whose value is a vector (it tests
+    the element type of scalars only), so an integer vector would be added as float bits on a GPU
+    (what made the hit counts wrong on the H100). No atomic add of the kernels adds an integer vector."""
+    adds = []
+    for k in _kernel_jaxprs(walk):
+        for eqn in _eqns(k, "atomic_rmw"):
+            _, _, value, _ = eqn.params["args_tree"].unflatten(eqn.invars)
+            if eqn.params["atomic_type"].name == "ADD":
+                adds.append(value.aval)
+    assert len(adds) >= 3  # statistics, gradients, weighted sums
+    integer_vectors = [str(a) for a in adds if a.ndim > 0 and not jnp.issubdtype(a.dtype, jnp.floating)]
+    assert not integer_vectors, integer_vectors
 
 
 def test_backend_choice_and_errors():

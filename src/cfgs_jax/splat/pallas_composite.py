@@ -226,10 +226,11 @@ def _forward_kernel(start_ref, end_ref, ids_ref, table_ref, *refs, walk: _Walk, 
                         dt.w * walk.column(table_ref, GEOMETRY_ROWS + d + i * f + j, unit.gid)
                     )
                 if layout.statistics:
-                    index = (i * (n + 1) + unit.gid,)
+                    index, one = (i * (n + 1) + unit.gid,), jnp.float32(1)
                     plt.atomic_max(maxw_ref, index, jnp.max(dt.w, axis=-1))
-                    hits = jnp.sum(jnp.where(dt.w > 0, 1, 0).astype(jnp.int32), axis=-1, dtype=jnp.int32)
-                    plt.atomic_add(hits_ref, index, hits)
+                    # counted in float32 (exact below 2^24): Pallas lowers an atomic add of an integer
+                    # vector as a float add of its bits, so only float vectors are added atomically
+                    plt.atomic_add(hits_ref, index, jnp.sum(jnp.where(dt.w > 0, one, 0.0 * one), axis=-1))
         return t, done, fg
 
     fg0 = [jnp.zeros(px.shape, table_ref.dtype) for _ in range(d * f)]
@@ -258,7 +259,7 @@ def _forward(layout: Layout, options: PallasOptions, table, ids, tile_start, til
     args = [tile_start, tile_end, ids, table]
     aliases = {}
     if layout.statistics:
-        stats = [jnp.zeros((d * (n + 1),), dtype), jnp.zeros((d * (n + 1),), jnp.int32)]
+        stats = [jnp.zeros((d * (n + 1),), dtype), jnp.zeros((d * (n + 1),), jnp.float32)]
         aliases = {4: 2, 5: 3}
         out_shape += [jax.ShapeDtypeStruct(x.shape, x.dtype) for x in stats]
         args += stats
@@ -273,7 +274,8 @@ def _forward(layout: Layout, options: PallasOptions, table, ids, tile_start, til
     )(*args)
     fg, t = out[0], out[1]
     if layout.statistics:
-        maxw, hits = out[2].reshape(d, n + 1)[:, :n], out[3].reshape(d, n + 1)[:, :n]
+        maxw = out[2].reshape(d, n + 1)[:, :n]
+        hits = jnp.round(out[3].reshape(d, n + 1)[:, :n]).astype(jnp.int32)
     else:
         maxw, hits = jnp.zeros((d, n), dtype), jnp.zeros((d, n), jnp.int32)
     return fg, t, maxw, hits
