@@ -45,11 +45,19 @@ VARIANTS = [
 INTEGER_FADD = re.compile(r"tt\.atomic_rmw fadd,[^:]*: \((tensor<\d+x)?!tt\.ptr<i\d+>")
 
 COMPILE = """
-import sys, triton
+import os, re, subprocess, sys, triton
+import triton.backends.nvidia as nvidia
 from triton.backends.compiler import GPUTarget
 k = triton.compile(sys.argv[1], target=GPUTarget("cuda", int(sys.argv[2]), 32),
                    options={"num_warps": int(sys.argv[3]), "num_stages": 1})
-print("ptx bytes", len(k.asm["ptx"]), "cubin bytes", len(k.asm["cubin"]), "shared", k.metadata.shared)
+ptx = sys.argv[1] + ".ptx"
+open(ptx, "w").write(k.asm["ptx"])
+ptxas = os.path.join(os.path.dirname(nvidia.__file__), "bin", "ptxas")
+info = subprocess.run([ptxas, "-v", f"--gpu-name=sm_{sys.argv[2]}", "-o", os.devnull, ptx], capture_output=True, text=True)
+regs = re.search(r"Used (\\d+) registers", info.stderr)
+spill = re.search(r"(\\d+) bytes spill stores, (\\d+) bytes spill loads", info.stderr)
+print("registers", regs.group(1) if regs else "?", "spill stores/loads",
+      "/".join(spill.groups()) if spill else "?", "shared", k.metadata.shared)
 """
 
 
