@@ -53,7 +53,8 @@ k = triton.compile(sys.argv[1], target=GPUTarget("cuda", int(sys.argv[2]), 32),
 ptx = sys.argv[1] + ".ptx"
 open(ptx, "w").write(k.asm["ptx"])
 ptxas = os.path.join(os.path.dirname(nvidia.__file__), "bin", "ptxas")
-info = subprocess.run([ptxas, "-v", f"--gpu-name=sm_{sys.argv[2]}", "-o", os.devnull, ptx], capture_output=True, text=True)
+arch = re.search(r"\\.target\\s+(sm_\\w+)", k.asm["ptx"]).group(1)
+info = subprocess.run([ptxas, "-v", f"--gpu-name={arch}", "-o", os.devnull, ptx], capture_output=True, text=True)
 regs = re.search(r"Used (\\d+) registers", info.stderr)
 spill = re.search(r"(\\d+) bytes spill stores, (\\d+) bytes spill loads", info.stderr)
 print("registers", regs.group(1) if regs else "?", "spill stores/loads",
