@@ -34,6 +34,7 @@ BASE = {
     "cut": (),
 }
 PROBES = {
+    "bwd_k8": {"chunk": 8},
     "bwd_k32": {},
     "bwd_k32_warps8": {"warps": 8},
     "bwd_k4": {"chunk": 4},

@@ -55,9 +55,12 @@ k = triton.compile(sys.argv[1], target=GPUTarget("cuda", int(sys.argv[2]), 32),
                    options={"num_warps": int(sys.argv[3]), "num_stages": 1})
 ptx = sys.argv[1] + ".ptx"
 open(ptx, "w").write(k.asm["ptx"])
-ptxas = os.path.join(os.path.dirname(nvidia.__file__), "bin", "ptxas")
 arch = re.search(r"\\.target\\s+(sm_\\w+)", k.asm["ptx"]).group(1)
-info = subprocess.run([ptxas, "-v", f"--gpu-name={arch}", "-o", os.devnull, ptx], capture_output=True, text=True)
+for name in ("ptxas", "ptxas-blackwell"):  # the wheel's two; the first that reads this PTX version
+    ptxas = os.path.join(os.path.dirname(nvidia.__file__), "bin", name)
+    info = subprocess.run([ptxas, "-v", f"--gpu-name={arch}", "-o", os.devnull, ptx], capture_output=True, text=True)
+    if info.returncode == 0:
+        break
 regs = re.search(r"Used (\\d+) registers", info.stderr)
 spill = re.search(r"(\\d+) bytes spill stores, (\\d+) bytes spill loads", info.stderr)
 print("registers", regs.group(1) if regs else "?", "spill stores/loads",

@@ -52,7 +52,9 @@ class RenderResult(eqx.Module):
         return self.num_intersections > self.capacity
 
 
-PALLAS_CHUNK = {"chunk": 32, "serial": 8}  # Gaussians per step of a tile's walk in the Pallas kernel
+# Gaussians per step of a tile's walk in the Pallas kernel: at 32 the block walk's [K, 256] blocks spill
+# registers on sm_90 (ptxas), at 8 they do not
+PALLAS_CHUNK = {"chunk": 8, "serial": 8}
 
 
 def _layout(camera: Camera, config: RenderConfig, dates: int, statistics: bool) -> Layout:
