@@ -169,6 +169,7 @@ def test_missing_extras_name_the_install(monkeypatch):
 
 def test_declared_dependencies_cover_what_the_package_reads():
     """pyproject declares the LPIPS weights package and the extras; the weights resolve from it."""
+    import importlib.metadata
     import tomllib
 
     from cfgs_jax.metrics.perceptual import weights_path
@@ -180,6 +181,11 @@ def test_declared_dependencies_cover_what_the_package_reads():
     assert extras["synth"] == ["mitsuba>=3.5"] and extras["viewer"] == ["viser>=1.0"]
     assert "cfgs-jax[all]" in extras["test"] and "cfgs-jax[synth,viewer]" in extras["all"]
     assert weights_path("alex").is_file()
+    # the GPU extras name extras that the installed JAX declares
+    jax_extras = set(importlib.metadata.metadata("jax").get_all("Provides-Extra"))
+    for name in ("cuda", "cuda13"):
+        [req] = extras[name]
+        assert req.startswith("jax[") and req[4:-1] in jax_extras, (name, req)
 
 
 def test_write_video_pads_odd_sizes_and_keeps_the_frames(tmp_path):
