@@ -30,6 +30,7 @@ sys.path.append(str(Path(__file__).resolve().parents[1] / "tests"))
 from common import result_header, write_result
 
 #: (name, walk, scatter, chunk, dates, what, warps): ``what`` "grad" lowers the forward and the backward kernel
+#: ("multipliers": the backward of the opacities and features alone, cross-timestep init's), "sums" the weighted sums
 VARIANTS = [
     ("block walk, atomic adds, K=32, T=1", "chunk", "atomic", 32, 1, "grad", 4),
     ("block walk, atomic adds, K=32, T=1, 8 warps", "chunk", "atomic", 32, 1, "grad", 8),
@@ -40,6 +41,8 @@ VARIANTS = [
     ("serial walk, atomic adds, K=8, T=1", "serial", "atomic", 8, 1, "grad", 4),
     ("serial walk, per-slot partials, K=8, T=1", "serial", "partials", 8, 1, "grad", 4),
     ("serial walk, atomic adds, K=2, T=2", "serial", "atomic", 2, 2, "grad", 4),
+    ("block walk, K=8, T=2, opacities and colours only", "chunk", "atomic", 8, 2, "multipliers", 4),
+    ("serial walk, K=8, T=2, opacities and colours only", "serial", "atomic", 8, 2, "multipliers", 4),
     ("weighted sums, block walk, T=2", "chunk", "atomic", 32, 2, "sums", 4),
     ("weighted sums, serial walk, T=1", "serial", "atomic", 8, 1, "sums", 4),
 ]
@@ -106,8 +109,8 @@ def triton_modules(walk: str, scatter: str, chunk: int, dates: int, what: str) -
 
     lowering.lower_jaxpr_to_triton_module = capture
     try:
-        if what == "grad":
-            f = jax.jit(jax.grad(loss, argnums=(0, 1, 2, 3)))
+        if what in ("grad", "multipliers"):  # every gradient, or the opacities' and features' alone
+            f = jax.jit(jax.grad(loss, argnums=(0, 1, 2, 3) if what == "grad" else (2, 3)))
             f.trace(*args).lower(lowering_platforms=("cuda",))
         else:
             maps = jnp.ones((2, dates, cam.height, cam.width))

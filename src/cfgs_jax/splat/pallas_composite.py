@@ -283,7 +283,7 @@ def _forward(layout: Layout, options: PallasOptions, table, ids, tile_start, til
 
 def _backward_kernel(
     start_ref, end_ref, ids_ref, table_ref, gfg_ref, gt_ref, fg_ref, t_ref, _, grad_ref, *, walk: _Walk, d, f,
-    scatter,
+    scatter, footprint,
 ):  # fmt: skip
     n, capacity, dtype = walk.n, walk.capacity, table_ref.dtype
     tile = pl.program_id(0)
@@ -317,6 +317,8 @@ def _backward_kernel(
                 for j in range(f):
                     emit(GEOMETRY_ROWS + d + i * f + j, unit, jnp.sum(dt.w * gfg[i][j], axis=-1))
                 d_power = d_power + d_og * dt.op
+            if not footprint:  # the 2D means and conics are not differentiated: their rows stay zero
+                continue  # (d_power is then dead and traced away)
             d_power = d_power * unit.g
             dx, dy, (ca, cb, cc) = unit.dx, unit.dy, unit.con
             sums = (
@@ -366,7 +368,9 @@ def _composite_fwd(layout, options, means2d, conics, opac, feats, ids, tile_star
     return out, (table, ids, tile_start, tile_end, fg, t)
 
 
-def _composite_bwd(layout, options, res, cot):
+def _composite_bwd(layout, options, res, cot, footprint: bool = True):
+    """The backward kernel's walk. ``footprint=False`` leaves out the gradients of the 2D means and
+    conics (returned as zeros), and with them ∂/∂power and its five sums per Gaussian and tile."""
     table, ids, tile_start, tile_end, fg, t = res
     d = t.shape[0]
     f = fg.shape[0] // d
@@ -377,7 +381,7 @@ def _composite_bwd(layout, options, res, cot):
     gt = _from_image(layout, g_t.astype(dtype))
     capacity = ids.shape[0]
     walk = _walk(layout, options, n, ids)
-    kernel = functools.partial(_backward_kernel, walk=walk, d=d, f=f, scatter=options.scatter)
+    kernel = functools.partial(_backward_kernel, walk=walk, d=d, f=f, scatter=options.scatter, footprint=footprint)
     width = n + 1 if options.scatter == "atomic" else capacity + 1
     grads = pl.pallas_call(
         kernel,
@@ -400,7 +404,22 @@ def _composite_bwd(layout, options, res, cot):
     return d_means, d_conics, d_opac, d_feats, None, None, None
 
 
-composite_pallas.defvjp(_composite_fwd, _composite_bwd)
+def _composite_fwd_marked(layout, options, *primals):
+    """The forward for the VJP, with a mark in the residuals (an empty tuple, or None) of whether the
+    footprint (``means2d`` or ``conics``) is differentiated at all."""
+    out, res = _composite_fwd(layout, options, *[p.value for p in primals])
+    return out, (res, () if primals[0].perturbed or primals[1].perturbed else None)
+
+
+def _composite_bwd_marked(layout, options, marked, cot):
+    res, footprint = marked
+    zero = jax.custom_derivatives.SymbolicZero
+    # the image and transmittance cotangents as arrays; the statistics' (never differentiated) as they come
+    cot = tuple(jnp.zeros(c.shape, c.dtype) if isinstance(c, zero) else c for c in cot[:2]) + tuple(cot[2:])
+    return _composite_bwd(layout, options, res, cot, footprint=footprint is not None)
+
+
+composite_pallas.defvjp(_composite_fwd_marked, _composite_bwd_marked, symbolic_zeros=True)
 
 
 def _weighted_sums_kernel(start_ref, end_ref, ids_ref, table_ref, maps_ref, _, sums_ref, *, walk: _Walk, d, m):
