@@ -88,12 +88,20 @@ def _free_port() -> int:
 
 
 def _two_processes(argv: list[str], *, timeout: int) -> None:
-    """``python ARGV`` as processes 0 and 1 of a jax.distributed run on 127.0.0.1; both must succeed."""
+    """``python ARGV`` as processes 0 and 1 of a jax.distributed run on 127.0.0.1; both must succeed.
+
+    Without the persistent compilation cache: in a multi-process run JAX shares a program that misses
+    the cache from the lowest process to the others, and only process 0 writes entries, so once the
+    cache holds some of the programs one process can hit while the other waits for a share that never
+    comes (seen as a hang on a warm cache, never on a cold one)."""
     port = _free_port()
+    no_cache = {"JAX_ENABLE_COMPILATION_CACHE": "false"}
     procs = [
         subprocess.Popen(
             [sys.executable, *argv],
-            env=_environment(JAX_COORDINATOR_ADDRESS=f"127.0.0.1:{port}", JAX_NUM_PROCESSES="2", JAX_PROCESS_ID=str(i)),
+            env={k: v for k, v in _environment().items() if not k.startswith("JAX_COMPILATION_CACHE")}
+            | no_cache
+            | {"JAX_COORDINATOR_ADDRESS": f"127.0.0.1:{port}", "JAX_NUM_PROCESSES": "2", "JAX_PROCESS_ID": str(i)},
             stdout=subprocess.PIPE,
             stderr=subprocess.STDOUT,
             text=True,
