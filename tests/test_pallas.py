@@ -21,6 +21,7 @@ from test_splat import (
     assert_matches_reference,
     camera,
     grad_case,  # noqa: F401 (the fixture, shared with the XLA backend's tests)
+    multiplier_gradient_jaxprs,
     scene,
 )
 
@@ -257,21 +258,8 @@ def test_gradients_of_the_multipliers_alone_match_float64_and_skip_the_footprint
     """Differentiated with respect to the opacity and colour multipliers only (cross-timestep init's
     case), the Pallas VJP gives the float64 reference's gradients to 1e-10, and its backward kernel
     leaves out the footprint's five atomic adds per Gaussian and tile."""
-    g, om, cm, cam, w_img, w_a = grad_case
-    *_, ref = _ref_grads(g, om, cm, cam, w_img, w_a)
-    with jax.enable_x64(True):
-        g64 = jax.tree_util.tree_map(lambda x: jnp.asarray(x, jnp.float64), g)
-        om64, cm64 = jnp.asarray(om, jnp.float64), jnp.asarray(cm, jnp.float64)
-        cfg = dataclasses.replace(PALLAS, chunk=8)
-        cfg = dataclasses.replace(cfg, capacity=splat.required_capacity(g64, cam, om64, config=cfg))
-        f = lambda *a: _loss_fast(*a, cam, cfg, jnp.asarray(w_img), jnp.asarray(w_a), jnp.float64)
-        alone = jax.grad(lambda o, c: f(g64, o, c), argnums=(0, 1))
-        grads = alone(om64, cm64)
-        for name, a, b in zip(NAMES[-2:], grads, ref[-2:]):
-            assert np.max(np.abs(np.asarray(a) - b)) <= 1e-10 * np.max(np.abs(b)), name
-        full = jax.grad(f, argnums=(0, 1, 2))
-        atomics = []
-        for h, args in ((alone, (om64, cm64)), (full, (g64, om64, cm64))):
-            kernels = [e.params["jaxpr"] for e in _eqns(jax.make_jaxpr(h)(*args).jaxpr, "pallas_call")]
-            atomics.append(sum(1 for k in kernels for _ in _eqns(k, "atomic_rmw")))
+    jaxprs = multiplier_gradient_jaxprs(grad_case, dataclasses.replace(PALLAS, chunk=8))
+    atomics = [
+        sum(1 for e in _eqns(j.jaxpr, "pallas_call") for _ in _eqns(e.params["jaxpr"], "atomic_rmw")) for j in jaxprs
+    ]
     assert atomics[1] - atomics[0] == 5, atomics  # mean x, y and conic a, b, c

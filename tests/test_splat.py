@@ -177,26 +177,30 @@ def test_custom_vjp_equals_float64_autodiff(grad_case, backend, walk):
         assert np.max(np.abs(a - b)) <= 1e-10 * np.max(np.abs(b)), name
 
 
-def test_gradients_of_the_multipliers_alone_match_float64_and_skip_the_footprint(grad_case):
-    """Differentiated with respect to the opacity and colour multipliers only (cross-timestep init's
-    case), the kernel's VJP gives the float64 reference's gradients to 1e-10 and leaves out the
-    footprint's: its backward walk scatter-adds two per-Gaussian sums per chunk where the full one adds four."""
+def multiplier_gradient_jaxprs(grad_case, config: splat.RenderConfig):
+    """Float64 gradients of the loss with respect to the opacity and colour multipliers alone (cross-
+    timestep init's case), checked against the reference's to 1e-10 → the jaxprs of that gradient and
+    of every gradient, for counting what each computes."""
     g, om, cm, cam, w_img, w_a = grad_case
     *_, ref = _ref_grads(g, om, cm, cam, w_img, w_a)
     with jax.enable_x64(True):
         g64 = jax.tree_util.tree_map(lambda x: jnp.asarray(x, jnp.float64), g)
         om64, cm64 = jnp.asarray(om, jnp.float64), jnp.asarray(cm, jnp.float64)
-        cfg = splat.RenderConfig(capacity=splat.required_capacity(g64, cam, om64))
+        cfg = dataclasses.replace(config, capacity=splat.required_capacity(g64, cam, om64, config=config))
         f = lambda *a: _loss_fast(*a, cam, cfg, jnp.asarray(w_img), jnp.asarray(w_a), jnp.float64)
         alone = jax.grad(lambda o, c: f(g64, o, c), argnums=(0, 1))
-        grads = alone(om64, cm64)
-        for name, a, b in zip(NAMES[-2:], grads, ref[-2:]):
+        for name, a, b in zip(NAMES[-2:], alone(om64, cm64), ref[-2:]):
             assert np.max(np.abs(np.asarray(a) - b)) <= 1e-10 * np.max(np.abs(b)), name
         full = jax.grad(f, argnums=(0, 1, 2))
-        scatters = [
-            str(jax.make_jaxpr(h)(*args)).count("scatter-add")
-            for h, args in ((alone, (om64, cm64)), (full, (g64, om64, cm64)))
-        ]
+        return jax.make_jaxpr(alone)(om64, cm64), jax.make_jaxpr(full)(g64, om64, cm64)
+
+
+def test_gradients_of_the_multipliers_alone_match_float64_and_skip_the_footprint(grad_case):
+    """Differentiated with respect to the opacity and colour multipliers only, the kernel's VJP gives
+    the float64 reference's gradients and leaves out the footprint's: its backward walk scatter-adds
+    two per-Gaussian sums per chunk where the full one adds four."""
+    jaxprs = multiplier_gradient_jaxprs(grad_case, splat.RenderConfig())
+    scatters = [str(j).count("scatter-add") for j in jaxprs]
     assert scatters[1] - scatters[0] == 2, scatters
 
 
