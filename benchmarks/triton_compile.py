@@ -73,18 +73,13 @@ print("registers", regs.group(1) if regs else "?", "spill stores/loads",
 
 def triton_modules(walk: str, scatter: str, chunk: int, dates: int, what: str) -> dict[str, str]:
     """The Triton modules (name → MLIR text) of one variant, lowered for CUDA on this machine."""
-    import dataclasses
-    import importlib
-
     import jax
     import jax.numpy as jnp
     from jax._src.pallas.triton import lowering
-    from test_splat import camera, scene
+    from test_pallas import _kernel_inputs
 
-    from cfgs_jax import splat
     from cfgs_jax.splat.pallas_composite import PallasOptions, composite_pallas, weighted_sums_pallas
 
-    render_module = importlib.import_module("cfgs_jax.splat.render")
     modules: dict[str, str] = {}
     lower = lowering.lower_jaxpr_to_triton_module
 
@@ -94,14 +89,9 @@ def triton_modules(walk: str, scatter: str, chunk: int, dates: int, what: str) -
         modules[op.attributes["sym_name"].value] = op.get_asm(enable_debug_info=False)
         return result
 
-    g, cam = scene(120, 5), camera(40, 30)
-    cfg = dataclasses.replace(splat.RenderConfig(backend="pallas"), capacity=4096, chunk=chunk)
-    om = jnp.ones((dates, len(g)))
-    proj, opac, layout, bins = render_module._project_and_bin(g, cam, om, config=cfg, capacity=4096, statistics=True)
-    feats = jnp.ones((dates, len(g), 3))
+    layout, args, bins = _kernel_inputs(dates=dates, features=3, chunk=chunk)
     lists = (bins.gaussian_ids, bins.tile_start, bins.tile_end)
     options = PallasOptions(interpret=False, scatter=scatter, walk=walk)
-    args = (proj.means2d, proj.conics, opac, feats)
 
     def loss(m2, con, op, ft):
         fg, t, maxw, _ = composite_pallas(layout, options, m2, con, op, ft, *lists)
@@ -113,7 +103,7 @@ def triton_modules(walk: str, scatter: str, chunk: int, dates: int, what: str) -
             f = jax.jit(jax.grad(loss, argnums=(0, 1, 2, 3) if what == "grad" else (2, 3)))
             f.trace(*args).lower(lowering_platforms=("cuda",))
         else:
-            maps = jnp.ones((2, dates, cam.height, cam.width))
+            maps = jnp.ones((2, dates, layout.height, layout.width))
             f = jax.jit(lambda *a: weighted_sums_pallas(layout, options, *a, *lists, maps))
             f.trace(*args[:3]).lower(lowering_platforms=("cuda",))
     finally:

@@ -276,20 +276,26 @@ def _composite_fwd(layout, means2d, conics, opac, feats, ids, tile_start, tile_e
     return out, res
 
 
-def _composite_fwd_marked(layout, *primals):
-    """The forward for the VJP, with a mark in the residuals (an empty tuple, or None) of whether the
-    footprint (``means2d`` or ``conics``) is differentiated at all."""
-    values = [p.value for p in primals]
-    out, res = _composite_fwd(layout, *values)
-    return out, (res, () if primals[0].perturbed or primals[1].perturbed else None)
+def footprint_marked_vjp(fwd, bwd, static: int):
+    """The (forward, backward) rules of a compositor's custom VJP defined with ``symbolic_zeros=True``,
+    from ``fwd(*static_args, means2d, conics, ...) -> (out, res)`` and ``bwd(*static_args, res, cot,
+    footprint=...)``, whose first ``static`` arguments are non-differentiable. The forward marks in the
+    residuals (an empty tuple, or None) whether the footprint (``means2d`` or ``conics``) is
+    differentiated at all; the backward hands ``bwd`` the image and transmittance cotangents as arrays
+    (the statistics' pass as they come: never differentiated) and ``footprint`` from the mark."""
 
+    def fwd_marked(*args):
+        fixed, primals = args[:static], args[static:]
+        out, res = fwd(*fixed, *[p.value for p in primals])
+        return out, (res, () if primals[0].perturbed or primals[1].perturbed else None)
 
-def _composite_bwd_marked(layout, marked, cot):
-    res, footprint = marked
-    zero = jax.custom_derivatives.SymbolicZero
-    # the image and transmittance cotangents as arrays; the statistics' (never differentiated) as they come
-    cot = tuple(jnp.zeros(c.shape, c.dtype) if isinstance(c, zero) else c for c in cot[:2]) + tuple(cot[2:])
-    return _composite_bwd(layout, res, cot, footprint=footprint is not None)
+    def bwd_marked(*args):
+        *fixed, (res, mark), cot = args
+        zero = jax.custom_derivatives.SymbolicZero
+        cot = tuple(jnp.zeros(c.shape, c.dtype) if isinstance(c, zero) else c for c in cot[:2]) + tuple(cot[2:])
+        return bwd(*fixed, res, cot, footprint=mark is not None)
+
+    return fwd_marked, bwd_marked
 
 
 def _composite_bwd(layout, res, cot, footprint: bool = True):
@@ -358,7 +364,7 @@ def _composite_bwd(layout, res, cot, footprint: bool = True):
     return dm, dc, do, jnp.moveaxis(dfeat, 0, -1), None, None, None
 
 
-composite.defvjp(_composite_fwd_marked, _composite_bwd_marked, symbolic_zeros=True)
+composite.defvjp(*footprint_marked_vjp(_composite_fwd, _composite_bwd, static=1), symbolic_zeros=True)
 
 
 def weighted_sums(layout: Layout, means2d, conics, opac, ids, tile_start, tile_end, maps):

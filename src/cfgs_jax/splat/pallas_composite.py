@@ -44,7 +44,7 @@ import jax.numpy as jnp
 from jax.experimental import pallas as pl
 from jax.experimental.pallas import triton as plt
 
-from cfgs_jax.splat.composite import Layout
+from cfgs_jax.splat.composite import Layout, footprint_marked_vjp
 
 GEOMETRY_ROWS = 5  # mean x, mean y, conic a, b, c
 
@@ -404,22 +404,7 @@ def _composite_bwd(layout, options, res, cot, footprint: bool = True):
     return d_means, d_conics, d_opac, d_feats, None, None, None
 
 
-def _composite_fwd_marked(layout, options, *primals):
-    """The forward for the VJP, with a mark in the residuals (an empty tuple, or None) of whether the
-    footprint (``means2d`` or ``conics``) is differentiated at all."""
-    out, res = _composite_fwd(layout, options, *[p.value for p in primals])
-    return out, (res, () if primals[0].perturbed or primals[1].perturbed else None)
-
-
-def _composite_bwd_marked(layout, options, marked, cot):
-    res, footprint = marked
-    zero = jax.custom_derivatives.SymbolicZero
-    # the image and transmittance cotangents as arrays; the statistics' (never differentiated) as they come
-    cot = tuple(jnp.zeros(c.shape, c.dtype) if isinstance(c, zero) else c for c in cot[:2]) + tuple(cot[2:])
-    return _composite_bwd(layout, options, res, cot, footprint=footprint is not None)
-
-
-composite_pallas.defvjp(_composite_fwd_marked, _composite_bwd_marked, symbolic_zeros=True)
+composite_pallas.defvjp(*footprint_marked_vjp(_composite_fwd, _composite_bwd, static=2), symbolic_zeros=True)
 
 
 def _weighted_sums_kernel(start_ref, end_ref, ids_ref, table_ref, maps_ref, _, sums_ref, *, walk: _Walk, d, m):
