@@ -6,7 +6,11 @@ target count (a model of the size a trained date reaches). The step is ``train.m
 (render, L1 + D-SSIM, Adam, densification statistics). The kernel share is the time of the
 kernel alone — ``splat.render_dates`` forward and backward (VJP of the rendered image) with the same
 Gaussians, capacity and views — over the full step time, both timed alternately in one process.
-One densify-and-prune round is timed as well. Writes benchmarks/results/train.json and train.md
+One densify-and-prune round is timed as well. The host's part of a step is timed by running
+``--loop-steps`` steps three ways, alternately: queued back to back with nothing read (the device's
+time), with each step's overflow flag and loss read before the next is queued (a host round trip per
+step), and as the stages run them (``loop.CapacityStep``: each step queued before the one before is
+read). Writes benchmarks/results/train.json and train.md
 (``train_h100_gpu.*`` on an H100; ``--tag`` adds to the name). ``XLA_FLAGS``, when set, is recorded.
 
     python benchmarks/bench_train.py [--gaussians 50000] [--steps 30] [--width 320 --height 240]
@@ -64,6 +68,51 @@ def _unpack(path: Path):
     return cameras, list(z["images"].astype(np.float32) / 255.0), z["points"], z["colors"]
 
 
+def _time_loops(step, state, cameras, images, steps: int) -> dict:
+    """Median seconds per step of ``steps`` training steps run three ways (alternately, three rounds):
+    queued back to back with nothing read until the end, each step's overflow flag and loss read before
+    the next is queued, and through ``loop.CapacityStep`` (each step read once the next is queued)."""
+    import jax
+
+    from cfgs_jax import loop
+
+    def view(k):
+        return cameras[k % len(cameras)], images[k % len(images)]
+
+    def queued(s):
+        for k in range(steps):
+            s, stats = step(s, *view(k))
+        jax.block_until_ready(s)
+        assert not bool(stats["overflowed"])
+
+    def checked(s):
+        for k in range(steps):
+            s, stats = step(s, *view(k))
+            assert not bool(stats["overflowed"])
+            float(stats["loss"])
+        jax.block_until_ready(s)
+
+    def late(s):
+        lagged = loop.CapacityStep(lambda cap: step, 1, lambda out: out[1]["overflowed"], lambda args, k: 0)
+        pending = None
+        for k in range(steps):
+            done, pending = lagged.advance(pending, k, 0, (s,), view(k))
+            if done is not None:
+                float(done.out[1]["loss"])
+            s = pending.out[0]
+        done, _ = lagged.confirm(pending)
+        float(done.out[1]["loss"])
+        jax.block_until_ready(done.out)
+
+    times = {"queued": [], "checked_each_step": [], "one_step_late": []}
+    for _ in range(3):
+        for name, run in zip(times, (queued, checked, late)):
+            t0 = time.perf_counter()
+            run(state)
+            times[name].append((time.perf_counter() - t0) / steps)
+    return {name: statistics.median(t) for name, t in times.items()}
+
+
 def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--gaussians", type=int, default=50_000)
@@ -73,6 +122,7 @@ def main():
     ap.add_argument("--height", type=int, default=240)
     ap.add_argument("--data", type=Path, help="folder for the rendered date: rendered there if absent, else read")
     ap.add_argument("--tag", default="", help="added to the result files' names")
+    ap.add_argument("--loop-steps", type=int, default=10, help="steps per timed loop (three loops, three rounds)")
     args = ap.parse_args()
 
     import jax
@@ -144,6 +194,7 @@ def main():
         assert not bool(stats["overflowed"])
         step_t.append(t)
         kernel_t.append(timed(kernel, state.params, state.active, cameras[v])[0])
+    loops = _time_loops(step, state, cameras, images, args.loop_steps)
     # one densify-and-prune round on statistics accumulated over the timed steps
     compile_densify, _ = timed(lambda s: train.densify_step(s, config, extent, prune_big=False), state)
 
@@ -168,6 +219,8 @@ def main():
         "peak_rss_gb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e6,
         "device_peak_gb": device_peak_gb(),
         "timed_steps": args.steps,
+        "loop_steps": args.loop_steps,
+        "loop_step_s": loops,
         "xla_flags": os.environ.get("XLA_FLAGS") or None,
     }
     stem = f"train{args.tag}{backend_suffix()}"
@@ -192,6 +245,13 @@ def main():
         f"| one densify-and-prune round (incl. compile) | {compile_densify:.2f} s |",
         f"| peak RSS (whole process) | {result['peak_rss_gb']:.2f} GB |",
     ]
+    queued = loops["queued"]
+    for name, label in (
+        ("queued", "loop, steps queued back to back, nothing read"),
+        ("checked_each_step", "loop, each step read before the next is queued"),
+        ("one_step_late", "loop as the stages run it (each step read after the next is queued)"),
+    ):
+        lines.append(f"| {label} (per step) | {loops[name] * 1e3:.1f} ms ({loops[name] / queued:.3f}×) |")
     if result["device_peak_gb"] is not None:
         lines.append(f"| device peak memory (allocator) | {result['device_peak_gb']:.2f} GB |")
     (RESULTS / f"{stem}.md").write_text("\n".join(lines) + "\n")

@@ -96,6 +96,40 @@ def test_short_training_run_reduces_the_loss(corals):
     assert np.all(np.asarray(state.params["opacity_logits"][len(g0) :]) == -20.0)
 
 
+def test_training_queued_a_step_ahead_equals_the_steps_run_one_by_one(corals, monkeypatch):
+    """``fit`` queues each step before checking the one before; started with a buffer of 256 where its
+    views need about 900 intersections, it finds the overflow a step late, redoes that step (at 512,
+    then 1024) and the one queued on it, and ends where the plain sequential loop (a buffer that always fits)
+    ends: the same state and losses."""
+    from cfgs_jax.train import run as train_run
+
+    sizes = []  # the views need about 900 intersections
+    monkeypatch.setattr(train_run, "_render_capacity", lambda *a: sizes.append(1) or 256)
+    scene = read_colmap(corals)
+    cfg = train.TrainConfig(steps=12, densify=False, random_background=False, test_every=8)
+    got = train.fit(scene, cfg, progress=False, evaluate_at_end=False, lpips_net=None)
+    assert len(sizes) >= 3  # the start, then the first step's two redos
+
+    g0 = with_sh_degree(
+        train.init_from_points(scene.points, scene.point_colors, opacity=cfg.init_opacity), cfg.sh_degree
+    )
+    opt = train.make_optimizer(cfg, train.scene_extent(scene.cameras))
+    state = TrainState.create(g0, opt, jax.random.key(cfg.seed), capacity=train.capacity_bucket(len(g0)))
+    idx = scene.indices("train")
+    cap = 4 * max(splat.required_capacity(g0, scene.cameras[i]) for i in idx)
+    step = make_train_step(opt, cfg, splat.RenderConfig(capacity=cap))
+    losses = []
+    for k in range(cfg.steps):
+        i = int(idx[train.view_order(cfg.seed, k, len(idx))])
+        state, stats = step(state, scene.cameras[i], jnp.asarray(scene.load_image(i, with_alpha=True)))
+        assert not bool(stats["overflowed"])
+        losses.append(float(stats["loss"]))
+    assert np.allclose(got.losses, losses, rtol=1e-6, atol=0)
+    assert set(got.state.params) == set(state.params)
+    for field, value in state.params.items():
+        np.testing.assert_allclose(np.asarray(got.state.params[field]), np.asarray(value), atol=1e-6, err_msg=field)
+
+
 def test_step_accumulates_the_screen_space_gradient_in_ndc_units():
     """The accumulated statistic equals |∂L/∂mean2D|·(W/2, H/2) from an independent autodiff of the
     loss w.r.t. the projected centres, for the visible Gaussians only."""

@@ -54,6 +54,108 @@ def test_step_with_capacity_grows_to_the_larger_of_twice_and_required():
     assert compiled_for == [10, 64] and cap == 64
 
 
+class _Flag:
+    """An overflow flag that logs when the host reads it."""
+
+    def __init__(self, value: bool, step: int, log: list):
+        self.value, self.step, self.log = value, step, log
+
+    def __bool__(self):
+        self.log.append(("read", self.step))
+        return self.value
+
+
+def _lagged_run(need: dict, steps: int, capacity: int, settle_after=()):
+    """A fake stage on ``CapacityStep``: the state x becomes 3·x + k + 1 at step k (k an input), and step
+    k overflows a buffer smaller than ``need[k]`` (its output then garbage). Returns the states after
+    each checked step, the event log and the final capacity."""
+    log, landed = [], []
+
+    def compiled(cap):
+        def step(x, k):
+            log.append(("queue", k, cap))
+            ok = cap >= need.get(k, 0)
+            return (3 * x + k + 1 if ok else -999, _Flag(not ok, k, log))
+
+        return step
+
+    step = loop.CapacityStep(compiled, 1, lambda out: out[1], lambda args, k: need.get(k, 0) // 2)
+    queued, x = None, 0
+    for k in range(steps):
+        done, queued = step.advance(queued, k, capacity, (x,), (k,))
+        if done is not None:
+            landed.append(done.out[0])
+        x, capacity = queued.out[0], queued.capacity
+        if k in settle_after:
+            done, _ = step.confirm(queued)
+            landed.append(done.out[0])
+            queued, x, capacity = None, done.out[0], done.capacity
+    if queued is not None:
+        done, _ = step.confirm(queued)
+        landed.append(done.out[0])
+        capacity = done.capacity
+    return landed, log, capacity
+
+
+def test_capacity_step_queues_each_step_before_reading_the_last_ones_overflow():
+    """Every step is queued before the step before it is checked, so the host never waits on an empty
+    queue; the states are those of running the steps one after another (x_k = 3·x_{k−1} + k + 1)."""
+    want, x = [], 0
+    for k in range(6):
+        x = 3 * x + k + 1
+        want.append(x)
+    landed, log, cap = _lagged_run({}, 6, 8)
+    assert landed == want and cap == 8
+    assert log[:3] == [("queue", 0, 8), ("queue", 1, 8), ("read", 0)]
+    for k in range(1, 6):  # step k is queued before step k − 1's flag is read
+        assert log.index(("queue", k, 8)) < log.index(("read", k - 1))
+    # a step checked at once (a schedule that needs the state after it) starts the next step afresh
+    landed, log, _ = _lagged_run({}, 6, 8, settle_after={2})
+    assert landed == want and log.index(("read", 2)) < log.index(("queue", 3, 8))
+
+
+def test_capacity_step_redoes_an_overflowed_step_and_requeues_the_next_from_it():
+    """Step 3 needs 40 intersections (buffer 8): found one step late, it is redone with
+    max(required, 2·capacity) until it fits (8 → 20 → 40), step 4 queued again from its output with the
+    grown buffer, and the states equal the sequential run's."""
+    want, x = [], 0
+    for k in range(7):
+        x = 3 * x + k + 1
+        want.append(x)
+    landed, log, cap = _lagged_run({3: 40}, 7, 8)
+    assert landed == want and cap == 40
+    after = log[log.index(("read", 3)) :]
+    assert after[:6] == [("read", 3), ("queue", 3, 20), ("read", 3), ("queue", 3, 40), ("read", 3), ("queue", 4, 40)]
+    assert log.index(("queue", 4, 8)) < log.index(("read", 3))  # step 4 had been queued on the bad output
+    # the overflow found at the last step's check
+    landed, _, cap = _lagged_run({6: 40}, 7, 8)
+    assert landed == want and cap == 40
+
+
+def test_run_steps_settles_a_queued_step_before_each_save_and_at_the_end():
+    """A body that leaves its step unchecked has it settled before every save and before returning."""
+    saves = []
+
+    def settle(carry):  # the queued step recorded
+        done = carry["done"] + ([carry["queued"]] if carry["queued"] is not None else [])
+        return {"done": done, "queued": None}
+
+    def body(carry, k):  # the step before recorded, step k queued
+        return settle(carry) | {"queued": k}
+
+    carry, _ = loop.run_steps(
+        body,
+        {"done": [], "queued": None},
+        start=0,
+        steps=5,
+        checkpoint_every=2,
+        save=lambda c, d: saves.append((d, c["queued"], list(c["done"]))),
+        settle=settle,
+    )
+    assert saves == [(2, None, [0, 1]), (4, None, [0, 1, 2, 3])]
+    assert carry == {"done": [0, 1, 2, 3, 4], "queued": None}
+
+
 def test_view_order_is_a_permutation_per_epoch():
     for seed in (0, 3, (1, 2, 3)):
         order = [loop.view_order(seed, k, 5) for k in range(15)]

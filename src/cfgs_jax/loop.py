@@ -3,13 +3,15 @@
 Each stage supplies a step ``body(carry, k) → carry`` (k the 0-based step); ``run_steps`` calls it for
 the steps left, saves a checkpoint every ``checkpoint_every`` steps and where a ``stop_after`` cuts the
 run short, and drives a progress bar. ``step_with_capacity`` runs a step compiled for an
-intersection-buffer capacity and recompiles it larger when a view overflows the buffer; ``view_order``
-is the view sequence every stage draws from. Nothing here holds state between calls: a resumed run
-passes the step it stopped at as ``start``.
+intersection-buffer capacity and recompiles it larger when a view overflows the buffer;
+``CapacityStep`` does the same one step late, so that the host never waits for a step before the next
+one is queued; ``view_order`` is the view sequence every stage draws from. Nothing here holds state
+between calls: a resumed run passes the step it stopped at as ``start``.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from collections.abc import Callable
 from typing import Any, TypeVar
@@ -73,6 +75,69 @@ def step_with_capacity(
         capacity = max(int(required()), 2 * capacity)
 
 
+@dataclasses.dataclass(frozen=True)
+class Dispatched:
+    """Step ``step`` (0-based) queued with ``args`` in a buffer of ``capacity`` intersections; ``out`` may
+    still be computing, and whether its views overflowed the buffer is not known yet."""
+
+    step: int
+    args: tuple
+    capacity: int
+    out: Any
+
+
+@dataclasses.dataclass(frozen=True)
+class CapacityStep:
+    """A step compiled per intersection capacity, run one step ahead of its overflow check.
+
+    ``compiled(capacity)`` is the step: ``(*carried, *inputs) → (*carried', *rest)``, its first
+    ``carries`` outputs the next step's first arguments (the state it updates); ``overflowed(out)``
+    says whether a view overflowed the buffer; ``required(args, step)`` is the capacity the views of
+    step ``step`` need from the state in ``args``.
+
+    ``advance`` queues step k from the queued output of step k − 1 and only then reads step k − 1's
+    overflow flag, so on an asynchronous device the host prepares a step while the one before runs,
+    and no step waits for the host. When step k − 1 overflowed, it is redone with
+    max(required, 2·capacity) (``step_with_capacity``) and step k queued again from its output: the
+    outputs are those of running the steps one after another, each checked before the next."""
+
+    compiled: Callable[[int], Callable]
+    carries: int
+    overflowed: Callable[[Any], Any]
+    required: Callable[[tuple, int], int]
+
+    def dispatch(self, step: int, capacity: int, args: tuple) -> Dispatched:
+        """Queue step ``step`` on ``args`` (no wait)."""
+        return Dispatched(step, args, capacity, self.compiled(capacity)(*args))
+
+    def confirm(self, queued: Dispatched) -> tuple[Dispatched, bool]:
+        """``queued`` once its overflow flag is read (waits for it), or the step redone with a buffer that
+        fits; and whether it was redone."""
+        if not bool(self.overflowed(queued.out)):
+            return queued, False
+        required = lambda: self.required(queued.args, queued.step)
+        capacity = max(int(required()), 2 * queued.capacity)
+        out, capacity = step_with_capacity(
+            self.compiled, capacity, queued.args, required=required, overflowed=self.overflowed
+        )
+        return Dispatched(queued.step, queued.args, capacity, out), True
+
+    def advance(
+        self, queued: Dispatched | None, step: int, capacity: int, carried: tuple, inputs: tuple
+    ) -> tuple[Dispatched | None, Dispatched]:
+        """Queue step ``step`` on ``inputs``, then confirm the step queued before it (``queued``, or
+        None). Step ``step`` starts from ``queued``'s output when there is one, else from ``carried``.
+        Returns (``queued`` confirmed or None, step ``step`` queued)."""
+        start = tuple(queued.out[: self.carries]) if queued is not None else tuple(carried)
+        new = self.dispatch(step, capacity, (*start, *inputs))
+        if queued is None:
+            return None, new
+        done, redone = self.confirm(queued)
+        if redone:
+            new = self.dispatch(step, done.capacity, (*done.out[: self.carries], *inputs))
+        return done, new
+
+
 def run_steps(
     body: Callable[[Carry, int], Carry],
     carry: Carry,
@@ -86,24 +151,30 @@ def run_steps(
     progress: Progress | None = None,
     info: Callable[[Carry], str] | None = None,
     converged: Callable[[Carry, int], bool] | None = None,
+    settle: Callable[[Carry], Carry] | None = None,
 ) -> tuple[Carry, int]:
     """Steps ``start`` … ``last − 1`` of ``body``, last = ``steps`` or ``stop_after`` when that is
     earlier (never before ``start``). ``save(carry, done)`` runs after every ``checkpoint_every``-th
     step short of the last, at the last when the run stops early or ``save_at_end``.
     ``converged(carry, done)``, asked after every step, ends the run there when true (a finished run:
-    no save). Returns the carry and the number of steps done."""
+    no save). ``settle(carry)``: a body that leaves its last step queued and unchecked
+    (``CapacityStep``) has it finished there before every save and before the carry is returned.
+    Returns the carry and the number of steps done."""
     last = steps if stop_after is None else max(start, min(steps, stop_after))
+    settled = settle if settle is not None else lambda c: c
     for k in range(start, last):
         carry = body(carry, k)
         done = k + 1
         if converged is not None and converged(carry, done):
             if progress is not None:
                 progress.update(done, info(carry) if info is not None else "")
-            return carry, done
+            return settled(carry), done
         if save is not None and checkpoint_every and done < last and done % checkpoint_every == 0:
+            carry = settled(carry)
             save(carry, done)
         if progress is not None:
             progress.update(done, info(carry) if info is not None else "")
+    carry = settled(carry)
     if save is not None and (last < steps or save_at_end):
         save(carry, last)
     return carry, last

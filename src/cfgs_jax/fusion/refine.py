@@ -59,7 +59,16 @@ from cfgs_jax.errors import InputError
 from cfgs_jax.fusion.frames import baked, frame_params, framed
 from cfgs_jax.fusion.updates import halve_alpha_of, refinement_optimizer, zero_invisible
 from cfgs_jax.io.checkpoint import read_meta, restore_tree, save_tree
-from cfgs_jax.loop import Progress, check_view_batch, run_steps, step_with_capacity, view_batch, view_order
+from cfgs_jax.loop import (
+    CapacityStep,
+    Dispatched,
+    Progress,
+    check_view_batch,
+    run_steps,
+    step_with_capacity,
+    view_batch,
+    view_order,
+)
 from cfgs_jax.model import DateViews, TemporalGaussians, exposure_rows, gaussians_of, select, trainable, with_trainable
 from cfgs_jax.train.config import TrainConfig
 from cfgs_jax.train.step import over_background
@@ -318,6 +327,7 @@ class _Carry:
     completed: int = 0  # views completed by forward-only renders
     capacity: int = 0
     seconds: float = 0.0  # wall time of the steps before this run (a resumed run's earlier part)
+    queued: Dispatched | None = None  # the last step, queued and unchecked (params, opt_state: its output)
 
     ARRAYS = ("params", "opt_state", "key", "contributed", "covered", "zeroed", "o_init")
 
@@ -436,6 +446,28 @@ class _Refinement:
         # the mesh a step's views are split over (none with one view per step)
         self.batch_mesh = self.mesh if self.config.view_batch > 1 else None
         self.light_logits = parallel.replicate(self.light_logits, self.batch_mesh)
+        if self.config.view_batch > 1:
+            self.step = CapacityStep(self.compiled_batch, 2, lambda out: out[-1], self.batch_capacity_for)
+        else:
+            self.step = CapacityStep(lambda cap: self.compiled(cap)[1], 2, lambda out: out[-1], self.step_capacity_for)
+
+    def drawn(self, it: int) -> list[int]:
+        """The indices into ``flat`` of the views of 0-based step ``it``."""
+        if self.config.view_batch > 1:
+            return view_batch(self.config.seed, it, self.config.view_batch, len(self.flat))
+        return [view_order(self.config.seed, it, len(self.flat))]
+
+    def step_capacity_for(self, args: tuple, it: int) -> int:
+        """The capacity step ``it``'s view needs from the parameters in its ``args``."""
+        return self.capacity_for(args[0], *self.flat[self.drawn(it)[0]])
+
+    def batch_capacity_for(self, args: tuple, it: int) -> int:
+        """The capacity the views of the batch step ``it`` need from the parameters in its ``args``."""
+        return max(self.capacity_for(args[0], *self.flat[i]) for i in self.drawn(it))
+
+    def compiled_batch(self, capacity: int):
+        rc = dataclasses.replace(self.render_config, capacity=capacity)
+        return _compiled_batch_step(self.config, float(self.extent), rc, self.train_config, self.mesh)
 
     def capacity_for(self, params, q: int, v: int) -> int:
         o = jax.nn.sigmoid(params["o_logits"][:, q])[None]
@@ -474,12 +506,12 @@ class _Refinement:
         c.covered[:] = False
         return c
 
-    def batch_body(self, c: _Carry, it: int) -> _Carry:
-        """A step on ``view_batch`` views at once (their mean loss)."""
+    def batch_inputs(self, c: _Carry, it: int) -> tuple:
+        """Step ``it``'s inputs beside the parameters and Adam state, with ``view_batch`` views: light,
+        õ, the views' cameras, images and dates (split over the mesh) and a key each."""
         keys = jax.random.split(c.key, self.config.view_batch + 1)
         c.key, subs = keys[0], jax.random.key_data(keys[1:])
-        drawn = view_batch(self.config.seed, it, self.config.view_batch, len(self.flat))
-        views = [self.flat[i] for i in drawn]
+        views = [self.flat[i] for i in self.drawn(it)]
         batch = (
             parallel.stack([self.views[q].cameras[v] for q, v in views]),
             parallel.stack([self.images[q][v] for q, v in views]),
@@ -487,36 +519,43 @@ class _Refinement:
             subs,
         )
         cameras, images, dates, subs = parallel.shard_batch(batch, self.batch_mesh)
-        need = lambda: max(self.capacity_for(c.params, *self.flat[i]) for i in drawn)
-        (params, opt_state, loss, contrib, _), c.capacity = step_with_capacity(
-            lambda cap: _compiled_batch_step(
-                self.config,
-                float(self.extent),
-                dataclasses.replace(self.render_config, capacity=cap),
-                self.train_config,
-                self.mesh,
-            ),
-            c.capacity,
-            (
-                c.params,
-                c.opt_state,
-                self.light_logits,
-                c.o_init,
-                cameras,
-                images,
-                dates,
-                jax.random.wrap_key_data(subs),
-            ),
-            required=need,
-            overflowed=lambda out: out[-1],
-        )
-        c.params, c.opt_state = params, opt_state
+        return (self.light_logits, c.o_init, cameras, images, dates, jax.random.wrap_key_data(subs))
+
+    def view_inputs(self, c: _Carry, it: int) -> tuple:
+        """Step ``it``'s inputs beside the parameters and Adam state, with one view: light, õ, the
+        view's camera, image and date, and a key."""
+        c.key, sub = jax.random.split(c.key)
+        q, v = self.flat[self.drawn(it)[0]]
+        return (self.light_logits, c.o_init, self.views[q].cameras[v], self.images[q][v], jnp.int32(q), sub)
+
+    def landed(self, c: _Carry, done: Dispatched) -> _Carry:
+        """A checked step recorded: its loss, and the Gaussians that contributed to its views."""
+        loss, contrib = done.out[2], parallel.to_host(done.out[3])
         c.losses.append(float(loss))
-        contrib = parallel.to_host(contrib)
-        for j, i in enumerate(drawn):
+        contrib = contrib if self.config.view_batch > 1 else contrib[None]
+        for j, i in enumerate(self.drawn(done.step)):
             c.contributed[:, self.flat[i][0]] |= contrib[j]
             c.covered[i] = True
-        return self.after_step(c, it)
+        return c
+
+    def settle(self, c: _Carry) -> _Carry:
+        """The carry with its queued step checked (redone if it overflowed) and recorded."""
+        if c.queued is None:
+            return c
+        done, _ = self.step.confirm(c.queued)
+        c = self.landed(c, done)
+        c.params, c.opt_state, c.capacity, c.queued = done.out[0], done.out[1], done.capacity, None
+        return c
+
+    def acts_after(self, done: int) -> bool:
+        """Whether ``after_step`` changes or reads the parameters after ``done`` steps."""
+        config = self.config
+        return (
+            (self.maskable is not None and done == config.mask_steps)
+            or done % config.visibility_interval == 0
+            or done == config.steps
+            or (self.on_snapshot is not None and done in self.snapshot_steps and done < config.steps)
+        )
 
     def after_step(self, c: _Carry, it: int) -> _Carry:
         """The visibility rule every ``visibility_interval`` steps and at the end; snapshots."""
@@ -534,25 +573,16 @@ class _Refinement:
         return c
 
     def body(self, c: _Carry, it: int) -> _Carry:
-        if self.config.view_batch > 1:
-            return self.batch_body(c, it)
-        config = self.config
-        c.key, sub = jax.random.split(c.key)
-        drawn = view_order(config.seed, it, len(self.flat))
-        q, v = self.flat[drawn]
-        args = (c.params, c.opt_state, self.light_logits, c.o_init, self.views[q].cameras[v], self.images[q][v])
-        (params, opt_state, loss, contrib, _), c.capacity = step_with_capacity(
-            lambda cap: self.compiled(cap)[1],
-            c.capacity,
-            (*args, jnp.int32(q), sub),
-            required=lambda: self.capacity_for(c.params, q, v),
-            overflowed=lambda out: out[-1],
-        )
-        c.params, c.opt_state = params, opt_state
-        c.losses.append(float(loss))
-        c.contributed[:, q] |= np.asarray(contrib)
-        c.covered[drawn] = True
-        return self.after_step(c, it)
+        """Step ``it`` queued, the step before it checked and recorded; where the visibility rule, the
+        masks or a snapshot follow the step, it is checked at once and they are applied."""
+        inputs = self.batch_inputs(c, it) if self.config.view_batch > 1 else self.view_inputs(c, it)
+        done, c.queued = self.step.advance(c.queued, it, c.capacity, (c.params, c.opt_state), inputs)
+        if done is not None:
+            c = self.landed(c, done)
+        c.params, c.opt_state, c.capacity = c.queued.out[0], c.queued.out[1], c.queued.capacity
+        if not self.acts_after(it + 1):
+            return c
+        return self.after_step(self.settle(c), it)
 
 
 def _begin(model, views, config, options: tuple, checkpoint):
@@ -672,6 +702,7 @@ def _steps(run, carry: _Carry, start: int, identity: dict, checkpoint, stop_afte
             checkpoint_every=config.checkpoint_every,
             save=save if checkpoint is not None else None,
             progress=bar,
+            settle=run.settle,
         )
 
 

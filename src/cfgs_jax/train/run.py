@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import math
 import time
 from collections.abc import Sequence
 from pathlib import Path
@@ -23,7 +24,7 @@ from cfgs_jax.errors import InputError
 from cfgs_jax.io.atomic import ensure_writable_dir
 from cfgs_jax.io.checkpoint import read_meta, restore_tree, save_tree
 from cfgs_jax.io.colmap import Scene, read_colmap
-from cfgs_jax.loop import Progress, check_view_batch, run_steps, step_with_capacity, view_batch
+from cfgs_jax.loop import CapacityStep, Dispatched, Progress, check_view_batch, run_steps, view_batch
 from cfgs_jax.model import Gaussians, gaussians_of, with_sh_degree
 from cfgs_jax.train.config import TrainConfig
 from cfgs_jax.train.densify import capacity_bucket, densify_step, reset_opacity
@@ -167,14 +168,16 @@ def _render_capacity(state: TrainState, cameras, render_config: splat.RenderConf
 @dataclasses.dataclass
 class _Carry:
     """What the training loop carries from step to step: the state, the intersection capacity its
-    step is compiled for, and the run's records."""
+    step is compiled for, and the run's records. Between steps the last step may still be queued and
+    unchecked (``queued``); ``state`` is then its output, and its loss is not yet in ``losses``."""
 
     state: TrainState
     capacity: int
     losses: list[float]
     counts: list  # (step, live Gaussians) at the start and after each densification
     eval_history: list[dict]
-    psnr: float = float("nan")  # the last step's training-view PSNR (progress bar)
+    psnr: float = float("nan")  # the last checked step's training-view PSNR (progress bar)
+    queued: Dispatched | None = None
 
 
 def _splits(scene: Scene, config: TrainConfig) -> tuple[np.ndarray, np.ndarray]:
@@ -200,16 +203,26 @@ def _start(scene, config, init, ckpt, optimizer, cameras, render_config) -> _Car
     return _Carry(state, _render_capacity(state, cameras, render_config), [], [(0, len(g0))], [])
 
 
+def _densifies(it: int, config: TrainConfig) -> bool:
+    """Whether INRIA's schedule densifies and prunes after step ``it`` (1-based)."""
+    return config.densify and config.densify_from < it < config.densify_until and it % config.densify_interval == 0
+
+
+def _resets_opacity(it: int, config: TrainConfig) -> bool:
+    """Whether INRIA's schedule resets the opacities after step ``it`` (1-based)."""
+    return config.densify and it < config.densify_until and it % config.opacity_reset_interval == 0
+
+
 def _adapt_density(c: _Carry, it: int, config: TrainConfig, extent: float) -> _Carry:
     """INRIA's schedule after step ``it``: densify and prune every ``densify_interval`` steps in
     (densify_from, densify_until), reset the opacities every ``opacity_reset_interval``."""
-    if not config.densify or it >= config.densify_until:
+    if not (_densifies(it, config) or _resets_opacity(it, config)):
         return c
     state = c.state
-    if it > config.densify_from and it % config.densify_interval == 0:
+    if _densifies(it, config):
         state = densify_step(state, config, extent, prune_big=it > config.opacity_reset_interval)
         c.counts.append((it, int(jnp.sum(state.active))))
-    if it % config.opacity_reset_interval == 0:
+    if _resets_opacity(it, config):
         state = reset_opacity(state)
     return dataclasses.replace(c, state=state)
 
@@ -238,6 +251,14 @@ class _Training:
         check_view_batch(self.config.view_batch, shapes, self.mesh, field="train.view_batch", path=self.scene.root)
         # the mesh a step's views are split over (none with one view per step)
         self.batch_mesh = self.mesh if self.config.view_batch > 1 else None
+        self.step = CapacityStep(
+            self.compiled,
+            carries=1,
+            overflowed=lambda out: out[1]["overflowed"],
+            required=lambda args, k: _render_capacity(
+                args[0], [self.cameras[v] for v in self.drawn(k)], self.render_config
+            ),
+        )
 
     def drawn(self, k: int) -> list[int]:
         """The training views of 0-based step ``k`` (``loop.view_batch``)."""
@@ -268,22 +289,41 @@ class _Training:
             mesh=self.mesh,
         )
 
+    def evaluates(self, it: int) -> bool:
+        """Whether the test split is evaluated after step ``it`` (1-based)."""
+        return bool((self.config.eval_every and it % self.config.eval_every == 0) or it in self.eval_steps) and bool(
+            len(self.test_idx)
+        )
+
+    def landed(self, c: _Carry, done: Dispatched) -> _Carry:
+        """The records of a checked step (its loss, the progress bar's PSNR)."""
+        stats = done.out[1]
+        c.losses.append(float(stats["loss"]))
+        return dataclasses.replace(c, psnr=float(stats["psnr"]))
+
+    def settle(self, c: _Carry) -> _Carry:
+        """The carry with its queued step checked (redone if it overflowed) and recorded."""
+        if c.queued is None:
+            return c
+        done, _ = self.step.confirm(c.queued)
+        c = self.landed(c, done)
+        return dataclasses.replace(c, state=done.out[0], capacity=done.capacity, queued=None)
+
     def body(self, c: _Carry, k: int, bar: Progress) -> _Carry:
+        """Step ``k`` queued, the step before it checked; where INRIA's schedule evaluates or adapts the
+        density after it, the step is checked at once and the schedule applied."""
         config = self.config
         it = k + 1  # 1-based like INRIA's loop
-        drawn = self.drawn(k)
-        views = [self.cameras[v] for v in drawn]
-        (state, stats), capacity = step_with_capacity(
-            self.compiled,
-            c.capacity,
-            (c.state, *self.step_inputs(drawn)),
-            required=lambda: _render_capacity(c.state, views, self.render_config),
-            overflowed=lambda out: out[1]["overflowed"],
-        )
-        c = dataclasses.replace(c, state=state, capacity=capacity, psnr=float(stats["psnr"]))
-        c.losses.append(float(stats["loss"]))
+        done, queued = self.step.advance(c.queued, k, c.capacity, (c.state,), self.step_inputs(self.drawn(k)))
+        if done is not None:
+            c = self.landed(c, done)
+        c = dataclasses.replace(c, state=queued.out[0], capacity=queued.capacity, queued=queued)
+        if not (self.evaluates(it) or _densifies(it, config) or _resets_opacity(it, config)):
+            return c
+        c = self.settle(c)
+        state = c.state
         # like INRIA's training_report: evaluated before this step's densification / reset
-        if ((config.eval_every and it % config.eval_every == 0) or it in self.eval_steps) and len(self.test_idx):
+        if self.evaluates(it):
             m = self.evaluate(c.state.gaussians())
             c.eval_history.append({"step": it} | {k: v for k, v in m.items() if k in ("psnr", "ssim", "lpips")})
             bar.note(f"step {it:,}: test PSNR {m['psnr']:.2f} dB, SSIM {m['ssim']:.4f}")
@@ -346,7 +386,11 @@ def fit(
             save=run.save if ckpt is not None else None,
             save_at_end=True,
             progress=bar,
-            info=lambda c: f"loss {c.losses[-1]:.4f}  PSNR {c.psnr:.2f} dB  {c.counts[-1][1]:,} Gaussians",
+            info=lambda c: (
+                f"loss {c.losses[-1] if c.losses else math.nan:.4f}  PSNR {c.psnr:.2f} dB  "
+                f"{c.counts[-1][1]:,} Gaussians"
+            ),
+            settle=run.settle,
         )
     finished = int(carry.state.step) >= config.steps
     gaussians = carry.state.gaussians()
