@@ -149,7 +149,7 @@ def main():
                 synthetic.render_dataset(spec, data, dates=[0], progress=False)
                 synth_s = time.perf_counter() - t0
             scene = cj.io.read_colmap(data / "d0", test_every=10**6)
-            cameras = list(cameras)
+            cameras = list(scene.cameras)
             images = [np.asarray(scene.load_image(i, with_alpha=True)) for i in range(len(scene))]
             pts, point_colors = np.asarray(scene.points, np.float64), np.asarray(scene.point_colors)
             if packed is not None:

@@ -57,7 +57,7 @@ if [ -n "$chosen" ]; then
   if [ -f .carry/train_960/d0.npz ]; then  # the training step at 300k Gaussians, 960×540
     rm -f benchmarks/results/train_960x540_300k_*_gpu.*
     timeout "${TRAIN_TIMEOUT:-90}" python3 benchmarks/bench_train.py --data .carry/train_960 --gaussians 300000 \
-      --width 960 --height 540 --steps 20 --tag _960x540_300k_pallas
+      --width 960 --height 540 --steps 20 --loop-steps 10 --tag _960x540_300k_pallas
     echo "bench_train rc=$? at $(( $(date +%s) - t0 )) s"
     cp benchmarks/results/train_960x540_300k_pallas_*_gpu.* "$OUT/" 2>/dev/null
   fi
