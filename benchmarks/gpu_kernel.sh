@@ -11,7 +11,7 @@
 # and gsplat==1.5.3, which the device image lacks) and, for the training step, .carry/train_960/d0.npz
 # (`python benchmarks/bench_train.py --data .carry/train_960 --width 960 --height 540` writes it here,
 # after rendering the date with Mitsuba). Writes under $OUT: log.txt, probe.txt,
-# junit.xml, kernel_vs_gsplat_<chip>_gpu.{json,md} (and gsplat_build.txt). The whole run fits ~8 minutes.
+# junit.xml, kernel_vs_gsplat_<chip>_gpu.{json,md}, frame_split_<chip>_gpu.{json,md} (and gsplat_build.txt). The whole run fits ~8 minutes.
 export PYTHONUNBUFFERED=1
 exec > >(tee -a "$OUT/log.txt") 2>&1
 t0=$(date +%s)
@@ -54,6 +54,11 @@ if [ -n "$chosen" ]; then
   timeout "${BENCH_TIMEOUT:-280}" python3 benchmarks/bench_gsplat.py --out "$OUT" --no-sweep --reps 5 \
     ${NO_GSPLAT:+--no-gsplat} --cases ${CASES:-100k@640x480 donut@640x480 1M@1920x1080 donut@1920x1080}
   echo "bench_gsplat rc=$? at $(( $(date +%s) - t0 )) s"
+  # a frame's time by stage (project, bin, composite, their backward), both compositors
+  timeout "${SPLIT_TIMEOUT:-60}" python3 benchmarks/bench_frame_split.py --cases 100k@640x480 donut@1920x1080 \
+    --backends xla pallas --reps 5
+  echo "bench_frame_split rc=$? at $(( $(date +%s) - t0 )) s"
+  cp benchmarks/results/frame_split_*_gpu.* "$OUT/" 2>/dev/null
   if [ -f .carry/train_960/d0.npz ]; then  # the training step at 300k Gaussians, 960×540
     rm -f benchmarks/results/train_960x540_300k_*_gpu.*
     timeout "${TRAIN_TIMEOUT:-90}" python3 benchmarks/bench_train.py --data .carry/train_960 --gaussians 300000 \
