@@ -127,6 +127,25 @@ def test_renders_are_deterministic_per_seed(corals, tmp_path):
     assert np.abs(a.astype(int) - b.astype(int)).mean() > 5
 
 
+def test_disks_paint_every_pixel_within_the_radius_and_no_other():
+    """The texture's disks, tested within their bounding boxes, against the test over the whole image
+    (each pixel (x, y) with (x − cx)² + (y − cy)² ≤ r²), for disks inside, across the edge and tiny."""
+    from cfgs_jax.synthetic.textures import _disks
+
+    size, palette = 64, np.eye(3)
+    for seed, (rmin, rmax) in enumerate([(0.01, 0.05), (0.1, 0.4), (0.001, 0.01)]):
+        img = np.zeros((size, size, 3))
+        _disks(img, np.random.default_rng(seed), 40, palette, rmin, rmax)
+        want, rng = np.zeros((size, size, 3)), np.random.default_rng(seed)
+        yy, xx = np.mgrid[:size, :size]
+        for _ in range(40):
+            cx, cy = rng.uniform(0, size, 2)
+            r = rng.uniform(rmin, rmax) * size
+            colour = palette[rng.integers(3)]
+            want[(xx - cx) ** 2 + (yy - cy) ** 2 <= r * r] = colour
+        assert np.array_equal(img, want) and img.any()
+
+
 def test_light_only_changes_flag_nothing_and_cracks_flag_part_of_the_vase(tmp_path):
     light = synthetic.make_preset("light", seed=1, width=48, height=36, images_per_date=3, spp=2)
     out = synthetic.render_dataset(light, tmp_path / "light", progress=False)

@@ -93,9 +93,11 @@ def _straight_rgba(premultiplied: np.ndarray, sky: np.ndarray) -> np.ndarray:
     return np.concatenate([colour, np.clip(a, 0.0, 1.0)], axis=-1)
 
 
-def scene_dict(spec: SceneSpec, state: int, cam_date: int, *, aov: bool) -> dict:
-    """Mitsuba scene of date ``state``'s content seen by date ``cam_date``'s cameras."""
+def scene_dict(spec: SceneSpec, state: int, cam_date: int, *, aov: bool, textures=None) -> dict:
+    """Mitsuba scene of date ``state``'s content seen by date ``cam_date``'s cameras. ``textures(k, date)``
+    gives object k's texture at a date (default ``texture``; a cache shares them between scenes)."""
     mi = _mitsuba()
+    textures = textures or (lambda k, date: texture(spec, k, date))
     d = spec.dates[state]
     out: dict = {"type": "scene"}
     if aov:
@@ -135,7 +137,7 @@ def scene_dict(spec: SceneSpec, state: int, cam_date: int, *, aov: bool) -> dict
         if not o.present[state]:
             continue
         shape = _shape(mi, o, o.to_world[state])
-        shape["bsdf"] = _bsdf(o.material, mi.Bitmap(texture(spec, k, state)))
+        shape["bsdf"] = _bsdf(o.material, mi.Bitmap(textures(k, state)))
         out[f"obj_{k:03d}_{o.name}"] = shape
     return out
 
@@ -172,10 +174,10 @@ def _bsdf(material: str, bitmap) -> dict:
 class _Loaded:
     """A loaded Mitsuba scene and the object id (1-based index into spec.objects) of each shape."""
 
-    def __init__(self, spec: SceneSpec, state: int, cam_date: int, *, aov: bool):
+    def __init__(self, spec: SceneSpec, state: int, cam_date: int, *, aov: bool, textures=None):
         mi = _mitsuba()
         self.mi = mi
-        self.scene = mi.load_dict(scene_dict(spec, state, cam_date, aov=aov))
+        self.scene = mi.load_dict(scene_dict(spec, state, cam_date, aov=aov, textures=textures))
         ids = [s.id() for s in self.scene.shapes()]
         if any(not i.startswith("obj_") for i in ids):
             raise RuntimeError(f"Mitsuba merged shapes ({ids}); object masks would be wrong")
@@ -243,9 +245,9 @@ def _render_date(spec: SceneSpec, q: int, out: Path, frame: Sim3, cam: _Camera, 
 
     nd = len(spec.dates)
     date = spec.dates[q]
-    beauty = _Loaded(spec, q, q, aov=False)
-    own = _Loaded(spec, q, q, aov=True)
-    others = {p: _Loaded(spec, p, q, aov=True) for p in range(nd) if p != q}
+    beauty = _Loaded(spec, q, q, aov=False, textures=tex_cache)
+    own = _Loaded(spec, q, q, aov=True, textures=tex_cache)
+    others = {p: _Loaded(spec, p, q, aov=True, textures=tex_cache) for p in range(nd) if p != q}
     names = [f"img_{i:03d}.png" for i in range(len(date.cam_from_world))]
     with atomic_directory(out / date.name) as tmp:
         tmp = Path(tmp)

@@ -20,13 +20,18 @@ def _noise(rng: np.random.Generator, size: int, octaves=(3, 6, 12, 24, 48)) -> n
 
 
 def _disks(img: np.ndarray, rng: np.random.Generator, n: int, palette: np.ndarray, rmin: float, rmax: float):
+    """``n`` disks of radius in [rmin, rmax]·size painted in palette colours: the pixels (x, y) with
+    (x − cx)² + (y − cy)² ≤ r², tested within each disk's bounding box only."""
     size = img.shape[0]
-    yy, xx = np.mgrid[:size, :size]
     for _ in range(n):
         cx, cy = rng.uniform(0, size, 2)
         r = rng.uniform(rmin, rmax) * size
+        colour = palette[rng.integers(len(palette))]
+        x0, x1 = max(int(np.floor(cx - r)), 0), min(int(np.ceil(cx + r)) + 1, size)
+        y0, y1 = max(int(np.floor(cy - r)), 0), min(int(np.ceil(cy + r)) + 1, size)
+        yy, xx = np.mgrid[y0:y1, x0:x1]
         m = (xx - cx) ** 2 + (yy - cy) ** 2 <= r * r
-        img[m] = palette[rng.integers(len(palette))]
+        img[y0:y1, x0:x1][m] = colour
 
 
 def base_texture(seed: int, size: int = 256, *, coarse: bool = False) -> np.ndarray:
