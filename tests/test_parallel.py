@@ -90,10 +90,8 @@ def _free_port() -> int:
 def _two_processes(argv: list[str], *, timeout: int) -> None:
     """``python ARGV`` as processes 0 and 1 of a jax.distributed run on 127.0.0.1; both must succeed.
 
-    Without the persistent compilation cache: in a multi-process run JAX shares a program that misses
-    the cache from the lowest process to the others, and only process 0 writes entries, so once the
-    cache holds some of the programs one process can hit while the other waits for a share that never
-    comes (seen as a hang on a warm cache, never on a cold one)."""
+    Without the persistent compilation cache: with it, a run on a warm cache hung once, and none on a
+    cold one (only process 0 writes entries; the mechanism is not established, docs/decisions.md)."""
     port = _free_port()
     no_cache = {"JAX_ENABLE_COMPILATION_CACHE": "false"}
     procs = [
