@@ -1,0 +1,29 @@
+#!/usr/bin/env bash
+# On a lent GPU, in one call: a whole fusion end to end (benchmarks/bench_fusion_e2e.py, data made by the
+# kernel, so neither Mitsuba nor pycolmap is needed), first with the arguments of the CPU's committed
+# result (results/fusion_e2e.md: stage times side by side), then at the paper's cross-init and refinement
+# schedule (3 000 steps per pair, 6 000) at 320×240 with 3 000 training steps per date, within
+# GPU_FUSION_TIMEOUT (default 360 s; the whole call fits the device's 10 minutes; a run cut short writes
+# nothing).
+# Run in the repository root on the device, with .whl/ carried (the wheels benchmarks/gpu_kernel.sh names):
+#
+#   [BACKEND=pallas] bash benchmarks/gpu_fusion.sh
+#
+# BACKEND=pallas makes the Pallas compositor the device copy's default (only once gpu_kernel.sh has shown
+# that it compiles and agrees there). Writes under $OUT: log.txt and fusion_e2e*_<chip>_gpu.{json,md}.
+export PYTHONUNBUFFERED=1
+exec > >(tee -a "$OUT/log.txt") 2>&1
+t0=$(date +%s)
+python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl || exit 1
+export PYTHONPATH=/tmp/site:$PWD/src XLA_PYTHON_CLIENT_PREALLOCATE=false
+nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv
+if [ "${BACKEND:-xla}" = "pallas" ]; then
+  sed -i 's/    backend: str = "auto"/    backend: str = "pallas"/' src/cfgs_jax/splat/config.py
+fi
+grep -n "backend: str" src/cfgs_jax/splat/config.py
+timeout "${CPU_ARGS_TIMEOUT:-200}" python3 benchmarks/bench_fusion_e2e.py
+echo "bench_fusion_e2e (the CPU's arguments) rc=$? at $(( $(date +%s) - t0 )) s"
+timeout "${GPU_FUSION_TIMEOUT:-360}" python3 benchmarks/bench_fusion_e2e.py --size 320x240 --gaussians 50000 \
+  --train-steps 3000 --cross-steps 3000 --refine-steps 6000 --tag _paper_320x240
+echo "bench_fusion_e2e (the paper's schedule) rc=$? at $(( $(date +%s) - t0 )) s"
+cp benchmarks/results/fusion_e2e*_gpu.* "$OUT/" 2>/dev/null
