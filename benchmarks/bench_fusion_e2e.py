@@ -89,6 +89,7 @@ def run(args, work: Path) -> dict:
     t0 = time.perf_counter()
     scenes = [_scene(work / f"d{q}", g, cams, rng) for q, g in enumerate(_dates(args.gaussians))]
     times = {"make_data": time.perf_counter() - t0}
+    print(f"make_data {times['make_data']:.1f} s", flush=True)
     config = train.TrainConfig(steps=args.train_steps, densify_until=min(15_000, int(0.75 * args.train_steps)))
     own, models = {}, []
     t0 = time.perf_counter()
@@ -96,6 +97,7 @@ def run(args, work: Path) -> dict:
         fit = train.fit(scene, config, progress=False)
         models.append(fit.gaussians)
         own[f"d{q}"] = {k: fit.metrics[k] for k in ("psnr", "ssim", "lpips")} | {"gaussians": len(fit.gaussians)}
+        print(f"train d{q} done at {time.perf_counter() - t0:.1f} s: {own[f'd{q}']}", flush=True)
     times["train"] = time.perf_counter() - t0
 
     def views(split):
@@ -114,6 +116,7 @@ def run(args, work: Path) -> dict:
     t0 = time.perf_counter()
     model, _ = fusion.cross_init(model, train_views, fusion.CrossInitConfig(steps=args.cross_steps))
     times["cross_init"] = time.perf_counter() - t0
+    print(f"cross_init {times['cross_init']:.1f} s", flush=True)
     t0 = time.perf_counter()
     model, report = fusion.refine(
         model,
