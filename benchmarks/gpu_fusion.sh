@@ -11,12 +11,7 @@
 #
 # BACKEND=pallas makes the Pallas compositor the device copy's default (only once gpu_kernel.sh has shown
 # that it compiles and agrees there). Writes under $OUT: log.txt and fusion_e2e*_<chip>_gpu.{json,md}.
-export PYTHONUNBUFFERED=1
-exec > >(tee -a "$OUT/log.txt") 2>&1
-t0=$(date +%s)
-python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl || exit 1
-export PYTHONPATH=/tmp/site:$PWD/src XLA_PYTHON_CLIENT_PREALLOCATE=false
-nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv
+source benchmarks/gpu_setup.sh
 if [ "${BACKEND:-xla}" = "pallas" ]; then
   sed -i 's/    backend: str = "auto"/    backend: str = "pallas"/' src/cfgs_jax/splat/config.py
 fi

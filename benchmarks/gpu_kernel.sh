@@ -12,12 +12,7 @@
 # (`python benchmarks/bench_train.py --data .carry/train_960 --width 960 --height 540` writes it here,
 # after rendering the date with Mitsuba). Writes under $OUT: log.txt, probe.txt,
 # junit.xml, kernel_vs_gsplat_<chip>_gpu.{json,md}, frame_split_<chip>_gpu.{json,md} (and gsplat_build.txt). The whole run fits ~8 minutes.
-export PYTHONUNBUFFERED=1
-exec > >(tee -a "$OUT/log.txt") 2>&1
-t0=$(date +%s)
-python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl || exit 1
-export PYTHONPATH=/tmp/site:$PWD/src XLA_PYTHON_CLIENT_PREALLOCATE=false
-nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv
+source benchmarks/gpu_setup.sh
 if [ -z "${NO_GSPLAT:-}" ]; then  # gsplat's CUDA extension compiles on its first import: in the background
   (MAX_JOBS=8 TORCH_CUDA_ARCH_LIST=9.0 python3 -c "from gsplat.cuda._backend import _C; print('gsplat built', _C is not None)" \
     >"$OUT/gsplat_build.txt" 2>&1 &)
