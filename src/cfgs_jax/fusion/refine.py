@@ -547,26 +547,32 @@ class _Refinement:
         c.params, c.opt_state, c.capacity, c.queued = done.out[0], done.out[1], done.capacity, None
         return c
 
+    def masks_due(self, done: int) -> bool:
+        """Whether the learned masks are fixed after ``done`` steps."""
+        return self.maskable is not None and done == self.config.mask_steps
+
+    def visibility_due(self, done: int) -> bool:
+        """Whether the visibility rule runs after ``done`` steps (every ``visibility_interval``, and at the end)."""
+        return done % self.config.visibility_interval == 0 or done == self.config.steps
+
+    def snapshot_due(self, done: int) -> bool:
+        """Whether a snapshot is taken after ``done`` steps."""
+        return self.on_snapshot is not None and done in self.snapshot_steps and done < self.config.steps
+
     def acts_after(self, done: int) -> bool:
         """Whether ``after_step`` changes or reads the parameters after ``done`` steps."""
-        config = self.config
-        return (
-            (self.maskable is not None and done == config.mask_steps)
-            or done % config.visibility_interval == 0
-            or done == config.steps
-            or (self.on_snapshot is not None and done in self.snapshot_steps and done < config.steps)
-        )
+        return self.masks_due(done) or self.visibility_due(done) or self.snapshot_due(done)
 
     def after_step(self, c: _Carry, it: int) -> _Carry:
         """The visibility rule every ``visibility_interval`` steps and at the end; snapshots."""
         config = self.config
         done = it + 1
-        if "mask_logits" in c.params and done == config.mask_steps:  # the masks are fixed from here on
+        if self.masks_due(done):  # the masks are fixed from here on
             c.params = parallel.replicate(c.params | {"mask_hard": jnp.ones((), jnp.float32)}, self.batch_mesh)
-        if done % config.visibility_interval == 0 or done == config.steps:
+        if self.visibility_due(done):
             c = self.check_visibility(c)
             c.params, c.opt_state, c.o_init = parallel.replicate((c.params, c.opt_state, c.o_init), self.batch_mesh)
-        if self.on_snapshot is not None and done in self.snapshot_steps and done < config.steps:
+        if self.snapshot_due(done):
             model = with_trainable(self.model, c.params)
             model = baked(model, c.params)[0] if "frames" in c.params else model
             self.on_snapshot(done, final_prune(model, config.prune_threshold))
