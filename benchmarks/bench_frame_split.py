@@ -30,21 +30,11 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_splat import scene
+from bench_splat import case, scene
 from common import backend_suffix, result_header, write_result
 
 #: The stages, in the order a frame runs them.
 STAGES = ("project", "bin", "composite", "composite backward", "project backward")
-
-
-def _case(name: str) -> tuple[str, int | None, int, int]:
-    """(scene kind, Gaussian count or None, width, height) of a case name such as ``100k@640x480``."""
-    what, size = name.split("@")
-    width, height = (int(x) for x in size.split("x"))
-    if what == "donut":
-        return "donut", None, width, height
-    count = float(what[:-1]) * {"k": 1e3, "M": 1e6}[what[-1]]
-    return "synthetic", int(count), width, height
 
 
 def stage_functions(g, cam, config):
@@ -123,8 +113,7 @@ def run_case(name: str, backend: str, reps: int) -> dict:
 
     from cfgs_jax import splat
 
-    kind, count, width, height = _case(name)
-    g, cam = scene(kind, count, width, height)
+    g, cam = scene(*case(name))
     functions, intersections = stage_functions(g, cam, splat.RenderConfig(backend=backend))
     times = {k: [] for k in functions}
     for f, args in functions.values():  # compile

@@ -28,15 +28,10 @@ import traceback
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_splat import scene
+from bench_splat import case, scene
 from common import RESULTS, backend_suffix, machine
 
-CASES = {
-    "100k@640x480": ("synthetic", 100_000, 640, 480),
-    "donut@640x480": ("donut", None, 640, 480),
-    "1M@1920x1080": ("synthetic", 1_000_000, 1920, 1080),
-    "donut@1920x1080": ("donut", None, 1920, 1080),
-}
+CASES = {name: case(name) for name in ("100k@640x480", "donut@640x480", "1M@1920x1080", "donut@1920x1080")}
 SWEEP_CASES = ("donut@1920x1080", "1M@1920x1080")
 SWEEP = [(16, 4), (32, 4), (64, 4), (32, 8)]  # (chunk, num_warps)
 

@@ -48,6 +48,16 @@ def synthetic(n: int, seed: int = 0):
     )
 
 
+def case(name: str) -> tuple[str, int | None, int, int]:
+    """(scene kind, Gaussian count or None, width, height) of a case named ``<count>@<W>x<H>`` (count as
+    ``20k``, ``1M``) or ``donut@<W>x<H>``: the arguments of ``scene``."""
+    what, size = name.split("@")
+    width, height = (int(x) for x in size.split("x"))
+    if what == "donut":
+        return "donut", None, width, height
+    return "synthetic", int(float(what[:-1]) * {"k": 1e3, "M": 1e6}[what[-1]]), width, height
+
+
 def scene(kind: str, n: int | None, width: int, height: int):
     """The Gaussians and camera of a case: the real donut seen from beside its centroid, or
     ``synthetic(n)`` seen from z = −4 (fov_x 50° both)."""
