@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import functools
 
-import colour
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -38,6 +37,7 @@ def cold_warm_direction(warm_kelvin: float = 3500.0, cold_kelvin: float = 9500.0
     """d: the sRGB-encoded white of ``cold_kelvin`` minus that of ``warm_kelvin`` (each of unit Y',
     the Rec.709-weighted sum of the encoded values; colour-science, Kang 2002 CCT → xy), so Y'(d) = 0;
     scaled to |d|∞ = 0.5. Positive k turns colours colder (bluer), negative warmer."""
+    import colour  # colour-science imports matplotlib and its plotting at import: only when needed
 
     srgb = colour.RGB_COLOURSPACES["sRGB"]
 

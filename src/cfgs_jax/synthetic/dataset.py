@@ -16,7 +16,6 @@ import json
 import logging
 from pathlib import Path
 
-import colour
 import numpy as np
 from PIL import Image
 from rich.progress import Progress
@@ -56,6 +55,7 @@ def texture(spec: SceneSpec, obj_index: int, date: int) -> np.ndarray:
 
 def sun_rgb(cct_kelvin: float) -> np.ndarray:
     """Linear sRGB colour of a black-body-like illuminant at ``cct_kelvin``, unit luminance."""
+    import colour  # colour-science imports matplotlib and its plotting at import: only when needed
 
     xy = colour.temperature.CCT_to_xy(cct_kelvin, method="Kang 2002")
     rgb = colour.XYZ_to_RGB(colour.xy_to_XYZ(xy), colour.RGB_COLOURSPACES["sRGB"], chromatic_adaptation_transform=None)
