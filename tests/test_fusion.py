@@ -872,22 +872,34 @@ def test_resume_refuses_another_configuration(tiny_two_dates, fused_run):
     assert config_changes({"a": {"b": 1}}, {"a": {"b": 2}, "c": {"d": 3}}) == ["a.b: 1 → 2", "c.d: (default) → 3"]
 
 
-def test_extend_adds_a_date_initialising_only_its_pairs(tiny_two_dates, fused_run, tmp_path):
+@pytest.fixture(scope="module")
+def extended_run(tiny_two_dates, fused_run, tmp_path_factory):
+    """A copy of `fused_run` extended by d2 through the CLI (d2 trained in the run), the extension
+    refining 7 steps with the visibility rule at the added date only; returns its directory."""
     import json
     import shutil
 
     from cfgs_jax.pipeline import main
 
-    root = tiny_two_dates
-    run = tmp_path / "run"
+    run = tmp_path_factory.mktemp("extended") / "run"
     shutil.copytree(fused_run[0], run)
     state = json.loads((run / "run.json").read_text())  # the run's config: extension refines 7 steps, not 20
     state["config"]["refine"]["extend_steps"] = 7
     state["config"]["refine"]["extend_visibility"] = "added"  # the visibility rule at the added date only
     (run / "run.json").write_text(json.dumps(state))
+    common = ["--transforms", str(tiny_two_dates / "transforms.json"), "--no-progress"]
+    assert main(["extend", "--run", str(run), "--date", str(tiny_two_dates / "d2"), *common]) == 0
+    return run
+
+
+def test_extend_adds_a_date_initialising_only_its_pairs(tiny_two_dates, fused_run, extended_run):
+    import json
+
+    from cfgs_jax.pipeline import main
+
+    root, run = tiny_two_dates, extended_run
     common = ["--transforms", str(root / "transforms.json"), "--no-progress"]
-    before = cj.io.read_fused(run / "fused")
-    assert main(["extend", "--run", str(run), "--date", str(root / "d2"), *common]) == 0
+    before = cj.io.read_fused(fused_run[0] / "fused")
     after_init = cj.io.read_fused(run / "cross_init")
     n_old = len(before)
     # old dates' o of the old Gaussians are untouched by the extension's cross-timestep init
@@ -906,11 +918,12 @@ def test_extend_adds_a_date_initialising_only_its_pairs(tiny_two_dates, fused_ru
     assert main(["extend", "--run", str(run), "--date", str(root / "d2"), *common]) == 2  # already there
 
 
-def test_dates_are_fused_and_extended_in_time_order(tiny_two_dates, tmp_path):
-    """d2 and d0 given newest first are fused oldest first (their images carry EXIF capture times), and
-    extending by d1 (captured between them) inserts it as date 1: the old Gaussians keep o and l at d0
-    and d2, only the pairs with d1 are initialised, and only d1's α is halved. Before, the given order
-    was the time axis and `extend` always appended the new date (and halved every α)."""
+def test_dates_are_fused_and_extended_in_time_order(tiny_two_dates, fused_run, extended_run, tmp_path):
+    """d2 and d0 given newest first are fused oldest first (their images carry EXIF capture times; each
+    --models entry follows its date), and extending by d1 (captured between them) inserts it as date 1:
+    the old Gaussians keep o and l at d0 and d2, only the pairs with d1 are initialised, and only d1's α
+    is halved. Before, the given order was the time axis and `extend` always appended the new date (and
+    halved every α). The dates' models come from the other runs (trained there)."""
     import json
 
     from cfgs_jax.pipeline import main
@@ -918,22 +931,17 @@ def test_dates_are_fused_and_extended_in_time_order(tiny_two_dates, tmp_path):
     root = tiny_two_dates
     run = tmp_path / "run"
     common = ["--transforms", str(root / "transforms.json"), "--no-progress"]
-    assert (
-        main(
-            [
-                "fuse",
-                "--dates",
-                str(root / "d2"),
-                str(root / "d0"),
-                "--out",
-                str(run),
-                "--config",
-                str(root / "tiny.toml"),
-                *common,
-            ]
-        )
-        == 0
-    )
+    model = {
+        "d0": fused_run[0] / "dates" / "d0",
+        "d1": fused_run[0] / "dates" / "d1",
+        "d2": extended_run / "dates" / "d2",
+    }
+    model = {k: v / "point_cloud.ply" for k, v in model.items()}
+    dates = ["--dates", str(root / "d2"), str(root / "d0"), "--models", str(model["d2"]), str(model["d0"])]
+    assert main(["fuse", *dates, "--out", str(run), "--config", str(root / "tiny.toml"), *common]) == 0
+    merged = cj.io.read_fused(run / "merged")  # date 0's Gaussians are d0's model, date 1's d2's
+    counts = np.bincount(np.asarray(merged.origin), minlength=2)
+    assert counts.tolist() == [len(cj.io.read_ply(model[k])) for k in ("d0", "d2")]
     before = cj.io.read_fused(run / "fused")
     assert [(d.name, d.captured) for d in before.dates] == [
         ("d0", "2024-01-15T00:00:00"),
@@ -943,7 +951,7 @@ def test_dates_are_fused_and_extended_in_time_order(tiny_two_dates, tmp_path):
     assert state["reference"] == "d0"
     state["config"]["refine"]["extend_steps"] = 3
     (run / "run.json").write_text(json.dumps(state))
-    assert main(["extend", "--run", str(run), "--date", str(root / "d1"), *common]) == 0
+    assert main(["extend", "--run", str(run), "--date", str(root / "d1"), "--model", str(model["d1"]), *common]) == 0
     init = cj.io.read_fused(run / "cross_init")
     n = len(before)
     assert [d.name for d in init.dates] == ["d0", "d1", "d2"]
@@ -1256,7 +1264,9 @@ def test_fuse_with_compact_enabled_runs_the_stage_before_the_export(tiny_two_dat
     assert report["gaussians_after"] < report["gaussians_before"] == len(read_fused(out / "before_compact"))
 
 
-def test_a_compacted_run_round_trips_both_layouts_and_can_be_extended(tiny_two_dates, fused_run, tmp_path):
+def test_a_compacted_run_round_trips_both_layouts_and_can_be_extended(
+    tiny_two_dates, fused_run, extended_run, tmp_path
+):
     """After `compact` (hidden copies dropped), the fused model reads back from the authors' layout
     and from ours with the same Gaussians, and `extend` adds a date to the compacted run: the old
     Gaussians are exactly the compacted ones, at the old dates."""
@@ -1285,7 +1295,8 @@ def test_a_compacted_run_round_trips_both_layouts_and_can_be_extended(tiny_two_d
     state["config"]["refine"]["extend_steps"] = 2
     (run / "run.json").write_text(json.dumps(state))
     common = ["--transforms", str(root / "transforms.json"), "--no-progress"]
-    assert main(["extend", "--run", str(run), "--date", str(root / "d2"), *common]) == 0
+    d2 = extended_run / "dates" / "d2" / "point_cloud.ply"  # trained there
+    assert main(["extend", "--run", str(run), "--date", str(root / "d2"), "--model", str(d2), *common]) == 0
     start = read_fused(run / "cross_init")
     assert start.num_dates == 3 and len(start) > len(compacted)
     old = np.asarray(start.origin) < 2
