@@ -150,14 +150,18 @@ def markdown(result: dict) -> str:
         "|---|---:|",
         *[f"| {k} | {v:.1f} s |" for k, v in t.items()],
         "",
-        "| date | own model PSNR / SSIM / LPIPS | fused PSNR / SSIM / LPIPS | fused − own PSNR |",
-        "|---|---|---|---:|",
+        "Test views of each date (LPIPS: lower is better; a negative PSNR or SSIM margin, or a positive LPIPS",
+        "one, means the fused model is worse than the date's own there):",
+        "",
+        "| date | own model PSNR / SSIM / LPIPS | fused PSNR / SSIM / LPIPS | fused − own PSNR / SSIM / LPIPS |",
+        "|---|---|---|---|",
     ]
     for d, o in result["own"].items():
         f = result["fused"][d]
         lines.append(
             f"| {d} | {o['psnr']:.2f} / {o['ssim']:.4f} / {o['lpips']:.4f} | "
-            f"{f['psnr']:.2f} / {f['ssim']:.4f} / {f['lpips']:.4f} | {f['psnr'] - o['psnr']:+.2f} dB |"
+            f"{f['psnr']:.2f} / {f['ssim']:.4f} / {f['lpips']:.4f} | "
+            f"{f['psnr'] - o['psnr']:+.2f} dB / {f['ssim'] - o['ssim']:+.4f} / {f['lpips'] - o['lpips']:+.4f} |"
         )
     lines += ["", f"Gaussians: {result['merged_gaussians']:,} merged, {result['fused']['gaussians']:,} fused."]
     return "\n".join(lines) + "\n"
