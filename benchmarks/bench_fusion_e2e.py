@@ -2,9 +2,10 @@
 initialisation and refinement, with every stage's wall time and each date's test PSNR / SSIM / LPIPS of
 the fused model against the date's own model.
 
-Needs neither Mitsuba nor pycolmap (a GPU machine may lack both): the two dates' ground truth is a box
-of Gaussians (``bench_splat.synthetic``) seen on an orbit, rendered by ``splat.render``; date 1 loses the
-Gaussians of one corner (disappeared) and gains a new cluster (appeared). Every 7th view is a test view.
+Needs neither Mitsuba nor pycolmap (a GPU machine may lack both): the two dates' ground truth is a town
+of boxes on a ground made of flat, nearly opaque Gaussians (closed surfaces, a smooth colour pattern) seen on
+an orbit, rendered by ``splat.render`` into RGBA images (transparent where no surface is); date 1 has lost one
+box (disappeared) and gained another (appeared). Every 7th view is a test view.
 Each date is an ``io.Scene`` over the written PNGs, its "SfM points" the true centres (a subsample,
 jittered). Exact Sim(3)s (identity): registration is measured elsewhere.
 
@@ -17,7 +18,6 @@ Writes ``results/fusion_e2e{T}{chip}.{json,md}`` (``_<chip>_gpu`` on an accelera
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import sys
 import tempfile
 import time
@@ -26,25 +26,63 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_splat import synthetic
 from common import backend_suffix, result_header, write_result
+
+#: The boxes of the scene, (centre, size) with y pointing down: A and B stay, C is gone at date 1 and D
+#: appears there. They stand on a 4 × 4 ground at y = 1.
+_BOXES = {
+    "A": ((-0.9, 0.4, 0.0), (0.8, 1.2, 0.8)),
+    "B": ((0.7, 0.7, 0.5), (1.0, 0.6, 0.7)),
+    "C": ((0.6, 0.6, -0.7), (0.6, 0.8, 0.6)),
+    "D": ((-0.2, 0.75, -0.9), (0.5, 0.5, 0.5)),
+}
+_GROUND = ((0.0, 1.0, 0.0), (4.0, 0.0, 4.0))
+
+
+def _surface(centre, size, n: int, rng, seed: int, faces=("x-", "x+", "y-", "z-", "z+")):
+    """``n`` flat, nearly opaque Gaussians tiling the given faces of an axis-aligned box (``y-`` is the
+    top; a size-0 axis is a plane), each face's share by its area; each Gaussian's extent is the mean
+    spacing along the face and a tenth of it across, so the faces are closed surfaces. Colours are a
+    smooth pattern of the position (a few cycles per unit), distinct per ``seed``."""
+    import cfgs_jax as cj
+
+    centre, size = np.asarray(centre, np.float64), np.asarray(size, np.float64)
+    area = {f: np.prod([size[k] for k in range(3) if k != "xyz".index(f[0])]) for f in faces}
+    total = sum(area.values())
+    means, scales = [], []
+    for f, a in area.items():
+        k = "xyz".index(f[0])
+        m = max(1, int(round(n * a / total)))
+        p = centre + (rng.uniform(-0.5, 0.5, (m, 3)) * size)
+        p[:, k] = centre[k] + (0.5 if f[1] == "+" else -0.5) * size[k]
+        spacing = np.sqrt(a / m)
+        s = np.full((m, 3), 1.2 * spacing)
+        s[:, k] = 0.1 * spacing
+        means.append(p)
+        scales.append(s)
+    means, scales = np.concatenate(means), np.concatenate(scales)
+    pattern = np.random.default_rng(seed)
+    frequency, offset = pattern.normal(0.0, 4.0, (3, 3)), pattern.uniform(0, 2 * np.pi, 3)  # rad per unit
+    colors = 0.5 + 0.35 * np.sin(means @ frequency + offset)
+    m = len(means)
+    return cj.Gaussians(
+        means.astype(np.float32),
+        np.tile(np.float32([1, 0, 0, 0]), (m, 1)),
+        np.log(scales).astype(np.float32),
+        np.full(m, 4.0, np.float32),
+        np.clip(colors, 0.05, 0.95).astype(np.float32),
+    )
 
 
 def _dates(n: int, seed: int = 0):
-    """Date 0: ``synthetic(n)``; date 1: the same without the Gaussians of the corner x > 0.8, y > 0.4,
-    plus a cluster of n/10 new ones around (−0.8, −0.6, 0)."""
+    """Two dates of a small town of boxes on a ground, made of ``n`` surface Gaussians at date 0 (half of
+    them on the ground): date 1 has lost box C and gained box D; what stays is the same Gaussians."""
     import cfgs_jax as cj
 
-    g0 = synthetic(n, seed)
-    means = np.asarray(g0.means)
-    keep = ~((means[:, 0] > 0.8) & (means[:, 1] > 0.4))
-    new = synthetic(n // 10, seed + 1)
-    moved = np.asarray(new.means) * 0.25 + np.float32([-0.8, -0.6, 0.0])
-    new = dataclasses.replace(new, means=moved.astype(np.float32))
-    kept = cj.Gaussians(
-        *(np.asarray(x)[keep] for x in (g0.means, g0.quats, g0.log_scales, g0.opacity_logits, g0.colors))
-    )
-    return [g0, cj.model.concatenate([kept, new])]
+    rng = np.random.default_rng(seed)
+    ground = _surface(*_GROUND, n // 2, rng, seed, faces=("y-",))
+    box = {k: _surface(c, s, n // 6, rng, seed + 1 + i) for i, (k, (c, s)) in enumerate(_BOXES.items())}
+    return [cj.model.concatenate([ground, box["A"], box["B"], box[k]]) for k in ("C", "D")]
 
 
 def _cameras(views: int, width: int, height: int):
@@ -69,8 +107,10 @@ def _scene(root: Path, g, cams, rng):
     names = []
     for i, cam in enumerate(cams):
         names.append(f"img_{i:03d}.png")
-        img = np.asarray(splat.render(g, cam, statistics=False).image)
-        write_image(root / "images" / names[-1], np.clip(img, 0, 1).astype(np.float32))
+        out = splat.render(g, cam, statistics=False)  # over black: the colour premultiplied by alpha
+        alpha = np.asarray(out.alpha)[..., None]
+        rgb = np.asarray(out.image) / np.maximum(alpha, 1e-6)
+        write_image(root / "images" / names[-1], np.clip(np.concatenate([rgb, alpha], -1), 0, 1).astype(np.float32))
     pick = rng.choice(len(g), size=min(len(g), 5000), replace=False)
     points = np.asarray(g.means)[pick] + rng.normal(0, 0.01, (len(pick), 3))
     colors = np.clip(np.asarray(g.colors)[pick], 0, 1)
