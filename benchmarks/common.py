@@ -129,8 +129,9 @@ def result_header(args: argparse.Namespace) -> dict:
 
 
 def write_result(stem: str, result: dict, markdown: str) -> None:
-    """``results/STEM.json`` (the result) and ``results/STEM.md`` (its table); the table is printed."""
+    """``results/STEM.json`` (the result; paths and other values JSON lacks written as text) and
+    ``results/STEM.md`` (its table); the table is printed."""
     RESULTS.mkdir(exist_ok=True)
-    (RESULTS / f"{stem}.json").write_text(json.dumps(result, indent=1))
+    (RESULTS / f"{stem}.json").write_text(json.dumps(result, indent=1, default=str))
     (RESULTS / f"{stem}.md").write_text(markdown)
     print(markdown)
