@@ -10,7 +10,12 @@ Each date is an ``io.Scene`` over the written PNGs, its "SfM points" the true ce
 jittered). Exact Sim(3)s (identity): registration is measured elsewhere.
 
     python benchmarks/bench_fusion_e2e.py [--size 160x120] [--gaussians 20000] [--views 28]
-        [--train-steps 1500] [--cross-steps 500] [--refine-steps 1000] [--work DIR] [--tag T]
+        [--train-steps 1500] [--cross-steps 500] [--refine-steps 1000] [--set TABLE.KEY=VALUE ...]
+        [--work DIR] [--tag T]
+
+``--set`` changes a value of the ``[train]``, ``[cross_init]`` or ``[refine]`` table as the pipeline's
+``--set`` does (e.g. the refinement's rates: ``--set refine.lr_alpha=0.05``); the step counts are the
+flags above. Without it every stage runs at the package defaults (the paper's rates).
 
 Writes ``results/fusion_e2e{T}{chip}.{json,md}`` (``_<chip>_gpu`` on an accelerator).
 """
@@ -119,6 +124,26 @@ def _scene(root: Path, g, cams, rng):
                  colors.astype(np.float32))  # fmt: skip
 
 
+def _configs(args):
+    """The stages' configurations: the package defaults, ``--set`` written in, the step counts."""
+    import dataclasses
+
+    from cfgs_jax import fusion, train
+    from cfgs_jax.config import apply_overrides, check_sections, section
+
+    tables = apply_overrides({"__path__": "bench_fusion_e2e defaults"}, args.set)
+    check_sections(tables, ("train", "cross_init", "refine"))
+    steps = args.train_steps
+    config = dataclasses.replace(
+        section(tables, "train", train.TrainConfig),
+        steps=steps,
+        densify_until=min(15_000, int(0.75 * steps)),
+    )
+    cross = dataclasses.replace(section(tables, "cross_init", fusion.CrossInitConfig), steps=args.cross_steps)
+    refine = dataclasses.replace(section(tables, "refine", fusion.RefineConfig), steps=args.refine_steps)
+    return config, cross, refine
+
+
 def run(args, work: Path) -> dict:
     from cfgs_jax import fusion, train
     from cfgs_jax.fusion.evaluate import evaluate_fused
@@ -130,7 +155,7 @@ def run(args, work: Path) -> dict:
     scenes = [_scene(work / f"d{q}", g, cams, rng) for q, g in enumerate(_dates(args.gaussians))]
     times = {"make_data": time.perf_counter() - t0}
     print(f"make_data {times['make_data']:.1f} s", flush=True)
-    config = train.TrainConfig(steps=args.train_steps, densify_until=min(15_000, int(0.75 * args.train_steps)))
+    config, cross_config, refine_config = _configs(args)
     own, models = {}, []
     t0 = time.perf_counter()
     for q, scene in enumerate(scenes):
@@ -145,7 +170,9 @@ def run(args, work: Path) -> dict:
         for scene in scenes:
             idx = scene.indices(split)
             out.append(
-                fusion.DateViews(tuple(scene.cameras[i] for i in idx), tuple(scene.load_image(int(i)) for i in idx))
+                fusion.DateViews(
+                    tuple(scene.cameras[i] for i in idx), tuple(scene.load_image(int(i), with_alpha=True) for i in idx)
+                )
             )
         return out
 
@@ -153,15 +180,17 @@ def run(args, work: Path) -> dict:
     t0 = time.perf_counter()
     model = fusion.merge(models, ["d0", "d1"])
     times["merge"] = time.perf_counter() - t0
+    stages = {"merged": evaluate_fused(model, test_views)["dates"]}  # each date's own Gaussians only
     t0 = time.perf_counter()
-    model, _ = fusion.cross_init(model, train_views, fusion.CrossInitConfig(steps=args.cross_steps))
+    model, _ = fusion.cross_init(model, train_views, cross_config)
     times["cross_init"] = time.perf_counter() - t0
+    stages["cross_init"] = evaluate_fused(model, test_views)["dates"]
     print(f"cross_init {times['cross_init']:.1f} s", flush=True)
     t0 = time.perf_counter()
     model, report = fusion.refine(
         model,
         train_views,
-        fusion.RefineConfig(steps=args.refine_steps),
+        refine_config,
         extent=train.scene_extent(scenes[0].cameras),
         train_config=config,
     )
@@ -171,6 +200,7 @@ def run(args, work: Path) -> dict:
         "times_s": times,
         "own": own,
         "fused": dict(fused["dates"]) | {"gaussians": len(model.gaussians)},
+        "stages": stages,
         "merged_gaussians": sum(o["gaussians"] for o in own.values()),
         "refine_report": {k: report[k] for k in ("steps", "pruned") if k in report},
     }
@@ -184,7 +214,8 @@ def markdown(result: dict) -> str:
         "",
         f"Machine: {result['machine']}. Date: {result['date']}. Command: `{result['command']}`.",
         f"Two dates at {a['size']}, {a['views']} views each (every 7th a test view), {a['gaussians']:,} true Gaussians; "
-        f"training {a['train_steps']:,} steps per date, cross-init {a['cross_steps']:,}, refinement {a['refine_steps']:,}.",
+        f"training {a['train_steps']:,} steps per date, cross-init {a['cross_steps']:,}, refinement {a['refine_steps']:,}; "
+        + (f"changed from the package defaults: {', '.join(a['set'])}." if a.get("set") else "the package defaults."),
         "",
         "| stage | wall time |",
         "|---|---:|",
@@ -204,6 +235,21 @@ def markdown(result: dict) -> str:
             f"{f['psnr'] - o['psnr']:+.2f} dB / {f['ssim'] - o['ssim']:+.4f} / {f['lpips'] - o['lpips']:+.4f} |"
         )
     lines += ["", f"Gaussians: {result['merged_gaussians']:,} merged, {result['fused']['gaussians']:,} fused."]
+    if "stages" in result:  # where the fused model gains or loses: the same test views after each stage
+        lines += [
+            "",
+            "Each date's test views after each stage, PSNR / SSIM / LPIPS (merged: o = 1 on the date's own Gaussians,",
+            "≈ 0 on the other date's, i.e. the own model):",
+            "",
+            "| date | merged | after cross-init | fused (refined) |",
+            "|---|---|---|---|",
+        ]
+        cells = lambda m: f"{m['psnr']:.2f} / {m['ssim']:.4f} / {m['lpips']:.4f}"
+        for d in result["own"]:
+            st = result["stages"]
+            lines.append(
+                f"| {d} | {cells(st['merged'][d])} | {cells(st['cross_init'][d])} | {cells(result['fused'][d])} |"
+            )
     return "\n".join(lines) + "\n"
 
 
@@ -215,9 +261,17 @@ def main():
     ap.add_argument("--train-steps", type=int, default=1500)
     ap.add_argument("--cross-steps", type=int, default=500)
     ap.add_argument("--refine-steps", type=int, default=1000)
+    ap.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="TABLE.KEY=VALUE",
+        help="a [train], [cross_init] or [refine] value (repeatable), e.g. refine.lr_alpha=0.05",
+    )
     ap.add_argument("--work", type=Path, help="folder for the rendered dates (default: a temporary one)")
     ap.add_argument("--tag", default="")
     args = ap.parse_args()
+    _configs(args)  # a wrong --set fails here, before any work
     result = result_header(args)
     with tempfile.TemporaryDirectory() as tmp:
         result |= run(args, args.work or Path(tmp))

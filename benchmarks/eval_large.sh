@@ -43,6 +43,14 @@ lane() {  # lane CORE SCENE...: the scenes one after the other on one core
 }
 export -f lane
 export work python
-setsid nohup nice -n 5 bash -c 'lane 0 flood quake' >/dev/null 2>&1 </dev/null &
-setsid nohup nice -n 5 bash -c 'lane 1 corals' >/dev/null 2>&1 </dev/null &
+# The compiled steps are kept on disk (JAX's persistent cache, shared with the tests' cache) so that a
+# restarted scene does not compile again (a training step took 10 minutes to compile on one busy core).
+export JAX_COMPILATION_CACHE_DIR=${JAX_COMPILATION_CACHE_DIR:-$HOME/.cache/cfgs_jax/xla}
+# Each lane is a session of its own (setsid), so with Linux's autogroup scheduling `nice` alone does not
+# yield to other sessions' work; the autogroup's own nice value makes the lanes yield to interactive work
+# (tests, benchmarks) and use what is left.
+background() { setsid nohup bash -c "echo 19 >/proc/self/autogroup 2>/dev/null; nice -n 19 bash -c 'lane $1'" \
+  >/dev/null 2>&1 </dev/null & }
+background "0 flood quake"
+background "1 corals"
 echo "started: flood, quake on core 0; corals on core 1 (logs: $work/*.log, finished: $work/done.log)"

@@ -76,6 +76,34 @@ def donut_path() -> Path:
     return DONUT_PLY
 
 
+#: Refinement settings that change nothing but o (the visibility rule): every rate 0, no halving,
+#: a fixed background.
+FROZEN = dict(
+    lr_o=0.0,
+    lr_alpha=0.0,
+    lr_color=0.0,
+    lr_other=0.0,
+    position_lr_scale=0.0,
+    halve_alpha=False,
+    random_background=False,
+)
+
+
+def small_random_gaussians(n: int, seed: int = 0):
+    """Random Gaussians in the unit cube around the origin, small (scales 0.02–0.08), opacity logits around
+    0.5 and colours uniform in [0, 1], float32: a few render as separate blobs in a small image."""
+    from cfgs_jax import Gaussians
+
+    rng = np.random.default_rng(seed)
+    return Gaussians(
+        rng.uniform(-0.5, 0.5, (n, 3)).astype(np.float32),
+        rng.normal(size=(n, 4)).astype(np.float32),
+        np.log(rng.uniform(0.02, 0.08, (n, 3))).astype(np.float32),
+        rng.normal(0.5, 1.0, n).astype(np.float32),
+        rng.uniform(size=(n, 3)).astype(np.float32),
+    )
+
+
 def random_gaussians(n: int, seed: int = 0):
     """Random Gaussians with generic (non-degenerate) parameters, float32.
 

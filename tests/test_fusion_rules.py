@@ -8,13 +8,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from test_fusion import FROZEN, _random_gaussians
 
 import cfgs_jax as cj
 from cfgs_jax import fusion, splat, train
 from cfgs_jax.fusion import updates
 from cfgs_jax.splat import weights
 from cfgs_jax.train import view_order
+
+from conftest import FROZEN, small_random_gaussians
 
 ci = importlib.import_module("cfgs_jax.fusion.cross_init")  # the package exports a function of that name
 rf = importlib.import_module("cfgs_jax.fusion.refine")
@@ -303,7 +304,7 @@ def test_epsilon_map_sees_date_p_under_the_start_exposure():
     """Date q is date p's own render at half the exposure: nothing changed but the light. The ε map
     compares date p under the pair's start gain (0.5, fitted from the same renders), so it is ≈ 0.
     Before, it compared date p at full exposure with I^q (mean ε 0.072 here)."""
-    g = _random_gaussians(80, seed=7)
+    g = small_random_gaussians(80, seed=7)
     cams = tuple(
         cj.Camera.look_at([x, -0.3, -2.5], [0, 0, 0], up=(0, -1, 0), width=64, height=48, fov_x_deg=55)
         for x in (-0.3, 0.3)
