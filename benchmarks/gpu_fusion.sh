@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # On a lent GPU, in one call: a whole fusion end to end (benchmarks/bench_fusion_e2e.py, data made by the
 # kernel, so neither Mitsuba nor pycolmap is needed), first with the arguments of the CPU's committed
-# result (results/fusion_e2e.md: stage times side by side), then at the paper's cross-init and refinement
+# result (results/fusion_e2e.md, made by `python benchmarks/bench_fusion_e2e.py` on the CPU: stage times side
+# by side), then at the paper's cross-init and refinement
 # schedule (3 000 steps per pair, 6 000) at 320×240 with 3 000 training steps per date, the refinement at
 # the rates the dates were trained with (as benchmarks/eval_large.toml: at the paper's refinement rates an
 # opaque surface, its α halved at the start, is still semi-transparent after 1 000 steps), within
