@@ -144,7 +144,8 @@ def _configs(args):
     return config, cross, refine
 
 
-def run(args, work: Path) -> dict:
+def run(args, work: Path, configs) -> dict:
+    """Every stage on the two dates under ``work``; ``configs``: training, cross-init and refinement."""
     from cfgs_jax import fusion, train
     from cfgs_jax.fusion.evaluate import evaluate_fused
 
@@ -155,7 +156,7 @@ def run(args, work: Path) -> dict:
     scenes = [_scene(work / f"d{q}", g, cams, rng) for q, g in enumerate(_dates(args.gaussians))]
     times = {"make_data": time.perf_counter() - t0}
     print(f"make_data {times['make_data']:.1f} s", flush=True)
-    config, cross_config, refine_config = _configs(args)
+    config, cross_config, refine_config = configs
     own, models = {}, []
     t0 = time.perf_counter()
     for q, scene in enumerate(scenes):
@@ -245,8 +246,8 @@ def markdown(result: dict) -> str:
             "|---|---|---|---|",
         ]
         cells = lambda m: f"{m['psnr']:.2f} / {m['ssim']:.4f} / {m['lpips']:.4f}"
+        st = result["stages"]
         for d in result["own"]:
-            st = result["stages"]
             lines.append(
                 f"| {d} | {cells(st['merged'][d])} | {cells(st['cross_init'][d])} | {cells(result['fused'][d])} |"
             )
@@ -271,10 +272,10 @@ def main():
     ap.add_argument("--work", type=Path, help="folder for the rendered dates (default: a temporary one)")
     ap.add_argument("--tag", default="")
     args = ap.parse_args()
-    _configs(args)  # a wrong --set fails here, before any work
+    configs = _configs(args)  # a wrong --set fails here, before any work
     result = result_header(args)
     with tempfile.TemporaryDirectory() as tmp:
-        result |= run(args, args.work or Path(tmp))
+        result |= run(args, args.work or Path(tmp), configs)
     write_result(f"fusion_e2e{args.tag}{backend_suffix()}", result, markdown(result))
     print(markdown(result))
 

@@ -118,8 +118,8 @@ def _two_processes(argv: list[str], *, timeout: int) -> None:
 def test_two_processes_run_a_sharded_cross_init_that_agrees_with_one(two_devices, tmp_path):
     """Two real processes on 127.0.0.1 (jax.distributed, gloo CPU collectives), one device each, split
     the pairs between them; process 0 saves the gathered result. In the slow tier: each process compiles
-    every program afresh (no compilation cache), about a fifth of the PR tier's CPU time; the sharded
-    code itself is tested in the PR tier on two devices of one process."""
+    every program afresh (no compilation cache); the sharded code itself is tested in the PR tier on two
+    devices of one process."""
     out = tmp_path / "processes.npz"
     _two_processes([str(WORKER), "processes", str(out)], timeout=300)
     got = np.load(out)
