@@ -172,25 +172,34 @@ def _bsdf(material: str, bitmap) -> dict:
 
 
 class _Loaded:
-    """A loaded Mitsuba scene and the object id (1-based index into spec.objects) of each shape."""
+    """A loaded Mitsuba scene. Its shapes' object ids are read (``objects``) only after its last render:
+    once ``Scene.shapes()`` has been called on a scene, Mitsuba renders it about ten times slower, and a
+    second load of the same description may order its shapes differently (a parallel load)."""
 
     def __init__(self, spec: SceneSpec, state: int, cam_date: int, *, aov: bool, textures=None):
         mi = _mitsuba()
         self.mi = mi
         self.scene = mi.load_dict(scene_dict(spec, state, cam_date, aov=aov, textures=textures))
-        ids = [s.id() for s in self.scene.shapes()]
-        if any(not i.startswith("obj_") for i in ids):
-            raise RuntimeError(f"Mitsuba merged shapes ({ids}); object masks would be wrong")
-        self.shape_to_object = np.array([0] + [int(i.split("_")[1]) + 1 for i in ids], np.int32)
 
     def render(self, sensor: int, seed: int, spp: int | None = None) -> np.ndarray:
         kw = {} if spp is None else {"spp": spp}
         return np.array(self.mi.render(self.scene, sensor=sensor, seed=seed, **kw), np.float64)
 
     def aov(self, sensor: int, seed: int):
+        """The shape index of each pixel (0: nothing hit; ``objects`` maps it), its position and uv."""
         a = self.render(sensor, seed)
-        sid = np.rint(a[..., 0]).astype(np.int64)
-        return self.shape_to_object[np.clip(sid, 0, len(self.shape_to_object) - 1)], a[..., 1:4], a[..., 4:6]
+        return np.rint(a[..., 0]).astype(np.int64), a[..., 1:4], a[..., 4:6]
+
+    def objects(self) -> np.ndarray:
+        """The object id (1-based index into spec.objects; 0: none) of each shape index."""
+        ids = [s.id() for s in self.scene.shapes()]
+        if any(not i.startswith("obj_") for i in ids):
+            raise RuntimeError(f"Mitsuba merged shapes ({ids}); object masks would be wrong")
+        return np.array([0] + [int(i.split("_")[1]) + 1 for i in ids], np.int32)
+
+
+def _object_ids(table: np.ndarray, shape_index: np.ndarray) -> np.ndarray:
+    return table[np.clip(shape_index, 0, len(table) - 1)]
 
 
 def _project(cam_from_world, fx, cx, cy, pts):
@@ -247,28 +256,36 @@ def _render_date(spec: SceneSpec, q: int, out: Path, frame: Sim3, cam: _Camera, 
     date = spec.dates[q]
     beauty = _Loaded(spec, q, q, aov=False, textures=tex_cache)
     own = _Loaded(spec, q, q, aov=True, textures=tex_cache)
-    others = {p: _Loaded(spec, p, q, aov=True, textures=tex_cache) for p in range(nd) if p != q}
     names = [f"img_{i:03d}.png" for i in range(len(date.cam_from_world))]
+    seeds = [int(np.random.default_rng([spec.seed, q, i]).integers(2**31)) for i in range(len(names))]
+    others = [p for p in range(nd) if p != q]
     with atomic_directory(out / date.name) as tmp:
         tmp = Path(tmp)
         for sub in ("images", "sparse/0", "masks/ids", *(f"masks/changed_vs_{spec.dates[p].name}" for p in others)):
             (tmp / sub).mkdir(parents=True, exist_ok=True)
-        rgbs, aovs = [], []
+        rgbs, own_aovs = [], []
         for i, name in enumerate(names):
-            seed = int(np.random.default_rng([spec.seed, q, i]).integers(2**31))
             exposure = [*[2.0**date.exposure_ev] * 3, 1]
-            img = _straight_rgba(beauty.render(i, seed), sky_radiance(spec, q)) * exposure
+            img = _straight_rgba(beauty.render(i, seeds[i]), sky_radiance(spec, q)) * exposure
             write_image(tmp / "images" / name, img.astype(np.float32), linear=True, captured=date.captured)
             rgbs.append(_read_srgb(tmp / "images" / name))  # the 8-bit colours SfM would see
-            ids, pos, uv = own.aov(i, seed)
-            aovs.append((ids, pos))
+            own_aovs.append(own.aov(i, seeds[i]))
+            advance()
+        table = own.objects()
+        aovs = [(_object_ids(table, sid), pos) for sid, pos, _ in own_aovs]
+        for name, (ids, _) in zip(names, aovs):
             _write_mask(tmp / "masks/ids" / name, ids)
-            for p, loaded in others.items():
-                ids_p, pos_p, uv_p = loaded.aov(i, seed)
+        for p in others:  # date p's content through date q's cameras, one scene at a time
+            loaded = _Loaded(spec, p, q, aov=True, textures=tex_cache)
+            other_aovs = []
+            for i in range(len(names)):
+                other_aovs.append(loaded.aov(i, seeds[i]))
+                advance()
+            table_p = loaded.objects()
+            for name, (ids, pos), (_, _, uv), (sid_p, pos_p, uv_p) in zip(names, aovs, own_aovs, other_aovs):
+                ids_p = _object_ids(table_p, sid_p)
                 ch = _changed(spec, q, p, ids, pos, uv, ids_p, pos_p, uv_p, tex_cache)
                 _write_mask(tmp / f"masks/changed_vs_{spec.dates[p].name}" / name, ch.astype(np.int32) * 255)
-                advance()
-            advance()
         obs, xyz, colors, objects = _sample_points(spec, q, rgbs, aovs, cam.fx, cam.cx, cam.cy, cam.n_points)
         point_ids = _write_colmap(
             pycolmap, tmp / "sparse/0", spec, q, names, frame, obs, xyz, colors, cam.fx, cam.cx, cam.cy
