@@ -39,6 +39,31 @@ def test_run_steps_checkpoints_on_cadence_at_a_stop_and_resumes_where_it_stopped
     assert done == 5 and seen == []
 
 
+def test_run_steps_also_checkpoints_after_a_stretch_of_wall_time():
+    """With ``checkpoint_seconds``, a save also follows the first step that ends that long after the last
+    save (or the start), by the loop's clock; the step cadence keeps its own saves and restarts the clock."""
+    now, saves = [0.0], []
+
+    def body(carry, k):
+        now[0] += [1.0, 4.0, 1.0, 1.0, 1.0, 1.0, 1.0, 7.0, 1.0, 1.0][k]  # how long step k takes
+        return carry + [k]
+
+    carry, done = loop.run_steps(
+        body, [], start=0, steps=10, checkpoint_every=6, checkpoint_seconds=5.0, clock=lambda: now[0],
+        save=lambda c, d: saves.append((d, now[0])),
+    )  # fmt: skip
+    assert done == 10 and carry == list(range(10))
+    # 2 steps done at t = 5 (5 s after the start); 6 done by the cadence (t = 9); 8 done at t = 17 (8 s after
+    # the last save; 7 done at t = 10 was 1 s after it); nothing at the last step of a finished run
+    assert saves == [(2, 5.0), (6, 9.0), (8, 17.0)]
+    saves.clear()
+    now[0] = 0.0
+    loop.run_steps(
+        body, [], start=0, steps=10, checkpoint_seconds=0.0, clock=lambda: now[0], save=lambda c, d: saves.append(d)
+    )
+    assert saves == []  # 0: no time-based saves
+
+
 def test_step_with_capacity_grows_to_the_larger_of_twice_and_required():
     """A step overflowing its buffer is redone with max(required, 2·capacity) until it fits."""
     compiled_for = []

@@ -1,8 +1,8 @@
 """The optimisation loop shared by training, cross-timestep initialisation and refinement.
 
 Each stage supplies a step ``body(carry, k) → carry`` (k the 0-based step); ``run_steps`` calls it for
-the steps left, saves a checkpoint every ``checkpoint_every`` steps and where a ``stop_after`` cuts the
-run short, and drives a progress bar. ``step_with_capacity`` runs a step compiled for an
+the steps left, saves a checkpoint every ``checkpoint_every`` steps (and after ``checkpoint_seconds`` of
+work since the last save) and where a ``stop_after`` cuts the run short, and drives a progress bar. ``step_with_capacity`` runs a step compiled for an
 intersection-buffer capacity and recompiles it larger when a view overflows the buffer;
 ``CapacityStep`` does the same one step late, so that the host never waits for a step before the next
 one is queued; ``view_order`` is the view sequence every stage draws from. Nothing here holds state
@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import time
 from collections.abc import Callable
 from typing import Any, TypeVar
 
@@ -146,22 +147,27 @@ def run_steps(
     steps: int,
     stop_after: int | None = None,
     checkpoint_every: int = 0,
+    checkpoint_seconds: float = 0.0,
     save: Callable[[Carry, int], None] | None = None,
     save_at_end: bool = False,
     progress: Progress | None = None,
     info: Callable[[Carry], str] | None = None,
     converged: Callable[[Carry, int], bool] | None = None,
     settle: Callable[[Carry], Carry] | None = None,
+    clock: Callable[[], float] = time.monotonic,
 ) -> tuple[Carry, int]:
     """Steps ``start`` … ``last − 1`` of ``body``, last = ``steps`` or ``stop_after`` when that is
     earlier (never before ``start``). ``save(carry, done)`` runs after every ``checkpoint_every``-th
-    step short of the last, at the last when the run stops early or ``save_at_end``.
+    step short of the last, after any other step short of the last that ends ``checkpoint_seconds`` (0:
+    never) or more after the previous save (or the start) by ``clock``, and at the last when the run
+    stops early or ``save_at_end``.
     ``converged(carry, done)``, asked after every step, ends the run there when true (a finished run:
     no save). ``settle(carry)``: a body that leaves its last step queued and unchecked
     (``CapacityStep``) has it finished there before every save and before the carry is returned.
     Returns the carry and the number of steps done."""
     last = steps if stop_after is None else max(start, min(steps, stop_after))
     settled = settle if settle is not None else lambda c: c
+    saved_at = clock()
     for k in range(start, last):
         carry = body(carry, k)
         done = k + 1
@@ -169,9 +175,11 @@ def run_steps(
             if progress is not None:
                 progress.update(done, info(carry) if info is not None else "")
             return settled(carry), done
-        if save is not None and checkpoint_every and done < last and done % checkpoint_every == 0:
+        every = checkpoint_every and done % checkpoint_every == 0
+        if save is not None and done < last and (every or 0 < checkpoint_seconds <= clock() - saved_at):
             carry = settled(carry)
             save(carry, done)
+            saved_at = clock()
         if progress is not None:
             progress.update(done, info(carry) if info is not None else "")
     carry = settled(carry)

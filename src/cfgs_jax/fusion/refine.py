@@ -103,6 +103,7 @@ class RefineConfig(Checked):
     random_background: bool = True
     prune_threshold: float = 1.0 / 255.0
     checkpoint_every: int = 500
+    checkpoint_minutes: Annotated[float, NON_NEGATIVE] = 10.0  # also after this much work since the last (0: never)
     # training views per step (their mean loss; split over the devices of a mesh)
     view_batch: Annotated[int, AT_LEAST_ONE] = 1
     seed: int = 0
@@ -689,8 +690,8 @@ def refine(
 
 
 def _steps(run, carry: _Carry, start: int, identity: dict, checkpoint, stop_after, progress: bool):
-    """The refinement's steps from ``start`` (checkpointed every ``checkpoint_every`` steps when
-    ``checkpoint`` is a path) → (carry, steps done)."""
+    """The refinement's steps from ``start`` (checkpointed every ``checkpoint_every`` steps and
+    ``checkpoint_minutes`` when ``checkpoint`` is a path) → (carry, steps done)."""
     config, t0 = run.config, time.perf_counter()
 
     def save(c: _Carry, done: int):
@@ -706,6 +707,7 @@ def _steps(run, carry: _Carry, start: int, identity: dict, checkpoint, stop_afte
             steps=config.steps,
             stop_after=stop_after,
             checkpoint_every=config.checkpoint_every,
+            checkpoint_seconds=60.0 * config.checkpoint_minutes,
             save=save if checkpoint is not None else None,
             progress=bar,
             settle=run.settle,

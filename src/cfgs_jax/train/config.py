@@ -46,6 +46,7 @@ class TrainConfig(Checked):
     resolution: Annotated[int, POSITIVE] = 1  # images downscaled by this factor, cameras scaled to match (INRIA's -r)
     test_every: Annotated[int, NON_NEGATIVE] = 8
     checkpoint_every: Annotated[int, POSITIVE] = 1000
+    checkpoint_minutes: Annotated[float, NON_NEGATIVE] = 10.0  # also after this much work since the last (0: never)
     eval_every: Annotated[int, NON_NEGATIVE] = 0
     # training views per step (their mean loss; split over the devices of a mesh)
     view_batch: Annotated[int, POSITIVE] = 1

@@ -361,8 +361,8 @@ def fit(
     """Train one date's model on ``scene``'s training split for ``config.steps`` steps.
 
     ``init``: start from these Gaussians instead of the SfM points (with ``continuation_config`` this is
-    the "Individual +N" baseline). ``out``: checkpoints every ``config.checkpoint_every`` steps go to
-    ``out/checkpoint.npz``; ``resume`` continues from it. ``stop_after``: return after that many total
+    the "Individual +N" baseline). ``out``: checkpoints every ``config.checkpoint_every`` steps (and
+    ``config.checkpoint_minutes``) go to ``out/checkpoint.npz``; ``resume`` continues from it. ``stop_after``: return after that many total
     steps (as if killed there; checkpoints first). ``eval_steps``: also evaluate the test split after these
     steps (into ``eval_history``, like ``config.eval_every``). ``mesh`` (``parallel.device_mesh``): split
     each step's ``config.view_batch`` views over its devices."""
@@ -383,6 +383,7 @@ def fit(
             steps=config.steps,
             stop_after=stop_after,
             checkpoint_every=config.checkpoint_every,
+            checkpoint_seconds=60.0 * config.checkpoint_minutes,
             save=run.save if ckpt is not None else None,
             save_at_end=True,
             progress=bar,
