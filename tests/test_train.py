@@ -353,8 +353,14 @@ def test_view_order_is_a_refilled_random_stack():
     assert train.view_order(7, 12, 5) == orders[2][2]
 
 
-def test_train_cli_writes_a_model_continues_it_and_guards_the_output(corals, tmp_path, capsys):
+def test_train_cli_writes_a_model_continues_it_and_guards_the_output(corals, tmp_path, capsys, monkeypatch):
+    """A SIGTERM during step 26 stops the run after that step, with a checkpoint at 26, exit status 143
+    and the way to continue; ``--resume`` finishes it; a finished run is not overwritten; ``--continue-from``
+    trains a model further without densifying."""
+    import signal
+
     from cfgs_jax.pipeline import main
+    from cfgs_jax.train import run as train_run
 
     out = tmp_path / "run"
     toml = tmp_path / "short.toml"  # one densification at step 40 (the schedule scaled 1:1 by --steps)
@@ -372,7 +378,23 @@ def test_train_cli_writes_a_model_continues_it_and_guards_the_output(corals, tmp
         "--no-progress",
         "--no-eval",
     ]
-    assert main(args) == 0
+    unsignalled = train_run.run_steps
+
+    def signalled(body, carry, **kw):  # the loop's body as given, with a SIGTERM to this process in step 26
+        def step(c, k):
+            if k == 25:
+                signal.raise_signal(signal.SIGTERM)
+            return body(c, k)
+
+        return unsignalled(step, carry, **kw)
+
+    monkeypatch.setattr(train_run, "run_steps", signalled)
+    assert main(args) == 143  # 128 + SIGTERM, as a shell reports a process stopped by it
+    assert "stopped by SIGTERM after step 26" in capsys.readouterr().err
+    meta = json.loads(bytes(np.load(out / train.CHECKPOINT)["__meta__"]).decode())
+    assert meta["step"] == 26 and not (out / "point_cloud.ply").exists()
+    monkeypatch.setattr(train_run, "run_steps", unsignalled)
+    assert main([*args, "--resume"]) == 0
     g = cj.io.read_ply(out / "point_cloud.ply")
     report = json.loads((out / "train.json").read_text())
     assert report["gaussians"] == len(g) and report["steps"] == 60 and (out / train.CHECKPOINT).is_file()

@@ -64,6 +64,40 @@ def test_run_steps_also_checkpoints_after_a_stretch_of_wall_time():
     assert saves == []  # 0: no time-based saves
 
 
+def test_a_signal_stops_the_loop_after_its_step_with_a_save_and_otherwise_at_once():
+    """Within ``catching_signals``: a SIGINT during step k ends that step, saves k + 1 steps and raises
+    ``Stopped`` (exit status 130); a second signal in the same loop stops at once; with no loop running a
+    SIGINT raises ``KeyboardInterrupt`` and a SIGTERM exits with 143. The handlers are restored after."""
+    import signal
+
+    from cfgs_jax import stopping
+
+    saves, seen = [], []
+
+    def body(carry, k, at=3, times=1):
+        for _ in range(times if k == at else 0):
+            signal.raise_signal(signal.SIGINT)
+        seen.append(k)
+        return carry + [k]
+
+    before = signal.getsignal(signal.SIGINT)
+    with stopping.catching_signals(), pytest.raises(stopping.Stopped) as stopped:
+        loop.run_steps(body, [], start=0, steps=10, save=lambda c, d: saves.append((d, list(c))))
+    assert seen == [0, 1, 2, 3] and saves == [(4, [0, 1, 2, 3])]
+    assert stopped.value.step == 4 and stopped.value.saved and stopped.value.exit_status == 130
+    assert signal.getsignal(signal.SIGINT) is before and stopping.asked() is None
+    seen.clear()
+    with stopping.catching_signals():
+        with pytest.raises(KeyboardInterrupt) as at_once:
+            loop.run_steps(lambda c, k: body(c, k, at=1, times=2), [], start=0, steps=10)
+        assert not isinstance(at_once.value, stopping.Stopped) and seen == [0]  # step 1 did not end
+        with pytest.raises(SystemExit) as exited:
+            signal.raise_signal(signal.SIGTERM)
+        assert exited.value.code == 143
+    with stopping.catching_signals(), pytest.raises(KeyboardInterrupt):
+        signal.raise_signal(signal.SIGINT)
+
+
 def test_step_with_capacity_grows_to_the_larger_of_twice_and_required():
     """A step overflowing its buffer is redone with max(required, 2·capacity) until it fits."""
     compiled_for = []

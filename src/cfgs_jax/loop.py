@@ -2,7 +2,8 @@
 
 Each stage supplies a step ``body(carry, k) → carry`` (k the 0-based step); ``run_steps`` calls it for
 the steps left, saves a checkpoint every ``checkpoint_every`` steps (and after ``checkpoint_seconds`` of
-work since the last save) and where a ``stop_after`` cuts the run short, and drives a progress bar. ``step_with_capacity`` runs a step compiled for an
+work since the last save), where a ``stop_after`` cuts the run short and where a signal stops it
+(``cfgs_jax.stopping``), and drives a progress bar. ``step_with_capacity`` runs a step compiled for an
 intersection-buffer capacity and recompiles it larger when a view overflows the buffer;
 ``CapacityStep`` does the same one step late, so that the host never waits for a step before the next
 one is queued; ``view_order`` is the view sequence every stage draws from. Nothing here holds state
@@ -21,7 +22,7 @@ import numpy as np
 from rich.progress import BarColumn, MofNCompleteColumn, TextColumn, TimeRemainingColumn
 from rich.progress import Progress as RichProgress
 
-from cfgs_jax import parallel
+from cfgs_jax import parallel, stopping
 from cfgs_jax.errors import InputError
 
 Carry = TypeVar("Carry")
@@ -160,7 +161,8 @@ def run_steps(
     earlier (never before ``start``). ``save(carry, done)`` runs after every ``checkpoint_every``-th
     step short of the last, after any other step short of the last that ends ``checkpoint_seconds`` (0:
     never) or more after the previous save (or the start) by ``clock``, and at the last when the run
-    stops early or ``save_at_end``.
+    stops early or ``save_at_end``. When a signal asks the loop to stop (``cfgs_jax.stopping``), the step
+    in progress ends, is saved and ``stopping.Stopped`` is raised.
     ``converged(carry, done)``, asked after every step, ends the run there when true (a finished run:
     no save). ``settle(carry)``: a body that leaves its last step queued and unchecked
     (``CapacityStep``) has it finished there before every save and before the carry is returned.
@@ -168,20 +170,24 @@ def run_steps(
     last = steps if stop_after is None else max(start, min(steps, stop_after))
     settled = settle if settle is not None else lambda c: c
     saved_at = clock()
-    for k in range(start, last):
-        carry = body(carry, k)
-        done = k + 1
-        if converged is not None and converged(carry, done):
+    with stopping.loop_running():
+        for k in range(start, last):
+            carry = body(carry, k)
+            done = k + 1
+            if converged is not None and converged(carry, done):
+                if progress is not None:
+                    progress.update(done, info(carry) if info is not None else "")
+                return settled(carry), done
+            every = checkpoint_every and done % checkpoint_every == 0
+            due = every or 0 < checkpoint_seconds <= clock() - saved_at
+            if save is not None and done < last and (due or stopping.asked() is not None):
+                carry = settled(carry)
+                save(carry, done)
+                saved_at = clock()
             if progress is not None:
                 progress.update(done, info(carry) if info is not None else "")
-            return settled(carry), done
-        every = checkpoint_every and done % checkpoint_every == 0
-        if save is not None and done < last and (every or 0 < checkpoint_seconds <= clock() - saved_at):
-            carry = settled(carry)
-            save(carry, done)
-            saved_at = clock()
-        if progress is not None:
-            progress.update(done, info(carry) if info is not None else "")
+            if done < last and stopping.asked() is not None:
+                raise stopping.Stopped(stopping.asked(), done, saved=save is not None)
     carry = settled(carry)
     if save is not None and (last < steps or save_at_end):
         save(carry, last)

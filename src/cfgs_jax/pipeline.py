@@ -7,6 +7,7 @@ the file, field and fix, and exit with status 2.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 import logging
@@ -22,7 +23,7 @@ from rich.progress import Progress, track
 from rich.table import Table
 
 import cfgs_jax as cj
-from cfgs_jax import metrics, parallel, synthetic, train
+from cfgs_jax import metrics, parallel, stopping, synthetic, train
 from cfgs_jax.changes.report import detect_changes
 from cfgs_jax.cli import build_parser, parse_selection, parse_stops
 from cfgs_jax.config import apply_overrides, find_preset, load_config, preset_names
@@ -669,13 +670,25 @@ def main(argv: list[str] | None = None, *, prog: str | None = None) -> int:
     if not any(isinstance(h, _StderrHandler) for h in logger.handlers):
         logger.addHandler(_StderrHandler())
     logger.setLevel(logging.INFO if args.verbose else logging.WARNING)
+    # a signal stops an optimisation loop after its step, with a checkpoint; the viewer stops at once
+    signals = stopping.catching_signals() if args.command != "view" else contextlib.nullcontext()
     try:
-        if hasattr(args, "devices"):
-            _start_processes(args)
-        return COMMANDS[args.command](args)
+        with signals:
+            if hasattr(args, "devices"):
+                _start_processes(args)
+            return COMMANDS[args.command](args)
     except (InputError, OutputError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
+    except stopping.Stopped as exc:
+        if exc.saved and hasattr(args, "resume"):
+            then = "its checkpoint is saved; the same command with --resume continues from there"
+        elif exc.saved:
+            then = "its checkpoint is saved"
+        else:
+            then = "this stage keeps no checkpoint mid-way; a resumed run starts it again"
+        print(f"{exc}: {then}", file=sys.stderr)
+        return exc.exit_status
 
 
 if __name__ == "__main__":
