@@ -4,6 +4,7 @@
 #
 #   bash benchmarks/eval_large.sh WORK          # start or continue, in the background; logs in WORK/*.log
 #   bash benchmarks/eval_large.sh WORK publish  # write results/eval_large_S.md for each finished scene
+#   bash benchmarks/eval_large.sh WORK stop     # stop the lanes; each scene checkpoints its step first
 #
 # Each scene is `python -m cfgs_jax.pipeline eval --scene S --config benchmarks/eval_large.toml
 # --out WORK/S --resume --no-progress`: every stage checkpoints, so running this again after the machine
@@ -27,6 +28,16 @@ if [ "${2:-}" = "publish" ]; then
     else
       echo "$s: not finished ($work/$s/table.md missing)"
     fi
+  done
+  exit 0
+fi
+
+if [ "${2:-}" = "stop" ]; then
+  # the lanes first (so that no lane starts its next scene), then SIGTERM to each scene's process: the
+  # loop in progress ends its step and saves a checkpoint (cfgs_jax.stopping) before the process exits
+  pkill -f -- "lane [0-9]+ " || true
+  for s in flood corals quake; do
+    pkill -TERM -f -- "--out $work/$s( |$)" && echo "$s: asked to stop" || true
   done
   exit 0
 fi
