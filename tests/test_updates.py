@@ -98,6 +98,29 @@ def test_a_signal_stops_the_loop_after_its_step_with_a_save_and_otherwise_at_onc
         signal.raise_signal(signal.SIGINT)
 
 
+def test_a_loop_takes_the_signals_back_from_a_library_that_took_them():
+    """A library imported inside ``catching_signals`` may install its own SIGTERM handler (pycolmap's glog
+    does, at the C level); the next loop installs the stopping handler again, so SIGTERM still stops it
+    after its step (exit status 143)."""
+    import signal
+
+    from cfgs_jax import stopping
+
+    def library_handler(signum, frame):
+        raise RuntimeError("the library's handler ran")
+
+    def body(carry, k):
+        if k == 1:
+            signal.raise_signal(signal.SIGTERM)
+        return carry + [k]
+
+    with stopping.catching_signals():
+        signal.signal(signal.SIGTERM, library_handler)
+        with pytest.raises(stopping.Stopped) as stopped:
+            loop.run_steps(body, [], start=0, steps=5)
+    assert stopped.value.step == 2 and not stopped.value.saved and stopped.value.exit_status == 143
+
+
 def test_step_with_capacity_grows_to_the_larger_of_twice_and_required():
     """A step overflowing its buffer is redone with max(required, 2·capacity) until it fits."""
     compiled_for = []

@@ -20,6 +20,7 @@ SIGNALS = (signal.SIGINT, signal.SIGTERM)
 
 _asked: list[signal.Signals] = []  # the signal that asked the running loop to stop
 _loops: list[int] = [0]  # optimisation loops running now (a loop may run inside another's step)
+_catching: list[int] = [0]  # catching_signals contexts open now
 
 
 class Stopped(KeyboardInterrupt):
@@ -43,7 +44,12 @@ def asked() -> signal.Signals | None:
 
 @contextlib.contextmanager
 def loop_running() -> Iterator[None]:
-    """Marks an optimisation loop as running: a signal now asks it to stop after its step."""
+    """Marks an optimisation loop as running: a signal now asks it to stop after its step. Within
+    ``catching_signals`` the handlers are installed again here: a library imported since (pycolmap's
+    glog failure handler) may have put its own in their place at the C level, where Python does not see it."""
+    if _catching[0] and threading.current_thread() is threading.main_thread():
+        for s in SIGNALS:
+            signal.signal(s, _handle)
     _loops[0] += 1
     try:
         yield
@@ -75,9 +81,11 @@ def catching_signals() -> Iterator[None]:
     previous = {s: signal.getsignal(s) for s in SIGNALS}
     for s in SIGNALS:
         signal.signal(s, _handle)
+    _catching[0] += 1
     try:
         yield
     finally:
+        _catching[0] -= 1
         for s, handler in previous.items():
             signal.signal(s, handler)
         _asked.clear()
