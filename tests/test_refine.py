@@ -3,6 +3,7 @@ light, frame corrections, learned masks."""
 
 import dataclasses
 import importlib
+import json
 
 import jax
 import jax.numpy as jnp
@@ -97,6 +98,15 @@ def test_refine_lowers_the_loss_keeps_the_model_finite_and_resumes_exactly(tmp_p
         np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
     with pytest.raises(ValueError, match="another refinement"):
         rf.refine(model, views, dataclasses.replace(cfg, lr_o=1e-3), extent=1.0, checkpoint=ckpt)
+    # a checkpoint written before a [refine] or [train] setting existed resumes (at that setting's default)
+    with np.load(ckpt) as z:
+        arrays = {k: z[k] for k in z.files}
+    meta = json.loads(bytes(arrays.pop("__meta__")).decode())
+    del meta["config"]["checkpoint_minutes"], meta["train"]["checkpoint_minutes"]
+    np.savez(ckpt, __meta__=np.frombuffer(json.dumps(meta).encode(), np.uint8), **arrays)
+    older, _ = rf.refine(model, views, cfg, extent=1.0, checkpoint=ckpt)
+    for x, y in zip(jax.tree_util.tree_leaves(out), jax.tree_util.tree_leaves(older)):
+        np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
 
 
 def _one_set_at_two_dates(seed):

@@ -299,7 +299,10 @@ def _load_checkpoint(path: Path, template: dict, meta_now: dict) -> tuple[dict, 
     """(state, meta) of a refinement checkpoint, refused unless it was written by the same refinement."""
     meta, arrays = read_meta(path, format=CHECKPOINT_FORMAT)
     # a checkpoint written before a setting existed was written at that setting's default
-    saved = meta | {"config": dataclasses.asdict(RefineConfig()) | meta.get("config", {})}
+    saved = meta | {
+        "config": dataclasses.asdict(RefineConfig()) | meta.get("config", {}),
+        "train": dataclasses.asdict(TrainConfig()) | meta.get("train", {}),
+    }
     saved.setdefault("frame_dates", [])
     bad = [k for k, v in meta_now.items() if saved.get(k) != v]
     if bad:
