@@ -121,6 +121,18 @@ def test_a_loop_takes_the_signals_back_from_a_library_that_took_them():
     assert stopped.value.step == 2 and not stopped.value.saved and stopped.value.exit_status == 143
 
 
+def test_a_sigterm_outside_a_loop_exits_with_143_and_no_library_handler_runs():
+    """Outside a loop a SIGTERM stops the process at once with status 143, also where pycolmap is imported
+    inside a command (its glog would print a stack trace and abort): ``catching_signals`` imports it first."""
+    import subprocess
+    import sys
+
+    code = "import os, signal\nfrom cfgs_jax import stopping\nwith stopping.catching_signals():\n"
+    code += "    import pycolmap\n    os.kill(os.getpid(), signal.SIGTERM)\n    print('not stopped')\n"
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 143 and "not stopped" not in done.stdout and "Aborted" not in done.stderr, done.stderr
+
+
 def test_step_with_capacity_grows_to_the_larger_of_twice_and_required():
     """A step overflowing its buffer is redone with max(required, 2·capacity) until it fits."""
     compiled_for = []

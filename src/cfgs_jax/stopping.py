@@ -78,6 +78,8 @@ def catching_signals() -> Iterator[None]:
     if threading.current_thread() is not threading.main_thread():
         yield
         return
+    with contextlib.suppress(ImportError):  # its glog installs a SIGTERM handler when imported: before ours
+        import pycolmap  # noqa: F401
     previous = {s: signal.getsignal(s) for s in SIGNALS}
     for s in SIGNALS:
         signal.signal(s, _handle)
