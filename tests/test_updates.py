@@ -98,6 +98,32 @@ def test_a_signal_stops_the_loop_after_its_step_with_a_save_and_otherwise_at_onc
         signal.raise_signal(signal.SIGINT)
 
 
+def test_a_run_of_several_processes_saves_and_stops_by_the_step_cadence_only(monkeypatch):
+    """Processes that save or stop by their own clocks or signals would save different steps and wait for
+    each other's collectives: with several processes a signal stops the process at once and the clock
+    saves nothing; the step cadence still saves."""
+    import signal
+
+    from cfgs_jax import stopping
+
+    monkeypatch.setattr(jax, "process_count", lambda: 2)
+    now, saves, seen = [0.0], [], []
+
+    def body(carry, k):
+        now[0] += 10.0
+        if k == 3:
+            signal.raise_signal(signal.SIGINT)
+        seen.append(k)
+        return carry + [k]
+
+    with stopping.catching_signals(), pytest.raises(KeyboardInterrupt) as stopped:
+        loop.run_steps(
+            body, [], start=0, steps=10, checkpoint_every=2, checkpoint_seconds=5.0, clock=lambda: now[0],
+            save=lambda c, d: saves.append(d),
+        )  # fmt: skip
+    assert not isinstance(stopped.value, stopping.Stopped) and seen == [0, 1, 2] and saves == [2]
+
+
 def test_a_loop_takes_the_signals_back_from_a_library_that_took_them():
     """A library imported inside ``catching_signals`` may install its own SIGTERM handler (pycolmap's glog
     does, at the C level); the next loop installs the stopping handler again, so SIGTERM still stops it

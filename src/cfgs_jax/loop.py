@@ -12,12 +12,14 @@ between calls: a resumed run passes the step it stopped at as ``start``.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import logging
 import time
 from collections.abc import Callable
 from typing import Any, TypeVar
 
+import jax
 import numpy as np
 from rich.progress import BarColumn, MofNCompleteColumn, TextColumn, TimeRemainingColumn
 from rich.progress import Progress as RichProgress
@@ -162,7 +164,9 @@ def run_steps(
     step short of the last, after any other step short of the last that ends ``checkpoint_seconds`` (0:
     never) or more after the previous save (or the start) by ``clock``, and at the last when the run
     stops early or ``save_at_end``. When a signal asks the loop to stop (``cfgs_jax.stopping``), the step
-    in progress ends, is saved and ``stopping.Stopped`` is raised.
+    in progress ends, is saved and ``stopping.Stopped`` is raised. In a run of several processes, which
+    must save and stop after the same steps, neither the clock nor a signal does so (a signal stops the
+    process at once).
     ``converged(carry, done)``, asked after every step, ends the run there when true (a finished run:
     no save). ``settle(carry)``: a body that leaves its last step queued and unchecked
     (``CapacityStep``) has it finished there before every save and before the carry is returned.
@@ -170,7 +174,10 @@ def run_steps(
     last = steps if stop_after is None else max(start, min(steps, stop_after))
     settled = settle if settle is not None else lambda c: c
     saved_at = clock()
-    with stopping.loop_running():
+    # the processes of a multi-process run must save and stop after the same steps: the cadence only
+    alone = jax.process_count() == 1
+    checkpoint_seconds = checkpoint_seconds if alone else 0.0
+    with stopping.loop_running() if alone else contextlib.nullcontext():
         for k in range(start, last):
             carry = body(carry, k)
             done = k + 1
