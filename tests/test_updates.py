@@ -159,6 +159,24 @@ def test_a_sigterm_outside_a_loop_exits_with_143_and_no_library_handler_runs():
     assert done.returncode == 143 and "not stopped" not in done.stdout and "Aborted" not in done.stderr, done.stderr
 
 
+def test_progress_without_a_bar_logs_a_line_every_few_minutes(caplog):
+    """Without a bar, one line every ``log_seconds`` by the clock: steps done of the total, the time so far
+    and the time left at the rate since the first update (hand-computed: 100 steps in 200 s, 4 800 left;
+    400 steps in 500 s, 4 500 left)."""
+    import logging
+
+    now = [0.0]
+    with caplog.at_level(logging.INFO, logger="cfgs_jax.progress"):
+        bar = loop.Progress("refine", total=6000, completed=1000, enabled=False, log_seconds=300, clock=lambda: now[0])
+        for step, t in ((1100, 200.0), (1200, 400.0), (1300, 500.0), (1500, 700.0)):
+            now[0] = t
+            bar.update(step, "loss 0.0123")
+    assert [r.getMessage() for r in caplog.records if r.name == "cfgs_jax.progress"] == [
+        "refine: 1,200 / 6,000 steps (20 %), 7 min so far, about 2 h 40 min left; loss 0.0123",
+        "refine: 1,500 / 6,000 steps (25 %), 12 min so far, about 1 h 34 min left; loss 0.0123",
+    ]
+
+
 def test_step_with_capacity_grows_to_the_larger_of_twice_and_required():
     """A step overflowing its buffer is redone with max(required, 2·capacity) until it fits."""
     compiled_for = []

@@ -93,7 +93,11 @@ def _devices_arg(s) -> None:
 
 
 def _progress_arg(s) -> None:
-    s.add_argument("--no-progress", action="store_true", help="no progress bars (for logs and batch jobs)")
+    s.add_argument(
+        "--no-progress",
+        action="store_true",
+        help="no progress bars (for logs and batch jobs): a line on each loop's progress every 5 minutes instead",
+    )
 
 
 def _resume_arg(s, what: str) -> None:

@@ -202,11 +202,27 @@ def run_steps(
 
 
 class Progress:
-    """A rich progress bar (label, count, time left, one line of ``info``), or nothing when disabled; a
-    context manager. ``every``: redraw every that many steps (and at the last)."""
+    """A rich progress bar (label, count, time left, one line of ``info``), or, when disabled, a line on
+    the ``cfgs_jax.progress`` logger (INFO) every ``log_seconds`` of wall time (by ``clock``; 0: none),
+    which the command line shows under ``--no-progress`` for the logs of batch jobs; a context manager.
+    ``every``: redraw the bar every that many steps (and at the last)."""
 
-    def __init__(self, label: str, *, total: int, completed: int = 0, enabled: bool = True, transient=False, every=10):
+    def __init__(
+        self,
+        label: str,
+        *,
+        total: int,
+        completed: int = 0,
+        enabled: bool = True,
+        transient=False,
+        every=10,
+        log_seconds: float = 300.0,
+        clock: Callable[[], float] = time.monotonic,
+    ):
         self.bar, self.total, self.every, self.label = None, total, every, label
+        self.clock, self.log_seconds = clock, log_seconds
+        self.started = self.logged = clock()
+        self.mark: tuple[float, int] | None = None  # (time, steps) at the first update: after compiling
         if not enabled:
             return
 
@@ -222,8 +238,26 @@ class Progress:
         self.task = self.bar.add_task(label, total=total, completed=completed, info="")
 
     def update(self, completed: int, info: str = ""):
-        if self.bar is not None and (completed % self.every == 0 or completed == self.total):
-            self.bar.update(self.task, completed=completed, info=info)
+        if self.bar is not None:
+            if completed % self.every == 0 or completed == self.total:
+                self.bar.update(self.task, completed=completed, info=info)
+            return
+        now = self.clock()
+        if self.mark is None:
+            self.mark = (now, completed)
+        if self.log_seconds and now - self.logged >= self.log_seconds:
+            self.logged = now
+            logging.getLogger("cfgs_jax.progress").info(self.line(completed, now, info))
+
+    def line(self, completed: int, now: float, info: str = "") -> str:
+        """``label: done / total steps (share), time so far, about the time left; info``; the time left at
+        the rate since the first update (the first step, which compiles, left out)."""
+        seconds, (then, steps) = now - self.started, self.mark or (now, completed)
+        rate = (completed - steps) / (now - then) if now > then else 0.0
+        left = f", about {_duration((self.total - completed) / rate)} left" if rate > 0 else ""
+        share = 100.0 * completed / max(self.total, 1)
+        text = f"{self.label}: {completed:,} / {self.total:,} steps ({share:.0f} %), {_duration(seconds)} so far{left}"
+        return f"{text}; {info}" if info else text
 
     def note(self, text: str):
         """Print ``text`` above the bar (or log it when there is none)."""
@@ -242,3 +276,11 @@ class Progress:
 
     def __exit__(self, *exc):
         self.close()
+
+
+def _duration(seconds: float) -> str:
+    """``42 s``, ``17 min``, ``3 h 05 min``."""
+    if seconds < 60:
+        return f"{seconds:.0f} s"
+    minutes = int(round(seconds / 60))
+    return f"{minutes} min" if minutes < 60 else f"{minutes // 60} h {minutes % 60:02d} min"

@@ -670,6 +670,10 @@ def main(argv: list[str] | None = None, *, prog: str | None = None) -> int:
     if not any(isinstance(h, _StderrHandler) for h in logger.handlers):
         logger.addHandler(_StderrHandler())
     logger.setLevel(logging.INFO if args.verbose else logging.WARNING)
+    # without bars, a line on the loops' progress every few minutes (for the logs of batch jobs)
+    logging.getLogger("cfgs_jax.progress").setLevel(
+        logging.INFO if getattr(args, "no_progress", False) else logging.NOTSET
+    )
     # a signal stops an optimisation loop after its step, with a checkpoint; the viewer stops at once
     signals = stopping.catching_signals() if args.command != "view" else contextlib.nullcontext()
     try:
