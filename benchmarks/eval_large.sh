@@ -9,7 +9,7 @@
 # Each scene is `python -m cfgs_jax.pipeline eval --scene S --config benchmarks/eval_large.toml
 # --out WORK/S --resume --no-progress`: every stage checkpoints, so running this again after the machine
 # or the process stopped continues where each scene stopped. Two single-core processes run side by side
-# (flood then quake on core 0, corals on core 1): on the 2-core CPU they give about 1.5× the throughput of
+# (flood on core 0, corals on core 1, quake on whichever is free first): on the 2-core CPU they give about 1.5× the throughput of
 # one process on both cores (20k Gaussians, 320×240: forward + backward 0.43 s on two cores, 0.57–0.61 s
 # each for two processes on one core each). A scene already running (a process with its --out) is left
 # alone. Publishing runs `benchmarks/eval_publish.py --scene S --out WORK/S --config
@@ -42,10 +42,12 @@ if [ "${2:-}" = "stop" ]; then
   exit 0
 fi
 
-lane() {  # lane CORE SCENE...: the scenes one after the other on one core
-  local core=$1
+lane() {  # lane CORE SCENE...: on one core, each scene in this order that is unfinished and no lane has
+  local core=$1 s
   shift
   for s in "$@"; do
+    [ -f "$work/$s/table.md" ] && continue
+    mkdir "$work/.$s.claimed" 2>/dev/null || continue  # another lane has it (or had it: it failed there)
     while pgrep -f -- "--out $work/$s( |$)" >/dev/null; do sleep 60; done  # one process per scene
     taskset -c "$core" "$python" -m cfgs_jax.pipeline eval --scene "$s" --config benchmarks/eval_large.toml \
       --out "$work/$s" --resume --no-progress >>"$work/$s.log" 2>&1
@@ -62,6 +64,8 @@ export JAX_COMPILATION_CACHE_DIR=${JAX_COMPILATION_CACHE_DIR:-$HOME/.cache/cfgs_
 # (tests, benchmarks) and use what is left.
 background() { setsid nohup bash -c "echo 19 >/proc/self/autogroup 2>/dev/null; nice -n 19 bash -c 'lane $1'" \
   >/dev/null 2>&1 </dev/null & }
-background "0 flood quake"
-background "1 corals"
-echo "started: flood, quake on core 0; corals on core 1 (logs: $work/*.log, finished: $work/done.log)"
+# a scene is claimed by the first lane to reach it; the claims of an earlier start (its lanes gone) are cleared
+pgrep -f -- "lane [0-9]+ " >/dev/null || rm -rf "$work"/.*.claimed
+background "0 flood quake corals"
+background "1 corals quake flood"
+echo "started: flood on core 0, corals on core 1, then quake on the first core free (logs: $work/*.log, finished: $work/done.log)"
