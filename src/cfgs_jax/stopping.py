@@ -43,18 +43,28 @@ def asked() -> signal.Signals | None:
 
 
 @contextlib.contextmanager
+def _counted(counter: list[int]) -> Iterator[None]:
+    counter[0] += 1
+    try:
+        yield
+    finally:
+        counter[0] -= 1
+
+
+def _install() -> None:
+    for s in SIGNALS:
+        signal.signal(s, _handle)
+
+
+@contextlib.contextmanager
 def loop_running() -> Iterator[None]:
     """Marks an optimisation loop as running: a signal now asks it to stop after its step. Within
     ``catching_signals`` the handlers are installed again here: a library imported since (pycolmap's
     glog failure handler) may have put its own in their place at the C level, where Python does not see it."""
     if _catching[0] and threading.current_thread() is threading.main_thread():
-        for s in SIGNALS:
-            signal.signal(s, _handle)
-    _loops[0] += 1
-    try:
+        _install()
+    with _counted(_loops):
         yield
-    finally:
-        _loops[0] -= 1
 
 
 def _handle(signum: int, frame) -> None:
@@ -81,13 +91,11 @@ def catching_signals() -> Iterator[None]:
     with contextlib.suppress(ImportError):  # its glog installs a SIGTERM handler when imported: before ours
         import pycolmap  # noqa: F401
     previous = {s: signal.getsignal(s) for s in SIGNALS}
-    for s in SIGNALS:
-        signal.signal(s, _handle)
-    _catching[0] += 1
+    _install()
     try:
-        yield
+        with _counted(_catching):
+            yield
     finally:
-        _catching[0] -= 1
         for s, handler in previous.items():
             signal.signal(s, handler)
         _asked.clear()
