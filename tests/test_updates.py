@@ -81,10 +81,15 @@ def test_a_signal_stops_the_loop_after_its_step_with_a_save_and_otherwise_at_onc
         return carry + [k]
 
     before = signal.getsignal(signal.SIGINT)
-    with stopping.catching_signals(), pytest.raises(stopping.Stopped) as stopped:
-        loop.run_steps(body, [], start=0, steps=10, save=lambda c, d: saves.append((d, list(c))))
+    with stopping.catching_signals():
+        with pytest.raises(stopping.Stopped) as stopped:
+            loop.run_steps(body, [], start=0, steps=10, save=lambda c, d: saves.append((d, list(c))))
+        # the next loop of the same command (a later stage) stops before its first step
+        with pytest.raises(stopping.Stopped) as next_loop:
+            loop.run_steps(body, [], start=2, steps=10, save=lambda c, d: saves.append((d, list(c))))
     assert seen == [0, 1, 2, 3] and saves == [(4, [0, 1, 2, 3])]
     assert stopped.value.step == 4 and stopped.value.saved and stopped.value.exit_status == 130
+    assert next_loop.value.step == 2 and next_loop.value.saved
     assert signal.getsignal(signal.SIGINT) is before and stopping.asked() is None
     seen.clear()
     with stopping.catching_signals():

@@ -164,7 +164,8 @@ def run_steps(
     step short of the last, after any other step short of the last that ends ``checkpoint_seconds`` (0:
     never) or more after the previous save (or the start) by ``clock``, and at the last when the run
     stops early or ``save_at_end``. When a signal asks the loop to stop (``cfgs_jax.stopping``), the step
-    in progress ends, is saved and ``stopping.Stopped`` is raised. In a run of several processes, which
+    in progress ends, is saved and ``stopping.Stopped`` is raised (before the first step, when the signal
+    came before the loop began). In a run of several processes, which
     must save and stop after the same steps, neither the clock nor a signal does so (a signal stops the
     process at once).
     ``converged(carry, done)``, asked after every step, ends the run there when true (a finished run:
@@ -178,6 +179,8 @@ def run_steps(
     alone = jax.process_count() == 1
     checkpoint_seconds = checkpoint_seconds if alone else 0.0
     with stopping.loop_running() if alone else contextlib.nullcontext():
+        if alone and start < last and stopping.asked() is not None:  # asked during the stage before: no step
+            raise stopping.Stopped(stopping.asked(), start, saved=True)
         for k in range(start, last):
             carry = body(carry, k)
             done = k + 1

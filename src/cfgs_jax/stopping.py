@@ -24,8 +24,9 @@ _catching: list[int] = [0]  # catching_signals contexts open now
 
 
 class Stopped(KeyboardInterrupt):
-    """A loop stopped after ``step`` steps because ``signal`` asked it to (its checkpoint saved when
-    ``saved``). A ``KeyboardInterrupt``, so that no ``except Exception`` swallows it."""
+    """A loop stopped after ``step`` steps because ``signal`` asked it to; ``saved``: those steps are
+    kept (saved in its checkpoint, or none were done). A ``KeyboardInterrupt``, so that no ``except
+    Exception`` swallows it."""
 
     def __init__(self, received: signal.Signals, step: int, saved: bool):
         super().__init__(f"stopped by {received.name} after step {step}")
