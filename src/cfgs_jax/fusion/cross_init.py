@@ -44,7 +44,6 @@ import jax.numpy as jnp
 import msgspec
 import numpy as np
 import optax
-from rich.progress import Progress
 
 from cfgs_jax import metrics, parallel, splat
 from cfgs_jax.config import AT_LEAST_ONE, NON_NEGATIVE, POSITIVE, Checked
@@ -53,7 +52,7 @@ from cfgs_jax.fusion.fuse import INVISIBLE_LOGIT
 from cfgs_jax.fusion.light import REC709, gain_parameter, light_gain, light_logits, light_multiplier
 from cfgs_jax.fusion.updates import cross_init_optimizer
 from cfgs_jax.io.colmap import downscale_image, downscaled_size, scale_camera
-from cfgs_jax.loop import run_steps, view_order
+from cfgs_jax.loop import Progress, run_steps, view_order
 from cfgs_jax.model import Camera, DateViews, Gaussians, TemporalGaussians, exposure_table, logit, rgb
 from cfgs_jax.train.step import over_background
 
@@ -689,13 +688,13 @@ def cross_init(
     net = metrics.load_lpips(config.lpips_net)
     reports = []
 
-    with Progress(disable=not progress, transient=True) as bar:
-        task = bar.add_task("cross-timestep init", total=len(pairs) * config.steps)
+    total = len(pairs) * config.steps
+    with Progress("cross-timestep init", total=total, enabled=progress, transient=True, every=1) as bar:
         done = 0
         for group in pair_groups(pairs, views, config.batch_dates):
 
             def tick(k, base=done, width=len(group)):
-                bar.update(task, completed=base + width * k)
+                bar.update(base + width * k)
 
             model, reps = init_pairs(
                 model,

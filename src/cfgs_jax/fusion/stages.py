@@ -44,6 +44,7 @@ from cfgs_jax.io.colmap import Scene
 from cfgs_jax.io.fused import read_fused, write_fused
 from cfgs_jax.io.ply import read_ply, write_ply
 from cfgs_jax.io.run_dir import RunDir, date_cameras, date_views
+from cfgs_jax.loop import Progress
 from cfgs_jax.metrics.perceptual import minimum_side
 from cfgs_jax.model import DateViews
 from cfgs_jax.sim3 import Sim3
@@ -161,20 +162,35 @@ def _cross_init_pairs(job: Job, start: Path, pairs, views: list[DateViews], stag
     model = read_fused(partial if finished["pairs"] else start)
     names = run.names
     todo = [(p, q) for p, q in pairs if [p, q] not in finished["pairs"]]
-    for group in pair_groups(todo, views, cc.batch_dates):
-        release_if_near_limit()  # each group compiles for its own Gaussian count
-        said = ", ".join(f"{names[p]} against {names[q]}" for p, q in group)
-        job.log(f"[{tag}] Gaussians of one date against images of another ({said}): {cc.steps:,} steps")
-        s = time.perf_counter()
-        model, reps = init_pairs(
-            model, group, [views[q] for _, q in group], cc, render_config=job.config.render, mesh=job.mesh
-        )
-        write_fused(partial, model)
-        seconds = time.perf_counter() - s
-        finished["pairs"].extend([p, q] for p, q in group)
-        finished["reports"].extend(rep | {"seconds": seconds / len(group)} for rep in reps)
-        finished["seconds"] += seconds
-        write_json(progress_file, finished)
+    done = len(pairs) - len(todo)
+    with Progress(
+        tag, total=len(pairs) * cc.steps, completed=done * cc.steps, enabled=job.progress, transient=True, every=1
+    ) as bar:
+        for group in pair_groups(todo, views, cc.batch_dates):
+            release_if_near_limit()  # each group compiles for its own Gaussian count
+            said = ", ".join(f"{names[p]} against {names[q]}" for p, q in group)
+            job.log(f"[{tag}] Gaussians of one date against images of another ({said}): {cc.steps:,} steps")
+            s = time.perf_counter()
+
+            def tick(k, base=done * cc.steps, width=len(group)):  # pair-steps: k steps of each pair in the group
+                bar.update(base + width * k)
+
+            model, reps = init_pairs(
+                model,
+                group,
+                [views[q] for _, q in group],
+                cc,
+                render_config=job.config.render,
+                mesh=job.mesh,
+                progress=tick,
+            )
+            write_fused(partial, model)
+            seconds = time.perf_counter() - s
+            done += len(group)
+            finished["pairs"].extend([p, q] for p, q in group)
+            finished["reports"].extend(rep | {"seconds": seconds / len(group)} for rep in reps)
+            finished["seconds"] += seconds
+            write_json(progress_file, finished)
     run.finish(stage, finished["seconds"], finished["reports"])
 
 
