@@ -250,12 +250,12 @@ class Progress:
             self.mark = (now, completed)
         if self.log_seconds and now - self.logged >= self.log_seconds:
             self.logged = now
-            logging.getLogger("cfgs_jax.progress").info(self.line(completed, now, info))
+            logging.getLogger("cfgs_jax.progress").info(self._line(completed, now, info))
 
-    def line(self, completed: int, now: float, info: str = "") -> str:
+    def _line(self, completed: int, now: float, info: str) -> str:
         """``label: done / total steps (share), time so far, about the time left; info``; the time left at
         the rate since the first update (the first step, which compiles, left out)."""
-        seconds, (then, steps) = now - self.started, self.mark or (now, completed)
+        seconds, (then, steps) = now - self.started, self.mark
         rate = (completed - steps) / (now - then) if now > then else 0.0
         left = f", about {_duration((self.total - completed) / rate)} left" if rate > 0 else ""
         share = 100.0 * completed / max(self.total, 1)

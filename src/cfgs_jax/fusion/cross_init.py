@@ -626,6 +626,31 @@ def init_pair(
     return model, reports[0]
 
 
+def init_group(
+    model: TemporalGaussians,
+    group: Sequence[tuple[int, int]],
+    views: Sequence[DateViews],
+    config: CrossInitConfig,
+    *,
+    bar=None,
+    before: int = 0,
+    render_config: splat.RenderConfig | None = None,
+    lpips_net=None,
+    mesh=None,
+) -> tuple[TemporalGaussians, list[dict]]:
+    """``init_pairs`` of one group of ``pair_groups``, each pair's views taken from ``views`` (every
+    date's, by date), advancing ``bar`` (a ``loop.Progress`` counting pair-steps) from ``before``."""
+
+    def tick(k: int) -> None:
+        if bar is not None:
+            bar.update(before + len(group) * k)
+
+    targets = [views[q] for _, q in group]
+    return init_pairs(
+        model, group, targets, config, render_config=render_config, lpips_net=lpips_net, progress=tick, mesh=mesh
+    )
+
+
 def pair_groups(
     pairs: Sequence[tuple[int, int]], views: Sequence[DateViews], batch: int
 ) -> list[list[tuple[int, int]]]:
@@ -692,19 +717,8 @@ def cross_init(
     with Progress("cross-timestep init", total=total, enabled=progress, transient=True, every=1) as bar:
         done = 0
         for group in pair_groups(pairs, views, config.batch_dates):
-
-            def tick(k, base=done, width=len(group)):
-                bar.update(base + width * k)
-
-            model, reps = init_pairs(
-                model,
-                group,
-                [views[q] for _, q in group],
-                config,
-                render_config=render_config,
-                lpips_net=net,
-                progress=tick,
-                mesh=mesh,
+            model, reps = init_group(
+                model, group, views, config, bar=bar, before=done, render_config=render_config, lpips_net=net, mesh=mesh
             )
             reports.extend(reps)
             done += len(group) * config.steps

@@ -32,7 +32,7 @@ from cfgs_jax.fusion.compact import (
     shown_date_counts,
 )
 from cfgs_jax.fusion.config import RunConfig
-from cfgs_jax.fusion.cross_init import init_pairs, pair_groups
+from cfgs_jax.fusion.cross_init import init_group, pair_groups
 from cfgs_jax.fusion.evaluate import evaluate_fused
 from cfgs_jax.fusion.frames import posed
 from cfgs_jax.fusion.fuse import add_date, merge
@@ -171,18 +171,8 @@ def _cross_init_pairs(job: Job, start: Path, pairs, views: list[DateViews], stag
             said = ", ".join(f"{names[p]} against {names[q]}" for p, q in group)
             job.log(f"[{tag}] Gaussians of one date against images of another ({said}): {cc.steps:,} steps")
             s = time.perf_counter()
-
-            def tick(k, base=done * cc.steps, width=len(group)):  # pair-steps: k steps of each pair in the group
-                bar.update(base + width * k)
-
-            model, reps = init_pairs(
-                model,
-                group,
-                [views[q] for _, q in group],
-                cc,
-                render_config=job.config.render,
-                mesh=job.mesh,
-                progress=tick,
+            model, reps = init_group(
+                model, group, views, cc, bar=bar, before=done * cc.steps, render_config=job.config.render, mesh=job.mesh
             )
             write_fused(partial, model)
             seconds = time.perf_counter() - s
