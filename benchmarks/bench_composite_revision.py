@@ -29,12 +29,11 @@ import statistics
 import subprocess
 import sys
 import tempfile
-import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_splat import case, scene
-from common import backend_suffix, result_header, write_result
+from common import backend_suffix, result_header, timed, write_result
 
 REPO = Path(__file__).resolve().parents[1]
 MODULE = "src/cfgs_jax/splat/composite.py"
@@ -121,10 +120,7 @@ def run_case(name: str, base, reps: int) -> dict:
     for _ in range(reps):
         for k in KINDS:
             for s, frames in sides.items():
-                f, a = frames[k]
-                t0 = time.perf_counter()
-                jax.block_until_ready(f(*a))
-                times[s, k].append(time.perf_counter() - t0)
+                times[s, k].append(timed(*frames[k]))
     rows = {}
     for k in KINDS:
         b, t = statistics.median(times["base", k]), statistics.median(times["working tree", k])
