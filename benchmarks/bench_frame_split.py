@@ -64,10 +64,10 @@ def stage_functions(g, cam, config):
         return proj, opac, max_opacity, feats
 
     def binned(proj, max_opacity):
-        grid = (layout.grid_x, layout.grid_y)
         return bin_gaussians(
-            proj, max_opacity, grid, config.capacity, tile_size=config.tile_size, min_alpha=config.min_alpha,
-            cull=config.tile_cull,
+            proj, max_opacity, splat.tile_grid(cam, config), config.capacity, tile_size=config.tile_size,
+            min_alpha=config.min_alpha, cull=config.tile_cull, split=config.tile_size // layout.tile_size,
+            split_grid=(layout.grid_x, layout.grid_y),
         )  # fmt: skip
 
     def image_loss(fg):

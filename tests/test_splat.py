@@ -156,10 +156,20 @@ def _ref_grads(g, om, cm, cam, w_img, w_a):
         return f, args, float(val), [np.asarray(x) for x in jax.tree_util.tree_leaves(grads)]
 
 
-@pytest.mark.parametrize("backend,walk", [("xla", "chunk"), ("pallas", "chunk"), ("pallas", "serial")])
-def test_custom_vjp_equals_float64_autodiff(grad_case, backend, walk):
+@pytest.mark.parametrize(
+    "backend,walk,subtile",
+    [
+        ("xla", "chunk", None),
+        ("xla", "chunk", 16),
+        ("xla", "chunk", 4),
+        ("pallas", "chunk", None),
+        ("pallas", "serial", None),
+    ],
+)
+def test_custom_vjp_equals_float64_autodiff(grad_case, backend, walk, subtile):
     """The fast path run in float64 must agree with plain autodiff of the reference to ~1e-12 (the
-    Pallas compositor in interpret mode on a CPU, with chunks of 16: the backward formulas are exact)."""
+    XLA compositor on its default half tiles, whole tiles and quarter tiles; the Pallas compositor in
+    interpret mode on a CPU, with chunks of 16: the backward formulas are exact)."""
     g, om, cm, cam, w_img, w_a = grad_case
     _, _, val_ref, ref = _ref_grads(g, om, cm, cam, w_img, w_a)
     with jax.enable_x64(True):
@@ -167,7 +177,7 @@ def test_custom_vjp_equals_float64_autodiff(grad_case, backend, walk):
         om64, cm64 = jnp.asarray(om, jnp.float64), jnp.asarray(cm, jnp.float64)
         chunk = {"chunk": 16, "serial": 4}[walk] if backend == "pallas" else None
         cap = splat.required_capacity(g64, cam, om64)
-        cfg = splat.RenderConfig(capacity=cap, backend=backend, chunk=chunk, walk=walk)
+        cfg = splat.RenderConfig(capacity=cap, backend=backend, chunk=chunk, walk=walk, subtile=subtile)
         f = lambda *a: _loss_fast(*a, cam, cfg, jnp.asarray(w_img), jnp.asarray(w_a), jnp.float64)
         val, grads = jax.value_and_grad(f, argnums=(0, 1, 2))(g64, om64, cm64)
         fast = [np.asarray(x) for x in jax.tree_util.tree_leaves(grads)]
@@ -466,6 +476,51 @@ def test_exact_tile_cull_changes_nothing():
     for name, x, y in zip(NAMES, ga, gb):
         x, y = np.asarray(x), np.asarray(y)
         assert np.all(np.abs(x - y) <= 1e-5 * np.abs(y) + 1e-6 * np.abs(y).max()), name
+
+
+def test_sub_tile_lists_are_the_tile_lists_filtered_pair_by_pair():
+    """Each 8×8 sub-tile's list is its 16×16 tile's list, in the same (depth) order, less exactly the
+    Gaussians that reach α < 1/255 at every pixel centre of the sub-tile (checked pair by pair in float64,
+    within the cull's margin); sub-tiles past the image's edge (40 px: 3 tiles, 5 sub-tiles) are absent."""
+    g = scene(300, 21, log_scale=-2.2)
+    cam = camera(40, 30)
+    om = np.random.default_rng(2).uniform(0.0, 1.0, (1, len(g))).astype(F32)
+    cfg = splat.RenderConfig()
+    proj = splat.project(g.means, g.quats, g.log_scales, cam, cfg)
+    max_op = np.max(np.asarray(jax.nn.sigmoid(g.opacity_logits))[None] * om, 0)
+    grid, sub_grid = splat.tile_grid(cam, cfg), (5, 4)
+    whole = splat.bin_gaussians(proj, jnp.asarray(max_op), grid, 1 << 14)
+    split = splat.bin_gaussians(proj, jnp.asarray(max_op), grid, 1 << 14, split=2, split_grid=sub_grid)
+    assert int(split.num_intersections) == int(whole.num_intersections)
+    ids, start, end = (np.asarray(x) for x in (whole.gaussian_ids, whole.tile_start, whole.tile_end))
+    sids, sstart, send = (np.asarray(x) for x in (split.gaussian_ids, split.tile_start, split.tile_end))
+    assert sstart.shape == (5 * 4 + 1,) and sstart[-1] == send[-1] == 0
+    m2, con = np.asarray(proj.means2d, np.float64), np.asarray(proj.conics, np.float64)
+    loc = np.arange(64)
+    kept = near = 0
+    for s in range(5 * 4):
+        sx, sy = s % 5, s // 5
+        t = (sy // 2) * grid[0] + sx // 2
+        parent = ids[start[t] : end[t]]
+        px = sx * 8 + loc % 8 + 0.5 - m2[parent, None, 0]
+        py = sy * 8 + loc // 8 + 0.5 - m2[parent, None, 1]
+        power = -0.5 * (con[parent, None, 0] * px * px + con[parent, None, 2] * py * py)
+        power -= con[parent, None, 1] * px * py
+        peak = max_op[parent] * np.exp(np.minimum(power, 0.0)).max(-1)  # the largest α at its pixel centres
+        # the largest α over the rectangle the pixel centres span (what the cull bounds), densely sampled
+        fine = np.linspace(0.0, 7.0, 57)
+        fx = (sx * 8 + 0.5 + fine[None, :, None] - m2[parent, None, None, 0]).repeat(57, 2)
+        fy = (sy * 8 + 0.5 + fine[None, None, :] - m2[parent, None, None, 1]).repeat(57, 1)
+        q = con[parent, None, None, 0] * fx * fx + 2 * con[parent, None, None, 1] * fx * fy
+        box_peak = max_op[parent] * np.exp(-0.5 * (q + con[parent, None, None, 2] * fy * fy)).max((1, 2))
+        mine = sids[sstart[s] : send[s]]
+        assert list(mine) == [i for i in parent if i in set(mine)]  # a subsequence of the tile's list
+        listed = np.isin(parent, mine)
+        assert np.all(listed[peak >= 1.0 / 255.0 * (1 + 1e-4)])  # every pair that composites is kept
+        assert np.all(box_peak[listed] >= 1.0 / 255.0 * 0.98)  # the others kept reach α ≥ 1/255 in the box
+        kept, near = kept + listed.sum(), near + np.sum(listed & (peak < 1.0 / 255.0))
+    assert kept < 0.7 * 4 * int(whole.num_pairs) and near <= 0.05 * kept  # the split culls, the slack is small
+    assert int(split.num_pairs) == int(whole.num_pairs) == end[:-1].sum() - start[:-1].sum()
 
 
 def test_summed_weight_maps_match_float64_weights_per_date():

@@ -14,10 +14,18 @@ kept only if the minimum of q over the tile's pixel-centre rectangle (a convex q
 else the least of the four clamped edge minima) is within the level. The level carries a margin
 (relative 1e-3 plus absolute 1e-2) far above float32 rounding, so only pairs that composite nothing
 are dropped.
+
+Sub-tiles (``split`` > 1): each tile's list is then divided among its split × split sub-tiles of side
+tile_size / split, each keeping, in the list's order, only the Gaussians whose α ≥ min_alpha ellipse
+reaches one of its pixel centres (the same test on the smaller rectangle). The tiles themselves, and so
+INRIA's 3σ-square rule, stay those of ``tile_size``: every pixel composites the same Gaussians in the
+same order, and the compositor walks shorter lists over fewer pixels each. The division is a stable
+compaction (a prefix count per sub-tile position over the sorted list), not a second sort.
 """
 
 from __future__ import annotations
 
+import functools
 from typing import NamedTuple
 
 import jax
@@ -32,6 +40,7 @@ class Bins(NamedTuple):
     tile_start: Int[Array, "tiles+1"]  # noqa: F821 - per-tile range into gaussian_ids (+1 dummy empty tile)
     tile_end: Int[Array, "tiles+1"]  # noqa: F821
     num_intersections: Int[Array, ""]  # true count, may exceed the capacity C
+    num_pairs: Int[Array, ""]  # (Gaussian, tile) pairs in the lists at ``tile_size``, after tile culling
 
 
 def cull_level(max_opacity: Float[Array, " N"], min_alpha: float) -> Float[Array, " N"]:
@@ -76,18 +85,19 @@ def _min_quadratic(conic, x0, x1, y0, y1):
     return jnp.where(inside, 0.0, jnp.minimum(jnp.minimum(edges[0], edges[1]), jnp.minimum(edges[2], edges[3])))
 
 
-def _sort_by_tile(tile: Int[Array, " C"], gid: Int[Array, " C"], num_tiles: int):
-    """Stable sort of the intersections by tile. When (tile, slot) packs into 32 bits the sort is one
-    uint32 key (several times faster than a two-operand stable sort on CPU); slots are unique, so
-    the order within a tile is the generation (depth) order either way."""
+def _sort_by_tile(tile: Int[Array, " C"], payload: tuple[Int[Array, " C"], ...], num_tiles: int):
+    """Stable sort of the intersections by tile, carrying ``payload`` (the Gaussian ids, ...) along. When
+    (tile, slot) packs into 32 bits the sort is one uint32 key (several times faster than a multi-operand
+    stable sort on CPU); slots are unique, so the order within a tile is the generation (depth) order
+    either way."""
     capacity = tile.shape[0]
     slot_bits = max(capacity - 1, 1).bit_length()
     if num_tiles.bit_length() + slot_bits <= 32:
         key = (tile.astype(jnp.uint32) << slot_bits) | jnp.arange(capacity, dtype=jnp.uint32)
         key = jax.lax.sort(key)
         slot = (key & jnp.uint32((1 << slot_bits) - 1)).astype(jnp.int32)
-        return (key >> slot_bits).astype(jnp.int32), gid[slot]
-    return jax.lax.sort((tile, gid), num_keys=1, is_stable=True)
+        return (key >> slot_bits).astype(jnp.int32), *(x[slot] for x in payload)
+    return jax.lax.sort((tile, *payload), num_keys=1, is_stable=True)
 
 
 def bin_gaussians(
@@ -99,11 +109,15 @@ def bin_gaussians(
     tile_size: int = 16,
     min_alpha: float = 1.0 / 255.0,
     cull: bool = True,
+    split: int = 1,
+    split_grid: tuple[int, int] | None = None,
 ) -> Bins:
     """Sorted intersection list (static size ``capacity``) and per-tile ranges.
 
     ``max_opacity``: each Gaussian's largest effective opacity over the rendered dates; below
-    ``min_alpha`` it is inactive (never composited) and not listed.
+    ``min_alpha`` it is inactive (never composited) and not listed. With ``split`` > 1 (and ``cull``),
+    the ranges are those of the sub-tiles of side tile_size / split on ``split_grid`` (sub-tiles across
+    and down the image; those outside it are left out), in a list of static size split² · ``capacity``.
     """
     gx, gy = grid
     num_tiles = gx * gy
@@ -122,21 +136,59 @@ def bin_gaussians(
     tx = lo[:, 0] + local % width
     ty = lo[:, 1] + local // width
     keep = slot < total
+    split = split if cull else 1
     if cull:
-        mean = proj.means2d[gid]
-        x0 = (tx * tile_size).astype(mean.dtype) + 0.5 - mean[:, 0]
-        y0 = (ty * tile_size).astype(mean.dtype) + 0.5 - mean[:, 1]
-        q_min = _min_quadratic(proj.conics[gid], x0, x0 + (tile_size - 1), y0, y0 + (tile_size - 1))
-        keep = keep & (q_min <= cull_level(max_opacity[gid], min_alpha))
+        mean, conic = proj.means2d[gid], proj.conics[gid]
+        level = cull_level(max_opacity[gid], min_alpha)
+        sub = tile_size // split
+        reach = []  # per sub-tile position q (the whole tile when split = 1): does the ellipse reach it
+        for q in range(split * split):
+            sx, sy = tx * split + q % split, ty * split + q // split
+            x0 = (sx * sub).astype(mean.dtype) + 0.5 - mean[:, 0]
+            y0 = (sy * sub).astype(mean.dtype) + 0.5 - mean[:, 1]
+            r = _min_quadratic(conic, x0, x0 + (sub - 1), y0, y0 + (sub - 1)) <= level
+            reach.append(r if split == 1 else r & (sx < split_grid[0]) & (sy < split_grid[1]))
+        keep = keep & functools.reduce(jnp.logical_or, reach)
     tile = jnp.where(keep, ty * gx + tx, num_tiles).astype(jnp.int32)
-    sorted_tile, sorted_gid = _sort_by_tile(tile, gid.astype(jnp.int32), num_tiles)
+    if split > 1:
+        bits = functools.reduce(jnp.bitwise_or, [r.astype(jnp.int32) << q for q, r in enumerate(reach)])
+        sorted_tile, sorted_gid, sorted_bits = _sort_by_tile(tile, (gid.astype(jnp.int32), bits), num_tiles)
+    else:
+        sorted_tile, sorted_gid = _sort_by_tile(tile, (gid.astype(jnp.int32),), num_tiles)
     ids = jnp.arange(num_tiles, dtype=jnp.int32)
     t_start = jnp.searchsorted(sorted_tile, ids, side="left").astype(jnp.int32)
     t_end = jnp.searchsorted(sorted_tile, ids, side="right").astype(jnp.int32)
+    pairs = jnp.sum(t_end - t_start)
+    total = total.astype(jnp.int32)
+    if split > 1:
+        gids, s_start, s_end = _split_lists(sorted_bits, sorted_gid, t_start, t_end, grid, split_grid, split)
+        return Bins(gids, s_start, s_end, total, pairs)
     zero = jnp.zeros((1,), jnp.int32)
-    return Bins(
-        sorted_gid,
-        jnp.concatenate([t_start, zero]),
-        jnp.concatenate([t_end, zero]),
-        total.astype(jnp.int32),
-    )
+    return Bins(sorted_gid, jnp.concatenate([t_start, zero]), jnp.concatenate([t_end, zero]), total, pairs)
+
+
+def _split_lists(sorted_bits, sorted_gid, t_start, t_end, grid, split_grid, split):
+    """The sorted (tile, depth) list divided among each tile's split² sub-tiles: (ids [split²·C], start and
+    end per sub-tile [sub-tiles + 1], the last an empty dummy). Bit q of ``sorted_bits`` marks the entries
+    whose Gaussian reaches the sub-tile at position q of its tile; each position's marked entries form one
+    stream in list order, and as the list is sorted by tile, each sub-tile's entries are one contiguous
+    run of its stream, found by prefix counts."""
+    gx, gy = grid
+    sgx, sgy = split_grid
+    num_tiles, capacity, parts = gx * gy, sorted_gid.shape[0], split * split
+    reach = (sorted_bits[None, :] >> jnp.arange(parts, dtype=jnp.int32)[:, None]) & 1  # [split², C]
+    count = jax.lax.associative_scan(jnp.add, reach, axis=1)  # on CPU several times faster than cumsum
+    offset = jnp.concatenate([jnp.zeros((1,), jnp.int32), jnp.cumsum(count[:, -1])[:-1]])  # each stream's start
+    slot = jnp.where(reach > 0, offset[:, None] + count - reach, parts * capacity)
+    ids = jnp.zeros((parts * capacity,), jnp.int32).at[slot.reshape(-1)].set(jnp.tile(sorted_gid, parts), mode="drop")
+    before = jnp.concatenate([jnp.zeros((parts, 1), jnp.int32), count], axis=1)  # stream entries before each slot
+    starts = (offset[:, None] + before[:, t_start]).reshape(-1)
+    ends = (offset[:, None] + before[:, t_end]).reshape(-1)
+    tiles = jnp.arange(num_tiles, dtype=jnp.int32)
+    where = []  # the sub-tile id of position q of every tile (outside the sub-tile grid: dropped)
+    for q in range(parts):
+        qx, qy = (tiles % gx) * split + q % split, (tiles // gx) * split + q // split
+        where.append(jnp.where((qx < sgx) & (qy < sgy), qy * sgx + qx, sgx * sgy + 1))
+    where = jnp.concatenate(where)
+    empty = jnp.zeros((sgx * sgy + 1,), jnp.int32)
+    return ids, empty.at[where].set(starts, mode="drop"), empty.at[where].set(ends, mode="drop")

@@ -43,7 +43,7 @@ class RenderResult(eqx.Module):
     means2d: Float[Array, "N 2"]  # projected centres (pixels, centres at +0.5)
     radii: Float[Array, " N"]  # 0 where culled
     num_intersections: Int[Array, ""]  # entries the intersection buffer needed (overflow if > capacity)
-    num_composited: Int[Array, ""]  # (Gaussian, tile) pairs composited, after exact tile culling
+    num_composited: Int[Array, ""]  # (Gaussian, tile) pairs in the tile lists, after exact tile culling
     capacity: int = eqx.field(static=True)
 
     @property
@@ -57,22 +57,29 @@ class RenderResult(eqx.Module):
 PALLAS_CHUNK = {"chunk": 8, "serial": 8}
 
 
+def _composite_grid(camera: Camera, config: RenderConfig) -> tuple[int, int]:
+    """(tiles across, tiles down) of the tiles the compositor walks (sub-tiles where ``subtile`` splits)."""
+    sub = config.resolved_subtile()
+    return -(-camera.width // sub), -(-camera.height // sub)
+
+
 def _layout(camera: Camera, config: RenderConfig, dates: int, statistics: bool) -> Layout:
-    gx, gy = tile_grid(camera, config)
+    gx, gy = _composite_grid(camera, config)
+    sub = config.resolved_subtile()
     if config.resolved_backend() == "pallas":  # one program per tile: no tile batches
         chunk = config.chunk or PALLAS_CHUNK[config.walk]
-        return Layout(camera.width, camera.height, config.tile_size, gx, gy, 1, chunk, config.min_alpha,
+        return Layout(camera.width, camera.height, sub, gx, gy, 1, chunk, config.min_alpha,
                       config.max_alpha, config.min_transmittance, statistics)  # fmt: skip
-    # CPU: one date: 32 tiles × 32 Gaussians per round; several: ~96 tile-dates × 16 Gaussians keep a
-    # round's [K, D, B, P] arrays cache-sized (measured best: benchmarks/bench_splat.py).
-    # GPU: every tile at once.
-    cpu_batch = 32 if dates == 1 else max(8, 96 // dates)
+    # CPU, 16×16 tiles: one date: 32 tiles × 32 Gaussians per round; several: ~96 tile-dates × 16
+    # Gaussians keep a round's [K, D, B, P] arrays cache-sized; smaller tiles: as many pixels per round
+    # (measured best: benchmarks/bench_splat.py). GPU: every tile at once.
+    cpu_batch = (32 if dates == 1 else max(8, 96 // dates)) * max(1, (16 // sub) ** 2)
     batch = config.tile_batch or (cpu_batch if jax.default_backend() == "cpu" else gx * gy)
-    chunk = config.chunk or (32 if dates == 1 else 16)
+    chunk = config.chunk or (32 if dates == 1 and sub >= 16 else 16)
     return Layout(
         camera.width,
         camera.height,
-        config.tile_size,
+        sub,
         gx,
         gy,
         min(batch, gx * gy),
@@ -115,11 +122,13 @@ def _project_and_bin(gaussians, camera, opacity_mult, *, config, capacity, stati
     bins = bin_gaussians(
         proj,
         max_opacity,
-        (layout.grid_x, layout.grid_y),
+        tile_grid(camera, config),
         capacity,
         tile_size=config.tile_size,
         min_alpha=config.min_alpha,
         cull=config.tile_cull,
+        split=config.tile_size // layout.tile_size,
+        split_grid=(layout.grid_x, layout.grid_y),
     )
     return proj, opac, layout, bins
 
@@ -147,7 +156,7 @@ def _render_impl(
         means2d=proj.means2d,
         radii=jnp.where(proj.valid, proj.radii, 0.0),
         num_intersections=bins.num_intersections,
-        num_composited=jnp.sum(bins.tile_end - bins.tile_start),
+        num_composited=bins.num_pairs,
         capacity=capacity,
     )
 
