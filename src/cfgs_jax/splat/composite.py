@@ -366,8 +366,9 @@ def _composite_bwd(layout, res, cot, footprint: bool = True):
             if footprint:
                 mom = _pixel_moments(layout, q)  # [K, D, B, 6]
                 d_op = mom[..., 0]
-            else:
-                d_op = _reduce_last(q)  # [K, D, B]
+            else:  # the pixel sum as a product with a column of ones (faster than halving at 8×8 tiles)
+                d_op = jnp.dot(q.reshape(-1, q.shape[-1]), jnp.ones((q.shape[-1],), q.dtype), precision="highest")
+                d_op = d_op.reshape(q.shape[:-1])  # [K, D, B]
             d_feat = jnp.stack([_reduce_last(ch.w * gfg[i][None]) for i in range(f)])  # [F, K, D, B]
             do = do.at[:, ch.gid].add(jnp.moveaxis(d_op, 1, 0))
             dfeat = dfeat.at[:, :, ch.gid].add(jnp.moveaxis(d_feat, 2, 1))
