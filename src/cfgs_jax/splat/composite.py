@@ -18,15 +18,15 @@ offset from the tile's centre and x_p the pixel's, they follow from six moments 
 tile's pixels against the fixed basis {1, x, y, x², x·y, y²}: one matrix product per round, whose first
 column is also the opacity's gradient. Where neither the 2D means nor the conics are differentiated
 (only opacities and features, as in cross-timestep initialisation), the walk leaves out ∂/∂power and
-the moments, and sums the opacity's gradient by halving (the VJP is defined with symbolic zeros, so it
-knows).
+the moments, and sums the opacity's gradient as a product with a column of ones (the VJP is defined with
+symbolic zeros, so it knows).
 
 CPU performance notes (XLA:CPU, measured): a round's arrays are laid out Gaussian-major
 [K, D, B, P] with features as separate planes; prefix products/sums along K are explicit chains
 (``jnp.cumprod`` lowers to an O(K²) reduce-window); reductions are element-wise chains or pairwise
 halving, because f32 ``reduce`` ops are handed to a library kernel that is ~10× slower at these shapes;
 the footprint's moments are the exception, one matrix product standing for six sums (measured faster than
-the five product-and-halving sums it replaced).
+the five product-and-halving sums it replaced), and so is the opacity's sum where they are left out.
 """
 
 from __future__ import annotations
