@@ -143,7 +143,7 @@ def bin_gaussians(
         sub = tile_size // split
         reach = []  # per sub-tile position q (the whole tile when split = 1): does the ellipse reach it
         for q in range(split * split):
-            sx, sy = tx * split + q % split, ty * split + q // split
+            sx, sy = _sub_tile(tx, ty, q, split)
             x0 = (sx * sub).astype(mean.dtype) + 0.5 - mean[:, 0]
             y0 = (sy * sub).astype(mean.dtype) + 0.5 - mean[:, 1]
             r = _min_quadratic(conic, x0, x0 + (sub - 1), y0, y0 + (sub - 1)) <= level
@@ -167,6 +167,11 @@ def bin_gaussians(
     return Bins(sorted_gid, jnp.concatenate([t_start, zero]), jnp.concatenate([t_end, zero]), total, pairs)
 
 
+def _sub_tile(tx, ty, q: int, split: int):
+    """(column, row) of the sub-tile at position q (row-major within the tile) of tile (tx, ty)."""
+    return tx * split + q % split, ty * split + q // split
+
+
 def _split_lists(sorted_bits, sorted_gid, t_start, t_end, grid, split_grid, split):
     """The sorted (tile, depth) list divided among each tile's split² sub-tiles: (ids [split²·C], start and
     end per sub-tile [sub-tiles + 1], the last an empty dummy). Bit q of ``sorted_bits`` marks the entries
@@ -187,8 +192,8 @@ def _split_lists(sorted_bits, sorted_gid, t_start, t_end, grid, split_grid, spli
     tiles = jnp.arange(num_tiles, dtype=jnp.int32)
     where = []  # the sub-tile id of position q of every tile (outside the sub-tile grid: dropped)
     for q in range(parts):
-        qx, qy = (tiles % gx) * split + q % split, (tiles // gx) * split + q // split
-        where.append(jnp.where((qx < sgx) & (qy < sgy), qy * sgx + qx, sgx * sgy + 1))
+        sx, sy = _sub_tile(tiles % gx, tiles // gx, q, split)
+        where.append(jnp.where((sx < sgx) & (sy < sgy), sy * sgx + sx, sgx * sgy + 1))
     where = jnp.concatenate(where)
     empty = jnp.zeros((sgx * sgy + 1,), jnp.int32)
     return ids, empty.at[where].set(starts, mode="drop"), empty.at[where].set(ends, mode="drop")
