@@ -1,6 +1,7 @@
 """Cross-timestep initialisation (Eq. 2): what a pair keeps and drops, its light and exposure, the
 schedule, padding and batching of pairs, early stopping, coarse to fine."""
 
+import dataclasses
 import importlib
 
 import jax
@@ -202,6 +203,49 @@ def test_batched_pairs_equal_the_pairs_one_by_one():
     extension = [(0, 3), (1, 3), (2, 3), (3, 0), (3, 1)]
     assert ci.pair_groups(extension, vs, 0) == [[(0, 3), (1, 3), (2, 3)], [(3, 0), (3, 1)]]
     assert ci.pair_groups(extension, vs, 2) == [[(0, 3), (1, 3)], [(2, 3)], [(3, 0), (3, 1)]]
+
+
+def test_a_group_stopped_mid_way_resumes_from_its_checkpoint_to_the_uninterrupted_result(tmp_path):
+    """Two pairs of different dates p (each its own Gaussians), with the convergence test's memory in
+    use: stopped after step 7 (past two checks) and resumed from the checkpoint, the group ends with the
+    o^q, l^q and reports of one uninterrupted call; a checkpoint is refused by another group or setting."""
+    ci = importlib.import_module("cfgs_jax.fusion.cross_init")
+    g, h = small_random_gaussians(60, seed=1), small_random_gaussians(50, seed=2)
+    cams = tuple(
+        cj.Camera.look_at([x, -0.3, -2.6], [0, 0, 0], up=(0, -1, 0), width=40, height=32, fov_x_deg=60)
+        for x in (-0.3, 0.3)
+    )
+    rng = np.random.default_rng(3)
+    ims = [np.asarray(splat.render(g, c).image) * 0.7 + 0.15 * rng.uniform(size=(32, 40, 3)) for c in cams]
+    v = ci.DateViews(cams, tuple(np.float32(im) for im in ims))
+    model = fusion.merge([g, h, g], ["p1", "p2", "q"])
+    cfg = ci.CrossInitConfig(
+        steps=12,
+        lr_o=0.05,
+        lr_light=0.03,
+        rate_reference_steps=0,
+        ramp_fraction=0.25,
+        background_anneal=0.25,
+        early_stop_tolerance=1e-9,  # checked at steps 3, 5, 7, …, never met
+        early_stop_every=2,
+    )
+    pairs, views, ckpt = [(0, 2), (1, 2)], [v, v], tmp_path / "group.npz"
+    whole, reports = ci.init_pairs(model, pairs, views, cfg)
+    stopped, note = ci.init_pairs(model, pairs, views, cfg, checkpoint=ckpt, stop_after=7)
+    assert stopped is None and note == [{"stopped_at": 7}]
+    assert ci.checkpoint_state(ckpt)["step"] == 7 and ci.checkpoint_state(ckpt)["pairs"] == [[0, 2], [1, 2]]
+    resumed, again = ci.init_pairs(model, pairs, views, cfg, checkpoint=ckpt)
+    for name in ("o_logits", "light_logits"):
+        np.testing.assert_array_equal(np.asarray(getattr(resumed, name)), np.asarray(getattr(whole, name)))
+        assert not np.array_equal(np.asarray(getattr(whole, name)), np.asarray(getattr(model, name)))
+    assert again == reports and reports[0]["steps_run"] == 12
+    with pytest.raises(cj.InputError, match="another cross-init group.*config"):
+        ci.init_pairs(model, pairs, views, dataclasses.replace(cfg, lr_o=0.06), checkpoint=ckpt)
+    with pytest.raises(cj.InputError, match="another cross-init group.*pairs"):
+        ci.init_pairs(model, [(0, 2)], [v], cfg, checkpoint=ckpt)
+    # how often it saves is not part of the group: other values resume the same checkpoint
+    other = ci.init_pairs(model, pairs, views, dataclasses.replace(cfg, checkpoint_minutes=1.0), checkpoint=ckpt)[0]
+    np.testing.assert_array_equal(np.asarray(other.o_logits), np.asarray(whole.o_logits))
 
 
 def test_pairs_of_different_dates_p_batched_equal_the_pairs_one_by_one():

@@ -159,15 +159,12 @@ def fused_run(tiny_two_dates, tmp_path_factory):
     return out, args
 
 
-def test_fuse_cli_runs_every_stage_and_resumes_mid_cross_init(tiny_two_dates, fused_run, tmp_path):
+def test_fuse_cli_runs_every_stage_and_resumes_mid_cross_init(tiny_two_dates, fused_run, tmp_path, monkeypatch, capsys):
     import json
 
-    from cfgs_jax.fusion import run_fusion
     from cfgs_jax.pipeline import main
 
-    root = tiny_two_dates
     a_dir, args = fused_run
-    tmp_path = tmp_path  # the resumed run goes here
     a = cj.io.read_fused(a_dir / "fused")
     ref = cj.io.read_fused(a_dir / "reference")
     timings = json.loads((a_dir / "timings.json").read_text())
@@ -184,33 +181,37 @@ def test_fuse_cli_runs_every_stage_and_resumes_mid_cross_init(tiny_two_dates, fu
     assert [r["pair"] for r in report["cross_init"]] == [[0, 1], [1, 0]]
     assert main(args) == 2  # refuses to overwrite a run without --resume
 
-    # "kill" a run that optimises one pair at a time after its first cross-init pair, then resume it
-    from cfgs_jax.config import apply_overrides, load_config
+    # stop a run that optimises one pair at a time by a SIGTERM in step 9 of its second pair, then resume
+    # it: the first pair from the run's record, the second from its mid-way checkpoint
+    import importlib
+    import signal
+
+    ci = importlib.import_module("cfgs_jax.fusion.cross_init")  # the package exports a function of that name
 
     one_by_one = ["--set", "cross_init.batch_dates=1"]
+    unsignalled, groups = ci.run_steps, []
 
-    class Killed(Exception):
-        pass
+    def signalled(body, carry, **kw):  # the loop's body as given, with a SIGTERM in step 9 of group 2
+        groups.append(kw["start"])
 
-    seen = []
+        def step(c, k):
+            if len(groups) == 2 and k == 8:
+                signal.raise_signal(signal.SIGTERM)
+            return body(c, k)
 
-    def log(msg):
-        seen.append(msg)
-        if sum("[cross_init]" in m for m in seen) == 2:
-            raise Killed
+        return unsignalled(step, carry, **kw)
 
     b_dir = tmp_path / "b"
-    with pytest.raises(Killed):
-        run_fusion(
-            [root / "d0", root / "d1"],
-            b_dir,
-            apply_overrides(load_config(root / "tiny.toml"), ["cross_init.batch_dates=1"]),
-            transforms=root / "transforms.json",
-            progress=False,
-            log=log,
-        )
+    monkeypatch.setattr(ci, "run_steps", signalled)
+    assert main(args[:5] + [str(b_dir)] + args[6:] + one_by_one) == 143
+    assert "stopped by SIGTERM after step 9: its checkpoint is saved" in " ".join(capsys.readouterr().err.split())
     assert json.loads((b_dir / "cross_init_pairs.json").read_text())["pairs"] == [[0, 1]]
+    saved = ci.checkpoint_state(b_dir / "cross_init_checkpoint.npz")
+    assert saved["pairs"] == [[1, 0]] and saved["step"] == 9 and saved["seconds"] > 0
+    monkeypatch.setattr(ci, "run_steps", unsignalled)
     assert main(args[:5] + [str(b_dir)] + args[6:] + one_by_one + ["--resume"]) == 0
+    assert "resumed at step 9" in " ".join(capsys.readouterr().out.split())  # the console wraps its lines
+    assert groups == [0, 0] and not (b_dir / "cross_init_checkpoint.npz").exists()
     b = cj.io.read_fused(b_dir / "fused")
     c_dir = tmp_path / "c"  # the same configuration, never interrupted
     assert main(args[:5] + [str(c_dir)] + args[6:] + one_by_one) == 0

@@ -36,7 +36,11 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import hashlib
+import json
+import time
 from collections.abc import Sequence
+from pathlib import Path
 from typing import Annotated, Literal
 
 import jax
@@ -51,10 +55,17 @@ from cfgs_jax.errors import InputError
 from cfgs_jax.fusion.fuse import INVISIBLE_LOGIT
 from cfgs_jax.fusion.light import REC709, gain_parameter, light_gain, light_logits, light_multiplier
 from cfgs_jax.fusion.updates import cross_init_optimizer
+from cfgs_jax.io.checkpoint import read_meta, restore_tree, save_tree
 from cfgs_jax.io.colmap import downscale_image, downscaled_size, scale_camera
 from cfgs_jax.loop import Progress, run_steps, view_order
 from cfgs_jax.model import Camera, DateViews, Gaussians, TemporalGaussians, exposure_table, logit, rgb
 from cfgs_jax.train.step import over_background
+
+#: The format of a cross-init group's mid-way checkpoint (``init_pairs(checkpoint=...)``).
+CHECKPOINT_FORMAT = "cfgs_jax.cross_init_checkpoint/1"
+
+#: The settings that say only how often a group is saved: a checkpoint resumes under other values.
+_CADENCE = ("checkpoint_every", "checkpoint_minutes")
 
 #: sRGB's encoding as a power law: a gain of 2^(EV/2.2) on encoded colours is about EV stops of light.
 ENCODING_GAMMA = 2.2
@@ -123,6 +134,10 @@ class CrossInitConfig(Checked):
     # no coarse steps where the downscaled shorter side would fall below this (pixels)
     coarse_min_size: Annotated[int, NON_NEGATIVE] = 120
     seed: int = 0
+    # a group's state is saved mid-way (``init_pairs(checkpoint=...)``, a run's cross-init stage) every
+    # this many steps (0: by time only) and after this much work since the last save (0: never)
+    checkpoint_every: Annotated[int, NON_NEGATIVE] = 0
+    checkpoint_minutes: Annotated[float, NON_NEGATIVE] = 10.0
 
     TABLE = "cross_init"
 
@@ -380,14 +395,23 @@ def init_pairs(
     lpips_net=None,
     progress=None,
     mesh=None,
-) -> tuple[TemporalGaussians, list[dict]]:
+    checkpoint: str | Path | None = None,
+    stop_after: int | None = None,
+) -> tuple[TemporalGaussians | None, list[dict]]:
     """Optimise o^q and l^q of the Gaussians from date p against date q's views (Eq. 2) for every pair
     (p, q) of ``pairs`` at once (``views[i]`` the views of ``pairs[i]``'s q; all of one image shape):
     each step renders one view of every pair, each pair with its own parameters, Adam state, view
     sequence and background colours — the same result as running the pairs one by one. Pairs of one
     date p share its Gaussians; pairs of different dates p carry their own. ``mesh``
     (``parallel.device_mesh``): split the pairs over its devices. Returns the updated model and one
-    report per pair (visible count, first/last loss, mean o^q, light, ε)."""
+    report per pair (visible count, first/last loss, mean o^q, light, ε).
+
+    With ``checkpoint`` (a path), the group's optimisation state is saved there every
+    ``config.checkpoint_every`` steps and ``config.checkpoint_minutes`` of work, and when a signal stops
+    the loop (``cfgs_jax.stopping``); a call that finds it (written for the same pairs, model rows,
+    views and settings) continues from it and ends with the same model as an uninterrupted call. The
+    caller deletes it once the result is kept. ``stop_after=k`` saves after step k and returns
+    ``(None, [{"stopped_at": k}])``."""
     pairs = [(int(p), int(q)) for p, q in pairs]
     if (
         not pairs
@@ -421,7 +445,10 @@ def init_pairs(
         render_config,
     )
     params, start_light, eps_maps, exposures = _start_values(group, config, lpips_net)
-    params, losses = _optimise(group, params, eps_maps, exposures, config, progress, mesh)
+    saving = None if checkpoint is None else (Path(checkpoint), _identity(group, config, render_config, mesh))
+    params, losses = _optimise(group, params, eps_maps, exposures, config, progress, mesh, saving, stop_after)
+    if params is None:
+        return None, [{"stopped_at": int(losses)}]
     fitted = [reports[i] for i in active]
     return _write_back(model, group, params, losses, start_light, eps_maps, exposures, fitted, config), reports
 
@@ -477,13 +504,72 @@ def _stacked_inputs(pairs: _Pairs, eps_maps) -> tuple:
     return per_pair(pairs.cameras), per_pair(pairs.images), per_pair(eps_maps)
 
 
+def _identity(pairs: _Pairs, config: CrossInitConfig, render_config: splat.RenderConfig, mesh) -> dict:
+    """What identifies a group's optimisation: a checkpoint must match it to be resumed — the pairs,
+    their model rows, a digest of their Gaussians (o^p, seen-masks, positions) and of their views, the
+    settings (but how often to save) and the pair axis' padded width."""
+    digest = hashlib.sha256()
+    for a in (pairs.o_p, pairs.mask, pairs.g.means, *(np.asarray(i) for i in pairs.idx)):
+        digest.update(np.ascontiguousarray(np.asarray(a)).tobytes())
+    for images in pairs.images:
+        for image in images:
+            digest.update(np.ascontiguousarray(np.asarray(image, np.float32)).tobytes())
+    settings = {k: v for k, v in dataclasses.asdict(config).items() if k not in _CADENCE}
+    return {
+        "pairs": [list(pq) for pq in pairs.pairs],
+        "rows": [len(i) for i in pairs.idx],
+        "views": [len(ims) for ims in pairs.images],
+        "digest": digest.hexdigest(),
+        "config": settings,
+        "render": json.loads(json.dumps(dataclasses.asdict(render_config), default=str)),
+        "width": parallel.padded(len(pairs.pairs), mesh),
+    }
+
+
+def checkpoint_state(path: str | Path) -> dict | None:
+    """What a group's checkpoint at ``path`` holds: its ``pairs`` ([p, q] lists), the ``step`` it was
+    saved after and the ``seconds`` of work before it; None where there is none."""
+    if not Path(path).is_file():
+        return None
+    meta, _ = read_meta(path, format=CHECKPOINT_FORMAT)
+    return {"pairs": meta["pairs"], "step": int(meta["step"]), "seconds": float(meta.get("seconds", 0.0))}
+
+
+def _load_checkpoint(path: Path, identity: dict, template) -> tuple[tuple, list, object, int]:
+    """(state shaped as ``template``, losses per step, the convergence test's last values or None, the
+    step, the seconds of work before it) of a group's checkpoint, refused unless it was written for the
+    same group."""
+    meta, arrays = read_meta(path, format=CHECKPOINT_FORMAT)
+    bad = [k for k, v in identity.items() if meta.get(k) != v]
+    if bad:
+        raise InputError(
+            f"the checkpoint belongs to another cross-init group (differs in {', '.join(bad)})",
+            path=path,
+            fix="resume with the original model and settings, or delete it to restart the group",
+        )
+    n = jax.tree_util.tree_structure(template).num_leaves
+    state = restore_tree(path, arrays[:n], template)
+    losses = list(arrays[n]) if len(arrays) > n else []
+    last = arrays[n + 1] if meta.get("last") else None
+    return state, losses, last, int(meta["step"]), float(meta.get("seconds", 0.0))
+
+
 def _optimise(
-    pairs: _Pairs, params, eps_maps, exposures, config: CrossInitConfig, progress, mesh=None
-) -> tuple[dict, np.ndarray]:
+    pairs: _Pairs,
+    params,
+    eps_maps,
+    exposures,
+    config: CrossInitConfig,
+    progress,
+    mesh=None,
+    saving: tuple[Path, dict] | None = None,
+    stop_after: int | None = None,
+) -> tuple[dict | None, np.ndarray | int]:
     """Eq. 2's ``config.steps`` Adam steps of the group's pairs together: each pair with its own view
     sequence, background key and exposure. With a ``mesh`` of several devices the pair axis is split over them
     (padded to a multiple of the device count with copies of the first pair, whose results are
-    dropped). Returns the parameters and the [steps, pairs] losses."""
+    dropped). ``saving``: (checkpoint path, identity) to save to and resume from. Returns the
+    parameters and the [steps, pairs] losses, or (None, the step) when ``stop_after`` stopped it."""
     k = len(pairs.pairs)
     seeds = [(config.seed, p, q) for p, q in pairs.pairs]
     counts = [len(ims) for ims in pairs.images]
@@ -500,10 +586,16 @@ def _optimise(
     exposures = np.asarray(exposures, np.float32)
     params, opt_state, keys, exposures = on_devices((params, jax.vmap(optimizer.init)(params), keys, exposures))
     g = parallel.replicate(pairs.g, mesh) if pairs.shared else on_devices(pairs.g)
-    keys = jax.random.wrap_key_data(keys)
     seen = parallel.pad_rows(np.asarray(pairs.mask) > 0, width)[..., None]  # [pairs, m, 1]
     colours = np.broadcast_to(np.asarray(rgb(pairs.g)), (k, *np.shape(pairs.g.colors)[-2:]))
     colours = parallel.pad_rows(colours, width)  # [pairs, m, 3]
+    test = {"last": None, "converged": False}  # the convergence test's state
+    start, losses, before, t0 = 0, [], 0.0, time.perf_counter()
+    if saving is not None and saving[0].is_file():
+        state, losses, test["last"], start, before = _load_checkpoint(saving[0], saving[1], (params, opt_state, keys))
+        params, opt_state, keys = parallel.shard_batch(state, mesh)
+        losses = [jnp.asarray(row) for row in losses]
+    keys = jax.random.wrap_key_data(keys)
 
     def body(carry, it):
         params, opt_state, keys, losses = carry
@@ -521,13 +613,31 @@ def _optimise(
         losses.append(loss)
         return params, opt_state, both[:, 0], losses
 
-    (params, _, _, losses), _ = run_steps(
+    def save(carry, done: int) -> None:
+        params, opt_state, keys, losses = carry
+        tree = parallel.to_host((params, opt_state, jax.random.key_data(keys)))
+        extra = [np.stack(parallel.to_host(losses))] if losses else []
+        if test["last"] is not None:
+            extra.append(np.asarray(parallel.to_host(test["last"])))
+        if parallel.is_primary():
+            seconds = before + time.perf_counter() - t0
+            meta = saving[1] | {"step": done, "last": test["last"] is not None, "seconds": seconds}
+            save_tree(saving[0], (tree, *extra), meta, format=CHECKPOINT_FORMAT)
+
+    converged = _convergence_test(config, seen, colours, test) if config.early_stop_tolerance > 0 else None
+    (params, _, _, losses), done = run_steps(
         body,
-        (params, opt_state, keys, []),
-        start=0,
+        (params, opt_state, keys, losses),
+        start=start,
         steps=config.steps,
-        converged=_convergence_test(config, seen, colours) if config.early_stop_tolerance > 0 else None,
+        stop_after=stop_after,
+        checkpoint_every=config.checkpoint_every,
+        checkpoint_seconds=60.0 * config.checkpoint_minutes,
+        save=save if saving is not None else None,
+        converged=converged,
     )
+    if done < config.steps and not test["converged"]:
+        return None, done
     params, losses = parallel.to_host((params, jnp.stack(losses)))
     return jax.tree_util.tree_map(lambda x: x[:k], params), losses[:, :k]
 
@@ -539,28 +649,30 @@ def _settled(params, colours) -> jax.Array:
     return jnp.concatenate([o, light_multiplier(params["u"], params["w"], colours)], axis=-1)
 
 
-def _convergence_test(config: CrossInitConfig, seen, colours):
+def _convergence_test(config: CrossInitConfig, seen, colours, state: dict):
     """``converged(carry, done)`` for ``run_steps``: true at a check (every ``early_stop_every`` steps
     after the ε ramp and the background anneal) when no o^q or light channel of any pair moved by more
     than ``early_stop_tolerance`` since the previous check (or their ``early_stop_quantile``-quantile
     did not; ``seen`` [pairs, m, 1]: the rows each pair optimises, ``colours`` [pairs, m, 3] their
     colours); with ``early_stop_on = "loss"``,
     when no pair's mean loss over the window since the previous check fell by more than the
-    tolerance times the previous window's (both windows after the start)."""
+    tolerance times the previous window's (both windows after the start). ``state``: the test's memory
+    (``"last"``: the values at the previous check, which a checkpoint keeps; ``"converged"``: set when
+    it ended the run)."""
     start = int(np.ceil(max(config.ramp_fraction, config.background_anneal) * config.steps))
-    last = {"values": None}
 
     def converged(carry, done: int) -> bool:
         if done < start or (done - start) % config.early_stop_every:
             return False
         if config.early_stop_on == "loss":  # the window's mean loss per pair against the window before
-            window, previous = jnp.mean(jnp.stack(carry[3][-config.early_stop_every :]), axis=0), last["values"]
-            last["values"] = window
+            window, previous = jnp.mean(jnp.stack(carry[3][-config.early_stop_every :]), axis=0), state["last"]
+            state["last"] = window
             if done - start < 2 * config.early_stop_every:  # the window before began before the start
                 return False
-            return bool(jnp.all(previous - window <= config.early_stop_tolerance * previous))
-        values, previous = _settled(carry[0], colours), last["values"]
-        last["values"] = values
+            state["converged"] = bool(jnp.all(previous - window <= config.early_stop_tolerance * previous))
+            return state["converged"]
+        values, previous = _settled(carry[0], colours), state["last"]
+        state["last"] = values
         if previous is None:
             return False
         moves = jnp.abs(values - previous)
@@ -568,7 +680,8 @@ def _convergence_test(config: CrossInitConfig, seen, colours):
             moved = float(jnp.nanquantile(jnp.where(seen, moves, jnp.nan), config.early_stop_quantile))
         else:
             moved = float(jnp.max(moves))
-        return moved <= config.early_stop_tolerance
+        state["converged"] = moved <= config.early_stop_tolerance
+        return state["converged"]
 
     return converged
 
@@ -637,9 +750,11 @@ def init_group(
     render_config: splat.RenderConfig | None = None,
     lpips_net=None,
     mesh=None,
+    checkpoint: str | Path | None = None,
 ) -> tuple[TemporalGaussians, list[dict]]:
     """``init_pairs`` of one group of ``pair_groups``, each pair's views taken from ``views`` (every
-    date's, by date), advancing ``bar`` (a ``loop.Progress`` counting pair-steps) from ``before``."""
+    date's, by date), advancing ``bar`` (a ``loop.Progress`` counting pair-steps) from ``before``,
+    saving to and resuming from ``checkpoint``."""
 
     def tick(k: int) -> None:
         if bar is not None:
@@ -647,7 +762,15 @@ def init_group(
 
     targets = [views[q] for _, q in group]
     return init_pairs(
-        model, group, targets, config, render_config=render_config, lpips_net=lpips_net, progress=tick, mesh=mesh
+        model,
+        group,
+        targets,
+        config,
+        render_config=render_config,
+        lpips_net=lpips_net,
+        progress=tick,
+        mesh=mesh,
+        checkpoint=checkpoint,
     )
 
 

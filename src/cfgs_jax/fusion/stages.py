@@ -5,7 +5,8 @@ The run folder and its layout are ``io.run_dir.RunDir``; the configuration is ``
 parsed once where it enters.
 
 Every file is written atomically; ``resume=True`` skips finished stages, continues per-date training
-from its checkpoint and cross-timestep init from the last finished pair.
+from its checkpoint, cross-timestep init from the last finished group of pairs (and the group in progress
+from its mid-way checkpoint) and refinement from its checkpoint.
 """
 
 from __future__ import annotations
@@ -32,7 +33,7 @@ from cfgs_jax.fusion.compact import (
     shown_date_counts,
 )
 from cfgs_jax.fusion.config import RunConfig
-from cfgs_jax.fusion.cross_init import init_group, pair_groups
+from cfgs_jax.fusion.cross_init import checkpoint_state, init_group, pair_groups
 from cfgs_jax.fusion.evaluate import evaluate_fused
 from cfgs_jax.fusion.frames import posed
 from cfgs_jax.fusion.fuse import add_date, merge
@@ -154,11 +155,17 @@ def _register(job: Job, anchors: list[tuple[Scene, Sim3]], date: Scene, name: st
 def _cross_init_pairs(job: Job, start: Path, pairs, views: list[DateViews], stage: str, tag: str) -> None:
     """Cross-timestep init of ``pairs`` from the model at ``start``, resumable per group of pairs run
     together (``pair_groups``, up to ``cross_init.batch_dates`` pairs): the model is written to
-    ``RUN/cross_init`` and the finished pairs to ``RUN/cross_init_pairs.json`` after each group."""
+    ``RUN/cross_init`` and the finished pairs to ``RUN/cross_init_pairs.json`` after each group, and the
+    group in progress is saved mid-way to ``RUN/<stage>_checkpoint.npz`` (``cross_init.checkpoint_every``
+    steps, ``checkpoint_minutes``, and when a signal stops the run)."""
     run, cc = job.run, job.config.cross_init
     partial = run / "cross_init"
     progress_file = run / "cross_init_pairs.json"
+    ckpt = run.checkpoint(stage)
     finished = read_json(progress_file, {"pairs": [], "reports": [], "seconds": 0.0})
+    saved = checkpoint_state(ckpt)
+    if saved is not None and all(pq in finished["pairs"] for pq in saved["pairs"]):
+        ckpt.unlink()  # its group finished after the save (the process stopped before removing it)
     model = read_fused(partial if finished["pairs"] else start)
     names = run.names
     todo = [(p, q) for p, q in pairs if [p, q] not in finished["pairs"]]
@@ -169,18 +176,30 @@ def _cross_init_pairs(job: Job, start: Path, pairs, views: list[DateViews], stag
         for group in pair_groups(todo, views, cc.batch_dates):
             release_if_near_limit()  # each group compiles for its own Gaussian count
             said = ", ".join(f"{names[p]} against {names[q]}" for p, q in group)
-            job.log(f"[{tag}] Gaussians of one date against images of another ({said}): {cc.steps:,} steps")
+            saved = checkpoint_state(ckpt)
+            resumed = f", resumed at step {saved['step']:,}" if saved is not None else ""
+            job.log(f"[{tag}] Gaussians of one date against images of another ({said}): {cc.steps:,} steps{resumed}")
             s = time.perf_counter()
+            before = saved["seconds"] if saved is not None else 0.0  # the group's work before a resume
             model, reps = init_group(
-                model, group, views, cc, bar=bar, before=done * cc.steps, render_config=job.config.render, mesh=job.mesh
+                model,
+                group,
+                views,
+                cc,
+                bar=bar,
+                before=done * cc.steps,
+                render_config=job.config.render,
+                mesh=job.mesh,
+                checkpoint=ckpt,
             )
             write_fused(partial, model)
-            seconds = time.perf_counter() - s
+            seconds = time.perf_counter() - s + before
             done += len(group)
             finished["pairs"].extend([p, q] for p, q in group)
             finished["reports"].extend(rep | {"seconds": seconds / len(group)} for rep in reps)
             finished["seconds"] += seconds
             write_json(progress_file, finished)
+            ckpt.unlink(missing_ok=True)
     run.finish(stage, finished["seconds"], finished["reports"])
 
 

@@ -13,6 +13,7 @@ Layout of ``RUN/``::
     merged/             the merged model (cfgs layout)
     cross_init/         the model after cross-timestep init (written after every group of pairs)
     cross_init_pairs.json  the pairs finished so far (the resume point of cross-init)
+    cross_init_checkpoint.npz  the group of pairs in progress, saved mid-way (removed when it finishes)
     fused/              the refined, pruned model (cfgs layout)   reference/  the same, authors' layout
     snapshots/refine_<k>/  the model after k refinement steps, where asked for
     before_compact/     the model before compaction, compact.json its report
