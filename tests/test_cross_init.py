@@ -3,6 +3,7 @@ schedule, padding and batching of pairs, early stopping, coarse to fine."""
 
 import dataclasses
 import importlib
+import json
 
 import jax
 import jax.numpy as jnp
@@ -246,6 +247,14 @@ def test_a_group_stopped_mid_way_resumes_from_its_checkpoint_to_the_uninterrupte
         ci.init_pairs(model, pairs, views, dataclasses.replace(cfg, lr_o=0.06), checkpoint=ckpt)
     with pytest.raises(cj.InputError, match="another cross-init group.*pairs"):
         ci.init_pairs(model, [(0, 2)], [v], cfg, checkpoint=ckpt)
+    # a checkpoint written before a setting existed resumes (at that setting's default)
+    with np.load(ckpt) as z:
+        arrays = {k: z[k] for k in z.files}
+    meta = json.loads(bytes(arrays.pop("__meta__")).decode())
+    del meta["config"]["coarse_min_size"]
+    np.savez(ckpt, __meta__=np.frombuffer(json.dumps(meta).encode(), np.uint8), **arrays)
+    older, _ = ci.init_pairs(model, pairs, views, cfg, checkpoint=ckpt)
+    np.testing.assert_array_equal(np.asarray(older.o_logits), np.asarray(whole.o_logits))
 
 
 def test_pairs_of_different_dates_p_batched_equal_the_pairs_one_by_one():

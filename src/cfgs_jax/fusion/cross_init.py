@@ -55,7 +55,7 @@ from cfgs_jax.errors import InputError
 from cfgs_jax.fusion.fuse import INVISIBLE_LOGIT
 from cfgs_jax.fusion.light import REC709, gain_parameter, light_gain, light_logits, light_multiplier
 from cfgs_jax.fusion.updates import cross_init_optimizer
-from cfgs_jax.io.checkpoint import read_meta, restore_tree, save_tree
+from cfgs_jax.io.checkpoint import read_meta, require_identity, restore_tree, save_tree
 from cfgs_jax.io.colmap import downscale_image, downscaled_size, scale_camera
 from cfgs_jax.loop import Progress, run_steps, view_order
 from cfgs_jax.model import Camera, DateViews, Gaussians, TemporalGaussians, exposure_table, logit, rgb
@@ -514,16 +514,20 @@ def _identity(pairs: _Pairs, config: CrossInitConfig, render_config: splat.Rende
     for images in pairs.images:
         for image in images:
             digest.update(np.ascontiguousarray(np.asarray(image, np.float32)).tobytes())
-    settings = {k: v for k, v in dataclasses.asdict(config).items() if k not in _CADENCE}
     return {
         "pairs": [list(pq) for pq in pairs.pairs],
         "rows": [len(i) for i in pairs.idx],
         "views": [len(ims) for ims in pairs.images],
         "digest": digest.hexdigest(),
-        "config": settings,
+        "config": _settings(config),
         "render": json.loads(json.dumps(dataclasses.asdict(render_config), default=str)),
         "width": parallel.padded(len(pairs.pairs), mesh),
     }
+
+
+def _settings(config: CrossInitConfig) -> dict:
+    """The settings a group's checkpoint must match: all but how often it is saved."""
+    return {k: v for k, v in dataclasses.asdict(config).items() if k not in _CADENCE}
 
 
 def checkpoint_state(path: str | Path) -> dict | None:
@@ -540,13 +544,9 @@ def _load_checkpoint(path: Path, identity: dict, template) -> tuple[tuple, list,
     step, the seconds of work before it) of a group's checkpoint, refused unless it was written for the
     same group."""
     meta, arrays = read_meta(path, format=CHECKPOINT_FORMAT)
-    bad = [k for k, v in identity.items() if meta.get(k) != v]
-    if bad:
-        raise InputError(
-            f"the checkpoint belongs to another cross-init group (differs in {', '.join(bad)})",
-            path=path,
-            fix="resume with the original model and settings, or delete it to restart the group",
-        )
+    # a checkpoint written before a setting existed was written at that setting's default
+    saved = meta | {"config": _settings(CrossInitConfig()) | meta.get("config", {})}
+    require_identity(path, saved, identity, what="cross-init group", restart="group")
     n = jax.tree_util.tree_structure(template).num_leaves
     state = restore_tree(path, arrays[:n], template)
     losses = list(arrays[n]) if len(arrays) > n else []

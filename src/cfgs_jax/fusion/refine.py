@@ -58,7 +58,7 @@ from cfgs_jax.config import AT_LEAST_ONE, NON_NEGATIVE, POSITIVE, Checked
 from cfgs_jax.errors import InputError
 from cfgs_jax.fusion.frames import baked, frame_params, framed
 from cfgs_jax.fusion.updates import halve_alpha_of, refinement_optimizer, zero_invisible
-from cfgs_jax.io.checkpoint import read_meta, restore_tree, save_tree
+from cfgs_jax.io.checkpoint import read_meta, require_identity, restore_tree, save_tree
 from cfgs_jax.loop import (
     CapacityStep,
     Dispatched,
@@ -304,13 +304,7 @@ def _load_checkpoint(path: Path, template: dict, meta_now: dict) -> tuple[dict, 
         "train": dataclasses.asdict(TrainConfig()) | meta.get("train", {}),
     }
     saved.setdefault("frame_dates", [])
-    bad = [k for k, v in meta_now.items() if saved.get(k) != v]
-    if bad:
-        raise InputError(
-            f"the checkpoint belongs to another refinement (differs in {', '.join(bad)})",
-            path=path,
-            fix="resume with the original model and settings, or delete it to restart the stage",
-        )
+    require_identity(path, saved, meta_now, what="refinement", restart="stage")
     return restore_tree(path, arrays, template), meta
 
 

@@ -44,3 +44,15 @@ def restore_tree(path: str | Path, arrays: list[np.ndarray], template):
     if treedef.num_leaves != len(arrays):
         raise InputError("checkpoint layout does not match this version", path=path, fix="delete it to start over")
     return jax.tree_util.tree_unflatten(treedef, [jnp.asarray(a) for a in arrays])
+
+
+def require_identity(path: str | Path, saved: dict, expected: dict, *, what: str, restart: str) -> None:
+    """Refuse a checkpoint whose ``saved`` meta differs from ``expected`` in any of its keys (InputError
+    naming them; ``what`` names the computation it belongs to, ``restart`` what deleting it restarts)."""
+    bad = [k for k, v in expected.items() if saved.get(k) != v]
+    if bad:
+        raise InputError(
+            f"the checkpoint belongs to another {what} (differs in {', '.join(bad)})",
+            path=path,
+            fix=f"resume with the original model and settings, or delete it to restart the {restart}",
+        )
