@@ -478,6 +478,23 @@ def test_exact_tile_cull_changes_nothing():
         assert np.all(np.abs(x - y) <= 1e-5 * np.abs(y) + 1e-6 * np.abs(y).max()), name
 
 
+@pytest.mark.parametrize("n", [1, 2, 9, 65536, 65537, 2_097_153])
+def test_depth_order_is_numpys_stable_argsort(n):
+    """The binning's depth order (a radix order of one-operand sorts on the CPU) against numpy's stable
+    argsort: ties kept in index order, −0 equal to 0, ±inf, NaN last, with 2 passes (up to 2^16
+    Gaussians), 3 (above) and 4 (above 2^21)."""
+    from cfgs_jax.splat.binning import depth_order
+
+    rng = np.random.default_rng(n)
+    d = rng.uniform(-3, 8, n).astype(np.float32)
+    d[rng.uniform(size=n) < 0.3] = np.inf
+    if n > 8:
+        d[[1, 4, 6]] = d[8]  # a tie of three
+        d[2], d[3], d[5], d[7] = -0.0, 0.0, np.nan, -np.inf
+    d[rng.uniform(size=n) < 0.05] = np.nan
+    np.testing.assert_array_equal(np.asarray(jax.jit(depth_order)(jnp.asarray(d))), np.argsort(d, kind="stable"))
+
+
 def test_sub_tile_lists_are_the_tile_lists_filtered_pair_by_pair():
     """Each 8×8 sub-tile's list is its 16×16 tile's list, in the same (depth) order, less exactly the
     Gaussians that reach α < 1/255 at every pixel centre of the sub-tile (checked pair by pair in float64,

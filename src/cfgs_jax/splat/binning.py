@@ -85,6 +85,31 @@ def _min_quadratic(conic, x0, x1, y0, y1):
     return jnp.where(inside, 0.0, jnp.minimum(jnp.minimum(edges[0], edges[1]), jnp.minimum(edges[2], edges[3])))
 
 
+def depth_order(depths: Float[Array, " N"]) -> Int[Array, " N"]:
+    """The stable ascending order of ``depths``: exactly ``jnp.argsort(depths, stable=True)`` (NaN last).
+    For float32 depths on the CPU it is an LSD radix order of one-operand uint32 sorts, several times faster there than the
+    comparator sort that carries the index: the floats mapped to order-preserving uint32 keys, then for each
+    digit, least significant first, one sort of (digit << p) | position (p bits hold a position), whose low
+    bits give the permutation of that pass; each pass is stable, as its keys are unique and ordered by
+    position within a digit, so the composition is the stable order."""
+    n = depths.shape[0]
+    p = max(n - 1, 1).bit_length()
+    if n == 0 or p > 26 or depths.dtype != jnp.float32 or jax.default_backend() != "cpu":
+        return jnp.argsort(depths, stable=True).astype(jnp.int32)
+    bits = jax.lax.bitcast_convert_type(depths + 0.0, jnp.uint32)  # + 0.0: −0 as 0, as the comparison has it
+    keys = jnp.where(bits >> 31 == 0, bits | jnp.uint32(1 << 31), ~bits)
+    keys = jnp.where(jnp.isnan(depths), jnp.uint32(0xFFFFFFFF), keys)
+    passes = -(-32 // (32 - p))
+    digit_bits = -(-32 // passes)
+    position = jnp.arange(n, dtype=jnp.uint32)
+    order = position
+    for k in range(passes):
+        digit = (keys[order] >> (k * digit_bits)) & jnp.uint32((1 << digit_bits) - 1)
+        packed = jax.lax.sort((digit << p) | position)
+        order = order[(packed & jnp.uint32((1 << p) - 1)).astype(jnp.int32)]
+    return order.astype(jnp.int32)
+
+
 def _sort_by_tile(tile: Int[Array, " C"], payload: tuple[Int[Array, " C"], ...], num_tiles: int):
     """Stable sort of the intersections by tile, carrying ``payload`` (the Gaussian ids, ...) along. When
     (tile, slot) packs into 32 bits the sort is one uint32 key (several times faster than a multi-operand
@@ -122,7 +147,7 @@ def bin_gaussians(
     gx, gy = grid
     num_tiles = gx * gy
     rects, counts = listed_tiles(proj, max_opacity, tile_size=tile_size, min_alpha=min_alpha, cull=cull)
-    order = jnp.argsort(jnp.where(counts > 0, proj.depths, jnp.inf), stable=True)
+    order = depth_order(jnp.where(counts > 0, proj.depths, jnp.inf))
     counts_o = counts[order]
     ends = jnp.cumsum(counts_o)
     total = ends[-1] if counts.shape[0] else jnp.int32(0)
