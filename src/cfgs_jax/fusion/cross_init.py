@@ -535,11 +535,11 @@ def checkpoint_state(path: str | Path) -> dict | None:
     saved after and the ``seconds`` of work before it; None where there is none."""
     if not Path(path).is_file():
         return None
-    meta, _ = read_meta(path, format=CHECKPOINT_FORMAT)
+    meta, _ = read_meta(path, format=CHECKPOINT_FORMAT, leaves=False)
     return {"pairs": meta["pairs"], "step": int(meta["step"]), "seconds": float(meta.get("seconds", 0.0))}
 
 
-def _load_checkpoint(path: Path, identity: dict, template) -> tuple[tuple, list, object, int]:
+def _load_checkpoint(path: Path, identity: dict, template) -> tuple[tuple, list, object, int, float]:
     """(state shaped as ``template``, losses per step, the convergence test's last values or None, the
     step, the seconds of work before it) of a group's checkpoint, refused unless it was written for the
     same group."""

@@ -25,12 +25,13 @@ def save_tree(path: str | Path, tree, meta: dict, *, format: str) -> Path:
     return Path(path)
 
 
-def read_meta(path: str | Path, *, format: str) -> tuple[dict, list[np.ndarray]]:
-    """(meta, leaf arrays) of a checkpoint of ``format``; unreadable or foreign files raise InputError."""
+def read_meta(path: str | Path, *, format: str, leaves: bool = True) -> tuple[dict, list[np.ndarray]]:
+    """(meta, leaf arrays) of a checkpoint of ``format`` (no arrays read unless ``leaves``); unreadable or
+    foreign files raise InputError."""
     try:
         with np.load(path) as data:
             meta = json.loads(bytes(data["__meta__"]).decode())
-            arrays = [data[f"leaf_{i:04d}"] for i in range(meta["num_leaves"])]
+            arrays = [data[f"leaf_{i:04d}"] for i in range(meta["num_leaves"])] if leaves else []
     except (OSError, KeyError, ValueError, json.JSONDecodeError) as exc:
         raise InputError(f"unreadable checkpoint ({exc})", path=path, fix="delete it to start over") from exc
     if meta.get("format") != format:

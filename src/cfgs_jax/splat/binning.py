@@ -87,11 +87,11 @@ def _min_quadratic(conic, x0, x1, y0, y1):
 
 def depth_order(depths: Float[Array, " N"]) -> Int[Array, " N"]:
     """The stable ascending order of ``depths``: exactly ``jnp.argsort(depths, stable=True)`` (NaN last).
-    For float32 depths on the CPU it is an LSD radix order of one-operand uint32 sorts, several times faster there than the
-    comparator sort that carries the index: the floats mapped to order-preserving uint32 keys, then for each
-    digit, least significant first, one sort of (digit << p) | position (p bits hold a position), whose low
-    bits give the permutation of that pass; each pass is stable, as its keys are unique and ordered by
-    position within a digit, so the composition is the stable order."""
+    For float32 depths on the CPU it is an LSD radix order of one-operand uint32 sorts, several times
+    faster there than the comparator sort that carries the index: the floats mapped to order-preserving
+    uint32 keys, then for each digit, least significant first, one sort of (digit << p) | position (p bits
+    hold a position), whose low bits give the permutation of that pass; each pass is stable, as its keys
+    are unique and ordered by position within a digit, so the composition is the stable order."""
     n = depths.shape[0]
     p = max(n - 1, 1).bit_length()
     if n == 0 or p > 26 or depths.dtype != jnp.float32 or jax.default_backend() != "cpu":
