@@ -66,7 +66,8 @@ def table() -> str:
     for chip in names:
         first = _read(f"splat_{chip}_gpu") or _read(f"train_{chip}_gpu") or {}
         heads.append(f"{chip.upper()} ({first.get('date', '?')})")
-    cpu_date = (_read("splat") or {}).get("date", "?")
+    kernel_date, train_date = ((_read(stem) or {}).get("date", "?") for stem in ("splat", "train"))
+    cpu_date = kernel_date if kernel_date == train_date else f"kernel {kernel_date}, training {train_date}"
     lines = [
         "| case | " + " | ".join(heads) + f" | 2-core CPU ({cpu_date}) |",
         "|---|" + "---|" * (len(names) + 1),
