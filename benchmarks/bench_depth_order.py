@@ -13,14 +13,12 @@ Cases as in ``bench_splat`` (``20k@320x240``, ``donut@640x480``, ``1M@1920x1080`
 from __future__ import annotations
 
 import argparse
-import statistics
 import sys
-import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_splat import case, scene
-from common import backend_suffix, result_header, write_result
+from common import alternately, backend_suffix, result_header, write_result
 
 
 def argsort_order(depths):
@@ -75,17 +73,12 @@ def run_case(name: str, reps: int) -> dict:
     same_order = bool(np.array_equal(np.asarray(out["order argsort"]), np.asarray(out["order radix"])))
     a, b = out["bin argsort"], out["bin radix"]
     same_bins = all(np.array_equal(np.asarray(x), np.asarray(y)) for x, y in zip(a, b))
-    times = {k: [] for k in functions}
-    for _ in range(reps):
-        for k, (f, args) in functions.items():
-            t0 = time.perf_counter()
-            jax.block_until_ready(f(*args))
-            times[k].append(time.perf_counter() - t0)
+    seconds = alternately(functions, reps)
     return {
         "case": name,
         "gaussians": n,
         "listed": int(np.sum(np.asarray(listed))),
-        "seconds": {k: statistics.median(v) for k, v in times.items()},
+        "seconds": seconds,
         "same_order": same_order,
         "same_bins": same_bins,
     }

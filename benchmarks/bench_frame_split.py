@@ -24,14 +24,12 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import statistics
 import sys
-import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_splat import case, scene
-from common import backend_suffix, result_header, write_result
+from common import alternately, backend_suffix, result_header, write_result
 
 #: The stages, in the order a frame runs them.
 STAGES = ("project", "bin", "composite", "composite backward", "project backward")
@@ -115,15 +113,9 @@ def run_case(name: str, backend: str, reps: int) -> dict:
 
     g, cam = scene(*case(name))
     functions, intersections = stage_functions(g, cam, splat.RenderConfig(backend=backend))
-    times = {k: [] for k in functions}
     for f, args in functions.values():  # compile
         jax.block_until_ready(f(*args))
-    for _ in range(reps):
-        for k, (f, args) in functions.items():
-            t0 = time.perf_counter()
-            jax.block_until_ready(f(*args))
-            times[k].append(time.perf_counter() - t0)
-    t = {k: statistics.median(v) for k, v in times.items()}
+    t = alternately(functions, reps)
     split = {
         "project": t["project"],
         "bin": t["bin"],

@@ -17,14 +17,12 @@ Writes ``results/ssim{TAG}{chip}.{json,md}``.
 from __future__ import annotations
 
 import argparse
-import statistics
 import sys
-import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_splat import case, scene
-from common import backend_suffix, result_header, write_result
+from common import alternately, backend_suffix, result_header, write_result
 
 
 def conv_filter(size: int, sigma: float):
@@ -77,18 +75,6 @@ def traced_with(factory, f):
     return call
 
 
-def alternate(functions: dict, reps: int) -> dict:
-    times = {k: [] for k in functions}
-    for _ in range(reps):
-        for k, (f, args) in functions.items():
-            t0 = time.perf_counter()
-            import jax
-
-            jax.block_until_ready(f(*args))
-            times[k].append(time.perf_counter() - t0)
-    return {k: statistics.median(v) for k, v in times.items()}
-
-
 SIDES = {"conv": conv_filter, "banded": None}
 
 
@@ -117,7 +103,7 @@ def run_images(spec: str, reps: int) -> dict:
             "ssim": float(np.max(np.abs(np.asarray(fwd(a32, b32)) - ref_value))),
             "grad": float(np.max(np.abs(np.asarray(grad(a32, b32)) - ref_grad)) / np.max(np.abs(ref_grad))),
         }
-    return {"images": spec, "seconds": alternate(functions, reps), "errors": errors}
+    return {"images": spec, "seconds": alternately(functions, reps), "errors": errors}
 
 
 def run_step(name: str, reps: int) -> dict:
@@ -155,7 +141,7 @@ def run_step(name: str, reps: int) -> dict:
         functions[f"step {side}"] = (call, (state,))
     for f, args in functions.values():
         jax.block_until_ready(f(*args))
-    return {"case": name, "gaussians": len(g), "seconds": alternate(functions, reps)}
+    return {"case": name, "gaussians": len(g), "seconds": alternately(functions, reps)}
 
 
 def markdown(result: dict) -> str:

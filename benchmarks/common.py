@@ -26,6 +26,22 @@ def timed(f, args) -> float:
     return time.perf_counter() - t0
 
 
+def alternately(functions: dict, reps: int) -> dict:
+    """Median wall seconds of each ``name: (f, args)`` in ``functions``, called in turn ``reps`` rounds
+    (so that the machine's load falls on every side alike), outputs ready; compile before calling."""
+    import statistics
+
+    import jax
+
+    times = {k: [] for k in functions}
+    for _ in range(reps):
+        for k, (f, args) in functions.items():
+            t0 = time.perf_counter()
+            jax.block_until_ready(f(*args))
+            times[k].append(time.perf_counter() - t0)
+    return {k: statistics.median(v) for k, v in times.items()}
+
+
 def machine() -> str:
     """The CPU (or accelerator and host), core count and JAX version, for the results' headers."""
     import jax
