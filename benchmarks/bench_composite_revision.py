@@ -1,8 +1,10 @@
-"""The XLA tile compositor of the working tree against the one of a git revision, side by side in one process.
+"""The XLA tile compositor (or the binning) of the working tree against the one of a git revision, side by
+side in one process.
 
-Only ``src/cfgs_jax/splat/composite.py`` differs between the two sides: the base revision's file is loaded
-as a module of its own and put in place of the working tree's compositor while that side's programs are
-traced, so projection, binning and everything around the compositor are the same code. For each case
+Only ``src/cfgs_jax/splat/composite.py`` (``--module composite``, the default) or
+``src/cfgs_jax/splat/binning.py`` (``--module binning``) differs between the two sides: the base revision's
+file is loaded as a module of its own and its ``composite`` (or ``bin_gaussians``) put in place of the working
+tree's while that side's programs are traced, so everything else in the frame is the same code. For each case
 (``bench_splat``'s scenes, named as there) and each side, three whole frames are compiled ahead of time:
 
 - ``forward``: ``render`` (images and statistics);
@@ -15,9 +17,10 @@ They are timed alternately (median of ``--reps`` rounds); the table gives each s
 working tree / base, and the largest difference between the two sides' images and gradients (relative
 to each array's largest magnitude), so that a faster compositor is seen to compute the same thing.
 
-    python benchmarks/bench_composite_revision.py [--base REV] [--cases 20k@320x240 ...] [--reps 7] [--tag T]
+    python benchmarks/bench_composite_revision.py [--base REV] [--module composite|binning]
+        [--cases 20k@320x240 ...] [--reps 7] [--tag T]
 
-Writes ``results/composite_revision{TAG}{chip}.{json,md}``.
+Writes ``results/composite_revision{TAG}{chip}.{json,md}`` (``binning_revision…`` with ``--module binning``).
 """
 
 from __future__ import annotations
@@ -36,14 +39,20 @@ from bench_splat import case, scene
 from common import backend_suffix, result_header, timed, write_result
 
 REPO = Path(__file__).resolve().parents[1]
-MODULE = "src/cfgs_jax/splat/composite.py"
+#: --module: (the file that differs, the function of it that ``cfgs_jax.splat.render`` calls)
+MODULES = {
+    "composite": ("src/cfgs_jax/splat/composite.py", "composite"),
+    "binning": ("src/cfgs_jax/splat/binning.py", "bin_gaussians"),
+}
 KINDS = ("forward", "fwd+bwd", "fwd+bwd, multipliers")
 
 
-def load_base(rev: str):
-    """The compositor module as it is at git revision ``rev`` (a module of its own, not registered as
-    part of the package)."""
-    text = subprocess.run(["git", "show", f"{rev}:{MODULE}"], cwd=REPO, capture_output=True, text=True, check=True)
+def load_base(rev: str, module: str = "composite"):
+    """The module ``MODULES[module]`` as it is at git revision ``rev`` (a module of its own, not registered
+    as part of the package)."""
+    text = subprocess.run(
+        ["git", "show", f"{rev}:{MODULES[module][0]}"], cwd=REPO, capture_output=True, text=True, check=True
+    )
     folder = Path(tempfile.mkdtemp())
     path = folder / "composite_base.py"
     path.write_text(text.stdout)
@@ -53,9 +62,9 @@ def load_base(rev: str):
     return module
 
 
-def compiled_frames(g, cam, config, target, compositor):
-    """The three frames of ``KINDS`` compiled with ``compositor`` in place of the package's: {kind:
-    (compiled function, args)}."""
+def compiled_frames(g, cam, config, target, compositor, attribute: str = "composite"):
+    """The three frames of ``KINDS`` compiled with ``compositor`` in place of the package's ``attribute``
+    of ``cfgs_jax.splat.render`` (its compositor, or its binning): {kind: (compiled function, args)}."""
     import jax
     import jax.numpy as jnp
 
@@ -74,13 +83,13 @@ def compiled_frames(g, cam, config, target, compositor):
         "fwd+bwd": (jax.jit(jax.value_and_grad(loss, argnums=(0, 1, 2))), (g, om, cm)),
         "fwd+bwd, multipliers": (jax.jit(jax.value_and_grad(loss, argnums=(1, 2))), (g, om, cm)),
     }
-    saved = render.composite
-    render.composite = compositor
+    saved = getattr(render, attribute)
+    setattr(render, attribute, compositor)
     try:
         jax.clear_caches()  # the package's jitted render traces again, with this compositor
         return {k: (f.lower(*args).compile(), args) for k, (f, args) in frames.items()}
     finally:
-        render.composite = saved
+        setattr(render, attribute, saved)
 
 
 def largest_difference(a, b) -> float:
@@ -96,14 +105,15 @@ def largest_difference(a, b) -> float:
     return worst
 
 
-def run_case(name: str, base, reps: int) -> dict:
+def run_case(name: str, base, reps: int, module: str = "composite") -> dict:
     import jax
     import jax.numpy as jnp
     import numpy as np
 
     from cfgs_jax import splat
 
-    working = importlib.import_module("cfgs_jax.splat.composite")
+    working = importlib.import_module(f"cfgs_jax.splat.{module}")
+    attribute = MODULES[module][1]
 
     kind, n, w, h = case(name)
     g, cam = scene(kind, n, w, h)
@@ -112,8 +122,8 @@ def run_case(name: str, base, reps: int) -> dict:
     config = dataclasses.replace(config, capacity=splat.required_capacity(g, cam, ones, config=config))
     target = jnp.asarray(np.random.default_rng(2).uniform(size=(h, w, 3)), jnp.float32)
     sides = {
-        "base": compiled_frames(g, cam, config, target, base.composite),
-        "working tree": compiled_frames(g, cam, config, target, working.composite),
+        "base": compiled_frames(g, cam, config, target, getattr(base, attribute), attribute),
+        "working tree": compiled_frames(g, cam, config, target, getattr(working, attribute), attribute),
     }
     times = {(s, k): [] for s in sides for k in KINDS}
     outputs = {s: {k: jax.block_until_ready(f(*a)) for k, (f, a) in frames.items()} for s, frames in sides.items()}
@@ -135,12 +145,12 @@ def run_case(name: str, base, reps: int) -> dict:
 
 def markdown(result: dict) -> str:
     lines = [
-        "# The XLA compositor: working tree against a base revision",
+        f"# The {'XLA compositor' if result['args']['module'] == 'composite' else 'binning'}: working tree against a base revision",
         "",
         f"Machine: {result['machine']}. Date: {result['date']}. Command: `{result['command']}`. Base revision "
         f"{result['base']}, working tree at {result['head']}{' with changes' if result['dirty'] else ''}. Whole frames "
-        f"compiled ahead of time, timed alternately, medians of {result['args']['reps']} rounds; only the compositor "
-        "module differs between the sides. Difference: the largest |base − working tree| over the outputs (image "
+        f"compiled ahead of time, timed alternately, medians of {result['args']['reps']} rounds; only "
+        f"`{MODULES[result['args']['module']][0]}` differs between the sides. Difference: the largest |base − working tree| over the outputs (image "
         "and statistics, or loss and gradients), relative to each array's largest magnitude.",
         "",
         "| case | frame | base | working tree | working / base | difference |",
@@ -158,6 +168,7 @@ def markdown(result: dict) -> str:
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--base", default="HEAD", help="git revision whose compositor is the baseline (default HEAD)")
+    ap.add_argument("--module", choices=sorted(MODULES), default="composite", help="the file that differs")
     ap.add_argument("--cases", nargs="+", default=["20k@320x240", "donut@640x480", "100k@640x480"])
     ap.add_argument("--reps", type=int, default=7)
     ap.add_argument("--tag", default="")
@@ -166,17 +177,18 @@ def main():
     def git(*a):
         return subprocess.run(["git", *a], cwd=REPO, capture_output=True, text=True, check=True).stdout.strip()
 
-    base = load_base(args.base)
+    base = load_base(args.base, args.module)
     result = result_header(args) | {
         "base": git("rev-parse", "--short", args.base),
         "head": git("rev-parse", "--short", "HEAD"),
-        "dirty": bool(git("status", "--porcelain", "--", MODULE)),
+        "dirty": bool(git("status", "--porcelain", "--", MODULES[args.module][0])),
         "cases": [],
     }
     for name in args.cases:
-        result["cases"].append(run_case(name, base, args.reps))
+        result["cases"].append(run_case(name, base, args.reps, args.module))
         print(name, {k: round(r["ratio"], 3) for k, r in result["cases"][-1]["rows"].items()}, flush=True)
-    write_result(f"composite_revision{args.tag}{backend_suffix()}", result, markdown(result))
+    stem = "composite_revision" if args.module == "composite" else "binning_revision"
+    write_result(f"{stem}{args.tag}{backend_suffix()}", result, markdown(result))
 
 
 if __name__ == "__main__":

@@ -495,6 +495,30 @@ def test_depth_order_is_numpys_stable_argsort(n):
     np.testing.assert_array_equal(np.asarray(jax.jit(depth_order)(jnp.asarray(d))), np.argsort(d, kind="stable"))
 
 
+@pytest.mark.parametrize("case", ["mixed", "all empty", "overflow", "one"])
+def test_slot_owners_are_numpys_searchsorted(case):
+    """Which Gaussian each slot of the intersection list belongs to (a prefix maximum on the CPU) against
+    numpy's searchsorted of the running ends, clipped as the binning clips it: empty Gaussians at the
+    start, in runs and at the end, a buffer shorter than the total (overflow) and longer."""
+    from cfgs_jax.splat.binning import _slot_owners
+
+    rng = np.random.default_rng(len(case))
+    counts = {
+        "mixed": np.concatenate([[0, 0], rng.integers(0, 4, 500) * (rng.uniform(size=500) < 0.6), [0, 0, 0]]),
+        "all empty": np.zeros(7, int),
+        "overflow": rng.integers(0, 30, 300),
+        "one": np.array([5]),
+    }[case].astype(np.int32)
+    ends = np.cumsum(counts)
+    for capacity in (int(ends[-1]) // 2 + 1, int(ends[-1]) + 37):
+        slot = np.arange(capacity, dtype=np.int32)
+        owner, starts, total = jax.jit(_slot_owners)(jnp.asarray(counts), jnp.asarray(slot))
+        want = np.clip(np.searchsorted(ends, slot, side="right"), 0, len(counts) - 1)
+        np.testing.assert_array_equal(np.asarray(owner), want)
+        np.testing.assert_array_equal(np.asarray(starts), ends - counts)
+        assert int(total) == int(ends[-1])
+
+
 def test_sub_tile_lists_are_the_tile_lists_filtered_pair_by_pair():
     """Each 8×8 sub-tile's list is its 16×16 tile's list, in the same (depth) order, less exactly the
     Gaussians that reach α < 1/255 at every pixel centre of the sub-tile (checked pair by pair in float64,
