@@ -497,7 +497,7 @@ def test_depth_order_is_numpys_stable_argsort(n):
 
 @pytest.mark.parametrize("case", ["mixed", "all empty", "overflow", "one"])
 def test_slot_owners_are_numpys_searchsorted(case):
-    """Which Gaussian each slot of the intersection list belongs to (a prefix maximum on the CPU) against
+    """Which Gaussian each slot of the intersection list belongs to (a running count on the CPU) against
     numpy's searchsorted of the running ends, clipped as the binning clips it: empty Gaussians at the
     start, in runs and at the end, a buffer shorter than the total (overflow) and longer."""
     from cfgs_jax.splat.binning import _slot_owners
@@ -512,7 +512,7 @@ def test_slot_owners_are_numpys_searchsorted(case):
     ends = np.cumsum(counts)
     for capacity in (int(ends[-1]) // 2 + 1, int(ends[-1]) + 37):
         slot = np.arange(capacity, dtype=np.int32)
-        owner, starts, total = jax.jit(_slot_owners)(jnp.asarray(counts), jnp.asarray(slot))
+        owner, starts, total = jax.jit(_slot_owners, static_argnums=1)(jnp.asarray(counts), capacity)
         want = np.clip(np.searchsorted(ends, slot, side="right"), 0, len(counts) - 1)
         np.testing.assert_array_equal(np.asarray(owner), want)
         np.testing.assert_array_equal(np.asarray(starts), ends - counts)

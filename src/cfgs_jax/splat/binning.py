@@ -110,24 +110,24 @@ def depth_order(depths: Float[Array, " N"]) -> Int[Array, " N"]:
     return order.astype(jnp.int32)
 
 
-def _slot_owners(counts: Int[Array, " N"], slot: Int[Array, " C"]):
-    """Where each Gaussian's ``counts`` intersections go in the list, Gaussian after Gaussian: for every
-    ``slot`` the index of the Gaussian it belongs to (``searchsorted(ends, slot, side="right")``, N − 1
-    past the last, clipped to [0, N − 1]), each Gaussian's first slot and the total. On the CPU, where
-    XLA's binary search costs a gather per step per slot, the owner is a prefix maximum instead: each
-    listed Gaussian's index written at its first slot (distinct slots), carried forward by a scan."""
+def _slot_owners(counts: Int[Array, " N"], capacity: int):
+    """Where each Gaussian's ``counts`` intersections go in a list of ``capacity`` slots, Gaussian after
+    Gaussian: for every slot the index of the Gaussian it belongs to (``searchsorted(ends, slot, side="right")`` clipped to
+    [0, N − 1]), each Gaussian's first slot and the total. On the CPU, where XLA's binary search costs a
+    gather per step per slot, the same count #{i : ends_i ≤ slot} is a running sum of one-marks scattered
+    at the ends (those past the buffer dropped: they exceed every slot)."""
     n = counts.shape[0]
+    slot = jnp.arange(capacity, dtype=jnp.int32)
     if n == 0:
         return jnp.zeros(slot.shape, jnp.int32), counts, jnp.int32(0)
-    cpu = jax.default_backend() == "cpu"
-    ends = jax.lax.associative_scan(jnp.add, counts) if cpu else jnp.cumsum(counts)  # scan: several times faster there
+    ends = jnp.cumsum(counts)
     total, starts = ends[-1], ends - counts
-    if not cpu:
-        return jnp.clip(jnp.searchsorted(ends, slot, side="right"), 0, n - 1), starts, total
-    first = jnp.where(counts > 0, starts, slot.shape[0])  # the unlisted ones left out (dropped)
-    marks = jnp.zeros(slot.shape, jnp.int32).at[first].set(jnp.arange(n, dtype=jnp.int32), mode="drop")
-    owner = jax.lax.associative_scan(jnp.maximum, marks)
-    return jnp.where(slot < total, owner, n - 1), starts, total
+    if jax.default_backend() == "cpu":
+        marks = jnp.zeros(slot.shape, jnp.int32).at[ends].add(1, mode="drop")
+        owner = jnp.cumsum(marks)
+    else:
+        owner = jnp.searchsorted(ends, slot, side="right")
+    return jnp.clip(owner, 0, n - 1).astype(jnp.int32), starts, total
 
 
 def _sort_by_tile(tile: Int[Array, " C"], payload: tuple[Int[Array, " C"], ...], num_tiles: int):
@@ -170,7 +170,7 @@ def bin_gaussians(
     order = depth_order(jnp.where(counts > 0, proj.depths, jnp.inf))
     counts_o = counts[order]
     slot = jnp.arange(capacity, dtype=jnp.int32)
-    j, starts, total = _slot_owners(counts_o, slot)
+    j, starts, total = _slot_owners(counts_o, capacity)
     gid = order[j]
     local = slot - starts[j]
     lo = rects[0][gid]
