@@ -28,7 +28,6 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import importlib.util
-import statistics
 import subprocess
 import sys
 import tempfile
@@ -36,13 +35,14 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_splat import case, scene
-from common import backend_suffix, result_header, timed, write_result
+from common import alternately, backend_suffix, result_header, write_result
 
 REPO = Path(__file__).resolve().parents[1]
-#: --module: (the file that differs, the function of it that ``cfgs_jax.splat.render`` calls)
+#: --module: (the file that differs, the function of it that ``cfgs_jax.splat.render`` calls, what it is,
+#: the result files' stem)
 MODULES = {
-    "composite": ("src/cfgs_jax/splat/composite.py", "composite"),
-    "binning": ("src/cfgs_jax/splat/binning.py", "bin_gaussians"),
+    "composite": ("src/cfgs_jax/splat/composite.py", "composite", "XLA compositor", "composite_revision"),
+    "binning": ("src/cfgs_jax/splat/binning.py", "bin_gaussians", "binning", "binning_revision"),
 }
 KINDS = ("forward", "fwd+bwd", "fwd+bwd, multipliers")
 
@@ -125,15 +125,11 @@ def run_case(name: str, base, reps: int, module: str = "composite") -> dict:
         "base": compiled_frames(g, cam, config, target, getattr(base, attribute), attribute),
         "working tree": compiled_frames(g, cam, config, target, getattr(working, attribute), attribute),
     }
-    times = {(s, k): [] for s in sides for k in KINDS}
     outputs = {s: {k: jax.block_until_ready(f(*a)) for k, (f, a) in frames.items()} for s, frames in sides.items()}
-    for _ in range(reps):
-        for k in KINDS:
-            for s, frames in sides.items():
-                times[s, k].append(timed(*frames[k]))
+    seconds = alternately({(s, k): sides[s][k] for k in KINDS for s in sides}, reps)
     rows = {}
     for k in KINDS:
-        b, t = statistics.median(times["base", k]), statistics.median(times["working tree", k])
+        b, t = seconds["base", k], seconds["working tree", k]
         rows[k] = {
             "base_s": b,
             "working_s": t,
@@ -145,7 +141,7 @@ def run_case(name: str, base, reps: int, module: str = "composite") -> dict:
 
 def markdown(result: dict) -> str:
     lines = [
-        f"# The {'XLA compositor' if result['args']['module'] == 'composite' else 'binning'}: working tree against a base revision",
+        f"# The {MODULES[result['args']['module']][2]}: working tree against a base revision",
         "",
         f"Machine: {result['machine']}. Date: {result['date']}. Command: `{result['command']}`. Base revision "
         f"{result['base']}, working tree at {result['head']}{' with changes' if result['dirty'] else ''}. Whole frames "
@@ -187,8 +183,7 @@ def main():
     for name in args.cases:
         result["cases"].append(run_case(name, base, args.reps, args.module))
         print(name, {k: round(r["ratio"], 3) for k, r in result["cases"][-1]["rows"].items()}, flush=True)
-    stem = "composite_revision" if args.module == "composite" else "binning_revision"
-    write_result(f"{stem}{args.tag}{backend_suffix()}", result, markdown(result))
+    write_result(f"{MODULES[args.module][3]}{args.tag}{backend_suffix()}", result, markdown(result))
 
 
 if __name__ == "__main__":

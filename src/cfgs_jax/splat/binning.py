@@ -112,10 +112,10 @@ def depth_order(depths: Float[Array, " N"]) -> Int[Array, " N"]:
 
 def _slot_owners(counts: Int[Array, " N"], capacity: int):
     """Where each Gaussian's ``counts`` intersections go in a list of ``capacity`` slots, Gaussian after
-    Gaussian: for every slot the index of the Gaussian it belongs to (``searchsorted(ends, slot, side="right")`` clipped to
-    [0, N − 1]), each Gaussian's first slot and the total. On the CPU, where XLA's binary search costs a
-    gather per step per slot, the same count #{i : ends_i ≤ slot} is a running sum of one-marks scattered
-    at the ends (those past the buffer dropped: they exceed every slot)."""
+    Gaussian: for every slot the index of the Gaussian it belongs to (``searchsorted(ends, slot,
+    side="right")`` clipped to [0, N − 1]), each Gaussian's first slot and the total. On the CPU, where
+    XLA's binary search costs a gather per step per slot, the same count #{i : ends_i ≤ slot} is a running
+    sum of one-marks scattered at the ends (those past the buffer dropped: they exceed every slot)."""
     n = counts.shape[0]
     slot = jnp.arange(capacity, dtype=jnp.int32)
     if n == 0:
