@@ -325,6 +325,75 @@ def test_eval_refines_again_when_the_run_lacks_a_snapshot(protocol, tmp_path):
     assert json.loads(result.read_text())["steps"]["60"]["psnr"] == pytest.approx(kept["steps"]["60"]["psnr"], abs=1e-4)
 
 
+@pytest.mark.slow
+def test_eval_parts_run_apart_make_the_same_table(protocol, tmp_path):
+    """The protocol's parts run one by one on a finished evaluation whose Individual +N of d1, ablations,
+    rows and change detection were removed: each part makes its own files again, equal to the first
+    call's (the stages are deterministic), and --part all then only assembles the table."""
+    import shutil
+
+    from cfgs_jax.evaluation.protocol import run_protocol
+
+    data, out, raw = protocol
+    copy = tmp_path / "out"
+    shutil.copytree(out, copy)
+    before = json.loads((out / "table.json").read_text())
+    for path in ("run/individual_plus/d1", "run/ablations"):
+        shutil.rmtree(copy / path)
+    for name in ("rows.json", "change.json", "table.json", "table.md"):
+        (copy / name).unlink()
+
+    seen = []
+    made = run_protocol(
+        str(data), copy, raw, resume=True, progress=False, log=seen.append, part="individual", dates=["d1"]
+    )
+    assert made["dates"] == ["d1"] and any("date d1" in m for m in seen) and not any("date d0" in m for m in seen)
+    kept = json.loads((out / "run" / "individual_plus" / "d1" / "result.json").read_text())["steps"]
+    again = json.loads((copy / "run" / "individual_plus" / "d1" / "result.json").read_text())["steps"]
+    assert {k: v["psnr"] for k, v in again.items()} == pytest.approx({k: v["psnr"] for k, v in kept.items()}, abs=1e-4)
+    made = run_protocol(str(data), copy, raw, resume=True, progress=False, log=seen.append, part="ablations")
+    assert [r["row"] for r in made["rows"]] == ["Ours, α frozen 120", "Ours, o frozen 120"]
+    made = run_protocol(str(data), copy, raw, resume=True, progress=False, log=seen.append, part="fusion")
+    assert [r["row"] for r in made["rows"]] == ["Individual init", "Merged", "Ours 60", "Ours 120"]
+    assert made["change"] and (copy / "change.json").is_file() and not (copy / "table.json").exists()
+
+    seen = []
+    table = run_protocol(str(data), copy, raw, resume=True, progress=False, log=seen.append)
+    assert not any("Individual +" in m or "ablation" in m or "[eval] Ours" in m for m in seen), seen
+    assert [r["row"] for r in table["rows"]] == [r["row"] for r in before["rows"]]
+    for got, want in zip(table["rows"], before["rows"]):
+        assert (got["psnr"], got["ssim"]) == pytest.approx((want["psnr"], want["ssim"]), abs=1e-4), want["row"]
+    assert table["change"]["gaussians"]["f1"] == pytest.approx(before["change"]["gaussians"]["f1"], abs=1e-6)
+
+
+def test_eval_parts_name_the_part_to_run_first(tmp_path):
+    """A part whose input is missing, an unknown part, and --dates without the part it chooses for are
+    refused before any work, each naming what to run instead."""
+    import tomllib
+
+    from cfgs_jax import InputError
+    from cfgs_jax.evaluation.protocol import run_protocol
+
+    raw = tomllib.loads(TOML)
+    out = tmp_path / "out"
+    with pytest.raises(InputError) as e:
+        run_protocol(str(tmp_path), out, raw, part="individual", progress=False)
+    assert "needs the evaluation's fusion run" in str(e.value) and "--part train" in str(e.value)
+    with pytest.raises(InputError) as e:
+        run_protocol(str(tmp_path), out, raw, resume=True, part="ablations", progress=False)
+    assert "--part fusion" in str(e.value)
+    with pytest.raises(InputError) as e:
+        run_protocol(str(tmp_path), out, raw, resume=True, part="everything", progress=False)
+    assert e.value.field == "--part" and "known_transforms" in str(e.value)
+    with pytest.raises(InputError) as e:
+        run_protocol(str(tmp_path), out, raw, resume=True, part="fusion", dates=["d0"], progress=False)
+    assert e.value.field == "--dates"
+    with pytest.raises(InputError) as e:  # the tiny configuration fuses with the exact Sim(3)s only
+        run_protocol(str(tmp_path), out, raw, resume=True, part="known_transforms", progress=False)
+    assert e.value.field == "eval.compare_known_transforms"
+    assert not any(out.iterdir())  # nothing was written
+
+
 def test_eval_refuses_to_refine_an_extended_run_again(tmp_path):
     from cfgs_jax import InputError
     from cfgs_jax.evaluation.protocol import _refine_again_for_steps

@@ -18,6 +18,7 @@ import numpy as np
 
 from cfgs_jax import viz
 from cfgs_jax.errors import InputError
+from cfgs_jax.evaluation.protocol import PARTS
 from cfgs_jax.synthetic.presets import PRESETS
 
 
@@ -384,6 +385,7 @@ def _add_eval(sub, prog: str) -> None:
         [
             "--scene corals --config eval --out runs/eval_corals",
             "--scene corals --config benchmarks/eval_small.toml --out runs/eval_small --resume",
+            "--scene flood --config benchmarks/eval_large.toml --out runs/flood --part individual --dates d0 --resume",
         ],
         prog,
     )
@@ -392,6 +394,15 @@ def _add_eval(sub, prog: str) -> None:
     )
     _config_args(s, "fast")
     s.add_argument("--out", required=True, help="output folder")
+    s.add_argument(
+        "--part",
+        choices=PARTS,
+        default="all",
+        help="run one part of the protocol only, so that processes sharing --out run parts side by side: "
+        "train (the per-date models), then fusion, individual (Individual +N), known_transforms, and "
+        "ablations once the fusion's cross-init is done; 'all' (default) runs what is left and writes the table",
+    )
+    s.add_argument("--dates", nargs="+", metavar="DATE", help="with --part individual: these dates only")
     _resume_arg(s, "evaluation")
     _progress_arg(s)
     _devices_arg(s)

@@ -353,7 +353,13 @@ def cmd_eval(args) -> int:
         progress=not args.no_progress,
         log=console.print,
         mesh=_mesh(args),
+        part=args.part,
+        dates=args.dates,
     )
+    if args.part != "all":
+        made = ", ".join(r["row"] for r in table.get("rows", ())) or ", ".join(table.get("dates", ()))
+        console.print(f"part {args.part} done{': ' + made if made else ''}; --part all writes the table")
+        return 0
 
     t = Table(title=f"evaluation of {args.scene} ({len(table['dates'])} dates)")
     for c in ("method", "PSNR", "SSIM", "LPIPS", "Gaussians"):

@@ -413,35 +413,37 @@ def _refine_counts(run_dir: Path) -> dict | None:
     return {k: refine[k] for k in keys} if refine and all(k in refine for k in keys) else None
 
 
-def _with_known_transforms(ev: _Evaluation, data: Path, scene: str, run: RunDir, progress: bool, mesh) -> dict:
+def _with_known_transforms(
+    out: Path, setup: EvalSetup, scenes, data: Path, scene: str, run: RunDir, progress: bool, log, mesh
+) -> dict:
     """The fusion again from the same per-date models with the synthetic scene's exact Sim(3)s
     (``OUT/known_transforms/``: its run, rows and change detection, resumable): its Ours row at every
     step count of the evaluation (``rows``; ``row``, the last) and, with ``change_detection``, its change
     figures, beside the SfM-registered run's."""
-    out = ev.out / "known_transforms"
+    out = out / "known_transforms"
     run_dir = out / "run"
-    steps = ev.ec.steps
-    _refine_again_for_steps(out, ev.setup.fusion.tables, steps[:-1], ev.log)
+    steps = setup.eval.steps
+    _refine_again_for_steps(out, setup.fusion.tables, steps[:-1], log)
     run_fusion(
         run.dataset_paths,
         run_dir,
-        ev.setup.fusion,
+        setup.fusion,
         models=[run.date_dir(n) / "point_cloud.ply" for n in run.names],
         transforms=_known_transforms(data, run.dataset_paths, out),
         resume=(run_dir / "run.json").is_file(),
         progress=progress,
         evaluate=False,
         snapshots=steps[:-1],
-        log=ev.log,
+        log=log,
         mesh=mesh,
     )
     exact = RunDir.open(run_dir)
-    known = _Evaluation(out, run_dir, ev.setup, ev.names, ev.scenes, exact.sims(), ev.log, mesh)
+    known = _Evaluation(out, run_dir, setup, run.names, scenes, exact.sims(), log, mesh)
     rows = [
         known.fused_row(f"ours_{k}", f"Ours {k:,}", run_dir / "fused" if k == steps[-1] else exact.snapshot_dir(k))
         for k in steps
     ]
-    change = known.change(data, scene) if ev.ec.change_detection else None
+    change = known.change(data, scene) if setup.eval.change_detection else None
     return {"row": rows[-1], "rows": rows, "change": change}
 
 
@@ -516,9 +518,12 @@ def _refine_again_for_steps(out: Path, tables: dict, snapshots, log) -> None:
     (out / "change.json").unlink(missing_ok=True)
 
 
-def _fuse(scene, setup: EvalSetup, out: Path, progress: bool, log, mesh=None) -> tuple[Path, list, float]:
-    """Prepare the scene and run (or continue) its fusion with snapshots at the evaluation steps.
-    Returns the data directory, the date directories and the wall time."""
+def _fuse(
+    scene, setup: EvalSetup, out: Path, progress: bool, log, mesh=None, until: str | None = None
+) -> tuple[Path, list, float]:
+    """Prepare the scene and run (or continue) its fusion with snapshots at the evaluation steps
+    (``until="train"``: the per-date models only). Returns the data directory, the date directories
+    and the wall time."""
     data = prepare_scene(scene, setup.scene, out, progress=progress)
     dirs = date_dirs(data)
     ec = setup.eval
@@ -534,10 +539,79 @@ def _fuse(scene, setup: EvalSetup, out: Path, progress: bool, log, mesh=None) ->
         evaluate=False,
         transforms=_known_transforms(data, dirs, out) if ec.known_transforms else None,
         snapshots=ec.steps[:-1],
+        until=until,
         log=log,
         mesh=mesh,
     )
     return data, dirs, time.perf_counter() - t0
+
+
+#: The parts of the protocol, each resumable and each writing files no other part writes, so that
+#: separate processes (or machines sharing OUT) can run them side by side once their inputs exist:
+#: "train" the per-date models; "fusion" the fusion, its rows and change detection (after "train");
+#: "individual" Individual +N, of every date or of ``dates`` (after "train"); "ablations" (after the
+#: fusion's cross-timestep initialisation); "known_transforms" the fusion with the exact Sim(3)s
+#: (after "train"). "all" runs every part that is not done and writes the table.
+PARTS = ("all", "train", "fusion", "individual", "ablations", "known_transforms")
+#: The fusion stage each part needs done in ``OUT/run`` (None: it runs the fusion itself).
+_PART_NEEDS = {"individual": "train", "ablations": "cross_init", "known_transforms": "train"}
+
+
+def _opened_for(part: str, out: Path) -> RunDir:
+    """The evaluation's fusion run, refused with the part to run first when ``part``'s input is missing."""
+    need = _PART_NEEDS[part]
+    first = "train" if need == "train" else "fusion"
+    fix = f"run the part {first!r} first (--part {first}), or --part all"
+    if not (out / "run" / "run.json").is_file():
+        raise InputError(f"the part {part!r} needs the evaluation's fusion run", path=out / "run", fix=fix)
+    run = RunDir.open(out / "run", finished=False)
+    if not run.done(need):
+        raise InputError(
+            f"the part {part!r} needs the fusion's {need!r} stage, which is not done", path=run.path, fix=fix
+        )
+    return run
+
+
+def _run_part(part: str, scene: str, setup: EvalSetup, out: Path, dates, progress: bool, log, mesh) -> dict:
+    """One part of the protocol other than "all" (``PARTS``); returns what it made."""
+    if part in ("train", "fusion"):
+        data, _, seconds = _fuse(scene, setup, out, progress, log, mesh, until="train" if part == "train" else None)
+        if part == "train":
+            return {"part": part, "seconds": seconds}
+        run = RunDir.open(out / "run")
+        scenes = [train.read_scene(p, setup.fusion.train) for p in run.dataset_paths]
+        ev = _Evaluation(out, run.path, setup, run.names, scenes, run.sims(), log, mesh)
+        rows = ev.ours_rows()
+        truth = (data / "ground_truth.json").is_file()
+        change = ev.change(data, scene) if setup.eval.change_detection and truth else None
+        return {"part": part, "rows": rows, "change": change is not None}
+    run = _opened_for(part, out)
+    scenes = [train.read_scene(p, setup.fusion.train) for p in run.dataset_paths]
+    if part == "individual":
+        chosen = list(dates or run.names)
+        unknown = [d for d in chosen if d not in run.names]
+        if unknown:
+            raise InputError(
+                f"no dates {unknown} in the evaluation", field="--dates", fix=f"choose from {', '.join(run.names)}"
+            )
+        ec = setup.eval
+        plus = individual_plus(
+            run.path,
+            [sc for sc, n in zip(scenes, run.names) if n in chosen],
+            setup.fusion.train,
+            ec.steps,
+            setup.fusion.render,
+            ec.lpips_net,
+            progress,
+            log,
+        )
+        return {"part": part, "dates": sorted(plus)}
+    if part == "ablations":
+        ev = _Evaluation(out, run.path, setup, run.names, scenes, run.sims(), log, mesh)
+        return {"part": part, "rows": ev.ablation_rows()}
+    data = prepare_scene(scene, setup.scene, out, progress=progress)
+    known = _with_known_transforms(out, setup, scenes, data, scene, run, progress, log, mesh)
+    return {"part": part, "rows": known["rows"]}
 
 
 def run_protocol(
@@ -549,16 +623,37 @@ def run_protocol(
     progress: bool = True,
     log=print,
     mesh=None,
+    part: str = "all",
+    dates: list[str] | None = None,
 ) -> dict:
     """The whole protocol on one scene → ``out/table.json``, ``out/table.md``, ``out/figure.png``
     (and ``out/change.json`` where ground truth exists). Returns the table dict. An ``out`` holding an
     earlier evaluation is continued (finished stages skipped) only with ``resume=True``. ``mesh``: the
-    devices the fusion and the evaluation of its rows split their batches over."""
+    devices the fusion and the evaluation of its rows split their batches over. ``part`` (``PARTS``):
+    one part of the protocol only (``dates``: the dates of "individual"), returning what it made."""
+    if part not in PARTS:
+        raise InputError(f"unknown part {part!r}", field="--part", fix=f"use one of {', '.join(PARTS)}")
+    if dates and part != "individual":
+        raise InputError(
+            "--dates chooses the dates of the part 'individual'", field="--dates", fix="add --part individual"
+        )
     setup = EvalSetup.parse(raw)
     ec = setup.eval
     check_resume(out, resume)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
+    if part != "all":
+        if part == "ablations" and not ec.ablation_keys:
+            raise InputError(
+                "the configuration runs no ablations", field="eval.ablations", fix="list the ablations to run"
+            )
+        if part == "known_transforms" and not ec.compare_known_transforms:
+            raise InputError(
+                "the configuration does not compare with the exact Sim(3)s",
+                field="eval.compare_known_transforms",
+                fix="set it to true",
+            )
+        return _run_part(part, scene, setup, out, dates, progress, log, mesh)
     data, dirs, fusion_seconds = _fuse(scene, setup, out, progress, log, mesh)
     run = RunDir.open(out / "run")
     run_dir = run.path
@@ -575,7 +670,11 @@ def run_protocol(
     truth = (data / "ground_truth.json").is_file()
     change = ev.change(data, scene) if ec.change_detection and truth else None
     registered = ev.registration(data, run) if truth and not ec.known_transforms else None
-    known = _with_known_transforms(ev, data, scene, run, progress, mesh) if ec.compare_known_transforms else None
+    known = (
+        _with_known_transforms(out, setup, scenes, data, scene, run, progress, log, mesh)
+        if ec.compare_known_transforms
+        else None
+    )
     timings = read_json(run_dir / "timings.json", {})
     table = {
         "scene": scene,
