@@ -288,6 +288,11 @@ class _Evaluation:
     log: object
     mesh: object = None
 
+    @classmethod
+    def of(cls, out: Path, run: RunDir, setup: EvalSetup, log, mesh=None) -> _Evaluation:
+        """The evaluation of the registered fusion run ``run``: its dates' scenes, posed by its Sim(3)s."""
+        return cls(out, run.path, setup, run.names, _scenes(run, setup), run.sims(), log, mesh)
+
     def __post_init__(self):
         self.ec = self.setup.eval
         self.render_config = self.setup.fusion.render
@@ -386,6 +391,12 @@ class _Evaluation:
         keys = ("with", "rotation_residual_deg", "centre_residual_rel", "posed_on_persistent", "registered_date")
         return [e | {k: reg[e["date"]][k] for k in keys if k in reg[e["date"]]} for e in errors]
 
+    def change_if_asked(self, data: Path, scene: str) -> dict | None:
+        """``change`` where ``[eval] change_detection`` asks for it and the scene has ground truth, else None."""
+        if not (self.ec.change_detection and (data / "ground_truth.json").is_file()):
+            return None
+        return self.change(data, scene)
+
     def change(self, data: Path, scene: str) -> dict:
         """Change detection against the synthetic scene's ground truth (``change.json``), and its PR plot."""
         change = read_json(self.out / "change.json")
@@ -404,6 +415,11 @@ class _Evaluation:
             write_json(self.out / "change.json", change)
         pr_curve_plot(self.out / "change_pr.png", change, scene)
         return change
+
+
+def _scenes(run: RunDir, setup: EvalSetup) -> list:
+    """The run's per-date datasets, read as its training reads them."""
+    return [train.read_scene(p, setup.fusion.train) for p in run.dataset_paths]
 
 
 def _refine_counts(run_dir: Path) -> dict | None:
@@ -553,7 +569,7 @@ def _fuse(
 #: fusion's cross-timestep initialisation); "known_transforms" the fusion with the exact Sim(3)s
 #: (after "train"). "all" runs every part that is not done and writes the table.
 PARTS = ("all", "train", "fusion", "individual", "ablations", "known_transforms")
-#: The fusion stage each part needs done in ``OUT/run`` (None: it runs the fusion itself).
+#: The fusion stage each part needs done in ``OUT/run`` ("train" and "fusion" run the fusion themselves).
 _PART_NEEDS = {"individual": "train", "ablations": "cross_init", "known_transforms": "train"}
 
 
@@ -578,15 +594,13 @@ def _run_part(part: str, scene: str, setup: EvalSetup, out: Path, dates, progres
         data, _, seconds = _fuse(scene, setup, out, progress, log, mesh, until="train" if part == "train" else None)
         if part == "train":
             return {"part": part, "seconds": seconds}
-        run = RunDir.open(out / "run")
-        scenes = [train.read_scene(p, setup.fusion.train) for p in run.dataset_paths]
-        ev = _Evaluation(out, run.path, setup, run.names, scenes, run.sims(), log, mesh)
+        ev = _Evaluation.of(out, RunDir.open(out / "run"), setup, log, mesh)
         rows = ev.ours_rows()
-        truth = (data / "ground_truth.json").is_file()
-        change = ev.change(data, scene) if setup.eval.change_detection and truth else None
-        return {"part": part, "rows": rows, "change": change is not None}
+        return {"part": part, "rows": rows, "change": ev.change_if_asked(data, scene) is not None}
     run = _opened_for(part, out)
-    scenes = [train.read_scene(p, setup.fusion.train) for p in run.dataset_paths]
+    if part == "ablations":
+        return {"part": part, "rows": _Evaluation.of(out, run, setup, log, mesh).ablation_rows()}
+    scenes = _scenes(run, setup)
     if part == "individual":
         chosen = list(dates or run.names)
         unknown = [d for d in chosen if d not in run.names]
@@ -606,9 +620,6 @@ def _run_part(part: str, scene: str, setup: EvalSetup, out: Path, dates, progres
             log,
         )
         return {"part": part, "dates": sorted(plus)}
-    if part == "ablations":
-        ev = _Evaluation(out, run.path, setup, run.names, scenes, run.sims(), log, mesh)
-        return {"part": part, "rows": ev.ablation_rows()}
     data = prepare_scene(scene, setup.scene, out, progress=progress)
     known = _with_known_transforms(out, setup, scenes, data, scene, run, progress, log, mesh)
     return {"part": part, "rows": known["rows"]}
@@ -657,10 +668,8 @@ def run_protocol(
     data, dirs, fusion_seconds = _fuse(scene, setup, out, progress, log, mesh)
     run = RunDir.open(out / "run")
     run_dir = run.path
-    tc = setup.fusion.train
-    scenes = [train.read_scene(p, tc) for p in run.dataset_paths]
-    names, sims = run.names, run.sims()
-    ev = _Evaluation(out, run_dir, setup, names, scenes, sims, log, mesh)
+    ev = _Evaluation.of(out, run, setup, log, mesh)
+    scenes, names, sims = ev.scenes, ev.names, ev.sims
     rows = ev.ours_rows()
     release_if_near_limit()
     rows += ev.baseline_rows(progress)
@@ -668,7 +677,7 @@ def run_protocol(
         release_if_near_limit()
         rows += ev.ablation_rows()
     truth = (data / "ground_truth.json").is_file()
-    change = ev.change(data, scene) if ec.change_detection and truth else None
+    change = ev.change_if_asked(data, scene)
     registered = ev.registration(data, run) if truth and not ec.known_transforms else None
     known = (
         _with_known_transforms(out, setup, scenes, data, scene, run, progress, log, mesh)
