@@ -5,6 +5,7 @@
 #   bash benchmarks/eval_large.sh WORK          # start or continue, in the background; logs in WORK/*.log
 #   bash benchmarks/eval_large.sh WORK publish  # write results/eval_large_S.md for each finished scene
 #   bash benchmarks/eval_large.sh WORK stop     # stop the lanes; each scene checkpoints its step first
+#   SCENES="quake" bash benchmarks/eval_large.sh WORK   # only these scenes (default: flood corals quake)
 #
 # Each scene is the command `python -m cfgs_jax.pipeline eval --scene S --config benchmarks/eval_large.toml
 # --out WORK/S --resume --no-progress`, run as its parts (`--part`) so that both cores work: first
@@ -21,9 +22,10 @@ cd "$(dirname "$0")/.."
 work=$(realpath -m "${1:?usage: bash benchmarks/eval_large.sh WORK [publish]}")
 mkdir -p "$work"
 python=${PYTHON:-python}
+scene_names=${SCENES:-flood corals quake}
 
 if [ "${2:-}" = "publish" ]; then
-  for s in flood corals quake; do
+  for s in $scene_names; do
     if [ -f "$work/$s/table.md" ]; then
       "$python" benchmarks/eval_publish.py --scene "$s" --out "$work/$s" --config benchmarks/eval_large.toml \
         --name "eval_large_$s"
@@ -38,7 +40,7 @@ if [ "${2:-}" = "stop" ]; then
   # the drivers first (so that none starts its next part), then SIGTERM to each scene's processes: the
   # loop in progress ends its step and saves a checkpoint (cfgs_jax.stopping) before the process exits
   pkill -f -- "^bash -c .*(scenes|part [a-z]+ )" || true
-  for s in flood corals quake; do
+  for s in $scene_names; do
     pkill -TERM -f -- "--out $work/$s( |$)" && echo "$s: asked to stop" || true
   done
   exit 0
@@ -54,7 +56,7 @@ part() {  # part S PART [ARGS...]: one part of scene S's evaluation, logged to W
 }
 scenes() {  # each unfinished scene in turn: train, the two single-core lanes, then the table
   local s names first
-  for s in flood corals quake; do
+  for s in $scene_names; do
     [ -f "$work/$s/table.md" ] && continue
     pgrep -f -- "--out $work/$s( |$)" >/dev/null && continue  # another start is running it
     part "$s" train || continue
@@ -69,7 +71,7 @@ scenes() {  # each unfinished scene in turn: train, the two single-core lanes, t
   done
 }
 export -f part scenes
-export work python
+export work python scene_names
 # The compiled steps are kept on disk (JAX's persistent cache, shared with the tests' cache) so that a
 # restarted scene does not compile again (a training step took 10 minutes to compile on one busy core).
 export JAX_COMPILATION_CACHE_DIR=${JAX_COMPILATION_CACHE_DIR:-$HOME/.cache/cfgs_jax/xla}
@@ -79,4 +81,4 @@ export JAX_COMPILATION_CACHE_DIR=${JAX_COMPILATION_CACHE_DIR:-$HOME/.cache/cfgs_
 background() { setsid nohup bash -c "echo 19 >/proc/self/autogroup 2>/dev/null; nice -n 19 bash -c scenes" \
   >/dev/null 2>&1 </dev/null & }
 background
-echo "started: flood, corals, quake in turn, each on both cores (logs: $work/*.log, parts finished: $work/done.log)"
+echo "started: $scene_names in turn, each on both cores (logs: $work/*.log, parts finished: $work/done.log)"
