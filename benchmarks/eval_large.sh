@@ -4,8 +4,8 @@
 #
 #   bash benchmarks/eval_large.sh WORK          # start or continue, in the background; logs in WORK/*.log
 #   bash benchmarks/eval_large.sh WORK publish  # write results/eval_large_S.md for each finished scene
-#   bash benchmarks/eval_large.sh WORK stop     # stop the lanes; each scene checkpoints its step first
-#   SCENES="quake" bash benchmarks/eval_large.sh WORK   # only these scenes (default: flood corals quake)
+#   bash benchmarks/eval_large.sh WORK stop     # stop every scene's lanes; each checkpoints its step first
+#   SCENES="quake" bash benchmarks/eval_large.sh WORK   # start or publish only these scenes (default: all three)
 #
 # Each scene is the command `python -m cfgs_jax.pipeline eval --scene S --config benchmarks/eval_large.toml
 # --out WORK/S --resume --no-progress`, run as its parts (`--part`) so that both cores work: first
@@ -22,7 +22,8 @@ cd "$(dirname "$0")/.."
 work=$(realpath -m "${1:?usage: bash benchmarks/eval_large.sh WORK [publish]}")
 mkdir -p "$work"
 python=${PYTHON:-python}
-scene_names=${SCENES:-flood corals quake}
+all_scenes="flood corals quake"
+scene_names=${SCENES:-$all_scenes}
 
 if [ "${2:-}" = "publish" ]; then
   for s in $scene_names; do
@@ -40,7 +41,7 @@ if [ "${2:-}" = "stop" ]; then
   # the drivers first (so that none starts its next part), then SIGTERM to each scene's processes: the
   # loop in progress ends its step and saves a checkpoint (cfgs_jax.stopping) before the process exits
   pkill -f -- "^bash -c .*(scenes|part [a-z]+ )" || true
-  for s in $scene_names; do
+  for s in $all_scenes; do  # every scene: the line above stopped every scene's driver
     pkill -TERM -f -- "--out $work/$s( |$)" && echo "$s: asked to stop" || true
   done
   exit 0
