@@ -30,31 +30,28 @@ VARIANTS = [  # (label, overrides of the default [changes] table)
     ("view angle ≤ 15°", {"max_view_angle": 15.0}),
     ("training views only", {"views": "train"}),
     ("held-out views only", {"views": "test"}),
-    ("no gain, k = 1", {"gain_range": (1.0, 1.0), "neighbours": 1}),
-    ("gain, k = 1", {"neighbours": 1}),
-    ("no gain, k = 32", {"gain_range": (1.0, 1.0)}),
-    ("gain, k = 16", {"neighbours": 16}),
-    ("gain, k = 64", {"neighbours": 64}),
+    ("no gain, no pooling", {"gain_range": (1.0, 1.0), "pool_area": 0.0}),
+    ("gain, no pooling", {"pool_area": 0.0}),
+    ("no gain, pooled", {"gain_range": (1.0, 1.0)}),
+    ("gain, pooled over half the area", {"pool_area": 0.5 * 1e-3}),
+    ("gain, pooled over twice the area", {"pool_area": 2 * 1e-3}),
     ("no growth", {"grow_above": 0.5}),
     ("grow above 0.25", {"grow_above": 0.25}),
-    (
-        "link 5, completion colour 0.1 in link steps (the detector before)",
-        {"link_factor": 5.0, "complete_colour": 0.1, "complete_link": 5.0},
-    ),
-    ("link 5", {"link_factor": 5.0}),
-    ("link 4.5", {"link_factor": 4.5}),
-    ("link 3", {"link_factor": 3.0}),
-    ("link 3, grow above 0.25", {"link_factor": 3.0, "grow_above": 0.25}),
+    ("link 1.5", {"link_reach": 1.5}),
+    ("link 3", {"link_reach": 3.0}),
+    ("link 1.5, grow above 0.25", {"link_reach": 1.5, "grow_above": 0.25}),
+    ("no region size bound", {"min_region_area": 0.0}),
+    ("regions ≥ 0.1 ‰ of a view", {"min_region_area": 1e-4}),
+    ("regions ≥ 0.5 ‰ of a view", {"min_region_area": 5e-4}),
     ("τ = 0.05", {"threshold": 0.05}),
     ("τ = 0.07", {"threshold": 0.07}),
-    ("no colour completion", {"complete_hops": 0}),
-    ("colour completion, 8 hops", {"complete_hops": 8}),
-    ("colour completion, 32 hops", {"complete_hops": 32}),
+    ("no colour completion", {"complete_within": 0.0}),
+    ("colour completion within 0.5 diameters", {"complete_within": 0.5}),
+    ("colour completion within 2 diameters", {"complete_within": 2.0}),
     ("colour completion, colour 0.05", {"complete_colour": 0.05}),
     ("colour completion, colour 0.1", {"complete_colour": 0.1}),
-    ("colour completion, steps of 4 spacings", {"complete_link": 4.0}),
-    ("colour completion, steps of 5 spacings", {"complete_link": 5.0}),
-    ("colour completion, steps of 6 spacings", {"complete_link": 6.0}),
+    ("colour completion, links of 2 reaches", {"complete_reach": 2.0}),
+    ("colour completion, links of 4 reaches", {"complete_reach": 4.0}),
     ("colour completion across dates", {"complete_across_dates": True}),
     ("no carried absence", {"carry_absence": False}),
     ("pixels changed above 0.5 (a majority)", {"pixel_threshold": 0.5}),
@@ -181,7 +178,7 @@ def main():
     names = list(run.names)
     masks_test = date_masks(data, run.scenes, run.sims, names, "test")
     masks = date_masks(data, run.scenes, run.sims, names)
-    table = gt_change.gaussianchange_table(
+    table = gt_change.gaussian_change_table(
         run.model, masks, [m.cameras for m in masks], len(gt["objects"]), gt_change.OqRuleConfig(surface_threshold=0)
     )
     rows = []

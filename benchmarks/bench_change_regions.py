@@ -68,7 +68,7 @@ def _statistics(run, data: Path, cache: Path, changes_config, render_config):
         stats = pair_statistics(
             model, views, changes_config, support_cameras=support, render_config=render_config, progress=progress
         )
-        arrays = {}
+        arrays = {f"pixels_{q}": np.asarray(n) for q, n in stats.pixels.items()}
         for (p, q), (rows, sums, seen) in stats.pairs.items():
             arrays |= {f"{p}_{q}_rows": rows, f"{p}_{q}_sums": sums, f"{p}_{q}_seen": seen}
         tmp = cache / "pair_statistics.tmp.npz"
@@ -77,9 +77,11 @@ def _statistics(run, data: Path, cache: Path, changes_config, render_config):
         seconds["pair_statistics"] = time.perf_counter() - t0
     (cache / "seconds.json").write_text(json.dumps(seconds))
     with np.load(stats_file) as f:
-        keys = sorted({tuple(int(x) for x in k.split("_")[:2]) for k in f.files})
+        keys = sorted({tuple(int(x) for x in k.split("_")[:2]) for k in f.files if not k.startswith("pixels_")})
         pairs = {(p, q): (f[f"{p}_{q}_rows"], f[f"{p}_{q}_sums"], f[f"{p}_{q}_seen"]) for p, q in keys}
-    return PairStatistics(len(model.origin), model.num_dates, pairs), np.load(labels_file), seconds
+        pixels = {int(k.split("_")[1]): int(f[k]) for k in f.files if k.startswith("pixels_")}
+    stats = PairStatistics(len(model.origin), model.num_dates, pairs, pixels)
+    return stats, np.load(labels_file), seconds
 
 
 def change_table(run, data: Path, render_config) -> tuple[dict, list, list, dict]:
@@ -114,14 +116,14 @@ def view_cameras(run, config) -> list:
 
 
 def regions_by_pair(model, stats, config, cameras, render_config=None) -> dict:
-    """Per date pair p < q: the regions of the ``changes`` command under ``config`` and [N] region index
-    (``cameras``: each date's views, for carried absence)."""
+    """Per date pair p < q: the regions of the ``changes`` command under ``config``, [N] region index and
+    [N] known at both dates (``cameras``: each date's views, for carried absence)."""
     from cfgs_jax.changes import evidence_from
     from cfgs_jax.changes.regions import every_pair_regions
 
     ev = evidence_from(stats, np.asarray(model.gaussians.means, np.float64), config)
     pairs = every_pair_regions(ev, model, config, cameras=cameras, render_config=render_config)
-    return {pq: (regions, member) for pq, (_, _, regions, member) in pairs.items()}
+    return {pq: (regions, member, known) for pq, (_, known, regions, member) in pairs.items()}
 
 
 def score_rule(model, stats, labels, changed_objects, config, cameras, render_config=None) -> dict:
@@ -130,23 +132,23 @@ def score_rule(model, stats, labels, changed_objects, config, cameras, render_co
 
     names = [d.name for d in model.dates]
     per_pair, found, changed, false = {}, 0, 0, []
-    for (p, q), (regions, member) in regions_by_pair(model, stats, config, cameras, render_config).items():
+    for (p, q), (regions, member, known) in regions_by_pair(model, stats, config, cameras, render_config).items():
         truth = changed_objects.get((p, q), set())
-        objs = region_scores(regions, member, labels, truth)
+        objs = region_scores(regions, member, labels, truth, known)
         found += len(objs["found"])
         changed += len(truth)
         pair_false = [
             {"pair": f"{names[p]}↔{names[q]}", "object": r["object"], "gaussians": r["gaussians"],
-             "seeds": r["seeds"], "kind": r["kind"], "extent": _extent(r),
+             "seeds": r["seeds"], "area": r["area"], "kind": r["kind"], "extent": _extent(r),
              "mean_score": r["mean_score"]}
             for r in regions
-            if r["object"] not in truth
+            if r["false"]
         ]  # fmt: skip
         false += pair_false
         per_pair[f"{names[p]}↔{names[q]}"] = {
             "changed_objects": sorted(int(x) for x in truth),
             "found_objects": objs["found"],
-            "regions": [(r["gaussians"], r["seeds"], r["object"], _extent(r)) for r in regions],
+            "regions": [(r["gaussians"], r["seeds"], r["object"], _extent(r), r["area"]) for r in regions],
             "false_regions": len(pair_false),
         }
     return {
@@ -155,8 +157,8 @@ def score_rule(model, stats, labels, changed_objects, config, cameras, render_co
         "false_regions": len(false),
         "false": false,
         "per_pair": per_pair,
-        "seeds_of_true_regions": sorted(
-            s for v in per_pair.values() for _, s, o, _ in v["regions"] if o in v["changed_objects"]
+        "areas_of_true_regions": sorted(
+            a for v in per_pair.values() for _, _, o, _, a in v["regions"] if o in v["changed_objects"]
         ),
     }
 
@@ -214,13 +216,14 @@ def markdown(r: dict) -> str:
         f"and the object labels {r['seconds'].get('object_labels', float('nan')):.0f} s when computed (not a timed "
         "measurement: other jobs may have shared the machine).",
         "",
-        "| rule | changed objects found | false regions | smallest true region (seeds) | false regions: seeds (object, longest side) |",
+        "| rule | changed objects found | false regions | smallest true region (‰ of a view) | false regions: ‰ of a view (object, longest side) |",
         "|---|---:|---:|---:|---|",
     ]
     for label, s in r["rules"].items():
-        small = min(s["seeds_of_true_regions"]) if s["seeds_of_true_regions"] else "–"
+        small = f"{1000 * min(s['areas_of_true_regions']):.3f}" if s["areas_of_true_regions"] else "–"
         falses = ", ".join(
-            f"{f['seeds']} ({f['object']}, {f['extent']:.2f})" for f in sorted(s["false"], key=lambda f: -f["seeds"])
+            f"{1000 * f['area']:.3f} ({f['object']}, {f['extent']:.2f})"
+            for f in sorted(s["false"], key=lambda f: -f["area"])
         )
         lines.append(
             f"| {label} | {s['found_objects']} / {s['changed_objects']} | {s['false_regions']} | {small} | "
@@ -252,9 +255,9 @@ def markdown(r: dict) -> str:
             )
         lines.append("")
     first = next(iter(r["rules"].values()))
-    lines += ["Per pair under the first rule (regions as Gaussians, seeds, object, longest side):", ""]
+    lines += ["Per pair under the first rule (regions as Gaussians, seeds, object, longest side, ‰ of a view):", ""]
     for pair, v in first["per_pair"].items():
-        regions = ", ".join(f"({g}, {k}, {o}, {e:.2f})" for g, k, o, e in v["regions"]) or "none"
+        regions = ", ".join(f"({g}, {k}, {o}, {e:.2f}, {1000 * a:.3f})" for g, k, o, e, a in v["regions"]) or "none"
         lines.append(f"- {pair}: changed {v['changed_objects']}, found {v['found_objects']}, regions {regions}")
     return "\n".join(lines) + "\n"
 

@@ -3,6 +3,8 @@ and hand-built scenes."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -29,8 +31,7 @@ from cfgs_jax.changes.regions import (
     complete_by_colour,
     hull_volume,
     image_regions,
-    median_spacing,
-    min_region_seeds,
+    local_reach,
     pair_regions,
     regions_3d,
 )
@@ -112,20 +113,46 @@ def test_gain_fit_is_the_least_squares_minimum_over_the_gain_range():
 
 
 def test_pooled_evidence_hand_case():
-    """Two Gaussians with hand sums, no gain: E± = C − 2A± + B±; pooled with k = 2 both get
-    √(ΣE⁺/3ΣW) − √(ΣE⁻/3ΣW); alone (k = 1) each its own; an unusable one gets 0 and is no neighbour."""
+    """Two Gaussians with hand sums, no gain, 100 pixels of views (areas 0.02 and 0.01): E± = C − 2A± + B±;
+    pooled over 0.025 of a view both get √(ΣE⁺/3ΣW) − √(ΣE⁻/3ΣW); over 0.015 the first (0.02 alone) keeps
+    its own and the second (0.01) takes the first in; unpooled each its own; an unusable one gets 0 and is
+    no neighbour. Random sums: the pooled sets of a brute-force walk, nearest first, up to the area."""
     sums = np.array([[2.0, 1.0, 1.5, 3.0, 3.0, 3.3], [1.0, 0.5, 0.8, 0.6, 0.5, 0.9], [5.0, 9, 9, 9, 9, 9]])
     e_plus = sums[:, 5] - 2 * sums[:, 1] + sums[:, 2]  # 2.8, 0.7
     e_minus = sums[:, 5] - 2 * sums[:, 3] + sums[:, 4]  # 0.3, 0.2
     means = np.array([[0.0, 0, 0], [1.0, 0, 0], [0.1, 0, 0]])
     usable = np.array([True, True, False])
-    cfg = ChangesConfig(neighbours=2, gain_range=(1.0, 1.0))
-    got = pooled_evidence(sums, means, usable, cfg)
+    no_gain = ChangesConfig(gain_range=(1.0, 1.0))
+    got = pooled_evidence(sums, means, usable, dataclasses.replace(no_gain, pool_area=0.025), 100)
     both = np.sqrt(e_plus[:2].sum() / 9.0) - np.sqrt(e_minus[:2].sum() / 9.0)
     np.testing.assert_allclose(got, [both, both, 0.0], rtol=1e-12)
-    alone = pooled_evidence(sums, means, usable, ChangesConfig(neighbours=1, gain_range=(1.0, 1.0)))
     want = np.sqrt(e_plus[:2] / (3 * sums[:2, 0])) - np.sqrt(e_minus[:2] / (3 * sums[:2, 0]))
+    half = pooled_evidence(sums, means, usable, dataclasses.replace(no_gain, pool_area=0.015), 100)
+    np.testing.assert_allclose(half, [want[0], both, 0.0], rtol=1e-12)
+    alone = pooled_evidence(sums, means, usable, dataclasses.replace(no_gain, pool_area=0.0), 100)
     np.testing.assert_allclose(alone, [*want, 0.0], rtol=1e-12)
+    rng = np.random.default_rng(4)
+    m = 60
+    sums = rng.uniform(0.1, 1.0, (m, 6))
+    means = rng.normal(size=(m, 3))
+    usable = rng.uniform(size=m) > 0.2
+    got = pooled_evidence(sums, means, usable, dataclasses.replace(no_gain, pool_area=0.05), 40.0)
+    e_plus = sums[:, 5] - 2 * sums[:, 1] + sums[:, 2]
+    e_minus = sums[:, 5] - 2 * sums[:, 3] + sums[:, 4]
+    for i in range(m):
+        if not usable[i]:
+            assert got[i] == 0.0
+            continue
+        order = [j for j in np.argsort(np.linalg.norm(means - means[i], axis=1), kind="stable") if usable[j]]
+        taken, covered = [], 0.0
+        for j in order:
+            if covered >= 0.05:
+                break
+            taken.append(j)
+            covered += sums[j, 0] / 40.0
+        ep, em = np.clip(e_plus[taken], 0, None).sum(), np.clip(e_minus[taken], 0, None).sum()
+        w = sums[taken, 0].sum()
+        assert got[i] == pytest.approx(np.sqrt(ep / (3 * w)) - np.sqrt(em / (3 * w)), rel=1e-9)
 
 
 def _two_date_scene(gain: float):
@@ -155,7 +182,7 @@ def test_a_removed_blob_is_changed_and_a_brightened_persistent_one_is_not():
     """B is scored changed at date 1 (score > 0.5), A not, under a 1.4× exposure change; only the pairs
     asked for are computed; B's footprint in a date-0 view is in the pixel change mask, A's is not."""
     model, views = _two_date_scene(gain=1.4)
-    cfg = ChangesConfig(neighbours=1)
+    cfg = ChangesConfig(pool_area=0.0)
     ev = change_evidence(model, views, cfg, pairs=[(0, 1)])
     assert ev.computed[:, 1].tolist() == [True, True, False] and not ev.computed[:, 0].any()
     assert ev.observed[:2, 1].all()
@@ -186,9 +213,7 @@ def test_detect_finds_the_removed_blob_as_a_region_and_masks_its_pixels_only():
     from cfgs_jax.changes import detect
 
     model, views = _two_date_scene(gain=1.4)
-    cfg = ChangesConfig(
-        neighbours=1, min_region_gaussians=1, min_region_share=0.0, min_region_pixels=1, complete_hops=0
-    )
+    cfg = ChangesConfig(pool_area=0.0, min_region_area=0.0, min_image_area=0.0, complete_within=0.0)
     found = detect(model, views, cfg, pairs=[(1, 0)])
     assert list(found.pairs) == [(0, 1)]
     change = found.pairs[(0, 1)]
@@ -228,8 +253,8 @@ def test_changes_config_validates():
         ChangesConfig(threshold=0.0)
     with pytest.raises(InputError, match="changes.pixel_threshold"):
         ChangesConfig(pixel_threshold=1.0)
-    with pytest.raises(InputError, match="changes.neighbours"):
-        ChangesConfig(neighbours=0)
+    with pytest.raises(InputError, match="changes.pool_area"):
+        ChangesConfig(pool_area=-0.1)
     with pytest.raises(InputError, match="changes.views"):
         ChangesConfig(views="validation")
     with pytest.raises(InputError, match="changes.grow_above"):
@@ -240,6 +265,30 @@ def test_changes_config_validates():
         ChangesConfig(support_views=0)
     with pytest.raises(InputError, match="changes.dates_per_pass"):
         ChangesConfig(dates_per_pass=0)
+    with pytest.raises(InputError, match="changes.min_region_area"):
+        ChangesConfig(min_region_area=1.0)
+    with pytest.raises(InputError, match="changes.link_reach"):
+        ChangesConfig(link_reach=0.0)
+    with pytest.raises(InputError, match="changes.complete_within"):
+        ChangesConfig(complete_within=-1.0)
+
+
+def test_retired_changes_keys_are_read_with_a_message_naming_the_new_key():
+    """A ``[changes]`` table of an earlier release (keys counted in Gaussians, pixels or the model's
+    median spacing) still reads: each retired key is ignored with a warning that names its replacement,
+    and the other keys keep their values; a key that never existed is still an error."""
+    from cfgs_jax.config import RetiredKeyWarning, from_dict
+
+    old = {"threshold": 0.05, "link_factor": 4.0, "min_region_gaussians": 16, "min_region_pixels": 8}
+    with pytest.warns(RetiredKeyWarning) as caught:
+        cfg = from_dict(ChangesConfig, old, where="changes")
+    messages = " ".join(str(w.message) for w in caught)
+    assert "changes.link_factor" in messages and "changes.link_reach" in messages
+    assert "changes.min_region_gaussians" in messages and "changes.min_region_area" in messages
+    assert "changes.min_region_pixels" in messages and "changes.min_image_area" in messages
+    assert cfg.threshold == 0.05 and cfg.link_reach == ChangesConfig().link_reach
+    with pytest.raises(InputError, match="changes.link_factr"):
+        from_dict(ChangesConfig, {"link_factr": 4.0}, where="changes")
 
 
 def test_spread_cameras_is_a_farthest_point_sample():
@@ -321,85 +370,101 @@ def test_dates_tested_in_one_pass_equal_one_pair_at_a_time():
             np.testing.assert_array_equal(shared.pairs[pair][2], seen)
 
 
-def test_link_by_extent_joins_touching_splats_only():
-    """With reaches, points link where reach_i + reach_j exceeds their distance, else only within the
-    radius: a row of points 1 apart with reach 0.6 is one component, with reach 0.4 five; one point with
-    a long reach links to a far neighbour; the brute-force graph over every pair agrees on random points."""
+def test_links_join_splats_whose_reaches_touch_only():
+    """Points link where reach_i + reach_j exceeds their distance: a row of points 1 apart with reach 0.6
+    is one component, with reach 0.4 five; one point with a long reach links to a far neighbour; the
+    brute-force graph over every pair agrees on random points. ``local_reach`` is the larger of the
+    extent and the nearest-neighbour distance."""
     row = np.stack([np.arange(5.0), np.zeros(5), np.zeros(5)], axis=1)
-    assert len(np.unique(cluster_labels(row, 0.5, np.full(5, 0.6)))) == 1
-    assert len(np.unique(cluster_labels(row, 0.5, np.full(5, 0.4)))) == 5
+    assert len(np.unique(cluster_labels(row, np.full(5, 0.6)))) == 1
+    assert len(np.unique(cluster_labels(row, np.full(5, 0.4)))) == 5
     pair = np.array([[0.0, 0, 0], [3.0, 0, 0]])
-    assert len(np.unique(cluster_labels(pair, 0.5, np.array([2.9, 0.2])))) == 1  # 2.9 + 0.2 > 3
-    assert len(np.unique(cluster_labels(pair, 0.5, np.array([2.7, 0.2])))) == 2
+    assert len(np.unique(cluster_labels(pair, np.array([2.9, 0.2])))) == 1  # 2.9 + 0.2 > 3
+    assert len(np.unique(cluster_labels(pair, np.array([2.7, 0.2])))) == 2
     rng = np.random.default_rng(3)
     pts, reach = rng.uniform(0, 10, (300, 3)), rng.exponential(0.3, 300)
     d = np.linalg.norm(pts[:, None] - pts[None], axis=-1)
-    linked = (d < 0.4) | (d < reach[:, None] + reach[None])
+    linked = d < reach[:, None] + reach[None]
     from scipy.sparse.csgraph import connected_components as components
 
     _, truth = components(linked, directed=False)
-    got = cluster_labels(pts, 0.4, reach)
+    got = cluster_labels(pts, reach)
     same = got[:, None] == got[None]
     np.testing.assert_array_equal(same, truth[:, None] == truth[None])
+    nearest = np.sort(d + np.diag(np.full(300, np.inf)), axis=1)[:, 0]
+    extents = rng.exponential(0.3, 300)
+    np.testing.assert_allclose(local_reach(pts, extents), np.maximum(extents, nearest))
 
 
 def test_regions_hand_cases():
-    """Two point clouds 10 apart are two regions (the small third cloud too few); kinds follow the sign
-    of the presence difference; hull volume of the unit cube's corners is 1; image areas by hand."""
+    """Two point clouds 10 apart are two regions (the small third cloud covers too little of a view);
+    kinds follow the sign of the presence difference; hull volume of the unit cube's corners is 1; image
+    areas by hand, bounded by a share of the image."""
     rng = np.random.default_rng(0)
     a, b, c = rng.normal(0, 0.3, (40, 3)), rng.normal(0, 0.3, (25, 3)) + 10, rng.normal(0, 0.1, (3, 3)) - 10
     pts = np.concatenate([a, b, c])
-    assert len(np.unique(cluster_labels(pts, 2.0))) == 3
+    reach = local_reach(pts, np.zeros(68))
+    assert len(np.unique(cluster_labels(pts, 2.0 * reach))) == 3
     diff = np.concatenate([np.full(40, 0.9), np.full(25, -0.8), np.full(3, 0.7)])
-    regions, member = regions_3d(pts, np.ones(68, bool), diff, spacing=median_spacing(pts), min_gaussians=16)
+    area = np.full(68, 1e-4)
+    regions, member = regions_3d(pts, np.ones(68, bool), diff, reach=reach, area=area, min_area=1e-3)
     assert [(r["kind"], r["gaussians"]) for r in regions] == [("disappeared", 40), ("appeared", 25)]
+    assert [r["area"] for r in regions] == pytest.approx([40e-4, 25e-4])
     assert (member[:40] == 0).all() and (member[40:65] == 1).all() and (member[65:] == -1).all()
     np.testing.assert_allclose(regions[1]["centroid"], b.mean(0))
-    # hysteresis: 20 seeds and 20 candidates in one cloud form one region of 40; a cloud of candidates
-    # without seeds forms none
+    # hysteresis: 20 seeds and 20 candidates in one cloud form one region of 40, its area the seeds'; a
+    # cloud of candidates without seeds forms none
     seeds = np.zeros(68, bool)
     seeds[:20] = True
-    grown, member = regions_3d(pts, seeds, diff, spacing=median_spacing(pts), candidates=np.ones(68, bool))
+    grown, member = regions_3d(pts, seeds, diff, reach=reach, candidates=np.ones(68, bool), area=area)
     assert [(r["gaussians"], r["seeds"]) for r in grown] == [(40, 20)] and (member[40:] == -1).all()
+    assert grown[0]["area"] == pytest.approx(20e-4)
+    with pytest.raises(InputError, match="area"):
+        regions_3d(pts, seeds, diff, reach=reach, min_area=1e-3)
     corners = np.array([[x, y, z] for x in (0, 1) for y in (0, 1) for z in (0, 1)], float)
     assert hull_volume(corners) == pytest.approx(1.0) and hull_volume(corners[:3]) == 0.0
     mask = np.zeros((10, 12), bool)
     mask[1:4, 1:5] = True  # 12 pixels
     mask[6:9, 8:10] = True  # 6 pixels
     mask[9, 10] = True  # diagonal neighbour of the second area (8-connected): 7
-    mask[0, 11] = True  # a lone pixel, below min_pixels
-    areas, labels = image_regions(mask, mask.astype(float) * 0.8, min_pixels=2)
+    mask[0, 11] = True  # a lone pixel, below the bound
+    areas, labels = image_regions(mask, mask.astype(float) * 0.8, min_area=2 / 120)
     assert [(r["area_pixels"], r["bbox_xyxy"]) for r in areas] == [(12, [1, 1, 4, 3]), (7, [8, 6, 10, 9])]
+    assert [r["area"] for r in areas] == pytest.approx([12 / 120, 7 / 120])
     assert labels[0, 11] == 0 and (labels[mask & (labels > 0)] > 0).sum() == 19
+    # the same image at twice the resolution (every pixel a 2×2 block) keeps the same areas
+    areas2, _ = image_regions(np.kron(mask, np.ones((2, 2), bool)), np.kron(mask, np.ones((2, 2))), min_area=2 / 120)
+    assert [r["area"] for r in areas2] == pytest.approx([12 / 120, 7 / 120])
 
 
-def test_region_size_bound_follows_the_share_of_the_two_dates_gaussians():
-    """Two clouds of changed Gaussians of date 0 (60 and 20) among 10 000 Gaussians of dates 0 and 1
-    and 5 000 of date 2: at a share of 0.004 the pair (0, 1) needs ⌈40⌉ seeds (the small cloud goes), the
-    pair (0, 2) ⌈(2 680 + 5 000) · 0.004⌉ = 31 seeds; at share 0 the absolute bound (16) alone."""
-    rng = np.random.default_rng(3)
-    n0, n1, n2 = 2680, 7320, 5000
-    origin = np.repeat([0, 1, 2], [n0, n1, n2])
-    means = rng.uniform(-50, 50, (len(origin), 3))
-    means[:60] = rng.normal(0, 0.3, (60, 3))
-    means[60:80] = rng.normal(0, 0.3, (20, 3)) + 40
-    score = np.zeros((len(origin), 3))
-    score[:80, 1] = score[:80, 2] = 0.9  # date 0's two clouds are gone at dates 1 and 2
-    known = np.ones_like(score, bool)
-    evidence = ChangeEvidence(score, score, known, known)
-    spacing = median_spacing(means)
-    sizes = {}
-    for share in (0.0, 0.004):
-        cfg = ChangesConfig(min_region_share=share, complete_hops=0)
-        for q in (1, 2):
-            assert min_region_seeds(origin, 0, q, cfg) == max(16, int(np.ceil(share * (n0 + (n1 if q == 1 else n2)))))
-            *_, regions, _ = pair_regions(evidence, origin, means, 0, q, cfg, spacing=spacing)
-            sizes[(share, q)] = [r["seeds"] for r in regions]
-    assert sizes[(0.0, 1)] == sizes[(0.0, 2)] == [60, 20]
-    assert sizes[(0.004, 1)] == [60] and min_region_seeds(origin, 0, 1, ChangesConfig(min_region_share=0.004)) == 40
-    assert sizes[(0.004, 2)] == [60] and min_region_seeds(origin, 0, 2, ChangesConfig(min_region_share=0.004)) == 31
-    with pytest.raises(InputError, match="min_region_share"):
-        ChangesConfig(min_region_share=1.0)
+def test_regions_keep_the_same_objects_when_drawn_with_ten_times_the_gaussians():
+    """One object and one noise patch, each seen as the same share of a view, drawn once with few large
+    Gaussians and once with ten times as many smaller ones (a reconstruction of higher resolution): the
+    same regions survive (the object, not the patch) and each keeps its area; the scene scaled by 10
+    gives the same regions. A bound counted in Gaussians would keep the dense noise patch."""
+    rng = np.random.default_rng(5)
+    bound = ChangesConfig().min_region_area
+
+    def scene(n_object, n_patch, scale=1.0):
+        obj = rng.uniform(0, 1, (n_object, 3))
+        patch = rng.uniform(0, 0.2, (n_patch, 3)) + [3.0, 0, 0]
+        ground = rng.uniform([-2, -2, -0.3], [6, 3, -0.2], (20 * (n_object + n_patch), 3))
+        pts = np.concatenate([obj, patch, ground]) * scale
+        size = (1.0 / n_object) ** (1 / 3)  # extents shrink as the count grows
+        extents = np.full(len(pts), 0.5 * size * scale)
+        area = np.concatenate([np.full(n_object, 100 * bound / n_object), np.full(n_patch, 0.5 * bound / n_patch)])
+        area = np.concatenate([area, np.zeros(len(ground))])
+        seeds = np.arange(len(pts)) < n_object + n_patch
+        return pts, extents, area, seeds
+
+    out = []
+    for n, scale in ((100, 1.0), (1000, 1.0), (100, 10.0)):
+        pts, extents, area, seeds = scene(n, n // 2, scale)
+        diff = np.where(seeds, 0.9, 0.0)
+        regions, member = regions_3d(pts, seeds, diff, reach=local_reach(pts, extents), area=area, min_area=bound)
+        out.append([(r["gaussians"], r["area"] / bound) for r in regions])
+        assert (member[:n] == 0).all() and (member[n:] == -1).all()
+    assert out[0] == [(100, pytest.approx(100))] and out[1] == [(1000, pytest.approx(100))] and out[2] == out[0]
 
 
 def test_regions_split_neighbours_of_opposite_kind_and_join_colocated_ones():
@@ -410,28 +475,31 @@ def test_regions_split_neighbours_of_opposite_kind_and_join_colocated_ones():
     b = rng.uniform(0, 1, (300, 3)) + [1.02, 0, 0]  # touches a along one face
     pts = np.concatenate([a, b])
     diff = np.concatenate([np.full(300, 0.9), np.full(300, -0.9)])
-    regions, member = regions_3d(pts, np.ones(600, bool), diff, spacing=median_spacing(pts), link_factor=4.0)
-    assert len(np.unique(cluster_labels(pts, 4.0 * median_spacing(pts)))) == 1  # one component if linked together
+    reach = local_reach(pts, np.zeros(600))
+    regions, member = regions_3d(pts, np.ones(600, bool), diff, reach=reach)
+    assert len(np.unique(cluster_labels(pts, 2.0 * reach))) == 1  # one component if linked together
     assert sorted((r["kind"], r["gaussians"]) for r in regions) == [("appeared", 300), ("disappeared", 300)]
     assert len(set(member[:300])) == 1 and len(set(member[300:])) == 1 and member[0] != member[300]
     # same place: the second cloud inside the first
     c = rng.uniform(0, 1, (300, 3))
     pts = np.concatenate([a, c])
-    regions, member = regions_3d(pts, np.ones(600, bool), diff, spacing=median_spacing(pts), link_factor=4.0)
+    regions, member = regions_3d(pts, np.ones(600, bool), diff, reach=local_reach(pts, np.zeros(600)))
     assert [(r["kind"], r["gaussians"]) for r in regions] == [("changed", 600)] and (member == 0).all()
 
 
 def test_colour_completion_takes_the_rest_of_an_object_and_not_the_ground():
     """A red column on grey ground, whose top third alone is scored changed (a flattened object: its
     lower part looks the same at both dates): completion by colour adds the column's lower part and no
-    ground; a red column of another date beside it, a red cloud out of reach of the hops and an
-    ineligible part stay out; without hops nothing is added."""
+    ground; a red column of another date beside it and an ineligible part stay out, and a red tower on
+    top joins only as far as ``within`` × the region's diameter (a red cloud above it not at all); with
+    ``within`` = 0 nothing is added, with a small ``within`` only the Gaussians close to the seeds."""
     rng = np.random.default_rng(2)
     column = rng.uniform([0, 0, 0], [1, 1, 3], (600, 3))
     ground = np.concatenate([rng.uniform([-3, -3, -0.3], [4, 4, 0], (3000, 3))])
     other_date = rng.uniform([1.2, 0, 0], [2.2, 1, 3], (300, 3))  # a column of date 1, touching
-    far = rng.uniform([0, 0, 9], [1, 1, 10], (100, 3))  # red, but 6 units above the column
-    means = np.concatenate([column, ground, other_date, far])
+    far = rng.uniform([0, 0, 9], [1, 1, 10], (100, 3))  # red, 6 units above the column: out of reach
+    tower = rng.uniform([0, 0, 3], [1, 1, 8], (600, 3))  # red, on top of the column, reaching up
+    means = np.concatenate([column, ground, other_date, far, tower])
     n = len(means)
     red, grey = np.array([0.8, 0.1, 0.1]), np.array([0.5, 0.5, 0.5])
     colors = np.where(np.arange(n)[:, None] < 600, red, grey)
@@ -444,50 +512,40 @@ def test_colour_completion_takes_the_rest_of_an_object_and_not_the_ground():
     member = np.where(seeds, 0, -1)
     eligible = np.ones(n, bool)
     eligible[:600] &= ~((column[:, 0] < 0.2) & (column[:, 2] < 0.5))  # a corner not observed at both dates
-    radius = 0.5
-    out = complete_by_colour(means, colors, origin, member, seeds, eligible, radius=radius, tolerance=0.1, hops=8)
+    reach = np.full(n, 0.25)
+    kwargs = dict(reach=reach, tolerance=0.1)
+    out = complete_by_colour(means, colors, origin, member, seeds, eligible, within=3.0, **kwargs)
+    # the seeds' box is about 1 × 1 × 1: the tower joins up to 3 units from the nearest seed
+    diameter = np.ptp(means[seeds], axis=0).max()
+    from scipy.spatial import cKDTree
+
+    reachable = cKDTree(means[seeds]).query(means[4000:])[0] <= 3.0 * diameter
     expected = np.zeros(n, bool)
     expected[:600] = eligible[:600]
+    expected[4000:] = reachable
+    assert 0 < reachable.sum() < 600
     np.testing.assert_array_equal(out == 0, expected)
-    assert (out[600:] == -1).all()
+    assert (out[600:4000] == -1).all()
     np.testing.assert_array_equal(
-        complete_by_colour(means, colors, origin, member, seeds, eligible, radius=radius, tolerance=0.1, hops=0),
-        member,
+        complete_by_colour(means, colors, origin, member, seeds, eligible, within=0.0, **kwargs), member
     )
-    # one hop reaches only the Gaussians within the radius of the seeds
-    one = complete_by_colour(means, colors, origin, member, seeds, eligible, radius=radius, tolerance=0.1, hops=1)
-    assert (one[:600] == 0).sum() < expected.sum() and (one[:600][column[:, 2] < 1.4] == -1).all()
-    # through regions_3d and the config: the same result, and the region's description counts the members
+    # a short reach: only the Gaussians within 0.3 × the diameter of the seeds
+    short = complete_by_colour(means, colors, origin, member, seeds, eligible, within=0.3, **kwargs)
+    assert (short[:600] == 0).sum() < expected.sum() and (short[:600][column[:, 2] < 1.0] == -1).all()
+    # through regions_3d: the same result, and the region's description counts the members
     diff = np.where(seeds, 0.9, 0.1)
-    regions, member3 = regions_3d(
-        means,
-        seeds,
-        diff,
-        spacing=radius / 5.0,
-        completion={"colors": colors, "origin": origin, "eligible": eligible, "tolerance": 0.1, "hops": 8},
-    )
+    completion = {"colors": colors, "origin": origin, "eligible": eligible, "tolerance": 0.1, "within": 3.0}
+    regions, member3 = regions_3d(means, seeds, diff, reach=reach, link=1.0, completion=completion)
     assert len(regions) == 1 and regions[0]["gaussians"] == expected.sum() and regions[0]["seeds"] == seeds.sum()
     np.testing.assert_array_equal(member3 == 0, expected)
-    # completion steps of their own length: with a link of half the radius, completion in steps of the
-    # link radius stops short of the column's foot; in steps of ``radius`` it reaches it as above
-    completion = {"colors": colors, "origin": origin, "eligible": eligible, "tolerance": 0.1, "hops": 8}
-    _, short = regions_3d(means, seeds, diff, spacing=radius / 5.0, link_factor=2.5, completion=completion)
-    _, own = regions_3d(
-        means, seeds, diff, spacing=radius / 5.0, link_factor=2.5, completion=completion | {"radius": radius}
-    )
-    assert (short == 0).sum() < expected.sum() and (short[:600][column[:, 2] < 0.2] == -1).all()
-    np.testing.assert_array_equal(own == 0, expected)
+    # completion links of their own length: links too short to cross the gaps add nothing
+    _, none = regions_3d(means, seeds, diff, reach=reach, link=1.0, completion=completion | {"link": 0.05})
+    assert (none == 0).sum() == seeds.sum()
     # across dates: the touching red column of date 1 joins too (the object's other version), the
     # ground still does not
-    across = complete_by_colour(
-        means, colors, origin, member, seeds, eligible, radius=radius, tolerance=0.1, hops=8, across_dates=True
-    )
+    across = complete_by_colour(means, colors, origin, member, seeds, eligible, within=3.0, across_dates=True, **kwargs)
     expected[3600:3900] = True
     np.testing.assert_array_equal(across == 0, expected)
-    with pytest.raises(InputError, match="complete_hops"):
-        ChangesConfig(complete_hops=-1)
-    with pytest.raises(InputError, match="complete_link"):
-        ChangesConfig(complete_link=0.0)
 
 
 def _flood_model():
@@ -566,11 +624,11 @@ def test_carried_gaussians_enter_the_regions_as_gone_and_need_cameras():
         computed=np.ones((n, t), bool),
     )
     means = np.asarray(model.gaussians.means, np.float64)
-    cfg = ChangesConfig(min_region_gaussians=4, complete_hops=0)
+    cfg = ChangesConfig(min_region_area=0.0, complete_within=0.0)
     carried = np.zeros(n, bool)
     carried[water1] = True
     difference, known, regions, member = pair_regions(
-        evidence, model.origin, means, 1, 2, cfg, spacing=median_spacing(means), carried=carried
+        evidence, model.origin, means, 1, 2, cfg, reach=local_reach(means, np.zeros(n)), carried=carried
     )
     assert np.all(difference[water1] == 1.0) and known[water1].all() and not known[~carried].any()
     assert len(regions) == 1 and regions[0]["kind"] == "disappeared" and set(np.nonzero(member >= 0)[0]) == set(water1)
@@ -595,10 +653,10 @@ def test_every_pair_regions_carries_the_covered_water_into_the_pair_that_cannot_
         score=score, evidence=score, observed=np.ones((n, t), bool), computed=np.ones((n, t), bool)
     )
     cams = [[_cam([0.3, -0.6, 3.0]), _cam([0.5, 0.5, 3.0])] for _ in range(t)]
-    cfg = ChangesConfig(min_region_gaussians=4, complete_hops=0)
+    cfg = ChangesConfig(min_region_area=0.0, complete_within=0.0)
     with_carry = every_pair_regions(evidence, model, cfg, cameras=cams)
     without = every_pair_regions(
-        evidence, model, ChangesConfig(min_region_gaussians=4, complete_hops=0, carry_absence=False)
+        evidence, model, ChangesConfig(min_region_area=0.0, complete_within=0.0, carry_absence=False)
     )
     assert set(np.nonzero(without[(1, 2)][3] >= 0)[0]) == set(water2)
     member = with_carry[(1, 2)][3]
@@ -606,3 +664,82 @@ def test_every_pair_regions_carries_the_covered_water_into_the_pair_that_cannot_
     assert len(with_carry[(1, 2)][2]) == 1 and with_carry[(1, 2)][2][0]["kind"] == "changed"
     for pair in ((0, 1), (0, 2)):  # nothing to carry there: the same regions either way
         assert np.array_equal(with_carry[pair][3], without[pair][3])
+
+
+def _object_on_ground(scale: float = 1.0, size: tuple[int, int] = (48, 36), repeat: int = 1, near: float = 0.2):
+    """Two dates of a grey ground grid with a red box on it at date 0 only (each date has its own copy of
+    the ground), each date's images the two grounds and, at date 0, the box, rendered from four cameras; the whole scene,
+    its cameras and the near plane scaled by ``scale``; cameras of ``size`` pixels (same field of view);
+    each view given ``repeat`` times. Returns the model, the views and the render configuration."""
+    xs = np.linspace(-0.9, 0.9, 10)
+    ground = np.array([[x, y, 0.0] for x in xs for y in xs])
+    box = np.array([[x, y, z] for x in (-0.1, 0.0, 0.1) for y in (-0.1, 0.0, 0.1) for z in (0.1, 0.2, 0.3)])
+    means = np.concatenate([ground, ground + [0.01, 0.01, 0.0], box])
+    n_g, n_b = len(ground), len(box)
+    log_scales = np.concatenate(
+        [np.tile(np.log([0.12, 0.12, 0.02]), (2 * n_g, 1)), np.tile(np.log([0.07] * 3), (n_b, 1))]
+    )
+    colours = np.concatenate([np.tile([0.5, 0.5, 0.5], (2 * n_g, 1)), np.tile([0.8, 0.15, 0.1], (n_b, 1))])
+    origin = np.repeat([0, 1, 0], [n_g, n_g, n_b])
+    o = np.where(origin[:, None] == np.arange(2)[None], 0.99, 0.5)  # cross-init left the others undecided
+    model = _model(
+        means=means * scale, log_scales=log_scales + np.log(scale), alphas=[0.9] * len(means), colours=colours,
+        o=o, origin=origin,
+    )  # fmt: skip
+    rc = splat.RenderConfig(near=near * scale)
+    eyes = ([0.0, -2.0, 1.6], [1.5, -1.4, 1.4], [-1.6, -1.2, 1.5], [0.2, 1.8, 1.7])
+    cams = tuple(
+        cj.Camera.look_at(np.asarray(e) * scale, [0, 0, 0.1 * scale], width=size[0], height=size[1], fov_x_deg=50)
+        for e in eyes
+    )
+    views = []
+    for d in range(2):
+        truth = jnp.asarray(((origin != 0) | (np.arange(len(origin)) < n_g) | (d == 0)).astype(np.float32))[None]
+        images = []
+        for cam in cams:
+            cfg = dataclasses.replace(rc, capacity=splat.required_capacity(model.gaussians, cam, truth, config=rc))
+            light = jnp.ones((1, len(origin), 3))
+            images.append(np.asarray(splat.render_dates(model.gaussians, cam, truth, light, config=cfg).image[0]))
+        views.append(DateViews(cams * repeat, tuple(images) * repeat))
+    return model, views, rc
+
+
+def test_detection_does_not_move_with_scene_scale_view_count_or_resolution():
+    """A box removed between two dates, detected with the default settings (one region: the box, with the
+    ground at its foot, and no ground away from it): the scene and its cameras scaled by 0.1 and by 10
+    (near plane too) give the same scores, areas, regions and masks; every view given twice gives the
+    same; the same scene at twice the resolution scores every Gaussian within 0.05, flags the same seeds,
+    the same region members up to 5 % (those scored near the growth bound) and masks the same share of
+    pixels within 0.02 of the view."""
+    from cfgs_jax.changes import detect
+
+    def run(**kwargs):
+        model, views, rc = _object_on_ground(**kwargs)
+        found = detect(model, views, render_config=rc)
+        change = found.pairs[(0, 1)]
+        masks = [found.view(0, 1, cam) for cam in views[0].cameras[:4]]
+        return found, change, masks
+
+    base, change, masks = run()
+    means = np.asarray(base.model.gaussians.means)
+    box = np.arange(len(means)) >= 200
+    far = np.linalg.norm(means[:, :2], axis=1) > 0.65  # ground away from the box (its footprint reaches 0.6)
+    assert len(change.regions) == 1 and change.in_region[box].mean() > 0.9 and not change.in_region[far].any()
+    assert all(m.mask.any() for m in masks)
+    for kwargs in ({"scale": 0.1}, {"scale": 10.0}, {"repeat": 2}):
+        other, other_change, other_masks = run(**kwargs)
+        np.testing.assert_allclose(other.evidence.score, base.evidence.score, atol=2e-3, err_msg=str(kwargs))
+        # two box Gaussians at nearly one depth may swap their order in float32: areas to 1 % of the largest
+        atol = 1e-2 * base.evidence.area.max()
+        np.testing.assert_allclose(other.evidence.area, base.evidence.area, rtol=1e-3, atol=atol, err_msg=str(kwargs))
+        assert np.array_equal(other_change.in_region, change.in_region), kwargs
+        for a, b in zip(masks, other_masks):
+            assert (a.mask != b.mask).mean() <= 2e-3, kwargs
+    fine, fine_change, fine_masks = run(size=(96, 72))
+    np.testing.assert_allclose(fine.evidence.score, base.evidence.score, atol=0.05)
+    assert np.array_equal(fine_change.changed, change.changed)  # the seeds: scored > 0.5
+    differ = (fine_change.in_region != change.in_region).sum()
+    assert differ <= 0.05 * (fine_change.in_region | change.in_region).sum()  # growth at the 0.35 bound
+    np.testing.assert_allclose(fine.evidence.area, base.evidence.area, rtol=0.1, atol=1e-4)
+    for a, b in zip(masks, fine_masks):
+        assert abs(a.mask.mean() - b.mask.mean()) <= 0.02

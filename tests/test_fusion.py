@@ -647,7 +647,7 @@ def test_changes_cli_writes_masks_ply_and_regions(fused_run, tmp_path):
     run_dir = fused_run[0]
     out = tmp_path / "ch"
     args = ["changes", "--run", str(run_dir), "--pair", "d0,d1", "--out", str(out), "--no-progress"]
-    loose = ["--set", "changes.min_region_gaussians=1", "--set", "changes.threshold=0.001"]  # some regions
+    loose = ["--set", "changes.min_region_area=0", "--set", "changes.threshold=0.001"]  # some regions
     assert main([*args, *loose]) == 0
     summary = json.loads((out / "regions.json").read_text())
     run = open_run(run_dir)
@@ -671,7 +671,7 @@ def test_changes_cli_writes_masks_ply_and_regions(fused_run, tmp_path):
     assert gs["in_regions"] == sum(r["gaussians"] for r in summary["regions"]) <= gs["total"]
     assert sum(r["seeds"] for r in summary["regions"]) <= gs["changed"] <= gs["observed_at_both"]
     assert len(read_ply(out / "changed.ply")) == gs["in_regions"] > 0
-    assert summary["config"]["min_region_gaussians"] == 1
+    assert summary["config"]["min_region_area"] == 0
     assert (out / "regions.md").read_text().startswith("# Changes between d0 and d1")
     assert main(["changes", "--run", str(run_dir), "--pair", "d0,d9", "--out", str(tmp_path / "x")]) != 0
     assert main([*args, "--set", "refine.steps=3"]) != 0

@@ -19,6 +19,7 @@ import os
 import re
 import tomllib
 import typing
+import warnings
 from importlib import resources
 from importlib.resources.abc import Traversable
 from pathlib import Path
@@ -96,6 +97,33 @@ def apply_overrides(config: dict[str, Any], overrides: typing.Iterable[str]) -> 
                 raise InputError(f"{'.'.join(parts[:-1])} is a value, not a table", field=f"--set {key}")
         table[parts[-1]] = value
     out["__path__"] = f"{config.get('__path__', 'defaults')} with --set {' '.join(overrides)}"
+    return out
+
+
+class RetiredKeyWarning(UserWarning):
+    """A configuration key of an earlier release that no longer applies was read and ignored."""
+
+
+def _without_retired(cls: type, values: dict[str, Any], where: str, path) -> dict[str, Any]:
+    """``values`` without the keys ``cls.RETIRED`` names (in ``cls`` and its nested dataclass tables),
+    each dropped with a ``RetiredKeyWarning`` naming the key that replaces it: a run folder or a file of
+    an earlier release still opens, and its author learns what to set instead."""
+    retired = getattr(cls, "RETIRED", {})
+    hints = typing.get_type_hints(cls) if dataclasses.is_dataclass(cls) else {}
+    out = {}
+    for key, val in values.items():
+        if key in retired:
+            where_file = f"{path}: " if path is not None else ""
+            warnings.warn(
+                f"{where_file}{where}.{key} no longer applies and is ignored; use {where}.{retired[key]}",
+                RetiredKeyWarning,
+                stacklevel=3,
+            )
+            continue
+        hint = hints.get(key)
+        if hint is not None and dataclasses.is_dataclass(hint) and isinstance(val, dict):
+            val = _without_retired(hint, val, f"{where}.{key}", path)
+        out[key] = val
     return out
 
 
@@ -192,7 +220,9 @@ def from_dict(cls: type[T], values: dict[str, Any], *, where: str = "config", pa
     """Build frozen dataclass ``cls`` from ``values``: unknown keys raise with the closest valid key,
     every value is checked against its field's type (msgspec: ``int`` fields take no bools or strings,
     ``float`` fields take ints, lists become tuples, ``Literal`` fields take only their values), and
-    the dataclass's own range checks run last."""
+    the dataclass's own range checks run last. Keys a table retired (``RETIRED``) are dropped with a
+    warning naming their replacement."""
+    values = _without_retired(cls, values, where, path)
     _check_keys(cls, values, where, path)
     try:
         return msgspec.convert(_tuples(values), cls)

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
-from typing import Annotated
+from typing import Annotated, ClassVar
 
 import msgspec
 
@@ -19,17 +19,16 @@ class ChangesConfig(Checked):
     between two dates when q's images are explained better without it by more than τ (score > 0.5).
     ``views``: which of each date's views supply the evidence — ``"all"``, ``"train"``, or ``"test"``
     (held out from training, so the "absent" residual is not lowered by the date's own Gaussians having
-    been fitted to those very images). ``neighbours`` k pools each Gaussian's evidence with its k − 1 nearest
-    Gaussians of the same date (1: none). ``gain_range`` bounds the per-Gaussian brightness gain of each hypothesis.
+    been fitted to those very images). ``pool_area`` pools each Gaussian's evidence with its nearest
+    Gaussians of the same date until together they cover this share of a view (0: none). ``gain_range`` bounds the per-Gaussian brightness gain of each hypothesis.
     ``contribution_threshold`` is the visibility rule (α·T at some pixel of some view of q).
-    Regions: changed Gaussians closer than ``link_factor`` × the model's median nearest-neighbour
-    distance are linked — with ``link_extent`` > 0 also those closer than ``link_extent`` × the sum of
-    their largest standard deviations (each at most the link distance: large, sparse splats such as a
-    water surface's touch where their centres lie far apart) — and so are Gaussians scored above
-    ``grow_above`` (≤ 0.5) that touch them; a region needs at least ``min_region_gaussians`` Gaussians
-    scored > 0.5 and at least ``min_region_share`` of the two dates' Gaussians as seeds (3D; the larger
-    bound counts, so that a denser reconstruction of the same scene, whose objects and whose noise patches
-    both hold more Gaussians, needs proportionally more), and ``min_region_pixels`` pixels (image).
+    Regions (``changes.regions``): every length is a Gaussian's own *reach* r = max(σ, ν), its largest
+    standard deviation or the distance to its nearest other centre where larger, so the rules read the
+    same at any image size, view count or scene scale. Changed Gaussians closer than ``link_reach`` ×
+    (r_i + r_j) are linked, and so are Gaussians scored above ``grow_above`` (≤ 0.5) that touch them; a
+    region needs its Gaussians scored > 0.5 to cover at least ``min_region_area`` of a view of the date
+    that observes them (a share of the image), and an image area of the per-view report at least
+    ``min_image_area`` of the image.
     ``pixel_threshold``: a pixel of a view counts as changed when the regions' Gaussians hold more than
     this share of the compositing weight of what it shows (``maps.change_mask``).
     ``carry_absence``: a Gaussian that another date pair found gone and that, at the pair's other
@@ -39,37 +38,48 @@ class ChangesConfig(Checked):
     ``max_view_angle`` (degrees): a view of q informs a Gaussian of p only from within this
     angle of a direction one of p's training cameras saw it from (180: every view); at most
     ``support_views`` of those cameras, spread out (``spread_cameras``), stand for them all.
-    ``complete_hops`` > 0 completes each region by colour (``regions.complete_by_colour``): a
-    Gaussian observed at both dates joins a region when it lies within that many steps of
-    ``complete_link`` × the median spacing from the region's Gaussians of its own date and its colour is
-    within ``complete_colour`` (RGB distance) of their median (0: no completion; the colour test lets completion
-    link farther than the evidence does); with ``complete_across_dates`` also Gaussians of the pair's other dates
+    ``complete_within`` > 0 completes each region by colour (``regions.complete_by_colour``): a Gaussian
+    observed at both dates joins a region when it connects to the region's Gaussians of its own date
+    through links of ``complete_reach`` × (r_i + r_j), lies within ``complete_within`` × the region's
+    diameter of them and its colour is within ``complete_colour`` (RGB distance, a colour unit: it does not
+    move with size or scale) of their median (0: no completion; the colour test lets completion link
+    farther than the evidence does); with ``complete_across_dates`` also Gaussians of the pair's other dates
     (the other date's version of a changed object). ``dates_per_pass``: how many dates' Gaussians are tested against
     one observing date in one pass over its views (they share each view's projection, sort and kernel walks; the
     figures do not depend on it beyond float32 rounding, memory grows with it)."""
 
     threshold: Annotated[float, OPEN_UNIT] = 0.06
     views: str = "all"
-    neighbours: Annotated[int, AT_LEAST_ONE] = 32
+    pool_area: Annotated[float, msgspec.Meta(ge=0, lt=1)] = 1e-3
     gain_range: tuple[float, float] = (1.0 / 3.0, 3.0)
     contribution_threshold: Annotated[float, OPEN_UNIT] = 0.01
-    link_factor: Annotated[float, POSITIVE] = 4.0
-    link_extent: Annotated[float, NON_NEGATIVE] = 0.0
+    link_reach: Annotated[float, POSITIVE] = 2.0
     grow_above: Annotated[float, msgspec.Meta(gt=0, le=0.5)] = 0.35
-    min_region_gaussians: Annotated[int, AT_LEAST_ONE] = 16
-    min_region_share: Annotated[float, msgspec.Meta(ge=0, lt=1)] = 0.0015
-    min_region_pixels: Annotated[int, AT_LEAST_ONE] = 8
+    min_region_area: Annotated[float, msgspec.Meta(ge=0, lt=1)] = 2e-4
+    min_image_area: Annotated[float, msgspec.Meta(ge=0, lt=1)] = 5e-4
     pixel_threshold: Annotated[float, OPEN_UNIT] = 0.35
     max_view_angle: Annotated[float, msgspec.Meta(gt=0, le=180)] = 20.0
     support_views: Annotated[int, AT_LEAST_ONE] = 64
-    complete_hops: Annotated[int, NON_NEGATIVE] = 16
+    complete_within: Annotated[float, NON_NEGATIVE] = 1.0
     complete_colour: Annotated[float, POSITIVE] = 0.15
-    complete_link: Annotated[float, POSITIVE] = 5.5
+    complete_reach: Annotated[float, POSITIVE] = 2.75
     complete_across_dates: bool = False
     dates_per_pass: Annotated[int, AT_LEAST_ONE] = 8
     carry_absence: bool = True
 
     TABLE = "changes"
+    #: Keys of earlier releases whose units moved with the image size, the view count or the density of
+    #: Gaussians: read, ignored, and named with the key that replaces them.
+    RETIRED: ClassVar[dict[str, str]] = {
+        "neighbours": "pool_area (evidence pooled over a share of a view, not a count of Gaussians)",
+        "link_factor": "link_reach (links in units of each Gaussian's own reach, not the model's median spacing)",
+        "link_extent": "link_reach (every link now uses each Gaussian's extent)",
+        "min_region_gaussians": "min_region_area (a region's size as a share of a view, not a count of Gaussians)",
+        "min_region_share": "min_region_area (a region's size as a share of a view, not of the Gaussians)",
+        "min_region_pixels": "min_image_area (an image area as a share of the image, not a count of pixels)",
+        "complete_hops": "complete_within (completion reaches a multiple of the region's diameter, not a count of steps)",
+        "complete_link": "complete_reach (completion links in units of each Gaussian's own reach)",
+    }
 
     def __post_init__(self):
         super().__post_init__()

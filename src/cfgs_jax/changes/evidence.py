@@ -15,7 +15,9 @@ change, which scales the colour, is not evidence of change:
 
 γ* = clip(A±/B±, γ_min, γ_max). One backward pass of the kernel per view gives all five sums and the
 weight W_i = Σ w_i (``splat.weights.summed_weights``). The evidence pools each Gaussian's sums with
-those of its k nearest neighbours of the same date (the same surface seen through more pixels):
+those of its nearest neighbours of the same date, nearest first, until they cover ``pool_area`` of a view
+(their W over the views' pixel count; the same surface seen through more pixels, and the same share of
+the image whatever the resolution, the number of views or the density of Gaussians):
 
     e_i^q = √(Σ_nb E⁺ / 3Σ_nb W) − √(Σ_nb E⁻ / 3Σ_nb W),
 
@@ -55,12 +57,15 @@ from cfgs_jax.splat.weights import max_weight, visible
 class ChangeEvidence:
     """Per (Gaussian, date) arrays [N, T]: ``score`` s ∈ [0, 1] (0.5 at the threshold), ``evidence`` e
     (RMS residual with minus without, pooled), ``observed`` (q's views could see it), ``computed``
-    (the entry was evaluated: i's date ≠ q and the pair was asked for)."""
+    (the entry was evaluated: i's date ≠ q and the pair was asked for), and ``area``: the share of a view
+    of q the Gaussian covers, its compositing weight W summed over q's views divided by their pixel count
+    (a share of the image at any resolution and view count; None where not known)."""
 
     score: np.ndarray
     evidence: np.ndarray
     observed: np.ndarray
     computed: np.ndarray
+    area: np.ndarray | None = None
 
     def changed(self) -> np.ndarray:
         """[N, T] bool: observed, evaluated and scored above 0.5."""
@@ -282,9 +287,19 @@ def gain_fitted_residual(a, b, c, gain_range: tuple[float, float]):
     return np.maximum(c - 2.0 * gamma * a + gamma * gamma * b, 0.0)
 
 
-def pooled_evidence(sums: np.ndarray, means: np.ndarray, usable: np.ndarray, config: ChangesConfig) -> np.ndarray:
-    """[M] evidence e of each Gaussian from its ``residual_sums`` [M, 6] pooled with its k nearest
-    ``usable`` neighbours (``means`` [M, 3]); 0 where not ``usable`` (unobserved or no weight)."""
+#: The most neighbours a Gaussian's evidence is pooled with: a bound on the work (the pooled area,
+#: ``ChangesConfig.pool_area``, decides how many are taken; this only caps it).
+MAX_POOLED = 256
+
+
+def pooled_evidence(
+    sums: np.ndarray, means: np.ndarray, usable: np.ndarray, config: ChangesConfig, pixels: float
+) -> np.ndarray:
+    """[M] evidence e of each Gaussian from its ``residual_sums`` [M, 6] pooled with its nearest ``usable``
+    neighbours (``means`` [M, 3]), nearest first, until together they cover ``config.pool_area`` of a view
+    (each one's area W / ``pixels``, the pixel count of the views the sums run over; the neighbour that
+    crosses the bound is included, at most ``MAX_POOLED``): the same share of the image at any resolution,
+    view count or density of Gaussians. 0 where not ``usable`` (unobserved or no weight)."""
     w = sums[:, 0]
     e_plus = gain_fitted_residual(sums[:, 1], sums[:, 2], sums[:, 5], config.gain_range)
     e_minus = gain_fitted_residual(sums[:, 3], sums[:, 4], sums[:, 5], config.gain_range)
@@ -292,25 +307,30 @@ def pooled_evidence(sums: np.ndarray, means: np.ndarray, usable: np.ndarray, con
     idx = np.nonzero(usable & (w > 0))[0]
     if not len(idx):
         return out
-    k = min(int(config.neighbours), len(idx))
-    if k > 1:
+    k = min(MAX_POOLED, len(idx))
+    if k > 1 and config.pool_area > 0:
         _, nb = cKDTree(means[idx]).query(means[idx], k=k)
         nb = idx[np.asarray(nb).reshape(len(idx), k)]
+        area = w[nb] / max(float(pixels), 1.0)
+        take = (np.cumsum(area, axis=1) - area) < config.pool_area  # the Gaussian itself always (first)
     else:
-        nb = idx[:, None]
-    den = 3.0 * w[nb].sum(1)
-    out[idx] = np.sqrt(e_plus[nb].sum(1) / den) - np.sqrt(e_minus[nb].sum(1) / den)
+        nb, take = idx[:, None], np.ones((len(idx), 1), bool)
+    pool = lambda x: np.where(take, x[nb], 0.0).sum(1)
+    den = 3.0 * pool(w)
+    out[idx] = np.sqrt(pool(e_plus) / den) - np.sqrt(pool(e_minus) / den)
     return out
 
 
 @dataclasses.dataclass(frozen=True)
 class PairStatistics:
     """What the images say, before pooling: per ordered pair (p, q) the rows of date p's Gaussians,
-    their ``residual_sums`` over q's views [N_p, 6] and whether q's views observe them."""
+    their ``residual_sums`` over q's views [N_p, 6] and whether q's views observe them; ``pixels[q]``: the
+    pixel count of q's views together."""
 
     num_gaussians: int
     num_dates: int
     pairs: dict[tuple[int, int], tuple[np.ndarray, np.ndarray, np.ndarray]]
+    pixels: dict[int, int]
 
 
 def pair_statistics(
@@ -372,20 +392,24 @@ def pair_statistics(
         done += sum(1 for _, x in pairs if x == q)
         if progress is not None:
             progress(done, len(pairs))
-    return PairStatistics(len(origin), t, out)
+    pixels = {q: sum(int(c.width) * int(c.height) for c in views[q].cameras) for q in observers}
+    return PairStatistics(len(origin), t, out, pixels)
 
 
 def evidence_from(statistics: PairStatistics, means: np.ndarray, config: ChangesConfig) -> ChangeEvidence:
-    """Pool the statistics (``pooled_evidence``) and score them: s = clip(e / 2τ, 0, 1) where observed."""
+    """Pool the statistics (``pooled_evidence``) and score them: s = clip(e / 2τ, 0, 1) where observed;
+    each entry's area W / (pixels of q's views) where observed."""
     shape = (statistics.num_gaussians, statistics.num_dates)
     evidence, observed, computed = np.zeros(shape), np.zeros(shape, bool), np.zeros(shape, bool)
+    area = np.zeros(shape)
     means = np.asarray(means, np.float64)
     for (_, q), (rows, sums, seen) in statistics.pairs.items():
-        evidence[rows, q] = pooled_evidence(sums, means[rows], seen, config)
+        evidence[rows, q] = pooled_evidence(sums, means[rows], seen, config, statistics.pixels.get(q, 0))
         observed[rows, q] = seen
         computed[rows, q] = True
+        area[rows, q] = np.where(seen, sums[:, 0], 0.0) / max(int(statistics.pixels.get(q, 0)), 1)
     score = np.where(computed & observed, np.clip(evidence / (2.0 * config.threshold), 0.0, 1.0), 0.0)
-    return ChangeEvidence(score, evidence, observed, computed)
+    return ChangeEvidence(score, evidence, observed, computed, area)
 
 
 def change_evidence(

@@ -1,23 +1,31 @@
 """Changed regions as users read them: clusters of changed Gaussians in 3D and connected changed
 areas in an image.
 
+Every length is a Gaussian's own: its *reach* r_i = max(σ_i, ν_i), its largest standard deviation or
+the distance ν_i to its nearest other centre where that is larger (``local_reach``). Both belong to the
+Gaussian's neighbourhood: they scale with the scene, and where a denser reconstruction draws a surface
+with more, smaller splats they shrink together, so a rule in units of r reads the same at any image
+size, view count or scene scale (a large, sparse splat of a water surface reaches its neighbours; a
+small one of a textured object reaches only its own).
+
 3D: Gaussians whose pair score exceeds ``grow_above`` are linked when their centres lie closer than
-``link_factor`` × the median nearest-neighbour distance of all the model's Gaussians (a scale-free
-radius), what appeared and what disappeared separately (two neighbouring objects, one removed and one
-added, are two changes), and then the appeared and disappeared components that occupy the same place
-are joined (an object whose look changed). A component holding enough Gaussians scored changed
-(score > 0.5; ``min_region_seeds``: at least ``min_region_gaussians`` and at least
-``min_region_share`` of the two dates' Gaussians) is a region, with all its members (hysteresis
-thresholding: a weakly scored Gaussian belongs to a change only where it touches a confident one).
-Each has its Gaussian count, centroid, axis-aligned bounds, the volume of the convex hull of its centres, and its
-kind: "disappeared" (≥ 80 % of its Gaussians shown at the earlier date and gone at the later), "appeared" (≥ 80 %
-the other way) or "changed" (both).
+``link_reach`` × (r_i + r_j), what appeared and what disappeared separately (two neighbouring objects,
+one removed and one added, are two changes), and then the appeared and disappeared components that
+occupy the same place are joined (an object whose look changed). A component is a region when its
+Gaussians scored changed (score > 0.5, the seeds) cover at least ``min_region_area`` of a view of the
+date that observes them (each Gaussian's compositing weight summed over those views' pixels, divided by
+their pixel count: a share of the image, whatever its resolution or the number of views), with all its
+members (hysteresis thresholding: a weakly scored Gaussian belongs to a change only where it touches a
+confident one). Each has its Gaussian count, the share of a view it covers, centroid, axis-aligned
+bounds, the volume of the convex hull of its centres, and its kind: "disappeared" (≥ 80 % of its
+Gaussians shown at the earlier date and gone at the later), "appeared" (≥ 80 % the other way) or
+"changed" (both).
 Optionally a region is then completed by colour (``complete_by_colour``): the Gaussians of a date that
-lie within a few steps (``complete_link`` × the median spacing each) of the region's own Gaussians of
-that date and share their colour join it, so that an object of which the images show only a part
-changed (a flattened object keeps its lower part's look) is reported whole, without reaching into a
-differently coloured ground.
-Image: 8-connected components of a change mask with at least ``min_region_pixels`` pixels.
+connect to the region's own Gaussians of that date through links of ``complete_reach`` × (r_i + r_j),
+share their colour and lie within ``complete_within`` × the region's diameter of it join it, so that an
+object of which the images show only a part changed (a flattened object keeps its lower part's look) is
+reported whole, without reaching into a differently coloured ground.
+Image: 8-connected components of a change mask covering at least ``min_image_area`` of the image.
 """
 
 from __future__ import annotations
@@ -37,36 +45,40 @@ from cfgs_jax.errors import InputError
 from cfgs_jax.model import Camera, rgb, scales
 
 
-def median_spacing(means: np.ndarray) -> float:
-    """The median distance from a Gaussian centre to its nearest other centre (0 for < 2 points)."""
+def local_reach(means: np.ndarray, extents: np.ndarray) -> np.ndarray:
+    """[N] each Gaussian's reach max(σ_i, ν_i): its largest standard deviation ``extents`` [N], or the
+    distance ν_i from its centre to the nearest other centre of ``means`` [N, 3] where that is larger
+    (0 for a lone Gaussian of zero extent)."""
     means = np.asarray(means, np.float64)
+    extents = np.asarray(extents, np.float64)
     if len(means) < 2:
-        return 0.0
+        return np.maximum(extents, 0.0)
     d, _ = cKDTree(means).query(means, k=2)
-    return float(np.median(d[:, 1]))
+    return np.maximum(extents, d[:, 1])
 
 
-def cluster_labels(points: np.ndarray, radius: float, reach: np.ndarray | None = None) -> np.ndarray:
-    """[M] component id of each point in the graph linking points closer than ``radius``; with ``reach``
-    ([M] ≥ 0) also points i, j closer than reach_i + reach_j (two splats whose extents touch)."""
+def cluster_labels(points: np.ndarray, reach: np.ndarray) -> np.ndarray:
+    """[M] component id of each point in the graph linking points i, j closer than reach_i + reach_j
+    (two splats whose reaches touch); ``reach`` [M] ≥ 0."""
     points = np.asarray(points, np.float64)
     if len(points) == 0:
         return np.zeros(0, np.int64)
-    tree = cKDTree(points)
-    reach = None if reach is None else np.asarray(reach, np.float64)
-    if reach is None or not np.any(reach > radius / 2):  # reach_i + reach_j ≤ radius: the radius decides
-        pairs = tree.query_pairs(radius, output_type="ndarray") if radius > 0 else np.zeros((0, 2), int)
-    else:
-        # a pair linked by reach lies within 2·max(reach_i, reach_j) of the point with the larger reach
-        near = tree.query_ball_point(points, np.maximum(radius, 2.0 * reach))
-        i = np.repeat(np.arange(len(points)), [len(n) for n in near])
-        j = np.concatenate([np.asarray(n, np.int64) for n in near]) if len(i) else np.zeros(0, np.int64)
-        d = np.linalg.norm(points[i] - points[j], axis=1)
-        keep = (i != j) & ((d < radius) | (d < reach[i] + reach[j]))  # each pair once or twice
-        pairs = np.stack([i[keep], j[keep]], axis=1)
-    graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(len(points), len(points)))
+    i, j = _touching(points, np.asarray(reach, np.float64), points, np.asarray(reach, np.float64))
+    keep = i != j
+    graph = coo_matrix((np.ones(int(keep.sum())), (i[keep], j[keep])), shape=(len(points), len(points)))
     _, labels = connected_components(graph, directed=False)
     return labels.astype(np.int64)
+
+
+def _touching(a: np.ndarray, reach_a: np.ndarray, b: np.ndarray, reach_b: np.ndarray):
+    """Index pairs (i into ``a``, j into ``b``) with ‖a_i − b_j‖ < reach_a_i + reach_b_j."""
+    if not len(a) or not len(b):
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    near = cKDTree(b).query_ball_point(a, reach_a + float(np.max(reach_b)))
+    i = np.repeat(np.arange(len(a)), [len(n) for n in near])
+    j = np.concatenate([np.asarray(n, np.int64) for n in near]) if len(i) else np.zeros(0, np.int64)
+    keep = np.linalg.norm(a[i] - b[j], axis=1) < reach_a[i] + reach_b[j]
+    return i[keep], j[keep]
 
 
 def hull_volume(points: np.ndarray) -> float:
@@ -80,13 +92,13 @@ def hull_volume(points: np.ndarray) -> float:
 
 
 def merge_colocated(
-    means: np.ndarray, first: list[np.ndarray], second: list[np.ndarray], radius: float
+    means: np.ndarray, first: list[np.ndarray], second: list[np.ndarray], reach: np.ndarray
 ) -> list[np.ndarray]:
     """The groups of Gaussian indices ``first`` and ``second`` (e.g. what appeared and what disappeared),
     a group of one joined with a group of the other that occupies the same place: at least half of the
-    smaller one's centres have their nearest centre of the other side, within ``radius``, in the larger
-    one (an object whose look changed leaves an old and a new group intermixed; two neighbouring objects
-    only touch)."""
+    smaller one's centres have their nearest centre of the other side in the larger one, touching it
+    (closer than the sum of the two ``reach`` values; an object whose look changed leaves an old and a new
+    group intermixed; two neighbouring objects only touch along a seam)."""
     groups = list(first) + list(second)
     label = np.full(len(means), -1, np.int64)
     for k, g in enumerate(groups):
@@ -106,8 +118,8 @@ def merge_colocated(
     for mine, other in (sides, sides[::-1]):
         if not len(mine) or not len(other):
             continue
-        d, nearest = cKDTree(means[other]).query(means[mine], distance_upper_bound=radius)
-        near = np.isfinite(d)
+        d, nearest = cKDTree(means[other]).query(means[mine])
+        near = d < reach[mine] + reach[other[nearest]]
         pairs, counts = np.unique(
             np.stack([label[mine[near]], label[other[nearest[near]]]], 1), axis=0, return_counts=True
         )
@@ -120,20 +132,29 @@ def merge_colocated(
     return [np.sort(np.concatenate(parts)) for parts in joined.values()]
 
 
-def _grow(member, free, k, pool, frontier, means, radius, hops) -> None:
-    """Add to region k (in place) the ``pool`` Gaussians still ``free`` that lie within ``radius`` of
-    ``frontier`` (centres) or of what joined in the previous step, for at most ``hops`` steps."""
-    if not len(pool) or not len(frontier):
+def _grow(member, free, k, pool, start, means, reach, limit) -> None:
+    """Add to region k (in place) the ``pool`` Gaussians still ``free`` that connect to ``start`` (indices)
+    through chains of touching reaches (``reach``, already scaled), keeping to those within ``limit`` of a
+    ``start`` centre."""
+    if not len(pool) or not len(start):
         return
-    tree = cKDTree(means[pool])
-    for _ in range(hops):
-        near = tree.query_ball_point(frontier, radius)
-        added = pool[np.unique(np.concatenate([np.asarray(n, np.int64) for n in near]))]
+    d, _ = cKDTree(means[start]).query(means[pool], distance_upper_bound=limit)
+    pool = pool[np.isfinite(d) & (d <= limit)]
+    frontier = start
+    while len(pool) and len(frontier):
+        _, j = _touching(means[frontier], reach[frontier], means[pool], reach[pool])
+        added = pool[np.unique(j)]
         added = added[free[added]]
         if not len(added):
             return
         member[added], free[added] = k, False
-        frontier = means[added]
+        pool = pool[free[pool]]
+        frontier = added
+
+
+#: The seeds of one date a region needs for that date's reference colour: a median of fewer colours is
+#: a poor estimate (a sample size, not a length or an area, so it holds at any scale).
+MIN_COLOUR_SAMPLE = 8
 
 
 def complete_by_colour(
@@ -144,47 +165,49 @@ def complete_by_colour(
     seeds: np.ndarray,
     eligible: np.ndarray,
     *,
-    radius: float,
+    reach: np.ndarray,
     tolerance: float,
-    hops: int,
+    within: float,
     across_dates: bool = False,
-    min_seeds: int = 8,
 ) -> np.ndarray:
     """[N] region index per Gaussian (``member``, −1: none) with every region completed by colour.
 
-    For region k and each date r holding at least ``min_seeds`` of its ``seeds``, the reference colour
-    c_kr is the per-channel median of those seeds' colours. A Gaussian i of date r that is ``eligible``
-    and in no region joins k when ‖c_i − c_kr‖₂ ≤ ``tolerance`` and its centre lies within ``radius`` of
-    a Gaussian of date r that joined k in the previous step (the region's own Gaussians of date r at
-    the first); at most ``hops`` steps. With ``across_dates`` a Gaussian of any date joins when its
-    colour is within ``tolerance`` of any of the region's reference colours and it lies within
-    ``radius`` of a member of any date (the other date's version of a changed object). Regions are
-    completed largest first, and a Gaussian joins one region at most."""
+    For region k and each date r holding at least ``MIN_COLOUR_SAMPLE`` of its ``seeds``, the reference
+    colour c_kr is the per-channel median of those seeds' colours. A Gaussian i of date r that is
+    ``eligible`` and in no region joins k when ‖c_i − c_kr‖₂ ≤ ``tolerance``, it lies within ``within`` ×
+    D_k of one of the region's own Gaussians of date r (D_k the longest side of the region's bounding box)
+    and it connects to them through Gaussians that join too, each link shorter than the sum of the two
+    ``reach`` values ([N], already scaled). With ``across_dates`` a Gaussian of any date joins when its
+    colour is within ``tolerance`` of any of the region's reference colours, growing from its members of
+    every date (the other date's version of a changed object). Regions are completed largest first, and a
+    Gaussian joins one region at most; ``within`` = 0 adds nothing."""
     member = np.array(member, np.int64, copy=True)
-    if hops < 1 or not (member >= 0).any():
+    if within <= 0 or not (member >= 0).any():
         return member
     means = np.asarray(means, np.float64)
     colors = np.asarray(colors, np.float64)
+    reach = np.asarray(reach, np.float64)
     origin = np.asarray(origin)
     free = np.asarray(eligible, bool) & (member < 0)
     for k in np.unique(member[member >= 0]):
+        mine = member == k
+        limit = within * float(np.max(np.ptp(means[mine], axis=0)))
         references = {}
-        for r in np.unique(origin[member == k]):
-            own_seeds = (member == k) & (origin == r) & seeds
-            if own_seeds.sum() >= min_seeds:
+        for r in np.unique(origin[mine]):
+            own_seeds = mine & (origin == r) & seeds
+            if own_seeds.sum() >= MIN_COLOUR_SAMPLE:
                 references[r] = np.median(colors[own_seeds], axis=0)
-        if not references:
+        if not references or limit <= 0:
             continue
         if across_dates:
             distance = np.min([np.linalg.norm(colors - c, axis=1) for c in references.values()], axis=0)
-            _grow(
-                member, free, k, np.nonzero(free & (distance <= tolerance))[0], means[member == k], means, radius, hops
-            )
+            pool = np.nonzero(free & (distance <= tolerance))[0]
+            _grow(member, free, k, pool, np.nonzero(mine)[0], means, reach, limit)
             continue
         for r, reference in references.items():
             close = np.linalg.norm(colors - reference, axis=1) <= tolerance
             pool = np.nonzero(free & (origin == r) & close)[0]
-            _grow(member, free, k, pool, means[(member == k) & (origin == r)], means, radius, hops)
+            _grow(member, free, k, pool, np.nonzero(mine & (origin == r))[0], means, reach, limit)
     return member
 
 
@@ -193,41 +216,52 @@ def regions_3d(
     seeds: np.ndarray,
     difference: np.ndarray,
     *,
-    spacing: float,
+    reach: np.ndarray,
     candidates: np.ndarray | None = None,
-    link_factor: float = 5.0,
-    reach: np.ndarray | None = None,
-    min_gaussians: int = 16,
+    link: float = 2.0,
+    area: np.ndarray | None = None,
+    min_area: float = 0.0,
     completion: dict | None = None,
 ) -> tuple[list[dict], np.ndarray]:
     """The changed regions of a pair of dates (p earlier than q), largest first, and [N] region index per
     Gaussian (−1: in none). ``seeds``: [N] bool, the Gaussians scored changed; ``candidates`` (⊇ seeds,
     default the seeds): those that may join a region they touch (hysteresis: a region is a connected
-    component of the candidates holding ≥ ``min_gaussians`` seeds; the components of what disappeared,
+    component of the candidates, linked closer than ``link`` × (r_i + r_j) with r = ``reach`` [N]
+    (``local_reach``), whose seeds cover at least ``min_area``; the components of what disappeared,
     difference > 0, and of what appeared are formed apart, then joined where they occupy the same
     place, ``merge_colocated``); ``difference``: [N] presence at p minus presence at q
-    (``evidence.presence_difference``); ``spacing``: ``median_spacing``; ``reach``: [N] or None, each
-    Gaussian's reach, linking two whose reaches touch as well (``cluster_labels``). ``completion``: the keyword
-    arguments ``colors``, ``origin``, ``eligible``, ``tolerance``, ``hops``, ``across_dates`` and
-    optionally ``radius`` (default the link radius, ``link_factor`` × ``spacing``) of
-    ``complete_by_colour``, applied to the regions before they are described (None: no completion)."""
+    (``evidence.presence_difference``); ``area``: [N] the share of a view of the observing date each
+    Gaussian covers (None: every Gaussian 0, then ``min_area`` must be 0). ``completion``: the keyword
+    arguments ``colors``, ``origin``, ``eligible``, ``tolerance``, ``within``, ``across_dates`` and
+    optionally ``link`` (default ``link``) of ``complete_by_colour``, applied to the regions before they
+    are described (None: no completion)."""
     means = np.asarray(means, np.float64)
     difference = np.asarray(difference, np.float64)
     seeds = np.asarray(seeds, bool)
+    reach = np.asarray(reach, np.float64)
+    if area is None:
+        if min_area > 0:
+            raise InputError(
+                "a region size bound needs each Gaussian's area", field="area", fix="pass area=, or min_area=0"
+            )
+        area = np.zeros(len(means))
+    area = np.asarray(area, np.float64)
     candidates = seeds if candidates is None else (np.asarray(candidates, bool) | seeds)
-    radius = link_factor * spacing
     member = np.full(len(means), -1, np.int64)
     sides = []
     for side in (difference > 0, difference <= 0):  # what disappeared and what appeared, apart
         rows = np.nonzero(candidates & side)[0]
-        labels = cluster_labels(means[rows], radius, None if reach is None else np.asarray(reach)[rows])
+        labels = cluster_labels(means[rows], link * reach[rows])
         sides.append([rows[labels == k] for k in np.unique(labels)])
-    groups = merge_colocated(means, *sides, radius)
-    groups = sorted((g for g in groups if seeds[g].sum() >= min_gaussians), key=len, reverse=True)
+    groups = merge_colocated(means, *sides, link * reach)
+    covered = lambda g: float(np.sum(area[g][seeds[g]]))
+    groups = sorted((g for g in groups if seeds[g].any() and covered(g) >= min_area), key=len, reverse=True)
     for k, idx in enumerate(groups):
         member[idx] = k
     if completion is not None:
-        member = complete_by_colour(means, member=member, seeds=seeds, **({"radius": radius} | completion))
+        completion = dict(completion)
+        scaled = completion.pop("link", link) * reach
+        member = complete_by_colour(means, member=member, seeds=seeds, reach=scaled, **completion)
         groups = [np.nonzero(member == k)[0] for k in range(len(groups))]
     out = []
     for k, idx in enumerate(groups):
@@ -240,6 +274,7 @@ def regions_3d(
                 "kind": kind,
                 "gaussians": int(len(idx)),
                 "seeds": int(seeds[idx].sum()),
+                "area": covered(idx),
                 "centroid": pts.mean(0).tolist(),
                 "bounds_min": pts.min(0).tolist(),
                 "bounds_max": pts.max(0).tolist(),
@@ -250,12 +285,12 @@ def regions_3d(
     return out, member
 
 
-def min_region_seeds(origin: np.ndarray, p: int, q: int, config: ChangesConfig) -> int:
-    """The seeds a region of dates p and q needs: max(``min_region_gaussians``,
-    ⌈``min_region_share`` · (N_p + N_q)⌉), N_x the Gaussians of date x."""
-    origin = np.asarray(origin)
-    both = int(np.count_nonzero((origin == p) | (origin == q)))
-    return max(int(config.min_region_gaussians), int(math.ceil(config.min_region_share * both)))
+def pair_area(evidence: ChangeEvidence, p: int, q: int) -> np.ndarray:
+    """[N] the share of a view each Gaussian covers at the date of the pair p, q that observes it: at q
+    for a Gaussian of p, at p for one of q, the larger of the two for another date's (0 where unknown)."""
+    if evidence.area is None:
+        return np.zeros(evidence.score.shape[0])
+    return np.maximum(evidence.area[:, p], evidence.area[:, q])
 
 
 def pair_regions(
@@ -266,22 +301,18 @@ def pair_regions(
     q: int,
     config: ChangesConfig,
     *,
-    spacing: float,
+    reach: np.ndarray,
     colors: np.ndarray | None = None,
     carried: np.ndarray | None = None,
-    extents: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray, list[dict], np.ndarray]:
     """The changed regions of dates p < q from their evidence, as the ``changes`` command reports them:
     (presence difference [N], known at both dates [N] bool, regions, [N] region index or −1).
-    Seeds: known and |difference| > 0.5; candidates: known and |difference| > ``grow_above``; a region
-    needs max(``min_region_gaussians``, ⌈``min_region_share`` · (N_p + N_q)⌉) seeds, N_x the Gaussians of
-    date x (``min_region_seeds``). With ``config.complete_hops`` > 0 the regions are completed by colour
-    over the known Gaussians, in steps of ``config.complete_link`` × ``spacing`` (``colors``: [N, 3], the
-    model's colours, then required). ``carried``: [N] bool, Gaussians of p or q counted gone at the
-    other date (``carried.carried_absence``): presence difference ±1, known. ``extents``: [N], each
-    Gaussian's largest standard deviation, needed with ``config.link_extent`` > 0 (two scored Gaussians
-    then also link where their centres lie closer than ``link_extent`` × the sum of their extents, each
-    extent at most ``link_factor`` × ``spacing``)."""
+    Seeds: known and |difference| > 0.5; candidates: known and |difference| > ``grow_above``; links and a
+    region's least area as ``config.link_reach`` and ``config.min_region_area`` say (``regions_3d``;
+    ``reach``: [N] ``local_reach``, each Gaussian's area from ``evidence.area``, ``pair_area``). With
+    ``config.complete_within`` > 0 the regions are completed by colour over the known Gaussians
+    (``colors``: [N, 3], the model's colours, then required). ``carried``: [N] bool, Gaussians of p or q
+    counted gone at the other date (``carried.carried_absence``): presence difference ±1, known."""
     difference = presence_difference(evidence, origin, p, q)
     known = pair_known(evidence, origin, p, q)
     if carried is not None:
@@ -290,40 +321,37 @@ def pair_regions(
         known = known | carried
     score = np.abs(difference)
     completion = None
-    if config.complete_hops > 0:
+    if config.complete_within > 0:
         if colors is None:
             raise InputError(
                 "colour completion needs the Gaussians' colours",
                 field="colors",
-                fix="pass colors=model.rgb(model.gaussians), or set changes.complete_hops = 0",
+                fix="pass colors=model.rgb(model.gaussians), or set changes.complete_within = 0",
             )
         completion = {
             "colors": colors,
             "origin": origin,
             "eligible": known,
-            "radius": config.complete_link * spacing,
+            "link": config.complete_reach,
             "tolerance": config.complete_colour,
-            "hops": int(config.complete_hops),
+            "within": config.complete_within,
             "across_dates": bool(config.complete_across_dates),
         }
-    reach = None
-    if config.link_extent > 0:
-        if extents is None:
-            raise InputError(
-                "linking by extent needs the Gaussians' extents",
-                field="extents",
-                fix="pass extents=model.scales(model.gaussians).max(1), or set changes.link_extent = 0",
-            )
-        reach = config.link_extent * np.minimum(np.asarray(extents, np.float64), config.link_factor * spacing)
+    if evidence.area is None and config.min_region_area > 0:
+        raise InputError(
+            "the evidence has no areas for the region size bound",
+            field="changes.min_region_area",
+            fix="compute the evidence with changes.evidence_from, or set changes.min_region_area = 0",
+        )
     regions, member = regions_3d(
         means,
         known & (score > 0.5),
         difference,
-        spacing=spacing,
-        candidates=known & (score > config.grow_above),
-        link_factor=config.link_factor,
         reach=reach,
-        min_gaussians=min_region_seeds(origin, p, q, config),
+        candidates=known & (score > config.grow_above),
+        link=config.link_reach,
+        area=pair_area(evidence, p, q),
+        min_area=config.min_region_area,
         completion=completion,
     )
     return difference, known, regions, member
@@ -339,7 +367,7 @@ def every_pair_regions(
     pairs: Sequence[tuple[int, int]] | None = None,
 ) -> dict[tuple[int, int], tuple[np.ndarray, np.ndarray, list[dict], np.ndarray]]:
     """``pair_regions`` of the date pairs p < q of ``model`` (a ``TemporalGaussians``; ``pairs``, default
-    all), its spacing and colours computed once: {(p, q): (difference, known, regions, member)}. With
+    all), its reaches and colours computed once: {(p, q): (difference, known, regions, member)}. With
     ``config.carry_absence`` and more than two dates, each pair's regions are formed twice: first from
     its evidence alone, then with the Gaussians ``carried.carried_absence`` finds from the first
     regions of every pair that holds p or q (``cameras[d]``: date d's views, then required; the
@@ -347,9 +375,8 @@ def every_pair_regions(
     means = np.asarray(model.gaussians.means, np.float64)
     origin = np.asarray(model.origin)
     t = model.num_dates
-    spacing = median_spacing(means)
     colors = np.asarray(rgb(model.gaussians), np.float64)  # DC: each colour averaged over view directions
-    extents = np.asarray(scales(model.gaussians), np.float64).max(axis=1)
+    reach = local_reach(means, np.asarray(scales(model.gaussians), np.float64).max(axis=1))
     wanted = [(p, q) for p in range(t) for q in range(p + 1, t)] if pairs is None else sorted(set(pairs))
     carry = bool(config.carry_absence) and t > 2
     if carry and cameras is None:
@@ -362,7 +389,7 @@ def every_pair_regions(
         {(min(a, r), max(a, r)) for p, q in wanted for a in (p, q) for r in range(t) if r != a} if carry else set()
     )
     first = {
-        pair: pair_regions(evidence, origin, means, *pair, config, spacing=spacing, colors=colors, extents=extents)
+        pair: pair_regions(evidence, origin, means, *pair, config, reach=reach, colors=colors)
         for pair in sorted(first_pairs | set(wanted))
     }
     if not carry:
@@ -374,18 +401,19 @@ def every_pair_regions(
             model, cameras, members, p, q, support_views=config.support_views, render_config=render_config
         )
         out[(p, q)] = (
-            pair_regions(
-                evidence, origin, means, p, q, config, spacing=spacing, colors=colors, carried=carried, extents=extents
-            )
+            pair_regions(evidence, origin, means, p, q, config, reach=reach, colors=colors, carried=carried)
             if carried.any()
             else first[(p, q)]
         )
     return out
 
 
-def image_regions(mask: np.ndarray, score_map: np.ndarray, min_pixels: int = 8) -> tuple[list[dict], np.ndarray]:
-    """8-connected changed areas of ``mask`` with ≥ ``min_pixels`` pixels, largest first (area, bounding
-    box [x0, y0, x1, y1] inclusive, mean score), and the [H, W] label image (0: none, k + 1: area k)."""
+def image_regions(mask: np.ndarray, score_map: np.ndarray, min_area: float = 0.0) -> tuple[list[dict], np.ndarray]:
+    """8-connected changed areas of ``mask`` covering at least ``min_area`` of the image (a share of its
+    pixels, so the bound reads the same at any resolution), largest first (pixels, share of the image,
+    bounding box [x0, y0, x1, y1] inclusive, mean score), and the [H, W] label image (0: none, k + 1:
+    area k)."""
+    min_pixels = max(1, math.ceil(min_area * mask.size - 1e-9))
     labels, count = ndimage.label(np.asarray(mask, bool), structure=np.ones((3, 3), int))
     areas = ndimage.sum_labels(np.ones_like(labels), labels, index=np.arange(1, count + 1))
     keep = [k + 1 for k in np.argsort(-areas, kind="stable") if areas[k] >= min_pixels]
@@ -398,6 +426,7 @@ def image_regions(mask: np.ndarray, score_map: np.ndarray, min_pixels: int = 8) 
             {
                 "id": j,
                 "area_pixels": int(len(xs)),
+                "area": len(xs) / mask.size,
                 "bbox_xyxy": [int(xs.min()), int(ys.min()), int(xs.max()), int(ys.max())],
                 "mean_score": float(np.mean(score_map[ys, xs])),
             }

@@ -110,7 +110,7 @@ def _write_view(found: Detection, pair: tuple[int, int], run, d: int, i: int, ca
     (p, q), scene = pair, run.scenes[d]
     name, date = Path(scene.image_names[i]).stem, run.names[d]
     s, valid, mask = found.view(p, q, camera)
-    areas, _ = image_regions(mask, s, found.config.min_region_pixels)
+    areas, _ = image_regions(mask, s, found.config.min_image_area)
     write_image(out / "masks" / date / f"{name}.png", mask.astype(np.float32))
     write_image(out / "scores" / date / f"{name}.png", np.where(valid, s, 0.0))
     write_image(out / "overlays" / date / f"{name}.png", overlay(scene.load_image(int(i)), mask, valid))

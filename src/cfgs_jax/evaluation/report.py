@@ -239,16 +239,17 @@ def _baseline_rows(g: dict, p: dict) -> list[str]:
 def evidence_table(ev: dict) -> list[str]:
     """The residual-evidence detector (the `changes` command): per Gaussian, per pixel, per region."""
     g, p, r = ev["gaussians"], ev["pixels"], ev["regions"]
-    tau, k = ev["config"]["threshold"], ev["config"]["neighbours"]
+    tau, pool = ev["config"]["threshold"], ev["config"].get("pool_area", 0.0)
     lines = [
         "",
         "## Change detection against ground truth (residual evidence, the `changes` command)",
         "",
-        f"Threshold τ = {tau} (RMS colour, score > 0.5), evidence pooled over k = {k} neighbours, "
+        f"Threshold τ = {tau} (RMS colour, score > 0.5), evidence pooled over {1000 * pool:g} ‰ of a view, "
         f"gain range {ev['config']['gain_range'][0]:.3g}–{ev['config']['gain_range'][1]:.3g}, views within "
         f"{ev['config'].get('max_view_angle', 180.0):g}° of the Gaussian's own date's; regions grow "
-        f"over Gaussians scored > {ev['config']['grow_above']} and need {ev['config']['min_region_gaussians']} "
-        f"scored > 0.5, and at least {100 * ev['config'].get('min_region_share', 0.0):g} % of the two dates' Gaussians.",
+        f"over Gaussians scored > {ev['config']['grow_above']} linked within {ev['config'].get('link_reach', 0):g} × "
+        f"their reaches, and those scored > 0.5 must cover {100 * ev['config'].get('min_region_area', 0.0):g} % "
+        "of a view.",
         "",
         "| Level | Precision | Recall | F1 | IoU | flagged changed | ground truth changed |",
         "|---|---:|---:|---:|---:|---:|---:|",

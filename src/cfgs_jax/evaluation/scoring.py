@@ -374,19 +374,32 @@ def pixel_change_iou(
     }
 
 
-def region_scores(regions: list[dict], member: np.ndarray, objects: np.ndarray, changed_objects: set) -> dict:
-    """A region is true when most of its Gaussians belong to an object whose presence differs between
-    the two dates (``objects``: [N] ground-truth object id per Gaussian, −1 unknown)."""
+def region_scores(
+    regions: list[dict], member: np.ndarray, objects: np.ndarray, changed_objects: set, known: np.ndarray | None = None
+) -> dict:
+    """Which changed objects the regions find, and how many regions are false (``objects``: [N]
+    ground-truth object id per Gaussian, −1 unknown; ``changed_objects``: the ids whose presence, variant
+    or place differs between the two dates; ``known``: [N] bool, the Gaussians the pair could score,
+    default all). A region finds its majority object when that changed, and every other changed object
+    of which it holds at least half of the known Gaussians (a region that covers two neighbouring changed
+    objects finds both). It is false when less than half of its labelled Gaussians belong to changed
+    objects. Each region gets its majority ``object``, the ``objects`` it finds and whether it is ``false``."""
+    objects = np.asarray(objects)
+    known = np.ones(len(objects), bool) if known is None else np.asarray(known, bool)
+    changed = sorted(int(c) for c in changed_objects)
+    sizes = {c: int(np.count_nonzero(known & (objects == c))) for c in changed}
     found, false = set(), 0
     for r in regions:
         ids = objects[member == r["id"]]
         ids = ids[ids >= 0]
-        top = int(np.bincount(ids).argmax()) if len(ids) else -1
-        r["object"] = top
-        if top in changed_objects:
-            found.add(top)
-        else:
-            false += 1
+        counts = np.bincount(ids) if len(ids) else np.zeros(0, int)
+        top = int(counts.argmax()) if len(ids) else -1
+        held = {c: int(counts[c]) if c < len(counts) else 0 for c in changed}
+        mine = {c for c in changed if c == top or (sizes[c] and held[c] >= 0.5 * sizes[c])}
+        r["object"], r["objects"] = top, sorted(mine)
+        r["false"] = not len(ids) or sum(held.values()) < 0.5 * len(ids)
+        found |= mine
+        false += int(r["false"])
     return {"found": sorted(found), "false_regions": false}
 
 
@@ -419,7 +432,9 @@ def evidence_detection(
     pixel = {"inter": 0, "union": 0, "predicted": 0, "truth": 0, "valid": 0}
     per_pair, regions = {}, {"changed_objects": 0, "found_objects": 0, "false_regions": 0, "regions": 0}
     for (p, q), change in found.pairs.items():
-        objs = region_scores(change.regions, change.member, table["objects"], changed_objects.get((p, q), set()))
+        objs = region_scores(
+            change.regions, change.member, table["objects"], changed_objects.get((p, q), set()), change.known
+        )
         n_changed = len(changed_objects.get((p, q), ()))
         for key, value in (("changed_objects", n_changed), ("found_objects", len(objs["found"]))):
             regions[key] += value

@@ -1,0 +1,187 @@
+"""The change detector across scenes, image sizes and view counts, one setting for all, with its
+baselines: the sweep behind the README's change table.
+
+A cell is SCENE:WxH:V, a synthetic preset rendered at W×H with V images per date (every 8th held out
+for testing). Each cell is fused once (``python -m cfgs_jax.pipeline eval --part fusion`` with
+``benchmarks/change_sweep_WxH.toml``, the exact Sim(3)s) and then scored with the detector of the
+checkout (the ``[changes]`` defaults, or ``--set changes.KEY=VALUE``) from the pair statistics cached
+in the cell, against the scene's ground truth as the evaluation scores it
+(``evaluation.scoring.evidence_detection``), beside three baselines on the same entries and pixels:
+flagging everything, the o^q < 0.2 rule, and the score alone (s > 0.5, no regions).
+
+    python benchmarks/bench_change_sweep.py run WORK CELL [CELL ...]   # fuse (resumable) and score
+    python benchmarks/bench_change_sweep.py score WORK CELL [CELL ...]  # score again (fused cells)
+    python benchmarks/bench_change_sweep.py table WORK [--name NAME]   # results/NAME.md and .json
+
+``run`` and ``score`` write WORK/<cell>/change_sweep_row.json; ``table`` gathers every row under WORK.
+A cell's fusion runs for minutes at 80×60 and about an hour at 320×240 on the 2-core CPU: run cells as
+separate processes (one a core) and ``table`` once they are scored.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import json
+import shlex
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from common import RESULTS, machine
+
+HERE = Path(__file__).resolve().parent
+ROW = "change_sweep_row.json"
+
+
+def parse_cell(text: str) -> tuple[str, int, int, int]:
+    """``SCENE:WxH:V`` → (scene, width, height, images per date)."""
+    try:
+        scene, size, views = text.split(":")
+        width, height = (int(v) for v in size.lower().split("x"))
+        return scene, width, height, int(views)
+    except ValueError:
+        raise SystemExit(f"bad cell {text!r}: use SCENE:WxH:V, e.g. flood:80x60:10") from None
+
+
+def cell_dir(work: Path, cell: tuple[str, int, int, int]) -> Path:
+    scene, width, height, views = cell
+    return work / f"{scene}_{width}x{height}_{views}"
+
+
+def fuse(work: Path, cell: tuple[str, int, int, int]) -> Path:
+    """The cell's fused run (``eval --part fusion``; skipped when its run is exported already)."""
+    scene, width, height, views = cell
+    out = cell_dir(work, cell)
+    state = out / "run" / "run.json"
+    if state.is_file() and "export" in json.loads(state.read_text()).get("done", []):
+        return out
+    config = HERE / f"change_sweep_{width}x{height}.toml"
+    if not config.is_file():
+        raise SystemExit(f"no fusion configuration for {width}×{height}: write {config}")
+    cmd = [sys.executable, "-m", "cfgs_jax.pipeline", "eval", "--scene", scene, "--config", str(config)]
+    cmd += ["--set", f"scene.images_per_date={views}", "--set", "eval.change_detection=false"]
+    cmd += ["--out", str(out), "--part", "fusion", "--no-progress"] + (["--resume"] if out.exists() else [])
+    print("+", shlex.join(cmd), flush=True)
+    subprocess.run(cmd, check=True)
+    return out
+
+
+def score(out: Path, overrides: list[str]) -> dict:
+    """The detector (the checkout's ``[changes]`` defaults with ``overrides``) on the fused cell ``out``,
+    scored against its ground truth, with the baselines and the detector's run time."""
+    from bench_change_regions import _statistics, change_table
+
+    from cfgs_jax.changes import ChangesConfig
+    from cfgs_jax.config import apply_overrides, from_dict
+    from cfgs_jax.evaluation import scoring
+    from cfgs_jax.evaluation.protocol import date_masks
+    from cfgs_jax.render_run import open_run
+
+    run = open_run(out / "run")
+    data = out / "data"
+    changes = apply_overrides({"changes": {}}, overrides)["changes"]
+    config = from_dict(ChangesConfig, changes, where="changes")
+    rc = run.config.render
+    stats, _, seconds = _statistics(run, data, out / "change_sweep_cache", config, rc)
+    gt, _, _, table = change_table(run, data, rc)
+    names = list(run.names)
+    masks_test = date_masks(data, run.scenes, run.sims, names, "test")
+    t0 = time.perf_counter()
+    ev = scoring.evidence_detection(
+        run.model,
+        [run.date_views(d, config.views) for d in range(len(names))],
+        table,
+        masks_test,
+        scoring.changed_objects_by_pair(gt),
+        config,
+        render_config=rc,
+        statistics=stats,
+    )
+    regions_s = time.perf_counter() - t0
+    g, px, reg = ev["gaussians"], ev["pixels"], ev["regions"]
+    cam = run.date_views(0, "test").cameras[0]
+    return {
+        "cell": out.name,
+        "scene": out.name.split("_")[0],
+        "size": f"{int(cam.width)}x{int(cam.height)}",
+        "images_per_date": len(run.scenes[0].image_names),
+        "dates": len(names),
+        "gaussians": int(len(run.model.origin)),
+        "config": {k: v for k, v in ev["config"].items()},
+        "gaussian": {k: g[k] for k in g if not isinstance(g[k], dict)},
+        "pixels": {k: px[k] for k in ("iou", "all_iou", "predicted_changed_share", "gt_changed_share")},
+        "regions": reg,
+        "seconds": {"statistics": seconds.get("pair_statistics"), "regions_and_scoring": regions_s},
+        "overrides": overrides,
+    }
+
+
+def markdown(rows: list[dict], command: str) -> str:
+    lines = [
+        "# The change detector across scenes, sizes and view counts (bench_change_sweep.py)",
+        "",
+        f"Command: `{command}`. Machine: {machine()}. Date: {datetime.date.today().isoformat()}. Each row one fused "
+        "cell (`eval --part fusion`, `benchmarks/change_sweep_WxH.toml`, the exact Sim(3)s), scored with one "
+        "`[changes]` setting for every cell; views: images per date (every 8th a test view). Per Gaussian the truth is "
+        "its object changed between the two dates (P / R / F1 of region membership); beside it the truth that follows "
+        "the surface (most of the Gaussian's weight on pixels whose surface differs). Baselines on the same entries: "
+        "flag everything, the o^q < 0.2 rule, the score alone (s > 0.5, no regions); pixel IoU against flagging every "
+        "pixel. Detector seconds: the pair statistics (the renders; cached, so a rescore reports their first run) and "
+        "the regions with the scoring.",
+        "",
+        "| scene | size | views | Gaussians | P / R / F1 | F1: flag all / o^q / score alone | F1, surface truth | "
+        "pixel IoU (flag all) | objects found | false regions | detector s |",
+        "|---|---|---:|---:|---|---|---:|---|---:|---:|---:|",
+    ]
+    for r in sorted(rows, key=lambda r: (r["scene"], r["size"], r["images_per_date"])):
+        g, px, reg = r["gaussian"], r["pixels"], r["regions"]
+        pi = g.get("gt_changed", 0.0)
+        flag_all = 2 * pi / (1 + pi) if pi else float("nan")
+        stats_s = r["seconds"]["statistics"]
+        secs = f"{stats_s:.0f} + {r['seconds']['regions_and_scoring']:.0f}" if stats_s else "–"
+        lines.append(
+            f"| {r['scene']} ({r['dates']}) | {r['size']} | {r['images_per_date']} | {r['gaussians']:,} | "
+            f"{g['precision']:.3f} / {g['recall']:.3f} / **{g['f1']:.3f}** | "
+            f"{flag_all:.3f} / {g['o_f1']:.3f} / {g['score_f1']:.3f} | {g['pixel_label_f1']:.3f} | "
+            f"**{px['iou']:.3f}** ({px['all_iou']:.3f}) | {reg['found_objects']} / {reg['changed_objects']} | "
+            f"{reg['false_regions']} ({reg['pairs']} pairs) | {secs} |"
+        )
+    return "\n".join(lines) + "\n"
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("action", choices=("run", "score", "table"))
+    ap.add_argument("work", help="the folder holding one subfolder per cell")
+    ap.add_argument("cells", nargs="*", metavar="SCENE:WxH:V")
+    ap.add_argument("--set", dest="overrides", action="append", default=[], metavar="changes.KEY=VALUE")
+    ap.add_argument("--name", default="change_sweep", help="results file stem (table)")
+    args = ap.parse_args()
+    work = Path(args.work)
+    if args.action == "table":
+        rows = [json.loads(p.read_text()) for p in sorted(work.glob(f"*/{ROW}"))]
+        if not rows:
+            raise SystemExit(f"no scored cells under {work}: run `score` first")
+        command = shlex.join(["python", "benchmarks/bench_change_sweep.py", *sys.argv[1:]])
+        (RESULTS / f"{args.name}.json").write_text(json.dumps({"command": command, "rows": rows}, indent=1))
+        (RESULTS / f"{args.name}.md").write_text(markdown(rows, command))
+        print((RESULTS / f"{args.name}.md").read_text())
+        return
+    if not args.cells:
+        ap.error("name the cells, e.g. flood:80x60:10")
+    for text in args.cells:
+        cell = parse_cell(text)
+        out = fuse(work, cell) if args.action == "run" else cell_dir(work, cell)
+        if not (out / "run" / "run.json").is_file():
+            raise SystemExit(f"{out} is not fused: use `run`")
+        row = score(out, args.overrides)
+        (out / ROW).write_text(json.dumps(row, indent=1))
+        g = row["gaussian"]
+        print(f"{out.name}: F1 {g['f1']:.3f}, pixel IoU {row['pixels']['iou']:.3f}", flush=True)
+
+
+if __name__ == "__main__":
+    main()
