@@ -110,7 +110,7 @@ def score(out: Path, overrides: list[str]) -> dict:
         "images_per_date": len(run.scenes[0].image_names),
         "dates": len(names),
         "gaussians": int(len(run.model.origin)),
-        "config": {k: v for k, v in ev["config"].items()},
+        "config": dict(ev["config"]),
         "gaussian": {k: g[k] for k in g if not isinstance(g[k], dict)},
         "pixels": {k: px[k] for k in ("iou", "all_iou", "predicted_changed_share", "gt_changed_share")},
         "regions": reg,
