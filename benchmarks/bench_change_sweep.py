@@ -99,6 +99,7 @@ def score(out: Path, overrides: list[str]) -> dict:
         config,
         render_config=rc,
         statistics=stats,
+        kinds=scoring.change_kinds_by_pair(gt),
     )
     regions_s = time.perf_counter() - t0
     g, px, reg = ev["gaussians"], ev["pixels"], ev["regions"]
@@ -119,6 +120,12 @@ def score(out: Path, overrides: list[str]) -> dict:
     }
 
 
+def _kinds(regions: dict) -> str:
+    """Regions naming their true kind of change, per kind: "moved 1/2, appeared 3/3"."""
+    kinds = regions.get("kinds") or {}
+    return ", ".join(f"{k} {v['named']}/{v['regions']}" for k, v in sorted(kinds.items())) or "–"
+
+
 def markdown(rows: list[dict], command: str) -> str:
     lines = [
         "# The change detector across scenes, sizes and view counts (bench_change_sweep.py)",
@@ -130,11 +137,12 @@ def markdown(rows: list[dict], command: str) -> str:
         "the surface (most of the Gaussian's weight on pixels whose surface differs). Baselines on the same entries: "
         "flag everything, the o^q < 0.2 rule, the score alone (s > 0.5, no regions); pixel IoU against flagging every "
         "pixel. Detector seconds: the pair statistics (the renders; cached, so a rescore reports their first run) and "
-        "the regions with the scoring.",
+        "the regions with the scoring. Kinds named: of the regions whose majority object changed, how many name its kind "
+        "(appeared, disappeared, moved, changed shape, changed surface).",
         "",
         "| scene | size | views | Gaussians | P / R / F1 | F1: flag all / o^q / score alone | F1, surface truth | "
-        "pixel IoU (flag all) | objects found | false regions | detector s |",
-        "|---|---|---:|---:|---|---|---:|---|---:|---:|---:|",
+        "pixel IoU (flag all) | objects found | false regions | kinds named | detector s |",
+        "|---|---|---:|---:|---|---|---:|---|---:|---:|---|---:|",
     ]
     for r in sorted(rows, key=lambda r: (r["scene"], r["size"], r["images_per_date"])):
         g, px, reg = r["gaussian"], r["pixels"], r["regions"]
@@ -147,7 +155,7 @@ def markdown(rows: list[dict], command: str) -> str:
             f"{g['precision']:.3f} / {g['recall']:.3f} / **{g['f1']:.3f}** | "
             f"{flag_all:.3f} / {g['o_f1']:.3f} / {g['score_f1']:.3f} | {g['pixel_label_f1']:.3f} | "
             f"**{px['iou']:.3f}** ({px['all_iou']:.3f}) | {reg['found_objects']} / {reg['changed_objects']} | "
-            f"{reg['false_regions']} ({reg['pairs']} pairs) | {secs} |"
+            f"{reg['false_regions']} ({reg['pairs']} pairs) | {_kinds(reg)} | {secs} |"
         )
     return "\n".join(lines) + "\n"
 

@@ -743,3 +743,60 @@ def test_detection_does_not_move_with_scene_scale_view_count_or_resolution():
     np.testing.assert_allclose(fine.evidence.area, base.evidence.area, rtol=0.1, atol=1e-4)
     for a, b in zip(masks, fine_masks):
         assert abs(a.mask.mean() - b.mask.mean()) <= 0.02
+
+
+def test_region_kinds_name_what_changed():
+    """Hand-built regions: a red box gone at one place and the same box come at another are both "moved"
+    and name each other; a grey box gone elsewhere stays "disappeared" (another colour); a box and its
+    squashed version in one place is "changed shape"; a box and a green copy in the same place "changed
+    surface"; a tilted thin plate and its copy lifted along its normal "moved". Ground truth: the kinds
+    from ``ground_truth.json`` entries by hand."""
+    from cfgs_jax.changes.regions import region_kinds
+    from cfgs_jax.evaluation.scoring import change_kinds_by_pair
+
+    rng = np.random.default_rng(7)
+    box = lambda n, lo, hi: rng.uniform(lo, hi, (n, 3))
+    red, grey, green = [0.8, 0.1, 0.1], [0.5, 0.5, 0.5], [0.1, 0.8, 0.1]
+    tilt = np.linalg.qr(rng.normal(size=(3, 3)))[0]
+    plate = box(200, [0, 0, 0], [2, 2, 0.02]) @ tilt.T
+    parts = [  # (points, colour, difference sign, region id)
+        (box(100, [0, 0, 0], [1, 1, 1]), red, 1, 0),
+        (box(100, [5, 0, 0], [6, 1, 1]), red, -1, 1),
+        (box(100, [0, 5, 0], [1, 6, 1]), grey, 1, 2),
+        (box(100, [10, 0, 0], [11, 1, 1]), red, 1, 3),
+        (box(100, [10, 0, 0], [11, 1, 0.4]), red, -1, 3),
+        (box(100, [0, 10, 0], [1, 11, 1]), red, 1, 4),
+        (box(100, [0, 10, 0], [1, 11, 1]), green, -1, 4),
+        (plate, grey, 1, 5),
+        (plate + 0.3 * tilt[:, 2], grey, -1, 5),
+    ]
+    means = np.concatenate([p for p, *_ in parts])
+    colors = np.concatenate([np.tile(c, (len(p), 1)) for p, c, *_ in parts])
+    difference = np.concatenate([np.full(len(p), 0.9 * s) for p, _, s, _ in parts])
+    member = np.concatenate([np.full(len(p), k) for p, *_, k in parts])
+    kinds = {0: "disappeared", 1: "appeared", 2: "disappeared", 3: "changed", 4: "changed", 5: "changed"}
+    regions = [{"id": k, "kind": v} for k, v in kinds.items()]
+    named = region_kinds(regions, member, means, colors, difference, tolerance=0.15)
+    assert [r["kind"] for r in named] == [
+        "moved", "moved", "disappeared", "changed shape", "changed surface", "moved",
+    ]  # fmt: skip
+    assert named[0]["moved_to"] == 1 and named[1]["moved_from"] == 0 and "moved_to" not in named[2]
+    identity = np.eye(4).tolist()
+    lifted = (np.eye(4) + np.array([[0, 0, 0, 1.0], [0, 0, 0, 0], [0, 0, 0, 0], [0, 0, 0, 0]])).tolist()
+    squashed = np.diag([1.0, 1.0, 0.4, 1.0]).tolist()
+    objects = [{"id": 1, "name": "ground"}] + [{"id": i, "name": f"o{i}"} for i in range(2, 7)]
+    date = lambda present, variant, placed: {
+        "present": {"ground": True} | {f"o{i}": present[i - 2] for i in range(2, 7)},
+        "variant": {f"o{i}": variant[i - 2] for i in range(2, 7)},
+        "to_world": {f"o{i}": placed[i - 2] for i in range(2, 7)},
+    }
+    gt = {
+        "objects": objects,
+        "dates": [
+            date([1, 0, 1, 1, 1], [0, 0, 0, 0, 0], [identity] * 5),
+            date([0, 1, 1, 1, 1], [0, 0, 1, 0, 0], [identity, identity, identity, lifted, squashed]),
+        ],
+    }
+    assert change_kinds_by_pair(gt) == {
+        (0, 1): {2: "disappeared", 3: "appeared", 4: "changed surface", 5: "moved", 6: "changed shape"}
+    }

@@ -17,9 +17,11 @@ date that observes them (each Gaussian's compositing weight summed over those vi
 their pixel count: a share of the image, whatever its resolution or the number of views), with all its
 members (hysteresis thresholding: a weakly scored Gaussian belongs to a change only where it touches a
 confident one). Each has its Gaussian count, the share of a view it covers, centroid, axis-aligned
-bounds, the volume of the convex hull of its centres, and its kind: "disappeared" (≥ 80 % of its
-Gaussians shown at the earlier date and gone at the later), "appeared" (≥ 80 % the other way) or
-"changed" (both).
+bounds, the volume of the convex hull of its centres, and its kind (``region_kinds``): "disappeared"
+(≥ 80 % of its Gaussians shown at the earlier date and gone at the later), "appeared" (≥ 80 % the
+other way), "moved" (a disappeared and an appeared region of the same look and size elsewhere), and
+for an old and a new version in one place "changed shape" (their extents differ) or "changed surface"
+(the same extents, another look).
 Optionally a region is then completed by colour (``complete_by_colour``): the Gaussians of a date that
 connect to the region's own Gaussians of that date through links of ``complete_reach`` × (r_i + r_j),
 share their colour and lie within ``complete_within`` × the region's diameter of it join it, so that an
@@ -285,6 +287,102 @@ def regions_3d(
     return out, member
 
 
+#: Two versions of an object have the same size when each robust extent (5th to 95th percentile of
+#: the centres along each axis, sorted) of the smaller is at least this share of the larger's.
+SAME_SIZE = 0.7
+#: Two versions of one size in one place are one body moved when their median centres lie apart by more
+#: than this share of its extent along some principal axis, plus ``FLAT`` of its largest extent (a flat
+#: body has no extent along its normal), e.g. a water surface risen.
+SHIFTED = 0.25
+FLAT = 0.01
+
+
+def _principal_axes(points: np.ndarray) -> np.ndarray:
+    """[3, 3] the principal axes of ``points`` (rows; the identity for fewer than 3 points)."""
+    if len(points) < 3:
+        return np.eye(3)
+    return np.linalg.eigh(np.cov(np.asarray(points, np.float64).T))[1].T
+
+
+def _extents(points: np.ndarray, axes: np.ndarray | None = None) -> np.ndarray:
+    """[3] the robust extents of ``points`` along ``axes`` (rows; default their own principal axes): the
+    5th to 95th percentile of their coordinates along each."""
+    if len(points) < 2:
+        return np.zeros(3)
+    local = np.asarray(points, np.float64) @ (_principal_axes(points) if axes is None else axes).T
+    return np.percentile(local, 95, axis=0) - np.percentile(local, 5, axis=0)
+
+
+def _same_size(a: np.ndarray, b: np.ndarray, *, sort: bool = False) -> bool:
+    """Whether extents ``a`` and ``b`` ([3]) agree within ``SAME_SIZE`` on every axis (``sort``: compared
+    largest with largest, for a body that may have turned)."""
+    a, b = (np.sort(a), np.sort(b)) if sort else (a, b)
+    big = np.maximum(a, b)
+    return bool(np.all(np.minimum(a, b) >= SAME_SIZE * big - 1e-12))
+
+
+def region_kinds(
+    regions: list[dict],
+    member: np.ndarray,
+    means: np.ndarray,
+    colors: np.ndarray,
+    difference: np.ndarray,
+    tolerance: float,
+) -> list[dict]:
+    """``regions`` (``regions_3d``) with each one's kind of change, from its Gaussians' presence difference
+    ([N], > 0: shown at the earlier date, gone at the later), centres and colours ([N, 3]):
+
+    - "disappeared" / "appeared": ≥ 80 % of its Gaussians on one side;
+    - "changed shape": an old and a new version in one place whose robust extents (5th–95th percentile
+      along each principal axis of the two together) differ by more than ``SAME_SIZE`` on some axis (a
+      collapse, a growth);
+    - "moved": both versions of the same extents but their median centres apart by more than ``SHIFTED``
+      of the extent along some axis (a risen water level);
+    - "changed surface": both versions of the same extents in the same place (a new texture or colour);
+    - "moved" too: a disappeared and an appeared region whose median colours lie within ``tolerance`` (RGB
+      distance) and whose sorted extents (along each one's principal axes) agree (``SAME_SIZE``): the
+      same body elsewhere; matched
+      greedily, closest colours first, and each names the other (``moved_from`` / ``moved_to``).
+
+    Each region also gets its median ``colour``. Modified in place and returned."""
+    means = np.asarray(means, np.float64)
+    colors = np.asarray(colors, np.float64)
+    difference = np.asarray(difference, np.float64)
+    member = np.asarray(member)
+    for r in regions:
+        idx = member == r["id"]
+        old, new = idx & (difference > 0), idx & (difference <= 0)
+        r["colour"] = np.median(colors[idx], axis=0).tolist()
+        r["extents"] = _extents(means[idx]).tolist()
+        if r["kind"] != "changed":
+            continue
+        axes = _principal_axes(means[idx])  # both versions in one frame: a flat body's normal is an axis
+        before, after = _extents(means[old], axes), _extents(means[new], axes)
+        if not _same_size(before, after):
+            r["kind"] = "changed shape"
+            continue
+        shift = np.abs((np.median(means[old], axis=0) - np.median(means[new], axis=0)) @ axes.T)
+        apart = shift > SHIFTED * np.maximum(before, after) + FLAT * float(np.max(np.maximum(before, after)))
+        r["kind"] = "moved" if apart.any() else "changed surface"
+    gone = [r for r in regions if r["kind"] == "disappeared"]
+    came = [r for r in regions if r["kind"] == "appeared"]
+    candidates = sorted(
+        (float(np.linalg.norm(np.subtract(a["colour"], b["colour"]))), i, j)
+        for i, a in enumerate(gone)
+        for j, b in enumerate(came)
+        if _same_size(np.asarray(a["extents"]), np.asarray(b["extents"]), sort=True)
+    )
+    used_a, used_b = set(), set()
+    for distance, i, j in candidates:
+        if distance > tolerance or i in used_a or j in used_b:
+            continue
+        used_a.add(i)
+        used_b.add(j)
+        gone[i]["kind"], came[j]["kind"] = "moved", "moved"
+        gone[i]["moved_to"], came[j]["moved_from"] = came[j]["id"], gone[i]["id"]
+    return regions
+
+
 def pair_area(evidence: ChangeEvidence, p: int, q: int) -> np.ndarray:
     """[N] the share of a view each Gaussian covers at the date of the pair p, q that observes it: at q
     for a Gaussian of p, at p for one of q, the larger of the two for another date's (0 where unknown)."""
@@ -312,7 +410,8 @@ def pair_regions(
     ``reach``: [N] ``local_reach``, each Gaussian's area from ``evidence.area``, ``pair_area``). With
     ``config.complete_within`` > 0 the regions are completed by colour over the known Gaussians
     (``colors``: [N, 3], the model's colours, then required). ``carried``: [N] bool, Gaussians of p or q
-    counted gone at the other date (``carried.carried_absence``): presence difference ±1, known."""
+    counted gone at the other date (``carried.carried_absence``): presence difference ±1, known. With
+    ``colors`` each region's kind names what changed (``region_kinds``)."""
     difference = presence_difference(evidence, origin, p, q)
     known = pair_known(evidence, origin, p, q)
     if carried is not None:
@@ -354,6 +453,8 @@ def pair_regions(
         min_area=config.min_region_area,
         completion=completion,
     )
+    if colors is not None:
+        regions = region_kinds(regions, member, means, colors, difference, config.complete_colour)
     return difference, known, regions, member
 
 

@@ -784,6 +784,7 @@ def change_detection(
         support_cameras=[date_cameras(sc, sm) for sc, sm in zip(scenes, sims)],
         render_config=render_config,
         statistics=statistics,
+        kinds=scoring.change_kinds_by_pair(gt),
     )
     if cross_init is not None:
         checks = cross_init_checks(cross_init, data, scenes, sims, render_config, masks)

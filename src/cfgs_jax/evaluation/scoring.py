@@ -414,6 +414,7 @@ def evidence_detection(
     support_cameras=None,
     render_config=None,
     statistics=None,
+    kinds: dict[tuple[int, int], dict[int, str]] | None = None,
 ) -> dict:
     """The residual-evidence detector (``changes.detect``) scored against ground truth, as the
     ``changes`` command runs it: per Gaussian (the entries of ``table``: observed Gaussians of date p at
@@ -424,17 +425,26 @@ def evidence_detection(
     covered and observed at both dates; also at every threshold of ``PIXEL_THRESHOLDS``) and per region
     (``changed_objects[(p, q)]``: object ids whose presence differs, p < q). ``statistics``: precomputed
     ``changes.pair_statistics`` (computed from ``views`` and ``support_cameras``, each date's training
-    cameras, when not given)."""
+    cameras, when not given). ``kinds`` (``change_kinds_by_pair``): each changed object's kind of change
+    per pair; each region whose majority object changed is then scored on its kind (``regions.kinds``:
+    per true kind, the regions and how many name it)."""
     found = detect(
         model, views, config, support_cameras=support_cameras, render_config=render_config, statistics=statistics
     )
     names = [d.name for d in model.dates]
     pixel = {"inter": 0, "union": 0, "predicted": 0, "truth": 0, "valid": 0}
     per_pair, regions = {}, {"changed_objects": 0, "found_objects": 0, "false_regions": 0, "regions": 0}
+    by_kind: dict[str, dict[str, int]] = {}
     for (p, q), change in found.pairs.items():
         objs = region_scores(
             change.regions, change.member, table["objects"], changed_objects.get((p, q), set()), change.known
         )
+        for r in change.regions:
+            truth = (kinds or {}).get((p, q), {}).get(r["object"])
+            if truth is not None:
+                entry = by_kind.setdefault(truth, {"regions": 0, "named": 0})
+                entry["regions"] += 1
+                entry["named"] += int(r["kind"] == truth)
         n_changed = len(changed_objects.get((p, q), ()))
         for key, value in (("changed_objects", n_changed), ("found_objects", len(objs["found"]))):
             regions[key] += value
@@ -462,6 +472,12 @@ def evidence_detection(
             "false_regions": regions["false_regions"],
             "regions": regions["regions"],
             "pairs": t * (t - 1) // 2,
+            "kinds": by_kind,
+            "kind_accuracy": (
+                sum(v["named"] for v in by_kind.values()) / sum(v["regions"] for v in by_kind.values())
+                if by_kind
+                else float("nan")
+            ),
         },
         "per_pair": per_pair,
     }
@@ -560,4 +576,38 @@ def changed_objects_by_pair(gt: dict) -> dict[tuple[int, int], set]:
                 if present[0] != present[1] or a["variant"].get(name) != b["variant"].get(name) or moved:
                     ids.add(int(obj["id"]))
             out[(p, q)] = ids
+    return out
+
+
+def _placed_apart(a: list | None, b: list | None) -> str | None:
+    """How an object's two placements (4×4 ``to_world``) differ: None (the same), "changed shape" (its
+    linear part's singular values differ: scaled or squashed) or "moved" (a rigid motion)."""
+    if a is None or b is None or np.allclose(a, b, atol=1e-6):
+        return None
+    sa = np.linalg.svd(np.asarray(a, np.float64)[:3, :3], compute_uv=False)
+    sb = np.linalg.svd(np.asarray(b, np.float64)[:3, :3], compute_uv=False)
+    return "changed shape" if not np.allclose(sa, sb, rtol=1e-6) else "moved"
+
+
+def change_kinds_by_pair(gt: dict) -> dict[tuple[int, int], dict[int, str]]:
+    """From ``ground_truth.json``: for each date pair p < q each changed object's kind of change —
+    "disappeared" / "appeared" (present at only p / only q), "moved" (placed elsewhere by a rigid
+    motion), "changed shape" (its placement scales or squashes it), "changed surface" (another texture
+    variant in the same place) — the ids of ``changed_objects_by_pair``."""
+    dates = gt["dates"]
+    out = {}
+    for (p, q), ids in changed_objects_by_pair(gt).items():
+        a, b = dates[p], dates[q]
+        kinds = {}
+        for obj in gt["objects"]:
+            if int(obj["id"]) not in ids:
+                continue
+            name = obj["name"]
+            present = bool(a["present"].get(name)), bool(b["present"].get(name))
+            if present != (True, True):
+                kinds[int(obj["id"])] = "disappeared" if present[0] else "appeared"
+                continue
+            placed = _placed_apart(a.get("to_world", {}).get(name), b.get("to_world", {}).get(name))
+            kinds[int(obj["id"])] = placed or "changed surface"
+        out[(p, q)] = kinds
     return out
