@@ -800,3 +800,30 @@ def test_region_kinds_name_what_changed():
     assert change_kinds_by_pair(gt) == {
         (0, 1): {2: "disappeared", 3: "appeared", 4: "changed surface", 5: "moved", 6: "changed shape"}
     }
+
+
+def test_bad_input_gives_a_clear_error_or_an_empty_result():
+    """A date without views is refused naming the fix; a pair whose views do not overlap (date 1 looks
+    away from the scene) gives no region and no NaN; a region of one Gaussian gets a kind."""
+    from cfgs_jax.changes import detect
+    from cfgs_jax.changes.regions import region_kinds
+
+    with pytest.raises(InputError, match="no views"):
+        DateViews((), ())
+    model, views, rc = _object_on_ground()
+    away = cj.Camera.look_at([0, 0, 5.0], [0, 0, 9.0], width=48, height=36, fov_x_deg=50)
+    blank = np.zeros((36, 48, 3), np.float32)
+    found = detect(model, [views[0], DateViews((away,), (blank,))], render_config=rc)
+    change = found.pairs[(0, 1)]
+    assert change.regions == [] and not change.in_region.any()
+    assert np.isfinite(found.evidence.score).all() and np.isfinite(found.evidence.area).all()
+    assert not found.view(0, 1, views[0].cameras[0]).mask.any()
+    one = region_kinds(
+        [{"id": 0, "kind": "disappeared"}],
+        np.array([0, -1]),
+        np.zeros((2, 3)),
+        np.ones((2, 3)),
+        np.array([1.0, 0]),
+        0.15,
+    )
+    assert one[0]["kind"] == "disappeared" and one[0]["extents"] == [0.0, 0.0, 0.0]

@@ -438,7 +438,13 @@ class DateViews:
     images: tuple[np.ndarray, ...]
 
     def __post_init__(self):
-        if len(self.cameras) != len(self.images) or not self.cameras:
+        if not self.cameras and not self.images:
+            raise InputError(
+                "a date with no views",
+                field="DateViews",
+                fix="give the date at least one view (for --split test: a dataset with test images, every 8th)",
+            )
+        if len(self.cameras) != len(self.images):
             raise InputError(f"{len(self.cameras)} cameras for {len(self.images)} images", field="DateViews")
 
 

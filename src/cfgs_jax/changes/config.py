@@ -15,7 +15,8 @@ from cfgs_jax.errors import InputError
 class ChangesConfig(Checked):
     """``[changes]``: the residual-evidence change detector.
 
-    ``threshold`` τ is an RMS colour difference in linear RGB (0..1): a Gaussian counts as changed
+    ``threshold`` τ is an RMS colour difference in the images' own encoding (sRGB-encoded, 0..1, the space the
+    model is trained and rendered in; a colour unit, the same at any size): a Gaussian counts as changed
     between two dates when q's images are explained better without it by more than τ (score > 0.5).
     ``views``: which of each date's views supply the evidence — ``"all"``, ``"train"``, or ``"test"``
     (held out from training, so the "absent" residual is not lowered by the date's own Gaussians having
