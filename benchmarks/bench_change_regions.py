@@ -199,7 +199,10 @@ def full_scorer(run, data: Path, stats, render_config):
         )
         return {
             "seconds": time.perf_counter() - t0,
-            "gaussians": {k: ev["gaussians"][k] for k in ("precision", "recall", "f1", "flagged_in_regions", "o_f1")},
+            "gaussians": {
+                k: ev["gaussians"][k]
+                for k in ("precision", "recall", "f1", "flagged_in_regions", "o_f1", "score_f1", "pixel_label_f1")
+            },
             "pixel_iou": ev["pixels"]["iou"],
             "regions": ev["regions"],
         }

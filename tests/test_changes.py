@@ -639,8 +639,8 @@ def test_carried_gaussians_enter_the_regions_as_gone_and_need_cameras():
 def test_every_pair_regions_carries_the_covered_water_into_the_pair_that_cannot_see_it():
     """The flood scene with hand-set evidence: everything of dates 1 and 2 is found gone at date 0, date
     2's water gone at date 1, and nothing of date 1 gone at date 2 (d2's images cannot show it). With
-    carried absence the pair (1, 2) holds date 1's water besides date 2's (one region), and neither date
-    1's float nor its object; without it only date 2's water."""
+    carried absence the pair (1, 2) holds date 1's water besides date 2's (one region, "moved": the water
+    risen), and neither date 1's float nor its object; without it only date 2's water."""
     from cfgs_jax.changes.regions import every_pair_regions
 
     model, (water1, float1, object1, water2, object2) = _flood_model()
@@ -661,7 +661,8 @@ def test_every_pair_regions_carries_the_covered_water_into_the_pair_that_cannot_
     assert set(np.nonzero(without[(1, 2)][3] >= 0)[0]) == set(water2)
     member = with_carry[(1, 2)][3]
     assert set(np.nonzero(member >= 0)[0]) == set(water1) | set(water2)
-    assert len(with_carry[(1, 2)][2]) == 1 and with_carry[(1, 2)][2][0]["kind"] == "changed"
+    # one region: the old water level and the risen one, the same plate lifted along its normal
+    assert len(with_carry[(1, 2)][2]) == 1 and with_carry[(1, 2)][2][0]["kind"] == "moved"
     for pair in ((0, 1), (0, 2)):  # nothing to carry there: the same regions either way
         assert np.array_equal(with_carry[pair][3], without[pair][3])
 

@@ -61,9 +61,9 @@ class ChangesConfig(Checked):
     pixel_threshold: Annotated[float, OPEN_UNIT] = 0.35
     max_view_angle: Annotated[float, msgspec.Meta(gt=0, le=180)] = 20.0
     support_views: Annotated[int, AT_LEAST_ONE] = 64
-    complete_within: Annotated[float, NON_NEGATIVE] = 1.0
+    complete_within: Annotated[float, NON_NEGATIVE] = 0.25
     complete_colour: Annotated[float, POSITIVE] = 0.15
-    complete_reach: Annotated[float, POSITIVE] = 2.75
+    complete_reach: Annotated[float, POSITIVE] = 1.0
     complete_across_dates: bool = False
     dates_per_pass: Annotated[int, AT_LEAST_ONE] = 8
     carry_absence: bool = True
