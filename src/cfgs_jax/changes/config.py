@@ -55,7 +55,7 @@ class ChangesConfig(Checked):
     gain_range: tuple[float, float] = (1.0 / 3.0, 3.0)
     contribution_threshold: Annotated[float, OPEN_UNIT] = 0.01
     link_reach: Annotated[float, POSITIVE] = 2.0
-    grow_above: Annotated[float, msgspec.Meta(gt=0, le=0.5)] = 0.35
+    grow_above: Annotated[float, msgspec.Meta(gt=0, le=0.5)] = 0.5
     min_region_area: Annotated[float, msgspec.Meta(ge=0, lt=1)] = 2e-4
     min_image_area: Annotated[float, msgspec.Meta(ge=0, lt=1)] = 5e-4
     pixel_threshold: Annotated[float, OPEN_UNIT] = 0.35
