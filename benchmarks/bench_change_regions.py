@@ -166,24 +166,16 @@ def score_rule(model, stats, labels, changed_objects, config, cameras, render_co
 def full_scorer(run, data: Path, stats, render_config):
     """A function scoring the ``changes`` detector under a ``[changes]`` config as the evaluation scores
     it (``evaluation.scoring.evidence_detection``: per Gaussian against the objects, per pixel of the test
-    views, per region), from the cached sums. The tables every rule shares (the fused visibility of every
-    Gaussian at every date and the ground-truth labels; not the o^q rules') are computed once, here."""
+    views, per region, with each region's kind), from the cached sums: the function returns the result and
+    its seconds. The tables every rule shares (``change_table``: the fused visibility of every Gaussian at
+    every date and the ground-truth labels; not the o^q rules') are computed once, here."""
     from cfgs_jax.evaluation import scoring
     from cfgs_jax.evaluation.protocol import date_masks
     from cfgs_jax.io.run_dir import date_views
-    from cfgs_jax.splat.weights import observed_matrix
 
     model = run.model
-    gt = json.loads((data / "ground_truth.json").read_text())
-    names = [d.name for d in model.dates]
-    masks = date_masks(data, run.scenes, run.sims, names)
-    masks_test = date_masks(data, run.scenes, run.sims, names, "test")
-    observing = [m.cameras for m in masks]
-    reference = scoring.OqRuleConfig(surface_threshold=0.0)
-    observed = observed_matrix(model, observing, reference.contribution_threshold, render_config=render_config)
-    table = scoring.gaussian_change_table(
-        model, masks, observing, len(gt["objects"]), reference, render_config=render_config, observed=observed
-    )
+    gt, _, _, table = change_table(run, data, render_config)
+    masks_test = date_masks(data, run.scenes, run.sims, [d.name for d in model.dates], "test")
 
     def score(config) -> dict:
         t0 = time.perf_counter()
@@ -196,18 +188,24 @@ def full_scorer(run, data: Path, stats, render_config):
             config,
             render_config=render_config,
             statistics=stats,
+            kinds=scoring.change_kinds_by_pair(gt),
         )
-        return {
-            "seconds": time.perf_counter() - t0,
-            "gaussians": {
-                k: ev["gaussians"][k]
-                for k in ("precision", "recall", "f1", "flagged_in_regions", "o_f1", "score_f1", "pixel_label_f1")
-            },
-            "pixel_iou": ev["pixels"]["iou"],
-            "regions": ev["regions"],
-        }
+        return ev, time.perf_counter() - t0
 
     return score
+
+
+def full_summary(ev: dict, seconds: float) -> dict:
+    """What the results keep of one rule's ``evidence_detection`` (``full_scorer``)."""
+    return {
+        "seconds": seconds,
+        "gaussians": {
+            k: ev["gaussians"][k]
+            for k in ("precision", "recall", "f1", "flagged_in_regions", "o_f1", "score_f1", "pixel_label_f1")
+        },
+        "pixel_iou": ev["pixels"]["iou"],
+        "regions": ev["regions"],
+    }
 
 
 def markdown(r: dict) -> str:
@@ -314,7 +312,7 @@ def main():
         out["rules"][label] = score_rule(run.model, stats, labels, changed, config, cameras, render_config)
         s = out["rules"][label]
         if full is not None:
-            s["full"] = full(config)
+            s["full"] = full_summary(*full(config))
         print(f"{label}: found {s['found_objects']}/{s['changed_objects']}, false {s['false_regions']}", flush=True)
     stem = RESULTS / f"change_regions_{args.scene}"
     stem.with_suffix(".json").write_text(json.dumps(out, indent=1))

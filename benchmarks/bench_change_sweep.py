@@ -26,7 +26,6 @@ import json
 import shlex
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -72,12 +71,10 @@ def fuse(work: Path, cell: tuple[str, int, int, int]) -> Path:
 def score(out: Path, overrides: list[str]) -> dict:
     """The detector (the checkout's ``[changes]`` defaults with ``overrides``) on the fused cell ``out``,
     scored against its ground truth, with the baselines and the detector's run time."""
-    from bench_change_regions import _statistics, change_table
+    from bench_change_regions import _statistics, full_scorer
 
     from cfgs_jax.changes import ChangesConfig
     from cfgs_jax.config import apply_overrides, from_dict
-    from cfgs_jax.evaluation import scoring
-    from cfgs_jax.evaluation.protocol import date_masks
     from cfgs_jax.render_run import open_run
 
     run = open_run(out / "run")
@@ -86,30 +83,15 @@ def score(out: Path, overrides: list[str]) -> dict:
     config = from_dict(ChangesConfig, changes, where="changes")
     rc = run.config.render
     stats, _, seconds = _statistics(run, data, out / "change_sweep_cache", config, rc)
-    gt, _, _, table = change_table(run, data, rc)
-    names = list(run.names)
-    masks_test = date_masks(data, run.scenes, run.sims, names, "test")
-    t0 = time.perf_counter()
-    ev = scoring.evidence_detection(
-        run.model,
-        [run.date_views(d, config.views) for d in range(len(names))],
-        table,
-        masks_test,
-        scoring.changed_objects_by_pair(gt),
-        config,
-        render_config=rc,
-        statistics=stats,
-        kinds=scoring.change_kinds_by_pair(gt),
-    )
-    regions_s = time.perf_counter() - t0
+    ev, regions_s = full_scorer(run, data, stats, rc)(config)
     g, px, reg = ev["gaussians"], ev["pixels"], ev["regions"]
-    cam = run.date_views(0, "test").cameras[0]
+    cam = run.date_cameras(0, "test")[0]
     return {
         "cell": out.name,
         "scene": out.name.split("_")[0],
         "size": f"{int(cam.width)}x{int(cam.height)}",
         "images_per_date": len(run.scenes[0].image_names),
-        "dates": len(names),
+        "dates": len(run.names),
         "gaussians": int(len(run.model.origin)),
         "config": dict(ev["config"]),
         "gaussian": {k: g[k] for k in g if not isinstance(g[k], dict)},
