@@ -123,20 +123,20 @@ def test_pooled_evidence_hand_case():
     means = np.array([[0.0, 0, 0], [1.0, 0, 0], [0.1, 0, 0]])
     usable = np.array([True, True, False])
     no_gain = ChangesConfig(gain_range=(1.0, 1.0))
-    got = pooled_evidence(sums, means, usable, dataclasses.replace(no_gain, pool_area=0.025), 100)
+    got = pooled_evidence(sums, means, usable, dataclasses.replace(no_gain, pool_area=0.025), sums[:, 0] / 100)
     both = np.sqrt(e_plus[:2].sum() / 9.0) - np.sqrt(e_minus[:2].sum() / 9.0)
     np.testing.assert_allclose(got, [both, both, 0.0], rtol=1e-12)
     want = np.sqrt(e_plus[:2] / (3 * sums[:2, 0])) - np.sqrt(e_minus[:2] / (3 * sums[:2, 0]))
-    half = pooled_evidence(sums, means, usable, dataclasses.replace(no_gain, pool_area=0.015), 100)
+    half = pooled_evidence(sums, means, usable, dataclasses.replace(no_gain, pool_area=0.015), sums[:, 0] / 100)
     np.testing.assert_allclose(half, [want[0], both, 0.0], rtol=1e-12)
-    alone = pooled_evidence(sums, means, usable, dataclasses.replace(no_gain, pool_area=0.0), 100)
+    alone = pooled_evidence(sums, means, usable, dataclasses.replace(no_gain, pool_area=0.0), sums[:, 0] / 100)
     np.testing.assert_allclose(alone, [*want, 0.0], rtol=1e-12)
     rng = np.random.default_rng(4)
     m = 60
     sums = rng.uniform(0.1, 1.0, (m, 6))
     means = rng.normal(size=(m, 3))
     usable = rng.uniform(size=m) > 0.2
-    got = pooled_evidence(sums, means, usable, dataclasses.replace(no_gain, pool_area=0.05), 40.0)
+    got = pooled_evidence(sums, means, usable, dataclasses.replace(no_gain, pool_area=0.05), sums[:, 0] / 40.0)
     e_plus = sums[:, 5] - 2 * sums[:, 1] + sums[:, 2]
     e_minus = sums[:, 5] - 2 * sums[:, 3] + sums[:, 4]
     for i in range(m):

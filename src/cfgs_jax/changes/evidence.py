@@ -293,11 +293,11 @@ MAX_POOLED = 256
 
 
 def pooled_evidence(
-    sums: np.ndarray, means: np.ndarray, usable: np.ndarray, config: ChangesConfig, pixels: float
+    sums: np.ndarray, means: np.ndarray, usable: np.ndarray, config: ChangesConfig, area: np.ndarray
 ) -> np.ndarray:
     """[M] evidence e of each Gaussian from its ``residual_sums`` [M, 6] pooled with its nearest ``usable``
     neighbours (``means`` [M, 3]), nearest first, until together they cover ``config.pool_area`` of a view
-    (each one's area W / ``pixels``, the pixel count of the views the sums run over; the neighbour that
+    (``area`` [M]: each one's W over the pixel count of the views the sums run over; the neighbour that
     crosses the bound is included, at most ``MAX_POOLED``): the same share of the image at any resolution,
     view count or density of Gaussians. 0 where not ``usable`` (unobserved or no weight)."""
     w = sums[:, 0]
@@ -311,8 +311,8 @@ def pooled_evidence(
     if k > 1 and config.pool_area > 0:
         _, nb = cKDTree(means[idx]).query(means[idx], k=k)
         nb = idx[np.asarray(nb).reshape(len(idx), k)]
-        area = w[nb] / max(float(pixels), 1.0)
-        take = (np.cumsum(area, axis=1) - area) < config.pool_area  # the Gaussian itself always (first)
+        covered = np.asarray(area, np.float64)[nb]
+        take = (np.cumsum(covered, axis=1) - covered) < config.pool_area  # the Gaussian itself always (first)
     else:
         nb, take = idx[:, None], np.ones((len(idx), 1), bool)
     pool = lambda x: np.where(take, x[nb], 0.0).sum(1)
@@ -404,10 +404,11 @@ def evidence_from(statistics: PairStatistics, means: np.ndarray, config: Changes
     area = np.zeros(shape)
     means = np.asarray(means, np.float64)
     for (_, q), (rows, sums, seen) in statistics.pairs.items():
-        evidence[rows, q] = pooled_evidence(sums, means[rows], seen, config, statistics.pixels.get(q, 0))
+        covered = sums[:, 0] / max(int(statistics.pixels.get(q, 0)), 1)
+        evidence[rows, q] = pooled_evidence(sums, means[rows], seen, config, covered)
         observed[rows, q] = seen
         computed[rows, q] = True
-        area[rows, q] = np.where(seen, sums[:, 0], 0.0) / max(int(statistics.pixels.get(q, 0)), 1)
+        area[rows, q] = np.where(seen, covered, 0.0)
     score = np.where(computed & observed, np.clip(evidence / (2.0 * config.threshold), 0.0, 1.0), 0.0)
     return ChangeEvidence(score, evidence, observed, computed, area)
 
