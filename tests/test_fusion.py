@@ -503,6 +503,21 @@ def test_render_and_export_cli_on_a_fused_run(fused_run, tmp_path):
     g = cj.io.read_ply(tmp_path / "b.ply")
     want = viz.render_selection(run.model, cams[0][1], [1, 1]).image
     assert g.sh_degree == 2 and np.abs(np.asarray(splat.render(g, cams[0][1]).image) - np.asarray(want)).max() <= 1e-5
+    # the compressed formats: smaller, the model's SH degree, and a render close to the exact one
+    from cfgs_jax.io.formats import read_gaussians
+
+    for name, fmt in (("b.spz", []), ("b.cply", ["--format", "compressed-ply"])):
+        args = ["export", "--run", str(run_dir), "--t", "all", "--mode", "blend", "--out", str(tmp_path / name)]
+        assert main(args + fmt) == 0
+        g = read_gaussians(tmp_path / name, "compressed-ply" if fmt else None)
+        got = np.asarray(splat.render(g, cams[0][1]).image)
+        psnr = 10 * np.log10(1 / np.mean((got - np.asarray(want)) ** 2))
+        assert g.sh_degree == 2 and psnr >= 35, (name, psnr)
+        assert (tmp_path / name).stat().st_size < (tmp_path / "b.ply").stat().st_size / 2
+    assert (
+        main(["export", "--run", str(run_dir), "--t", "all", "--out", str(tmp_path / "x.spz"), "--sh-degree", "4"]) == 2
+    )
+    assert not (tmp_path / "x.spz").exists()
     # bad selections end with a clear error
     assert main(["render", "--run", str(run_dir), "--t", "0,0", "--out", str(tmp_path / "x")]) == 2
     assert main(["export", "--run", str(run_dir), "--t", "1,0,1", "--out", str(tmp_path / "x.ply")]) == 2

@@ -19,6 +19,7 @@ import numpy as np
 from cfgs_jax import viz
 from cfgs_jax.errors import InputError
 from cfgs_jax.evaluation.protocol import PARTS
+from cfgs_jax.io.formats import FORMATS
 from cfgs_jax.synthetic.presets import PRESETS
 
 
@@ -467,15 +468,22 @@ def _add_export(sub, prog: str) -> None:
     s = _command(
         sub,
         "export",
-        "bake a time selection or highlight into a standard 3DGS PLY",
-        "The PLY holds each Gaussian's opacity and colour as seen under the selection, so any 3DGS viewer "
-        "shows it. Blend and max keep the model's SH (view-dependent colour) exactly; a highlight is written "
-        "DC-only, from each Gaussian's colour averaged over view directions (render draws it per view).",
-        ["--run runs/corals --t d0,d2 --mode highlight --out highlight.ply"],
+        "bake a time selection or highlight into a splat file (PLY, SPZ, compressed PLY)",
+        "The file holds each Gaussian's opacity and colour as seen under the selection, so any 3DGS viewer "
+        "shows it. Blend and max keep the model's SH (view-dependent colour); a highlight is written "
+        "DC-only, from each Gaussian's colour averaged over view directions (render draws it per view). "
+        "ply is exact (float32); spz (Niantic SPZ v4) and compressed-ply (SuperSplat's) quantise each field "
+        "and are 4-15x smaller.",
+        [
+            "--run runs/corals --t d0,d2 --mode highlight --out highlight.ply",
+            "--run runs/corals --t all --mode blend --out corals.spz",
+        ],
         prog,
     )
     _selection_args(s)
-    s.add_argument("--out", required=True, help="output .ply")
+    s.add_argument("--out", required=True, help="output file (.ply, .spz, .compressed.ply)")
+    s.add_argument("--format", choices=sorted(FORMATS), help="file format (default: from the suffix of --out)")
+    s.add_argument("--sh-degree", type=int, help="SH degree written (default: the model's; lower drops bands)")
 
 
 def _add_view(sub, prog: str) -> None:

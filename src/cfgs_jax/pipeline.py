@@ -35,6 +35,7 @@ from cfgs_jax.fusion.config import RunConfig
 from cfgs_jax.fusion.stages import run_compact, run_extend, run_fusion
 from cfgs_jax.io import atomic_file, read_image
 from cfgs_jax.io.atomic import write_json, write_text
+from cfgs_jax.io.formats import FORMATS, format_of
 from cfgs_jax.io.images import EXR_SUFFIXES, PIL_SUFFIXES
 from cfgs_jax.io.inria import write_inria_layout
 from cfgs_jax.io.video import write_video
@@ -537,10 +538,13 @@ def cmd_export(args) -> int:
 
     run = open_run(args.run)
     t = parse_selection(args.t, run.names)
-    path, baked = export_selection(run, t, _selection_style(args), args.out)
+    fmt = format_of(args.out, args.format)
+    path, baked = export_selection(run, t, _selection_style(args), args.out, fmt, sh_degree=args.sh_degree)
     kind = f"SH degree {baked.sh_degree}" if baked.sh_degree else "DC-only"
+    size = path.stat().st_size
     _console().print(
-        f"wrote {path}: {len(run.model)} Gaussians, {kind} 3DGS PLY of {args.mode} t={t.astype(int).tolist()}"
+        f"wrote {path}: {len(run.model)} Gaussians, {kind} {FORMATS[fmt][2]} of {args.mode} "
+        f"t={t.astype(int).tolist()}, {size / 1e6:.2f} MB"
     )
     return 0
 

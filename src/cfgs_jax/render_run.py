@@ -21,12 +21,12 @@ from cfgs_jax.errors import InputError
 from cfgs_jax.fusion.config import RunConfig
 from cfgs_jax.io.atomic import ensure_writable_dir
 from cfgs_jax.io.colmap import Scene
+from cfgs_jax.io.formats import format_of, write_gaussians
 from cfgs_jax.io.fused import read_fused
 from cfgs_jax.io.images import write_image
-from cfgs_jax.io.ply import write_ply
 from cfgs_jax.io.run_dir import RunDir, camera_in_frame, date_cameras, date_views, registered_cameras
 from cfgs_jax.legend import legend_strip
-from cfgs_jax.model import Camera, DateViews, Gaussians, TemporalGaussians
+from cfgs_jax.model import Camera, DateViews, Gaussians, TemporalGaussians, select
 from cfgs_jax.sim3 import Sim3
 
 
@@ -180,8 +180,16 @@ def _selection_images(model: TemporalGaussians, t, style: SelectionStyle, camera
         yield from (np.asarray(im[0]) for im in images)
 
 
-def export_selection(run: FusedRun, t, style: SelectionStyle, path: str | Path) -> tuple[Path, Gaussians]:
-    """Bake the selection (or highlight) into a standard 3DGS PLY (``viz.bake``: a blend with the model's
-    SH degree, a highlight DC-only); returns the file and the Gaussians it holds."""
+def export_selection(
+    run: FusedRun, t, style: SelectionStyle, path: str | Path, fmt: str | None = None, *, sh_degree: int | None = None
+) -> tuple[Path, Gaussians]:
+    """Bake the selection (or highlight) into a splat file (``viz.bake``: a blend with the model's SH
+    degree, a highlight DC-only) in format ``fmt`` (``io.formats``; default: from the suffix), at
+    ``sh_degree`` (default: the baked model's); returns the file and the Gaussians baked, in the
+    file's row order."""
+    fmt = format_of(path, fmt)
+    if not np.any(np.asarray(t)):
+        raise InputError("the selection holds no date", field="--t", fix="select at least one date")
     baked = viz.bake(run.model, t, **style.kwargs())
-    return write_ply(path, baked), baked
+    written, order = write_gaussians(path, baked, fmt, sh_degree=sh_degree)
+    return written, select(baked, order)
