@@ -506,10 +506,10 @@ def test_render_and_export_cli_on_a_fused_run(fused_run, tmp_path):
     # the compressed formats: smaller, the model's SH degree, and a render close to the exact one
     from cfgs_jax.io.formats import read_gaussians
 
-    for name, fmt in (("b.spz", []), ("b.cply", ["--format", "compressed-ply"])):
+    for name, fmt in (("b.spz", []), ("b.cply", ["--format", "compressed-ply"]), ("b.sog", [])):
         args = ["export", "--run", str(run_dir), "--t", "all", "--mode", "blend", "--out", str(tmp_path / name)]
         assert main(args + fmt) == 0
-        g = read_gaussians(tmp_path / name, "compressed-ply" if fmt else None)
+        g = read_gaussians(tmp_path / name, fmt[1] if fmt else None)
         got = np.asarray(splat.render(g, cams[0][1]).image)
         psnr = 10 * np.log10(1 / np.mean((got - np.asarray(want)) ** 2))
         assert g.sh_degree == 2 and psnr >= 35, (name, psnr)

@@ -184,7 +184,7 @@ def test_a_model_read_back_from_every_format_renders_like_the_original(tmp_path)
     centre = np.asarray(g.means).mean(0)
     cam = Camera.look_at(centre + np.array([0.0, -0.12, -0.25]), centre, width=96, height=72, fov_x_deg=50.0)
     want = np.asarray(splat.render(g, cam).image)
-    for name in ("m.spz", "m.compressed.ply"):
+    for name in ("m.spz", "m.compressed.ply", "m.sog"):
         path, order = write_gaussians(tmp_path / name, g)
         got = np.asarray(splat.render(read_gaussians(path), cam).image)
         psnr = 10 * np.log10(1.0 / np.mean((got - want) ** 2))
@@ -195,7 +195,7 @@ def test_a_model_read_back_from_every_format_renders_like_the_original(tmp_path)
 def test_bad_input_gives_one_clear_error_and_leaves_no_file(tmp_path):
     g = _random(10, 1)
     nan = Gaussians(g.means.at[3, 1].set(np.nan), g.quats, g.log_scales, g.opacity_logits, g.colors, g.sh_rest)
-    for name in ("a.spz", "a.compressed.ply", "a.ply"):
+    for name in ("a.spz", "a.compressed.ply", "a.ply", "a.sog"):
         with pytest.raises(InputError, match=r"1 of 10 Gaussians have non-finite fields \(rows \[3\]\).*Fix"):
             write_gaussians(tmp_path / name, nan)
         with pytest.raises(InputError, match="SH degree 4.*Fix: pass --sh-degree 3"):
@@ -246,3 +246,64 @@ def test_quaternion_codes_round_trip_for_every_largest_component():
         (compressed_ply.pack_rotations, compressed_ply.unpack_rotations, np.sqrt(2) / 1023),
     ):
         assert _quat_error(unpack(pack(q)), q) <= step
+
+
+def test_sog_textures_hold_the_published_layout_and_small_models_round_trip_exactly(tmp_path):
+    """64 Gaussians whose scales, DC coefficients and SH coefficients take fewer than 256 values each
+    (so each codebook holds them all) and as many distinct SH vectors as the palette has entries (64):
+    those fields come back to float32 rounding. Positions come back within the 16-bit step of
+    u = sign(x)·ln(1 + |x|), quaternions within the 8-bit step of q·√2/2 + ½ (the dropped component rebuilt from the others)."""
+    import io
+    import json
+    import zipfile
+
+    from PIL import Image
+
+    from cfgs_jax.io import sog
+
+    rng = np.random.default_rng(5)
+    n = 64
+    grid = lambda *shape: rng.integers(-64, 65, shape).astype(np.float32) / 64
+    g = Gaussians(
+        means=rng.uniform(-4, 4, (n, 3)).astype(np.float32),
+        quats=rng.normal(size=(n, 4)).astype(np.float32),
+        log_scales=(grid(n, 3) * 4 - 4).astype(np.float32),
+        opacity_logits=rng.normal(0, 2, n).astype(np.float32),
+        colors=(0.5 + SH_C0 * grid(n, 3) * 2).astype(np.float32),
+        sh_rest=grid(n, 3, 3),
+    )
+    assert sog.palette_size(n) == 64 and sog.texture_size(n) == (8, 8)
+    path, order = write_gaussians(tmp_path / "m.sog", g)
+    with zipfile.ZipFile(path) as z:
+        names = sorted(z.namelist())
+        meta = json.loads(z.read("meta.json"))
+        quats = np.asarray(Image.open(io.BytesIO(z.read("quats.webp"))).convert("RGBA")).reshape(-1, 4)
+        cen = Image.open(io.BytesIO(z.read("shN_centroids.webp")))
+    assert names == sorted(["meta.json", "means_l.webp", "means_u.webp", "quats.webp", "scales.webp", "sh0.webp",
+                            "shN_centroids.webp", "shN_labels.webp"])  # fmt: skip
+    assert meta["version"] == 2 and meta["count"] == n and meta["shN"]["bands"] == 1 and meta["shN"]["count"] == 64
+    assert cen.size == (64 * 3, 1)  # 64 palette entries per row, 3 texels (coefficients) each
+    q = _unit(np.asarray(g.quats)[order])
+    assert np.array_equal(quats[:, 3], 252 + np.argmax(np.abs(q), 1))
+    back = read_gaussians(path)
+    ref = {k: np.asarray(getattr(g, k))[order] for k in ("means", "log_scales", "colors", "sh_rest", "opacity_logits")}
+    np.testing.assert_allclose(back.log_scales, ref["log_scales"], atol=1e-6)
+    np.testing.assert_allclose(back.colors, ref["colors"], atol=1e-6)
+    np.testing.assert_allclose(back.sh_rest, ref["sh_rest"], atol=1e-6)
+    u = np.log1p(np.abs(ref["means"].astype(np.float64)))
+    step = np.ptp(np.sign(ref["means"]) * u, axis=0) / 65535
+    assert np.all(np.abs(back.means - ref["means"]) <= (1 + np.abs(ref["means"])) * step * 0.51 + 1e-6)
+    assert _quat_error(back.quats, q) <= 3 / 255 / np.sqrt(2)  # the largest one is rebuilt from the others
+    assert np.abs(_alpha(back.opacity_logits) - _alpha(ref["opacity_logits"])).max() <= 0.5 / 255 + 1e-6
+
+
+def test_the_sog_codebook_is_a_fixed_point_of_lloyds_step():
+    """The 1-D codebook is a fixed point of Lloyd's step: every centre is the mean of the values
+    assigned to it (those nearer to it than to any other centre)."""
+    from cfgs_jax.io import sog
+
+    v = np.random.default_rng(0).standard_t(3, 20000)
+    centres, label = sog.kmeans_1d(v, 256, iterations=200)
+    assert np.all(np.diff(centres) > 0) and np.array_equal(label, np.argmin(np.abs(v[:, None] - centres[None]), 1))
+    means = np.array([v[label == i].mean() for i in range(256)])
+    assert np.abs(means - centres).max() < 1e-3 * np.ptp(v)

@@ -69,7 +69,7 @@ def _quat_error(a, b) -> float:
     return float(np.minimum(np.abs(a - b).max(1), np.abs(a + b).max(1)).max())
 
 
-@pytest.mark.parametrize("name", ["m.spz", "m.compressed.ply"])
+@pytest.mark.parametrize("name", ["m.spz", "m.compressed.ply", "m.sog"])
 def test_splat_transform_reads_our_files_back_to_the_model(tmp_path, splat_transform, name):
     g = _model()
     path, order = write_gaussians(tmp_path / name, g)
@@ -85,6 +85,8 @@ def test_splat_transform_reads_our_files_back_to_the_model(tmp_path, splat_trans
     )
     np.testing.assert_allclose(theirs["f_rest"], channel_major(np.asarray(ours.sh_rest)), atol=1e-6)
     assert _quat_error(theirs["quats"], ours.quats) <= 1e-5
+    if name.endswith(".sog"):  # codebooks: no per-field bound; the test file checks their k-means
+        return
     # ... and the model within the format's quanta
     ref = {k: np.asarray(getattr(g, k), np.float64)[order] for k in ("means", "log_scales", "colors", "quats")}
     assert np.abs(theirs["means"] - ref["means"]).max() <= (2.0**-16 if name.endswith("spz") else 4 / 2046)

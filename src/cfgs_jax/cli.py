@@ -468,20 +468,21 @@ def _add_export(sub, prog: str) -> None:
     s = _command(
         sub,
         "export",
-        "bake a time selection or highlight into a splat file (PLY, SPZ, compressed PLY)",
+        "bake a time selection or highlight into a splat file (PLY, SPZ, compressed PLY, SOG)",
         "The file holds each Gaussian's opacity and colour as seen under the selection, so any 3DGS viewer "
         "shows it. Blend and max keep the model's SH (view-dependent colour); a highlight is written "
         "DC-only, from each Gaussian's colour averaged over view directions (render draws it per view). "
-        "ply is exact (float32); spz (Niantic SPZ v4) and compressed-ply (SuperSplat's) quantise each field "
-        "and are 4-15x smaller.",
+        "ply is exact (float32); spz (Niantic SPZ v4), compressed-ply (SuperSplat's) and sog (PlayCanvas SOG "
+        "v2) quantise each field and are several times smaller.",
         [
             "--run runs/corals --t d0,d2 --mode highlight --out highlight.ply",
             "--run runs/corals --t all --mode blend --out corals.spz",
+            "--run runs/corals --t d1 --mode blend --out d1.sog",
         ],
         prog,
     )
     _selection_args(s)
-    s.add_argument("--out", required=True, help="output file (.ply, .spz, .compressed.ply)")
+    s.add_argument("--out", required=True, help="output file (.ply, .spz, .compressed.ply, .sog)")
     s.add_argument("--format", choices=sorted(FORMATS), help="file format (default: from the suffix of --out)")
     s.add_argument("--sh-degree", type=int, help="SH degree written (default: the model's; lower drops bands)")
 

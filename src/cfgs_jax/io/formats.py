@@ -3,6 +3,7 @@
     ply             INRIA's 3DGS PLY, float32, exact (``io.ply``)
     spz             Niantic's SPZ v4, zstd-compressed, 8-bit fields and 24-bit positions (``io.spz``)
     compressed-ply  SuperSplat's compressed PLY, chunks of 256 with per-chunk bounds (``io.compressed_ply``)
+    sog             PlayCanvas SOG v2, codebooks and an SH palette in lossless WebP images (``io.sog``)
 
 Every writer is atomic and refuses Gaussians with non-finite fields or an SH degree above what it holds.
 """
@@ -22,6 +23,7 @@ FORMATS = {
     "ply": (".ply", 3, "INRIA 3DGS PLY (float32)"),
     "spz": (".spz", 3, "Niantic SPZ v4"),
     "compressed-ply": (".compressed.ply", 3, "SuperSplat compressed PLY"),
+    "sog": (".sog", 3, "PlayCanvas SOG v2"),
 }
 
 
@@ -87,6 +89,10 @@ def write_gaussians(path: str | os.PathLike, g: Gaussians, fmt: str | None = Non
         from cfgs_jax.io.spz import write_spz
 
         return write_spz(path, g), order
+    if fmt == "sog":
+        from cfgs_jax.io.sog import write_sog
+
+        return write_sog(path, g)
     from cfgs_jax.io.compressed_ply import write_compressed_ply
 
     return write_compressed_ply(path, g)
@@ -105,6 +111,10 @@ def read_gaussians(path: str | os.PathLike, fmt: str | None = None) -> Gaussians
         from cfgs_jax.io.spz import read_spz
 
         return read_spz(path)
+    if fmt == "sog":
+        from cfgs_jax.io.sog import read_sog
+
+        return read_sog(path)
     from cfgs_jax.io.compressed_ply import read_compressed_ply
 
     return read_compressed_ply(path)
