@@ -478,12 +478,19 @@ def _add_export(sub, prog: str) -> None:
             "--run runs/corals --t d0,d2 --mode highlight --out highlight.ply",
             "--run runs/corals --t all --mode blend --out corals.spz",
             "--run runs/corals --t d1 --mode blend --out d1.sog",
+            "--run runs/corals --format web --out corals_page",
         ],
         prog,
     )
     _selection_args(s)
-    s.add_argument("--out", required=True, help="output file (.ply, .spz, .compressed.ply, .sog)")
-    s.add_argument("--format", choices=sorted(FORMATS), help="file format (default: from the suffix of --out)")
+    s.add_argument("--out", required=True, help="output file (.ply, .spz, .compressed.ply, .sog), or folder (web)")
+    s.add_argument(
+        "--format",
+        choices=sorted(FORMATS) + ["web"],
+        help="file format (default: from the suffix of --out); web: a folder with a static page (index.html) "
+        "that toggles dates, blend / max and the highlight in any browser (--t and --mode are ignored)",
+    )
+    _progress_arg(s)
     s.add_argument("--sh-degree", type=int, help="SH degree written (default: the model's; lower drops bands)")
 
 

@@ -538,6 +538,19 @@ def cmd_export(args) -> int:
 
     run = open_run(args.run)
     t = parse_selection(args.t, run.names)
+    if args.format == "web":
+        from cfgs_jax.web import page_selections, write_web_page
+
+        count = 3 * len(page_selections(len(run.names)))
+        with Progress(console=_console(), disable=args.no_progress) as bar:
+            task = bar.add_task("bake the page's selections", total=count)
+            out = write_web_page(run, args.out, style=_selection_style(args), progress=lambda _: bar.advance(task))
+        size = sum(f.stat().st_size for f in out.rglob("*") if f.is_file())
+        _console().print(
+            f"wrote {out}: a web page of {len(run.names)} dates, {count} baked selections, {size / 1e6:.1f} MB; "
+            f"open {out / 'index.html'} in a browser"
+        )
+        return 0
     fmt = format_of(args.out, args.format)
     path, baked = export_selection(run, t, _selection_style(args), args.out, fmt, sh_degree=args.sh_degree)
     kind = f"SH degree {baked.sh_degree}" if baked.sh_degree else "DC-only"

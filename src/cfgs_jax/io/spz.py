@@ -18,7 +18,8 @@ stream) and the streams, each compressed with zstd on its own, in this order:
 Values are rounded to nearest and clamped to the byte range. Axes are written as they are (the
 model's, OpenCV-style x right, y down, z forward, as in an INRIA PLY), which is how PlayCanvas
 ``splat-transform`` and SuperSplat write and read SPZ; the format has no field that names them.
-The reader also takes versions 2 and 3 (one gzip stream, a 16-byte header).
+Version 3 (the same fields after a 16-byte header, in one gzip stream) is written for readers without
+zstd; the reader also takes versions 2 and 3.
 """
 
 from __future__ import annotations
@@ -122,10 +123,11 @@ def _sh_bytes(g: Gaussians) -> np.ndarray:
     return out.reshape(len(rest), -1)
 
 
-def encode_spz(g: Gaussians, *, antialiased: bool = False) -> bytes:
-    """The SPZ v4 bytes of ``g`` (unbatched, finite, SH degree ≤ 3)."""
-    import zstandard
-
+def encode_spz(g: Gaussians, *, antialiased: bool = False, version: int = VERSION) -> bytes:
+    """The SPZ bytes of ``g`` (unbatched, finite, SH degree ≤ 3): version 4 (zstd streams) or 3 (the
+    same fields after a 16-byte header, one gzip stream: what readers without zstd take)."""
+    if version not in (3, VERSION):
+        raise InputError(f"SPZ version {version}", field="version", fix="write version 4, or 3 for gzip readers")
     n = len(g)
     means = np.asarray(g.means, np.float64)
     bits = fractional_bits(means)
@@ -140,9 +142,14 @@ def encode_spz(g: Gaussians, *, antialiased: bool = False) -> bytes:
     if g.sh_degree > 0:
         streams.append(_sh_bytes(g))
     raw = [np.ascontiguousarray(s).tobytes() for s in streams]
+    flags = FLAG_ANTIALIASED if antialiased else 0
+    if version == 3:
+        header = LEGACY_HEADER.pack(MAGIC, 3, n, g.sh_degree, bits, flags, 0)
+        return gzip.compress(header + b"".join(raw), mtime=0)
+    import zstandard
+
     compressor = zstandard.ZstdCompressor(level=ZSTD_LEVEL)
     packed = [compressor.compress(r) for r in raw]
-    flags = FLAG_ANTIALIASED if antialiased else 0
     header = HEADER.pack(MAGIC, VERSION, n, g.sh_degree, bits, flags, len(raw), HEADER.size)
     toc = b"".join(struct.pack("<QQ", len(p), len(r)) for p, r in zip(packed, raw))
     return header + toc + b"".join(packed)
