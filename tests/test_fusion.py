@@ -640,6 +640,12 @@ def test_exported_web_page_in_headless_chromium_draws_each_date_like_our_rendere
     out = tmp_path / "page"
     assert main(["export", "--run", str(run_dir), "--format", "web", "--out", str(out), "--no-progress"]) == 0
     manifest = json.loads((out / "manifest.json").read_text())
+    # an earlier page is replaced; a folder holding anything else is refused, untouched
+    assert main(["export", "--run", str(run_dir), "--format", "web", "--out", str(out), "--no-progress"]) == 0
+    (tmp_path / "other").mkdir()
+    (tmp_path / "other" / "keep.txt").write_text("x")
+    assert main(["export", "--run", str(run_dir), "--format", "web", "--out", str(tmp_path / "other")]) == 2
+    assert [p.name for p in (tmp_path / "other").iterdir()] == ["keep.txt"]
     assert sorted(manifest["selections"]) == sorted(
         f"{t}_{m}" for t in ("11", "10", "01") for m in ("blend", "max", "highlight")
     )

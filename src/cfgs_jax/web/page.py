@@ -29,6 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from cfgs_jax import viz
+from cfgs_jax.errors import InputError
 from cfgs_jax.io.atomic import atomic_directory
 from cfgs_jax.io.spz import encode_spz
 from cfgs_jax.model import opacities, select
@@ -48,6 +49,14 @@ def page_selections(num_dates: int) -> list[tuple[int, ...]]:
     eye = np.eye(num_dates, dtype=int)
     pairs = [tuple(eye[i] + eye[i + 1]) for i in range(num_dates - 1)]
     return [tuple([1] * num_dates)] + [tuple(r) for r in eye] + pairs
+
+
+def _is_page(folder: Path) -> bool:
+    """Whether ``folder`` holds a page written here (its manifest names the generator)."""
+    try:
+        return json.loads((folder / "manifest.json").read_text()).get("generator") == "cfgs_jax"
+    except (OSError, ValueError, AttributeError):
+        return False
 
 
 def _camera_entry(name: str, camera) -> dict:
@@ -80,6 +89,14 @@ def write_web_page(
     """Write the page of ``run`` into the folder ``out`` (atomically, as a whole); ``style`` sets the
     highlight's options (its base, σ, contrast, gradient). Returns ``out``."""
     style = style or SelectionStyle()
+    target_dir = Path(out)
+    if target_dir.exists() and any(target_dir.iterdir()) and not _is_page(target_dir):
+        raise InputError(
+            "the folder holds files that are not an exported page; the page replaces its folder as a whole",
+            path=target_dir,
+            field="--out",
+            fix="choose a new or empty folder (an earlier page is replaced)",
+        )
     model, names = run.model, list(run.names)
     min_alpha = float(run.config.render.min_alpha)
     selections, sizes = {}, {}
