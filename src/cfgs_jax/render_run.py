@@ -187,9 +187,7 @@ def export_selection(
     degree, a highlight DC-only) in format ``fmt`` (``io.formats``; default: from the suffix), at
     ``sh_degree`` (default: the baked model's); returns the file and the Gaussians baked, in the
     file's row order."""
-    fmt = format_of(path, fmt)
-    if not np.any(np.asarray(t)):
-        raise InputError("the selection holds no date", field="--t", fix="select at least one date")
+    fmt = format_of(path, fmt)  # an unknown format fails before the bake
     baked = viz.bake(run.model, t, **style.kwargs())
     written, order = write_gaussians(path, baked, fmt, sh_degree=sh_degree)
     return written, select(baked, order)

@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from cfgs_jax.errors import InputError
-from cfgs_jax.io.ply import channel_major, from_channel_major, read_vertex_table
+from cfgs_jax.io.ply import channel_major, from_channel_major, read_elements
 from cfgs_jax.model import SH_REST_COUNTS, Gaussians
 
 CHUNK = 256
@@ -159,8 +159,8 @@ def write_compressed_ply(path: str | os.PathLike, g: Gaussians) -> tuple[Path, n
 
 def read_compressed_ply(path: str | os.PathLike) -> Gaussians:
     """The Gaussians of a compressed PLY, in the file's order."""
-    chunk = read_vertex_table(path, element="chunk")
-    vertex = read_vertex_table(path, element="vertex")
+    elements = read_elements(path, ("chunk", "vertex"))
+    chunk, vertex = elements["chunk"], elements["vertex"]
     missing = [f for f in CHUNK_FIELDS[:12] if f not in chunk.dtype.names] + [
         f for f in VERTEX_FIELDS if f not in vertex.dtype.names
     ]
@@ -187,11 +187,8 @@ def read_compressed_ply(path: str | os.PathLike) -> Gaussians:
     colors = lerp(rgb, "", "rgb") if "min_r" in chunk.dtype.names else rgb
     alpha = np.clip(_from_unorm(packed, 8), 0.5 / 255, 1 - 0.5 / 255)
     sh_rest = None
-    try:
-        sh = read_vertex_table(path, element="sh")
-    except InputError:
-        sh = None
-    if sh is not None and len(sh.dtype.names):
+    sh = elements.get("sh")
+    if sh is not None and sh.dtype.names:
         v = np.stack([np.asarray(sh[f"f_rest_{i}"], np.float64) for i in range(len(sh.dtype.names))], 1)
         t = np.where(v == 0, 0.0, np.where(v == 255, 1.0, (v + 0.5) / 256.0))
         if v.shape[1] // 3 not in SH_REST_COUNTS[1:]:

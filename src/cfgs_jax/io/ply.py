@@ -45,6 +45,12 @@ _FIX_LAYOUT = (
 
 def read_vertex_table(path: str | os.PathLike, *, element: str = "vertex") -> np.ndarray:
     """Read one element of a PLY file as a numpy structured array, with errors that name the file."""
+    return read_elements(path, (element,))[element]
+
+
+def read_elements(path: str | os.PathLike, required: Sequence[str]) -> dict[str, np.ndarray]:
+    """Every element of a PLY file (name → numpy structured array), read once; errors name the file and
+    any ``required`` element that is missing or has no scalar properties."""
     p = Path(path)
     if not p.is_file():
         raise InputError("file not found", path=p, fix="check the path")
@@ -57,12 +63,14 @@ def read_vertex_table(path: str | os.PathLike, *, element: str = "vertex") -> np
             fix="the file is truncated or corrupt: re-export or re-download it",
         ) from exc
     names = [e.name for e in ply.elements]
-    if element not in names:
-        raise InputError(f"no '{element}' element (elements present: {names})", path=p, field=element, fix=_FIX_LAYOUT)
-    data = ply[element].data
-    if data.dtype.names is None:
-        raise InputError(f"element '{element}' has no scalar properties", path=p, field=element)
-    return data
+    for element in required:
+        if element not in names:
+            raise InputError(
+                f"no '{element}' element (elements present: {names})", path=p, field=element, fix=_FIX_LAYOUT
+            )
+        if ply[element].data.dtype.names is None:
+            raise InputError(f"element '{element}' has no scalar properties", path=p, field=element)
+    return {e.name: e.data for e in ply.elements}
 
 
 def columns(

@@ -18,6 +18,7 @@ date, each pair of consecutive dates and all dates.
 from __future__ import annotations
 
 import base64
+import dataclasses
 import html
 import itertools
 import json
@@ -110,11 +111,7 @@ def write_web_page(
             shown = ", ".join(n for n, on in zip(names, t) if on)
             for mode in MODES:
                 key = f"{bits}_{mode}"
-                kwargs = SelectionStyle(
-                    mode=mode, blend=style.blend, base=style.base, sigma=style.sigma, contrast=style.contrast,
-                    stops=style.stops,
-                ).kwargs()  # fmt: skip
-                baked = viz.bake(model, np.asarray(t, np.float32), **kwargs)
+                baked = viz.bake(model, np.asarray(t, np.float32), **dataclasses.replace(style, mode=mode).kwargs())
                 keep = np.flatnonzero(np.asarray(opacities(baked)) >= min_alpha)
                 data = encode_spz(select(baked, keep), version=3)  # the vendored reader takes gzip SPZ
                 (tmp / "splats" / f"{key}.spz").write_bytes(data)
