@@ -13,7 +13,9 @@ flagging everything, the o^q < 0.2 rule, and the score alone (s > 0.5, no region
     python benchmarks/bench_change_sweep.py score WORK CELL [CELL ...]  # score again (fused cells)
     python benchmarks/bench_change_sweep.py table WORK [--name NAME]   # results/NAME.md and .json
 
-``run`` and ``score`` write WORK/<cell>/change_sweep_row.json; ``table`` gathers every row under WORK.
+``run`` and ``score`` write WORK/<cell>/change_sweep_row.json; ``table`` gathers every row under WORK and
+keeps the rows of results/NAME.json whose cells WORK does not hold (a cell's folder does not outlive the
+machine it was fused on), marked † with the date they were scored.
 A cell's fusion runs for minutes at 80×60 and about an hour at 320×240 on the 2-core CPU: run cells as
 separate processes (one a core) and ``table`` once they are scored.
 """
@@ -99,7 +101,27 @@ def score(out: Path, overrides: list[str]) -> dict:
         "regions": reg,
         "seconds": {"statistics": seconds.get("pair_statistics"), "regions_and_scoring": regions_s},
         "overrides": overrides,
+        "date": datetime.date.today().isoformat(),
     }
+
+
+def merged_rows(rows: list[dict], earlier: Path) -> list[dict]:
+    """``rows`` (scored now, under WORK) and the rows of the ``earlier`` results file whose cells they do not
+    hold and that were scored with the same detector setting, those marked ``kept`` (scored on an earlier
+    machine with the same command; ``date`` says when, where the row records it). A row of another setting
+    is dropped and named: its cell must be fused again to be scored with this one."""
+    if not earlier.is_file():
+        return rows
+    have, settings = {r["cell"] for r in rows}, [r["config"] for r in rows]
+    kept = []
+    for r in json.loads(earlier.read_text())["rows"]:
+        if r["cell"] in have:
+            continue
+        if r["config"] in settings:
+            kept.append(dict(r, kept=True))
+        else:
+            print(f"dropped {r['cell']}: scored with another [changes] setting; fuse and score it again", flush=True)
+    return rows + kept
 
 
 def _kinds(regions: dict) -> str:
@@ -120,7 +142,8 @@ def markdown(rows: list[dict], command: str) -> str:
         "flag everything, the o^q < 0.2 rule, the score alone (s > 0.5, no regions); pixel IoU against flagging every "
         "pixel. Detector seconds: the pair statistics (the renders; cached, so a rescore reports their first run) and "
         "the regions with the scoring. Kinds named: of the regions whose majority object changed, how many name its kind "
-        "(appeared, disappeared, moved, changed shape, changed surface).",
+        "(appeared, disappeared, moved, changed shape, changed surface). † a row kept from the table before (its cell "
+        "scored on an earlier machine; its date, where recorded, in the JSON).",
         "",
         "| scene | size | views | Gaussians | P / R / F1 | F1: flag all / o^q / score alone | recall − score alone's | "
         "F1, surface truth | pixel IoU (flag all) | objects found | false regions | kinds named | detector s |",
@@ -133,7 +156,7 @@ def markdown(rows: list[dict], command: str) -> str:
         stats_s = r["seconds"]["statistics"]
         secs = f"{stats_s:.0f} + {r['seconds']['regions_and_scoring']:.0f}" if stats_s else "–"
         lines.append(
-            f"| {r['scene']} ({r['dates']}) | {r['size']} | {r['images_per_date']} | {r['gaussians']:,} | "
+            f"| {r['scene']}{' †' if r.get('kept') else ''} ({r['dates']}) | {r['size']} | {r['images_per_date']} | {r['gaussians']:,} | "
             f"{g['precision']:.3f} / {g['recall']:.3f} / **{g['f1']:.3f}** | "
             f"{flag_all:.3f} / {g['o_f1']:.3f} / {g['score_f1']:.3f} | {g['recall'] - g['score_recall']:+.3f} | "
             f"{g['pixel_label_f1']:.3f} | "
@@ -156,6 +179,7 @@ def main():
         rows = [json.loads(p.read_text()) for p in sorted(work.glob(f"*/{ROW}"))]
         if not rows:
             raise SystemExit(f"no scored cells under {work}: run `score` first")
+        rows = merged_rows(rows, RESULTS / f"{args.name}.json")
         command = shlex.join(["python", "benchmarks/bench_change_sweep.py", *sys.argv[1:]])
         (RESULTS / f"{args.name}.json").write_text(json.dumps({"command": command, "rows": rows}, indent=1))
         (RESULTS / f"{args.name}.md").write_text(markdown(rows, command))

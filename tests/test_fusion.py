@@ -116,6 +116,98 @@ def test_a_cold_warm_shift_keeps_each_colours_luminance_where_the_model_composit
     assert abs(pixel @ luma / (0.99 * gain * float(c[0] @ luma)) - 1) <= 1e-3
 
 
+def _sh3_scene(n, seed):
+    """n small splats of SH degree 3 with random coefficients in front of random views (a float32 model)."""
+    rng = np.random.default_rng(seed)
+    dc = rng.uniform(0.05, 0.95, (n, 3))
+    dc[: n // 4] *= rng.uniform(0.0, 1.0, (n // 4, 3)) ** 3  # saturated ones too
+    g = cj.Gaussians(
+        np.float32(rng.uniform(-1, 1, (n, 3))),
+        np.float32(Rotation.random(n, random_state=seed).as_quat()[:, [3, 0, 1, 2]]),
+        np.float32(np.log(rng.uniform(0.03, 0.12, (n, 3)))),
+        np.float32(rng.uniform(-1, 3, n)),
+        np.float32(dc),
+        np.float32(rng.normal(0, 0.08, (n, 15, 3))),
+    )
+    eyes = rng.normal(0, 1, (4, 3))
+    cams = [cj.Camera.look_at(3.5 * e / np.linalg.norm(e), [0, 0, 0], width=40, height=30, fov_x_deg=60) for e in eyes]
+    return g, cams, rng
+
+
+@pytest.mark.parametrize("refined", [False, True])
+def test_the_light_keeps_the_luminance_of_every_view_colour_under_sh3(refined):
+    """Under SH the kernel multiplies the light into the colour each Gaussian shows the camera (DC plus
+    view-dependent terms). With one gain g for every splat and cold/warm shifts k ∈ [−0.5, 0.5] fitted to
+    each DC colour, every pixel's luminance Y' must be g times the unlit render's: the compositing weights
+    are shared, so Y'(lit) = Σ w·Y'(l ⊙ v) = g·Σ w·Y'(v) exactly when each view colour keeps its
+    luminance (|ΔY'|/Y' ≤ 1e-3). Multiplying v channel by channel misses (the view terms move it). With
+    ``refined``, the DC colours move after the light was fitted (refinement trains the colour, not l):
+    each splat's gain is then ḡ = Y'(l ⊙ c)/Y'(c), and a splat seen alone must show that gain from
+    every view."""
+    from cfgs_jax.fusion.light import light_gain, light_multiplier
+
+    luma = np.asarray([0.2126, 0.7152, 0.0722])
+    g, cams, rng = _sh3_scene(400 if not refined else 1, 11 if not refined else 12)
+    u = 0.1
+    gain = float(light_gain(jnp.asarray(u, jnp.float32)))
+    k = rng.uniform(-0.5, 0.5, len(g))
+    l = light_multiplier(jnp.full(len(g), u, jnp.float32), jnp.asarray(np.arctanh(k), jnp.float32), g.colors)
+    if refined:  # one splat filling the view, its colour moved after the fit
+        g = dataclasses.replace(
+            g, means=jnp.zeros((1, 3)), log_scales=jnp.zeros((1, 3)), opacity_logits=jnp.asarray([8.0])
+        )
+        moved = np.clip(np.asarray(g.colors, np.float64) + rng.normal(0, 0.15, (1, 3)), 0.02, 1.0)
+        gain = float(((np.asarray(l, np.float64) * moved) @ luma / (moved @ luma))[0])
+        g = dataclasses.replace(g, colors=jnp.asarray(moved, jnp.float32))
+    mult = jnp.stack([jnp.ones_like(l), l])
+    worst = plain_worst = 0.0
+    for cam in cams:
+        out = np.asarray(splat.render_dates(g, cam, jnp.ones((2, len(g))), mult).image, np.float64)
+        plain = np.asarray(splat.render_dates(g, cam, jnp.ones((2, len(g))), mult, relight=False).image, np.float64)
+        y0, y1, yp = out[0] @ luma, out[1] @ luma, plain[1] @ luma
+        shown = y0 > 0.02
+        assert shown.sum() > 50
+        worst = max(worst, float(np.abs(y1[shown] / (gain * y0[shown]) - 1).max()))
+        plain_worst = max(plain_worst, float(np.abs(yp[shown] / (gain * y0[shown]) - 1).max()))
+    assert worst <= 1e-3
+    assert plain_worst > 3e-3  # the view terms do move a channel-wise product's luminance
+
+
+def test_a_selection_at_a_view_draws_what_the_fused_render_draws_under_sh3():
+    """``viz.at_view`` folds each date's light, as the fused render applies it to the view colour, into
+    view-independent colours and lights: rendering a one-date selection of it equals ``render_dates`` at
+    that date (float32), and a two-date blend is the mean of the dates' colours (Eq. 4)."""
+    from cfgs_jax.fusion.light import light_multiplier
+
+    g, cams, rng = _sh3_scene(300, 13)
+    n = len(g)
+    lights = [
+        light_multiplier(
+            jnp.asarray(rng.uniform(-1, 1.5, n), jnp.float32), jnp.asarray(rng.uniform(-2, 2, n), jnp.float32), g.colors
+        )
+        for _ in range(2)
+    ]
+    from cfgs_jax.model import light_logits
+
+    model = cj.TemporalGaussians(
+        g,
+        jnp.zeros((n, 2)),
+        jnp.stack([light_logits(x) for x in lights], 1),
+        jnp.zeros(n, jnp.int32),
+        (cj.DateInfo("a"), cj.DateInfo("b")),
+    )
+    for cam in cams[:2]:
+        fused = np.asarray(splat.render_dates(g, cam, jnp.ones((2, n)) * 0.5, jnp.stack(lights)).image)
+        for t, want in (([1, 0], fused[0]), ([0, 1], fused[1])):
+            got = np.asarray(cj.viz.render_selection(model, cam, jnp.asarray(t, jnp.float32)).image)
+            assert np.abs(got - want).max() < 2e-4
+        at = cj.viz.at_view(model, cam.center)
+        mixed, _ = cj.viz.blend(at, jnp.asarray([1.0, 1.0]))
+        v = cj.splat.sh.view_colours(g.colors, g.sh_rest, g.means, cam.center)
+        each = [cj.colour.relight(g.colors, v, x) for x in lights]
+        assert np.abs(np.asarray(mixed) - 0.5 * np.asarray(each[0] + each[1])).max() < 1e-5
+
+
 @pytest.fixture(scope="module")
 def tiny_two_dates(tmp_path_factory):
     """Two corals dates at 64×48 (6 views each) and their ground-truth date → reference Sim(3)s."""

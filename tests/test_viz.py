@@ -311,21 +311,44 @@ def _seen_model(model, centre):
     return dataclasses.replace(model, gaussians=g)
 
 
-def test_a_blend_keeps_the_view_dependent_colour_in_the_render_and_the_exported_ply(scene_model, tmp_path):
-    """A blend of a model with SH 3 draws, at each camera, (l·t̂) ⊙ its SH colour seen from there (closed
-    form), and the exported PLY (SH kept) renders the same from cameras on either side."""
+def _relit_seen_model(model, centre):
+    """The DC-only model that draws, per date, what the fused render draws from ``centre`` (float64,
+    numpy): colours v = ``_seen_colours`` and lights l·ρ, ρ = ḡ·Y'(v)/Y'(l ⊙ v), ḡ = Y'(l ⊙ c)/Y'(c) with
+    Y' the Rec.709-weighted sum and c the DC colour, so that Y'(l·ρ ⊙ v) = ḡ·Y'(v)."""
+    luma = np.asarray([0.2126, 0.7152, 0.0722])
+    v = _seen_colours(model, centre)
+    c = np.maximum(np.asarray(model.gaussians.colors, np.float64), 0.0)
+    light = 2.0 / (1.0 + np.exp(-np.asarray(model.light_logits, np.float64)))  # [N, T, 3], no exposure
+    y_c, y_lv = (c @ luma)[:, None], (light * v[:, None]) @ luma
+    with np.errstate(invalid="ignore", divide="ignore"):  # black colours: the rule's own fallbacks
+        gain = np.where(y_c > 1e-6, ((light * c[:, None]) @ luma) / y_c, light @ luma)
+        rho = np.where(y_lv > 1e-6, gain * (v @ luma)[:, None] / y_lv, 1.0)
+    lit = light * rho[..., None]
+    scale = np.maximum(1.0, lit.max(axis=(1, 2)) / 1.98)
+    g = model.gaussians.recoloured((v * scale[:, None]).astype(np.float32))
+    logits = np.log(lit / scale[:, None, None] / 2) - np.log1p(-lit / scale[:, None, None] / 2)
+    return dataclasses.replace(model, gaussians=g, light_logits=logits.astype(np.float32))
+
+
+def test_a_blend_draws_each_dates_light_on_the_view_colour_and_exports_the_sh(scene_model, tmp_path):
+    """A blend of a model with SH 3 draws, at each camera, the mean over the selected dates of l^t acting on
+    the SH colour seen from there with its luminance gain kept (closed form, ``_relit_seen_model``); the
+    exported PLY (SH kept) renders the channel-wise (l·t̂) ⊙ v from cameras on either side, what a plain
+    3DGS file can hold."""
     model, cam = scene_model
     model = _with_sh(model)
+    assert np.ptp(np.asarray(viz.light_multipliers(model)), axis=-1).max() > 0.05  # a light that is not grey
     t = [1, 0, 1]
     path = cj.io.write_ply(tmp_path / "blend.ply", viz.bake(model, t))
     baked = cj.io.read_ply(path)
     assert baked.sh_degree == 3
     for eye in ([0, -4, 1], [3, -2.5, 0.5]):
         camera = cj.Camera.look_at(eye=eye, target=[0, 0, 0], width=64, height=48, fov_x_deg=60)
-        want = np.asarray(viz.render_selection(_seen_model(model, camera.center), camera, t).image)
+        want = np.asarray(viz.render_selection(_relit_seen_model(model, camera.center), camera, t).image)
         got = np.asarray(viz.render_selection(model, camera, t).image)
         assert np.abs(got - want).max() <= 1e-5
-        assert np.abs(np.asarray(splat.render(baked, camera).image) - want).max() <= 1e-5
+        channelwise = np.asarray(viz.render_selection(_seen_model(model, camera.center), camera, t).image)
+        assert np.abs(np.asarray(splat.render(baked, camera).image) - channelwise).max() <= 1e-5
         dc_only = dataclasses.replace(model, gaussians=model.gaussians.recoloured(model.gaussians.colors))
         assert np.abs(np.asarray(viz.render_selection(dc_only, camera, t).image) - want).max() > 0.02
 
@@ -334,7 +357,7 @@ def test_a_highlight_colours_what_each_view_shows_and_exports_the_dc_colour(scen
     model, cam = scene_model
     model = _with_sh(model, degree=2, seed=1)
     t = [1, 1, 1]
-    want = viz.render_selection(_seen_model(model, cam.center), cam, t, highlight_changes=True, base="grey").image
+    want = viz.render_selection(_relit_seen_model(model, cam.center), cam, t, highlight_changes=True, base="grey").image
     got = viz.render_selection(model, cam, t, highlight_changes=True, base="grey").image
     np.testing.assert_allclose(got, want, atol=1e-5)
     baked = viz.bake(model, t, highlight_changes=True)
@@ -362,6 +385,6 @@ def test_the_viewer_colours_the_sh_seen_from_its_camera():
             stops=None,
             use_contrast=False,
         )
-        seen = _seen_model(model, centre)
+        seen = _relit_seen_model(model, centre)
         want = viz.highlight(seen, t, stops=None)[0] if mode == "highlight" else viz.blend(seen, t)[0]
         np.testing.assert_allclose(rgb, np.clip(want, 0, 1), atol=1e-5)

@@ -41,3 +41,34 @@ def luminance(rgb_linear: Float[Array, "... 3"]) -> Float[Array, " ..."]:
     rgb_linear = jnp.asarray(rgb_linear)
     luma = jnp.asarray(REC709_LUMA, rgb_linear.dtype)
     return jnp.tensordot(rgb_linear, luma, axes=1, precision=jax.lax.Precision.HIGHEST)
+
+
+def encoded_luma(rgb: Float[Array, "... 3"]) -> Float[Array, " ..."]:
+    """Y': the Rec.709-weighted sum of (sRGB-encoded) values, the luminance the light model keeps."""
+    rgb = jnp.asarray(rgb)
+    return jnp.tensordot(rgb, jnp.asarray(REC709_LUMA, rgb.dtype), axes=1, precision=jax.lax.Precision.HIGHEST)
+
+
+def relight_factor(
+    reference: Float[Array, "*N 3"], view: Float[Array, "*N 3"], light: Float[Array, "*N 3"]
+) -> Float[Array, " *N"]:
+    """ρ = ḡ·Y'(v) / Y'(l ⊙ v) with ḡ = Y'(l ⊙ c) / Y'(c) (Y'(l) where c is black), 1 where l ⊙ v has no
+    luminance: the factor by which ``relight`` scales l ⊙ v. ``reference`` c: negative channels count as 0."""
+    c = jnp.maximum(reference, 0.0)
+    y_c = encoded_luma(c)
+    lit = y_c > 1e-6
+    gain = jnp.where(lit, encoded_luma(light * c) / jnp.where(lit, y_c, 1.0), encoded_luma(light))
+    y_lv = encoded_luma(light * view)
+    seen = y_lv > 1e-6
+    return jnp.where(seen, gain * encoded_luma(view) / jnp.where(seen, y_lv, 1.0), 1.0)
+
+
+def relight(
+    reference: Float[Array, "*N 3"], view: Float[Array, "*N 3"], light: Float[Array, "*N 3"]
+) -> Float[Array, "*N 3"]:
+    """A light multiplier l acting on a view-dependent colour v as it acts on the colour c it was fitted to
+    (Eq. 1's l⊙c, with l a luminance gain and a cold/warm shift): (l ⊙ v)·ρ (``relight_factor``), so
+    Y'(result) = ḡ·Y'(v) with ḡ = Y'(l ⊙ c)/Y'(c) for every view colour v: the luminance gain is the same
+    from every direction, and l ⊙ c is returned unchanged at v = c. A grey l (equal channels) gives ρ = 1.
+    ``reference`` c is the Gaussian's DC colour."""
+    return light * view * relight_factor(reference, view, light)[..., None]

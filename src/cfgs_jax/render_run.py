@@ -163,8 +163,8 @@ def render_views(
 
 def _selection_images(model: TemporalGaussians, t, style: SelectionStyle, cameras, background, mesh):
     """[H, W, 3] images of the selection at ``cameras``: one set of Gaussians for all views, or, for a
-    highlight of a model with SH, each view's own (``viz.at_view``)."""
-    per_view = style.mode == "highlight" and model.gaussians.sh_rest is not None
+    model with SH, each view's own colours and lights (``viz.at_view``)."""
+    per_view = model.gaussians.sh_rest is not None
     groups = [[c] for _, c in cameras] if per_view else [[c for _, c in cameras]]
     for group in groups:
         g, mult = style.gaussians(viz.at_view(model, group[0].center) if per_view else model, t)

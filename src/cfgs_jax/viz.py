@@ -13,11 +13,12 @@ Conventions:
   never NaN.
 - Colours: 3DGS colours are display-referred (sRGB-encoded); the highlight product B ⊙ S is formed in
   linear RGB (decode, multiply, encode), grey = Rec.709 luminance of the linear colour.
-- View-dependent colour (SH above DC): a blend keeps it exactly, as the selection's light l·t̂ ≥ 0
-  scales the DC colour and every coefficient alike (l ⊙ max(c + Σ Y_k f_k, 0) = max(l ⊙ c + Σ Y_k
-  l ⊙ f_k, 0)). The highlight is nonlinear in the colour: ``render_selection`` highlights the colour
-  each Gaussian shows the camera (``at_view``), exact per view; ``bake`` and ``selection_terms``, with
-  no camera, highlight the DC colour (the colour averaged over directions), view-independent.
+- View-dependent colour (SH above DC): each date's light acts on the colour v a Gaussian shows the camera
+  as the fused render draws it (``colour.relight``: the luminance gain it has on the DC colour, from
+  every direction), and a selection blends what its dates draw. ``render_selection`` and ``at_view`` do
+  this per view, exactly. ``bake`` and ``selection_terms``, with no camera, scale the DC colour and
+  every SH coefficient by the selection's light (what a plain 3DGS file can hold: exact for a grey
+  light, the cold/warm part's luminance kept for the DC colour only) and highlight the DC colour.
 - The contrast sigmoid φ (Eq. 8) is evaluated in the algebraically identical logit form
   φ(x) = sigmoid(k·(logit x − log((1 − b)/b))), which is exact, overflow-free and has finite gradients
   at x → 0 and 1. As written in the paper, φ(1 − b) = 0.5 (not φ(b)); we keep it verbatim.
@@ -38,9 +39,11 @@ from jaxtyping import Array, Float
 from cfgs_jax import colour, splat
 from cfgs_jax.errors import InputError
 from cfgs_jax.model import (
+    MAX_LIGHT,
     Gaussians,
     TemporalGaussians,
     is_traced,
+    light_logits,
     light_multipliers,
     logit,
     opacities,
@@ -123,13 +126,25 @@ def selection_light(model: TemporalGaussians, t: Float[Array, " T"]) -> Float[Ar
 
 
 def at_view(model: TemporalGaussians, centre: Float[Array, " 3"]) -> TemporalGaussians:
-    """The model as seen from the camera centre ``centre``: each colour its SH colour along the ray from
-    ``centre`` to the Gaussian's mean (INRIA's rule), view-independent; a DC-only model is returned as is."""
+    """The model as seen from the camera centre ``centre``, view-independent: each colour its SH colour v
+    along the ray from ``centre`` to the Gaussian's mean (INRIA's rule), and each date's light the one
+    that draws there what the fused render draws (``colour.relight``: l ⊙ v·ρ, so the light's luminance
+    gain holds for v as for the DC colour). Where l·ρ would pass the largest storable light, colour and
+    lights are rescaled together (the products unchanged). A DC-only model is returned as is."""
     g = model.gaussians
     if g.sh_rest is None:
         return model
-    colours = view_colours(g.colors, g.sh_rest, g.means, jnp.asarray(centre, jnp.result_type(g.means)))
-    return dataclasses.replace(model, gaussians=g.recoloured(colours))
+    dtype = jnp.result_type(g.means)
+    view = view_colours(g.colors, g.sh_rest, g.means, jnp.asarray(centre, dtype))
+    light = light_multipliers(model).astype(dtype)  # [N, T, 3]: what the kernel multiplies
+    rho = colour.relight_factor(g.colors[:, None, :], view[:, None, :], light)  # [N, T]
+    stored = 2.0 * jax.nn.sigmoid(model.light_logits).astype(dtype) * rho[..., None]  # the exposure stays apart
+    scale = jnp.maximum(1.0, jnp.max(stored, axis=(1, 2)) / MAX_LIGHT)  # [N]
+    return dataclasses.replace(
+        model,
+        gaussians=g.recoloured(view * scale[:, None]),
+        light_logits=light_logits(stored / scale[:, None, None]).astype(model.light_logits.dtype),
+    )
 
 
 def lambda_integrals(
@@ -294,8 +309,9 @@ def selection_gaussians(
     model: TemporalGaussians, t, *, mode: Mode = "mean", highlight_changes: bool = False, **highlight_kwargs
 ) -> tuple[Gaussians, Float[Array, " N"]]:
     """(Gaussians, opacity multipliers [N]) that draw a selection (Eq. 4) or its highlight (Eq. 5) with
-    the kernel: the colours replace the Gaussians' own (a blend's SH scaled by the selection's light,
-    exact from every view; a highlight's DC-only, see the module notes), the multiplier scales α."""
+    the kernel: the colours replace the Gaussians' own (a blend's SH scaled by the selection's light; a
+    highlight's DC-only, see the module notes; give ``at_view(model, centre)`` for a camera's exact
+    colours), the multiplier scales α."""
     colours, mult = selection_terms(model, t, mode=mode, highlight_changes=highlight_changes, **highlight_kwargs)
     g = model.gaussians
     if g.sh_rest is None or highlight_changes:
@@ -316,12 +332,11 @@ def render_selection(
     **highlight_kwargs,
 ):
     """Render a time selection (Eq. 4) or its change highlight (Eq. 5) with the splatting kernel; a
-    highlight of a model with SH colours the colour each Gaussian shows this camera (``at_view``).
+    model with SH is drawn with the colours and lights each Gaussian shows this camera (``at_view``).
 
     Gaussians whose selected opacity is 0 (dates with t_p = 0) are culled before binning, so they cost
     nothing. Returns the kernel's ``RenderResult`` (images only: no per-Gaussian statistics)."""
-    if highlight_changes:
-        model = at_view(model, camera.center)
+    model = at_view(model, camera.center)
     g, mult = selection_gaussians(model, t, mode=mode, highlight_changes=highlight_changes, **highlight_kwargs)
     return splat.render(g, camera, opacity_mult=mult, background=background, config=config, statistics=False)
 

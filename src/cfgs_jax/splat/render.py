@@ -19,7 +19,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, Int
 
-from cfgs_jax import parallel
+from cfgs_jax import colour, parallel
 from cfgs_jax.errors import InputError
 from cfgs_jax.model import Camera, Gaussians, is_traced, opacities
 from cfgs_jax.splat.binning import bin_gaussians, listed_tiles
@@ -134,12 +134,27 @@ def _project_and_bin(gaussians, camera, opacity_mult, *, config, capacity, stati
 
 
 def _render_impl(
-    gaussians, camera, opacity_mult, color_mult, background, means2d_offset, *, config, capacity, with_depth, statistics
+    gaussians,
+    camera,
+    opacity_mult,
+    color_mult,
+    background,
+    means2d_offset,
+    *,
+    config,
+    capacity,
+    with_depth,
+    statistics,
+    relit=True,
 ):
     proj, opac, layout, bins = _project_and_bin(
         gaussians, camera, opacity_mult, config=config, capacity=capacity, statistics=statistics
     )
-    feats = view_colours(gaussians.colors, gaussians.sh_rest, gaussians.means, camera.center)[None] * color_mult
+    view = view_colours(gaussians.colors, gaussians.sh_rest, gaussians.means, camera.center)[None]
+    if relit and gaussians.sh_rest is not None:
+        feats = colour.relight(gaussians.colors[None], view, color_mult)
+    else:
+        feats = view * color_mult
     if with_depth:
         feats = jnp.concatenate([feats, jnp.broadcast_to(proj.depths[None, :, None], feats.shape[:2] + (1,))], -1)
     means2d = proj.means2d if means2d_offset is None else proj.means2d + means2d_offset
@@ -161,9 +176,20 @@ def _render_impl(
     )
 
 
-@functools.partial(jax.jit, static_argnames=("config", "capacity", "with_depth", "statistics"))
+@functools.partial(jax.jit, static_argnames=("config", "capacity", "with_depth", "statistics", "relit"))
 def _render_jit(
-    gaussians, camera, opacity_mult, color_mult, background, means2d_offset, *, config, capacity, with_depth, statistics
+    gaussians,
+    camera,
+    opacity_mult,
+    color_mult,
+    background,
+    means2d_offset,
+    *,
+    config,
+    capacity,
+    with_depth,
+    statistics,
+    relit,
 ):
     return _render_impl(
         gaussians,
@@ -176,6 +202,7 @@ def _render_jit(
         capacity=capacity,
         with_depth=with_depth,
         statistics=statistics,
+        relit=relit,
     )
 
 
@@ -295,9 +322,13 @@ def render_dates(
     with_depth: bool = False,
     means2d_offset: Float[Array, "N 2"] | None = None,
     statistics: bool = True,
+    relight: bool = True,
 ) -> RenderResult:
     """Render T dates (Eq. 1): per-date opacity α·o^p and colour l^p⊙c, one shared projection and sort.
 
+    With SH, each date's multiplier acts on the colour a Gaussian shows the camera as it acts on its DC
+    colour (``colour.relight``: the same luminance gain from every direction); ``relight=False``
+    multiplies the view colour channel by channel (for unit multipliers, the same image, cheaper).
     ``means2d_offset`` (zeros) is added to the projected centres; differentiate w.r.t. it to get the
     screen-space positional gradient used for densification. ``statistics=False`` skips the
     per-Gaussian ``max_weight`` / ``hits`` (returned as None): images only, 15–25 % faster forward.
@@ -322,10 +353,14 @@ def render_dates(
     args = (gaussians, camera, opacity_mult, color_mult, background, means2d_offset)
     if is_traced(args):
         capacity = _traced_capacity(config, "render", ", and check result.overflowed")
-        return _render_impl(*args, config=config, capacity=capacity, with_depth=with_depth, statistics=statistics)
+        return _render_impl(
+            *args, config=config, capacity=capacity, with_depth=with_depth, statistics=statistics, relit=relight
+        )
 
     def attempt(capacity):
-        result = _render_jit(*args, config=config, capacity=capacity, with_depth=with_depth, statistics=statistics)
+        result = _render_jit(
+            *args, config=config, capacity=capacity, with_depth=with_depth, statistics=statistics, relit=relight
+        )
         return result, result.num_intersections
 
     return _until_it_fits(attempt, config.capacity or required_capacity(gaussians, camera, opacity_mult, config=config))
@@ -359,6 +394,7 @@ def render(
         with_depth=with_depth,
         means2d_offset=means2d_offset,
         statistics=statistics,
+        relight=False,
     )
     first = lambda x: None if x is None else x[0]
     return RenderResult(

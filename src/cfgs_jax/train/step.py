@@ -108,6 +108,7 @@ def loss_fn(
         config=render_config,
         means2d_offset=means2d_offset,
         statistics=False,
+        relight=False,
     )
     pred = res.image[0]
     l1 = jnp.mean(jnp.abs(pred - image))
