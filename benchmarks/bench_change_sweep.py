@@ -12,6 +12,8 @@ flagging everything, the o^q < 0.2 rule, and the score alone (s > 0.5, no region
     python benchmarks/bench_change_sweep.py run WORK CELL [CELL ...]   # fuse (resumable) and score
     python benchmarks/bench_change_sweep.py score WORK CELL [CELL ...]  # score again (fused cells)
     python benchmarks/bench_change_sweep.py table WORK [--name NAME]   # results/NAME.md and .json
+    python benchmarks/bench_change_sweep.py threshold WORK CELL [CELL ...] [--tau 0.03,0.06]
+        # F1 against τ on fused cells: results/change_threshold_curve.md and .json
 
 ``run`` and ``score`` write WORK/<cell>/change_sweep_row.json; ``table`` gathers every row under WORK and
 keeps the rows of results/NAME.json whose cells WORK does not hold (a cell's folder does not outlive the
@@ -105,6 +107,43 @@ def score(out: Path, overrides: list[str]) -> dict:
     }
 
 
+def threshold_curve(work: Path, cells: list, taus: list[float], overrides: list[str]) -> None:
+    """Detector and score-alone F1, P, R and pixel IoU at each τ on fused ``cells`` (the other keys as set):
+    how far any choice of the threshold, fixed or per cell, can move each cell."""
+    rows = []
+    for cell in cells:
+        out = cell_dir(work, cell)
+        if not (out / "run" / "run.json").is_file():
+            raise SystemExit(f"{out} is not fused: use `run`")
+        for tau in taus:
+            r = score(out, overrides + [f"changes.threshold={tau}"])
+            g = r["gaussian"]
+            rows.append({"cell": out.name, "tau": tau, "gaussian": g, "pixels": r["pixels"]})
+            print(f"{out.name} τ={tau}: F1 {g['f1']:.3f} (score alone {g['score_f1']:.3f})", flush=True)
+    command = shlex.join(["python", "benchmarks/bench_change_sweep.py", *sys.argv[1:]])
+    lines = [
+        "# The change detector's F1 against its threshold τ (bench_change_sweep.py threshold)",
+        "",
+        f"Command: `{command}`. Machine: {machine()}. Date: {datetime.date.today().isoformat()}. Each cell fused once "
+        "(as the sweep's); τ the only key changed (the other `[changes]` defaults). Best per cell in bold.",
+        "",
+        "| cell | τ | P / R / F1 | score alone P / R / F1 | pixel IoU |",
+        "|---|---:|---|---|---:|",
+    ]
+    for cell in dict.fromkeys(r["cell"] for r in rows):
+        mine = [r for r in rows if r["cell"] == cell]
+        best = max(r["gaussian"]["f1"] for r in mine)
+        for r in mine:
+            g = r["gaussian"]
+            f1 = f"**{g['f1']:.3f}**" if g["f1"] == best else f"{g['f1']:.3f}"
+            lines.append(
+                f"| {cell} | {r['tau']:.2f} | {g['precision']:.3f} / {g['recall']:.3f} / {f1} | "
+                f"{g['score_precision']:.3f} / {g['score_recall']:.3f} / {g['score_f1']:.3f} | {r['pixels']['iou']:.3f} |"
+            )
+    (RESULTS / "change_threshold_curve.json").write_text(json.dumps({"command": command, "rows": rows}, indent=1))
+    (RESULTS / "change_threshold_curve.md").write_text("\n".join(lines) + "\n")
+
+
 def merged_rows(rows: list[dict], earlier: Path) -> list[dict]:
     """``rows`` (scored now, under WORK) and the rows of the ``earlier`` results file whose cells they do not
     hold and that were scored with the same detector setting, those marked ``kept`` (scored on an earlier
@@ -168,11 +207,12 @@ def markdown(rows: list[dict], command: str) -> str:
 
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("action", choices=("run", "score", "table"))
+    ap.add_argument("action", choices=("run", "score", "table", "threshold"))
     ap.add_argument("work", help="the folder holding one subfolder per cell")
     ap.add_argument("cells", nargs="*", metavar="SCENE:WxH:V")
     ap.add_argument("--set", dest="overrides", action="append", default=[], metavar="changes.KEY=VALUE")
     ap.add_argument("--name", default="change_sweep", help="results file stem (table)")
+    ap.add_argument("--tau", default="0.03,0.04,0.05,0.06,0.08,0.10", help="thresholds τ (threshold)")
     args = ap.parse_args()
     work = Path(args.work)
     if args.action == "table":
@@ -187,6 +227,9 @@ def main():
         return
     if not args.cells:
         ap.error("name the cells, e.g. flood:80x60:10")
+    if args.action == "threshold":
+        threshold_curve(work, [parse_cell(c) for c in args.cells], [float(v) for v in args.tau.split(",")], args.overrides)
+        return
     for text in args.cells:
         cell = parse_cell(text)
         out = fuse(work, cell) if args.action == "run" else cell_dir(work, cell)
