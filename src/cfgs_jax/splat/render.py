@@ -176,34 +176,7 @@ def _render_impl(
     )
 
 
-@functools.partial(jax.jit, static_argnames=("config", "capacity", "with_depth", "statistics", "relit"))
-def _render_jit(
-    gaussians,
-    camera,
-    opacity_mult,
-    color_mult,
-    background,
-    means2d_offset,
-    *,
-    config,
-    capacity,
-    with_depth,
-    statistics,
-    relit,
-):
-    return _render_impl(
-        gaussians,
-        camera,
-        opacity_mult,
-        color_mult,
-        background,
-        means2d_offset,
-        config=config,
-        capacity=capacity,
-        with_depth=with_depth,
-        statistics=statistics,
-        relit=relit,
-    )
+_render_jit = jax.jit(_render_impl, static_argnames=("config", "capacity", "with_depth", "statistics", "relit"))
 
 
 @functools.partial(jax.jit, static_argnames=("config", "capacity"))
