@@ -228,7 +228,9 @@ def main():
     if not args.cells:
         ap.error("name the cells, e.g. flood:80x60:10")
     if args.action == "threshold":
-        threshold_curve(work, [parse_cell(c) for c in args.cells], [float(v) for v in args.tau.split(",")], args.overrides)
+        threshold_curve(
+            work, [parse_cell(c) for c in args.cells], [float(v) for v in args.tau.split(",")], args.overrides
+        )
         return
     for text in args.cells:
         cell = parse_cell(text)
