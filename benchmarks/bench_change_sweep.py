@@ -54,6 +54,13 @@ def cell_dir(work: Path, cell: tuple[str, int, int, int]) -> Path:
     return work / f"{scene}_{width}x{height}_{views}"
 
 
+def fused_cell(out: Path) -> Path:
+    """``out``, checked to hold a fused run."""
+    if not (out / "run" / "run.json").is_file():
+        raise SystemExit(f"{out} is not fused: use `run`")
+    return out
+
+
 def fuse(work: Path, cell: tuple[str, int, int, int]) -> Path:
     """The cell's fused run (``eval --part fusion``; skipped when its run is exported already)."""
     scene, width, height, views = cell
@@ -112,9 +119,7 @@ def threshold_curve(work: Path, cells: list, taus: list[float], overrides: list[
     how far any choice of the threshold, fixed or per cell, can move each cell."""
     rows = []
     for cell in cells:
-        out = cell_dir(work, cell)
-        if not (out / "run" / "run.json").is_file():
-            raise SystemExit(f"{out} is not fused: use `run`")
+        out = fused_cell(cell_dir(work, cell))
         for tau in taus:
             r = score(out, overrides + [f"changes.threshold={tau}"])
             g = r["gaussian"]
@@ -234,9 +239,7 @@ def main():
         return
     for text in args.cells:
         cell = parse_cell(text)
-        out = fuse(work, cell) if args.action == "run" else cell_dir(work, cell)
-        if not (out / "run" / "run.json").is_file():
-            raise SystemExit(f"{out} is not fused: use `run`")
+        out = fused_cell(fuse(work, cell) if args.action == "run" else cell_dir(work, cell))
         row = score(out, args.overrides)
         (out / ROW).write_text(json.dumps(row, indent=1))
         g = row["gaussian"]

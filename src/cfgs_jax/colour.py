@@ -44,23 +44,28 @@ def luminance(rgb_linear: Float[Array, "... 3"]) -> Float[Array, " ..."]:
 
 
 def encoded_luma(rgb: Float[Array, "... 3"]) -> Float[Array, " ..."]:
-    """Y': the Rec.709-weighted sum of (sRGB-encoded) values, the luminance the light model keeps."""
-    rgb = jnp.asarray(rgb)
-    return jnp.tensordot(rgb, jnp.asarray(REC709_LUMA, rgb.dtype), axes=1, precision=jax.lax.Precision.HIGHEST)
+    """Y': the Rec.709-weighted sum of sRGB-encoded values (``luminance``'s weights on the encoded colour),
+    the luminance the light model keeps."""
+    return luminance(rgb)
+
+
+def luminance_gain(reference: Float[Array, "*N 3"], light: Float[Array, "*N 3"]) -> Float[Array, " *N"]:
+    """ḡ = Y'(l ⊙ c) / Y'(c): the luminance gain a light multiplier l gives the colour c (negative channels
+    count as 0); Y'(l) where c is black."""
+    c = jnp.maximum(reference, 0.0)
+    y_c = encoded_luma(c)
+    lit = y_c > 1e-6
+    return jnp.where(lit, encoded_luma(light * c) / jnp.where(lit, y_c, 1.0), encoded_luma(light))
 
 
 def relight_factor(
     reference: Float[Array, "*N 3"], view: Float[Array, "*N 3"], light: Float[Array, "*N 3"]
 ) -> Float[Array, " *N"]:
-    """ρ = ḡ·Y'(v) / Y'(l ⊙ v) with ḡ = Y'(l ⊙ c) / Y'(c) (Y'(l) where c is black), 1 where l ⊙ v has no
-    luminance: the factor by which ``relight`` scales l ⊙ v. ``reference`` c: negative channels count as 0."""
-    c = jnp.maximum(reference, 0.0)
-    y_c = encoded_luma(c)
-    lit = y_c > 1e-6
-    gain = jnp.where(lit, encoded_luma(light * c) / jnp.where(lit, y_c, 1.0), encoded_luma(light))
+    """ρ = ḡ·Y'(v) / Y'(l ⊙ v) with ḡ the gain l gives the reference colour c (``luminance_gain``), 1 where
+    l ⊙ v has no luminance: the factor by which ``relight`` scales l ⊙ v."""
     y_lv = encoded_luma(light * view)
     seen = y_lv > 1e-6
-    return jnp.where(seen, gain * encoded_luma(view) / jnp.where(seen, y_lv, 1.0), 1.0)
+    return jnp.where(seen, luminance_gain(reference, light) * encoded_luma(view) / jnp.where(seen, y_lv, 1.0), 1.0)
 
 
 def relight(

@@ -26,7 +26,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from cfgs_jax.colour import REC709_LUMA
+from cfgs_jax.colour import REC709_LUMA, luminance_gain
 from cfgs_jax.model import MAX_LIGHT, MIN_LIGHT, light_logits  # noqa: F401  (the model's light parameterisation)
 
 REC709 = np.asarray(REC709_LUMA)  # Rec.709 luma weights (linear RGB)
@@ -98,9 +98,8 @@ def cold_warm_coefficient(l: Float[Array, "*N 3"], colours: Float[Array, "*N 3"]
     of ``light_multiplier``: tanh(w) wherever the gain leaves the shift its full range): the gain is
     g = Y'(l ⊙ c)/Y'(c) (Y'(l) for black), then k = (l/g − 1)·d_c / |d_c|². k > 0: colder (bluer)."""
     with jax.enable_x64(True):
-        dc = np.asarray(colour_direction(jnp.asarray(colours, jnp.float64), direction), np.float64)
-    l = np.asarray(l, np.float64)
-    c = np.maximum(np.asarray(colours, np.float64), 0.0)
-    y = c @ REC709
-    gain = np.where(y > 1e-6, ((l * c) @ REC709) / np.where(y > 1e-6, y, 1.0), l @ REC709)
+        c, l = jnp.asarray(colours, jnp.float64), jnp.asarray(l, jnp.float64)
+        dc = np.asarray(colour_direction(c, direction), np.float64)
+        gain = np.asarray(luminance_gain(c, l), np.float64)
+    l = np.asarray(l)
     return np.sum((l / gain[..., None] - 1.0) * dc, axis=-1) / np.sum(dc * dc, axis=-1)
