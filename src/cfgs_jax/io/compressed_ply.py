@@ -26,6 +26,7 @@ import numpy as np
 
 from cfgs_jax.errors import InputError
 from cfgs_jax.io.ply import channel_major, from_channel_major, read_elements
+from cfgs_jax.io.quaternions import from_smallest_three, smallest_three
 from cfgs_jax.model import SH_REST_COUNTS, Gaussians
 
 CHUNK = 256
@@ -86,30 +87,18 @@ def _unpack_111011(v: np.ndarray) -> np.ndarray:
 
 def pack_rotations(quats_wxyz: np.ndarray) -> np.ndarray:
     """[N] uint32: the 2-10-10-10 "largest dropped" code of wxyz quaternions (normalised here)."""
-    q = np.asarray(quats_wxyz, np.float64)
-    q = q / np.linalg.norm(q, axis=1, keepdims=True)
-    largest = np.argmax(np.abs(q), axis=1)
-    q = np.where(np.take_along_axis(q, largest[:, None], 1) < 0, -q, q)
+    largest, others = smallest_three(quats_wxyz)
     code = largest.astype(np.uint32)
-    for k in range(4):
-        code = np.where(largest != k, (code << 10) | _unorm(q[:, k] * np.sqrt(0.5) + 0.5, 10), code)
+    for j in range(3):
+        code = (code << 10) | _unorm(others[:, j] * np.sqrt(0.5) + 0.5, 10)
     return code
 
 
 def unpack_rotations(code: np.ndarray) -> np.ndarray:
     """[N, 4] wxyz quaternions of ``pack_rotations`` codes."""
     code = np.asarray(code, np.uint32)
-    largest = (code >> 30).astype(np.int64)
-    parts = [(_from_unorm(code >> s, 10) - 0.5) * np.sqrt(2.0) for s in (20, 10, 0)]
-    m = np.sqrt(np.maximum(1.0 - sum(p * p for p in parts), 0.0))
-    q = np.zeros((len(code), 4))
-    for which in range(4):
-        rows = largest == which
-        others = [k for k in range(4) if k != which]
-        q[rows, which] = m[rows]
-        for k, p in zip(others, parts):
-            q[rows, k] = p[rows]
-    return q.astype(np.float32)
+    others = np.stack([(_from_unorm(code >> s, 10) - 0.5) * np.sqrt(2.0) for s in (20, 10, 0)], 1)
+    return from_smallest_three(code >> 30, others).astype(np.float32)
 
 
 def write_compressed_ply(path: str | os.PathLike, g: Gaussians) -> tuple[Path, np.ndarray]:

@@ -32,6 +32,7 @@ import numpy as np
 from cfgs_jax.errors import InputError
 from cfgs_jax.io.atomic import atomic_file
 from cfgs_jax.io.compressed_ply import morton_order
+from cfgs_jax.io.quaternions import from_smallest_three, smallest_three
 from cfgs_jax.model import SH_C0, SH_REST_COUNTS, Gaussians
 
 VERSION = 2
@@ -139,12 +140,8 @@ def encode_sog(g: Gaussians, *, seed: int = 0) -> tuple[dict[str, bytes], np.nda
     files["means_l.webp"] = _texture([q16[:, a] & 0xFF for a in range(3)], size)
     files["means_u.webp"] = _texture([q16[:, a] >> 8 for a in range(3)], size)
 
-    q = np.asarray(g.quats, np.float64)[order]
-    q = q / np.linalg.norm(q, axis=1, keepdims=True)
-    largest = np.argmax(np.abs(q), axis=1)
-    q = q * np.where(np.take_along_axis(q, largest[:, None], 1) < 0, -1.0, 1.0) * np.sqrt(2.0)
-    others = np.array([[k for k in range(4) if k != m] for m in range(4)])[largest]
-    small = np.take_along_axis(q, others, 1)
+    largest, small = smallest_three(np.asarray(g.quats)[order])
+    small = small * np.sqrt(2.0)
     packed = np.clip(np.floor(255 * (small * 0.5 + 0.5) + 0.5), 0, 255).astype(np.uint8)
     files["quats.webp"] = _texture([packed[:, c] for c in range(3)], size, alpha=(252 + largest).astype(np.uint8))
 
@@ -229,10 +226,7 @@ def read_sog(path: str | os.PathLike) -> Gaussians:
     qt = tex(meta["quats"]["files"][0])
     largest = qt[:, 3].astype(np.int64) - 252
     small = (qt[:, :3].astype(np.float64) / 255 * 2 - 1) / np.sqrt(2.0)
-    quats = np.zeros((n, 4))
-    others = np.array([[k for k in range(4) if k != m] for m in range(4)])[np.clip(largest, 0, 3)]
-    np.put_along_axis(quats, others, small, 1)
-    quats[np.arange(n), np.clip(largest, 0, 3)] = np.sqrt(np.maximum(1 - np.sum(small * small, 1), 0))
+    quats = from_smallest_three(largest, small)
     scales = np.asarray(meta["scales"]["codebook"])[tex(meta["scales"]["files"][0])[:, :3]]
     sh0 = tex(meta["sh0"]["files"][0])
     f_dc = np.asarray(meta["sh0"]["codebook"])[sh0[:, :3]]

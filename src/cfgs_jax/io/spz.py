@@ -33,6 +33,7 @@ import numpy as np
 
 from cfgs_jax.errors import InputError
 from cfgs_jax.io.atomic import atomic_file
+from cfgs_jax.io.quaternions import from_smallest_three, smallest_three
 from cfgs_jax.model import SH_C0, SH_REST_COUNTS, Gaussians
 
 MAGIC = 0x5053474E  # "NGSP" in file order
@@ -74,36 +75,23 @@ def fractional_bits(means: np.ndarray) -> int:
 
 
 def pack_quaternions(quats_wxyz: np.ndarray) -> np.ndarray:
-    """[N] uint32 "smallest three" codes of wxyz quaternions (normalised here), in SPZ's xyzw order."""
-    q = np.asarray(quats_wxyz, np.float64)[:, [1, 2, 3, 0]]
-    q = q / np.linalg.norm(q, axis=1, keepdims=True)
-    largest = np.argmax(np.abs(q), axis=1)
-    q = np.where(np.take_along_axis(q, largest[:, None], 1) < 0, -q, q)
+    """[N] uint32 "smallest three" codes of wxyz quaternions (normalised here), in SPZ's xyzw order: the
+    largest component's index in the top 2 bits, then per other component a sign bit and 9 bits of
+    |q|·√2."""
+    largest, others = smallest_three(np.asarray(quats_wxyz)[:, [1, 2, 3, 0]])
     code = largest.astype(np.uint32)
-    for k in range(4):
-        keep = largest != k
-        mag = np.floor(511.0 * np.abs(q[:, k]) * np.sqrt(2.0) + 0.5).astype(np.uint32)
-        mag = np.minimum(mag, 511)
-        part = ((q[:, k] < 0).astype(np.uint32) << 9) | mag
-        code = np.where(keep, (code << 10) | part, code)
+    for j in range(3):
+        mag = np.minimum(np.floor(511.0 * np.abs(others[:, j]) * np.sqrt(2.0) + 0.5), 511).astype(np.uint32)
+        code = (code << 10) | ((others[:, j] < 0).astype(np.uint32) << 9) | mag
     return code
 
 
 def unpack_quaternions(code: np.ndarray) -> np.ndarray:
     """[N, 4] wxyz unit quaternions from "smallest three" codes (``pack_quaternions`` inverted)."""
-    code = np.asarray(code, np.uint32).copy()
-    n = len(code)
-    largest = (code >> 30).astype(np.int64)
-    q = np.zeros((n, 4), np.float64)
-    for k in (3, 2, 1, 0):
-        other = largest != k
-        mag = (code & 511).astype(np.float64) / 511.0 / np.sqrt(2.0)
-        sign = np.where((code >> 9) & 1, -1.0, 1.0)
-        q[:, k] = np.where(other, sign * mag, q[:, k])
-        code = np.where(other, code >> 10, code)
-    rest = np.sum(np.where(np.arange(4)[None] == largest[:, None], 0.0, q * q), axis=1)
-    q[np.arange(n), largest] = np.sqrt(np.maximum(1.0 - rest, 0.0))
-    return q[:, [3, 0, 1, 2]].astype(np.float32)
+    code = np.asarray(code, np.uint32)
+    parts = [code >> (10 * (2 - j)) for j in range(3)]
+    others = np.stack([np.where(v & 512, -1.0, 1.0) * (v & 511) / 511.0 / np.sqrt(2.0) for v in parts], 1)
+    return from_smallest_three(code >> 30, others)[:, [3, 0, 1, 2]].astype(np.float32)
 
 
 def quantise_sh(x: np.ndarray, bits: int) -> np.ndarray:
