@@ -58,19 +58,30 @@ def texture_size(n: int) -> tuple[int, int]:
 
 
 def kmeans_1d(values: np.ndarray, k: int = CODEBOOK, iterations: int = 20) -> tuple[np.ndarray, np.ndarray]:
-    """(k sorted centres, the index of each value's nearest): Lloyd's algorithm in one dimension from
-    the values' quantiles (each step assigns by the midpoints between sorted centres)."""
+    """(k sorted centres, the index of each value's nearest): Lloyd's algorithm in one dimension (each step
+    assigns by the midpoints between sorted centres), started from half the centres at the values'
+    quantiles and half evenly over their range, so that the sparse tails keep centres of their own
+    (from the quantiles alone Lloyd's steps leave a long tail to one or two centres); a centre that no
+    value chooses moves to the values worst served."""
     v = np.asarray(values, np.float64).reshape(-1)
     unique = np.unique(v)
     if len(unique) <= k:
         centres = np.concatenate([unique, np.full(k - len(unique), unique[-1] if len(unique) else 0.0)])
         return centres, np.searchsorted(unique, v)
-    centres = np.quantile(v, (np.arange(k) + 0.5) / k)
+    spread = k // 2
+    centres = np.quantile(v, (np.arange(k - spread) + 0.5) / (k - spread))
+    centres = np.sort(np.concatenate([centres, np.linspace(unique[0], unique[-1], spread)]))
     for _ in range(iterations):
         label = np.searchsorted((centres[1:] + centres[:-1]) / 2, v)
         sums = np.bincount(label, v, minlength=k)
         counts = np.bincount(label, minlength=k)
-        centres = np.sort(np.where(counts > 0, sums / np.maximum(counts, 1), centres))
+        centres = np.where(counts > 0, sums / np.maximum(counts, 1), centres)
+        empty = np.nonzero(counts == 0)[0]
+        if len(empty):  # a centre no value chose moves to the values worst served
+            worst = v[np.argsort(-np.abs(v - centres[label]), kind="stable")]
+            worst = worst[np.sort(np.unique(worst, return_index=True)[1])][: len(empty)]
+            centres[empty[: len(worst)]] = worst
+        centres = np.sort(centres)
     return centres, np.searchsorted((centres[1:] + centres[:-1]) / 2, v)
 
 
