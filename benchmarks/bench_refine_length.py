@@ -70,11 +70,11 @@ def main() -> None:
     from cfgs_jax.evaluation.registration import date_errors, ground_truth
     from cfgs_jax.fusion.config import RunConfig
     from cfgs_jax.fusion.evaluate import evaluate_fused, weighted_mean
-    from cfgs_jax.fusion.frames import posed
     from cfgs_jax.fusion.refine import refine
     from cfgs_jax.io.atomic import read_json
     from cfgs_jax.io.fused import read_fused
     from cfgs_jax.io.run_dir import RunDir, date_views
+    from cfgs_jax.sim3 import posed
 
     steps = sorted(set(args.steps))
     eval_dir = Path(args.eval)

@@ -73,3 +73,22 @@ class Sim3:
     @staticmethod
     def from_dict(d: dict) -> Sim3:
         return Sim3(float(d["scale"]), quat_to_matrix(d["rotation_wxyz"]), np.asarray(d["translation"], np.float64))
+
+
+def as_frame(f: Sim3) -> tuple[float, ...]:
+    """A ``Sim3`` as ``DateInfo.frame``'s 13 numbers (s, R row-major, t)."""
+    return (float(f.scale), *map(float, np.ravel(f.rotation)), *map(float, f.translation))
+
+
+def frame_of(frame: tuple[float, ...]) -> Sim3:
+    """``DateInfo.frame`` as a ``Sim3`` (the identity where it is empty)."""
+    if not frame:
+        return Sim3.identity()
+    x = np.asarray(frame, np.float64)
+    return Sim3(float(x[0]), x[1:10].reshape(3, 3), x[10:13].copy())
+
+
+def posed(sims, names, frames: dict) -> list[Sim3]:
+    """Each date's registration ``sims[i]`` after its frame correction ``frames[names[i]]`` (a
+    ``DateInfo.frame``; none: unchanged): F ∘ S, the Sim(3) that poses its cameras with the model."""
+    return [frame_of(frames.get(n, ())).compose(s) for n, s in zip(names, sims)]

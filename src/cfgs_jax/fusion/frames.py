@@ -22,9 +22,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from cfgs_jax.fusion.register import quat_multiply
-from cfgs_jax.model import Camera, Gaussians, quat_to_rotmat
-from cfgs_jax.sim3 import Sim3, quat_to_matrix
+from cfgs_jax.model import Camera, Gaussians, quat_multiply, quat_to_rotmat
+from cfgs_jax.sim3 import Sim3, as_frame, frame_of, quat_to_matrix
 
 FRAME_SIZE = 7  # log s, ω (3), τ (3)
 HIGHEST = jax.lax.Precision.HIGHEST
@@ -102,25 +101,6 @@ def framed(params, gaussians: Gaussians, camera: Camera, date) -> tuple[Gaussian
     rows = jnp.matmul(params["frame_onehot"], p, precision=HIGHEST)
     centre, extent = params["frame_centre"], params["frame_extent"]
     return move_gaussians(gaussians, rows, centre, extent), move_camera(camera, p[date], centre, extent)
-
-
-def as_frame(f: Sim3) -> tuple[float, ...]:
-    """A ``Sim3`` as ``DateInfo.frame``'s 13 numbers (s, R row-major, t)."""
-    return (float(f.scale), *map(float, np.ravel(f.rotation)), *map(float, f.translation))
-
-
-def frame_of(frame: tuple[float, ...]) -> Sim3:
-    """``DateInfo.frame`` as a ``Sim3`` (the identity where it is empty)."""
-    if not frame:
-        return Sim3.identity()
-    x = np.asarray(frame, np.float64)
-    return Sim3(float(x[0]), x[1:10].reshape(3, 3), x[10:13].copy())
-
-
-def posed(sims, names, frames: dict) -> list[Sim3]:
-    """Each date's registration ``sims[i]`` after its frame correction ``frames[names[i]]`` (a
-    ``DateInfo.frame``; none: unchanged): F ∘ S, the Sim(3) that poses its cameras with the model."""
-    return [frame_of(frames.get(n, ())).compose(s) for n, s in zip(names, sims)]
 
 
 def baked(model, params) -> tuple:

@@ -25,24 +25,9 @@ from cfgs_jax.errors import InputError
 from cfgs_jax.io.colmap import Scene
 from cfgs_jax.io.images import write_image
 from cfgs_jax.io.run_dir import camera_in_frame
-from cfgs_jax.model import Gaussians
+from cfgs_jax.model import Gaussians, quat_multiply
 from cfgs_jax.sim3 import Sim3, matrix_to_quat
 from cfgs_jax.splat.sh import rotate
-
-
-def quat_multiply(a, b):
-    """Hamilton product a ⊗ b of wxyz quaternions (broadcasting)."""
-    aw, ax, ay, az = (a[..., i] for i in range(4))
-    bw, bx, by, bz = (b[..., i] for i in range(4))
-    return jnp.stack(
-        [
-            aw * bw - ax * bx - ay * by - az * bz,
-            aw * bx + ax * bw + ay * bz - az * by,
-            aw * by - ax * bz + ay * bw + az * bx,
-            aw * bz + ax * by - ay * bx + az * bw,
-        ],
-        axis=-1,
-    )
 
 
 def transform_gaussians(g: Gaussians, sim3: Sim3) -> Gaussians:

@@ -35,7 +35,6 @@ from cfgs_jax.fusion.compact import (
 from cfgs_jax.fusion.config import RunConfig
 from cfgs_jax.fusion.cross_init import checkpoint_state, init_group, pair_groups
 from cfgs_jax.fusion.evaluate import evaluate_fused
-from cfgs_jax.fusion.frames import posed
 from cfgs_jax.fusion.fuse import add_date, merge
 from cfgs_jax.fusion.refine import refine
 from cfgs_jax.fusion.register import register_date
@@ -48,7 +47,7 @@ from cfgs_jax.io.run_dir import RunDir, date_cameras, date_views
 from cfgs_jax.loop import Progress
 from cfgs_jax.metrics.perceptual import minimum_side
 from cfgs_jax.model import DateViews
-from cfgs_jax.sim3 import Sim3
+from cfgs_jax.sim3 import Sim3, posed
 from cfgs_jax.splat.weights import observed_matrix
 
 #: o-logit of every Gaussian of a one-date "fusion": σ(30) rounds to exactly 1.0 in float32, so the

@@ -38,7 +38,7 @@ from cfgs_jax.io.atomic import ensure_writable_dir, read_json, write_json
 from cfgs_jax.io.colmap import Scene
 from cfgs_jax.model import Camera, DateInfo, DateViews
 from cfgs_jax.resources import peak_rss_bytes, reset_peak_rss
-from cfgs_jax.sim3 import Sim3
+from cfgs_jax.sim3 import Sim3, posed
 
 
 def camera_in_frame(camera: Camera, sim3: Sim3) -> Camera:
@@ -253,8 +253,6 @@ class RunDir:
         base, frames = self.registered(), self.frames(model_dir)
         if not frames:
             return base
-        from cfgs_jax.fusion.frames import posed
-
         return posed(base, self.names, frames)
 
     # -- layout --------------------------------------------------------------------------------
