@@ -14,6 +14,9 @@ flagging everything, the o^q < 0.2 rule, and the score alone (s > 0.5, no region
     python benchmarks/bench_change_sweep.py table WORK [--name NAME]   # results/NAME.md and .json
     python benchmarks/bench_change_sweep.py threshold WORK CELL [CELL ...] [--tau 0.03,0.06]
         # F1 against τ on fused cells: results/change_threshold_curve.md and .json
+    python benchmarks/bench_change_sweep.py probe WORK CELL [CELL ...]
+        # what limits the evidence: the score alone under other evidence rules, where its errors lie,
+        # and the depth behind them (results/change_probe.md)
 
 ``run`` and ``score`` write WORK/<cell>/change_sweep_row.json; ``table`` gathers every row under WORK and
 keeps the rows of results/NAME.json whose cells WORK does not hold (a cell's folder does not outlive the
@@ -25,12 +28,15 @@ separate processes (one a core) and ``table`` once they are scored.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import datetime
 import json
 import shlex
 import subprocess
 import sys
 from pathlib import Path
+
+import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import RESULTS, machine
@@ -149,6 +155,163 @@ def threshold_curve(work: Path, cells: list, taus: list[float], overrides: list[
     (RESULTS / "change_threshold_curve.md").write_text("\n".join(lines) + "\n")
 
 
+def _entries(run, data: Path, stats) -> dict:
+    """The scored entries of a fused cell as the evaluation takes them (``change_table``: Gaussians of p
+    observed at q): per pair (p, q) the Gaussians' rows, their positions in the pair statistics and the
+    object truth; and each Gaussian's object."""
+    from bench_change_regions import change_table
+
+    from cfgs_jax.evaluation import scoring
+
+    gt, _, _, table = change_table(run, data, run.config.render)
+    changed = scoring.changed_objects_by_pair(gt)
+    objects = np.asarray(table["objects"])
+    pairs = {}
+    for (p, q), v in table["pairs"].items():
+        rows = v["rows"][v["observed"]]
+        truth = np.isin(objects[rows], sorted(changed.get((min(p, q), max(p, q)), ())))
+        pairs[(p, q)] = (rows, np.searchsorted(stats.pairs[(p, q)][0], rows), truth)
+    return {"pairs": pairs, "objects": objects, "changed": changed}
+
+
+def _prf(pred: np.ndarray, truth: np.ndarray) -> tuple[float, float, float]:
+    tp, fp, fn = int((pred & truth).sum()), int((pred & ~truth).sum()), int((~pred & truth).sum())
+    p, r = tp / max(tp + fp, 1), tp / max(tp + fn, 1)
+    return p, r, 2 * p * r / max(p + r, 1e-12)
+
+
+def depth_gap(run, p: int, q: int, views) -> np.ndarray:
+    """[N_p] per Gaussian of date p, (D⁻ − z)/z averaged over q's views with its compositing weight: D⁻ the
+    depth of what q's render shows without date p's Gaussians (1 where that render is under half opaque), z
+    the Gaussian's depth. About 0 for a Gaussian on a surface that q still shows, above 0 for one in front
+    of it (an object q no longer holds, or a floater)."""
+    import jax.numpy as jnp
+
+    from cfgs_jax import splat
+    from cfgs_jax.model import light_multipliers, opacity_multipliers
+
+    model, rc = run.model, run.config.render
+    g, origin = model.gaussians, np.asarray(model.origin)
+    o = np.asarray(opacity_multipliers(model), np.float32)
+    mine = origin == p
+    present = jnp.asarray(np.where(mine, o[:, p], o[:, q])[None])
+    absent = jnp.asarray(np.where(mine, 0.0, o[:, q])[None])
+    light = jnp.asarray(np.asarray(light_multipliers(model))[:, q][None], jnp.float32)
+    means = jnp.asarray(g.means)
+    total, weight = np.zeros(len(origin)), np.zeros(len(origin))
+    for cam in views[q].cameras:
+        cfg = dataclasses.replace(
+            rc, capacity=splat.required_capacity(g, cam, jnp.concatenate([present, absent]), config=rc)
+        )
+        res = splat.render_dates(g, cam, absent, light, config=cfg, with_depth=True)
+        shown = jnp.where(res.alpha[0] > 0.5, res.depth[0] / jnp.maximum(res.alpha[0], 1e-6), jnp.inf)
+        maps = jnp.stack([jnp.ones_like(shown), jnp.minimum(shown, 1e6)])[:, None]
+        w, wd = (np.asarray(x, np.float64) for x in splat.summed_weight_maps(g, cam, present, maps, config=cfg)[:, 0])
+        z = np.maximum(np.asarray((means @ cam.rotation.T + cam.translation)[:, 2], np.float64), 1e-9)
+        total += w * np.clip((wd / np.maximum(w, 1e-30) - z) / z, -1.0, 1.0)
+        weight += w
+    return (total / np.maximum(weight, 1e-30))[mine]
+
+
+def probe(work: Path, cells: list) -> None:
+    """Per fused cell: the score alone (s > 0.5, no regions) under other evidence rules, and where the
+    default's errors lie (by object; a false entry's distance to the nearest changed object over that
+    object's radius; the depth gap ``depth_gap`` of its errors and hits)."""
+    from bench_change_regions import _statistics
+
+    from cfgs_jax.changes import ChangesConfig, evidence_from
+    from cfgs_jax.changes.evidence import pooled_evidence
+    from cfgs_jax.io.run_dir import date_views
+    from cfgs_jax.render_run import open_run
+
+    rules = {
+        "default (γ ∈ [1/3, 3], pool 1e-3, τ 0.06)": {},
+        "no gain (γ = 1)": {"gain_range": (1.0, 1.0)},
+        "γ ∈ [0.8, 1.25]": {"gain_range": (0.8, 1.25)},
+        "pool 1e-4": {"pool_area": 1e-4},
+        "pool 3e-3": {"pool_area": 3e-3},
+        "τ 0.04": {"threshold": 0.04},
+    }
+    command = shlex.join(["python", "benchmarks/bench_change_sweep.py", *sys.argv[1:]])
+    lines = [
+        "# What limits the change evidence (bench_change_sweep.py probe)",
+        "",
+        f"Command: `{command}`. Machine: {machine()}. Date: {datetime.date.today().isoformat()}. Per cell the score "
+        "alone (s > 0.5, no regions; P / R / F1 per Gaussian against the objects that changed) under other evidence "
+        "rules; the ratio rule flags 1 − √(E⁻/E⁺) > ρ on the pooled residuals. Errors of the default: entries by "
+        "object; a false entry's distance to the nearest changed object's centre in that object's radii; the depth "
+        "gap (D⁻ − z)/z of the render without date p at q's views (0: on a surface q still shows).",
+        "",
+    ]
+    for cell in cells:
+        out = fused_cell(cell_dir(work, cell))
+        run, data = open_run(out / "run"), out / "data"
+        stats, _, _ = _statistics(run, data, out / "change_sweep_cache", ChangesConfig(), run.config.render)
+        ent = _entries(run, data, stats)
+        means = np.asarray(run.model.gaussians.means, np.float64)
+        truth = np.concatenate([t for _, _, t in ent["pairs"].values()])
+        lines += [f"## {out.name}", "", "| rule | P / R / F1 |", "|---|---|"]
+        for name, keys in rules.items():
+            ev = evidence_from(stats, means, ChangesConfig(**keys))
+            pred = np.concatenate([ev.score[r, q] > 0.5 for (p, q), (r, _, _) in ent["pairs"].items()])
+            lines.append(f"| {name} | {' / '.join(f'{x:.3f}' for x in _prf(pred, truth))} |")
+        ev = evidence_from(stats, means, ChangesConfig())
+        plus = {}  # pooled √E⁺: the evidence with E⁻ made 0 (A⁻ = B⁻ = C fits γ = 1 exactly)
+        for (p, q), (rows, sums, seen) in stats.pairs.items():
+            only = sums.copy()
+            only[:, 3] = only[:, 4] = only[:, 5]
+            plus[(p, q)] = pooled_evidence(only, means[rows], seen, ChangesConfig(), sums[:, 0] / stats.pixels[q])
+        for rho in (0.5, 0.6):
+            pred = [
+                ev.observed[r, q] & (ev.evidence[r, q] > rho * plus[(p, q)][pos])
+                for (p, q), (r, pos, _) in ent["pairs"].items()
+            ]
+            lines.append(
+                f"| ratio rule ρ {rho} | {' / '.join(f'{x:.3f}' for x in _prf(np.concatenate(pred), truth))} |"
+            )
+        views = [date_views(sc, sm, "all") for sc, sm in zip(run.scenes, run.sims)]
+        origin, objects = np.asarray(run.model.origin), ent["objects"]
+        gaps, false_obj, miss_obj, dist = {"hit": [], "miss": [], "false": [], "true negative": []}, {}, {}, []
+        for (p, q), (r, _, t) in ent["pairs"].items():
+            pred = ev.score[r, q] > 0.5
+            gap = depth_gap(run, p, q, views)[np.searchsorted(np.nonzero(origin == p)[0], r)]
+            for key, sel in (
+                ("hit", pred & t),
+                ("miss", ~pred & t),
+                ("false", pred & ~t),
+                ("true negative", ~pred & ~t),
+            ):
+                gaps[key].append(gap[sel])
+            for o in objects[r][pred & ~t]:
+                false_obj[int(o)] = false_obj.get(int(o), 0) + 1
+            for o in objects[r][~pred & t]:
+                miss_obj[int(o)] = miss_obj.get(int(o), 0) + 1
+            ch = sorted(ent["changed"].get((min(p, q), max(p, q)), ()))
+            if ch and (pred & ~t).any():
+                centre = np.stack([means[objects == c].mean(0) for c in ch])
+                radius = np.array(
+                    [np.linalg.norm(means[objects == c] - centre[k], axis=1).max() for k, c in enumerate(ch)]
+                )
+                d = np.linalg.norm(means[r][pred & ~t][:, None] - centre[None], axis=2)
+                dist.append((d / radius).min(1))
+        q3 = lambda x: " / ".join(f"{v:.3f}" for v in np.quantile(x, [0.1, 0.5, 0.9])) if len(x) else "–"
+        lines += [
+            "",
+            f"Errors of the default: misses by object {dict(sorted(miss_obj.items()))}, false entries by object "
+            f"{dict(sorted(false_obj.items()))}; false entries' distance to the nearest changed object (radii, "
+            f"10 / 50 / 90 %): {q3(np.concatenate(dist)) if dist else '–'}.",
+            "",
+            "| entries | count | depth gap 10 / 50 / 90 % |",
+            "|---|---:|---|",
+        ]
+        for key, v in gaps.items():
+            v = np.concatenate(v)
+            lines.append(f"| {key} | {len(v)} | {q3(v)} |")
+        lines.append("")
+        print("\n".join(lines[-12:]), flush=True)
+    (RESULTS / "change_probe.md").write_text("\n".join(lines) + "\n")
+
+
 def merged_rows(rows: list[dict], earlier: Path) -> list[dict]:
     """``rows`` (scored now, under WORK) and the rows of the ``earlier`` results file whose cells they do not
     hold and that were scored with the same detector setting, those marked ``kept`` (scored on an earlier
@@ -212,7 +375,7 @@ def markdown(rows: list[dict], command: str) -> str:
 
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("action", choices=("run", "score", "table", "threshold"))
+    ap.add_argument("action", choices=("run", "score", "table", "threshold", "probe"))
     ap.add_argument("work", help="the folder holding one subfolder per cell")
     ap.add_argument("cells", nargs="*", metavar="SCENE:WxH:V")
     ap.add_argument("--set", dest="overrides", action="append", default=[], metavar="changes.KEY=VALUE")
@@ -232,6 +395,9 @@ def main():
         return
     if not args.cells:
         ap.error("name the cells, e.g. flood:80x60:10")
+    if args.action == "probe":
+        probe(work, [parse_cell(c) for c in args.cells])
+        return
     if args.action == "threshold":
         threshold_curve(
             work, [parse_cell(c) for c in args.cells], [float(v) for v in args.tau.split(",")], args.overrides
