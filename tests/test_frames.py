@@ -8,8 +8,7 @@ import pytest
 import cfgs_jax as cj
 from cfgs_jax import splat
 from cfgs_jax.fusion.frames import as_sim3, move_camera, move_gaussians
-from cfgs_jax.model import quat_to_rotmat
-from cfgs_jax.sim3 import quat_to_matrix
+from cfgs_jax.sim3 import quat_to_matrix, quat_to_rotmat
 
 P = np.array([0.08, 0.06, -0.09, 0.04, 0.05, -0.03, 0.02])  # s = 1.083, about 7°, τ a few % of the extent
 CENTRE = np.array([0.3, -0.2, 0.1])

@@ -1,5 +1,6 @@
 """The code is formatted and linted with ruff (configuration in pyproject.toml), so CI fails on drift;
-and every JAX matrix product or convolution in the library states its precision."""
+every JAX matrix product or convolution in the library states its precision; and no import
+cycle joins two rooms of the package."""
 
 from __future__ import annotations
 
@@ -46,3 +47,14 @@ def test_every_jax_product_states_its_precision():
             if path.parent.name == "splat" and isinstance(node, ast.BinOp) and isinstance(node.op, ast.MatMult):
                 missing.append(f"{path.relative_to(REPO)}:{node.lineno} @")
     assert not missing, "name precision=jax.lax.Precision.HIGHEST (or use jnp.matmul with it):\n" + "\n".join(missing)
+
+
+def test_no_two_rooms_of_the_package_import_each_other_round_a_circle():
+    """``tools/house.py``'s rooms (subpackages and top-level modules) form no import cycle, counting
+    imports inside functions: a circle makes a room impossible to read, test or move on its own."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("house", REPO / "tools" / "house.py")
+    house = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(house)
+    assert house.room_cycles(REPO) == []

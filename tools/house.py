@@ -103,17 +103,30 @@ def strongly_connected(nodes, graph) -> list[list[str]]:
     return out
 
 
-def main() -> None:
-    args = [a for a in sys.argv[1:] if not a.startswith("-")]
-    root = pathlib.Path(args[0] if args else ".") / "src" / "cfgs_jax"
-    sys.setrecursionlimit(10000)
-    mods, edges, inner, long, sections = survey(root)
+def room_graph(mods, edges) -> tuple[list[str], set, list[list[str]]]:
+    """The rooms, the arrows between them, and their strongly connected components (a cycle: one of
+    more than one room)."""
     rooms = sorted({room(m) for m in mods})
     room_edges = {(room(a), room(b)) for a, b in edges if room(a) != room(b)}
     graph = collections.defaultdict(set)
     for a, b in room_edges:
         graph[a].add(b)
-    sccs = strongly_connected(rooms, graph)
+    return rooms, room_edges, strongly_connected(rooms, graph)
+
+
+def room_cycles(repo: pathlib.Path) -> list[list[str]]:
+    """The room cycles of the package under ``repo``: sets of rooms whose imports lead round in a circle."""
+    sys.setrecursionlimit(max(sys.getrecursionlimit(), 10000))
+    mods, edges, *_ = survey(pathlib.Path(repo) / "src" / "cfgs_jax")
+    return [s for s in room_graph(mods, edges)[2] if len(s) > 1]
+
+
+def main() -> None:
+    args = [a for a in sys.argv[1:] if not a.startswith("-")]
+    root = pathlib.Path(args[0] if args else ".") / "src" / "cfgs_jax"
+    sys.setrecursionlimit(10000)
+    mods, edges, inner, long, sections = survey(root)
+    rooms, room_edges, sccs = room_graph(mods, edges)
     comp = {v: i for i, s in enumerate(sccs) for v in s}
     condensed = collections.defaultdict(set)
     for a, b in room_edges:

@@ -51,6 +51,7 @@ import numpy as np
 from jaxtyping import Array, Float, Int
 
 from cfgs_jax.errors import InputError
+from cfgs_jax.sim3 import quat_to_rotmat
 
 #: Zeroth-order real spherical-harmonic constant: colour = 0.5 + SH_C0 · f_dc (INRIA's ``RGB2SH``).
 SH_C0 = 0.28209479177387814
@@ -484,42 +485,6 @@ def sh_dc_from_colors(colors) -> np.ndarray:
         if found.all():
             break
     return best
-
-
-def quat_multiply(a, b):
-    """Hamilton product a ⊗ b of wxyz quaternions (broadcasting)."""
-    aw, ax, ay, az = (a[..., i] for i in range(4))
-    bw, bx, by, bz = (b[..., i] for i in range(4))
-    return jnp.stack(
-        [
-            aw * bw - ax * bx - ay * by - az * bz,
-            aw * bx + ax * bw + ay * bz - az * by,
-            aw * by - ax * bz + ay * bw + az * bx,
-            aw * bz + ax * by - ay * bx + az * bw,
-        ],
-        axis=-1,
-    )
-
-
-def quat_to_rotmat(q: Float[Array, "... 4"]) -> Float[Array, "... 3 3"]:
-    """Rotation matrix of a wxyz quaternion (normalised here)."""
-    q = q / jnp.sqrt(jnp.maximum(jnp.sum(q * q, axis=-1, keepdims=True), 1e-30))
-    w, x, y, z = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
-    r = jnp.stack(
-        [
-            1 - 2 * (y * y + z * z),
-            2 * (x * y - w * z),
-            2 * (x * z + w * y),
-            2 * (x * y + w * z),
-            1 - 2 * (x * x + z * z),
-            2 * (y * z - w * x),
-            2 * (x * z - w * y),
-            2 * (y * z + w * x),
-            1 - 2 * (x * x + y * y),
-        ],
-        axis=-1,
-    )
-    return r.reshape(q.shape[:-1] + (3, 3))
 
 
 def covariances(g: Gaussians) -> Float[Array, "N 3 3"]:

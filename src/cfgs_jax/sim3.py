@@ -1,10 +1,13 @@
-"""Similarity transforms Sim(3): x ↦ s·R·x + t, between independently reconstructed date frames."""
+"""Similarity transforms Sim(3): x ↦ s·R·x + t, between independently reconstructed date frames; and the
+rotations they are made of, as wxyz quaternions (NumPy in float64 for the frames, JAX for the Gaussians)."""
 
 from __future__ import annotations
 
 import dataclasses
 
+import jax.numpy as jnp
 import numpy as np
+from jaxtyping import Array, Float
 from scipy.spatial.transform import Rotation
 
 
@@ -16,6 +19,42 @@ def quat_to_matrix(q_wxyz) -> np.ndarray:
 def matrix_to_quat(r: np.ndarray) -> np.ndarray:
     """Rotation matrix → unit quaternion (w, x, y, z) with w ≥ 0 (float64; scipy's ``Rotation``)."""
     return Rotation.from_matrix(np.asarray(r, np.float64)).as_quat(canonical=True, scalar_first=True)
+
+
+def quat_multiply(a, b):
+    """Hamilton product a ⊗ b of wxyz quaternions (broadcasting)."""
+    aw, ax, ay, az = (a[..., i] for i in range(4))
+    bw, bx, by, bz = (b[..., i] for i in range(4))
+    return jnp.stack(
+        [
+            aw * bw - ax * bx - ay * by - az * bz,
+            aw * bx + ax * bw + ay * bz - az * by,
+            aw * by - ax * bz + ay * bw + az * bx,
+            aw * bz + ax * by - ay * bx + az * bw,
+        ],
+        axis=-1,
+    )
+
+
+def quat_to_rotmat(q: Float[Array, "... 4"]) -> Float[Array, "... 3 3"]:
+    """Rotation matrix of a wxyz quaternion (normalised here)."""
+    q = q / jnp.sqrt(jnp.maximum(jnp.sum(q * q, axis=-1, keepdims=True), 1e-30))
+    w, x, y, z = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
+    r = jnp.stack(
+        [
+            1 - 2 * (y * y + z * z),
+            2 * (x * y - w * z),
+            2 * (x * z + w * y),
+            2 * (x * y + w * z),
+            1 - 2 * (x * x + z * z),
+            2 * (y * z - w * x),
+            2 * (x * z - w * y),
+            2 * (y * z + w * x),
+            1 - 2 * (x * x + y * y),
+        ],
+        axis=-1,
+    )
+    return r.reshape(q.shape[:-1] + (3, 3))
 
 
 @dataclasses.dataclass(frozen=True)

@@ -22,8 +22,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from cfgs_jax.model import Camera, Gaussians, quat_multiply, quat_to_rotmat
-from cfgs_jax.sim3 import Sim3, as_frame, frame_of, quat_to_matrix
+from cfgs_jax.model import Camera, Gaussians
+from cfgs_jax.sim3 import Sim3, as_frame, frame_of, quat_multiply, quat_to_matrix, quat_to_rotmat
 
 FRAME_SIZE = 7  # log s, ω (3), τ (3)
 HIGHEST = jax.lax.Precision.HIGHEST

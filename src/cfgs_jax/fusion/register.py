@@ -25,8 +25,8 @@ from cfgs_jax.errors import InputError
 from cfgs_jax.io.colmap import Scene
 from cfgs_jax.io.images import write_image
 from cfgs_jax.io.run_dir import camera_in_frame
-from cfgs_jax.model import Gaussians, quat_multiply
-from cfgs_jax.sim3 import Sim3, matrix_to_quat
+from cfgs_jax.model import Gaussians
+from cfgs_jax.sim3 import Sim3, matrix_to_quat, quat_multiply
 from cfgs_jax.splat.sh import rotate
 
 

@@ -9,7 +9,8 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float, Int
 
-from cfgs_jax.model import Camera, quat_to_rotmat
+from cfgs_jax.model import Camera
+from cfgs_jax.sim3 import quat_to_rotmat
 from cfgs_jax.splat.config import RenderConfig
 
 

@@ -20,7 +20,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool
 
-from cfgs_jax.model import logit, quat_to_rotmat
+from cfgs_jax.model import logit
+from cfgs_jax.sim3 import quat_to_rotmat
 from cfgs_jax.train.config import TrainConfig
 from cfgs_jax.train.optim import restart_moments
 from cfgs_jax.train.step import TrainState
