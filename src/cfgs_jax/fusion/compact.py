@@ -44,11 +44,10 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Callable
-from typing import Annotated, NamedTuple
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
-import msgspec
 import numpy as np
 from jaxtyping import Bool, Float
 from scipy.sparse import coo_matrix
@@ -56,8 +55,8 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
-from cfgs_jax.config import NON_NEGATIVE, OPEN_UNIT, POSITIVE, UNIT, Checked
 from cfgs_jax.errors import InputError
+from cfgs_jax.fusion.config import CompactConfig
 from cfgs_jax.fusion.light import light_logits
 from cfgs_jax.fusion.refine import RefineConfig
 from cfgs_jax.model import (
@@ -71,39 +70,6 @@ from cfgs_jax.model import (
     select,
 )
 from cfgs_jax.splat.weights import contribution_per_label, max_weight, observed_matrix
-
-
-@dataclasses.dataclass(frozen=True)
-class CompactConfig(Checked):
-    """When two dates' Gaussians count as one persistent surface (the module docstring), and the
-    refinement that follows. ``enabled``: run the stage in ``fuse``/``extend`` after refinement."""
-
-    enabled: bool = False
-    present: Annotated[float, UNIT] = 0.5
-    max_o_difference: Annotated[float, UNIT] = 0.2
-    max_distance: Annotated[float, NON_NEGATIVE] = 0.5
-    max_log_scale_ratio: Annotated[float, NON_NEGATIVE] = 0.7
-    max_colour_difference: Annotated[float, UNIT] = 0.1
-    max_opacity_difference: Annotated[float, UNIT] = 0.3
-    max_alpha: Annotated[float, OPEN_UNIT] = 0.99
-    # also drop the least-shown Gaussians that mark no change, up to this share of all weight (0: off)
-    hidden_share: Annotated[float, UNIT] = 0.0
-    refine_steps: Annotated[int, NON_NEGATIVE] = 500
-    # light rate of the recovery refinement (0: l frozen, as in the fusion's refinement)
-    lr_light: Annotated[float, NON_NEGATIVE] = 0.0
-    # × the refinement's colour, opacity, scale and rotation rates in the recovery
-    recovery_rate_scale: Annotated[float, POSITIVE] = 1.0
-    mask_lambda: Annotated[float, NON_NEGATIVE] = 0.0  # learned masks in the recovery: weight of their penalty (0: off)
-    lr_mask: Annotated[float, POSITIVE] = 0.02  # Adam rate of the recovery's mask logits
-    # the share of the recovery in which the masks learn (then fixed 0/1)
-    mask_until: Annotated[float, msgspec.Meta(gt=0, le=1)] = 0.6
-
-    TABLE = "compact"
-
-    @property
-    def prunes_hidden(self) -> bool:
-        """Whether the hidden-copy rule is on (it needs the Gaussians' ``contributions``)."""
-        return self.hidden_share > 0
 
 
 def _attributes(model: TemporalGaussians) -> dict:

@@ -41,17 +41,15 @@ import json
 import time
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Annotated, Literal
 
 import jax
 import jax.numpy as jnp
-import msgspec
 import numpy as np
 import optax
 
 from cfgs_jax import metrics, parallel, splat
-from cfgs_jax.config import AT_LEAST_ONE, NON_NEGATIVE, POSITIVE, Checked
 from cfgs_jax.errors import InputError
+from cfgs_jax.fusion.config import CrossInitConfig
 from cfgs_jax.fusion.fuse import INVISIBLE_LOGIT
 from cfgs_jax.fusion.light import REC709, gain_parameter, light_gain, light_logits, light_multiplier
 from cfgs_jax.fusion.updates import cross_init_optimizer
@@ -69,99 +67,6 @@ _CADENCE = ("checkpoint_every", "checkpoint_minutes")
 
 #: sRGB's encoding as a power law: a gain of 2^(EV/2.2) on encoded colours is about EV stops of light.
 ENCODING_GAMMA = 2.2
-
-
-@dataclasses.dataclass(frozen=True)
-class CrossInitConfig(Checked):
-    """The paper's rates (Adam lr 0.0075 for o, 0.00375 for l, meant for 3000 steps per pair) over 500
-    steps per pair (the paper: 3000; ``paper.toml`` keeps them); ours where it is silent: δ = 0.8 (it
-    says δ < 1) and gains starting at the pair's exposure (the README's "Where we depart from the
-    paper"). With ``pair_exposure``, that exposure is not l's start but the model's exposure table entry
-    for the pair (``TemporalGaussians.exposure``): the Gaussians of p are drawn at q with exposure ⊙ l^q,
-    l^q starts at 1 and keeps the paper's range (0, 2) for what differs from the pair's global change.
-    Shorter schedules keep the paper's travel: with ``steps`` < ``rate_reference_steps`` both
-    rates are multiplied by rate_reference_steps / steps (an Adam step moves a logit by ≈ lr, so o^q can
-    still travel lr·3000 in logit; 0 uses the rates as given).
-
-    Early stopping (``early_stop_tolerance`` > 0): every ``early_stop_every`` steps, once the ε ramp
-    and the background anneal are over (their schedules still change the loss before), the pairs of a
-    group stop when, over the last ``early_stop_every`` steps, no o^q (as an opacity in [0, 1]) and no
-    channel of any light multiplier l^q moved by more than the tolerance — or, with
-    ``early_stop_quantile`` q < 1, when the q-quantile of those moves is within it. With
-    ``early_stop_on = "loss"`` they stop instead when no pair's mean Eq. 2 loss over the last
-    ``early_stop_every`` steps fell by more than the tolerance (relative) from the window before (a
-    multiple of the views per date makes each window see every view equally often).
-
-    Coarse to fine (``coarse_fraction`` > 0): the first ``coarse_fraction`` of the steps render and
-    compare at 1/``coarse_factor`` of the resolution (cameras scaled, images and ε maps box-filtered),
-    the rest at full resolution; the step count, schedules and parameters are the same. A group whose
-    downscaled views would keep fewer than ``coarse_min_size`` pixels on their shorter side runs every
-    step at full resolution: there a changed object shrinks to a few pixels and the box-filtered ε maps
-    no longer single it out."""
-
-    # the paper: 3000 (same error at a sixth of the time, the README's "Run time against error")
-    steps: Annotated[int, POSITIVE] = 500
-    lr_o: float = 0.0075
-    lr_light: float = 0.00375
-    # the paper gives only δ < 1; 0.8 leaves unidentified o^q on the "persistent" side (the README's "Where we depart from the paper")
-    delta: Annotated[float, msgspec.Meta(gt=0, le=1)] = 0.8
-    epsilon_schedule: Literal["paper", "reference"] = "paper"
-    ramp_fraction: Annotated[float, msgspec.Meta(gt=0, le=1)] = 0.5
-    lpips_net: Literal["alex", "vgg"] = "alex"
-    lpips_scale: float = 1.0  # ε_LPIPS = clip(map / lpips_scale, 0, 1)
-    # fraction of the steps over which b's range shrinks to black
-    background_anneal: Annotated[float, msgspec.Meta(gt=0, le=1)] = 1.0
-    # pairs (p, q) optimised together per step (one call, ``pair_groups``); 0: no limit
-    batch_dates: Annotated[int, NON_NEGATIVE] = 0
-    exposure_init: bool = True  # start the gains at the pair's least-squares exposure, not 1
-    # the start exposure is clipped to ± this many stops of linear light (a dark image is not a gain of
-    # 0): the gain multiplies encoded colours, so it is clipped to 2^(±EV / 2.2), sRGB's power law
-    exposure_range_ev: Annotated[float, NON_NEGATIVE] = 4.4  # a gain of 1/4 … 4 on encoded colours
-    pair_exposure: bool = (
-        False  # the start exposure goes to the model's exposure table; l^q fits around it, not from it
-    )
-    # the step count the rates are meant for; fewer steps scale them up (0: off)
-    rate_reference_steps: Annotated[int, NON_NEGATIVE] = 3000
-    # stop a group of pairs once nothing moves more than this (0: off)
-    early_stop_tolerance: Annotated[float, NON_NEGATIVE] = 0.0
-    early_stop_every: Annotated[int, POSITIVE] = 100  # steps between the convergence checks
-    # the share of values that must have settled (1: all of them)
-    early_stop_quantile: Annotated[float, msgspec.Meta(gt=0, le=1)] = 1.0
-    early_stop_on: Literal["updates", "loss"] = "updates"  # what must settle: o^q / l^q moves, or the loss (relative)
-    # the first steps, this share of them, at 1/coarse_factor resolution (0: off)
-    coarse_fraction: Annotated[float, msgspec.Meta(ge=0, lt=1)] = 0.0
-    coarse_factor: Annotated[int, AT_LEAST_ONE] = 2
-    # no coarse steps where the downscaled shorter side would fall below this (pixels)
-    coarse_min_size: Annotated[int, NON_NEGATIVE] = 120
-    seed: int = 0
-    # a group's state is saved mid-way (``init_pairs(checkpoint=...)``, a run's cross-init stage) every
-    # this many steps (0: by time only) and after this much work since the last save (0: never)
-    checkpoint_every: Annotated[int, NON_NEGATIVE] = 0
-    checkpoint_minutes: Annotated[float, NON_NEGATIVE] = 10.0
-
-    TABLE = "cross_init"
-
-    def __post_init__(self):
-        super().__post_init__()
-        if self.epsilon_schedule not in ("paper", "reference"):
-            raise InputError(
-                f"unknown schedule {self.epsilon_schedule!r}",
-                field="cross_init.epsilon_schedule",
-                fix='use "paper" or "reference"',
-            )
-        if self.early_stop_tolerance > 0 and max(self.ramp_fraction, self.background_anneal) >= 1:
-            raise InputError(
-                "early stopping checks only after the ε ramp and the background anneal, which here last the "
-                f"whole schedule (ramp_fraction {self.ramp_fraction}, background_anneal {self.background_anneal})",
-                field="cross_init.early_stop_tolerance",
-                fix="also set cross_init.background_anneal (and ramp_fraction) below 1, e.g. 0.5",
-            )
-        if self.early_stop_on not in ("updates", "loss"):
-            raise InputError(
-                f"unknown criterion {self.early_stop_on!r}",
-                field="cross_init.early_stop_on",
-                fix='use "updates" or "loss"',
-            )
 
 
 def epsilon(lpips_map, step, config: CrossInitConfig):

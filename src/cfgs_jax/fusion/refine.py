@@ -44,18 +44,16 @@ import functools
 import time
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Annotated
 
 import jax
 import jax.numpy as jnp
-import msgspec
 import numpy as np
 import optax
 from jaxtyping import Array, Float
 
 from cfgs_jax import metrics, parallel, splat
-from cfgs_jax.config import AT_LEAST_ONE, NON_NEGATIVE, POSITIVE, Checked
 from cfgs_jax.errors import InputError
+from cfgs_jax.fusion.config import RefineConfig
 from cfgs_jax.fusion.frames import baked, frame_params, framed
 from cfgs_jax.fusion.updates import halve_alpha_of, refinement_optimizer, zero_invisible
 from cfgs_jax.io.checkpoint import read_meta, require_identity, restore_tree, save_tree
@@ -72,61 +70,6 @@ from cfgs_jax.loop import (
 from cfgs_jax.model import DateViews, TemporalGaussians, exposure_rows, gaussians_of, select, trainable, with_trainable
 from cfgs_jax.train.config import TrainConfig
 from cfgs_jax.train.step import over_background
-
-EXTEND_VISIBILITY = ("all", "added", "drawn")
-
-
-@dataclasses.dataclass(frozen=True)
-class RefineConfig(Checked):
-    """The paper's refinement values. ``lr_color`` is in f_dc units like ``[train] color_lr``; the
-    position rate is the input training's schedule (``[train]``) times ``position_lr_scale``."""
-
-    steps: Annotated[int, NON_NEGATIVE] = 6000
-    # refinement steps when `extend` adds a date (0: ``steps``; the paper is silent)
-    extend_steps: Annotated[int, NON_NEGATIVE] = 0
-    lr_o: float = 2.5e-6
-    lr_alpha: float = 0.005
-    lr_color: float = 2e-5  # f_dc units: the RGB colour moves C0 times this
-    lr_other: float = 5e-5
-    position_lr_scale: Annotated[float, NON_NEGATIVE] = 1.0  # × [train]'s position schedule (0 freezes the positions)
-    # Adam rate of the light logits l (0: frozen, the paper's refinement)
-    lr_light: Annotated[float, NON_NEGATIVE] = 0.0
-    # Adam rate of each registered date's frame correction (log-scale, rotation in radians, translation in
-    # extents; 0: the registration is kept, the paper's refinement). See ``fusion.frames``.
-    lr_frame: Annotated[float, NON_NEGATIVE] = 0.0
-    lambda_dssim: float = 0.2
-    lambda_change: float = 0.1
-    halve_alpha: bool = True
-    visibility_interval: Annotated[int, POSITIVE] = 2000
-    extend_visibility: str = "drawn"  # "all" | "added" | "drawn": the older dates a check covers when a date is added
-    contribution_threshold: float = 0.01
-    random_background: bool = True
-    prune_threshold: float = 1.0 / 255.0
-    checkpoint_every: int = 500
-    checkpoint_minutes: Annotated[float, NON_NEGATIVE] = 10.0  # also after this much work since the last (0: never)
-    # training views per step (their mean loss; split over the devices of a mesh)
-    view_batch: Annotated[int, AT_LEAST_ONE] = 1
-    seed: int = 0
-    # weight of the learned-mask penalty on the maskable Gaussians (0: no masks)
-    mask_lambda: Annotated[float, NON_NEGATIVE] = 0.0
-    lr_mask: Annotated[float, POSITIVE] = 0.02  # Adam rate of the mask logits
-    # the share of the steps in which the masks learn; then they stay as they are
-    mask_until: Annotated[float, msgspec.Meta(gt=0, le=1)] = 0.6
-
-    @property
-    def mask_steps(self) -> int:
-        """The steps in which learned masks learn (``mask_until`` of ``steps``); they are fixed after."""
-        return int(round(self.mask_until * self.steps))
-
-    TABLE = "refine"
-
-    def __post_init__(self):
-        super().__post_init__()
-        if self.extend_visibility not in EXTEND_VISIBILITY:
-            raise InputError(
-                f"must be one of {', '.join(map(repr, EXTEND_VISIBILITY))}, got {self.extend_visibility!r}",
-                field="refine.extend_visibility",
-            )
 
 
 def opacity_differences(o: jnp.ndarray) -> jnp.ndarray:

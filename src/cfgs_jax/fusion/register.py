@@ -11,17 +11,15 @@ import functools
 import logging
 import tempfile
 from pathlib import Path
-from typing import Annotated
 
 import jax
 import jax.numpy as jnp
-import msgspec
 import numpy as np
 import optimistix as optx
 from scipy.spatial.transform import Rotation
 
-from cfgs_jax.config import AT_LEAST_ONE, POSITIVE, Checked
 from cfgs_jax.errors import InputError
+from cfgs_jax.fusion.config import RegisterConfig
 from cfgs_jax.io.colmap import Scene
 from cfgs_jax.io.images import write_image
 from cfgs_jax.io.run_dir import camera_in_frame
@@ -49,30 +47,6 @@ def transform_gaussians(g: Gaussians, sim3: Sim3) -> Gaussians:
 
 
 # ------------------------------------------------------------------------------------ SfM registration
-
-
-@dataclasses.dataclass(frozen=True)
-class RegisterConfig(Checked):
-    """``images_per_date``: evenly spaced images of each date put into the joint SfM (more: slower,
-    more robust). ``min_registered``: fewer registered images of either date is an error.
-    ``seed``: COLMAP's RANSAC/mapper seed (its threaded matching and mapping still vary slightly from
-    run to run). ``persistent_structure``: with two or more dates registered, pose the date's images
-    against only the points at least two of them see, triangulated without the date (a surface that
-    changed since one registered date cannot drag it)."""
-
-    images_per_date: Annotated[int, msgspec.Meta(ge=2)] = 12
-    min_registered: Annotated[int, AT_LEAST_ONE] = 3
-    seed: int = 0
-    lm_max_steps: Annotated[int, AT_LEAST_ONE] = 200
-    # COLMAP settings loosened for small images (COLMAP defaults: 0.0067, 100, 30, 16°, 15)
-    sift_peak_threshold: Annotated[float, POSITIVE] = 0.002
-    init_min_num_inliers: Annotated[int, AT_LEAST_ONE] = 30
-    abs_pose_min_num_inliers: Annotated[int, AT_LEAST_ONE] = 15
-    init_min_tri_angle: Annotated[float, POSITIVE] = 4.0
-    min_num_matches: Annotated[int, AT_LEAST_ONE] = 10
-    persistent_structure: bool = True
-
-    TABLE = "register"
 
 
 @dataclasses.dataclass(frozen=True)

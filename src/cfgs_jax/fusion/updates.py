@@ -29,7 +29,6 @@ Downstream code composes them like any optax pipeline:
 from __future__ import annotations
 
 import dataclasses
-from typing import TYPE_CHECKING
 
 import jax
 import jax.numpy as jnp
@@ -37,15 +36,12 @@ import numpy as np
 import optax
 from jaxtyping import Array, Bool, Float
 
+from cfgs_jax.fusion.config import CrossInitConfig, RefineConfig
 from cfgs_jax.fusion.frames import FRAME_KEYS
 from cfgs_jax.fusion.fuse import INVISIBLE_LOGIT
 from cfgs_jax.model import SH_C0, logit
 from cfgs_jax.train.config import TrainConfig
 from cfgs_jax.train.optim import per_field_adam, position_lr, restart_moments
-
-if TYPE_CHECKING:
-    from cfgs_jax.fusion.cross_init import CrossInitConfig
-    from cfgs_jax.fusion.refine import RefineConfig
 
 __all__ = [
     "apply_visibility",
