@@ -371,10 +371,7 @@ def pair_statistics(
             for p in dates:
                 if p not in support:
                     cams = views[p].cameras if support_cameras is None else support_cameras[p]
-                    cams = spread_cameras(cams, int(config.support_views))
-                    support[p] = direction_support(
-                        model, p, cams, render_config=rc, contribution_threshold=config.contribution_threshold
-                    )
+                    support[p] = _support(model, p, cams, config, rc)
         sums = observing_date_sums(
             model,
             dates,
@@ -394,6 +391,12 @@ def pair_statistics(
             progress(done, len(pairs))
     pixels = {q: sum(int(c.width) * int(c.height) for c in views[q].cameras) for q in observers}
     return PairStatistics(len(origin), t, out, pixels)
+
+
+def _support(model, p: int, cameras, config: ChangesConfig, rc) -> tuple[np.ndarray, np.ndarray]:
+    """``direction_support`` of date p from at most ``config.support_views`` of its ``cameras``, spread out."""
+    cams = spread_cameras(cameras, int(config.support_views))
+    return direction_support(model, p, cams, render_config=rc, contribution_threshold=config.contribution_threshold)
 
 
 def evidence_from(statistics: PairStatistics, means: np.ndarray, config: ChangesConfig) -> ChangeEvidence:

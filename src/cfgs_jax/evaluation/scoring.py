@@ -439,12 +439,7 @@ def evidence_detection(
         objs = region_scores(
             change.regions, change.member, table["objects"], changed_objects.get((p, q), set()), change.known
         )
-        for r in change.regions:
-            truth = (kinds or {}).get((p, q), {}).get(r["object"])
-            if truth is not None:
-                entry = by_kind.setdefault(truth, {"regions": 0, "named": 0})
-                entry["regions"] += 1
-                entry["named"] += int(r["kind"] == truth)
+        _tally_kinds(by_kind, change.regions, (kinds or {}).get((p, q), {}))
         n_changed = len(changed_objects.get((p, q), ()))
         for key, value in (("changed_objects", n_changed), ("found_objects", len(objs["found"]))):
             regions[key] += value
@@ -460,26 +455,39 @@ def evidence_detection(
             "pixel_iou": pair["inter"] / pair["union"] if pair.get("union") else float("nan"),
             "region_list": change.regions,
         }
-    t, changed = model.num_dates, regions["changed_objects"]
     return {
         "config": dataclasses.asdict(found.config),
         "gaussians": _gaussian_scores(found, table, changed_objects),
         "pixels": _pixel_scores(pixel),
-        "regions": {
-            "changed_objects": changed,
-            "found_objects": regions["found_objects"],
-            "recall": regions["found_objects"] / changed if changed else float("nan"),
-            "false_regions": regions["false_regions"],
-            "regions": regions["regions"],
-            "pairs": t * (t - 1) // 2,
-            "kinds": by_kind,
-            "kind_accuracy": (
-                sum(v["named"] for v in by_kind.values()) / sum(v["regions"] for v in by_kind.values())
-                if by_kind
-                else float("nan")
-            ),
-        },
+        "regions": _region_summary(regions, by_kind, model.num_dates),
         "per_pair": per_pair,
+    }
+
+
+def _tally_kinds(by_kind: dict, regions: list[dict], truth: dict[int, str]) -> None:
+    """Add to ``by_kind`` (per true kind: regions, and how many name it) the regions whose majority object
+    has a true kind of change in ``truth`` (object id → kind)."""
+    for r in regions:
+        kind = truth.get(r["object"])
+        if kind is not None:
+            entry = by_kind.setdefault(kind, {"regions": 0, "named": 0})
+            entry["regions"] += 1
+            entry["named"] += int(r["kind"] == kind)
+
+
+def _region_summary(counts: dict, by_kind: dict, num_dates: int) -> dict:
+    """The region figures of ``evidence_detection`` from its summed ``counts`` and kinds."""
+    changed = counts["changed_objects"]
+    named = sum(v["regions"] for v in by_kind.values())
+    return {
+        "changed_objects": changed,
+        "found_objects": counts["found_objects"],
+        "recall": counts["found_objects"] / changed if changed else float("nan"),
+        "false_regions": counts["false_regions"],
+        "regions": counts["regions"],
+        "pairs": num_dates * (num_dates - 1) // 2,
+        "kinds": by_kind,
+        "kind_accuracy": sum(v["named"] for v in by_kind.values()) / named if named else float("nan"),
     }
 
 

@@ -136,6 +136,30 @@ def _texture(columns: list[np.ndarray], size: tuple[int, int], alpha: np.ndarray
     return _webp(data.reshape(height, width, 4))
 
 
+def _sh_palette_files(g: Gaussians, order: np.ndarray, size, files: dict, seed: int) -> dict:
+    """Add the SH palette's textures of ``g`` (rows in ``order``) to ``files``; returns its ``meta.shN``."""
+    n, k = len(g), SH_REST_COUNTS[g.sh_degree]
+    rest = np.asarray(g.sh_rest, np.float32)[order]  # [N, K, 3]
+    # palette vectors in INRIA's channel-major order (K of red, then green, then blue)
+    vectors = np.transpose(rest, (0, 2, 1)).reshape(n, 3 * k)
+    count = palette_size(n)
+    centres, label = sh_palette(vectors, count, seed=seed)
+    book, index = kmeans_1d(centres)
+    index = index.reshape(count, 3, k)  # [palette, channel, coefficient]
+    rows = -(-count // PALETTE_ROW)
+    texels = np.zeros((rows * PALETTE_ROW, k, 4), np.uint8)
+    texels[:count, :, :3] = np.transpose(index, (0, 2, 1))
+    texels[:count, :, 3] = 255
+    files["shN_centroids.webp"] = _webp(texels.reshape(rows, PALETTE_ROW * k, 4))
+    files["shN_labels.webp"] = _texture([label & 0xFF, label >> 8], size)
+    return {
+        "count": count,
+        "bands": g.sh_degree,
+        "codebook": book.tolist(),
+        "files": ["shN_centroids.webp", "shN_labels.webp"],
+    }
+
+
 def encode_sog(g: Gaussians, *, seed: int = 0) -> tuple[dict[str, bytes], np.ndarray]:
     """The files of a SOG bundle of ``g`` (name → bytes, ``meta.json`` included) and the row order
     the textures follow (texel r holds Gaussian ``order[r]``)."""
@@ -177,26 +201,7 @@ def encode_sog(g: Gaussians, *, seed: int = 0) -> tuple[dict[str, bytes], np.nda
         "sh0": {"codebook": colour_book.tolist(), "files": ["sh0.webp"]},
     }
     if g.sh_degree:
-        k = SH_REST_COUNTS[g.sh_degree]
-        rest = np.asarray(g.sh_rest, np.float32)[order]  # [N, K, 3]
-        # palette vectors in INRIA's channel-major order (K of red, then green, then blue)
-        vectors = np.transpose(rest, (0, 2, 1)).reshape(n, 3 * k)
-        count = palette_size(n)
-        centres, label = sh_palette(vectors, count, seed=seed)
-        book, index = kmeans_1d(centres)
-        index = index.reshape(count, 3, k)  # [palette, channel, coefficient]
-        rows = -(-count // PALETTE_ROW)
-        texels = np.zeros((rows * PALETTE_ROW, k, 4), np.uint8)
-        texels[:count, :, :3] = np.transpose(index, (0, 2, 1))
-        texels[:count, :, 3] = 255
-        files["shN_centroids.webp"] = _webp(texels.reshape(rows, PALETTE_ROW * k, 4))
-        files["shN_labels.webp"] = _texture([label & 0xFF, label >> 8], size)
-        meta["shN"] = {
-            "count": count,
-            "bands": g.sh_degree,
-            "codebook": book.tolist(),
-            "files": ["shN_centroids.webp", "shN_labels.webp"],
-        }
+        meta["shN"] = _sh_palette_files(g, order, size, files, seed)
     files = {"meta.json": json.dumps(meta).encode(), **files}
     return files, order
 
