@@ -213,6 +213,27 @@ def complete_by_colour(
     return member
 
 
+def _describe(
+    k: int, idx: np.ndarray, means: np.ndarray, seeds: np.ndarray, difference: np.ndarray, area: float
+) -> dict:
+    """Region ``k`` of the Gaussians ``idx``: its kind by the share gone (≥ 0.8 disappeared, ≤ 0.2 appeared,
+    else changed), sizes, place and mean |presence difference|."""
+    pts = means[idx]
+    gone = float(np.mean(difference[idx] > 0))
+    return {
+        "id": k,
+        "kind": "disappeared" if gone >= 0.8 else ("appeared" if gone <= 0.2 else "changed"),
+        "gaussians": int(len(idx)),
+        "seeds": int(seeds[idx].sum()),
+        "area": area,
+        "centroid": pts.mean(0).tolist(),
+        "bounds_min": pts.min(0).tolist(),
+        "bounds_max": pts.max(0).tolist(),
+        "hull_volume": hull_volume(pts),
+        "mean_score": float(np.mean(np.abs(difference[idx]))),
+    }
+
+
 def regions_3d(
     means: np.ndarray,
     seeds: np.ndarray,
@@ -265,25 +286,7 @@ def regions_3d(
         scaled = completion.pop("link", link) * reach
         member = complete_by_colour(means, member=member, seeds=seeds, reach=scaled, **completion)
         groups = [np.nonzero(member == k)[0] for k in range(len(groups))]
-    out = []
-    for k, idx in enumerate(groups):
-        pts = means[idx]
-        gone = float(np.mean(difference[idx] > 0))
-        kind = "disappeared" if gone >= 0.8 else ("appeared" if gone <= 0.2 else "changed")
-        out.append(
-            {
-                "id": k,
-                "kind": kind,
-                "gaussians": int(len(idx)),
-                "seeds": int(seeds[idx].sum()),
-                "area": covered(idx),
-                "centroid": pts.mean(0).tolist(),
-                "bounds_min": pts.min(0).tolist(),
-                "bounds_max": pts.max(0).tolist(),
-                "hull_volume": hull_volume(pts),
-                "mean_score": float(np.mean(np.abs(difference[idx]))),
-            }
-        )
+    out = [_describe(k, idx, means, seeds, difference, covered(idx)) for k, idx in enumerate(groups)]
     return out, member
 
 
@@ -391,6 +394,27 @@ def pair_area(evidence: ChangeEvidence, p: int, q: int) -> np.ndarray:
     return np.maximum(evidence.area[:, p], evidence.area[:, q])
 
 
+def _completion(config: ChangesConfig, colors, origin, known) -> dict | None:
+    """The colour completion settings ``regions_3d`` takes (None where ``config.complete_within`` is 0)."""
+    if config.complete_within <= 0:
+        return None
+    if colors is None:
+        raise InputError(
+            "colour completion needs the Gaussians' colours",
+            field="colors",
+            fix="pass colors=model.rgb(model.gaussians), or set changes.complete_within = 0",
+        )
+    return {
+        "colors": colors,
+        "origin": origin,
+        "eligible": known,
+        "link": config.complete_reach,
+        "tolerance": config.complete_colour,
+        "within": config.complete_within,
+        "across_dates": bool(config.complete_across_dates),
+    }
+
+
 def pair_regions(
     evidence: ChangeEvidence,
     origin: np.ndarray,
@@ -419,23 +443,7 @@ def pair_regions(
         difference = np.where(carried, np.where(np.asarray(origin) == p, 1.0, -1.0), difference)
         known = known | carried
     score = np.abs(difference)
-    completion = None
-    if config.complete_within > 0:
-        if colors is None:
-            raise InputError(
-                "colour completion needs the Gaussians' colours",
-                field="colors",
-                fix="pass colors=model.rgb(model.gaussians), or set changes.complete_within = 0",
-            )
-        completion = {
-            "colors": colors,
-            "origin": origin,
-            "eligible": known,
-            "link": config.complete_reach,
-            "tolerance": config.complete_colour,
-            "within": config.complete_within,
-            "across_dates": bool(config.complete_across_dates),
-        }
+    completion = _completion(config, colors, origin, known)
     if evidence.area is None and config.min_region_area > 0:
         raise InputError(
             "the evidence has no areas for the region size bound",

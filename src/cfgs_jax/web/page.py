@@ -80,6 +80,42 @@ def _start_view(cameras, target: np.ndarray) -> dict:
     return {"position": np.asarray(cam.center, np.float64).tolist(), "up": (-rot[1]).tolist()}
 
 
+def _write_selection(tmp: Path, key: str, model, t, mode: str, shown: str, style, min_alpha: float) -> dict:
+    """Bake the selection ``t`` in ``mode``, write it as SPZ (and as a script that holds it, for pages opened
+    from disk) under ``tmp/splats``, and return its manifest entry."""
+    baked = viz.bake(model, np.asarray(t, np.float32), **dataclasses.replace(style, mode=mode).kwargs())
+    keep = np.flatnonzero(np.asarray(opacities(baked)) >= min_alpha)
+    data = encode_spz(select(baked, keep), version=3)  # the vendored reader takes gzip SPZ
+    (tmp / "splats" / f"{key}.spz").write_bytes(data)
+    wrapped = base64.b64encode(data).decode("ascii")
+    (tmp / "splats" / f"{key}.spz.js").write_text(
+        f'(window.CFGS_SPLATS = window.CFGS_SPLATS || {{}})[{json.dumps(key)}] = "{wrapped}";\n'
+    )
+    label = {"blend": "blend (mean)", "max": "max", "highlight": "changes highlighted"}[mode]
+    return {
+        "t": list(t),
+        "mode": mode,
+        "label": f"{shown}: {label}",
+        "file": f"splats/{key}.spz",
+        "script": f"splats/{key}.spz.js",
+        "gaussians": int(len(keep)),
+        "bytes": len(data),
+        "sh_degree": int(baked.sh_degree),
+    }
+
+
+def _write_page(tmp: Path, manifest: str, title: str) -> None:
+    """The page itself in ``tmp``: ``index.html`` with the manifest inlined, the vendored viewer and its licences."""
+    template = resources.files("cfgs_jax.web").joinpath("index.html").read_text()
+    page = template.replace("__TITLE__", html.escape(title)).replace("__MANIFEST__", manifest.replace("</", "<\\/"))
+    (tmp / "index.html").write_text(page)
+    vendor = resources.files("cfgs_jax.web").joinpath("vendor")
+    shutil.copyfile(str(vendor.joinpath("splat-viewer.js")), tmp / "splat-viewer.js")
+    (tmp / "licences").mkdir()
+    for name in ("LICENSE-three.txt", "LICENSE-spark.txt", "README.md"):
+        shutil.copyfile(str(vendor.joinpath(name)), tmp / "licences" / name)
+
+
 def write_web_page(
     run: FusedRun,
     out: str | Path,
@@ -100,7 +136,7 @@ def write_web_page(
         )
     model, names = run.model, list(run.names)
     min_alpha = float(run.config.render.min_alpha)
-    selections, sizes = {}, {}
+    selections = {}
     cameras = run.test_cameras() or [(f"view_{i}", c) for i, c in enumerate(run.all_cameras()[:1])]
     means = np.asarray(model.gaussians.means, np.float64)
     target = np.median(means, axis=0)
@@ -111,26 +147,7 @@ def write_web_page(
             shown = ", ".join(n for n, on in zip(names, t) if on)
             for mode in MODES:
                 key = f"{bits}_{mode}"
-                baked = viz.bake(model, np.asarray(t, np.float32), **dataclasses.replace(style, mode=mode).kwargs())
-                keep = np.flatnonzero(np.asarray(opacities(baked)) >= min_alpha)
-                data = encode_spz(select(baked, keep), version=3)  # the vendored reader takes gzip SPZ
-                (tmp / "splats" / f"{key}.spz").write_bytes(data)
-                wrapped = base64.b64encode(data).decode("ascii")
-                (tmp / "splats" / f"{key}.spz.js").write_text(
-                    f'(window.CFGS_SPLATS = window.CFGS_SPLATS || {{}})[{json.dumps(key)}] = "{wrapped}";\n'
-                )
-                label = {"blend": "blend (mean)", "max": "max", "highlight": "changes highlighted"}[mode]
-                selections[key] = {
-                    "t": list(t),
-                    "mode": mode,
-                    "label": f"{shown}: {label}",
-                    "file": f"splats/{key}.spz",
-                    "script": f"splats/{key}.spz.js",
-                    "gaussians": int(len(keep)),
-                    "bytes": len(data),
-                    "sh_degree": int(baked.sh_degree),
-                }
-                sizes[key] = len(data)
+                selections[key] = _write_selection(tmp, key, model, t, mode, shown, style, min_alpha)
                 if progress is not None:
                     progress(key)
         colours = viz.date_colours(len(names), style.stops or viz.DEFAULT_STOPS)
@@ -151,13 +168,5 @@ def write_web_page(
         }
         text = json.dumps(manifest, indent=1)
         (tmp / "manifest.json").write_text(text)
-        template = resources.files("cfgs_jax.web").joinpath("index.html").read_text()
-        title = html.escape(f"{Path(run.path).name}: {', '.join(names)}")
-        page = template.replace("__TITLE__", title).replace("__MANIFEST__", text.replace("</", "<\\/"))
-        (tmp / "index.html").write_text(page)
-        vendor = resources.files("cfgs_jax.web").joinpath("vendor")
-        shutil.copyfile(str(vendor.joinpath("splat-viewer.js")), tmp / "splat-viewer.js")
-        (tmp / "licences").mkdir()
-        for name in ("LICENSE-three.txt", "LICENSE-spark.txt", "README.md"):
-            shutil.copyfile(str(vendor.joinpath(name)), tmp / "licences" / name)
+        _write_page(tmp, text, f"{Path(run.path).name}: {', '.join(names)}")
     return Path(out)
