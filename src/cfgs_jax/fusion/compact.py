@@ -43,6 +43,7 @@ not before.
 from __future__ import annotations
 
 import dataclasses
+import functools
 from collections.abc import Callable
 from typing import NamedTuple
 
@@ -53,12 +54,10 @@ from jaxtyping import Bool, Float
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
-from scipy.spatial.transform import Rotation
 
 from cfgs_jax.errors import InputError
-from cfgs_jax.fusion.config import CompactConfig
+from cfgs_jax.fusion.config import CompactConfig, RefineConfig
 from cfgs_jax.fusion.light import light_logits
-from cfgs_jax.fusion.refine import RefineConfig
 from cfgs_jax.model import (
     Gaussians,
     TemporalGaussians,
@@ -69,6 +68,7 @@ from cfgs_jax.model import (
     rgb,
     select,
 )
+from cfgs_jax.sim3 import matrix_to_quat, quat_to_matrix
 from cfgs_jax.splat.weights import contribution_per_label, max_weight, observed_matrix
 
 
@@ -116,7 +116,7 @@ def duplicate_groups(model: TemporalGaussians, config: CompactConfig | None = No
 
 
 def _covariances(g: Gaussians) -> np.ndarray:
-    rot = Rotation.from_quat(np.asarray(g.quats, np.float64), scalar_first=True).as_matrix()
+    rot = quat_to_matrix(g.quats)
     var = np.exp(2.0 * np.asarray(g.log_scales, np.float64))
     return np.einsum("nij,nj,nkj->nik", rot, var, rot)
 
@@ -133,6 +133,13 @@ def _most_opaque(group: np.ndarray, alpha: np.ndarray) -> np.ndarray:
     return keeper
 
 
+def _group_sum(x: np.ndarray, *, group: np.ndarray, count: int) -> np.ndarray:
+    """Σ of the rows of ``x`` per group (``group``: [N] index in 0…count−1), in float64."""
+    out = np.zeros((count,) + x.shape[1:], np.float64)
+    np.add.at(out, group, x)
+    return out
+
+
 def merge_groups(model: TemporalGaussians, labels: np.ndarray, config: CompactConfig | None = None):
     """One Gaussian per group of ``labels`` (the module docstring's merge), in the place of the group's
     most opaque member; returns the model and the [N] mask of the rows kept."""
@@ -145,11 +152,7 @@ def merge_groups(model: TemporalGaussians, labels: np.ndarray, config: CompactCo
     if not np.any(size > 1):
         return model, kept
 
-    def group_sum(x):
-        out = np.zeros((len(size),) + x.shape[1:], np.float64)
-        np.add.at(out, group, x)
-        return out
-
+    group_sum = functools.partial(_group_sum, group=group, count=len(size))
     w = group_sum(a["alpha"])
     weight = a["alpha"] / w[group]
     mean = group_sum(weight[:, None] * a["mean"])
@@ -177,9 +180,8 @@ def merge_groups(model: TemporalGaussians, labels: np.ndarray, config: CompactCo
         x[rows] = values[groups]
         return jnp.asarray(x.astype(dtype))
 
-    quats = Rotation.from_matrix(vec[groups]).as_quat(canonical=True, scalar_first=True)
     quats_all = np.zeros((len(size), 4))
-    quats_all[groups] = quats
+    quats_all[groups] = matrix_to_quat(vec[groups])
     merged = dataclasses.replace(
         model,
         gaussians=Gaussians(
