@@ -317,18 +317,7 @@ def init_pairs(
     views and settings) continues from it and ends with the same model as an uninterrupted call. The
     caller deletes it once the result is kept. ``stop_after=k`` saves after step k and returns
     ``(None, [{"stopped_at": k}])``."""
-    pairs = [(int(p), int(q)) for p, q in pairs]
-    if (
-        not pairs
-        or len(views) != len(pairs)
-        or len({_image_shape(v) for v in views}) != 1
-        or _image_shape(views[0]) is None
-    ):
-        raise InputError(
-            "init_pairs needs one DateViews per pair, all views of one image shape",
-            field="cross_init.pairs",
-            fix="run dates with other image sizes separately (cross_init groups them itself)",
-        )
+    pairs = _checked_pairs(pairs, views)
     render_config = render_config or splat.RenderConfig()
     lpips_net = lpips_net if lpips_net is not None else metrics.load_lpips(config.lpips_net)
     origin = np.asarray(model.origin)
@@ -356,6 +345,19 @@ def init_pairs(
         return None, [{"stopped_at": int(losses)}]
     fitted = [reports[i] for i in active]
     return _write_back(model, group, params, losses, start_light, eps_maps, exposures, fitted, config), reports
+
+
+def _checked_pairs(pairs, views) -> list[tuple[int, int]]:
+    """``pairs`` as ints, checked to come with one ``DateViews`` each, all of one image shape."""
+    pairs = [(int(p), int(q)) for p, q in pairs]
+    shapes = {_image_shape(v) for v in views}
+    if not pairs or len(views) != len(pairs) or len(shapes) != 1 or None in shapes:
+        raise InputError(
+            "init_pairs needs one DateViews per pair, all views of one image shape",
+            field="cross_init.pairs",
+            fix="run dates with other image sizes separately (cross_init groups them itself)",
+        )
+    return pairs
 
 
 def _mark_unseen(model: TemporalGaussians, pairs, rows, seen) -> tuple[TemporalGaussians, list[dict]]:
