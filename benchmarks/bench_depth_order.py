@@ -35,18 +35,17 @@ def run_case(name: str, reps: int) -> dict:
     import numpy as np
 
     from cfgs_jax import splat
-    from cfgs_jax.splat import binning
+    from cfgs_jax.splat import binning, effective_opacity, tile_layout
     from cfgs_jax.splat.project import project
-    from cfgs_jax.splat.render import _effective_opacity, _layout
 
     g, cam = scene(*case(name))
     n = len(g)
     config = splat.RenderConfig()
     om = jnp.ones((1, n), jnp.float32)
     config = splat.RenderConfig(capacity=splat.required_capacity(g, cam, om, config=config))
-    layout = _layout(cam, config, 1, True)
+    layout = tile_layout(cam, config, 1, True)
     proj = jax.jit(lambda g: project(g.means, g.quats, g.log_scales, cam, config))(g)
-    max_opacity = _effective_opacity(g, om, config)[1]
+    max_opacity = effective_opacity(g, om, config)[1]
     listed = binning.listed_tiles(proj, max_opacity, tile_size=16, min_alpha=config.min_alpha, cull=True)[1] > 0
     depths = jnp.where(listed, proj.depths, jnp.inf)
 

@@ -43,21 +43,21 @@ def stage_functions(g, cam, config):
     import numpy as np
 
     from cfgs_jax import splat
+    from cfgs_jax.splat import compositor, effective_opacity, tile_layout
     from cfgs_jax.splat.binning import bin_gaussians
     from cfgs_jax.splat.project import project
-    from cfgs_jax.splat.render import _compositor, _effective_opacity, _layout
     from cfgs_jax.splat.sh import view_colours
 
     n = len(g)
     om, cm = jnp.ones((1, n), jnp.float32), jnp.ones((1, n, 3), jnp.float32)
     config = dataclasses.replace(config, capacity=splat.required_capacity(g, cam, om, config=config))
-    layout = _layout(cam, config, 1, True)
-    composite = _compositor(config, layout)[0]
+    layout = tile_layout(cam, config, 1, True)
+    composite = compositor(config, layout)[0]
     target = jnp.asarray(np.random.default_rng(2).uniform(size=(cam.height, cam.width, 3)), jnp.float32)
 
     def projected(g):
         proj = project(g.means, g.quats, g.log_scales, cam, config)
-        opac, max_opacity = _effective_opacity(g, om, config)
+        opac, max_opacity = effective_opacity(g, om, config)
         feats = view_colours(g.colors, g.sh_rest, g.means, cam.center)[None] * cm
         return proj, opac, max_opacity, feats
 

@@ -26,7 +26,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import importlib
 import statistics
 import sys
 from pathlib import Path
@@ -61,9 +60,10 @@ def walked_pairs(g, cam, om, config) -> int:
     """(Gaussian, walked tile) pairs in the compositor's lists at ``config``."""
     import jax
 
-    render = importlib.import_module("cfgs_jax.splat.render")
+    from cfgs_jax import splat
+
     bins = jax.jit(
-        lambda g, om: render._project_and_bin(g, cam, om, config=config, capacity=config.capacity, statistics=False)[3]
+        lambda g, om: splat.project_and_bin(g, cam, om, config=config, capacity=config.capacity, statistics=False)[3]
     )(g, om)
     return int((bins.tile_end - bins.tile_start).sum())
 

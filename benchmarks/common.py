@@ -151,3 +151,24 @@ def write_result(stem: str, result: dict, markdown: str) -> None:
     (RESULTS / f"{stem}.json").write_text(json.dumps(result, indent=1, default=str))
     (RESULTS / f"{stem}.md").write_text(markdown)
     print(markdown)
+
+
+def random_scene(n: int, seed: int, width: int, height: int):
+    """``n`` random Gaussians (float32; sizes, opacities and colours spread as a trained model's) within
+    the unit cube, and a ``width``×``height`` camera looking at it from (0, −4, 1): inputs for kernel
+    probes that need no trained model."""
+    import jax.numpy as jnp
+    import numpy as np
+
+    import cfgs_jax as cj
+
+    rng = np.random.default_rng(seed)
+    f32 = lambda x: jnp.asarray(x, jnp.float32)
+    g = cj.Gaussians(
+        f32(rng.uniform(-1, 1, (n, 3))),
+        f32(rng.normal(size=(n, 4))),
+        f32(rng.normal(-2.3, 0.6, (n, 3))),
+        f32(rng.normal(1.0, 1.5, n)),
+        f32(rng.uniform(-0.1, 1.1, (n, 3))),
+    )
+    return g, cj.Camera.look_at([0, -4, 1], [0, 0, 0], width=width, height=height, fov_x_deg=50)

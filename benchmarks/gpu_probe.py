@@ -17,7 +17,7 @@ import sys
 import time
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 EMITS = {  # the backward kernel's gradient sums, by the text of their lines
     "opacity": "emit(GEOMETRY_ROWS + i, unit, jnp.sum(d_og * unit.g, axis=-1))",
@@ -75,7 +75,7 @@ def probe(name: str) -> str:
     import jax
     import jax.numpy as jnp
     import numpy as np
-    from test_splat import camera, scene
+    from common import random_scene
 
     from cfgs_jax import splat
 
@@ -84,7 +84,7 @@ def probe(name: str) -> str:
     render_module = importlib.import_module("cfgs_jax.splat.render")
     render_module.composite_pallas = kernel.composite_pallas
     dates = spec["dates"]
-    g, cam = scene(300, 3), camera(64, 48)
+    g, cam = random_scene(300, 3, 64, 48)
     rng = np.random.default_rng(0)
     om = jnp.asarray(rng.uniform(0.3, 1.0, (dates, len(g))), jnp.float32)
     cm = jnp.asarray(rng.uniform(0.5, 1.5, (dates, len(g), 3)), jnp.float32)

@@ -26,8 +26,7 @@ import sys
 import tempfile
 from pathlib import Path
 
-sys.path.append(str(Path(__file__).resolve().parents[1] / "tests"))
-from common import result_header, write_result
+from common import random_scene, result_header, write_result
 
 #: (name, walk, scatter, chunk, dates, what, warps): ``what`` "grad" lowers the forward and the backward kernel
 #: ("multipliers": the backward of the opacities and features alone, cross-timestep init's), "sums" the weighted sums
@@ -71,12 +70,28 @@ print("registers", regs.group(1) if regs else "?", "spill stores/loads",
 """
 
 
+def kernel_inputs(dates: int = 2, features: int = 4, chunk: int | None = None, n: int = 120, seed: int = 5):
+    """The Pallas compositor's inputs for ``n`` random Gaussians seen by a 40×30 camera, through the
+    kernel's public stages (``splat.project_and_bin``): the tile layout, (means2d, conics, opacities,
+    features) and the tile lists."""
+    import dataclasses
+
+    import jax.numpy as jnp
+
+    from cfgs_jax import splat
+
+    g, cam = random_scene(n, seed, 40, 30)
+    cfg = dataclasses.replace(splat.RenderConfig(backend="pallas"), capacity=4096, chunk=chunk)
+    om = jnp.ones((dates, n))
+    proj, opac, layout, bins = splat.project_and_bin(g, cam, om, config=cfg, capacity=4096, statistics=True)
+    return layout, (proj.means2d, proj.conics, opac, jnp.ones((dates, n, features))), bins
+
+
 def triton_modules(walk: str, scatter: str, chunk: int, dates: int, what: str) -> dict[str, str]:
     """The Triton modules (name → MLIR text) of one variant, lowered for CUDA on this machine."""
     import jax
     import jax.numpy as jnp
     from jax._src.pallas.triton import lowering
-    from test_pallas import _kernel_inputs
 
     from cfgs_jax.splat.pallas_composite import PallasOptions, composite_pallas, weighted_sums_pallas
 
@@ -89,7 +104,7 @@ def triton_modules(walk: str, scatter: str, chunk: int, dates: int, what: str) -
         modules[op.attributes["sym_name"].value] = op.get_asm(enable_debug_info=False)
         return result
 
-    layout, args, bins = _kernel_inputs(dates=dates, features=3, chunk=chunk)
+    layout, args, bins = kernel_inputs(dates=dates, features=3, chunk=chunk)
     lists = (bins.gaussian_ids, bins.tile_start, bins.tile_end)
     options = PallasOptions(interpret=False, scatter=scatter, walk=walk)
 

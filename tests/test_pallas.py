@@ -6,7 +6,6 @@ lowering for the ``cuda`` platform. On a GPU the same tests run the compiled Tri
 """
 
 import dataclasses
-import importlib
 
 import jax
 import jax.numpy as jnp
@@ -29,7 +28,6 @@ import cfgs_jax as cj
 from cfgs_jax import InputError, splat
 from cfgs_jax.splat.pallas_composite import PallasOptions, composite_pallas, weighted_sums_pallas
 
-render_module = importlib.import_module("cfgs_jax.splat.render")
 PALLAS = splat.RenderConfig(backend="pallas")
 
 
@@ -143,7 +141,7 @@ def _kernel_inputs(dates=2, features=4, chunk=None):
     cam = camera(40, 30)
     cfg = dataclasses.replace(PALLAS, capacity=4096, chunk=chunk)
     om = jnp.ones((dates, len(g)))
-    proj, opac, layout, bins = render_module._project_and_bin(g, cam, om, config=cfg, capacity=4096, statistics=True)
+    proj, opac, layout, bins = splat.project_and_bin(g, cam, om, config=cfg, capacity=4096, statistics=True)
     feats = jnp.ones((dates, len(g), features))
     return layout, (proj.means2d, proj.conics, opac, feats), bins
 

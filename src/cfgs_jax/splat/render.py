@@ -63,7 +63,10 @@ def _composite_grid(camera: Camera, config: RenderConfig) -> tuple[int, int]:
     return -(-camera.width // sub), -(-camera.height // sub)
 
 
-def _layout(camera: Camera, config: RenderConfig, dates: int, statistics: bool) -> Layout:
+def tile_layout(camera: Camera, config: RenderConfig, dates: int, statistics: bool) -> Layout:
+    """How the compositor walks ``camera``'s image for ``dates`` dates: the (sub-)tile grid, tiles per
+    batch and Gaussians per step (the configuration's, or the measured best for the backend), the
+    opacity bounds, and whether the per-Gaussian statistics are gathered."""
     gx, gy = _composite_grid(camera, config)
     sub = config.resolved_subtile()
     if config.resolved_backend() == "pallas":  # one program per tile: no tile batches
@@ -91,7 +94,7 @@ def _layout(camera: Camera, config: RenderConfig, dates: int, statistics: bool) 
     )
 
 
-def _compositor(config: RenderConfig, layout: Layout):
+def compositor(config: RenderConfig, layout: Layout):
     """The tile compositor of ``config.backend``: (means2d, conics, opac, feats, ids, start, end) →
     (fg, T, max α·T, hits), and the matching weighted-sums walk."""
     if config.resolved_backend() == "pallas":
@@ -107,18 +110,18 @@ def _bucket(n: int) -> int:
     return max(MIN_CAPACITY, 1 << max(int(n) - 1, 0).bit_length())
 
 
-def _effective_opacity(gaussians: Gaussians, opacity_mult, config: RenderConfig):
+def effective_opacity(gaussians: Gaussians, opacity_mult, config: RenderConfig):
     """Per-date effective opacity α·o [T, N] and its maximum over the requested dates [N]: Gaussians
     below min_alpha at every date never composite (exp(power) ≤ 1) and are culled before binning."""
     opac = opacities(gaussians)[None, :] * opacity_mult
     return opac, jax.lax.stop_gradient(jnp.max(opac, axis=0))
 
 
-def _project_and_bin(gaussians, camera, opacity_mult, *, config, capacity, statistics):
+def project_and_bin(gaussians, camera, opacity_mult, *, config, capacity, statistics):
     """Projection, per-date effective opacities and the tile lists shared by every date."""
     proj = project(gaussians.means, gaussians.quats, gaussians.log_scales, camera, config)
-    opac, max_opacity = _effective_opacity(gaussians, opacity_mult, config)
-    layout = _layout(camera, config, opac.shape[0], statistics)
+    opac, max_opacity = effective_opacity(gaussians, opacity_mult, config)
+    layout = tile_layout(camera, config, opac.shape[0], statistics)
     bins = bin_gaussians(
         proj,
         max_opacity,
@@ -147,7 +150,7 @@ def _render_impl(
     statistics,
     relit=True,
 ):
-    proj, opac, layout, bins = _project_and_bin(
+    proj, opac, layout, bins = project_and_bin(
         gaussians, camera, opacity_mult, config=config, capacity=capacity, statistics=statistics
     )
     view = view_colours(gaussians.colors, gaussians.sh_rest, gaussians.means, camera.center)[None]
@@ -158,7 +161,7 @@ def _render_impl(
     if with_depth:
         feats = jnp.concatenate([feats, jnp.broadcast_to(proj.depths[None, :, None], feats.shape[:2] + (1,))], -1)
     means2d = proj.means2d if means2d_offset is None else proj.means2d + means2d_offset
-    fg, t, maxw, hits = _compositor(config, layout)[0](
+    fg, t, maxw, hits = compositor(config, layout)[0](
         means2d, proj.conics, opac, feats, bins.gaussian_ids, bins.tile_start, bins.tile_end
     )
     image = fg[..., :3] + t[..., None] * background
@@ -181,10 +184,10 @@ _render_jit = jax.jit(_render_impl, static_argnames=("config", "capacity", "with
 
 @functools.partial(jax.jit, static_argnames=("config", "capacity"))
 def _weighted_sums_jit(gaussians, camera, opacity_mult, maps, *, config, capacity):
-    proj, opac, layout, bins = _project_and_bin(
+    proj, opac, layout, bins = project_and_bin(
         gaussians, camera, opacity_mult, config=config, capacity=capacity, statistics=False
     )
-    sums = _compositor(config, layout)[1](
+    sums = compositor(config, layout)[1](
         proj.means2d, proj.conics, opac, bins.gaussian_ids, bins.tile_start, bins.tile_end, maps
     )
     return sums, bins.num_intersections
@@ -230,7 +233,7 @@ def summed_weight_maps(
 @functools.partial(jax.jit, static_argnames=("config",))
 def _count_jit(gaussians, camera, opacity_mult, *, config):
     proj = project(gaussians.means, gaussians.quats, gaussians.log_scales, camera, config)
-    _, max_opacity = _effective_opacity(gaussians, opacity_mult, config)
+    _, max_opacity = effective_opacity(gaussians, opacity_mult, config)
     _, counts = listed_tiles(
         proj, max_opacity, tile_size=config.tile_size, min_alpha=config.min_alpha, cull=config.tile_cull
     )
