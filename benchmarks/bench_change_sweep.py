@@ -85,22 +85,36 @@ def fuse(work: Path, cell: tuple[str, int, int, int]) -> Path:
     return out
 
 
-def score(out: Path, overrides: list[str]) -> dict:
-    """The detector (the checkout's ``[changes]`` defaults with ``overrides``) on the fused cell ``out``,
-    scored against its ground truth, with the baselines and the detector's run time."""
+def prepared(out: Path, config) -> dict:
+    """What scoring the fused cell ``out`` needs once, whatever the detector's setting: the run, its pair
+    statistics (computed with ``config``'s view rules, or read from the cell's cache), their seconds and
+    ``full_scorer``'s scoring function."""
     from bench_change_regions import _statistics, full_scorer
 
-    from cfgs_jax.changes import ChangesConfig
-    from cfgs_jax.config import apply_overrides, from_dict
     from cfgs_jax.render_run import open_run
 
     run = open_run(out / "run")
-    data = out / "data"
-    changes = apply_overrides({"changes": {}}, overrides)["changes"]
-    config = from_dict(ChangesConfig, changes, where="changes")
     rc = run.config.render
-    stats, _, seconds = _statistics(run, data, out / "change_sweep_cache", config, rc)
-    ev, regions_s = full_scorer(run, data, stats, rc)(config)
+    stats, _, seconds = _statistics(run, out / "data", out / "change_sweep_cache", config, rc)
+    return {"run": run, "seconds": seconds, "scorer": full_scorer(run, out / "data", stats, rc)}
+
+
+def changes_config(overrides: list[str]):
+    """The checkout's ``[changes]`` defaults with ``overrides`` (``changes.KEY=VALUE``)."""
+    from cfgs_jax.changes import ChangesConfig
+    from cfgs_jax.config import apply_overrides, from_dict
+
+    return from_dict(ChangesConfig, apply_overrides({"changes": {}}, overrides)["changes"], where="changes")
+
+
+def score(out: Path, overrides: list[str], cell: dict | None = None) -> dict:
+    """The detector (the checkout's ``[changes]`` defaults with ``overrides``) on the fused cell ``out``,
+    scored against its ground truth, with the baselines and the detector's run time (``cell``: the
+    cell ``prepared`` already, else prepared here)."""
+    config = changes_config(overrides)
+    cell = cell or prepared(out, config)
+    run = cell["run"]
+    ev, regions_s = cell["scorer"](config)
     g, px, reg = ev["gaussians"], ev["pixels"], ev["regions"]
     cam = run.date_cameras(0, "test")[0]
     return {
@@ -114,7 +128,7 @@ def score(out: Path, overrides: list[str]) -> dict:
         "gaussian": {k: g[k] for k in g if not isinstance(g[k], dict)},
         "pixels": {k: px[k] for k in ("iou", "all_iou", "predicted_changed_share", "gt_changed_share")},
         "regions": reg,
-        "seconds": {"statistics": seconds.get("pair_statistics"), "regions_and_scoring": regions_s},
+        "seconds": {"statistics": cell["seconds"].get("pair_statistics"), "regions_and_scoring": regions_s},
         "overrides": overrides,
         "date": datetime.date.today().isoformat(),
     }
@@ -126,8 +140,9 @@ def threshold_curve(work: Path, cells: list, taus: list[float], overrides: list[
     rows = []
     for cell in cells:
         out = fused_cell(cell_dir(work, cell))
+        ready = prepared(out, changes_config(overrides))  # τ does not enter the pair statistics
         for tau in taus:
-            r = score(out, overrides + [f"changes.threshold={tau}"])
+            r = score(out, overrides + [f"changes.threshold={tau}"], ready)
             g = r["gaussian"]
             rows.append({"cell": out.name, "tau": tau, "gaussian": g, "pixels": r["pixels"]})
             print(f"{out.name} τ={tau}: F1 {g['f1']:.3f} (score alone {g['score_f1']:.3f})", flush=True)
