@@ -357,6 +357,17 @@ class _Evaluation:
             rows.append(_row(f"Individual +{k:,}", m, gaussians, group="baseline", steps=k, per_date=per_date))
         return rows
 
+    def all_rows(self, progress) -> list[dict]:
+        """Ours, the baselines and, where asked for, the ablations (the compiled programs released between
+        them when memory runs short)."""
+        rows = self.ours_rows()
+        release_if_near_limit()
+        rows += self.baseline_rows(progress)
+        if self.ec.ablation_keys:
+            release_if_near_limit()
+            rows += self.ablation_rows()
+        return rows
+
     def ablation_rows(self) -> list[dict]:
         """The refinement ablations (``ABLATIONS``) at the last step count."""
         last = self.ec.steps[-1]
@@ -625,6 +636,24 @@ def _run_part(part: str, scene: str, setup: EvalSetup, out: Path, dates, progres
     return {"part": part, "rows": known["rows"]}
 
 
+def _check_part(part: str, dates, ec) -> None:
+    """``part`` (``PARTS``) and ``dates`` checked against each other and the ``[eval]`` table ``ec``."""
+    if part not in PARTS:
+        raise InputError(f"unknown part {part!r}", field="--part", fix=f"use one of {', '.join(PARTS)}")
+    if dates and part != "individual":
+        raise InputError(
+            "--dates chooses the dates of the part 'individual'", field="--dates", fix="add --part individual"
+        )
+    if part == "ablations" and not ec.ablation_keys:
+        raise InputError("the configuration runs no ablations", field="eval.ablations", fix="list the ablations to run")
+    if part == "known_transforms" and not ec.compare_known_transforms:
+        raise InputError(
+            "the configuration does not compare with the exact Sim(3)s",
+            field="eval.compare_known_transforms",
+            fix="set it to true",
+        )
+
+
 def run_protocol(
     scene: str,
     out: str | Path,
@@ -642,40 +671,20 @@ def run_protocol(
     earlier evaluation is continued (finished stages skipped) only with ``resume=True``. ``mesh``: the
     devices the fusion and the evaluation of its rows split their batches over. ``part`` (``PARTS``):
     one part of the protocol only (``dates``: the dates of "individual"), returning what it made."""
-    if part not in PARTS:
-        raise InputError(f"unknown part {part!r}", field="--part", fix=f"use one of {', '.join(PARTS)}")
-    if dates and part != "individual":
-        raise InputError(
-            "--dates chooses the dates of the part 'individual'", field="--dates", fix="add --part individual"
-        )
     setup = EvalSetup.parse(raw)
     ec = setup.eval
+    _check_part(part, dates, ec)
     check_resume(out, resume)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     if part != "all":
-        if part == "ablations" and not ec.ablation_keys:
-            raise InputError(
-                "the configuration runs no ablations", field="eval.ablations", fix="list the ablations to run"
-            )
-        if part == "known_transforms" and not ec.compare_known_transforms:
-            raise InputError(
-                "the configuration does not compare with the exact Sim(3)s",
-                field="eval.compare_known_transforms",
-                fix="set it to true",
-            )
         return _run_part(part, scene, setup, out, dates, progress, log, mesh)
     data, dirs, fusion_seconds = _fuse(scene, setup, out, progress, log, mesh)
     run = RunDir.open(out / "run")
     run_dir = run.path
     ev = _Evaluation.of(out, run, setup, log, mesh)
     scenes, names, sims = ev.scenes, ev.names, ev.sims
-    rows = ev.ours_rows()
-    release_if_near_limit()
-    rows += ev.baseline_rows(progress)
-    if ec.ablation_keys:
-        release_if_near_limit()
-        rows += ev.ablation_rows()
+    rows = ev.all_rows(progress)
     truth = (data / "ground_truth.json").is_file()
     change = ev.change_if_asked(data, scene)
     registered = ev.registration(data, run) if truth and not ec.known_transforms else None
