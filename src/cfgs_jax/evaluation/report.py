@@ -28,10 +28,39 @@ def _margin(ours: dict, ind: dict) -> dict:
 
 
 def margins(rows: list[dict], n: int) -> dict:
-    """Ours N against Individual +N at the largest N (``_margin``: > 0 is better)."""
+    """Ours N against Individual +N at the largest N (``_margin``: > 0 is better), with each margin's
+    standard error over the test views (``margin_spread``) where both rows carry per-view metrics."""
     ours = next(r for r in rows if r["row"] == f"Ours {n:,}")
     ind = next(r for r in rows if r["row"] == f"Individual +{n:,}")
-    return {"steps": n} | _margin(ours, ind)
+    return {"steps": n} | _margin(ours, ind) | margin_spread(ours, ind)
+
+
+def margin_spread(ours: dict, ind: dict) -> dict:
+    """The paired standard error of each margin over the test views: per view v the difference d_v of
+    the two rows' metric (signed as ``_margin``), SE = std(d, ddof 1)/√V over the V views of every date
+    (the mean of d is the margin: the paper's average weights each date by its test-view count). Views
+    pair by their place in each date's list; a date whose two lists differ in length leaves the spread
+    out ({} then), as does a row without per-view metrics."""
+    a, b = ours.get("per_date") or {}, ind.get("per_date") or {}
+    diffs = {k: [] for k in ("psnr", "ssim", "lpips")}
+    for date, mine in a.items():
+        va, vb = mine.get("per_view"), (b.get(date) or {}).get("per_view")
+        if not va or not vb or len(va) != len(vb):
+            return {}
+        for x, y in zip(va, vb):
+            pair = _margin(x, y) if "lpips" in x and "lpips" in y else _margin2(x, y)
+            for k, d in pair.items():
+                diffs[k].append(d)
+    views = len(diffs["psnr"])
+    if views < 2:
+        return {}
+    se = {f"{k}_se": float(np.std(v, ddof=1) / np.sqrt(len(v))) for k, v in diffs.items() if len(v) == views}
+    return se | {"views": views}
+
+
+def _margin2(ours: dict, ind: dict) -> dict:
+    """``_margin`` on PSNR and SSIM only (rows without LPIPS)."""
+    return {"psnr": ours["psnr"] - ind["psnr"], "ssim": ours["ssim"] - ind["ssim"]}
 
 
 def _share(x) -> str:
@@ -178,13 +207,26 @@ def _method_table(table: dict) -> list[str]:
     m = table["margins"]
     return lines + [
         "",
-        f"Ours − Individual at N = {m['steps']:,}: PSNR {m['psnr']:+.2f} dB, SSIM {m['ssim']:+.4f}, "
-        f"LPIPS {m['lpips']:+.4f} (positive: ours better).",
+        f"Ours − Individual at N = {m['steps']:,}: PSNR {_pm(m, 'psnr', 2)} dB, SSIM {_pm(m, 'ssim', 4)}, "
+        f"LPIPS {_pm(m, 'lpips', 4)} (positive: ours better"
+        + (
+            f"; ± the standard error over {m['views']} test views, * where the margin is within two of them)."
+            if "views" in m
+            else ")."
+        ),
         *_per_date_margins(table),
         "",
         *_refinement_counts(table.get("refine")),
         "Stage wall times (s): " + ", ".join(f"{k} {v:.1f}" for k, v in table["timings"].items() if v is not None),
     ]
+
+
+def _pm(m: dict, key: str, digits: int) -> str:
+    """A margin with its standard error where known: "+0.31 ± 0.12", starred within two of them."""
+    if f"{key}_se" not in m:
+        return f"{m[key]:+.{digits}f}"
+    se = m[f"{key}_se"]
+    return f"{m[key]:+.{digits}f} ± {se:.{digits}f}" + ("*" if abs(m[key]) < 2 * se else "")
 
 
 def _per_date_margins(table: dict) -> list[str]:

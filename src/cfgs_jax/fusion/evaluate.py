@@ -46,7 +46,8 @@ def evaluate_fused(
         for img, pred in zip(dv.images, preds):
             gt = over_background(jnp.asarray(img, jnp.float32), bg)
             rows.append(image_metrics(pred[0], gt, net))
-        out[model.dates[q].name] = {k: float(np.mean([r[k] for r in rows])) for k in rows[0]} | {"views": len(rows)}
+        means = {k: float(np.mean([r[k] for r in rows])) for k in rows[0]}
+        out[model.dates[q].name] = means | {"views": len(rows), "per_view": rows}
         weights.append(len(rows))
     return {"dates": out, "mean": weighted_mean(list(out.values()), weights)}
 

@@ -48,7 +48,7 @@ class TrainRun:
     losses: list[float]
     counts: list[tuple[int, int]]  # (step, live Gaussians) after each densification/reset event
     metrics: dict
-    eval_history: list[dict]  # {"step", "psnr", "ssim"[, "lpips"]} every ``config.eval_every`` steps
+    eval_history: list[dict]  # {"step", "psnr", "ssim"[, "lpips"], "per_view"} every ``config.eval_every`` steps
     seconds: float
     finished: bool
 
@@ -325,7 +325,9 @@ class _Training:
         # like INRIA's training_report: evaluated before this step's densification / reset
         if self.evaluates(it):
             m = self.evaluate(c.state.gaussians())
-            c.eval_history.append({"step": it} | {k: v for k, v in m.items() if k in ("psnr", "ssim", "lpips")})
+            keep = {k: v for k, v in m.items() if k in ("psnr", "ssim", "lpips")}
+            per_view = [{k: v for k, v in r.items() if k in keep} for r in m["views"]]
+            c.eval_history.append({"step": it} | keep | {"per_view": per_view})
             bar.note(f"step {it:,}: test PSNR {m['psnr']:.2f} dB, SSIM {m['ssim']:.4f}")
         c = _adapt_density(c, it, config, self.extent)
         return dataclasses.replace(c, state=self.placed(c.state)) if c.state is not state else c
