@@ -19,12 +19,10 @@ from cfgs_jax.train.step import over_background
 
 
 def _margin(ours: dict, ind: dict) -> dict:
-    """Ours − Individual on PSNR (dB) and SSIM, Individual − Ours on LPIPS: each > 0 where ours is better."""
-    return {
-        "psnr": ours["psnr"] - ind["psnr"],
-        "ssim": ours["ssim"] - ind["ssim"],
-        "lpips": ind["lpips"] - ours["lpips"],
-    }
+    """Ours − Individual on PSNR (dB) and SSIM, Individual − Ours on LPIPS (where both carry it): each > 0
+    where ours is better."""
+    out = {"psnr": ours["psnr"] - ind["psnr"], "ssim": ours["ssim"] - ind["ssim"]}
+    return out | ({"lpips": ind["lpips"] - ours["lpips"]} if "lpips" in ours and "lpips" in ind else {})
 
 
 def margins(rows: list[dict], n: int) -> dict:
@@ -48,19 +46,13 @@ def margin_spread(ours: dict, ind: dict) -> dict:
         if not va or not vb or len(va) != len(vb):
             return {}
         for x, y in zip(va, vb):
-            pair = _margin(x, y) if "lpips" in x and "lpips" in y else _margin2(x, y)
-            for k, d in pair.items():
+            for k, d in _margin(x, y).items():
                 diffs[k].append(d)
     views = len(diffs["psnr"])
     if views < 2:
         return {}
     se = {f"{k}_se": float(np.std(v, ddof=1) / np.sqrt(len(v))) for k, v in diffs.items() if len(v) == views}
     return se | {"views": views}
-
-
-def _margin2(ours: dict, ind: dict) -> dict:
-    """``_margin`` on PSNR and SSIM only (rows without LPIPS)."""
-    return {"psnr": ours["psnr"] - ind["psnr"], "ssim": ours["ssim"] - ind["ssim"]}
 
 
 def _share(x) -> str:
