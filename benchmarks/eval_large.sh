@@ -11,8 +11,8 @@
 # --out WORK/S --resume --no-progress`, run as its parts (`--part`) so that both cores work: first
 # `--part train` (the per-date models, on both cores), then two single-core processes side by side (on
 # the 2-core CPU two processes give about 1.5× the throughput of one on both cores): core 0 runs
-# `fusion`, `ablations` and the Individual +N of the last dates, core 1 the Individual +N of the first
-# ceil((T+1)/2) dates and `known_transforms`; then `--part all` writes the table. Every part
+# `fusion` and `ablations` (three refinements as long as the fusion's), core 1 the Individual +N of
+# every date and `known_transforms`; then `--part all` writes the table. Every part
 # checkpoints, so running this again after the machine or the process stopped continues where each
 # part stopped. The scenes run one after the other (flood, corals, quake); one already running (a
 # process with its --out) is left alone. Publishing runs `benchmarks/eval_publish.py --scene S --out
@@ -56,16 +56,14 @@ part() {  # part S PART [ARGS...]: one part of scene S's evaluation, logged to W
   return $rc
 }
 scenes() {  # each unfinished scene in turn: train, the two single-core lanes, then the table
-  local s names first
+  local s
   for s in $scene_names; do
     [ -f "$work/$s/table.md" ] && continue
     pgrep -f -- "--out $work/$s( |$)" >/dev/null && continue  # another start is running it
     part "$s" train || continue
-    names=($(cd "$work/$s/run/dates" && ls -d -- */ | tr -d /))
-    first=$(((${#names[@]} + 2) / 2))
     (
-      taskset -c 0 bash -c "part $s fusion; part $s ablations; [ ${#names[@]} -gt $first ] && part $s individual --dates ${names[*]:$first}" &
-      taskset -c 1 bash -c "part $s individual --dates ${names[*]:0:$first}; part $s known_transforms" &
+      taskset -c 0 bash -c "part $s fusion; part $s ablations" &
+      taskset -c 1 bash -c "part $s individual; part $s known_transforms" &
       wait
     )
     part "$s" all

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import numpy as np
@@ -461,6 +462,29 @@ def test_eval_oq_rule_table_is_checked_before_any_work_and_its_old_name_reads():
         validate_eval_config({"eval": {"ablations": ["freeze_beta"]}})
     with pytest.raises(InputError, match=r"eval\.compare_known_transforms.*known_transforms = false"):
         validate_eval_config({"eval": {"known_transforms": True, "compare_known_transforms": True}})
+
+
+def test_the_paper_rates_ablation_restores_the_papers_refinement_and_is_skipped_where_it_is_ours():
+    """The row "Ours, the paper's rates" sets the rates of the paper's refinement (its Implementation
+    Details: o 2.5e-6, α 0.005, colour 2e-5 in f_dc units, other fields 5e-5; the light and the
+    registration fixed) whatever the configuration refines at; at the paper's own rates it changes
+    nothing and is not run."""
+    from cfgs_jax.evaluation.protocol import ABLATIONS, EvalSetup, departs
+
+    _, over = ABLATIONS["paper_rates"]
+    large = EvalSetup.parse(
+        {"refine": {"lr_alpha": 0.05, "lr_color": 0.0025, "lr_other": 0.001, "lr_frame": 1e-4, "lr_light": 0.01}}
+    ).fusion.refine
+    paper = dataclasses.replace(large, **over)
+    assert (paper.lr_o, paper.lr_alpha, paper.lr_color, paper.lr_other) == (2.5e-6, 0.005, 2e-5, 5e-5)
+    assert paper.lr_frame == 0.0 and paper.lr_light == 0.0 and paper.position_lr_scale == 1.0
+    assert paper.steps == large.steps and paper.halve_alpha  # only the rates move
+    assert departs(large, over) and departs(large, ABLATIONS["no_frame"][1])
+    default = EvalSetup.parse({}).fusion.refine
+    assert not departs(default, over) and not departs(default, ABLATIONS["no_frame"][1])
+    assert departs(default, ABLATIONS["freeze_alpha"][1])
+    assert EvalSetup.parse({}).ablation_keys == ("freeze_alpha", "freeze_o")  # the rest would be Ours
+    assert EvalSetup.parse({"refine": {"lr_frame": 1e-4}}).ablation_keys == tuple(ABLATIONS)
 
 
 def test_sweep_file_errors_name_the_key(tmp_path):

@@ -351,6 +351,26 @@ def test_extension_halves_only_the_new_dates_alpha_and_freeze_alpha_keeps_the_in
     assert not np.array_equal(np.asarray(out.gaussians.colors), np.asarray(model.gaussians.colors))  # others train
 
 
+def test_the_refinement_reports_how_far_its_gradient_moved_the_persistence():
+    """The report's o travel is |σ(o_after) − σ(o_before)| over the entries the visibility rule left
+    alone, recomputed here from the two models in float64; freezing o (its rate 0) moves it by
+    exactly nothing."""
+    model, views = _many_view_scene()
+    cfg = rf.RefineConfig(steps=4, visibility_interval=100, random_background=False, lr_o=0.05)
+    out, rep = rf.refine(model, views, cfg, extent=1.0)
+    from cfgs_jax.fusion.fuse import INVISIBLE_LOGIT
+
+    zeroed = np.asarray(out.o_logits) <= INVISIBLE_LOGIT  # the rule's mark (o^p := 0)
+    assert len(out) == len(model) and zeroed.sum(axis=0).tolist() == rep["zeroed_per_date"]
+    sig = lambda x: 1 / (1 + np.exp(-np.asarray(x, np.float64)))
+    delta = np.abs(sig(out.o_logits) - sig(model.o_logits))[~zeroed]
+    assert rep["o_travel"]["mean"] == pytest.approx(delta.mean(), rel=1e-6) and delta.max() > 1e-6
+    assert rep["o_travel"]["max"] == pytest.approx(delta.max(), rel=1e-6)
+    assert rf.o_travel([[0.0, 2.0]], [[1.0, -3.0]], np.array([[False, True]]))["max"] == pytest.approx(sig(1.0) - 0.5)
+    _, frozen = rf.refine(model, views, dataclasses.replace(cfg, lr_o=0.0), extent=1.0)
+    assert frozen["o_travel"] == {"mean": 0.0, "p99": 0.0, "max": 0.0}
+
+
 def test_both_observation_rules_leave_the_persistence_out():
     """A Gaussian of date 0 with α = 0.03 and o^0 = 0.3 in full view: α·o·T = 0.009 < 0.01 but
     α·T = 0.03, so it is observed under both occlusion rules (before, the "own date" rule compared

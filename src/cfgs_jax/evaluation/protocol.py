@@ -4,7 +4,8 @@ Rows: Individual init (each date's own model), Merged (before any refinement), O
 steps (snapshots of one N₃ run, as the paper evaluates "each saved iteration checkpoint"), Individual +N (each
 date's model trained N more steps with its own parameters: no densification, position lr at its final value), and
 the ablations freeze-α / freeze-o (refinement of N₃ steps with α, or o, held at its input value: that rate 0, and
-for α no halving at the start). PSNR / SSIM / LPIPS on every 8th image per date, averaged over dates weighted by
+for α no halving at the start), and where the configuration departs from the paper's refinement, the paper's
+rates and no frame correction. PSNR / SSIM / LPIPS on every 8th image per date, averaged over dates weighted by
 image count; Gaussian counts per row. Every stage is resumable: re-running the command with ``--resume`` skips
 finished work (the fusion run, the continuations and the ablations keep their own state), and redoes the
 refinement or a date's continuation that lacks a step count the evaluation asks for.
@@ -98,15 +99,30 @@ class SceneConfig(Checked):
     TABLE = "scene"
 
 
+#: The refinement rates the paper gives (``RefineConfig``'s defaults), with no frame correction.
+PAPER_RATES = {
+    f: RefineConfig.__dataclass_fields__[f].default
+    for f in ("lr_o", "lr_alpha", "lr_color", "lr_other", "position_lr_scale", "lr_light", "lr_frame")
+}
 #: The ablation rows: key → (label, the [refine] values it overrides). Freezing α keeps it at its
-#: input value, so the halving at the start is off too.
+#: input value, so the halving at the start is off too. "paper_rates" and "no_frame" measure the two
+#: departures a configuration may make from the paper's refinement (its rates; each registered date's
+#: frame corrected by the images); an ablation that overrides nothing of the configuration is Ours and
+#: is not run again.
 ABLATIONS = {
     "freeze_alpha": ("Ours, α frozen", {"lr_alpha": 0.0, "halve_alpha": False}),
     "freeze_o": ("Ours, o frozen", {"lr_o": 0.0}),
+    "paper_rates": ("Ours, the paper's rates", PAPER_RATES),
+    "no_frame": ("Ours, no frame correction", {"lr_frame": 0.0}),
 }
 EVAL_SECTIONS = {**RUN_TABLES, "eval": EvalConfig, "scene": SceneConfig, "oq_rule": OqRuleConfig}
 #: Tables of an eval configuration that were renamed: old name → new name (the old one still reads).
 RENAMED_TABLES = {"change": "oq_rule"}
+
+
+def departs(refine_config: RefineConfig, overrides: dict) -> bool:
+    """Whether an ablation's ``[refine]`` overrides change ``refine_config`` (else its row is Ours)."""
+    return dataclasses.replace(refine_config, **overrides) != refine_config
 
 
 @dataclasses.dataclass(frozen=True)
@@ -118,6 +134,11 @@ class EvalSetup:
     eval: EvalConfig
     scene: SceneConfig
     oq_rule: OqRuleConfig
+
+    @property
+    def ablation_keys(self) -> tuple[str, ...]:
+        """The ablations asked for (``[eval] ablations``) that refine otherwise than Ours does."""
+        return tuple(k for k in self.eval.ablation_keys if departs(self.fusion.refine, ABLATIONS[k][1]))
 
     @classmethod
     def parse(cls, raw: dict | None) -> EvalSetup:
@@ -363,7 +384,7 @@ class _Evaluation:
         rows = self.ours_rows()
         release_if_near_limit()
         rows += self.baseline_rows(progress)
-        if self.ec.ablation_keys:
+        if self.setup.ablation_keys:
             release_if_near_limit()
             rows += self.ablation_rows()
         return rows
@@ -373,7 +394,7 @@ class _Evaluation:
         last = self.ec.steps[-1]
         views = [date_views(sc, sm) for sc, sm in zip(self.scenes, self.sims)]
         rows = []
-        for key in self.ec.ablation_keys:
+        for key in self.setup.ablation_keys:
             label, over = ABLATIONS[key]
             a = _ablation(
                 self.run_dir,
@@ -437,7 +458,9 @@ def _refine_counts(run_dir: Path) -> dict | None:
     """The refinement's visibility and prune counts from the run's report (None: not recorded)."""
     refine = read_json(run_dir / "report.json", {}).get("refine")
     keys = ("zeroed_per_date", "gaussians_before_prune", "gaussians_after_prune")
-    return {k: refine[k] for k in keys} if refine and all(k in refine for k in keys) else None
+    if not refine or not all(k in refine for k in keys):
+        return None
+    return {k: refine[k] for k in keys} | ({"o_travel": refine["o_travel"]} if "o_travel" in refine else {})
 
 
 def _with_known_transforms(
@@ -636,16 +659,21 @@ def _run_part(part: str, scene: str, setup: EvalSetup, out: Path, dates, progres
     return {"part": part, "rows": known["rows"]}
 
 
-def _check_part(part: str, dates, ec) -> None:
-    """``part`` (``PARTS``) and ``dates`` checked against each other and the ``[eval]`` table ``ec``."""
+def _check_part(part: str, dates, setup: EvalSetup) -> None:
+    """``part`` (``PARTS``) and ``dates`` checked against each other and the evaluation ``setup``."""
+    ec = setup.eval
     if part not in PARTS:
         raise InputError(f"unknown part {part!r}", field="--part", fix=f"use one of {', '.join(PARTS)}")
     if dates and part != "individual":
         raise InputError(
             "--dates chooses the dates of the part 'individual'", field="--dates", fix="add --part individual"
         )
-    if part == "ablations" and not ec.ablation_keys:
-        raise InputError("the configuration runs no ablations", field="eval.ablations", fix="list the ablations to run")
+    if part == "ablations" and not setup.ablation_keys:
+        raise InputError(
+            "the configuration runs no ablations (none asked for, or each refines as Ours does)",
+            field="eval.ablations",
+            fix="list the ablations to run",
+        )
     if part == "known_transforms" and not ec.compare_known_transforms:
         raise InputError(
             "the configuration does not compare with the exact Sim(3)s",
@@ -673,7 +701,7 @@ def run_protocol(
     one part of the protocol only (``dates``: the dates of "individual"), returning what it made."""
     setup = EvalSetup.parse(raw)
     ec = setup.eval
-    _check_part(part, dates, ec)
+    _check_part(part, dates, setup)
     check_resume(out, resume)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)

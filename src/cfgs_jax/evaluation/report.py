@@ -252,7 +252,13 @@ def _refinement_counts(refine: dict | None) -> list[str]:
         f"Refinement: the visibility rule set o^p := 0 on {100 * sum(zeroed) / (before * len(zeroed)):.1f} % of the "
         f"(Gaussian, date) entries (per date: " + ", ".join(f"{100 * z / before:.1f} %" for z in zeroed) + "); "
         f"the final prune (α·o^p ≤ 1/255 at every date) removed {before - after:,} of {before:,} Gaussians "
-        f"({100 * (before - after) / before:.1f} %).",
+        f"({100 * (before - after) / before:.1f} %)."
+        + (
+            " The refinement's gradient moved the persistence o by |Δo| mean {mean:.2g}, 99th percentile "
+            "{p99:.2g}, largest {max:.2g} over the entries the rule left alone.".format(**refine["o_travel"])
+            if "o_travel" in refine
+            else ""
+        ),
         "",
     ]
 

@@ -654,10 +654,21 @@ def _steps(run, carry: _Carry, start: int, identity: dict, checkpoint, stop_afte
         )
 
 
+def o_travel(before: Float[Array, "N T"], after: Float[Array, "N T"], zeroed: np.ndarray) -> dict:
+    """How far the refinement's gradient moved the persistence o = σ(logit) (Eq. 4): mean, 99th
+    percentile and largest |Δo| over the (Gaussian, date) entries the visibility rule left alone."""
+    sig = lambda x: 1.0 / (1.0 + np.exp(-np.asarray(x, np.float64)))
+    delta = np.abs(sig(after) - sig(before))[~np.asarray(zeroed, bool)]
+    if delta.size == 0:
+        return {"mean": 0.0, "p99": 0.0, "max": 0.0}
+    return {"mean": float(delta.mean()), "p99": float(np.quantile(delta, 0.99)), "max": float(delta.max())}
+
+
 def _finish(model, carry: _Carry, config: RefineConfig, new_dates, checked) -> tuple[TemporalGaussians, dict]:
     """The refined model finally pruned, and the report (``checked``: the dates the last visibility check
     covered)."""
     refined, masked_out, corrections = with_trainable(model, carry.params), 0, None
+    travel = o_travel(model.o_logits, refined.o_logits, carry.zeroed)
     if "frames" in carry.params:
         refined, corrections = baked(refined, carry.params)
     if "mask_logits" in carry.params:
@@ -676,6 +687,7 @@ def _finish(model, carry: _Carry, config: RefineConfig, new_dates, checked) -> t
         "gaussians_before_prune": len(model),
         "gaussians_after_prune": len(pruned),
         "masked_out": masked_out,
+        "o_travel": travel,
     }
     if corrections is not None:
         report["frames"] = [f.to_dict() for f in corrections]
