@@ -49,12 +49,22 @@ def test_every_jax_product_states_its_precision():
     assert not missing, "name precision=jax.lax.Precision.HIGHEST (or use jnp.matmul with it):\n" + "\n".join(missing)
 
 
-def test_no_two_rooms_of_the_package_import_each_other_round_a_circle():
-    """``tools/house.py``'s rooms (subpackages and top-level modules) form no import cycle, counting
-    imports inside functions: a circle makes a room impossible to read, test or move on its own."""
+def _house():
     import importlib.util
 
     spec = importlib.util.spec_from_file_location("house", REPO / "tools" / "house.py")
     house = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(house)
-    assert house.room_cycles(REPO) == []
+    return house
+
+
+def test_no_two_rooms_of_the_package_import_each_other_round_a_circle():
+    """``tools/house.py``'s rooms (subpackages and top-level modules) form no import cycle, counting
+    imports inside functions: a circle makes a room impossible to read, test or move on its own."""
+    assert _house().room_cycles(REPO) == []
+
+
+def test_no_function_outside_the_kernel_runs_over_sixty_lines():
+    """Outside ``splat/`` (whose kernels keep a pass in one piece) every function fits on a screen:
+    sixty lines, its docstring included."""
+    assert _house().long_functions(REPO) == []

@@ -121,6 +121,11 @@ def room_cycles(repo: pathlib.Path) -> list[list[str]]:
     return [s for s in room_graph(mods, edges)[2] if len(s) > 1]
 
 
+def long_functions(repo: pathlib.Path) -> list[tuple[int, str]]:
+    """The functions of the package under ``repo`` over 60 lines outside ``splat/`` (lines, name)."""
+    return sorted(survey(pathlib.Path(repo) / "src" / "cfgs_jax")[3], reverse=True)
+
+
 def main() -> None:
     args = [a for a in sys.argv[1:] if not a.startswith("-")]
     root = pathlib.Path(args[0] if args else ".") / "src" / "cfgs_jax"

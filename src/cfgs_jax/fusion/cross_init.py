@@ -461,6 +461,66 @@ def _load_checkpoint(path: Path, identity: dict, template) -> tuple[tuple, list,
     return state, losses, last, int(meta["step"]), float(meta.get("seconds", 0.0))
 
 
+@dataclasses.dataclass(frozen=True)
+class _GroupSteps:
+    """A group's Eq. 2 step and what it reads besides the carry: each pair's view sequence (``seeds``,
+    ``counts``), the compiled step per level (coarse first for ``n_coarse`` steps, then full
+    resolution) with its inputs on the devices, the exposures and the Gaussians; ``width`` is the pair
+    axis padded for the devices, of which the first ``k`` are the group's pairs."""
+
+    seeds: list
+    counts: list
+    k: int
+    width: int
+    n_coarse: int
+    steps: list
+    inputs: list
+    exposures: jax.Array
+    g: object
+    mesh: object
+    progress: object
+
+    def body(self, carry, it):
+        """Step ``it`` of every pair: (params, Adam state, keys, losses) → the same after it."""
+        params, opt_state, keys, losses = carry
+        both = jax.vmap(jax.random.split)(keys)
+        drawn = [view_order(s, it, n) for s, n in zip(self.seeds, self.counts)]
+        drawn = parallel.shard_batch(np.asarray(drawn + drawn[:1] * (self.width - self.k), np.int32), self.mesh)
+        level = 1 if it < self.n_coarse else 0  # coarse first, full resolution to the end
+        params, opt_state, loss, overflowed = self.steps[level](
+            params, opt_state, self.g, *self.inputs[level], drawn, both[:, 1], self.exposures, jnp.float32(it)
+        )
+        if bool(overflowed):  # cannot happen with capacities from o = 1 (o^q ≤ 1), but never silently
+            raise RuntimeError("cross-init render overflowed its intersection buffer")
+        if self.progress is not None:
+            self.progress(it + 1)
+        losses.append(loss)
+        return params, opt_state, both[:, 0], losses
+
+
+def _pair_keys(seed: int, pairs) -> np.ndarray:
+    """Each pair (p, q)'s background key data, a function of (seed, p, q) alone."""
+    return np.stack([jax.random.key_data(jax.random.key(seed * 1_000_003 + p * 1009 + q)) for p, q in pairs])
+
+
+def _group_saver(saving: tuple[Path, dict], test: dict, before: float, t0: float):
+    """``save(carry, done)`` writing a group's checkpoint to ``saving``'s path with its identity: the
+    parameters, Adam state, keys, the losses so far and the convergence test's last state."""
+
+    def save(carry, done: int) -> None:
+        params, opt_state, keys, losses = carry
+        tree = parallel.to_host((params, opt_state, jax.random.key_data(keys)))
+        extra = [np.stack(parallel.to_host(losses))] if losses else []
+        if test["last"] is not None:
+            extra.append(np.asarray(parallel.to_host(test["last"])))
+        if parallel.is_primary():
+            seconds = before + time.perf_counter() - t0
+            meta = saving[1] | {"step": done, "last": test["last"] is not None, "seconds": seconds}
+            save_tree(saving[0], (tree, *extra), meta, format=CHECKPOINT_FORMAT)
+
+    return save
+
+
 def _optimise(
     pairs: _Pairs,
     params,
@@ -478,24 +538,27 @@ def _optimise(
     dropped). ``saving``: (checkpoint path, identity) to save to and resume from. Returns the
     parameters and the [steps, pairs] losses, or (None, the step) when ``stop_after`` stopped it."""
     k = len(pairs.pairs)
-    seeds = [(config.seed, p, q) for p, q in pairs.pairs]
-    counts = [len(ims) for ims in pairs.images]
-    keys = np.stack(
-        [jax.random.key_data(jax.random.key(config.seed * 1_000_003 + p * 1009 + q)) for p, q in pairs.pairs]
-    )
+    keys = _pair_keys(config.seed, pairs.pairs)
     width = parallel.padded(k, mesh)
     on_devices = lambda x: parallel.shard_batch(jax.tree_util.tree_map(lambda a: parallel.pad_rows(a, width), x), mesh)
     n_coarse = coarse_steps(config, pairs.cameras[0][0].width, pairs.cameras[0][0].height)
     levels = [(pairs, eps_maps)] + ([_coarse(pairs, eps_maps, config.coarse_factor)] if n_coarse else [])
     compiled = [_compiled_step(config, level.render_config, mesh, not pairs.shared) for level, _ in levels]
-    optimizer, steps = compiled[0][0], [step for _, step in compiled]
-    inputs = [on_devices(_stacked_inputs(level, e)) for level, e in levels]  # (cameras, images, ε) per level
-    exposures = np.asarray(exposures, np.float32)
-    params, opt_state, keys, exposures = on_devices((params, jax.vmap(optimizer.init)(params), keys, exposures))
-    g = parallel.replicate(pairs.g, mesh) if pairs.shared else on_devices(pairs.g)
-    seen = parallel.pad_rows(np.asarray(pairs.mask) > 0, width)[..., None]  # [pairs, m, 1]
-    colours = np.broadcast_to(np.asarray(rgb(pairs.g)), (k, *np.shape(pairs.g.colors)[-2:]))
-    colours = parallel.pad_rows(colours, width)  # [pairs, m, 3]
+    state = (params, jax.vmap(compiled[0][0].init)(params), keys, np.asarray(exposures, np.float32))
+    params, opt_state, keys, exposures = on_devices(state)
+    group = _GroupSteps(
+        seeds=[(config.seed, p, q) for p, q in pairs.pairs],
+        counts=[len(ims) for ims in pairs.images],
+        k=k,
+        width=width,
+        n_coarse=n_coarse,
+        steps=[step for _, step in compiled],
+        inputs=[on_devices(_stacked_inputs(level, e)) for level, e in levels],  # (cameras, images, ε) per level
+        exposures=exposures,
+        g=parallel.replicate(pairs.g, mesh) if pairs.shared else on_devices(pairs.g),
+        mesh=mesh,
+        progress=progress,
+    )
     test = {"last": None, "converged": False}  # the convergence test's state
     start, losses, before, t0 = 0, [], 0.0, time.perf_counter()
     if saving is not None and saving[0].is_file():
@@ -503,45 +566,16 @@ def _optimise(
         params, opt_state, keys = parallel.shard_batch(state, mesh)
         losses = [jnp.asarray(row) for row in losses]
     keys = jax.random.wrap_key_data(keys)
-
-    def body(carry, it):
-        params, opt_state, keys, losses = carry
-        both = jax.vmap(jax.random.split)(keys)
-        drawn = [view_order(s, it, n) for s, n in zip(seeds, counts)]
-        drawn = parallel.shard_batch(np.asarray(drawn + drawn[:1] * (width - k), np.int32), mesh)
-        level = 1 if it < n_coarse else 0  # coarse first, full resolution to the end
-        params, opt_state, loss, overflowed = steps[level](
-            params, opt_state, g, *inputs[level], drawn, both[:, 1], exposures, jnp.float32(it)
-        )
-        if bool(overflowed):  # cannot happen with capacities from o = 1 (o^q ≤ 1), but never silently
-            raise RuntimeError("cross-init render overflowed its intersection buffer")
-        if progress is not None:
-            progress(it + 1)
-        losses.append(loss)
-        return params, opt_state, both[:, 0], losses
-
-    def save(carry, done: int) -> None:
-        params, opt_state, keys, losses = carry
-        tree = parallel.to_host((params, opt_state, jax.random.key_data(keys)))
-        extra = [np.stack(parallel.to_host(losses))] if losses else []
-        if test["last"] is not None:
-            extra.append(np.asarray(parallel.to_host(test["last"])))
-        if parallel.is_primary():
-            seconds = before + time.perf_counter() - t0
-            meta = saving[1] | {"step": done, "last": test["last"] is not None, "seconds": seconds}
-            save_tree(saving[0], (tree, *extra), meta, format=CHECKPOINT_FORMAT)
-
-    converged = _convergence_test(config, seen, colours, test) if config.early_stop_tolerance > 0 else None
     (params, _, _, losses), done = run_steps(
-        body,
+        group.body,
         (params, opt_state, keys, losses),
         start=start,
         steps=config.steps,
         stop_after=stop_after,
         checkpoint_every=config.checkpoint_every,
         checkpoint_seconds=60.0 * config.checkpoint_minutes,
-        save=save if saving is not None else None,
-        converged=converged,
+        save=_group_saver(saving, test, before, t0) if saving is not None else None,
+        converged=_convergence_test(config, pairs, width, test) if config.early_stop_tolerance > 0 else None,
     )
     if done < config.steps and not test["converged"]:
         return None, done
@@ -556,17 +590,20 @@ def _settled(params, colours) -> jax.Array:
     return jnp.concatenate([o, light_multiplier(params["u"], params["w"], colours)], axis=-1)
 
 
-def _convergence_test(config: CrossInitConfig, seen, colours, state: dict):
+def _convergence_test(config: CrossInitConfig, pairs: _Pairs, width: int, state: dict):
     """``converged(carry, done)`` for ``run_steps``: true at a check (every ``early_stop_every`` steps
     after the ε ramp and the background anneal) when no o^q or light channel of any pair moved by more
     than ``early_stop_tolerance`` since the previous check (or their ``early_stop_quantile``-quantile
-    did not; ``seen`` [pairs, m, 1]: the rows each pair optimises, ``colours`` [pairs, m, 3] their
-    colours); with ``early_stop_on = "loss"``,
+    did not; over the rows each pair optimises, the pair axis padded to ``width``); with
+    ``early_stop_on = "loss"``,
     when no pair's mean loss over the window since the previous check fell by more than the
     tolerance times the previous window's (both windows after the start). ``state``: the test's memory
     (``"last"``: the values at the previous check, which a checkpoint keeps; ``"converged"``: set when
     it ended the run)."""
     start = int(np.ceil(max(config.ramp_fraction, config.background_anneal) * config.steps))
+    seen = parallel.pad_rows(np.asarray(pairs.mask) > 0, width)[..., None]  # [pairs, m, 1]
+    colours = np.broadcast_to(np.asarray(rgb(pairs.g)), (len(pairs.pairs), *np.shape(pairs.g.colors)[-2:]))
+    colours = parallel.pad_rows(colours, width)  # [pairs, m, 3]
 
     def converged(carry, done: int) -> bool:
         if done < start or (done - start) % config.early_stop_every:

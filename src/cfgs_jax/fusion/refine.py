@@ -532,11 +532,25 @@ class _Refinement:
         return self.after_step(self.settle(c), it)
 
 
-def _begin(model, views, config, options: tuple, checkpoint):
+def _begin(
+    model,
+    views,
+    config: RefineConfig,
+    checkpoint,
+    *,
+    train_config,
+    render_config,
+    extent,
+    snapshot_steps,
+    on_snapshot,
+    mesh,
+    new_dates,
+    maskable,
+    frame_dates,
+):
     """The refinement's fixed inputs (checked) and its start: a fresh carry, or the checkpoint's.
-    Returns (refinement, carry, start step, the identity saved with checkpoints). ``options``:
-    ``refine``'s (train_config, render_config, extent, snapshot_steps, on_snapshot, mesh, new_dates,
-    maskable).
+    Returns (refinement, carry, start step, the identity saved with checkpoints); the keywords are
+    ``refine``'s.
 
     Learned masks (with ``config.mask_lambda`` > 0 and ``maskable``, an [N] bool): each maskable
     Gaussian i gets a mask logit m_i (start ``MASK_INIT_LOGIT``), and the loss gains
@@ -545,7 +559,6 @@ def _begin(model, views, config, options: tuple, checkpoint):
     images let it; then the masks are fixed to M_i = [σ(m_i) > ½] (``learned_mask``), and the rest of
     the steps recover with the set they chose. The Gaussians with M_i = 0 are removed with the final
     prune (their count is the report's ``masked_out``)."""
-    train_config, render_config, extent, snapshot_steps, on_snapshot, mesh, new_dates, maskable, frame_dates = options
     if maskable is None and config.mask_lambda:
         raise InputError(
             "learned masks need the Gaussians they may remove (refine(..., maskable=...))",
@@ -620,8 +633,9 @@ def refine(
     so that date p's cameras are posed by F_p ∘ S_p; ``report["frames"]`` holds this refinement's
     corrections (``Sim3.to_dict``, identity for the dates held)."""
     config = config or RefineConfig()
-    options = (train_config, render_config, extent, snapshot_steps, on_snapshot, mesh, new_dates, maskable, frame_dates)
-    run, carry, start, identity = _begin(model, views, config, options, checkpoint)
+    fixed = dict(train_config=train_config, render_config=render_config, extent=extent, snapshot_steps=snapshot_steps)
+    fixed |= dict(on_snapshot=on_snapshot, mesh=mesh, new_dates=new_dates, maskable=maskable, frame_dates=frame_dates)
+    run, carry, start, identity = _begin(model, views, config, checkpoint, **fixed)
     carry, done = _steps(run, carry, start, identity, checkpoint, stop_after, progress)
     if done < config.steps:
         return None, {"stopped_at": done}
