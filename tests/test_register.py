@@ -79,14 +79,16 @@ def test_registration_recovers_the_ground_truth_sim3(three_dates):
 def test_a_date_that_overlaps_only_a_later_date_registers_into_the_sfm_of_both(tmp_path):
     """Three corals dates: d0 looks down at the west half, d2 at the east half, d1 orbits the whole.
     d2 shares no view with d0, so registering it to d0 alone fails; registered into the joint SfM of
-    d0 and of d1 (posed by its own registration), it recovers the ground-truth Sim(3)."""
+    d0 and of d1 (posed by its own registration), it recovers the ground-truth Sim(3) within the
+    registration targets, 0.5° / 1 % / 1 % of the extent, at 320×240 (at 160×120 the features are too
+    few: d2 lands 0.75° and 1.9 % off)."""
     import json
 
     from cfgs_jax import synthetic
     from cfgs_jax.fusion.register import rotation_angle
     from cfgs_jax.synthetic.presets import orbit
 
-    spec = synthetic.make_preset("corals", seed=2, width=160, height=120, images_per_date=12, spp=8)
+    spec = synthetic.make_preset("corals", seed=2, width=320, height=240, images_per_date=12, spp=8)
     half = lambda x, phase: orbit(12, radius=0.8, heights=(2.6, 3.0), phase_deg=phase, arc_deg=120, target=(x, 0, 0))
     cams = (half(-1.8, -60), orbit(12, radius=3.0, heights=(2.8, 3.2), phase_deg=20, target=(0, 0, 0)), half(1.8, 120))
     spec = dataclasses.replace(
@@ -110,7 +112,7 @@ def test_a_date_that_overlaps_only_a_later_date_registers_into_the_sfm_of_both(t
     extent = np.max(np.linalg.norm(orbit_ref - orbit_ref.mean(0), axis=1))
     for r, k, scene in ((r1, 1, d1), (r2, 2, d2)):
         got, centres = r.transform, np.stack([np.asarray(c.center, np.float64) for c in scene.cameras])
-        assert np.degrees(rotation_angle(got.rotation, want[k].rotation)) < 1.0
+        assert np.degrees(rotation_angle(got.rotation, want[k].rotation)) < 0.5
         assert abs(got.scale / want[k].scale - 1) < 0.01
         moved = np.linalg.norm(got.apply(centres) - want[k].apply(centres), axis=1)  # where its cameras land
-        assert moved.max() / extent < 0.03
+        assert moved.max() / extent < 0.01
