@@ -466,11 +466,10 @@ class _GroupSteps:
     """A group's Eq. 2 step and what it reads besides the carry: each pair's view sequence (``seeds``,
     ``counts``), the compiled step per level (coarse first for ``n_coarse`` steps, then full
     resolution) with its inputs on the devices, the exposures and the Gaussians; ``width`` is the pair
-    axis padded for the devices, of which the first ``k`` are the group's pairs."""
+    axis padded for the devices, of which the first ``len(seeds)`` are the group's pairs."""
 
     seeds: list
     counts: list
-    k: int
     width: int
     n_coarse: int
     steps: list
@@ -485,7 +484,7 @@ class _GroupSteps:
         params, opt_state, keys, losses = carry
         both = jax.vmap(jax.random.split)(keys)
         drawn = [view_order(s, it, n) for s, n in zip(self.seeds, self.counts)]
-        drawn = parallel.shard_batch(np.asarray(drawn + drawn[:1] * (self.width - self.k), np.int32), self.mesh)
+        drawn = parallel.shard_batch(np.asarray(drawn + drawn[:1] * (self.width - len(drawn)), np.int32), self.mesh)
         level = 1 if it < self.n_coarse else 0  # coarse first, full resolution to the end
         params, opt_state, loss, overflowed = self.steps[level](
             params, opt_state, self.g, *self.inputs[level], drawn, both[:, 1], self.exposures, jnp.float32(it)
@@ -549,7 +548,6 @@ def _optimise(
     group = _GroupSteps(
         seeds=[(config.seed, p, q) for p, q in pairs.pairs],
         counts=[len(ims) for ims in pairs.images],
-        k=k,
         width=width,
         n_coarse=n_coarse,
         steps=[step for _, step in compiled],

@@ -49,6 +49,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
+import scipy.special
 from jaxtyping import Array, Float
 
 from cfgs_jax import metrics, parallel, splat
@@ -671,7 +672,7 @@ def _steps(run, carry: _Carry, start: int, identity: dict, checkpoint, stop_afte
 def o_travel(before: Float[Array, "N T"], after: Float[Array, "N T"], zeroed: np.ndarray) -> dict:
     """How far the refinement's gradient moved the persistence o = σ(logit) (Eq. 4): mean, 99th
     percentile and largest |Δo| over the (Gaussian, date) entries the visibility rule left alone."""
-    sig = lambda x: 1.0 / (1.0 + np.exp(-np.asarray(x, np.float64)))
+    sig = lambda x: scipy.special.expit(np.asarray(x, np.float64))
     delta = np.abs(sig(after) - sig(before))[~np.asarray(zeroed, bool)]
     if delta.size == 0:
         return {"mean": 0.0, "p99": 0.0, "max": 0.0}
