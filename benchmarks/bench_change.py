@@ -158,12 +158,12 @@ def main():
     if not (args.run and args.data and args.scene):
         ap.error("--run, --data and --scene are required (or --summary)")
 
+    from cfgs_jax.app.render_run import open_run
     from cfgs_jax.changes import evidence_from, pair_statistics
     from cfgs_jax.evaluation import scoring as gt_change
     from cfgs_jax.evaluation.protocol import change_detection, date_masks
     from cfgs_jax.evaluation.report import change_table, evidence_table, pr_curve_plot
     from cfgs_jax.io.atomic import write_json, write_text
-    from cfgs_jax.render_run import open_run
 
     run_dir, data = Path(args.run), Path(args.data)
     run = open_run(run_dir)

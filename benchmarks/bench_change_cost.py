@@ -99,10 +99,10 @@ def main():
 
     import numpy as np
 
+    from cfgs_jax.app.render_run import open_run
     from cfgs_jax.changes.evidence import observing_date_sums
     from cfgs_jax.io.atomic import write_json, write_text
     from cfgs_jax.io.run_dir import date_views
-    from cfgs_jax.render_run import open_run
 
     run_dir = Path(args.run)
     run = open_run(run_dir)

@@ -36,7 +36,7 @@ from common import RESULTS, machine
 
 def open_scored_run(run_dir: Path):
     """A finished run, its configuration, and its ``[render]`` and ``[changes]`` tables."""
-    from cfgs_jax.render_run import open_run
+    from cfgs_jax.app.render_run import open_run
 
     run = open_run(run_dir)
     return run, run.config.tables, run.config.render, run.config.changes

@@ -91,7 +91,7 @@ def prepared(out: Path, config) -> dict:
     ``full_scorer``'s scoring function."""
     from bench_change_regions import _statistics, full_scorer
 
-    from cfgs_jax.render_run import open_run
+    from cfgs_jax.app.render_run import open_run
 
     run = open_run(out / "run")
     rc = run.config.render
@@ -234,10 +234,10 @@ def probe(work: Path, cells: list) -> None:
     object's radius; the depth gap ``depth_gap`` of its errors and hits)."""
     from bench_change_regions import _statistics
 
+    from cfgs_jax.app.render_run import open_run
     from cfgs_jax.changes import ChangesConfig, evidence_from
     from cfgs_jax.changes.evidence import pooled_evidence
     from cfgs_jax.io.run_dir import date_views
-    from cfgs_jax.render_run import open_run
 
     rules = {
         "default (γ ∈ [1/3, 3], pool 1e-3, τ 0.06)": {},

@@ -52,7 +52,7 @@ def selection_frames(run_dir: Path):
     import jax.numpy as jnp
 
     from cfgs_jax import splat, viz
-    from cfgs_jax.render_run import open_run
+    from cfgs_jax.app.render_run import open_run
 
     run = open_run(run_dir)
     model = run.model
@@ -85,8 +85,8 @@ def change_scores(run_dir: Path, data: Path) -> dict:
     """Per-Gaussian F1 and per-pixel IoU of the run's fused model against the scene's ground truth: the
     o^q rule (``f1``, ``iou``) and the residual-evidence detector of the ``changes`` command
     (``evidence_f1``, ``evidence_iou``, ``false_regions``)."""
+    from cfgs_jax.app.render_run import open_run
     from cfgs_jax.evaluation.protocol import change_detection
-    from cfgs_jax.render_run import open_run
 
     run = open_run(run_dir)
     change = change_detection(run.model, data, run.scenes, run.sims, run.config.render)

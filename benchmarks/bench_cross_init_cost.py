@@ -115,9 +115,9 @@ def main():
     ap.add_argument("--name", default="capture")
     args = ap.parse_args()
 
+    from cfgs_jax.app.render_run import open_run
     from cfgs_jax.config import apply_overrides
     from cfgs_jax.io import read_fused
-    from cfgs_jax.render_run import open_run
 
     run_dir = Path(args.run)
     pairs = [tuple(int(x) for x in s.split(",")) for s in args.pairs]

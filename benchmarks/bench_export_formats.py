@@ -33,10 +33,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import RESULTS, machine
 
 from cfgs_jax import splat, viz
+from cfgs_jax.app.render_run import open_run
 from cfgs_jax.io.formats import FORMATS, read_gaussians, write_gaussians
 from cfgs_jax.io.ply import channel_major, read_ply
 from cfgs_jax.model import SH_C0, Camera, Gaussians, select
-from cfgs_jax.render_run import open_run
 
 REPO = Path(__file__).resolve().parents[1]
 CLI = REPO / "tools" / "npm" / "node_modules" / "@playcanvas" / "splat-transform" / "bin" / "cli.mjs"

@@ -46,7 +46,7 @@ def main():
     add_scene_args(ap, width=160, height=120, images_per_date=12, spp=16, work="/tmp/bench_extend")
     args = ap.parse_args()
 
-    from cfgs_jax.pipeline import main as cli
+    from cfgs_jax.app.pipeline import main as cli
 
     work = Path(args.work)
     data, names, transforms, _ = scene_dates("corals", args, args.dates)

@@ -43,11 +43,11 @@ def main():
     import jax.numpy as jnp
 
     from cfgs_jax import fusion, train
+    from cfgs_jax.app.render_run import open_run
     from cfgs_jax.fusion.evaluate import evaluate_fused
     from cfgs_jax.fusion.refine import refine
     from cfgs_jax.io import RunDir, read_fused
     from cfgs_jax.model import opacity_multipliers
-    from cfgs_jax.render_run import open_run
     from cfgs_jax.splat.weights import max_weight
 
     prepared = Path(args.prepared)

@@ -31,10 +31,10 @@ def one_setting(run_dir: Path, data: Path, raw: dict, change: bool = True, save:
     change detection against the ground truth unless ``change`` is false; the refined model written
     to ``save`` (our layout) when given."""
     from cfgs_jax import fusion, train
+    from cfgs_jax.app.render_run import open_run
     from cfgs_jax.evaluation.protocol import change_detection
     from cfgs_jax.fusion.evaluate import evaluate_fused
     from cfgs_jax.io import read_fused, write_fused
-    from cfgs_jax.render_run import open_run
 
     run = open_run(run_dir)
     views = [run.date_views(d) for d in range(len(run.names))]

@@ -36,9 +36,9 @@ def main():
     args = ap.parse_args()
 
     from cfgs_jax import fusion, train
+    from cfgs_jax.app.render_run import open_run
     from cfgs_jax.fusion.evaluate import evaluate_fused
     from cfgs_jax.io import read_fused
-    from cfgs_jax.render_run import open_run
 
     run = open_run(args.run)
     refine_config, train_config = run.config.refine, run.config.train

@@ -14,9 +14,9 @@ import numpy as np
 import pytest
 
 from cfgs_jax import InputError
-from cfgs_jax.cli import build_parser, program_name
+from cfgs_jax.app.cli import build_parser, program_name
+from cfgs_jax.app.pipeline import main
 from cfgs_jax.config import apply_overrides, find_preset, load_config, preset_names, section
-from cfgs_jax.pipeline import main
 
 from conftest import REPO
 
@@ -161,7 +161,7 @@ def test_missing_extras_name_the_install(monkeypatch):
     with pytest.raises(InputError, match=r'pip install "cfgs-jax\[synth\]"'):
         dataset._mitsuba()
     monkeypatch.setitem(sys.modules, "viser", None)
-    from cfgs_jax.viewer import Viewer
+    from cfgs_jax.app.viewer import Viewer
 
     with pytest.raises(InputError, match=r'pip install "cfgs-jax\[viewer\]"'):
         Viewer(None)

@@ -44,8 +44,8 @@ def _psnr_np(pred, gt) -> float:
 @pytest.fixture(scope="module")
 def protocol(tmp_path_factory):
     from cfgs_jax import synthetic
+    from cfgs_jax.app.pipeline import main
     from cfgs_jax.config import load_config
-    from cfgs_jax.pipeline import main
 
     root = tmp_path_factory.mktemp("eval")
     spec = synthetic.make_preset("corals", seed=2, width=64, height=48, images_per_date=12, spp=4)

@@ -230,7 +230,7 @@ def tiny_two_dates(tmp_path_factory):
 @pytest.fixture(scope="module")
 def fused_run(tiny_two_dates, tmp_path_factory):
     """`fuse` of d0 and d1 through the CLI; returns (run directory, its argument list)."""
-    from cfgs_jax.pipeline import main
+    from cfgs_jax.app.pipeline import main
 
     root = tiny_two_dates
     out = tmp_path_factory.mktemp("fused") / "a"
@@ -254,7 +254,7 @@ def fused_run(tiny_two_dates, tmp_path_factory):
 def test_fuse_cli_runs_every_stage_and_resumes_mid_cross_init(tiny_two_dates, fused_run, tmp_path, monkeypatch, capsys):
     import json
 
-    from cfgs_jax.pipeline import main
+    from cfgs_jax.app.pipeline import main
 
     a_dir, args = fused_run
     a = cj.io.read_fused(a_dir / "fused")
@@ -443,7 +443,7 @@ def extended_run(tiny_two_dates, fused_run, tmp_path_factory):
     import json
     import shutil
 
-    from cfgs_jax.pipeline import main
+    from cfgs_jax.app.pipeline import main
 
     run = tmp_path_factory.mktemp("extended") / "run"
     shutil.copytree(fused_run[0], run)
@@ -459,7 +459,7 @@ def extended_run(tiny_two_dates, fused_run, tmp_path_factory):
 def test_extend_adds_a_date_initialising_only_its_pairs(tiny_two_dates, fused_run, extended_run):
     import json
 
-    from cfgs_jax.pipeline import main
+    from cfgs_jax.app.pipeline import main
 
     root, run = tiny_two_dates, extended_run
     common = ["--transforms", str(root / "transforms.json"), "--no-progress"]
@@ -490,7 +490,7 @@ def test_dates_are_fused_and_extended_in_time_order(tiny_two_dates, fused_run, e
     halved every α). The dates' models come from the other runs (trained there)."""
     import json
 
-    from cfgs_jax.pipeline import main
+    from cfgs_jax.app.pipeline import main
 
     root = tiny_two_dates
     run = tmp_path / "run"
@@ -531,10 +531,10 @@ def test_dates_are_fused_and_extended_in_time_order(tiny_two_dates, fused_run, e
 
 def test_render_and_export_cli_on_a_fused_run(fused_run, tmp_path):
     from cfgs_jax import splat, viz
+    from cfgs_jax.app.pipeline import main
+    from cfgs_jax.app.render_run import SelectionStyle, open_run
     from cfgs_jax.colour import linear_to_srgb, srgb_to_linear
     from cfgs_jax.io import read_image
-    from cfgs_jax.pipeline import main
-    from cfgs_jax.render_run import SelectionStyle, open_run
 
     run_dir = fused_run[0]
     run = open_run(run_dir)
@@ -661,7 +661,7 @@ def test_viewer_in_headless_chromium(fused_run):
     from PIL import Image
     from playwright.sync_api import sync_playwright
 
-    from cfgs_jax.viewer import serve
+    from cfgs_jax.app.viewer import serve
 
     chromium = shutil.which("chromium")
     assert chromium, "Debian's chromium is needed (apt-get install chromium); the README test command installs it"
@@ -725,8 +725,8 @@ def test_exported_web_page_in_headless_chromium_draws_each_date_like_our_rendere
     from playwright.sync_api import sync_playwright
 
     from cfgs_jax import viz
-    from cfgs_jax.pipeline import main
-    from cfgs_jax.render_run import SelectionStyle, open_run
+    from cfgs_jax.app.pipeline import main
+    from cfgs_jax.app.render_run import SelectionStyle, open_run
 
     run_dir = fused_run[0]
     out = tmp_path / "page"
@@ -825,8 +825,8 @@ def test_compact_cli_merges_in_place_reports_and_refuses_twice(fused_run, tmp_pa
     import json
     import shutil
 
+    from cfgs_jax.app.pipeline import main
     from cfgs_jax.io import read_fused
-    from cfgs_jax.pipeline import main
 
     run = tmp_path / "run"
     shutil.copytree(fused_run[0], run)
@@ -855,9 +855,9 @@ def test_changes_cli_writes_masks_ply_and_regions(fused_run, tmp_path):
 
     from PIL import Image
 
+    from cfgs_jax.app.pipeline import main
+    from cfgs_jax.app.render_run import open_run
     from cfgs_jax.io import read_ply
-    from cfgs_jax.pipeline import main
-    from cfgs_jax.render_run import open_run
 
     run_dir = fused_run[0]
     out = tmp_path / "ch"
@@ -898,8 +898,8 @@ def test_fuse_with_compact_enabled_runs_the_stage_before_the_export(tiny_two_dat
     another run with --models)."""
     import json
 
+    from cfgs_jax.app.pipeline import main
     from cfgs_jax.io import read_fused
-    from cfgs_jax.pipeline import main
 
     root = tiny_two_dates
     config = tmp_path / "compact.toml"
@@ -925,8 +925,8 @@ def test_a_compacted_run_round_trips_both_layouts_and_can_be_extended(
     import json
     import shutil
 
+    from cfgs_jax.app.pipeline import main
     from cfgs_jax.io import read_fused, write_fused
-    from cfgs_jax.pipeline import main
 
     root = tiny_two_dates
     run = tmp_path / "run"

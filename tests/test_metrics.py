@@ -202,7 +202,7 @@ def test_metrics_cli_files_and_folders(fixtures_dir, tmp_path, capsys):
     import json
     import shutil
 
-    from cfgs_jax.pipeline import main
+    from cfgs_jax.app.pipeline import main
 
     lp = fixtures_dir / "lpips"
     out = tmp_path / "m.json"

@@ -6,9 +6,9 @@ from pathlib import Path
 import pytest
 
 from cfgs_jax import InputError, OutputError
+from cfgs_jax.app.pipeline import main
 from cfgs_jax.config import check_sections, from_dict, load_config, section
 from cfgs_jax.io import ensure_writable_dir, write_fused, write_ply
-from cfgs_jax.pipeline import main
 
 from conftest import REPO, random_gaussians, random_temporal
 

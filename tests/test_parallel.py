@@ -188,8 +188,8 @@ def test_fuse_in_two_processes_writes_what_one_process_writes(tmp_path):
     same files (process 1 to OUT.process-1), and the fused model matches a one-process run (the
     cross-init pairs split between the processes differ by float32 rounding)."""
     from cfgs_jax import synthetic
+    from cfgs_jax.app.pipeline import main
     from cfgs_jax.io import read_fused
-    from cfgs_jax.pipeline import main
 
     spec = synthetic.make_preset("corals", seed=11, width=48, height=36, images_per_date=4, spp=4)
     root = synthetic.render_dataset(spec, tmp_path / "data", dates=[0, 1, 2], progress=False)

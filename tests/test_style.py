@@ -64,6 +64,12 @@ def test_no_two_rooms_of_the_package_import_each_other_round_a_circle():
     assert _house().room_cycles(REPO) == []
 
 
+def test_nothing_below_the_application_layer_imports_it():
+    """The library (every module but ``cfgs_jax.app`` and the entry point ``cfgs_jax.pipeline``)
+    imports nothing of the application layer: the arrows point down, so the library runs without it."""
+    assert _house().upward_arrows(REPO) == []
+
+
 def test_no_function_outside_the_kernel_runs_over_sixty_lines():
     """Outside ``splat/`` (whose kernels keep a pass in one piece) every function fits on a screen:
     sixty lines, its docstring included."""

@@ -207,7 +207,7 @@ def test_sfm_registers_a_rendered_corals_date(tmp_path):
 
 
 def test_synth_cli_writes_a_dataset_and_rejects_bad_sizes(tmp_path, capsys):
-    from cfgs_jax.pipeline import main
+    from cfgs_jax.app.pipeline import main
 
     out = tmp_path / "light"
     args = ["synth", "--preset", "light", "--out", str(out), "--width", "32", "--height", "24"]

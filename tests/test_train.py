@@ -359,7 +359,7 @@ def test_train_cli_writes_a_model_continues_it_and_guards_the_output(corals, tmp
     trains a model further without densifying."""
     import signal
 
-    from cfgs_jax.pipeline import main
+    from cfgs_jax.app.pipeline import main
     from cfgs_jax.train import run as train_run
 
     out = tmp_path / "run"
@@ -428,7 +428,7 @@ def test_train_cli_speaks_inria(corals, tmp_path):
     """INRIA's flags (-s, -m, -r) and output layout: point_cloud/iteration_N/point_cloud.ply,
     cameras.json (camera centre −Rᵀt and camera→world rotation Rᵀ of COLMAP's world→camera [R|t],
     intrinsics scaled with the images) and cfg_args; --set overrides a [train] value."""
-    from cfgs_jax.pipeline import main
+    from cfgs_jax.app.pipeline import main
 
     toml = tmp_path / "short.toml"
     toml.write_text("[train]\nsteps = 500\ndensify = false\n")

@@ -262,7 +262,7 @@ def test_date_colours_follow_the_gradient():
 
 def test_viewer_terms_are_the_viz_functions_under_jit():
     """The viewer's jitted recompute (σ, k, b traced) equals the eager `viz` result, contrast included."""
-    from cfgs_jax.viewer import GRADIENTS, splat_terms
+    from cfgs_jax.app.viewer import GRADIENTS, splat_terms
 
     model = random_temporal(30, 3, seed=9)
     t = np.asarray([1.0, 0, 1])
@@ -367,7 +367,7 @@ def test_a_highlight_colours_what_each_view_shows_and_exports_the_dc_colour(scen
 
 
 def test_the_viewer_colours_the_sh_seen_from_its_camera():
-    from cfgs_jax.viewer import splat_terms
+    from cfgs_jax.app.viewer import splat_terms
 
     model = _with_sh(random_temporal(30, 3, seed=9), degree=1, seed=2)
     centre = np.asarray([0.5, -3.0, 1.0])

@@ -7,7 +7,8 @@ between two modules (module arrows) or two rooms (room arrows); floors are the l
 arrows once cycles are merged, and the longest walk is that chain. Also counted: imports inside
 functions (``-v`` lists them; Mitsuba, viser, pycolmap, matplotlib and torch are optional
 dependencies), ``section(`` calls outside the configuration's parsers, room cycles (``-c`` lists their
-arrows) and functions over 60 lines outside ``splat/``.
+arrows), imports of the application layer (``cfgs_jax.app``) from below it and functions over 60
+lines outside ``splat/``.
 """
 
 from __future__ import annotations
@@ -121,6 +122,14 @@ def room_cycles(repo: pathlib.Path) -> list[list[str]]:
     return [s for s in room_graph(mods, edges)[2] if len(s) > 1]
 
 
+def upward_arrows(repo: pathlib.Path) -> list[tuple[str, str]]:
+    """Imports of the application layer (``cfgs_jax.app``) from below it: every module but the entry
+    point ``cfgs_jax.pipeline`` must work without the command line, the viewer or the web page."""
+    mods, edges, *_ = survey(pathlib.Path(repo) / "src" / "cfgs_jax")
+    top = ("cfgs_jax.app", "cfgs_jax.pipeline")
+    return sorted((a, b) for a, b in edges if room(b) == "cfgs_jax.app" and room(a) not in top)
+
+
 def long_functions(repo: pathlib.Path) -> list[tuple[int, str]]:
     """The functions of the package under ``repo`` over 60 lines outside ``splat/`` (lines, name)."""
     return sorted(survey(pathlib.Path(repo) / "src" / "cfgs_jax")[3], reverse=True)
@@ -154,6 +163,7 @@ def main() -> None:
     print(f"imports inside functions {len(inner)}, of which not of an optional dependency {len(required)}")
     print(f"section( calls outside the parsers {sum(outside.values())} {outside}")
     print(f"room cycles {cycles}")
+    print(f"imports of the application layer from below it: {upward_arrows(root.parent.parent)}")
     print("longest walk: " + " → ".join(longest))
     print(f"functions over 60 lines outside splat/: {sorted(long, reverse=True)}")
     if "-v" in sys.argv:

@@ -9,7 +9,7 @@ from PIL import Image
 from test_colmap import make_dataset
 from test_ply import _full_layout_fields, _write_raw
 
-from cfgs_jax.pipeline import main
+from cfgs_jax.app.pipeline import main
 
 pytestmark = pytest.mark.filterwarnings("ignore:fusing a single date")
 

@@ -100,7 +100,7 @@ def test_all_black_images_give_finite_parameters_and_are_explained():
 
 
 def test_fusing_one_date_is_the_identity_with_a_warning(tmp_path, capsys):
-    from cfgs_jax.pipeline import main
+    from cfgs_jax.app.pipeline import main
 
     (tmp_path / "d0").mkdir()
     make_dataset(tmp_path / "d0", n=4)

@@ -1,7 +1,7 @@
 """The command line's grammar: every subcommand, flag, default, description and example.
 
-``build_parser(prog)`` returns the :mod:`argparse` parser that ``cfgs_jax.pipeline.main`` runs; the
-commands themselves live in :mod:`cfgs_jax.pipeline`. Every flag has help text and shows its default;
+``build_parser(prog)`` returns the :mod:`argparse` parser that ``cfgs_jax.app.pipeline.main`` runs; the
+commands themselves live in :mod:`cfgs_jax.app.pipeline`. Every flag has help text and shows its default;
 every subcommand has a paragraph and an example. Commands that read a run configuration take
 ``--config`` (a preset name or a TOML path) and any number of ``--set table.key=value`` overrides.
 """

@@ -20,10 +20,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from cfgs_jax import viz
+from cfgs_jax.app.render_run import FusedRun, SelectionStyle, open_run
 from cfgs_jax.errors import InputError
 from cfgs_jax.model import covariances, opacities
 from cfgs_jax.orbit import orbit_geometry
-from cfgs_jax.render_run import FusedRun, SelectionStyle, open_run
 
 #: Gradient choices offered by the viewer (linear RGB stops; None = the full-RGB filter, no remap).
 GRADIENTS: dict[str, tuple | None] = {

@@ -11,13 +11,13 @@ from pathlib import Path
 import numpy as np
 
 from cfgs_jax import synthetic
+from cfgs_jax.app.render_run import SelectionStyle, open_run, render_views
 from cfgs_jax.config import find_preset, load_config
 from cfgs_jax.errors import InputError
 from cfgs_jax.fusion.config import RunConfig
 from cfgs_jax.fusion.stages import run_fusion
 from cfgs_jax.io.atomic import check_resume, ensure_writable_dir, write_json, write_text
 from cfgs_jax.io.run_dir import RunDir
-from cfgs_jax.render_run import SelectionStyle, open_run, render_views
 
 
 def _fuse(scene_dir: Path, names: list[str], out: Path, raw: dict, progress: bool, log):

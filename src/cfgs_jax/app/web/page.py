@@ -30,11 +30,11 @@ from pathlib import Path
 import numpy as np
 
 from cfgs_jax import viz
+from cfgs_jax.app.render_run import FusedRun, SelectionStyle
 from cfgs_jax.errors import InputError
 from cfgs_jax.io.atomic import atomic_directory
 from cfgs_jax.io.spz import encode_spz
 from cfgs_jax.model import opacities, select
-from cfgs_jax.render_run import FusedRun, SelectionStyle
 
 MODES = ("blend", "max", "highlight")
 #: Every non-empty selection is written up to this many dates (2^T − 1 of them).
@@ -106,10 +106,10 @@ def _write_selection(tmp: Path, key: str, model, t, mode: str, shown: str, style
 
 def _write_page(tmp: Path, manifest: str, title: str) -> None:
     """The page itself in ``tmp``: ``index.html`` with the manifest inlined, the vendored viewer and its licences."""
-    template = resources.files("cfgs_jax.web").joinpath("index.html").read_text()
+    template = resources.files("cfgs_jax.app.web").joinpath("index.html").read_text()
     page = template.replace("__TITLE__", html.escape(title)).replace("__MANIFEST__", manifest.replace("</", "<\\/"))
     (tmp / "index.html").write_text(page)
-    vendor = resources.files("cfgs_jax.web").joinpath("vendor")
+    vendor = resources.files("cfgs_jax.app.web").joinpath("vendor")
     shutil.copyfile(str(vendor.joinpath("splat-viewer.js")), tmp / "splat-viewer.js")
     (tmp / "licences").mkdir()
     for name in ("LICENSE-three.txt", "LICENSE-spark.txt", "README.md"):
