@@ -39,6 +39,7 @@ PROBES = {
     "bwd_k32_warps8": {"warps": 8},
     "bwd_k4": {"chunk": 4},
     "bwd_partials_k32": {"scatter": "partials"},
+    "bwd_partials_k8": {"chunk": 8, "scatter": "partials"},
     "bwd_k8_T2": {"chunk": 8, "dates": 2},
     "bwd_serial_k8": {"walk": "serial", "chunk": 8},
     "bwd_serial_k8_partials": {"walk": "serial", "chunk": 8, "scatter": "partials"},

@@ -18,7 +18,7 @@ export PYTHONPATH=/tmp/site:$PWD/.carry/site:$PWD/src XLA_PYTHON_CLIENT_PREALLOC
 nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv
 python3 -c "import jax, cfgs_jax; print(jax.__version__, jax.devices())" || exit 1
 if [ $# -eq 0 ]; then
-  set -- tests/test_splat.py tests/test_change.py tests/test_changes.py tests/test_compact.py tests/test_fused.py \
+  set -- tests/test_splat.py tests/test_pallas.py tests/test_changes.py tests/test_compact.py tests/test_fused.py \
     tests/test_exposure.py tests/test_fusion_rules.py tests/test_updates.py tests/test_model.py tests/test_sim3.py \
     tests/test_metrics.py tests/test_viz.py tests/test_images_colour.py tests/test_ply.py \
     tests/stress/test_stress_kernel.py tests/stress/test_stress_viz.py

@@ -2,7 +2,7 @@
 
 Each kernel variant (the forward with statistics, the backward by atomic adds or per-slot partials, the
 block and the serial walk, one to three dates, the weighted sums) is lowered for CUDA on this machine
-(Pallas' Triton lowering: ``jax.jit(f).trace(...).lower(lowering_platforms=("cuda",))``) and each Triton
+(Pallas' Triton lowering through ``splat.pallas_composite.lowered_for_cuda``, under an abstract CUDA device) and each Triton
 module it holds, as text, is compiled by the ``triton`` package for a CUDA target (TTIR → TTGIR → LLVM IR →
 PTX → cubin with the package's ptxas), each in a child process, so that a compiler crash ends only its own
 compile. On a GPU, JAX compiles these modules with the Triton that jaxlib bundles; the ``triton`` wheel of
@@ -36,6 +36,8 @@ VARIANTS = [
     ("block walk, atomic adds, K=16, T=1", "chunk", "atomic", 16, 1, "grad", 4),
     ("block walk, atomic adds, K=8, T=1", "chunk", "atomic", 8, 1, "grad", 4),
     ("block walk, per-slot partials, K=32, T=1", "chunk", "partials", 32, 1, "grad", 4),
+    ("block walk, per-slot partials, K=16, T=1", "chunk", "partials", 16, 1, "grad", 4),
+    ("block walk, per-slot partials, K=8, T=1", "chunk", "partials", 8, 1, "grad", 4),
     ("block walk, atomic adds, K=8, T=3", "chunk", "atomic", 8, 3, "grad", 4),
     ("serial walk, atomic adds, K=8, T=1", "serial", "atomic", 8, 1, "grad", 4),
     ("serial walk, per-slot partials, K=8, T=1", "serial", "partials", 8, 1, "grad", 4),
@@ -65,8 +67,21 @@ for name in ("ptxas", "ptxas-blackwell"):  # the wheel's two; the first that rea
         break
 regs = re.search(r"Used (\\d+) registers", info.stderr)
 spill = re.search(r"(\\d+) bytes spill stores, (\\d+) bytes spill loads", info.stderr)
+sass = ""
+import glob, shutil  # cuobjdump: the triton wheel's own, else on PATH, else the nvidia-cuda-cuobjdump wheel's
+bundled = os.path.join(os.path.dirname(nvidia.__file__), "bin", "cuobjdump")
+tool = bundled if os.path.isfile(bundled) else shutil.which("cuobjdump") or next(
+    iter(sorted(f for d in sys.path for f in glob.glob(os.path.join(d, "nvidia", "**", "bin", "cuobjdump"), recursive=True))), None)
+if tool:  # the cubin's SASS: fences, atomics (returning or not), block barriers, every instruction
+    cubin = sys.argv[1] + ".cubin"
+    open(cubin, "wb").write(k.asm["cubin"])
+    text = subprocess.run([tool, "-sass", cubin], capture_output=True, text=True).stdout
+    ops = re.findall(r"^\\s+/\\*[0-9a-f]{4,}\\*/\\s+(?:@!?U?P\\w+\\s+)?([A-Z][A-Z0-9_]*)", text, re.M)
+    count = lambda *names: sum(op in names for op in ops)
+    sass = (f" sass MEMBAR {count('MEMBAR')} ATOM {count('ATOM', 'ATOMG', 'ATOMS')} RED {count('RED', 'REDG')}"
+            f" BAR {count('BAR')} instructions {len(ops)}")
 print("registers", regs.group(1) if regs else "?", "spill stores/loads",
-      "/".join(spill.groups()) if spill else "?", "shared", k.metadata.shared)
+      "/".join(spill.groups()) if spill else "?", "shared", k.metadata.shared, sass)
 """
 
 
@@ -93,7 +108,7 @@ def triton_modules(walk: str, scatter: str, chunk: int, dates: int, what: str) -
     import jax.numpy as jnp
     from jax._src.pallas.triton import lowering
 
-    from cfgs_jax.splat.pallas_composite import PallasOptions, composite_pallas, weighted_sums_pallas
+    from cfgs_jax.splat.pallas_composite import PallasOptions, composite_pallas, lowered_for_cuda, weighted_sums_pallas
 
     modules: dict[str, str] = {}
     lower = lowering.lower_jaxpr_to_triton_module
@@ -115,12 +130,10 @@ def triton_modules(walk: str, scatter: str, chunk: int, dates: int, what: str) -
     lowering.lower_jaxpr_to_triton_module = capture
     try:
         if what in ("grad", "multipliers"):  # every gradient, or the opacities' and features' alone
-            f = jax.jit(jax.grad(loss, argnums=(0, 1, 2, 3) if what == "grad" else (2, 3)))
-            f.trace(*args).lower(lowering_platforms=("cuda",))
+            lowered_for_cuda(jax.grad(loss, argnums=(0, 1, 2, 3) if what == "grad" else (2, 3)), *args)
         else:
             maps = jnp.ones((2, dates, layout.height, layout.width))
-            f = jax.jit(lambda *a: weighted_sums_pallas(layout, options, *a, *lists, maps))
-            f.trace(*args[:3]).lower(lowering_platforms=("cuda",))
+            lowered_for_cuda(lambda *a: weighted_sums_pallas(layout, options, *a, *lists, maps), *args[:3])
     finally:
         lowering.lower_jaxpr_to_triton_module = lower
     return modules
@@ -184,7 +197,9 @@ def main():
         "",
         f"Machine: {result['machine']}. Date: {result['date']}. Command: `{result['command']}`. "
         f"Triton {version}, target sm_{args.arch}, 4 warps unless the variant says; cfgs_jax at {code}. Registers and "
-        "spills per thread from the package's ptxas -v on the kernel's PTX.",
+        "spills per thread from the package's ptxas -v on the kernel's PTX; where cuobjdump is at hand (the triton "
+        "wheel's, or the nvidia-cuda-cuobjdump wheel's), the cubin's SASS counted: MEMBAR (fences), ATOM (returning atomics), RED "
+        "(reductions), BAR (block barriers) and all instructions.",
         "",
         "| variant | kernel | compiles | atomic float adds into integers | detail |",
         "|---|---|---|---:|---|",

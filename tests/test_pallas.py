@@ -6,6 +6,9 @@ lowering for the ``cuda`` platform. On a GPU the same tests run the compiled Tri
 """
 
 import dataclasses
+import re
+import sys
+from pathlib import Path
 
 import jax
 import jax.numpy as jnp
@@ -26,7 +29,7 @@ from test_splat import (
 
 import cfgs_jax as cj
 from cfgs_jax import InputError, splat
-from cfgs_jax.splat.pallas_composite import PallasOptions, composite_pallas, weighted_sums_pallas
+from cfgs_jax.splat.pallas_composite import PallasOptions, composite_pallas, lowered_for_cuda, weighted_sums_pallas
 
 PALLAS = splat.RenderConfig(backend="pallas")
 
@@ -149,7 +152,8 @@ def _kernel_inputs(dates=2, features=4, chunk=None):
 @pytest.mark.parametrize("walk,scatter", [("chunk", "atomic"), ("serial", "partials")])
 def test_triton_lowering_for_the_gpu(walk, scatter):
     """The forward and backward kernels and the weighted sums lower through Pallas' Triton backend for
-    a CUDA device on a CPU-only install: a primitive that lowering lacks would raise here."""
+    a CUDA device on a CPU-only install (under an abstract CUDA device, as newer JAX requires without a
+    GPU): a primitive that lowering lacks would raise here."""
     layout, args, bins = _kernel_inputs(chunk=4 if walk == "serial" else None)
     triton = PallasOptions(interpret=False, scatter=scatter, walk=walk)
     lists = (bins.gaussian_ids, bins.tile_start, bins.tile_end)
@@ -158,11 +162,51 @@ def test_triton_lowering_for_the_gpu(walk, scatter):
         fg, t, maxw, _ = composite_pallas(layout, triton, m2, con, op, ft, *lists)
         return jnp.sum(fg) + jnp.sum(t) + jnp.sum(maxw)
 
-    text = jax.jit(jax.grad(loss, argnums=(0, 1, 2, 3))).trace(*args).lower(lowering_platforms=("cuda",)).as_text()
+    text = lowered_for_cuda(jax.grad(loss, argnums=(0, 1, 2, 3)), *args).as_text()
     assert text.count("__gpu$xla.gpu.triton") == 2  # the forward and the backward kernel
     maps = jnp.ones((3, 2, 30, 40))
-    ws = jax.jit(lambda *a: weighted_sums_pallas(layout, triton, *a, *lists, maps))
-    assert "__gpu$xla.gpu.triton" in ws.trace(*args[:3]).lower(lowering_platforms=("cuda",)).as_text()
+    ws = lambda *a: weighted_sums_pallas(layout, triton, *a, *lists, maps)
+    assert "__gpu$xla.gpu.triton" in lowered_for_cuda(ws, *args[:3]).as_text()
+    # the same lowering from shapes alone: no array of the trace lives on a device
+    shapes = [jax.ShapeDtypeStruct(a.shape, a.dtype) for a in args]
+    assert lowered_for_cuda(jax.grad(loss, argnums=(0, 1, 2, 3)), *shapes).as_text().count("__gpu$xla.gpu.triton") == 2
+
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def _triton_compile():
+    """``benchmarks/triton_compile.py`` as a module (its ``common`` beside it importable)."""
+    import importlib.util
+
+    sys.path.insert(0, str(REPO / "benchmarks"))
+    spec = importlib.util.spec_from_file_location("triton_compile", REPO / "benchmarks" / "triton_compile.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+@pytest.mark.slow
+def test_triton_compiles_the_default_kernels_for_sm90_with_no_fence_or_atomic_in_the_backward(tmp_path):
+    """Triton's own compiler (the ``kernel-check`` extra: the triton wheel of the GPU machines' vintage)
+    takes the default Pallas kernels (block walk, K = 8, per-slot partials) down to an sm_90 cubin, with
+    no register spills, and the backward's SASS holds no fence (MEMBAR) and no atomic (ATOM): what a
+    compiler crash or a fenced atomic would break fails here, on a CPU. The same backward with atomic
+    adds holds both, so the count can fail."""
+    try:
+        import triton  # noqa: F401
+    except ImportError:
+        pytest.fail("the slow tier needs Triton's compiler: pip install '.[kernel-check]' (bash .ci/nightly does)")
+    tc = _triton_compile()
+    counts = {}
+    for scatter in ("partials", "atomic"):
+        for kernel, text in tc.triton_modules("chunk", scatter, 8, 1, "grad").items():
+            res = tc.compile_module(sys.executable, text, 90, 4, tmp_path, f"{scatter}_{kernel}")
+            assert res["ok"], f"{scatter} {kernel}: {res['detail']}"
+            assert "spill stores/loads 0/0" in res["detail"], res["detail"]
+            counts[scatter, kernel] = {k: int(v) for k, v in re.findall(r"(MEMBAR|ATOM) (\d+)", res["detail"])}
+    assert counts["partials", "cfgs_composite_bwd"] == {"MEMBAR": 0, "ATOM": 0}
+    assert counts["atomic", "cfgs_composite_bwd"]["MEMBAR"] > 0 and counts["atomic", "cfgs_composite_bwd"]["ATOM"] > 0
 
 
 def _sub_jaxprs(eqn):

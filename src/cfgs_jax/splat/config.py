@@ -39,9 +39,11 @@ class RenderConfig(Checked):
     Triton on a GPU, so Pallas is opt-in). Both give the same images, statistics and gradients up to
     float32 rounding. For the Pallas compositor: ``walk`` is ``"chunk"`` (``chunk`` Gaussians × the
     tile's pixels as one block, transmittance by a log-space prefix scan) or ``"serial"`` (one Gaussian
-    at a time, INRIA's sequential arithmetic, ``chunk`` per loop step); ``scatter`` is ``"atomic"``
-    (each Gaussian's per-tile gradient sums added atomically) or ``"partials"`` (stored per intersection
-    and summed afterwards in a fixed order: deterministic, at one value per intersection and parameter);
+    at a time, INRIA's sequential arithmetic, ``chunk`` per loop step); ``scatter`` is ``"partials"``
+    (each Gaussian's per-tile gradient sums stored per intersection with plain stores and summed
+    afterwards in a fixed order: deterministic, no fenced atomics, at one value per intersection and
+    parameter) or ``"atomic"`` (added atomically: Pallas' Triton lowering makes each an acquire-release
+    atomic with a fence);
     ``num_warps`` is the Triton launch's warps per program.
     """
 
@@ -59,7 +61,7 @@ class RenderConfig(Checked):
     capacity: int | None = None
     backend: str = "auto"
     num_warps: int = 4
-    scatter: str = "atomic"
+    scatter: str = "partials"
     walk: str = "chunk"
 
     TABLE = "render"

@@ -57,7 +57,7 @@ class PallasOptions(NamedTuple):
     # how the backward pass gathers each Gaussian's gradient over tiles: "atomic" (one atomic add per
     # Gaussian, tile and parameter) or "partials" (each list slot, one (Gaussian, tile) pair, stores
     # its tile's sums; a segment sum over the list adds them up afterwards: deterministic)
-    scatter: str = "atomic"
+    scatter: str = "partials"
     # how a program walks its tile's list: "chunk" (K × P blocks, prefix scans along the chunk, vector
     # atomics of per-Gaussian sums) or "serial" (one Gaussian at a time across the P pixels, INRIA's
     # sequential arithmetic, scalar sums and scalar atomics; K Gaussians per loop step, unrolled)
@@ -351,6 +351,26 @@ def _from_image(layout: Layout, img):
     pad = [(0, 0)] * len(lead) + [(0, layout.grid_y * ts - layout.height), (0, layout.grid_x * ts - layout.width)]
     x = jnp.pad(img, pad).reshape(lead + (layout.grid_y, ts, layout.grid_x, ts))
     return jnp.swapaxes(x, -3, -2).reshape(lead + (layout.num_tiles, ts * ts))
+
+
+#: The GPU ``lowered_for_cuda`` lowers for by default (the device kind JAX reports for an H100 SXM).
+CUDA_DEVICE_KIND = "NVIDIA H100 80GB HBM3"
+
+
+def lowered_for_cuda(fn, *args, device_kind: str = CUDA_DEVICE_KIND):
+    """``jax.jit(fn)`` traced on ``args`` and lowered for a CUDA GPU on any host, a CPU-only one included
+    (a ``jax.stages.Lowered``; its text holds each Pallas kernel as a Triton call).
+
+    The trace runs under an abstract mesh of one device whose platform is ``cuda`` (``device_kind``
+    names the GPU), and the lowering targets that platform. Without the abstract device, newer JAX
+    refuses a CUDA lowering where no GPU is present ("No supported GPU devices found"); with it, the same
+    call works on every JAX this package supports. ``args`` are arrays or ``jax.ShapeDtypeStruct``s made
+    outside this call."""
+    device = jax.sharding.AbstractDevice(device_kind=device_kind, num_cores=None, platform="cuda")
+    mesh = jax.sharding.AbstractMesh((1,), ("gpu",), (jax.sharding.AxisType.Explicit,), abstract_device=device)
+    with jax.sharding.use_abstract_mesh(mesh):
+        traced = jax.jit(fn).trace(*args)
+    return traced.lower(lowering_platforms=("cuda",))
 
 
 @functools.partial(jax.custom_vjp, nondiff_argnums=(0, 1))
