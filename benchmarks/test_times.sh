@@ -11,8 +11,7 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 [ -d .venv ] && export PATH="$PWD/.venv/bin:$PATH"
-cmd=$(awk '/<!-- test-command -->/{found=1; next} found && /^```bash/{grab=1; next} grab && /^```/{exit} grab{print}' README.md)
-test_part="python -m pytest${cmd##*&& python -m pytest}"
+test_part=$(.ci/test_command pytest)
 cache=$(mktemp -d)
 logs=$(mktemp -d)
 trap 'rm -rf "$cache"' EXIT

@@ -296,12 +296,21 @@ def test_backend_choice_and_errors():
         splat.RenderConfig(num_warps=3)
 
 
-def test_gradients_of_the_multipliers_alone_match_float64_and_skip_the_footprint(grad_case):  # noqa: F811
+@pytest.mark.parametrize("scatter, writes", [("atomic", "atomic_rmw"), ("partials", "swap")])
+def test_gradients_of_the_multipliers_alone_match_float64_and_skip_the_footprint(grad_case, scatter, writes):  # noqa: F811
     """Differentiated with respect to the opacity and colour multipliers only (cross-timestep init's
     case), the Pallas VJP gives the float64 reference's gradients to 1e-10, and its backward kernel
-    leaves out the footprint's five atomic adds per Gaussian and tile."""
-    jaxprs = multiplier_gradient_jaxprs(grad_case, dataclasses.replace(PALLAS, chunk=8))
-    atomics = [
-        sum(1 for e in _eqns(j.jaxpr, "pallas_call") for _ in _eqns(e.params["jaxpr"], "atomic_rmw")) for j in jaxprs
-    ]
-    assert atomics[1] - atomics[0] == 5, atomics  # mean x, y and conic a, b, c
+    leaves out the footprint's five gradient writes per Gaussian and tile: atomic adds with
+    ``scatter="atomic"``, stores at the list slot with ``scatter="partials"`` (which has no atomic add)."""
+    config = dataclasses.replace(PALLAS, chunk=8, scatter=scatter)
+    jaxprs = multiplier_gradient_jaxprs(grad_case, config)
+
+    def backward_kernels(j):
+        named = lambda e: str(e.params.get("name", e.params.get("name_and_src_info", "")))
+        return [e for e in _eqns(j.jaxpr, "pallas_call") if "composite_bwd" in named(e)]
+
+    counts = [[sum(1 for _ in _eqns(e.params["jaxpr"], writes)) for e in backward_kernels(j)] for j in jaxprs]
+    assert all(len(c) == 1 for c in counts), counts  # one backward kernel per gradient
+    assert counts[1][0] - counts[0][0] == 5, counts  # mean x, y and conic a, b, c
+    if scatter == "partials":
+        assert not any(_eqns(backward_kernels(jaxprs[1])[0].params["jaxpr"], "atomic_rmw"))
