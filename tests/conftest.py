@@ -164,3 +164,69 @@ def pytest_collection_modifyitems(config, items):
     for item in items:
         if "stress" in Path(str(item.fspath)).parts:
             item.add_marker(pytest.mark.stress)
+
+
+# ---------------------------------------------- a tiny fused run through the CLI, shared by the app tests
+
+
+@pytest.fixture(scope="session")
+def tiny_two_dates(tmp_path_factory):
+    """Two corals dates at 64×48 (6 views each) and their ground-truth date → reference Sim(3)s."""
+    import json
+
+    from cfgs_jax import synthetic
+
+    spec = synthetic.make_preset("corals", seed=5, width=64, height=48, images_per_date=6, spp=4)
+    root = synthetic.render_dataset(spec, tmp_path_factory.mktemp("tiny"), dates=[0, 1, 2], progress=False)
+    (root / "transforms.json").write_text(json.dumps(synthetic.reference_transforms(root, ["d0", "d1", "d2"])))
+    toml = root / "tiny.toml"
+    toml.write_text(
+        "[train]\nsteps = 60\ndensify_from = 20\ndensify_until = 50\ndensify_interval = 20\n"
+        "sh_degree = 2\nsh_interval = 20\n"  # view-dependent colour through every stage
+        "[cross_init]\nsteps = 15\nrate_reference_steps = 0\n[refine]\nsteps = 20\nvisibility_interval = 10\n"
+    )  # the rates as given: 15 steps at 200× would saturate every o^q (the README snippet's FD check needs slopes)
+    return root
+
+
+@pytest.fixture(scope="session")
+def fused_run(tiny_two_dates, tmp_path_factory):
+    """`fuse` of d0 and d1 through the CLI; returns (run directory, its argument list)."""
+    from cfgs_jax.app.pipeline import main
+
+    root = tiny_two_dates
+    out = tmp_path_factory.mktemp("fused") / "a"
+    args = [
+        "fuse",
+        "--dates",
+        str(root / "d0"),
+        str(root / "d1"),
+        "--out",
+        str(out),
+        "--config",
+        str(root / "tiny.toml"),
+        "--transforms",
+        str(root / "transforms.json"),
+        "--no-progress",
+    ]
+    assert main(args) == 0
+    return out, args
+
+
+@pytest.fixture(scope="session")
+def extended_run(tiny_two_dates, fused_run, tmp_path_factory):
+    """A copy of `fused_run` extended by d2 through the CLI (d2 trained in the run), the extension
+    refining 7 steps with the visibility rule at the added date only; returns its directory."""
+    import json
+    import shutil
+
+    from cfgs_jax.app.pipeline import main
+
+    run = tmp_path_factory.mktemp("extended") / "run"
+    shutil.copytree(fused_run[0], run)
+    state = json.loads((run / "run.json").read_text())  # the run's config: extension refines 7 steps, not 20
+    state["config"]["refine"]["extend_steps"] = 7
+    state["config"]["refine"]["extend_visibility"] = "added"  # the visibility rule at the added date only
+    (run / "run.json").write_text(json.dumps(state))
+    common = ["--transforms", str(tiny_two_dates / "transforms.json"), "--no-progress"]
+    assert main(["extend", "--run", str(run), "--date", str(tiny_two_dates / "d2"), *common]) == 0
+    return run
