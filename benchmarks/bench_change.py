@@ -1,14 +1,35 @@
-"""Change detection of a finished fusion run against the synthetic scene's ground truth, with the
-ablation of the detector's signals: the o^q rules (o^q < 0.2 alone; with the surface rule) and the
-residual evidence without the brightness gain, without neighbour pooling, and at a few thresholds and
-neighbourhood sizes. The ground truth only scores; every row uses one setting for all scenes.
+"""The change detector's benchmarks, one command: the sweep behind the README's change table (the
+detector across scenes, image sizes and view counts, one setting for all, with its baselines), region
+rules compared on one run, and the cost of the residual sums.
 
-    python benchmarks/bench_change.py --run RUN --data DATA --scene NAME
-    python benchmarks/bench_change.py --summary corals coverage flood light   # the README table
+A cell is SCENE:WxH:V, a synthetic preset rendered at W×H with V images per date (every 8th held out
+for testing). Each cell is fused once (``python -m cfgs_jax.pipeline eval --part fusion`` with
+``benchmarks/change_sweep_WxH.toml``, the exact Sim(3)s) and then scored with the detector of the
+checkout (the ``[changes]`` defaults, or ``--set changes.KEY=VALUE``) from the pair statistics cached
+in the cell, against the scene's ground truth as the evaluation scores it
+(``evaluation.scoring.evidence_detection``), beside three baselines on the same entries and pixels:
+flagging everything, the o^q < 0.2 rule, and the score alone (s > 0.5, no regions).
 
-RUN: the ``run/`` of ``python -m cfgs_jax.pipeline eval --scene NAME --config benchmarks/eval_small.toml
---out DIR`` and DATA its ``data/``. Writes benchmarks/results/change_NAME.json, change_NAME.md (the
-eval's change block for the default detector, then the ablation) and change_NAME_pr.png.
+    python benchmarks/bench_change.py run WORK CELL [CELL ...]   # fuse (resumable) and score
+    python benchmarks/bench_change.py score WORK CELL [CELL ...]  # score again (fused cells)
+    python benchmarks/bench_change.py table WORK [--name NAME]   # results/NAME.md and .json
+    python benchmarks/bench_change.py readme                     # the table into README.md
+    python benchmarks/bench_change.py threshold WORK CELL [CELL ...] [--tau 0.03,0.06]
+        # F1 against τ on fused cells: results/change_threshold_curve.md and .json
+    python benchmarks/bench_change.py probe WORK CELL [CELL ...]
+        # what limits the evidence: the score alone under other evidence rules, where its errors lie,
+        # and the depth behind them (results/change_probe.md)
+    python benchmarks/bench_change.py rules --run RUN --data DATA --scene NAME --cache DIR [--full] \
+        [--rule LABEL changes.KEY=VALUE ...]...   # region rules on one run (change_rules.py)
+    python benchmarks/bench_change.py cost --run RUN [--date 1] [--views 6] [--per-pass 1 4]
+        # the residual sums by gradient, by forward walk, D dates a pass (change_cost.py)
+
+``run`` and ``score`` write WORK/<cell>/change_sweep_row.json; ``table`` gathers every row under WORK and
+keeps the rows of results/NAME.json whose cells WORK does not hold (a cell's folder does not outlive the
+machine it was fused on), marked † with the date they were scored; ``readme`` copies the table of
+results/change_sweep.md between the README's ``<!-- change-sweep -->`` markers.
+A cell's fusion runs for minutes at 80×60 and about an hour at 320×240 on the 2-core CPU: run cells as
+separate processes (one a core) and ``table`` once they are scored.
 """
 
 from __future__ import annotations
@@ -17,278 +38,437 @@ import argparse
 import dataclasses
 import datetime
 import json
+import shlex
+import subprocess
 import sys
-import time
 from pathlib import Path
+
+import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import RESULTS, machine
 
-VARIANTS = [  # (label, overrides of the default [changes] table)
-    ("every view direction", {"max_view_angle": 180.0}),
-    ("view angle ≤ 30°", {"max_view_angle": 30.0}),
-    ("view angle ≤ 15°", {"max_view_angle": 15.0}),
-    ("training views only", {"views": "train"}),
-    ("held-out views only", {"views": "test"}),
-    ("no gain, no pooling", {"gain_range": (1.0, 1.0), "pool_area": 0.0}),
-    ("gain, no pooling", {"pool_area": 0.0}),
-    ("no gain, pooled", {"gain_range": (1.0, 1.0)}),
-    ("gain, pooled over half the area", {"pool_area": 0.5 * 1e-3}),
-    ("gain, pooled over twice the area", {"pool_area": 2 * 1e-3}),
-    ("no growth", {"grow_above": 0.5}),
-    ("grow above 0.25", {"grow_above": 0.25}),
-    ("link 1.5", {"link_reach": 1.5}),
-    ("link 3", {"link_reach": 3.0}),
-    ("link 1.5, grow above 0.25", {"link_reach": 1.5, "grow_above": 0.25}),
-    ("no region size bound", {"min_region_area": 0.0}),
-    ("regions ≥ 0.1 ‰ of a view", {"min_region_area": 1e-4}),
-    ("regions ≥ 0.5 ‰ of a view", {"min_region_area": 5e-4}),
-    ("τ = 0.05", {"threshold": 0.05}),
-    ("τ = 0.07", {"threshold": 0.07}),
-    ("no colour completion", {"complete_within": 0.0}),
-    ("colour completion within 0.5 diameters", {"complete_within": 0.5}),
-    ("colour completion within 2 diameters", {"complete_within": 2.0}),
-    ("colour completion, colour 0.05", {"complete_colour": 0.05}),
-    ("colour completion, colour 0.1", {"complete_colour": 0.1}),
-    ("colour completion, links of 2 reaches", {"complete_reach": 2.0}),
-    ("colour completion, links of 4 reaches", {"complete_reach": 4.0}),
-    ("colour completion across dates", {"complete_across_dates": True}),
-    ("no carried absence", {"carry_absence": False}),
-    ("pixels changed above 0.5 (a majority)", {"pixel_threshold": 0.5}),
-    ("pixels changed above 0.45", {"pixel_threshold": 0.45}),
-    ("pixels changed above 0.4", {"pixel_threshold": 0.4}),
-    ("pixels changed above 0.3", {"pixel_threshold": 0.3}),
-    ("pixels changed above 0.25", {"pixel_threshold": 0.25}),
-]
+HERE = Path(__file__).resolve().parent
+ROW = "change_sweep_row.json"
 
 
-def at_pixel_threshold(evidence: dict, threshold: float) -> dict:
-    """The detector's result with its pixel masks at another threshold, read from the threshold sweep
-    every evaluation scores (the Gaussians and the regions do not depend on it)."""
-    sweep = evidence["pixels"]["by_threshold"]
-    (i,) = [j for j, t in enumerate(sweep["threshold"]) if abs(t - threshold) < 1e-9]
-    pixels = evidence["pixels"] | {
-        "iou": sweep["iou"][i],
-        "predicted_changed_share": sweep["predicted_changed_share"][i],
-    }
-    return evidence | {"pixels": pixels}
+def parse_cell(text: str) -> tuple[str, int, int, int]:
+    """``SCENE:WxH:V`` → (scene, width, height, images per date)."""
+    try:
+        scene, size, views = text.split(":")
+        width, height = (int(v) for v in size.lower().split("x"))
+        return scene, width, height, int(views)
+    except ValueError:
+        raise SystemExit(f"bad cell {text!r}: use SCENE:WxH:V, e.g. flood:80x60:10") from None
 
 
-def summary(scenes: list[str]) -> str:
-    """One row per scene from benchmarks/results/change_<scene>.json: the default detector's figures."""
-    lines = [
-        "| scene (dates) | Gaussians P / R / F1 | flagged | pixel IoU | pixels flagged | changed objects found | "
-        "false regions (pairs) | o^q < 0.2 flagged | baselines: F1 flag-all / o^q rule, IoU flag-all |",
-        "|---|---:|---:|---:|---:|---:|---:|---:|---:|",
-    ]
-    for scene in scenes:
-        r = json.loads((RESULTS / f"change_{scene}.json").read_text())
-        ev = r["change"]["evidence"]
-        g, px, rg = ev["gaussians"], ev["pixels"], ev["regions"]
-        o = r["change"]["gaussians"]
-        dates = len(r["change"]["evidence"]["per_pair"])
-        found = f"{rg['found_objects']} / {rg['changed_objects']}" if rg["changed_objects"] else "– (none changed)"
-        prf = f"{g['precision']:.3f} / {g['recall']:.3f} / {g['f1']:.3f}" if rg["changed_objects"] else "–"
-        iou = f"{px['iou']:.3f}" if rg["changed_objects"] else "–"
-        # flagging every entry: precision π (the truth's prevalence), recall 1; every pixel: IoU = truth share
-        pi = g["gt_changed"]
-        base = (
-            f"{2 * pi / (1 + pi):.3f} / {g['o_f1']:.3f}, {px['gt_changed_share']:.3f}" if rg["changed_objects"] else "–"
-        )
-        lines.append(
-            f"| {scene} ({int(round((1 + (1 + 8 * dates) ** 0.5) / 2))}) | {prf} | "
-            f"{100 * g['flagged_in_regions']:.2f} % | {iou} | {100 * px['predicted_changed_share']:.2f} % | {found} | "
-            f"{rg['false_regions']} ({rg['pairs']}) | {100 * o['flagged_changed_o_only']:.1f} % | {base} |"
-        )
-    return "\n".join(lines)
+def cell_dir(work: Path, cell: tuple[str, int, int, int]) -> Path:
+    scene, width, height, views = cell
+    return work / f"{scene}_{width}x{height}_{views}"
 
 
-def object_breakdown(
-    model, evidence, table: dict, changed: dict, gt: dict, config, cameras, render_config
-) -> list[dict]:
-    """Per date pair, per direction (date a's Gaussians observed at date b) and per ground-truth object
-    with a changed truth or a flagged Gaussian: how many Gaussians, how many in a changed region (the
-    default detector), and their mean score. Shows where per-Gaussian precision and recall are lost."""
-    import numpy as np
-
-    from cfgs_jax.changes.regions import every_pair_regions
-
-    objects = np.asarray(table["objects"])
-    label = {int(o["id"]): o["name"] for o in gt["objects"]}
-    names, out = [d.name for d in model.dates], []
-    regions = every_pair_regions(evidence, model, config, cameras=cameras, render_config=render_config)
-    for p in range(model.num_dates):
-        for q in range(p + 1, model.num_dates):
-            member = regions[(p, q)][3]
-            for a, b in ((p, q), (q, p)):
-                entry = table["pairs"].get((a, b))
-                if entry is None:
-                    continue
-                rows = entry["rows"][entry["observed"]]
-                ids, flagged, score = objects[rows], member[rows] >= 0, evidence.score[rows, b]
-                for i in np.unique(ids):
-                    sel = ids == i
-                    truth = int(i) in changed.get((p, q), set())
-                    if truth or flagged[sel].any():
-                        out.append(
-                            {
-                                "pair": f"{names[p]}↔{names[q]}",
-                                "gaussians_of": names[a],
-                                "seen_at": names[b],
-                                "object": label.get(int(i), str(i)),
-                                "changed": truth,
-                                "gaussians": int(sel.sum()),
-                                "in_region": int(flagged[sel].sum()),
-                                "mean_score": float(score[sel].mean()),
-                            }
-                        )
+def fused_cell(out: Path) -> Path:
+    """``out``, checked to hold a fused run."""
+    if not (out / "run" / "run.json").is_file():
+        raise SystemExit(f"{out} is not fused: use `run`")
     return out
 
 
-def main():
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--run", help="a finished fusion run (read only)")
-    ap.add_argument("--data", help="its synthetic dataset root (ground_truth.json)")
-    ap.add_argument("--scene", help="the scene name (file names and titles)")
-    ap.add_argument("--summary", nargs="+", metavar="SCENE", help="print the README table of these scenes' results")
-    args = ap.parse_args()
-    if args.summary:
-        print(summary(args.summary))
-        return
-    if not (args.run and args.data and args.scene):
-        ap.error("--run, --data and --scene are required (or --summary)")
+def fuse(work: Path, cell: tuple[str, int, int, int]) -> Path:
+    """The cell's fused run (``eval --part fusion``; skipped when its run is exported already)."""
+    scene, width, height, views = cell
+    out = cell_dir(work, cell)
+    state = out / "run" / "run.json"
+    if state.is_file() and "export" in json.loads(state.read_text()).get("done", []):
+        return out
+    config = HERE / f"change_sweep_{width}x{height}.toml"
+    if not config.is_file():
+        raise SystemExit(f"no fusion configuration for {width}×{height}: write {config}")
+    cmd = [sys.executable, "-m", "cfgs_jax.pipeline", "eval", "--scene", scene, "--config", str(config)]
+    cmd += ["--set", f"scene.images_per_date={views}", "--set", "eval.change_detection=false"]
+    cmd += ["--out", str(out), "--part", "fusion", "--no-progress"] + (["--resume"] if out.exists() else [])
+    print("+", shlex.join(cmd), flush=True)
+    subprocess.run(cmd, check=True)
+    return out
+
+
+def prepared(out: Path, config) -> dict:
+    """What scoring the fused cell ``out`` needs once, whatever the detector's setting: the run, its pair
+    statistics (computed with ``config``'s view rules, or read from the cell's cache), their seconds and
+    ``full_scorer``'s scoring function."""
+    from change_rules import _statistics, full_scorer
 
     from cfgs_jax.app.render_run import open_run
-    from cfgs_jax.changes import evidence_from, pair_statistics
-    from cfgs_jax.evaluation import scoring as gt_change
-    from cfgs_jax.evaluation.protocol import change_detection, date_masks
-    from cfgs_jax.evaluation.report import change_table, evidence_table, pr_curve_plot
-    from cfgs_jax.io.atomic import write_json, write_text
 
-    run_dir, data = Path(args.run), Path(args.data)
-    run = open_run(run_dir)
-    rc, default = run.config.render, run.config.changes
-    views = [run.date_views(d, default.views) for d in range(len(run.names))]
-    support = [run.date_cameras(d, "train") for d in range(len(run.names))]
-    t0 = time.perf_counter()
-    stats = pair_statistics(run.model, views, default, support_cameras=support, render_config=rc)
-    stats_s = time.perf_counter() - t0
-    result = change_detection(run.model, data, run.scenes, run.sims, rc, changes_config=default, statistics=stats)
-    gt = json.loads((data / "ground_truth.json").read_text())
-    names = list(run.names)
-    masks_test = date_masks(data, run.scenes, run.sims, names, "test")
-    masks = date_masks(data, run.scenes, run.sims, names)
-    table = gt_change.gaussian_change_table(
-        run.model, masks, [m.cameras for m in masks], len(gt["objects"]), gt_change.OqRuleConfig(surface_threshold=0)
-    )
-    rows = []
-    other_stats = {}
-    for label, over in [("default", {})] + VARIANTS:
-        cfg = dataclasses.replace(default, **over)
-        key = (cfg.views, cfg.max_view_angle)
-        if key != (default.views, default.max_view_angle) and key not in other_stats:
-            other_views = [run.date_views(d, cfg.views) for d in range(len(run.names))]
-            other_stats[key] = (
-                other_views,
-                pair_statistics(run.model, other_views, cfg, support_cameras=support, render_config=rc),
-            )
-        v, st = other_stats.get(key, (views, stats))
-        ev = (
-            result["evidence"]
-            if not over
-            else at_pixel_threshold(result["evidence"], over["pixel_threshold"])
-            if set(over) == {"pixel_threshold"}
-            else gt_change.evidence_detection(
-                run.model,
-                v,
-                table,
-                masks_test,
-                gt_change.changed_objects_by_pair(gt),
-                cfg,
-                render_config=rc,
-                statistics=st,
-            )
-        )
-        rows.append(
-            {
-                "variant": label,
-                "config": dataclasses.asdict(cfg),
-                "gaussians": ev["gaussians"],
-                "pixels": {k: v for k, v in ev["pixels"].items() if k != "by_threshold"},  # in "change" once
-                "regions": ev["regions"],
-            }
-        )
-    out = {
-        "scene": args.scene,
-        "run": str(run_dir),
-        "machine": machine(),
+    run = open_run(out / "run")
+    rc = run.config.render
+    stats, _, seconds = _statistics(run, out / "data", out / "change_sweep_cache", config, rc)
+    return {"run": run, "seconds": seconds, "scorer": full_scorer(run, out / "data", stats, rc)}
+
+
+def changes_config(overrides: list[str]):
+    """The checkout's ``[changes]`` defaults with ``overrides`` (``changes.KEY=VALUE``)."""
+    from cfgs_jax.changes import ChangesConfig
+    from cfgs_jax.config import apply_overrides, from_dict
+
+    return from_dict(ChangesConfig, apply_overrides({"changes": {}}, overrides)["changes"], where="changes")
+
+
+def score(out: Path, overrides: list[str], cell: dict | None = None) -> dict:
+    """The detector (the checkout's ``[changes]`` defaults with ``overrides``) on the fused cell ``out``,
+    scored against its ground truth, with the baselines and the detector's run time (``cell``: the
+    cell ``prepared`` already, else prepared here)."""
+    config = changes_config(overrides)
+    cell = cell or prepared(out, config)
+    run = cell["run"]
+    ev, regions_s = cell["scorer"](config)
+    g, px, reg = ev["gaussians"], ev["pixels"], ev["regions"]
+    cam = run.date_cameras(0, "test")[0]
+    return {
+        "cell": out.name,
+        "scene": out.name.split("_")[0],
+        "size": f"{int(cam.width)}x{int(cam.height)}",
+        "images_per_date": len(run.scenes[0].image_names),
+        "dates": len(run.names),
+        "gaussians": int(len(run.model.origin)),
+        "config": dict(ev["config"]),
+        "gaussian": {k: g[k] for k in g if not isinstance(g[k], dict)},
+        "pixels": {k: px[k] for k in ("iou", "all_iou", "predicted_changed_share", "gt_changed_share")},
+        "regions": reg,
+        "seconds": {"statistics": cell["seconds"].get("pair_statistics"), "regions_and_scoring": regions_s},
+        "overrides": overrides,
         "date": datetime.date.today().isoformat(),
-        "command": "python benchmarks/bench_change.py " + " ".join(sys.argv[1:]),
-        "statistics_seconds": stats_s,
-        "gaussians": len(run.model),
-        "change": result,
-        "ablation": rows,
-        "by_object": object_breakdown(
-            run.model,
-            evidence_from(stats, run.model.gaussians.means, default),
-            table,
-            gt_change.changed_objects_by_pair(gt),
-            gt,
-            default,
-            [v.cameras for v in views],
-            rc,
-        ),  # fmt: skip
     }
-    name = f"change_{args.scene}"
-    write_json(RESULTS / f"{name}.json", out)
-    pr_curve_plot(RESULTS / f"{name}_pr.png", result, args.scene)
-    g, e0 = result["gaussians"], result["evidence"]["gaussians"]
+
+
+def threshold_curve(work: Path, cells: list, taus: list[float], overrides: list[str]) -> None:
+    """Detector and score-alone F1, P, R and pixel IoU at each τ on fused ``cells`` (the other keys as set):
+    how far any choice of the threshold, fixed or per cell, can move each cell."""
+    rows = []
+    for cell in cells:
+        out = fused_cell(cell_dir(work, cell))
+        ready = prepared(out, changes_config(overrides))  # τ does not enter the pair statistics
+        for tau in taus:
+            r = score(out, overrides + [f"changes.threshold={tau}"], ready)
+            g = r["gaussian"]
+            rows.append({"cell": out.name, "tau": tau, "gaussian": g, "pixels": r["pixels"]})
+            print(f"{out.name} τ={tau}: F1 {g['f1']:.3f} (score alone {g['score_f1']:.3f})", flush=True)
+    command = shlex.join(["python", "benchmarks/bench_change.py", *sys.argv[1:]])
     lines = [
-        f"# Change detection: `{args.scene}` ({len(names)} dates, {len(run.model):,} Gaussians)",
+        "# The change detector's F1 against its threshold τ (bench_change.py threshold)",
         "",
-        f"Machine: {out['machine']}. Date: {out['date']}. Command: `{out['command']}`. The residual sums of "
-        f"all {len(stats.pairs)} ordered date pairs ({default.views} views) took {stats_s:.1f} s. PR curves: `{name}_pr.png`.",
+        f"Command: `{command}`. Machine: {machine()}. Date: {datetime.date.today().isoformat()}. Each cell fused once "
+        "(as the sweep's); τ the only key changed (the other `[changes]` defaults). Best per cell in bold.",
+        "",
+        "| cell | τ | P / R / F1 | score alone P / R / F1 | pixel IoU |",
+        "|---|---:|---|---|---:|",
     ]
-    lines += evidence_table(result["evidence"])
-    lines += [
-        "",
-        "## Ablation (each row one setting for every scene; ground truth only scores)",
-        "",
-        "Per Gaussian: truth = its object changed (precision / recall / F1), and F1 with truth = most of its "
-        "weight on changed pixels (the o^q rules' original label).",
-        "",
-        "| detector | Precision | Recall | F1 | F1 (pixel label) | flagged | pixel IoU | objects found | false regions |",
-        "|---|---:|---:|---:|---:|---:|---:|---:|---:|",
-        f"| o^q < 0.2 (observed) | {e0['o_precision']:.3f} | {e0['o_recall']:.3f} | {e0['o_f1']:.3f} | "
-        f"{g['f1_o_only']:.3f} | {100 * g['flagged_changed_o_only']:.2f} % | – | – | – |",
-        f"| o^q < 0.2 and surface effect > {g['surface_threshold']} | – | – | – | {g['f1']:.3f} | "
-        f"{100 * g['flagged_changed']:.2f} % | {result['pixels']['iou']:.3f} (|S−1| > 0.8) | – | – |",
-    ]
-    for r in rows:
-        e, px, rg = r["gaussians"], r["pixels"], r["regions"]
-        lines.append(
-            f"| evidence: {r['variant']} | {e['precision']:.3f} | {e['recall']:.3f} | {e['f1']:.3f} | "
-            f"{e['pixel_label_f1']:.3f} | {100 * e['flagged_in_regions']:.2f} % | {px['iou']:.3f} | {rg['found_objects']} / {rg['changed_objects']} | "
-            f"{rg['false_regions']} |"
+    for cell in dict.fromkeys(r["cell"] for r in rows):
+        mine = [r for r in rows if r["cell"] == cell]
+        best = max(r["gaussian"]["f1"] for r in mine)
+        for r in mine:
+            g = r["gaussian"]
+            f1 = f"**{g['f1']:.3f}**" if g["f1"] == best else f"{g['f1']:.3f}"
+            lines.append(
+                f"| {cell} | {r['tau']:.2f} | {g['precision']:.3f} / {g['recall']:.3f} / {f1} | "
+                f"{g['score_precision']:.3f} / {g['score_recall']:.3f} / {g['score_f1']:.3f} | {r['pixels']['iou']:.3f} |"
+            )
+    (RESULTS / "change_threshold_curve.json").write_text(json.dumps({"command": command, "rows": rows}, indent=1))
+    (RESULTS / "change_threshold_curve.md").write_text("\n".join(lines) + "\n")
+
+
+def _entries(run, data: Path, stats) -> dict:
+    """The scored entries of a fused cell as the evaluation takes them (``change_table``: Gaussians of p
+    observed at q): per pair (p, q) the Gaussians' rows, their positions in the pair statistics and the
+    object truth; and each Gaussian's object."""
+    from change_rules import change_table
+
+    from cfgs_jax.evaluation import scoring
+
+    gt, _, _, table = change_table(run, data, run.config.render)
+    changed = scoring.changed_objects_by_pair(gt)
+    objects = np.asarray(table["objects"])
+    pairs = {}
+    for (p, q), v in table["pairs"].items():
+        rows = v["rows"][v["observed"]]
+        truth = np.isin(objects[rows], sorted(changed.get((min(p, q), max(p, q)), ())))
+        pairs[(p, q)] = (rows, np.searchsorted(stats.pairs[(p, q)][0], rows), truth)
+    return {"pairs": pairs, "objects": objects, "changed": changed}
+
+
+def _prf(pred: np.ndarray, truth: np.ndarray) -> tuple[float, float, float]:
+    tp, fp, fn = int((pred & truth).sum()), int((pred & ~truth).sum()), int((~pred & truth).sum())
+    p, r = tp / max(tp + fp, 1), tp / max(tp + fn, 1)
+    return p, r, 2 * p * r / max(p + r, 1e-12)
+
+
+def depth_gap(run, p: int, q: int, views) -> np.ndarray:
+    """[N_p] per Gaussian of date p, (D⁻ − z)/z averaged over q's views with its compositing weight: D⁻ the
+    depth of what q's render shows without date p's Gaussians (1 where that render is under half opaque), z
+    the Gaussian's depth. About 0 for a Gaussian on a surface that q still shows, above 0 for one in front
+    of it (an object q no longer holds, or a floater)."""
+    import jax.numpy as jnp
+
+    from cfgs_jax import splat
+    from cfgs_jax.model import light_multipliers, opacity_multipliers
+
+    model, rc = run.model, run.config.render
+    g, origin = model.gaussians, np.asarray(model.origin)
+    o = np.asarray(opacity_multipliers(model), np.float32)
+    mine = origin == p
+    present = jnp.asarray(np.where(mine, o[:, p], o[:, q])[None])
+    absent = jnp.asarray(np.where(mine, 0.0, o[:, q])[None])
+    light = jnp.asarray(np.asarray(light_multipliers(model))[:, q][None], jnp.float32)
+    means = jnp.asarray(g.means)
+    total, weight = np.zeros(len(origin)), np.zeros(len(origin))
+    for cam in views[q].cameras:
+        cfg = dataclasses.replace(
+            rc, capacity=splat.required_capacity(g, cam, jnp.concatenate([present, absent]), config=rc)
         )
-    lines += [
+        res = splat.render_dates(g, cam, absent, light, config=cfg, with_depth=True)
+        shown = jnp.where(res.alpha[0] > 0.5, res.depth[0] / jnp.maximum(res.alpha[0], 1e-6), jnp.inf)
+        maps = jnp.stack([jnp.ones_like(shown), jnp.minimum(shown, 1e6)])[:, None]
+        w, wd = (np.asarray(x, np.float64) for x in splat.summed_weight_maps(g, cam, present, maps, config=cfg)[:, 0])
+        z = np.maximum(np.asarray((means @ cam.rotation.T + cam.translation)[:, 2], np.float64), 1e-9)
+        total += w * np.clip((wd / np.maximum(w, 1e-30) - z) / z, -1.0, 1.0)
+        weight += w
+    return (total / np.maximum(weight, 1e-30))[mine]
+
+
+def probe(work: Path, cells: list) -> None:
+    """Per fused cell: the score alone (s > 0.5, no regions) under other evidence rules, and where the
+    default's errors lie (by object; a false entry's distance to the nearest changed object over that
+    object's radius; the depth gap ``depth_gap`` of its errors and hits)."""
+    from change_rules import _statistics
+
+    from cfgs_jax.app.render_run import open_run
+    from cfgs_jax.changes import ChangesConfig, evidence_from
+    from cfgs_jax.changes.evidence import pooled_evidence
+    from cfgs_jax.io.run_dir import date_views
+
+    rules = {
+        "default (γ ∈ [1/3, 3], pool 1e-3, τ 0.06)": {},
+        "no gain (γ = 1)": {"gain_range": (1.0, 1.0)},
+        "γ ∈ [0.8, 1.25]": {"gain_range": (0.8, 1.25)},
+        "pool 1e-4": {"pool_area": 1e-4},
+        "pool 3e-3": {"pool_area": 3e-3},
+        "τ 0.04": {"threshold": 0.04},
+    }
+    command = shlex.join(["python", "benchmarks/bench_change.py", *sys.argv[1:]])
+    lines = [
+        "# What limits the change evidence (bench_change.py probe)",
         "",
-        "## Per object (default detector)",
+        f"Command: `{command}`. Machine: {machine()}. Date: {datetime.date.today().isoformat()}. Per cell the score "
+        "alone (s > 0.5, no regions; P / R / F1 per Gaussian against the objects that changed) under other evidence "
+        "rules; the ratio rule flags 1 − √(E⁻/E⁺) > ρ on the pooled residuals. Errors of the default: entries by "
+        "object; a false entry's distance to the nearest changed object's centre in that object's radii; the depth "
+        "gap (D⁻ − z)/z of the render without date p at q's views (0: on a surface q still shows).",
         "",
-        "Each date's Gaussians observed at the other date of the pair, by ground-truth object: those of a changed "
-        "object should all lie in a changed region, those of an unchanged one (the ground) in none.",
-        "",
-        "| pair | Gaussians of | seen at | object | changed | Gaussians | in a changed region | mean score |",
-        "|---|---|---|---|---|---:|---:|---:|",
     ]
-    lines += [
-        f"| {b['pair']} | {b['gaussians_of']} | {b['seen_at']} | {b['object']} | {'yes' if b['changed'] else 'no'} | "
-        f"{b['gaussians']:,} | {b['in_region']:,} | {b['mean_score']:.2f} |"
-        for b in out["by_object"]
+    for cell in cells:
+        out = fused_cell(cell_dir(work, cell))
+        run, data = open_run(out / "run"), out / "data"
+        stats, _, _ = _statistics(run, data, out / "change_sweep_cache", ChangesConfig(), run.config.render)
+        ent = _entries(run, data, stats)
+        means = np.asarray(run.model.gaussians.means, np.float64)
+        truth = np.concatenate([t for _, _, t in ent["pairs"].values()])
+        lines += [f"## {out.name}", "", "| rule | P / R / F1 |", "|---|---|"]
+        for name, keys in rules.items():
+            ev = evidence_from(stats, means, ChangesConfig(**keys))
+            pred = np.concatenate([ev.score[r, q] > 0.5 for (p, q), (r, _, _) in ent["pairs"].items()])
+            lines.append(f"| {name} | {' / '.join(f'{x:.3f}' for x in _prf(pred, truth))} |")
+        ev = evidence_from(stats, means, ChangesConfig())
+        plus = {}  # pooled √E⁺: the evidence with E⁻ made 0 (A⁻ = B⁻ = C fits γ = 1 exactly)
+        for (p, q), (rows, sums, seen) in stats.pairs.items():
+            only = sums.copy()
+            only[:, 3] = only[:, 4] = only[:, 5]
+            plus[(p, q)] = pooled_evidence(only, means[rows], seen, ChangesConfig(), sums[:, 0] / stats.pixels[q])
+        for rho in (0.5, 0.6):
+            pred = [
+                ev.observed[r, q] & (ev.evidence[r, q] > rho * plus[(p, q)][pos])
+                for (p, q), (r, pos, _) in ent["pairs"].items()
+            ]
+            lines.append(
+                f"| ratio rule ρ {rho} | {' / '.join(f'{x:.3f}' for x in _prf(np.concatenate(pred), truth))} |"
+            )
+        views = [date_views(sc, sm, "all") for sc, sm in zip(run.scenes, run.sims)]
+        origin, objects = np.asarray(run.model.origin), ent["objects"]
+        gaps, false_obj, miss_obj, dist = {"hit": [], "miss": [], "false": [], "true negative": []}, {}, {}, []
+        for (p, q), (r, _, t) in ent["pairs"].items():
+            pred = ev.score[r, q] > 0.5
+            gap = depth_gap(run, p, q, views)[np.searchsorted(np.nonzero(origin == p)[0], r)]
+            for key, sel in (
+                ("hit", pred & t),
+                ("miss", ~pred & t),
+                ("false", pred & ~t),
+                ("true negative", ~pred & ~t),
+            ):
+                gaps[key].append(gap[sel])
+            for o in objects[r][pred & ~t]:
+                false_obj[int(o)] = false_obj.get(int(o), 0) + 1
+            for o in objects[r][~pred & t]:
+                miss_obj[int(o)] = miss_obj.get(int(o), 0) + 1
+            ch = sorted(ent["changed"].get((min(p, q), max(p, q)), ()))
+            if ch and (pred & ~t).any():
+                centre = np.stack([means[objects == c].mean(0) for c in ch])
+                radius = np.array(
+                    [np.linalg.norm(means[objects == c] - centre[k], axis=1).max() for k, c in enumerate(ch)]
+                )
+                d = np.linalg.norm(means[r][pred & ~t][:, None] - centre[None], axis=2)
+                dist.append((d / radius).min(1))
+        q3 = lambda x: " / ".join(f"{v:.3f}" for v in np.quantile(x, [0.1, 0.5, 0.9])) if len(x) else "–"
+        lines += [
+            "",
+            f"Errors of the default: misses by object {dict(sorted(miss_obj.items()))}, false entries by object "
+            f"{dict(sorted(false_obj.items()))}; false entries' distance to the nearest changed object (radii, "
+            f"10 / 50 / 90 %): {q3(np.concatenate(dist)) if dist else '–'}.",
+            "",
+            "| entries | count | depth gap 10 / 50 / 90 % |",
+            "|---|---:|---|",
+        ]
+        for key, v in gaps.items():
+            v = np.concatenate(v)
+            lines.append(f"| {key} | {len(v)} | {q3(v)} |")
+        lines.append("")
+        print("\n".join(lines[-12:]), flush=True)
+    (RESULTS / "change_probe.md").write_text("\n".join(lines) + "\n")
+
+
+def merged_rows(rows: list[dict], earlier: Path) -> list[dict]:
+    """``rows`` (scored now, under WORK) and the rows of the ``earlier`` results file whose cells they do not
+    hold and that were scored with the same detector setting, those marked ``kept`` (scored on an earlier
+    machine with the same command; ``date`` says when, where the row records it). A row of another setting
+    is dropped and named: its cell must be fused again to be scored with this one."""
+    if not earlier.is_file():
+        return rows
+    have, settings = {r["cell"] for r in rows}, [r["config"] for r in rows]
+    kept = []
+    for r in json.loads(earlier.read_text())["rows"]:
+        if r["cell"] in have:
+            continue
+        if r["config"] in settings:
+            kept.append(dict(r, kept=True))
+        else:
+            print(f"dropped {r['cell']}: scored with another [changes] setting; fuse and score it again", flush=True)
+    return rows + kept
+
+
+def _kinds(regions: dict) -> str:
+    """Regions naming their true kind of change, per kind: "moved 1/2, appeared 3/3"."""
+    kinds = regions.get("kinds") or {}
+    return ", ".join(f"{k} {v['named']}/{v['regions']}" for k, v in sorted(kinds.items())) or "–"
+
+
+def markdown(rows: list[dict], command: str) -> str:
+    lines = [
+        "# The change detector across scenes, sizes and view counts (bench_change.py)",
+        "",
+        f"Command: `{command}`. Machine: {machine()}. Date: {datetime.date.today().isoformat()}. Each row one fused "
+        "cell (`eval --part fusion`, `benchmarks/change_sweep_WxH.toml`, the exact Sim(3)s), scored with one "
+        "`[changes]` setting for every cell; views: images per date (every 8th a test view). Per Gaussian the truth is "
+        "its object changed between the two dates (P / R / F1 of region membership); beside it the truth that follows "
+        "the surface (most of the Gaussian's weight on pixels whose surface differs). Baselines on the same entries: "
+        "flag everything, the o^q < 0.2 rule, the score alone (s > 0.5, no regions); pixel IoU against flagging every "
+        "pixel. Detector seconds: the pair statistics (the renders; cached, so a rescore reports their first run) and "
+        "the regions with the scoring. Kinds named: of the regions whose majority object changed, how many name its kind "
+        "(appeared, disappeared, moved, changed shape, changed surface). † a row kept from the table before (its cell "
+        "scored on an earlier machine; its date, where recorded, in the JSON).",
+        "",
+        "| scene | size | views | Gaussians | P / R / F1 | F1: flag all / o^q / score alone | recall − score alone's | "
+        "F1, surface truth | pixel IoU (flag all) | objects found | false regions | kinds named | detector s |",
+        "|---|---|---:|---:|---|---|---:|---:|---|---:|---:|---|---:|",
     ]
-    lines += change_table(result)
-    write_text(RESULTS / f"{name}.md", "\n".join(lines) + "\n")
-    print("\n".join(lines[:16]))
+    for r in sorted(rows, key=lambda r: (r["scene"], r["size"], r["images_per_date"])):
+        g, px, reg = r["gaussian"], r["pixels"], r["regions"]
+        pi = g.get("gt_changed", 0.0)
+        flag_all = 2 * pi / (1 + pi) if pi else float("nan")
+        stats_s = r["seconds"]["statistics"]
+        secs = f"{stats_s:.0f} + {r['seconds']['regions_and_scoring']:.0f}" if stats_s else "–"
+        lines.append(
+            f"| {r['scene']}{' †' if r.get('kept') else ''} ({r['dates']}) | {r['size']} | {r['images_per_date']} | {r['gaussians']:,} | "
+            f"{g['precision']:.3f} / {g['recall']:.3f} / **{g['f1']:.3f}** | "
+            f"{flag_all:.3f} / {g['o_f1']:.3f} / {g['score_f1']:.3f} | {g['recall'] - g['score_recall']:+.3f} | "
+            f"{g['pixel_label_f1']:.3f} | "
+            f"**{px['iou']:.3f}** ({px['all_iou']:.3f}) | {reg['found_objects']} / {reg['changed_objects']} | "
+            f"{reg['false_regions']} ({reg['pairs']} pairs) | {_kinds(reg)} | {secs} |"
+        )
+    return "\n".join(lines) + "\n"
+
+
+SWEEP = {
+    "run": "fuse each cell (resumable) and score it",
+    "score": "score fused cells again",
+    "table": "gather the scored cells into results/NAME.md and .json",
+    "threshold": "F1 against the threshold τ on fused cells",
+    "probe": "what limits the evidence on fused cells",
+}
+
+
+def readme_table(readme: Path = RESULTS.parents[1] / "README.md", sweep: Path = RESULTS / "change_sweep.md") -> None:
+    """Copy the table of ``sweep`` (results/change_sweep.md) between ``readme``'s ``<!-- change-sweep -->``
+    markers, so the README's figures are the sweep's, copied by a command and not by hand."""
+    import re
+
+    table = "\n".join(line for line in sweep.read_text().splitlines() if line.startswith("|"))
+    text = readme.read_text()
+    block = re.compile(r"<!-- change-sweep -->\n.*?<!-- /change-sweep -->", re.S)
+    if not block.search(text):
+        raise SystemExit("README.md has no <!-- change-sweep --> … <!-- /change-sweep --> block")
+    readme.write_text(block.sub(lambda _: f"<!-- change-sweep -->\n{table}\n<!-- /change-sweep -->", text))
+
+
+def main(argv: list[str] | None = None):
+    argv = sys.argv[1:] if argv is None else argv
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    sub = ap.add_subparsers(dest="action", required=True)
+    for action, text in SWEEP.items():
+        p = sub.add_parser(action, help=text)
+        p.add_argument("work", help="the folder holding one subfolder per cell")
+        p.add_argument("cells", nargs="*", metavar="SCENE:WxH:V")
+        p.add_argument("--set", dest="overrides", action="append", default=[], metavar="changes.KEY=VALUE")
+        p.add_argument("--name", default="change_sweep", help="results file stem (table)")
+        p.add_argument("--tau", default="0.03,0.04,0.05,0.06,0.08,0.10", help="thresholds τ (threshold)")
+    sub.add_parser("readme", help="copy results/change_sweep.md's table into README.md")
+    for action, text in (("rules", "region rules compared on one run"), ("cost", "the residual sums' cost")):
+        sub.add_parser(action, help=f"{text} (its own options: {action} --help)", add_help=False)
+    args, rest = ap.parse_known_args(argv)
+    if args.action in ("rules", "cost"):
+        import change_cost
+        import change_rules
+
+        return {"rules": change_rules, "cost": change_cost}[args.action].main(rest)
+    if rest:
+        ap.error(f"unrecognised arguments: {' '.join(rest)}")
+    if args.action == "readme":
+        return readme_table()
+    work = Path(args.work)
+    if args.action == "table":
+        rows = [json.loads(p.read_text()) for p in sorted(work.glob(f"*/{ROW}"))]
+        if not rows:
+            raise SystemExit(f"no scored cells under {work}: run `score` first")
+        rows = merged_rows(rows, RESULTS / f"{args.name}.json")
+        command = shlex.join(["python", "benchmarks/bench_change.py", *sys.argv[1:]])
+        (RESULTS / f"{args.name}.json").write_text(json.dumps({"command": command, "rows": rows}, indent=1))
+        (RESULTS / f"{args.name}.md").write_text(markdown(rows, command))
+        print((RESULTS / f"{args.name}.md").read_text())
+        return
+    if not args.cells:
+        ap.error("name the cells, e.g. flood:80x60:10")
+    if args.action == "probe":
+        probe(work, [parse_cell(c) for c in args.cells])
+        return
+    if args.action == "threshold":
+        threshold_curve(
+            work, [parse_cell(c) for c in args.cells], [float(v) for v in args.tau.split(",")], args.overrides
+        )
+        return
+    for text in args.cells:
+        cell = parse_cell(text)
+        out = fused_cell(fuse(work, cell) if args.action == "run" else cell_dir(work, cell))
+        row = score(out, args.overrides)
+        (out / ROW).write_text(json.dumps(row, indent=1))
+        g = row["gaussian"]
+        print(f"{out.name}: F1 {g['f1']:.3f}, pixel IoU {row['pixels']['iou']:.3f}", flush=True)
 
 
 if __name__ == "__main__":

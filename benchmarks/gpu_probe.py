@@ -12,6 +12,7 @@ incomplete, so it reports only whether it compiled and ran.
 
 from __future__ import annotations
 
+import argparse
 import subprocess
 import sys
 import time
@@ -122,8 +123,11 @@ def probe(name: str) -> str:
 
 
 def main():
-    if len(sys.argv) > 1:
-        print(probe(sys.argv[1]), flush=True)
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("probe", nargs="?", choices=list(PROBES), help="run this probe alone (the child process)")
+    args = ap.parse_args()
+    if args.probe is not None:
+        print(probe(args.probe), flush=True)
         return
     t0 = time.time()
     run = lambda n: subprocess.Popen([sys.executable, __file__, n], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)  # fmt: skip

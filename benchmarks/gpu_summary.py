@@ -7,6 +7,7 @@ Runs nothing; writes ``results/gpu_summary.md`` (the README's "On a GPU" table) 
 
 from __future__ import annotations
 
+import argparse
 import json
 import re
 import sys
@@ -82,6 +83,7 @@ def table() -> str:
 
 
 def main() -> None:
+    argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter).parse_args()
     text = "\n".join(
         [
             "# Accelerator figures side by side",

@@ -10,7 +10,7 @@ finished fusion run and the first V of its views, every other date's Gaussians a
 
 Every method's sums are checked against the first's (largest relative difference reported).
 
-    python benchmarks/bench_change_cost.py --run RUN [--date 1] [--views 6] [--per-pass 1 4]
+    python benchmarks/bench_change.py cost --run RUN [--date 1] [--views 6] [--per-pass 1 4]
 
 Writes benchmarks/results/NAME.json and NAME.md (``--name``, default change_cost).
 """
@@ -88,14 +88,17 @@ def _gradient_sums(model, dates, q, cameras, images, rc):
     return out
 
 
-def main():
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+def main(argv: list[str]):
+    """``bench_change.py cost``: parse ``argv``, measure and write the results."""
+    ap = argparse.ArgumentParser(
+        prog="bench_change.py cost", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     ap.add_argument("--run", required=True, help="a finished fusion run (read only)")
     ap.add_argument("--date", type=int, default=1, help="the observing date q (index)")
     ap.add_argument("--views", type=int, default=6, help="the first V of q's views")
     ap.add_argument("--per-pass", type=int, nargs="+", default=[1, 4], help="dates per pass of the forward walk")
     ap.add_argument("--name", default="change_cost")
-    args = ap.parse_args()
+    args = ap.parse_args(argv)
 
     import numpy as np
 
@@ -145,7 +148,7 @@ def main():
         )
         print(rows[-1], flush=True)
 
-    command = f"python benchmarks/bench_change_cost.py --run {args.run} --date {q} --views {args.views} --per-pass {' '.join(map(str, args.per_pass))}"
+    command = f"python benchmarks/bench_change.py cost --run {args.run} --date {q} --views {args.views} --per-pass {' '.join(map(str, args.per_pass))}"
     result = {
         "command": command,
         "machine": machine(),
@@ -159,7 +162,7 @@ def main():
     }
     base = rows[0]["seconds"]
     lines = [
-        "# The change detector's residual sums: cost per method (bench_change_cost.py)",
+        "# The change detector's residual sums: cost per method (bench_change.py cost)",
         "",
         f"Command: `{command}`. Machine: {result['machine']}. Date: {result['date']}. Model: "
         f"{result['gaussians']:,} Gaussians, {result['dates']} dates; observing date {q}, its first "
@@ -179,7 +182,3 @@ def main():
     write_json(RESULTS / f"{args.name}.json", result)
     write_text(RESULTS / f"{args.name}.md", "\n".join(lines) + "\n")
     print("\n".join(lines))
-
-
-if __name__ == "__main__":
-    main()

@@ -9,7 +9,7 @@ evaluation scores them (``evaluation.scoring.region_scores``: a region is true w
 Gaussians belong to an object whose presence differs between the two dates): changed objects found,
 false regions, and for every false region its size and its dominant object.
 
-    python benchmarks/bench_change_regions.py --run RUN --data DATA --scene NAME --cache DIR \
+    python benchmarks/bench_change.py rules --run RUN --data DATA --scene NAME --cache DIR \
         [--rule LABEL changes.KEY=VALUE ...]...
 
 ``--full`` also scores every rule as the evaluation does (``evaluation.protocol.change_detection``
@@ -210,7 +210,7 @@ def full_summary(ev: dict, seconds: float) -> dict:
 
 def markdown(r: dict) -> str:
     lines = [
-        f"# Change regions by rule: {r['scene']} (bench_change_regions.py)",
+        f"# Change regions by rule: {r['scene']} (bench_change.py rules)",
         "",
         f"Command: `{r['command']}`. Machine: {r['machine']}. Date: {r['date']}. Run: {r['gaussians']:,} Gaussians, "
         f"{r['dates']} dates. Cached pair statistics took {r['seconds'].get('pair_statistics', float('nan')):.0f} s "
@@ -263,8 +263,11 @@ def markdown(r: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
-def main():
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+def main(argv: list[str]):
+    """``bench_change.py rules``: parse ``argv`` and write the results."""
+    ap = argparse.ArgumentParser(
+        prog="bench_change.py rules", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     ap.add_argument("--run", required=True, help="a finished fusion run (read only)")
     ap.add_argument("--data", required=True, help="its synthetic dataset root (ground_truth.json)")
     ap.add_argument("--scene", required=True, help="the scene name (file names and titles)")
@@ -282,7 +285,7 @@ def main():
         metavar="LABEL [changes.KEY=VALUE ...]",
         help="a region rule: a label and overrides of the run's [changes] table (default row always first)",
     )
-    args = ap.parse_args()
+    args = ap.parse_args(argv)
 
     from cfgs_jax.config import apply_overrides
     from cfgs_jax.evaluation.scoring import changed_objects_by_pair
@@ -298,7 +301,7 @@ def main():
         rules[label] = RunConfig.parse(apply_overrides(raw, overrides)).changes
     out = {
         "scene": args.scene,
-        "command": shlex.join(["python", "benchmarks/bench_change_regions.py", *sys.argv[1:]]),
+        "command": shlex.join(["python", "benchmarks/bench_change.py", "rules", *argv]),
         "machine": machine(),
         "date": datetime.date.today().isoformat(),
         "gaussians": len(run.model.origin),
@@ -317,7 +320,3 @@ def main():
     stem = RESULTS / f"change_regions_{args.scene}"
     stem.with_suffix(".json").write_text(json.dumps(out, indent=1))
     stem.with_suffix(".md").write_text(markdown(out))
-
-
-if __name__ == "__main__":
-    main()

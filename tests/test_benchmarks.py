@@ -1,0 +1,59 @@
+"""The benchmark suite's entry points: each one's usage, and the README's change table as its command
+writes it."""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import runpy
+import shutil
+import sys
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+ENTRY_POINTS = sorted(p for p in (REPO / "benchmarks").glob("*.py") if '__name__ == "__main__"' in p.read_text())
+
+
+def _run(script: Path, *args: str) -> tuple[int, str]:
+    """``python script args`` in this process → (exit code, what it printed)."""
+    out, argv, path = io.StringIO(), sys.argv, list(sys.path)
+    sys.argv = [str(script), *args]
+    try:
+        with contextlib.redirect_stdout(out):
+            runpy.run_path(str(script), run_name="__main__")
+        code = 0
+    except SystemExit as exc:
+        code = 0 if exc.code is None else exc.code
+    finally:
+        sys.argv, sys.path[:] = argv, path
+    return code, out.getvalue()
+
+
+@pytest.mark.parametrize("script", ENTRY_POINTS, ids=lambda p: p.name)
+def test_every_benchmark_entry_point_shows_its_usage_and_runs_nothing_with_help(script):
+    """``--help`` on every benchmark entry point exits 0 with a usage line and leaves the results
+    folder as it was (an import error, or a script that runs without parsing its options, fails)."""
+    results = REPO / "benchmarks" / "results"
+    before = {p.name: p.stat().st_mtime_ns for p in results.iterdir()}
+    code, text = _run(script, "--help")
+    assert code == 0 and text.lower().startswith("usage:"), (code, text[:200])
+    assert {p.name: p.stat().st_mtime_ns for p in results.iterdir()} == before
+
+
+def test_the_readme_change_table_is_what_the_sweeps_readme_command_writes(tmp_path):
+    """`bench_change.py readme` run on a copy of the README leaves it unchanged: the README's change table
+    is results/change_sweep.md's, not edited by hand."""
+    sys.path.insert(0, str(REPO / "benchmarks"))
+    try:
+        import bench_change
+    finally:
+        sys.path.remove(str(REPO / "benchmarks"))
+    copy = tmp_path / "README.md"
+    shutil.copy(REPO / "README.md", copy)
+    bench_change.readme_table(copy)
+    assert copy.read_text() == (REPO / "README.md").read_text()
+    sweep = (REPO / "benchmarks" / "results" / "change_sweep.md").read_text()
+    rows = [line for line in sweep.splitlines() if line.startswith("| ") and "|---" not in line]
+    assert len(rows) > 2 and all(row in copy.read_text() for row in rows)
