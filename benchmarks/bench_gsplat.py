@@ -1,7 +1,7 @@
 """Our splatting kernel (both compositor backends) against gsplat's CUDA rasteriser, side by side in one
 process on one GPU: the same Gaussians and camera, forward and forward + backward, images compared.
 
-Cases: 100k random Gaussians at 640×480 (``bench_splat.synthetic``), the real ``donut`` model at
+Cases: 100k random Gaussians at 640×480 (``kernel_splat.synthetic``), the real ``donut`` model at
 640×480, 1M random at 1920×1080, the donut at 1920×1080. Timed: the image (forward) and
 ``value_and_grad`` of mean|image − target| with respect to every raw parameter (forward + backward),
 medians of ``--reps`` after a warm-up, synchronised. gsplat: ``gsplat.rasterization`` with activated
@@ -28,8 +28,8 @@ import traceback
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_splat import case, scene
 from common import RESULTS, backend_suffix, machine
+from kernel_splat import case, scene
 
 CASES = {name: case(name) for name in ("100k@640x480", "donut@640x480", "1M@1920x1080", "donut@1920x1080")}
 SWEEP_CASES = ("donut@1920x1080", "1M@1920x1080")

@@ -9,6 +9,7 @@ import json
 import os
 import platform
 import re
+import sys
 import time
 from pathlib import Path
 
@@ -134,7 +135,6 @@ def result_header(args: argparse.Namespace) -> dict:
     arguments), the date, the machine and the parsed arguments."""
     import datetime
     import shlex
-    import sys
 
     return {
         "command": "python benchmarks/" + Path(sys.argv[0]).name + " " + " ".join(shlex.quote(a) for a in sys.argv[1:]),
@@ -172,3 +172,22 @@ def random_scene(n: int, seed: int, width: int, height: int):
         f32(rng.uniform(-0.1, 1.1, (n, 3))),
     )
     return g, cj.Camera.look_at([0, -4, 1], [0, 0, 0], width=width, height=height, fov_x_deg=50)
+
+
+def dispatch(entry: str, doc: str, commands: dict[str, tuple[str, str]], argv: list[str] | None = None) -> None:
+    """A topic's entry point: ``commands`` maps each subcommand to (the module beside this one that runs it,
+    one line of help). ``python benchmarks/ENTRY.py NAME ARGS…`` imports the module and calls its
+    ``main()`` with ``sys.argv`` = ["…/ENTRY.py NAME", ARGS…], so the module parses its own options (its
+    usage and the command its results record read ``ENTRY.py NAME``); ``NAME --help`` shows them."""
+    import importlib
+
+    ap = argparse.ArgumentParser(
+        prog=Path(entry).name, description=doc, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    sub = ap.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    for name, (_, text) in commands.items():
+        sub.add_parser(name, help=text, add_help=False)
+    args, rest = ap.parse_known_args(sys.argv[1:] if argv is None else argv)
+    module = importlib.import_module(commands[args.command][0])
+    sys.argv = [f"{entry} {args.command}", *rest]
+    module.main()

@@ -22,7 +22,7 @@ fi
 timeout 100 python3 benchmarks/gpu_probe.py | tee "$OUT/probe.txt"
 chosen=""
 # preference (probe, walk, chunk, warps, scatter): the block walk at K = 8 with per-slot partials (no register
-# spills, no fence and no atomic in its SASS on sm_90 by benchmarks/triton_compile.py), the same with atomic
+# spills, no fence and no atomic in its SASS on sm_90 by benchmarks/bench_kernel.py triton), the same with atomic
 # adds, the serial walk, then the block walk at K = 32; a variant is taken
 # where it compiled and every output agreed with the XLA kernel to 1e-3 (relative to its largest value)
 agrees() {
@@ -53,12 +53,12 @@ if [ -n "$chosen" ]; then
     ${NO_GSPLAT:+--no-gsplat} --cases ${CASES:-100k@640x480 donut@640x480 1M@1920x1080 donut@1920x1080}
   echo "bench_gsplat rc=$? at $(( $(date +%s) - t0 )) s"
   # a frame's time by stage (project, bin, composite, their backward), both compositors
-  timeout "${SPLIT_TIMEOUT:-60}" python3 benchmarks/bench_frame_split.py --cases 100k@640x480 donut@1920x1080 \
+  timeout "${SPLIT_TIMEOUT:-60}" python3 benchmarks/bench_kernel.py frame-split --cases 100k@640x480 donut@1920x1080 \
     --backends xla pallas --reps 5
   echo "bench_frame_split rc=$? at $(( $(date +%s) - t0 )) s"
   cp benchmarks/results/frame_split_*_gpu.* "$OUT/" 2>/dev/null
   # SSIM's blur (banded products, against the one-channel convolutions that were cuDNN's here)
-  timeout "${SSIM_TIMEOUT:-40}" python3 benchmarks/bench_ssim.py --images 1x240x320 1x540x960 1x1080x1920 \
+  timeout "${SSIM_TIMEOUT:-40}" python3 benchmarks/bench_kernel.py ssim --images 1x240x320 1x540x960 1x1080x1920 \
     --step-case "" --reps 5
   echo "bench_ssim rc=$? at $(( $(date +%s) - t0 )) s"
   cp benchmarks/results/ssim_*_gpu.* "$OUT/" 2>/dev/null

@@ -1,4 +1,4 @@
-"""The accelerator figures side by side: every chip's ``bench_splat`` / ``bench_train`` result files
+"""The accelerator figures side by side: every chip's ``kernel_splat`` / ``bench_train`` result files
 (``results/*_<chip>_gpu.json``) against the 2-core CPU's (``results/splat.json``, ``results/train.json``).
 Runs nothing; writes ``results/gpu_summary.md`` (the README's "On a GPU" table) and prints it.
 
@@ -89,7 +89,7 @@ def main() -> None:
             "# Accelerator figures side by side",
             "",
             "Command: `python benchmarks/gpu_summary.py` (reads the result files, runs nothing). Each column is one",
-            "machine's `bench_splat.py`, `bench_splat.py --large` and `bench_train.py` files, dated in its header;",
+            "machine's `bench_kernel.py splat`, `bench_kernel.py splat --large` and `bench_train.py` files, dated in its header;",
             "the commands that made them are in those files.",
             "",
             table(),

@@ -16,6 +16,17 @@ REPO = Path(__file__).resolve().parents[1]
 ENTRY_POINTS = sorted(p for p in (REPO / "benchmarks").glob("*.py") if '__name__ == "__main__"' in p.read_text())
 
 
+def _subcommands() -> list[tuple[Path, str]]:
+    """(entry point, subcommand) of every topic entry point that dispatches to modules
+    (``common.dispatch``): each module's own options are reached through it."""
+    out = []
+    for script in ENTRY_POINTS:
+        if "dispatch(__file__" in script.read_text():
+            namespace = runpy.run_path(str(script), run_name="not_main")
+            out += [(script, name) for name in namespace["COMMANDS"]]
+    return out
+
+
 def _run(script: Path, *args: str) -> tuple[int, str]:
     """``python script args`` in this process → (exit code, what it printed)."""
     out, argv, path = io.StringIO(), sys.argv, list(sys.path)
@@ -40,6 +51,14 @@ def test_every_benchmark_entry_point_shows_its_usage_and_runs_nothing_with_help(
     code, text = _run(script, "--help")
     assert code == 0 and text.lower().startswith("usage:"), (code, text[:200])
     assert {p.name: p.stat().st_mtime_ns for p in results.iterdir()} == before
+
+
+@pytest.mark.parametrize("script, command", _subcommands(), ids=lambda x: getattr(x, "name", x))
+def test_every_subcommand_of_a_topic_shows_its_own_usage(script, command):
+    """``ENTRY.py COMMAND --help`` reaches the module behind COMMAND: its own options, under the name
+    ``ENTRY.py COMMAND`` (the name its results record as their command)."""
+    code, text = _run(script, command, "--help")
+    assert code == 0 and text.startswith(f"usage: {script.name} {command}"), (code, text[:200])
 
 
 def test_the_readme_change_table_is_what_the_sweeps_readme_command_writes(tmp_path):

@@ -176,11 +176,11 @@ REPO = Path(__file__).resolve().parents[1]
 
 
 def _triton_compile():
-    """``benchmarks/triton_compile.py`` as a module (its ``common`` beside it importable)."""
+    """``benchmarks/kernel_triton.py`` (``bench_kernel.py triton``) as a module (its ``common`` beside it importable)."""
     import importlib.util
 
     sys.path.insert(0, str(REPO / "benchmarks"))
-    spec = importlib.util.spec_from_file_location("triton_compile", REPO / "benchmarks" / "triton_compile.py")
+    spec = importlib.util.spec_from_file_location("kernel_triton", REPO / "benchmarks" / "kernel_triton.py")
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     return module

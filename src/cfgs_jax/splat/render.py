@@ -75,7 +75,7 @@ def tile_layout(camera: Camera, config: RenderConfig, dates: int, statistics: bo
                       config.max_alpha, config.min_transmittance, statistics)  # fmt: skip
     # CPU, 16×16 tiles: one date: 32 tiles × 32 Gaussians per round; several: ~96 tile-dates × 16
     # Gaussians keep a round's [K, D, B, P] arrays cache-sized; smaller tiles: as many pixels per round
-    # (measured best: benchmarks/bench_splat.py). GPU: every tile at once.
+    # (measured best: benchmarks/bench_kernel.py splat). GPU: every tile at once.
     cpu_batch = (32 if dates == 1 else max(8, 96 // dates)) * max(1, (16 // sub) ** 2)
     batch = config.tile_batch or (cpu_batch if jax.default_backend() == "cpu" else gx * gy)
     chunk = config.chunk or (32 if dates == 1 and sub >= 16 else 16)

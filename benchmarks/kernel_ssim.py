@@ -5,12 +5,12 @@ products, in one process, timed alternately (medians of ``--reps``).
 For each image batch (``NxHxW``): SSIM's forward and D-SSIM's gradient with each blur, and how far each
 side is from the float64 SSIM (value) and float64 gradient (largest difference over the largest
 gradient). Then a whole training step (``train.make_train_step``, 0.8·L1 + 0.2·D-SSIM, Adam) on
-``bench_splat``'s ``--step-case`` scene with each blur, against a target rendered from the same Gaussians
+``kernel_splat``'s ``--step-case`` scene with each blur, against a target rendered from the same Gaussians
 perturbed.
 
 Writes ``results/ssim{TAG}{chip}.{json,md}``.
 
-    python benchmarks/bench_ssim.py [--images 1x240x320 3x240x320 1x480x640 1x1080x1920]
+    python benchmarks/bench_kernel.py ssim [--images 1x240x320 3x240x320 1x480x640 1x1080x1920]
         [--step-case 20k@320x240] [--reps 7] [--tag T]
 """
 
@@ -21,8 +21,8 @@ import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_splat import case, scene
 from common import alternately, backend_suffix, result_header, write_result
+from kernel_splat import case, scene
 
 
 def conv_filter(size: int, sigma: float):
@@ -187,7 +187,3 @@ def main():
     result["rows"] = [run_images(s, args.reps) for s in args.images]
     result["step"] = run_step(args.step_case, args.reps) if args.step_case else None
     write_result(f"ssim{args.tag}{backend_suffix()}", result, markdown(result))
-
-
-if __name__ == "__main__":
-    main()

@@ -8,7 +8,7 @@ drawn uniformly; at every other date it is persistent, o ≈ 1, with probability
 o ≈ 0) — the persistence pattern of a fused model. Gaussians absent at every selected date are culled
 before binning, which is why a narrower selection renders faster.
 
-    python benchmarks/bench_viz.py [--repeats 7]
+    python benchmarks/bench_kernel.py viz [--repeats 7]
 
 Writes benchmarks/results/viz.json and viz.md.
 """
@@ -22,8 +22,8 @@ import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_splat import synthetic
 from common import RESULTS, machine, timed
+from kernel_splat import synthetic
 
 
 def temporal_model(n: int = 20_000, dates: int = 4, seed: int = 0):
@@ -93,7 +93,7 @@ def main():
     RESULTS.mkdir(exist_ok=True)
     (RESULTS / "viz.json").write_text(json.dumps(res, indent=1))
     lines = [
-        "# Render cost of blend vs highlight (bench_viz.py)",
+        "# Render cost of blend vs highlight (bench_kernel.py viz)",
         "",
         f"Machine: {res['machine']}.",
         "",
@@ -106,7 +106,3 @@ def main():
         lines.append(f"| {k} | {1000 * med[k]:.1f} | {res['ratio_to_C'][k]:.2f} |")
     (RESULTS / "viz.md").write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
-
-
-if __name__ == "__main__":
-    main()

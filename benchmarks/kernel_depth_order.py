@@ -4,10 +4,10 @@ process, timed alternately (medians of ``--reps``): the order alone on the case'
 binning stage (``bin_gaussians`` on the case's projection, jitted) with each; both orders compared element
 by element.
 
-Cases as in ``bench_splat`` (``20k@320x240``, ``donut@640x480``, ``1M@1920x1080``, ...). Writes
+Cases as in ``kernel_splat`` (``20k@320x240``, ``donut@640x480``, ``1M@1920x1080``, ...). Writes
 ``results/depth_order{TAG}{chip}.{json,md}``.
 
-    python benchmarks/bench_depth_order.py [--cases 20k@320x240 donut@640x480 1M@1920x1080] [--reps 7] [--tag T]
+    python benchmarks/bench_kernel.py depth-order [--cases 20k@320x240 donut@640x480 1M@1920x1080] [--reps 7] [--tag T]
 """
 
 from __future__ import annotations
@@ -17,8 +17,8 @@ import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_splat import case, scene
 from common import alternately, backend_suffix, result_header, write_result
+from kernel_splat import case, scene
 
 
 def argsort_order(depths):
@@ -115,7 +115,3 @@ def main():
     result = result_header(args)
     result["rows"] = [run_case(c, args.reps) for c in args.cases]
     write_result(f"depth_order{args.tag}{backend_suffix()}", result, markdown(result))
-
-
-if __name__ == "__main__":
-    main()

@@ -9,7 +9,7 @@ compile. On a GPU, JAX compiles these modules with the Triton that jaxlib bundle
 the same vintage (the one PyTorch brings onto the GPU machines) fails where that one crashed, so a module
 that compiles here is one worth a GPU's time.
 
-    python benchmarks/triton_compile.py [--triton-python PY] [--arch 90] [--name STEM]
+    python benchmarks/bench_kernel.py triton [--triton-python PY] [--arch 90] [--name STEM]
 
 ``--triton-python``: the interpreter whose ``triton`` package compiles (default: this one), e.g. a
 virtual environment with ``pip install triton==3.6.0``. Writes results/STEM.{json,md} (default
@@ -209,7 +209,3 @@ def main():
         for r in rows
     ]
     write_result(args.name or f"triton_compile_{version}", result, "\n".join(md) + "\n")
-
-
-if __name__ == "__main__":
-    main()

@@ -5,7 +5,7 @@ Only ``src/cfgs_jax/splat/composite.py`` (``--module composite``, the default) o
 ``src/cfgs_jax/splat/binning.py`` (``--module binning``) differs between the two sides: the base revision's
 file is loaded as a module of its own and its ``composite`` (or ``bin_gaussians``) put in place of the working
 tree's while that side's programs are traced, so everything else in the frame is the same code. For each case
-(``bench_splat``'s scenes, named as there) and each side, three whole frames are compiled ahead of time:
+(``kernel_splat``'s scenes, named as there) and each side, three whole frames are compiled ahead of time:
 
 - ``forward``: ``render`` (images and statistics);
 - ``fwd+bwd``: an L1 image loss and its gradient with respect to every raw parameter (a training or
@@ -17,7 +17,7 @@ They are timed alternately (median of ``--reps`` rounds); the table gives each s
 working tree / base, and the largest difference between the two sides' images and gradients (relative
 to each array's largest magnitude), so that a faster compositor is seen to compute the same thing.
 
-    python benchmarks/bench_composite_revision.py [--base REV] [--module composite|binning]
+    python benchmarks/bench_kernel.py revision [--base REV] [--module composite|binning]
         [--cases 20k@320x240 ...] [--reps 7] [--tag T]
 
 Writes ``results/composite_revision{TAG}{chip}.{json,md}`` (``binning_revision…`` with ``--module binning``).
@@ -34,8 +34,8 @@ import tempfile
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_splat import case, scene
 from common import alternately, backend_suffix, result_header, write_result
+from kernel_splat import case, scene
 
 REPO = Path(__file__).resolve().parents[1]
 #: --module: (the file that differs, the function of it that ``cfgs_jax.splat.render`` calls, what it is,
@@ -184,7 +184,3 @@ def main():
         result["cases"].append(run_case(name, base, args.reps, args.module))
         print(name, {k: round(r["ratio"], 3) for k, r in result["cases"][-1]["rows"].items()}, flush=True)
     write_result(f"{MODULES[args.module][3]}{args.tag}{backend_suffix()}", result, markdown(result))
-
-
-if __name__ == "__main__":
-    main()

@@ -4,9 +4,9 @@ Each case runs in its own subprocess (so peak RSS is that case's), timings are m
 after compilation. Ratios (T = 4 vs 1 date, 75 % inactive vs all active) come from the same run.
 Writes benchmarks/results/splat.json and splat.md, naming the machine.
 
-    python benchmarks/bench_splat.py            # all cases
-    python benchmarks/bench_splat.py --quick    # the 20k case and the ratios only (→ results/splat_quick.md)
-    python benchmarks/bench_splat.py --large    # the capture-sized cases (1M Gaussians, 1080p; → results/splat_large.md)
+    python benchmarks/bench_kernel.py splat            # all cases
+    python benchmarks/bench_kernel.py splat --quick    # the 20k case and the ratios only (→ results/splat_quick.md)
+    python benchmarks/bench_kernel.py splat --large    # the capture-sized cases (1M Gaussians, 1080p; → results/splat_large.md)
 
 On an accelerator the files are named after the chip and backend, ``splat_h100_gpu.*`` (``splat_quick_h200_gpu.*``),
 beside the CPU ones.
@@ -26,6 +26,7 @@ from pathlib import Path
 
 from common import RESULTS, backend_suffix, device_peak_gb, machine, timed
 
+ENTRY = Path(__file__).with_name("bench_kernel.py")  # the case runs as `bench_kernel.py splat --case NAME`
 FIXTURE = Path(__file__).resolve().parents[1] / "tests" / "data" / "real_3dgs_donut_dc_only.ply"
 
 
@@ -189,7 +190,7 @@ QUICK = [
 def write_markdown(result: dict, stem: str) -> None:
     """Write ``results/STEM.md`` from a result dict (as saved in ``results/STEM.json``)."""
     rows, ratios, failed = result["cases"], result["ratios"], result.get("failed", {})
-    command = result.get("command") or "python benchmarks/bench_splat.py" + (
+    command = result.get("command") or "python benchmarks/bench_kernel.py splat" + (
         " --quick" if "quick" in stem else " --large" if "large" in stem else ""
     )
     lines = [
@@ -257,7 +258,10 @@ def main():
     for name in names:
         try:
             r = subprocess.run(
-                [sys.executable, __file__, "--case", name], capture_output=True, text=True, timeout=args.case_timeout
+                [sys.executable, str(ENTRY), "splat", "--case", name],
+                capture_output=True,
+                text=True,
+                timeout=args.case_timeout,
             )
         except subprocess.TimeoutExpired:
             failed[name] = f"ran past --case-timeout {args.case_timeout:g} s"
@@ -296,7 +300,7 @@ def main():
     result = {
         "machine": machine(),
         "date": time.strftime("%Y-%m-%d"),
-        "command": "python benchmarks/bench_splat.py"
+        "command": "python benchmarks/bench_kernel.py splat"
         + (" --quick" if args.quick else " --large" if args.large else ""),
         "cases": rows,
         "ratios": ratios,
@@ -307,7 +311,3 @@ def main():
     write_markdown(result, stem)
     if failed:
         raise SystemExit(f"{len(failed)} case(s) failed: {', '.join(failed)}")
-
-
-if __name__ == "__main__":
-    main()

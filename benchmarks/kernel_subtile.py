@@ -2,7 +2,7 @@
 
 The tiles of INRIA's rule stay 16×16 (``tile_size``); with ``subtile`` below it, each tile's list is
 divided among its sub-tiles, each keeping only the Gaussians that reach α ≥ 1/255 at one of its pixels,
-and the compositor walks those shorter lists over fewer pixels. For each case (``bench_splat``'s scenes,
+and the compositor walks those shorter lists over fewer pixels. For each case (``kernel_splat``'s scenes,
 named as there), each number of dates and each ``subtile`` value, three whole frames are compiled ahead
 of time:
 
@@ -17,7 +17,7 @@ first ``subtile`` value's, the (Gaussian, walked tile) pairs composited, and the
 the first value's outputs (relative to each array's largest magnitude), so that the faster walk is seen
 to compute the same thing.
 
-    python benchmarks/bench_subtile.py [--cases 20k@320x240 ...] [--dates 1 3] [--subtiles 16 8] [--reps 7] [--tag T]
+    python benchmarks/bench_kernel.py subtile [--cases 20k@320x240 ...] [--dates 1 3] [--subtiles 16 8] [--reps 7] [--tag T]
 
 Writes ``results/subtile{TAG}{chip}.{json,md}``.
 """
@@ -31,9 +31,9 @@ import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_composite_revision import largest_difference
-from bench_splat import case, scene
 from common import backend_suffix, result_header, timed, write_result
+from kernel_revision import largest_difference
+from kernel_splat import case, scene
 
 KINDS = ("forward", "fwd+bwd", "fwd+bwd, multipliers")
 
@@ -151,7 +151,3 @@ def main():
             result["cases"].append(run_case(name, dates, args.subtiles, args.reps))
             print(name, dates, [(r["subtile"], round(r["ratio"]["fwd+bwd"], 3)) for r in result["cases"][-1]["rows"]])
     write_result(f"subtile{args.tag}{backend_suffix()}", result, markdown(result))
-
-
-if __name__ == "__main__":
-    main()

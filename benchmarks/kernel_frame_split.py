@@ -1,6 +1,6 @@
 """A frame's time split into its stages: where the time goes besides compositing, forward and backward.
 
-For each case (``bench_splat``'s scenes, named as there: ``20k@320x240``, ``donut@640x480``, ...) and
+For each case (``kernel_splat``'s scenes, named as there: ``20k@320x240``, ``donut@640x480``, ...) and
 each compositor backend, every stage is jitted on its own, on the outputs of the stage before, and the
 stages are timed alternately (median of ``--reps`` rounds):
 
@@ -16,7 +16,7 @@ stages are timed alternately (median of ``--reps`` rounds):
 
 Writes ``results/frame_split{TAG}{chip}.{json,md}`` (``_<chip>_gpu`` on an accelerator).
 
-    python benchmarks/bench_frame_split.py [--cases 20k@320x240 donut@640x480] [--backends xla [pallas]]
+    python benchmarks/bench_kernel.py frame-split [--cases 20k@320x240 donut@640x480] [--backends xla [pallas]]
         [--reps 5] [--tag T]
 """
 
@@ -28,8 +28,8 @@ import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_splat import case, scene
 from common import alternately, backend_suffix, result_header, write_result
+from kernel_splat import case, scene
 
 #: The stages, in the order a frame runs them.
 STAGES = ("project", "bin", "composite", "composite backward", "project backward")
@@ -169,7 +169,3 @@ def main():
     md = markdown(result)
     write_result(f"frame_split{args.tag}{backend_suffix()}", result, md)
     print(md)
-
-
-if __name__ == "__main__":
-    main()
