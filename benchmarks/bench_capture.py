@@ -106,7 +106,7 @@ def _path(args, raw, data, names, transforms, sims) -> None:
 
 def _change(run_dir: Path, data: Path) -> dict:
     """The ``changes`` detector's figures for a finished run, with its wall time and peak RSS."""
-    from bench_compact import change_scores
+    from quality_compact import change_scores
 
     from cfgs_jax.resources import peak_rss_bytes, reset_peak_rss
 

@@ -15,7 +15,7 @@
 # every date and `known_transforms`; then `--part all` writes the table. Every part
 # checkpoints, so running this again after the machine or the process stopped continues where each
 # part stopped. The scenes run one after the other (flood, corals, quake); one already running (a
-# process with its --out) is left alone. Publishing runs `benchmarks/eval_publish.py --scene S --out
+# process with its --out) is left alone. Publishing runs `benchmarks/bench_quality.py publish --scene S --out
 # WORK/S --config benchmarks/eval_large.toml --name eval_large_S` for each scene whose table.md exists.
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -28,7 +28,7 @@ scene_names=${SCENES:-$all_scenes}
 if [ "${2:-}" = "publish" ]; then
   for s in $scene_names; do
     if [ -f "$work/$s/table.md" ]; then
-      "$python" benchmarks/eval_publish.py --scene "$s" --out "$work/$s" --config benchmarks/eval_large.toml \
+      "$python" benchmarks/bench_quality.py publish --scene "$s" --out "$work/$s" --config benchmarks/eval_large.toml \
         --name "eval_large_$s"
     else
       echo "$s: not finished ($work/$s/table.md missing)"

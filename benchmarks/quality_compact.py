@@ -5,7 +5,7 @@ refinement without compaction (value 0, which still merges the few mutual-neares
 the stage's wall time and the render time of a full selection (all dates, highlight) of the test
 views over the reference's, timed alternately in one process.
 
-    python benchmarks/bench_compact.py --run RUN [--knob hidden_share] [--values 0 0.01 0.02] [--refine-steps 200]
+    python benchmarks/bench_quality.py compact --run RUN [--knob hidden_share] [--values 0 0.01 0.02] [--refine-steps 200]
         [--set compact.mask_lambda=0.005 --set compact.recovery_rate_scale=10] [--noise-seeds 1 2]
 
 ``--row VALUE compact.KEY=VALUE …`` adds a row at that knob value with its own overrides on top of
@@ -162,7 +162,7 @@ def main():
         table = summary(args.summary)
         print(table)
         if args.write:
-            command = " ".join(["python benchmarks/bench_compact.py", *sys.argv[1:]])
+            command = " ".join(["python benchmarks/bench_quality.py compact", *sys.argv[1:]])
             head = f"# Cross-timestep compaction: chosen rows\n\nDate: {datetime.date.today().isoformat()}. Command: `{command}`.\n\n"
             (RESULTS / f"{args.write}.md").write_text(head + table)
         return
@@ -222,7 +222,7 @@ def main():
     result = {
         "machine": machine(),
         "date": datetime.date.today().isoformat(),
-        "command": " ".join(["python benchmarks/bench_compact.py", *sys.argv[1:]]),
+        "command": " ".join(["python benchmarks/bench_quality.py compact", *sys.argv[1:]]),
         "run": str(args.run),
         "refine_steps": args.refine_steps,
         "pre_refine_steps": args.pre_refine,
@@ -368,7 +368,3 @@ def markdown(result: dict) -> str:
             "(view order, backgrounds): their Δ is the noise floor of the figures above."
         )
     return "\n".join(lines) + "\n"
-
-
-if __name__ == "__main__":
-    main()

@@ -1,7 +1,7 @@
 """Where the price of ``refine.extend_visibility = "added"`` comes from: the entries it keeps, or the
 refinement it changes.
 
-From a prepared extension (``bench_extend_knob.py``'s WORK/prepared: the base fused, the last date added
+From a prepared extension (``bench_speed_vs_error.py extend-knob``'s WORK/prepared: the base fused, the last date added
 and cross-initialised), the extension's refinement runs twice in one process, with "all" and with
 "added", both with the final prune off so that their rows stay aligned. For each older date p:
 
@@ -14,7 +14,7 @@ and cross-initialised), the extension's refinement runs twice in one process, wi
 
 Writes benchmarks/results/extend_visibility_gap_<scene>.json and .md.
 
-    python benchmarks/bench_extend_visibility_gap.py --prepared WORK/prepared --data DATA
+    python benchmarks/bench_speed_vs_error.py extend-gap --prepared WORK/prepared --data DATA
 """
 
 from __future__ import annotations
@@ -30,8 +30,8 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_extend_knob import extension_date
 from common import RESULTS, machine
+from speed_extend_knob import extension_date
 
 
 def main():
@@ -110,7 +110,7 @@ def main():
     result = {
         "date": datetime.date.today().isoformat(),
         "machine": machine(),
-        "command": shlex.join(["python", "benchmarks/bench_extend_visibility_gap.py", *sys.argv[1:]]),
+        "command": shlex.join(["python", "benchmarks/bench_speed_vs_error.py extend-gap", *sys.argv[1:]]),
         "scene": scene,
         "added": added,
         "rows": rows,
@@ -138,7 +138,3 @@ def main():
     (RESULTS / f"{stem}.json").write_text(json.dumps(result, indent=1))
     (RESULTS / f"{stem}.md").write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
-
-
-if __name__ == "__main__":
-    main()

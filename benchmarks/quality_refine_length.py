@@ -1,8 +1,8 @@
 """The combined refinement's length and rates, from one cross-initialised model of a finished evaluation,
 against Individual +N at the same step counts.
 
-    python benchmarks/bench_refine_length.py --eval DIR --steps 1000 3000 --name refine_length_flood
-    python benchmarks/bench_refine_length.py --eval DIR --steps 1000 --variant 'α rate 0.05|lr_alpha=0.05'
+    python benchmarks/bench_quality.py refine-length --eval DIR --steps 1000 3000 --name refine_length_flood
+    python benchmarks/bench_quality.py refine-length --eval DIR --steps 1000 --variant 'α rate 0.05|lr_alpha=0.05'
 
 DIR: the ``--out`` of ``python -m cfgs_jax.pipeline eval`` (its ``run/``, or with ``--known-transforms``
 its ``known_transforms/run/``). Each variant (the run's own ``[refine]`` table, then each ``--variant
@@ -212,7 +212,3 @@ def markdown(result: dict) -> str:
                 f"| {r['label']} | {d} | {cell(e)} | {cell(r['corrected'][d])} |" for d, e in r["registration"].items()
             ]
     return "\n".join(lines) + "\n"
-
-
-if __name__ == "__main__":
-    main()

@@ -9,7 +9,7 @@ box (disappeared) and gained another (appeared). Every 7th view is a test view.
 Each date is an ``io.Scene`` over the written PNGs, its "SfM points" the true centres (a subsample,
 jittered). Exact Sim(3)s (identity): registration is measured elsewhere.
 
-    python benchmarks/bench_fusion_e2e.py [--size 160x120] [--gaussians 20000] [--views 28]
+    python benchmarks/bench_fusion.py e2e [--size 160x120] [--gaussians 20000] [--views 28]
         [--train-steps 1500] [--cross-steps 500] [--refine-steps 1000] [--set TABLE.KEY=VALUE ...]
         [--work DIR] [--tag T]
 
@@ -278,7 +278,3 @@ def main():
         result |= run(args, args.work or Path(tmp), configs)
     write_result(f"fusion_e2e{args.tag}{backend_suffix()}", result, markdown(result))
     print(markdown(result))
-
-
-if __name__ == "__main__":
-    main()

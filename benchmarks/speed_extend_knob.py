@@ -23,9 +23,9 @@ ratio to that from-scratch fusion's time; the test PSNR / SSIM / LPIPS per date;
 synthetic ground truth. The first value is the reference row. Writes
 benchmarks/results/extend_knob_<scene>_<key>.json and .md (``--name`` overrides the stem).
 
-    python benchmarks/bench_extend_knob.py --run RUN --data DATA --knob refine.extend_visibility \\
+    python benchmarks/bench_speed_vs_error.py extend-knob --run RUN --data DATA --knob refine.extend_visibility \\
         --values '"all"' '"added"' [--work /tmp/bench_extend_knob] [--set TABLE.KEY=VALUE] [--no-change]
-    python benchmarks/bench_extend_knob.py --extended WORK/incremental --scratch WORK/scratch \\
+    python benchmarks/bench_speed_vs_error.py extend-knob --extended WORK/incremental --scratch WORK/scratch \\
         --data WORK/data --knob refine.extend_visibility --values '"all"' '"added"' --no-change \\
         [--retime-scratch]
 """
@@ -42,9 +42,9 @@ import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_compact import change_scores
-from bench_speed_vs_error import worst_date_change
 from common import RESULTS, fusion_seconds, machine, quiet
+from quality_compact import change_scores
+from speed_knob import worst_date_change
 
 HERE = Path(__file__).resolve().parent
 
@@ -117,7 +117,7 @@ def retime_scratch(scratch: Path, data: Path, work: Path) -> Path:
     out = work / "scratch"
     found = RunDir.find(out)
     if not (found and found.done("export")):
-        code = f"import bench_extend_knob as b; b.fuse_again({str(scratch)!r}, {str(data)!r}, {str(out)!r})"
+        code = f"import speed_extend_knob as b; b.fuse_again({str(scratch)!r}, {str(data)!r}, {str(out)!r})"
         subprocess.run([sys.executable, "-c", code], cwd=HERE, check=True)
     return out
 
@@ -258,7 +258,7 @@ def main():
     result = {
         "date": datetime.date.today().isoformat(),
         "machine": machine(),
-        "command": shlex.join(["python", "benchmarks/bench_extend_knob.py", *sys.argv[1:]]),
+        "command": shlex.join(["python", "benchmarks/bench_speed_vs_error.py extend-knob", *sys.argv[1:]]),
         "scene": preset,
         "knob": args.knob,
         "prepared": str(prepared),
@@ -274,7 +274,3 @@ def main():
     (RESULTS / f"{stem}.json").write_text(json.dumps(result, indent=1))
     (RESULTS / f"{stem}.md").write_text(markdown(result))
     print(markdown(result))
-
-
-if __name__ == "__main__":
-    main()

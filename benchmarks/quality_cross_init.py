@@ -16,7 +16,7 @@ dominant ground-truth object in the training views (``evaluation.protocol.cross_
 
 Writes benchmarks/results/cross_init.json and cross_init.md.
 
-    python benchmarks/bench_cross_init.py [--presets light corals] [--dates 2] [--steps 500 3000]
+    python benchmarks/bench_quality.py cross-init [--presets light corals] [--dates 2] [--steps 500 3000]
         [--width 80 --height 60 --images-per-date 10] [--config benchmarks/eval_small.toml]
         [--work /tmp/bench_cross_init]
 """
@@ -155,7 +155,3 @@ def main():
     (RESULTS / "cross_init.json").write_text(json.dumps(result, indent=2))
     (RESULTS / "cross_init.md").write_text(_markdown(result))
     print(_markdown(result))
-
-
-if __name__ == "__main__":
-    main()

@@ -2,7 +2,7 @@
 the command, the code and the run's stage times; the run's own ``table.md``; and a block comparing its
 figures with those of the file it replaces, each marked better or worse.
 
-    python benchmarks/eval_publish.py --scene corals --out DIR --config benchmarks/eval_small.toml [--note TEXT]
+    python benchmarks/bench_quality.py publish --scene corals --out DIR --config benchmarks/eval_small.toml [--note TEXT]
         [--name NAME]
 
 DIR: the ``--out`` of ``python -m cfgs_jax.pipeline eval --scene S --config CFG --out DIR`` (finished:
@@ -145,7 +145,7 @@ def main():
     header = (
         f"Machine: {machine()}. Date: {datetime.date.today().isoformat()}. Command: `python -m cfgs_jax.pipeline "
         f"eval --scene {args.scene} --config {args.config} --out DIR` (steps {table['steps']}; the configuration's "
-        f"values are in DIR/run/run.json); written at code {code} by `python benchmarks/eval_publish.py --scene "
+        f"values are in DIR/run/run.json); written at code {code} by `python benchmarks/bench_quality.py publish --scene "
         f"{args.scene} --out DIR --config {args.config}"
         + (f" --name {args.name}" if args.name else "")
         + f"`. Stages done: {', '.join(run['done'])}; stage wall times "
@@ -158,7 +158,3 @@ def main():
     )
     target.write_text("\n\n".join(parts).rstrip() + "\n")
     print(f"wrote {target}")
-
-
-if __name__ == "__main__":
-    main()

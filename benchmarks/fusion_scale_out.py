@@ -17,7 +17,7 @@ and the last step; B = 1 on one device is the reference. The projection scales t
 (9 dates, ~2 000 views, ~10⁷ Gaussians) and states each assumption. Writes
 benchmarks/results/scale_out.json and scale_out.md.
 
-    python benchmarks/bench_scale_out.py [--gaussians 20000] [--views 6] [--steps 30]
+    python benchmarks/bench_fusion.py scale-out [--gaussians 20000] [--views 6] [--steps 30]
 """
 
 from __future__ import annotations
@@ -38,7 +38,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import RESULTS, machine
 
-HERE = Path(__file__).resolve()
+HERE = Path(__file__).resolve().with_name("bench_fusion.py")  # a worker runs as `bench_fusion.py scale-out --worker …`
 
 
 def _scene(n: int, views: int, width: int, height: int):
@@ -143,7 +143,9 @@ def worker(args) -> None:
 
 
 def _run(argv: list[str], env: dict) -> dict:
-    done = subprocess.run([sys.executable, str(HERE), "--worker", *argv], env=env, capture_output=True, text=True)
+    done = subprocess.run(
+        [sys.executable, str(HERE), "scale-out", "--worker", *argv], env=env, capture_output=True, text=True
+    )
     if done.returncode != 0:
         raise SystemExit(done.stderr[-3000:])
     return json.loads(next(line for line in done.stdout.splitlines() if line.startswith("RESULT "))[7:])
@@ -157,7 +159,7 @@ def _two_processes(argv: list[str], env: dict, pin: bool = False) -> dict:
     procs = [
         subprocess.Popen(
             (["taskset", "-c", str(i % os.cpu_count())] if pin else [])
-            + [sys.executable, str(HERE), "--worker", *argv],
+            + [sys.executable, str(HERE), "scale-out", "--worker", *argv],
             env=env
             | {"JAX_COORDINATOR_ADDRESS": f"127.0.0.1:{port}", "JAX_NUM_PROCESSES": "2", "JAX_PROCESS_ID": str(i)},
             stdout=subprocess.PIPE,
@@ -243,7 +245,7 @@ def main():
     result = {
         "date": datetime.date.today().isoformat(),
         "machine": machine(),
-        "command": "python benchmarks/bench_scale_out.py " + " ".join(common),
+        "command": "python benchmarks/bench_fusion.py scale-out " + " ".join(common),
         "rows": rows,
         "epoch_views": 3 * args.views,
         "projection": projection(one["cross_init"]["step_s"] / 2, one["refine_b1_step_s"], args),
@@ -313,7 +315,3 @@ def markdown(r: dict) -> str:
     ]
     lines += [f"| {w['devices']} | {w['cross_init_hours']:,.0f} | {w['refine_epoch_hours']:,.1f} |" for w in p["rows"]]
     return "\n".join(lines) + "\n"
-
-
-if __name__ == "__main__":
-    main()

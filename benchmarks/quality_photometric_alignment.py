@@ -1,7 +1,7 @@
 """Photometric alignment of an SfM-registered date against another date's persistent Gaussians: how much of
 the registration's error it removes (a diagnostic; the pipeline registers by SfM alone).
 
-    python benchmarks/bench_photometric_alignment.py --eval DIR --pair d1:d0 --pair d2:d0 --name NAME
+    python benchmarks/bench_quality.py photometric-alignment --eval DIR --pair d1:d0 --pair d2:d0 --name NAME
 
 DIR: the ``--out`` of ``python -m cfgs_jax.pipeline eval`` on a synthetic scene, registered by SfM and
 cross-initialised (``DIR/run/cross_init``). For a pair DATE:ANCHOR, the anchor's Gaussians that cross-init
@@ -144,7 +144,3 @@ def main() -> None:
             f"{r['scale_pct']:.3f} | {r['translation_pct']:.3f} | {loss} |"
         )
     write_result(args.name, header | {"rows": rows}, "\n".join(md) + "\n")
-
-
-if __name__ == "__main__":
-    main()

@@ -7,10 +7,10 @@ It is meant for scenes where a whole fusion per setting does not fit a session (
 scene: 30 pairs at the paper's 3 000 steps take about a day on a 2-core CPU). Every pair of such a
 scene costs about the same per step (each renders one date's ~10⁵ Gaussians at one view of another),
 so a pair's time ratio stands for the stage's. What a setting costs in quality after refinement is
-measured on the evaluation scenes (``bench_speed_vs_error.py``); the o^q agreement here checks that the
+measured on the evaluation scenes (``bench_speed_vs_error.py knob``); the o^q agreement here checks that the
 capture scene's pairs settle alike.
 
-    python benchmarks/bench_cross_init_cost.py --run /work/capture/scratch --pairs 0,1 \\
+    python benchmarks/bench_fusion.py cross-init-cost --run /work/capture/scratch --pairs 0,1 \\
         --row paper cross_init.steps=3000 --row default cross_init.steps=1000
 
 Writes benchmarks/results/cross_init_cost_<name>.json and .md.
@@ -73,7 +73,7 @@ def markdown(result: dict) -> str:
     rows = result["rows"]
     ref = rows[0]
     lines = [
-        f"# Cross-timestep initialisation cost: {result['name']} (bench_cross_init_cost.py)",
+        f"# Cross-timestep initialisation cost: {result['name']} (bench_fusion.py cross-init-cost)",
         "",
         f"Command: `{result['command']}`. Machine: {result['machine']}. Date: {result['date']}. "
         f"Run: `{result['run']}`; pairs {', '.join(f'({p}, {q})' for p, q in result['pairs'])} "
@@ -138,7 +138,7 @@ def command(args) -> str:
     """The command line of this run, quoted for a shell (a row label may hold spaces)."""
     rows = [x for r in args.row for x in ("--row", *r)]
     return shlex.join(
-        ["python", "benchmarks/bench_cross_init_cost.py", "--run", args.run, "--pairs", *args.pairs, *rows]
+        ["python", "benchmarks/bench_fusion.py cross-init-cost", "--run", args.run, "--pairs", *args.pairs, *rows]
         + ["--name", args.name]
     )
 
@@ -164,7 +164,3 @@ def write(args, run_dir: Path, pairs, rows: list[dict]) -> str:
     text = markdown(result)
     write_text(RESULTS / f"{stem}.md", text)
     return text
-
-
-if __name__ == "__main__":
-    main()

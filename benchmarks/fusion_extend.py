@@ -13,7 +13,7 @@ reported separately and added to both sides as it would be paid (all T dates fro
 when extending). Test metrics come from each run's ``metrics.json`` (every 8th view per date).
 Writes benchmarks/results/extend.json and extend.md.
 
-    python benchmarks/bench_extend.py [--dates 3] [--width 160 --height 120 --images-per-date 12]
+    python benchmarks/bench_fusion.py extend [--dates 3] [--width 160 --height 120 --images-per-date 12]
         [--config demo] [--work /tmp/bench_extend]
 """
 
@@ -132,7 +132,7 @@ def main():
         return f"{m['psnr']:.2f} / {m['ssim']:.4f} / {m.get('lpips', float('nan')):.4f}"
 
     rows = [f"| {n} | {quality(ms[n])} | {quality(me[n])} |" for n in [*names, "mean"] if n in ms]
-    command = "python benchmarks/bench_extend.py " + " ".join(sys.argv[1:])
+    command = "python benchmarks/bench_fusion.py extend " + " ".join(sys.argv[1:])
     lines = [
         "# Incremental fusion (`extend`) vs fusing from scratch",
         "",
@@ -155,7 +155,3 @@ def main():
     ]
     (RESULTS / "extend.md").write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
-
-
-if __name__ == "__main__":
-    main()

@@ -9,7 +9,7 @@ reported beside it). Where a date is more than about twice as bright as
 another in the images' encoding, date p's copies cannot reach q's brightness; this table shows where
 that happens.
 
-    python benchmarks/bench_light_range.py --run RUN --name light
+    python benchmarks/bench_quality.py light-range --run RUN --name light
 
 Writes benchmarks/results/light_range_<name>.json and .md. Reads only the run's files (seconds).
 """
@@ -73,7 +73,7 @@ def pair_table(run_dir: Path, at: float, model_dir: Path | None = None) -> dict:
 def markdown(result: dict) -> str:
     fmt = lambda x: "–" if x is None else f"{x:.2f}"
     lines = [
-        f"# Light multipliers at the top of their range: {result['name']} (bench_light_range.py)",
+        f"# Light multipliers at the top of their range: {result['name']} (bench_quality.py light-range)",
         "",
         f"Command: `{result['command']}`. Machine: {result['machine']}. Date: {result['date']}. "
         f"Run: `{result['run']}`"
@@ -106,7 +106,7 @@ def main():
         "name": args.name,
         "date": datetime.date.today().isoformat(),
         "machine": machine(),
-        "command": shlex.join(["python", "benchmarks/bench_light_range.py", *sys.argv[1:]]),
+        "command": shlex.join(["python", "benchmarks/bench_quality.py light-range", *sys.argv[1:]]),
         "run": str(run_dir.resolve()),
         "model": str(Path(args.model).resolve()) if args.model else None,
     } | pair_table(run_dir, args.at, Path(args.model) if args.model else None)
@@ -115,7 +115,3 @@ def main():
     text = markdown(result)
     write_text(RESULTS / f"light_range_{args.name}.md", text)
     print(text)
-
-
-if __name__ == "__main__":
-    main()

@@ -14,7 +14,7 @@ sweep of the compositor's ``chunk`` and ``num_warps`` on the two hardest cases.
 
 Needs CUDA, torch and gsplat (a CUDA machine); writes ``results/kernel_vs_gsplat_<chip>_gpu.{json,md}``.
 
-    python benchmarks/bench_gsplat.py [--reps 10] [--cases NAME ...] [--no-sweep] [--out DIR]
+    python benchmarks/bench_gpu.py gsplat [--reps 10] [--cases NAME ...] [--no-sweep] [--out DIR]
 """
 
 from __future__ import annotations
@@ -325,7 +325,7 @@ def main():
     result = {
         "machine": machine(),
         "date": time.strftime("%Y-%m-%d"),
-        "command": "python " + " ".join(["benchmarks/bench_gsplat.py"] + sys.argv[1:]),
+        "command": "python " + " ".join(["benchmarks/bench_gpu.py gsplat"] + sys.argv[1:]),
         "reps": args.reps,
         "cases": {},
     }
@@ -363,7 +363,3 @@ def main():
         result["sweep"] = sweep(max(3, args.reps // 2))
         save()
     write_markdown(result, stem.with_suffix(".md"))
-
-
-if __name__ == "__main__":
-    main()

@@ -15,7 +15,7 @@ Each path runs in its own process (neither reuses the other's compiled code). Te
 final T_max models of both paths is reported too. Writes
 benchmarks/results/incremental.json, incremental.md and incremental.png (bar plot).
 
-    python benchmarks/bench_incremental.py [--max-dates 6] [--width 64 --height 48 --images-per-date 8]
+    python benchmarks/bench_fusion.py incremental [--max-dates 6] [--width 64 --height 48 --images-per-date 8]
         [--config demo] [--work /tmp/bench_incremental]
 """
 
@@ -147,7 +147,14 @@ def main():
     train_s = trained.report["train"]["per_date_seconds"]
     paths = {}
     for path in ("scratch", "incremental"):
-        cmd = [sys.executable, __file__, "--path", path, *sys.argv[1:]]
+        cmd = [
+            sys.executable,
+            str(Path(__file__).with_name("bench_fusion.py")),
+            "incremental",
+            "--path",
+            path,
+            *sys.argv[1:],
+        ]
         if subprocess.run(cmd).returncode != 0:
             raise SystemExit(f"the {path} path failed")
         paths[path] = {
@@ -190,9 +197,9 @@ def main():
         for t in range(2, tmax + 1)
     ]
     lines = [
-        "# Adding dates incrementally vs recomputing from scratch (bench_incremental.py)",
+        "# Adding dates incrementally vs recomputing from scratch (bench_fusion.py incremental)",
         "",
-        f"Command: `python benchmarks/bench_incremental.py {' '.join(sys.argv[1:])}`. "
+        f"Command: `python benchmarks/bench_fusion.py incremental {' '.join(sys.argv[1:])}`. "
         f"Machine: {result['machine']}. Date: {result['date']}. Scene: {result['scene']}; config `{args.config}`; "
         "ground-truth Sim(3)s; per-date models trained once and shared (training: "
         + ", ".join(f"{n} {s:.0f} s" for n, s in train_s.items())
@@ -236,7 +243,3 @@ def _plot(path: Path, scratch_acc: dict, inc_acc: dict) -> None:
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
-
-
-if __name__ == "__main__":
-    main()

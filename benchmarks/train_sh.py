@@ -10,7 +10,7 @@ for both degrees and their difference (SH 3 − DC: positive PSNR/SSIM and negat
 forward (image only) and forward + backward (VJP of the image w.r.t. every parameter), with SH 3 and
 DC-only colour, timed alternately in one process (median of ``--repeats``); the ratio SH 3 / DC.
 
-    python benchmarks/bench_sh.py [--presets glossy corals] [--dates 2] [--width 160 --height 120]
+    python benchmarks/bench_train.py sh [--presets glossy corals] [--dates 2] [--width 160 --height 120]
         [--images-per-date 40] [--config demo] [--set train.test_every=4] [--gaussians 20000]
         [--kernel-size 320x240] [--only quality|kernel]
 
@@ -178,7 +178,3 @@ def main() -> None:
     if args.only != "quality":
         result["kernel"] = kernel_times(args)
     write_result(args.name + backend_suffix(), result, table(result))
-
-
-if __name__ == "__main__":
-    main()
