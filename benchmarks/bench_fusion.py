@@ -1,7 +1,8 @@
 """The fusion's cost, one command: the pipeline end to end with every stage's time, incremental
 ``extend`` against fusing from scratch (one added date, and dates added one by one), cross-init's cost
-under several settings, scale-out over devices and processes, and B views per step. Each subcommand's
-options: ``python benchmarks/bench_fusion.py COMMAND --help``.
+under several settings, scale-out over devices and processes, B views per step, and a capture-sized
+scene fused from scratch and incrementally. Each subcommand's options: ``python benchmarks/bench_fusion.py
+COMMAND --help``.
 
     python benchmarks/bench_fusion.py e2e [--size 160x120] [--gaussians 20000] [--views 28]
     python benchmarks/bench_fusion.py extend --dates 3
@@ -9,8 +10,7 @@ options: ``python benchmarks/bench_fusion.py COMMAND --help``.
     python benchmarks/bench_fusion.py cross-init-cost --run RUN --pairs 0,1 --row LABEL KEY=VALUE …
     python benchmarks/bench_fusion.py scale-out [--gaussians 20000] [--views 6] [--steps 30]
     python benchmarks/bench_fusion.py view-batch --run RUN --steps 800 --batches 1 2 4
-
-The capture-scale run is ``bench_capture.py`` (scene, training, both fusion paths, change detection).
+    python benchmarks/bench_fusion.py capture --work DIR [--no-change]  # resumable: rerun the same command
 """
 
 from __future__ import annotations
@@ -28,6 +28,7 @@ COMMANDS = {
     "cross-init-cost": ("fusion_cross_init_cost", "cross-init of a few pairs under several settings"),
     "scale-out": ("fusion_scale_out", "cross-init and refinement steps over devices and processes"),
     "view-batch": ("fusion_view_batch", "B views per step against one, at equal epochs"),
+    "capture": ("fusion_capture", "a capture-sized scene: every stage's time and memory, scratch and incremental"),
 }
 
 if __name__ == "__main__":

@@ -10,7 +10,7 @@
 # nothing).
 # Run in the repository root on the device, carrying .whl and .carry (made by benchmarks/gpu_prepare.sh):
 #
-#   [BACKEND=pallas] bash benchmarks/gpu_fusion.sh
+#   [BACKEND=pallas] bash benchmarks/gpu.sh fusion
 #
 # BACKEND=pallas makes the Pallas compositor the device copy's default (only once gpu_kernel.sh has shown
 # that it compiles and agrees there). Writes under $OUT: log.txt and fusion_e2e*_<chip>_gpu.{json,md}.

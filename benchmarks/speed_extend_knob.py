@@ -4,7 +4,7 @@ process, every row from the same cross-initialised extension.
 
 The extension to start from is either
 
-- ``--extended RUN``: a finished extension (e.g. ``bench_capture.py``'s WORK/incremental), or
+- ``--extended RUN``: a finished extension (e.g. ``bench_fusion.py capture``'s WORK/incremental), or
 - ``--run RUN``: a finished fusion of all T dates (an ``eval`` run); its first T − 1 dates are fused
   again from RUN's per-date models and configuration with ground-truth Sim(3)s, then extended by the
   last date (WORK/prepared, resumable; not timed).

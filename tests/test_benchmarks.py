@@ -76,3 +76,10 @@ def test_the_readme_change_table_is_what_the_sweeps_readme_command_writes(tmp_pa
     sweep = (REPO / "benchmarks" / "results" / "change_sweep.md").read_text()
     rows = [line for line in sweep.splitlines() if line.startswith("| ") and "|---" not in line]
     assert len(rows) > 2 and all(row in copy.read_text() for row in rows)
+
+
+def test_the_suite_has_at_most_twelve_entry_points():
+    """One entry point per question users ask (subcommands inside a topic): the Python scripts that run as
+    programs and the shell scripts, leaving out ``gpu_PART.sh``, the parts that ``gpu.sh PART`` runs."""
+    shell = [p for p in (REPO / "benchmarks").glob("*.sh") if not p.name.startswith("gpu_")]
+    assert len(ENTRY_POINTS) + len(shell) <= 12, sorted(p.name for p in [*ENTRY_POINTS, *shell])

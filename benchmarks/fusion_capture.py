@@ -20,7 +20,7 @@ Steps 3 and 4 run in their own processes, so each stage's peak RSS is its own (`
 and neither path reuses the other's compiled code. Writes benchmarks/results/capture.json and
 capture.md (``--name`` changes the stem).
 
-    python benchmarks/bench_capture.py [--work /tmp/bench_capture] [--config benchmarks/capture.toml]
+    python benchmarks/bench_fusion.py capture [--work /tmp/bench_capture] [--config benchmarks/capture.toml]
         [--width 320 --height 240 --images-per-date 48 --points-per-image 2500 --spp 16] [--no-change]
 """
 
@@ -172,7 +172,8 @@ def main():
         if path == "change" and (args.no_change or all((work / f"change_{p}.json").is_file() for p in PATHS)):
             continue
         print(f"running the {path} path", flush=True)
-        if subprocess.run([sys.executable, __file__, "--path", path, *sys.argv[1:]]).returncode != 0:
+        entry = [sys.executable, str(Path(__file__).with_name("bench_fusion.py")), "capture"]
+        if subprocess.run([*entry, "--path", path, *sys.argv[1:]]).returncode != 0:
             raise SystemExit(f"the {path} path failed")
     write_results(args, work, names)
 
@@ -203,7 +204,7 @@ def write_results(args, work: Path, names) -> None:
     result = {
         "machine": machine(),
         "date": time.strftime("%Y-%m-%d"),
-        "command": "python benchmarks/bench_capture.py " + " ".join(a for a in sys.argv[1:]),
+        "command": "python benchmarks/bench_fusion.py capture " + " ".join(a for a in sys.argv[1:]),
         "scene": f"reef {args.width}x{args.height}, {args.images_per_date} views/date, "
         f"{args.points_per_image} SfM points per view, spp {args.spp}, dates {names}",
         "config": args.config,
@@ -261,7 +262,7 @@ def ratio_bound(rows: dict, scratch_report: dict, incremental_report: dict, pref
 def markdown(r: dict) -> str:
     gb = lambda b: "–" if b is None else f"{b / 1e9:.2f}"
     lines = [
-        "# Fusion at capture scale (bench_capture.py)",
+        "# Fusion at capture scale (bench_fusion.py capture)",
         "",
         f"Command: `{r['command']}`. Machine: {r['machine']}. Date: {r['date']}. Scene: {r['scene']}; config "
         f"`{Path(r['config']).name}`; ground-truth Sim(3)s; per-date models trained once and shared.",
@@ -325,7 +326,3 @@ def markdown(r: dict) -> str:
             f"| {path} | {c['evidence_f1']:.3f} | {c['evidence_iou']:.3f} | {c['false_regions']} | {c['f1']:.3f} |"
         )
     return "\n".join(lines) + "\n"
-
-
-if __name__ == "__main__":
-    main()
