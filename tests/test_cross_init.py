@@ -243,8 +243,9 @@ def test_a_group_stopped_mid_way_resumes_from_its_checkpoint_to_the_uninterrupte
         np.testing.assert_array_equal(np.asarray(getattr(resumed, name)), np.asarray(getattr(whole, name)))
         assert not np.array_equal(np.asarray(getattr(whole, name)), np.asarray(getattr(model, name)))
     assert again == reports and reports[0]["steps_run"] == 12
-    with pytest.raises(cj.InputError, match="another cross-init group.*config"):
+    with pytest.raises(cj.InputError, match=r"another cross-init group.*config\.lr_o: .* → 0\.06") as refused:
         ci.init_pairs(model, pairs, views, dataclasses.replace(cfg, lr_o=0.06), checkpoint=ckpt)
+    assert refused.value.field == "cross_init.lr_o"
     with pytest.raises(cj.InputError, match="another cross-init group.*pairs"):
         ci.init_pairs(model, [(0, 2)], [v], cfg, checkpoint=ckpt)
     # a checkpoint written before a setting existed resumes (at that setting's default)

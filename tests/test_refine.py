@@ -13,6 +13,7 @@ import pytest
 import cfgs_jax as cj
 from cfgs_jax import fusion, splat
 from cfgs_jax.fusion import updates
+from cfgs_jax.io.checkpoint import read_meta
 
 from conftest import FROZEN, small_random_gaussians
 
@@ -88,7 +89,7 @@ def test_refine_lowers_the_loss_keeps_the_model_finite_and_resumes_exactly(tmp_p
     cfg = dataclasses.replace(cfg, checkpoint_every=50)
     none, stop = rf.refine(model, views, cfg, extent=1.0, checkpoint=ckpt, stop_after=120)
     assert none is None and stop == {"stopped_at": 120} and ckpt.is_file()
-    before = rf.read_meta(ckpt, format=rf.CHECKPOINT_FORMAT)[0]["seconds"]
+    before = read_meta(ckpt, format=rf.CHECKPOINT_FORMAT)[0]["seconds"]
     resumed, rep2 = rf.refine(model, views, cfg, extent=1.0, checkpoint=ckpt)
     assert rep["resumed_at_step"] == 0 and rep["seconds_before_resume"] == 0.0
     assert rep2["resumed_at_step"] == 120 and rep2["seconds_before_resume"] == before > 0  # the stop saves

@@ -343,8 +343,9 @@ def test_resume_after_a_stop_matches_an_uninterrupted_run(corals, tmp_path):
     for f in full.state.params:
         np.testing.assert_array_equal(np.asarray(done.state.params[f]), np.asarray(full.state.params[f]), err_msg=f)
     np.testing.assert_array_equal(done.losses, full.losses)
-    with pytest.raises(cj.InputError, match="different configuration"):
+    with pytest.raises(cj.InputError, match=r"another training run \(it differs in config\.scale_lr: ") as refused:
         train.fit(scene, dataclasses.replace(cfg, scale_lr=1e-3), out=tmp_path / "b", resume=True, progress=False)
+    assert refused.value.field == "train.scale_lr"
 
 
 def test_view_order_is_a_refilled_random_stack():

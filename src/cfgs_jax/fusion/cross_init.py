@@ -53,7 +53,7 @@ from cfgs_jax.fusion.config import CrossInitConfig
 from cfgs_jax.fusion.fuse import INVISIBLE_LOGIT
 from cfgs_jax.fusion.light import REC709, gain_parameter, light_gain, light_logits, light_multiplier
 from cfgs_jax.fusion.updates import cross_init_optimizer
-from cfgs_jax.io.checkpoint import read_meta, require_identity, restore_tree, save_tree
+from cfgs_jax.io.checkpoint import Checkpoint, read_meta
 from cfgs_jax.io.colmap import downscale_image, downscaled_size, scale_camera
 from cfgs_jax.loop import Progress, run_steps, view_order
 from cfgs_jax.model import Camera, DateViews, Gaussians, TemporalGaussians, exposure_table, logit, rgb
@@ -339,7 +339,7 @@ def init_pairs(
         render_config,
     )
     params, start_light, eps_maps, exposures = _start_values(group, config, lpips_net)
-    saving = None if checkpoint is None else (Path(checkpoint), _identity(group, config, render_config, mesh))
+    saving = None if checkpoint is None else _checkpoint(checkpoint, _identity(group, config, render_config, mesh))
     params, losses = _optimise(group, params, eps_maps, exposures, config, progress, mesh, saving, stop_after)
     if params is None:
         return None, [{"stopped_at": int(losses)}]
@@ -446,19 +446,14 @@ def checkpoint_state(path: str | Path) -> dict | None:
     return {"pairs": meta["pairs"], "step": int(meta["step"]), "seconds": float(meta.get("seconds", 0.0))}
 
 
-def _load_checkpoint(path: Path, identity: dict, template) -> tuple[tuple, list, object, int, float]:
-    """(state shaped as ``template``, losses per step, the convergence test's last values or None, the
-    step, the seconds of work before it) of a group's checkpoint, refused unless it was written for the
-    same group."""
-    meta, arrays = read_meta(path, format=CHECKPOINT_FORMAT)
-    # a checkpoint written before a setting existed was written at that setting's default
-    saved = meta | {"config": _settings(CrossInitConfig()) | meta.get("config", {})}
-    require_identity(path, saved, identity, what="cross-init group", restart="group")
-    n = jax.tree_util.tree_structure(template).num_leaves
-    state = restore_tree(path, arrays[:n], template)
-    losses = list(arrays[n]) if len(arrays) > n else []
-    last = arrays[n + 1] if meta.get("last") else None
-    return state, losses, last, int(meta["step"]), float(meta.get("seconds", 0.0))
+def _checkpoint(path, identity: dict) -> Checkpoint:
+    """A group's checkpoint at ``path``, resumed only by the group of ``identity``: its state, then the
+    losses per step and the convergence test's last values when there are any. One written before a
+    setting existed was written at that setting's default."""
+    defaults = {"config": _settings(CrossInitConfig())}
+    return Checkpoint(
+        Path(path), CHECKPOINT_FORMAT, identity, "cross-init group", "group", defaults, {"config": "cross_init"}
+    )
 
 
 @dataclasses.dataclass(frozen=True)
@@ -502,9 +497,9 @@ def _pair_keys(seed: int, pairs) -> np.ndarray:
     return np.stack([jax.random.key_data(jax.random.key(seed * 1_000_003 + p * 1009 + q)) for p, q in pairs])
 
 
-def _group_saver(saving: tuple[Path, dict], test: dict, before: float, t0: float):
-    """``save(carry, done)`` writing a group's checkpoint to ``saving``'s path with its identity: the
-    parameters, Adam state, keys, the losses so far and the convergence test's last state."""
+def _group_saver(saving: Checkpoint, test: dict, before: float, t0: float):
+    """``save(carry, done)`` writing a group's checkpoint: the parameters, Adam state, keys, the losses so
+    far and the convergence test's last state."""
 
     def save(carry, done: int) -> None:
         params, opt_state, keys, losses = carry
@@ -514,8 +509,7 @@ def _group_saver(saving: tuple[Path, dict], test: dict, before: float, t0: float
             extra.append(np.asarray(parallel.to_host(test["last"])))
         if parallel.is_primary():
             seconds = before + time.perf_counter() - t0
-            meta = saving[1] | {"step": done, "last": test["last"] is not None, "seconds": seconds}
-            save_tree(saving[0], (tree, *extra), meta, format=CHECKPOINT_FORMAT)
+            saving.save(tree, {"step": done, "last": test["last"] is not None, "seconds": seconds}, extra)
 
     return save
 
@@ -528,13 +522,13 @@ def _optimise(
     config: CrossInitConfig,
     progress,
     mesh=None,
-    saving: tuple[Path, dict] | None = None,
+    saving: Checkpoint | None = None,
     stop_after: int | None = None,
 ) -> tuple[dict | None, np.ndarray | int]:
     """Eq. 2's ``config.steps`` Adam steps of the group's pairs together: each pair with its own view
     sequence, background key and exposure. With a ``mesh`` of several devices the pair axis is split over them
     (padded to a multiple of the device count with copies of the first pair, whose results are
-    dropped). ``saving``: (checkpoint path, identity) to save to and resume from. Returns the
+    dropped). ``saving``: the group's checkpoint, to save to and resume from. Returns the
     parameters and the [steps, pairs] losses, or (None, the step) when ``stop_after`` stopped it."""
     k = len(pairs.pairs)
     keys = _pair_keys(config.seed, pairs.pairs)
@@ -559,10 +553,12 @@ def _optimise(
     )
     test = {"last": None, "converged": False}  # the convergence test's state
     start, losses, before, t0 = 0, [], 0.0, time.perf_counter()
-    if saving is not None and saving[0].is_file():
-        state, losses, test["last"], start, before = _load_checkpoint(saving[0], saving[1], (params, opt_state, keys))
+    if saving is not None and saving.exists():
+        state, meta, extra = saving.load((params, opt_state, keys))
         params, opt_state, keys = parallel.shard_batch(state, mesh)
-        losses = [jnp.asarray(row) for row in losses]
+        losses = [jnp.asarray(row) for row in (extra[0] if extra else [])]
+        test["last"] = extra[1] if meta.get("last") else None
+        start, before = int(meta["step"]), float(meta.get("seconds", 0.0))
     keys = jax.random.wrap_key_data(keys)
     (params, _, _, losses), done = run_steps(
         group.body,

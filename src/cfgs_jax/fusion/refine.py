@@ -57,7 +57,7 @@ from cfgs_jax.errors import InputError
 from cfgs_jax.fusion.config import RefineConfig
 from cfgs_jax.fusion.frames import baked, frame_params, framed
 from cfgs_jax.fusion.updates import halve_alpha_of, refinement_optimizer, zero_invisible
-from cfgs_jax.io.checkpoint import read_meta, require_identity, restore_tree, save_tree
+from cfgs_jax.io.checkpoint import Checkpoint
 from cfgs_jax.loop import (
     CapacityStep,
     Dispatched,
@@ -239,17 +239,17 @@ def final_prune(model: TemporalGaussians, threshold: float = 1.0 / 255.0) -> Tem
 CHECKPOINT_FORMAT = "cfgs_jax.refine_checkpoint/2"
 
 
-def _load_checkpoint(path: Path, template: dict, meta_now: dict) -> tuple[dict, dict]:
-    """(state, meta) of a refinement checkpoint, refused unless it was written by the same refinement."""
-    meta, arrays = read_meta(path, format=CHECKPOINT_FORMAT)
-    # a checkpoint written before a setting existed was written at that setting's default
-    saved = meta | {
-        "config": dataclasses.asdict(RefineConfig()) | meta.get("config", {}),
-        "train": dataclasses.asdict(TrainConfig()) | meta.get("train", {}),
+def _checkpoint(path, identity: dict) -> Checkpoint:
+    """The refinement's checkpoint at ``path``, resumed only by the refinement of ``identity``; one written
+    before a setting existed was written at that setting's default."""
+    defaults = {
+        "config": dataclasses.asdict(RefineConfig()),
+        "train": dataclasses.asdict(TrainConfig()),
+        "frame_dates": [],
     }
-    saved.setdefault("frame_dates", [])
-    require_identity(path, saved, meta_now, what="refinement", restart="stage")
-    return restore_tree(path, arrays, template), meta
+    return Checkpoint(
+        Path(path), CHECKPOINT_FORMAT, identity, "refinement", "stage", defaults, {"config": "refine", "train": "train"}
+    )
 
 
 @dataclasses.dataclass
@@ -330,7 +330,7 @@ def _start(run: _Refinement, new_dates, checkpoint, identity: dict) -> tuple[_Ca
     )
     if checkpoint is None or not Path(checkpoint).is_file():
         return carry, 0
-    loaded, meta = _load_checkpoint(Path(checkpoint), carry.arrays(), identity)
+    loaded, meta, _ = _checkpoint(checkpoint, identity).load(carry.arrays())
     carry = _Carry(
         loaded["params"],
         loaded["opt_state"],
@@ -651,8 +651,8 @@ def _steps(run, carry: _Carry, start: int, identity: dict, checkpoint, stop_afte
 
     def save(c: _Carry, done: int):
         seconds = c.seconds + time.perf_counter() - t0
-        meta = identity | {"step": done, "losses": c.losses, "completed": c.completed, "seconds": seconds}
-        save_tree(checkpoint, c.arrays(), meta, format=CHECKPOINT_FORMAT)
+        meta = {"step": done, "losses": c.losses, "completed": c.completed, "seconds": seconds}
+        _checkpoint(checkpoint, identity).save(c.arrays(), meta)
 
     with Progress("refine", total=config.steps, completed=start, enabled=progress, transient=True) as bar:
         return run_steps(

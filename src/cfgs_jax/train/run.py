@@ -22,7 +22,7 @@ import numpy as np
 from cfgs_jax import parallel, splat
 from cfgs_jax.errors import InputError
 from cfgs_jax.io.atomic import ensure_writable_dir
-from cfgs_jax.io.checkpoint import read_meta, restore_tree, save_tree
+from cfgs_jax.io.checkpoint import Checkpoint
 from cfgs_jax.io.colmap import Scene, read_colmap
 from cfgs_jax.loop import CapacityStep, Dispatched, Progress, check_view_batch, run_steps, view_batch
 from cfgs_jax.model import Gaussians, gaussians_of, with_sh_degree
@@ -92,6 +92,14 @@ def _config_dict(config: TrainConfig) -> dict:
     return dataclasses.asdict(config)
 
 
+def _checkpoint(path: Path, config: TrainConfig) -> Checkpoint:
+    """A training run's checkpoint at ``path``, resumed only with the configuration it was started with (a
+    setting added since it was written counts as its default)."""
+    identity = {"config": _config_dict(config)}
+    defaults = {"config": _config_dict(TrainConfig())}
+    return Checkpoint(Path(path), FORMAT, identity, "training run", "training", defaults, {"config": "train"})
+
+
 def save_checkpoint(
     path: Path,
     state: TrainState,
@@ -110,34 +118,21 @@ def save_checkpoint(
         "capacity": int(state.active.shape[0]),
         "render_capacity": int(render_capacity),
         "extent": extent,
-        "config": _config_dict(config),
         "losses": losses,
         "counts": counts,
         "eval_history": eval_history or [],
     }
-    save_tree(path, keyed, meta, format=FORMAT)
-    return path
+    return _checkpoint(path, config).save(keyed, meta)
 
 
 def load_checkpoint(path: Path, optimizer, config: TrainConfig):
     """(state, meta) from ``save_checkpoint``; the config must match the one the run was started with."""
-    meta, arrays = read_meta(path, format=FORMAT)
-    saved = meta["config"]
-    now = _config_dict(config)
-    defaults = _config_dict(TrainConfig())
-    # a setting added since the checkpoint was written counts as its default
-    diff = sorted(k for k in set(saved) | set(now) if saved.get(k, defaults.get(k)) != now.get(k))
-    if diff:
-        raise InputError(
-            f"the run was started with a different configuration ({', '.join(f'{k}: {saved.get(k)} → {now.get(k)}' for k in diff)})",
-            path=path,
-            field=f"train.{diff[0]}",
-            fix="resume with the original settings or start a new --out",
-        )
+    checkpoint = _checkpoint(path, config)
+    capacity = checkpoint.meta()["capacity"]
     template = TrainState.create(
-        with_sh_degree(_dummy(1), config.sh_degree), optimizer, jax.random.key(0), capacity=meta["capacity"]
+        with_sh_degree(_dummy(1), config.sh_degree), optimizer, jax.random.key(0), capacity=capacity
     )
-    state = restore_tree(path, arrays, dataclasses.replace(template, key=jax.random.key_data(template.key)))
+    state, meta, _ = checkpoint.load(dataclasses.replace(template, key=jax.random.key_data(template.key)))
     state = dataclasses.replace(state, key=jax.random.wrap_key_data(state.key))
     return state, meta
 
