@@ -137,7 +137,7 @@ def test_fusion_beats_the_individual_models_at_equal_steps(protocol):
 @pytest.mark.slow
 def test_eval_change_detection_and_resume(protocol):
     data, out, raw = protocol
-    from cfgs_jax.evaluation.protocol import run_protocol
+    from cfgs_jax.app.evaluate import run_protocol
 
     change = json.loads((out / "change.json").read_text())
     g, p = change["gaussians"], change["pixels"]
@@ -192,7 +192,7 @@ def test_eval_reports_registration_error_and_fuses_again_with_the_exact_transfor
     import shutil
 
     from cfgs_jax import synthetic
-    from cfgs_jax.evaluation.protocol import run_protocol
+    from cfgs_jax.app.evaluate import run_protocol
     from cfgs_jax.sim3 import quat_to_matrix
 
     data, out, raw = protocol
@@ -263,7 +263,7 @@ def test_eval_refines_again_when_the_run_lacks_a_snapshot(protocol, tmp_path):
     (the refinement is deterministic), the same Ours rows, and the other stages untouched."""
     import shutil
 
-    from cfgs_jax.evaluation.protocol import run_protocol
+    from cfgs_jax.app.evaluate import run_protocol
 
     data, out, raw = protocol
     copy = tmp_path / "out"
@@ -333,7 +333,7 @@ def test_eval_parts_run_apart_make_the_same_table(protocol, tmp_path):
     call's (the stages are deterministic), and --part all then only assembles the table."""
     import shutil
 
-    from cfgs_jax.evaluation.protocol import run_protocol
+    from cfgs_jax.app.evaluate import run_protocol
 
     data, out, raw = protocol
     copy = tmp_path / "out"
@@ -373,7 +373,7 @@ def test_eval_parts_name_the_part_to_run_first(tmp_path):
     import tomllib
 
     from cfgs_jax import InputError
-    from cfgs_jax.evaluation.protocol import run_protocol
+    from cfgs_jax.app.evaluate import run_protocol
 
     raw = tomllib.loads(TOML)
     out = tmp_path / "out"
@@ -397,7 +397,7 @@ def test_eval_parts_name_the_part_to_run_first(tmp_path):
 
 def test_eval_refuses_to_refine_an_extended_run_again(tmp_path):
     from cfgs_jax import InputError
-    from cfgs_jax.evaluation.protocol import _refine_again_for_steps
+    from cfgs_jax.app.evaluate import _refine_again_for_steps
     from cfgs_jax.io.atomic import write_json
 
     done = ["train", "register", "merge", "cross_init", "refine", "export", "extend:d2:train"]
@@ -415,7 +415,7 @@ def test_eval_refuses_to_refine_an_extended_run_again(tmp_path):
 def test_eval_takes_a_new_refinement_length_and_nothing_else(tmp_path):
     """A run started for other [eval] steps takes the new refinement length (refined again where it was
     refined); a change of any other value is left alone, for the resumed run to refuse."""
-    from cfgs_jax.evaluation.protocol import _refine_again_for_steps
+    from cfgs_jax.app.evaluate import _refine_again_for_steps
     from cfgs_jax.io.atomic import write_json
 
     started = {"refine": {"steps": 800, "lr_o": 1e-5}, "cross_init": {"steps": 50}}

@@ -17,8 +17,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from cfgs_jax import viz
+from cfgs_jax.app.evaluate import PARTS
 from cfgs_jax.errors import InputError
-from cfgs_jax.evaluation.protocol import PARTS
 from cfgs_jax.io.formats import FORMATS
 from cfgs_jax.synthetic.presets import PRESETS
 

@@ -26,12 +26,12 @@ import cfgs_jax as cj
 from cfgs_jax import metrics, parallel, stopping, synthetic, train
 from cfgs_jax.app.cli import build_parser, parse_selection, parse_stops
 from cfgs_jax.app.demo import run_demo
+from cfgs_jax.app.evaluate import run_protocol
 from cfgs_jax.app.render_run import SelectionStyle, export_selection, open_run, render_views
 from cfgs_jax.app.viewer import serve
 from cfgs_jax.changes.report import detect_changes
 from cfgs_jax.config import apply_overrides, find_preset, load_config, preset_names
 from cfgs_jax.errors import InputError, OutputError
-from cfgs_jax.evaluation.protocol import run_protocol
 from cfgs_jax.evaluation.sweep import run_sweep
 from cfgs_jax.fusion.config import RunConfig
 from cfgs_jax.fusion.stages import run_compact, run_extend, run_fusion

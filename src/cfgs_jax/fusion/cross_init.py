@@ -514,6 +514,15 @@ def _group_saver(saving: Checkpoint, test: dict, before: float, t0: float):
     return save
 
 
+def _resumed(saving: Checkpoint, template, mesh) -> tuple[tuple, list, object, int, float]:
+    """A group's state as its checkpoint left it (on the devices), the losses per step, the convergence
+    test's last values (or None), the step and the seconds of work before it."""
+    state, meta, extra = saving.load(template)
+    losses = [jnp.asarray(row) for row in (extra[0] if extra else [])]
+    last = extra[1] if meta.get("last") else None
+    return parallel.shard_batch(state, mesh), losses, last, int(meta["step"]), float(meta.get("seconds", 0.0))
+
+
 def _optimise(
     pairs: _Pairs,
     params,
@@ -554,11 +563,9 @@ def _optimise(
     test = {"last": None, "converged": False}  # the convergence test's state
     start, losses, before, t0 = 0, [], 0.0, time.perf_counter()
     if saving is not None and saving.exists():
-        state, meta, extra = saving.load((params, opt_state, keys))
-        params, opt_state, keys = parallel.shard_batch(state, mesh)
-        losses = [jnp.asarray(row) for row in (extra[0] if extra else [])]
-        test["last"] = extra[1] if meta.get("last") else None
-        start, before = int(meta["step"]), float(meta.get("seconds", 0.0))
+        (params, opt_state, keys), losses, test["last"], start, before = _resumed(
+            saving, (params, opt_state, keys), mesh
+        )
     keys = jax.random.wrap_key_data(keys)
     (params, _, _, losses), done = run_steps(
         group.body,
