@@ -83,3 +83,34 @@ def test_the_suite_has_at_most_twelve_entry_points():
     programs and the shell scripts, leaving out ``gpu_PART.sh``, the parts that ``gpu.sh PART`` runs."""
     shell = [p for p in (REPO / "benchmarks").glob("*.sh") if not p.name.startswith("gpu_")]
     assert len(ENTRY_POINTS) + len(shell) <= 12, sorted(p.name for p in [*ENTRY_POINTS, *shell])
+
+
+def test_every_published_result_names_the_command_of_the_suite_that_makes_it():
+    """Each results file the README, benchmarks/README.md or the guide links to exists and names, in
+    backticks, the command that made it: `python -m cfgs_jax.pipeline …`, or a benchmark entry point of
+    this tree (a moved or removed script fails)."""
+    import re
+
+    cited = set()
+    for doc in ("README.md", "benchmarks/README.md", "docs/guide.md"):
+        cited |= set(
+            re.findall(r"\(results/([A-Za-z0-9_.-]+\.md)\)|`results/([A-Za-z0-9_.-]+\.md)`", (REPO / doc).read_text())
+        )
+    names = sorted({a or b for a, b in cited})
+    assert len(names) > 50
+    command = re.compile(
+        r"`(?:[A-Z_]+=\S+ )*(python3? (?:-m cfgs_jax\.pipeline|benchmarks/[^\s`]+)|bash (?:benchmarks|\.ci)/[^\s`]+)[^`]*`"
+    )
+    entry = {p.name for p in ENTRY_POINTS} | {p.name for p in (REPO / "benchmarks").glob("*.sh")} | {"nightly"}
+    missing, unknown = [], []
+    for name in names:
+        path = REPO / "benchmarks" / "results" / name
+        commands = command.findall(path.read_text()) if path.is_file() else None
+        if not commands:
+            missing.append(name)
+        unknown += [
+            (name, c)
+            for c in commands or []
+            if c.split()[1].startswith(("benchmarks/", ".ci/")) and Path(c.split()[1]).name not in entry
+        ]
+    assert not missing and not unknown, (missing, unknown)
