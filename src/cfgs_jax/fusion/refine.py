@@ -304,9 +304,9 @@ def _check_frame_dates(model: TemporalGaussians, config: RefineConfig, new_dates
     return frame_dates
 
 
-def _start(run: _Refinement, new_dates, checkpoint, identity: dict) -> tuple[_Carry, int]:
-    """The carry at the start (α halved on ``new_dates``' Gaussians), or as the checkpoint left it
-    (refused unless its ``identity`` matches); and the step to start from."""
+def _start(run: _Refinement, new_dates, saving: Checkpoint | None) -> tuple[_Carry, int]:
+    """The carry at the start (α halved on ``new_dates``' Gaussians), or as the checkpoint ``saving``
+    left it (refused unless its identity matches); and the step to start from."""
     model, config = run.model, run.config
     params = trainable(model) | ({"light_logits": jnp.asarray(model.light_logits)} if config.lr_light else {})
     if run.maskable is not None:
@@ -328,9 +328,9 @@ def _start(run: _Refinement, new_dates, checkpoint, identity: dict) -> tuple[_Ca
         np.zeros((n, t), bool),
         [],
     )
-    if checkpoint is None or not Path(checkpoint).is_file():
+    if saving is None or not saving.exists():
         return carry, 0
-    loaded, meta, _ = _checkpoint(checkpoint, identity).load(carry.arrays())
+    loaded, meta, _ = saving.load(carry.arrays())
     carry = _Carry(
         loaded["params"],
         loaded["opt_state"],
@@ -550,7 +550,7 @@ def _begin(
     frame_dates,
 ):
     """The refinement's fixed inputs (checked) and its start: a fresh carry, or the checkpoint's.
-    Returns (refinement, carry, start step, the identity saved with checkpoints); the keywords are
+    Returns (refinement, carry, start step, the checkpoint or None); the keywords are
     ``refine``'s.
 
     Learned masks (with ``config.mask_lambda`` > 0 and ``maskable``, an [N] bool): each maskable
@@ -582,13 +582,13 @@ def _begin(
         None if not config.mask_lambda else np.asarray(maskable, bool),
         frame_dates,
     )
-    identity = _identity(run, new_dates)
-    carry, start = _start(run, new_dates, checkpoint, identity)
+    saving = None if checkpoint is None else _checkpoint(checkpoint, _identity(run, new_dates))
+    carry, start = _start(run, new_dates, saving)
     carry.params, carry.opt_state, carry.o_init = parallel.replicate(
         (carry.params, carry.opt_state, carry.o_init), run.batch_mesh
     )
     carry.capacity = max(run.capacity_for(carry.params, q, v) for q, v in run.flat)
-    return run, carry, start, identity
+    return run, carry, start, saving
 
 
 def refine(
@@ -636,23 +636,23 @@ def refine(
     config = config or RefineConfig()
     fixed = dict(train_config=train_config, render_config=render_config, extent=extent, snapshot_steps=snapshot_steps)
     fixed |= dict(on_snapshot=on_snapshot, mesh=mesh, new_dates=new_dates, maskable=maskable, frame_dates=frame_dates)
-    run, carry, start, identity = _begin(model, views, config, checkpoint, **fixed)
-    carry, done = _steps(run, carry, start, identity, checkpoint, stop_after, progress)
+    run, carry, start, saving = _begin(model, views, config, checkpoint, **fixed)
+    carry, done = _steps(run, carry, start, saving, stop_after, progress)
     if done < config.steps:
         return None, {"stopped_at": done}
     pruned, report = _finish(model, carry, config, run.new_dates, run.last_checked)
     return pruned, report | {"resumed_at_step": start, "seconds_before_resume": carry.seconds}
 
 
-def _steps(run, carry: _Carry, start: int, identity: dict, checkpoint, stop_after, progress: bool):
-    """The refinement's steps from ``start`` (checkpointed every ``checkpoint_every`` steps and
-    ``checkpoint_minutes`` when ``checkpoint`` is a path) → (carry, steps done)."""
+def _steps(run, carry: _Carry, start: int, saving: Checkpoint | None, stop_after, progress: bool):
+    """The refinement's steps from ``start`` (saved to ``saving`` every ``checkpoint_every`` steps and
+    ``checkpoint_minutes`` when there is one) → (carry, steps done)."""
     config, t0 = run.config, time.perf_counter()
 
     def save(c: _Carry, done: int):
         seconds = c.seconds + time.perf_counter() - t0
         meta = {"step": done, "losses": c.losses, "completed": c.completed, "seconds": seconds}
-        _checkpoint(checkpoint, identity).save(c.arrays(), meta)
+        saving.save(c.arrays(), meta)
 
     with Progress("refine", total=config.steps, completed=start, enabled=progress, transient=True) as bar:
         return run_steps(
@@ -663,7 +663,7 @@ def _steps(run, carry: _Carry, start: int, identity: dict, checkpoint, stop_afte
             stop_after=stop_after,
             checkpoint_every=config.checkpoint_every,
             checkpoint_seconds=60.0 * config.checkpoint_minutes,
-            save=save if checkpoint is not None else None,
+            save=save if saving is not None else None,
             progress=bar,
             settle=run.settle,
         )
