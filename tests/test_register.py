@@ -88,7 +88,7 @@ def test_a_date_that_overlaps_only_a_later_date_registers_into_the_sfm_of_both(t
     from cfgs_jax.fusion.register import rotation_angle
     from cfgs_jax.synthetic.presets import orbit
 
-    spec = synthetic.make_preset("corals", seed=2, width=320, height=240, images_per_date=12, spp=8)
+    spec = synthetic.make_preset("corals", seed=2, width=320, height=240, images_per_date=12, spp=2)
     half = lambda x, phase: orbit(12, radius=0.8, heights=(2.6, 3.0), phase_deg=phase, arc_deg=120, target=(x, 0, 0))
     cams = (half(-1.8, -60), orbit(12, radius=3.0, heights=(2.8, 3.2), phase_deg=20, target=(0, 0, 0)), half(1.8, 120))
     spec = dataclasses.replace(
