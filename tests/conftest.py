@@ -169,6 +169,27 @@ def pytest_collection_modifyitems(config, items):
 # ---------------------------------------------- a tiny fused run through the CLI, shared by the app tests
 
 
+def _built_once(tmp_path_factory, name: str, build) -> Path:
+    """A folder ``build(folder)`` fills once per test session, shared by every pytest-xdist worker: the
+    first worker to ask builds it under an exclusive file lock while the others wait, then read it (the
+    app tests of several files share one fused run, which took each worker its own fusion before).
+    The tests only read such a folder; one that changes a run copies it first."""
+    import fcntl
+    import shutil
+
+    base = tmp_path_factory.getbasetemp()
+    root = base.parent if os.environ.get("PYTEST_XDIST_WORKER") else base  # the session's folder under xdist
+    folder = root / f"shared-{name}"
+    with open(root / f"shared-{name}.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        if not (folder / ".built").is_file():
+            shutil.rmtree(folder, ignore_errors=True)
+            folder.mkdir()
+            build(folder)
+            (folder / ".built").write_text("")
+    return folder
+
+
 @pytest.fixture(scope="session")
 def tiny_two_dates(tmp_path_factory):
     """Two corals dates at 64×48 (6 views each) and their ground-truth date → reference Sim(3)s."""
@@ -176,16 +197,17 @@ def tiny_two_dates(tmp_path_factory):
 
     from cfgs_jax import synthetic
 
-    spec = synthetic.make_preset("corals", seed=5, width=64, height=48, images_per_date=6, spp=4)
-    root = synthetic.render_dataset(spec, tmp_path_factory.mktemp("tiny"), dates=[0, 1, 2], progress=False)
-    (root / "transforms.json").write_text(json.dumps(synthetic.reference_transforms(root, ["d0", "d1", "d2"])))
-    toml = root / "tiny.toml"
-    toml.write_text(
-        "[train]\nsteps = 60\ndensify_from = 20\ndensify_until = 50\ndensify_interval = 20\n"
-        "sh_degree = 2\nsh_interval = 20\n"  # view-dependent colour through every stage
-        "[cross_init]\nsteps = 15\nrate_reference_steps = 0\n[refine]\nsteps = 20\nvisibility_interval = 10\n"
-    )  # the rates as given: 15 steps at 200× would saturate every o^q (the README snippet's FD check needs slopes)
-    return root
+    def build(root: Path) -> None:
+        spec = synthetic.make_preset("corals", seed=5, width=64, height=48, images_per_date=6, spp=4)
+        synthetic.render_dataset(spec, root, dates=[0, 1, 2], progress=False)
+        (root / "transforms.json").write_text(json.dumps(synthetic.reference_transforms(root, ["d0", "d1", "d2"])))
+        (root / "tiny.toml").write_text(
+            "[train]\nsteps = 60\ndensify_from = 20\ndensify_until = 50\ndensify_interval = 20\n"
+            "sh_degree = 2\nsh_interval = 20\n"  # view-dependent colour through every stage
+            "[cross_init]\nsteps = 15\nrate_reference_steps = 0\n[refine]\nsteps = 20\nvisibility_interval = 10\n"
+        )  # the rates as given: 15 steps at 200× would saturate every o^q (the README snippet's FD check needs slopes)
+
+    return _built_once(tmp_path_factory, "tiny", build)
 
 
 @pytest.fixture(scope="session")
@@ -194,8 +216,7 @@ def fused_run(tiny_two_dates, tmp_path_factory):
     from cfgs_jax.app.pipeline import main
 
     root = tiny_two_dates
-    out = tmp_path_factory.mktemp("fused") / "a"
-    args = [
+    args = lambda out: [
         "fuse",
         "--dates",
         str(root / "d0"),
@@ -208,8 +229,12 @@ def fused_run(tiny_two_dates, tmp_path_factory):
         str(root / "transforms.json"),
         "--no-progress",
     ]
-    assert main(args) == 0
-    return out, args
+
+    def build(folder: Path) -> None:
+        assert main(args(folder / "a")) == 0
+
+    out = _built_once(tmp_path_factory, "fused", build) / "a"
+    return out, args(out)
 
 
 @pytest.fixture(scope="session")
