@@ -235,6 +235,42 @@ def depth_gap(run, p: int, q: int, views) -> np.ndarray:
     return (total / np.maximum(weight, 1e-30))[mine]
 
 
+def own_view_evidence(run, config) -> np.ndarray:
+    """[N] per Gaussian of date p, the evidence e (``pooled_evidence``) of date p's own held-out test
+    views: the render at p with p's Gaussians present against it with them absent (the other dates at
+    o^p, the light at p). Above 0 where p's own unseen views are explained better without them: a
+    floater, or a surface p's training views constrained poorly."""
+    import jax.numpy as jnp
+
+    from cfgs_jax import splat
+    from cfgs_jax.changes.evidence import _view_image, pooled_evidence, residual_sums
+    from cfgs_jax.io.run_dir import date_views
+    from cfgs_jax.model import light_multipliers, opacity_multipliers
+    from cfgs_jax.splat.weights import visible
+
+    model, rc = run.model, run.config.render
+    g, origin = model.gaussians, np.asarray(model.origin)
+    means, o = np.asarray(g.means, np.float64), np.asarray(opacity_multipliers(model), np.float32)
+    out = np.zeros(len(origin))
+    for p in range(model.num_dates):
+        mine = origin == p
+        present = jnp.asarray(o[:, p][None])
+        absent = jnp.asarray(np.where(mine, 0.0, o[:, p])[None].astype(np.float32))
+        light = jnp.asarray(np.asarray(light_multipliers(model))[:, p], jnp.float32)
+        views = date_views(run.scenes[p], run.sims[p], "test")
+        total, largest, pixels = np.zeros((int(mine.sum()), 6)), np.zeros(int(mine.sum())), 0
+        for cam, image in zip(views.cameras, views.images):
+            cap = splat.required_capacity(g, cam, jnp.concatenate([present, absent]), config=rc)
+            ref = jnp.asarray(_view_image(np.asarray(image), cam))
+            sums, weight = residual_sums(g, cam, present, absent, light, ref, dataclasses.replace(rc, capacity=cap))
+            total += np.asarray(sums[0], np.float64)[mine]
+            largest = np.maximum(largest, np.asarray(weight[0])[mine])
+            pixels += cam.width * cam.height
+        seen = visible(largest, np.asarray(present[0])[mine], 0.01)
+        out[mine] = pooled_evidence(total, means[mine], seen, config, total[:, 0] / max(pixels, 1))
+    return out
+
+
 def probe(work: Path, cells: list) -> None:
     """Per fused cell: the score alone (s > 0.5, no regions) under other evidence rules, and where the
     default's errors lie (by object; a false entry's distance to the nearest changed object over that
@@ -262,7 +298,9 @@ def probe(work: Path, cells: list) -> None:
         "alone (s > 0.5, no regions; P / R / F1 per Gaussian against the objects that changed) under other evidence "
         "rules; the ratio rule flags 1 − √(E⁻/E⁺) > ρ on the pooled residuals. Errors of the default: entries by "
         "object; a false entry's distance to the nearest changed object's centre in that object's radii; the depth "
-        "gap (D⁻ − z)/z of the render without date p at q's views (0: on a surface q still shows).",
+        "gap (D⁻ − z)/z of the render without date p at q's views (0: on a surface q still shows); the evidence e of "
+        "date p's own held-out test views (p's Gaussians present against absent at p: above 0 where p's unseen views "
+        "are explained better without them, a floater), and the score alone less the entries where it is above κ.",
         "",
     ]
     for cell in cells:
@@ -291,9 +329,17 @@ def probe(work: Path, cells: list) -> None:
             lines.append(
                 f"| ratio rule ρ {rho} | {' / '.join(f'{x:.3f}' for x in _prf(np.concatenate(pred), truth))} |"
             )
+        own = own_view_evidence(run, ChangesConfig())
+        for kappa in (0.0, 0.02):
+            pred = [(ev.score[r, q] > 0.5) & (own[r] <= kappa) for (p, q), (r, _, _) in ent["pairs"].items()]
+            lines.append(
+                f"| score alone, less what date p's own test views contradict (their e > {kappa}) | "
+                f"{' / '.join(f'{x:.3f}' for x in _prf(np.concatenate(pred), truth))} |"
+            )
         views = [date_views(sc, sm, "all") for sc, sm in zip(run.scenes, run.sims)]
         origin, objects = np.asarray(run.model.origin), ent["objects"]
         gaps, false_obj, miss_obj, dist = {"hit": [], "miss": [], "false": [], "true negative": []}, {}, {}, []
+        owns = {key: [] for key in gaps}
         for (p, q), (r, _, t) in ent["pairs"].items():
             pred = ev.score[r, q] > 0.5
             gap = depth_gap(run, p, q, views)[np.searchsorted(np.nonzero(origin == p)[0], r)]
@@ -304,6 +350,7 @@ def probe(work: Path, cells: list) -> None:
                 ("true negative", ~pred & ~t),
             ):
                 gaps[key].append(gap[sel])
+                owns[key].append(own[r][sel])
             for o in objects[r][pred & ~t]:
                 false_obj[int(o)] = false_obj.get(int(o), 0) + 1
             for o in objects[r][~pred & t]:
@@ -323,12 +370,12 @@ def probe(work: Path, cells: list) -> None:
             f"{dict(sorted(false_obj.items()))}; false entries' distance to the nearest changed object (radii, "
             f"10 / 50 / 90 %): {q3(np.concatenate(dist)) if dist else '–'}.",
             "",
-            "| entries | count | depth gap 10 / 50 / 90 % |",
-            "|---|---:|---|",
+            "| entries | count | depth gap 10 / 50 / 90 % | e of date p's own test views 10 / 50 / 90 % |",
+            "|---|---:|---|---|",
         ]
         for key, v in gaps.items():
             v = np.concatenate(v)
-            lines.append(f"| {key} | {len(v)} | {q3(v)} |")
+            lines.append(f"| {key} | {len(v)} | {q3(v)} | {q3(np.concatenate(owns[key]))} |")
         lines.append("")
         print("\n".join(lines[-12:]), flush=True)
     (RESULTS / "change_probe.md").write_text("\n".join(lines) + "\n")
