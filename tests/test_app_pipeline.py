@@ -44,29 +44,35 @@ def test_fuse_cli_runs_every_stage_and_resumes_mid_cross_init(tiny_two_dates, fu
     ci = importlib.import_module("cfgs_jax.fusion.cross_init")  # the package exports a function of that name
 
     one_by_one = ["--set", "cross_init.batch_dates=1"]
-    unsignalled, groups = ci.run_steps, []
+    unsignalled, groups = ci.run_stage, []
 
-    def signalled(body, carry, **kw):  # the loop's body as given, with a SIGTERM in step 9 of group 2
-        groups.append(kw["start"])
+    class Signalled:  # a pair group's stage as given, with a SIGTERM in its step 9
+        def __init__(self, stage):
+            self.stage = stage
 
-        def step(c, k):
-            if len(groups) == 2 and k == 8:
+        def __getattr__(self, name):
+            return getattr(self.stage, name)
+
+        def step(self, c, k):
+            if k == 8:
                 signal.raise_signal(signal.SIGTERM)
-            return body(c, k)
+            return self.stage.step(c, k)
 
-        return unsignalled(step, carry, **kw)
+    def signalled(stage, checkpoint=None, **kw):  # group 2 signalled; whether each group found a checkpoint
+        groups.append(checkpoint is not None and checkpoint.exists())
+        return unsignalled(Signalled(stage) if len(groups) == 2 else stage, checkpoint, **kw)
 
     b_dir = tmp_path / "b"
-    monkeypatch.setattr(ci, "run_steps", signalled)
+    monkeypatch.setattr(ci, "run_stage", signalled)
     assert main(args[:5] + [str(b_dir)] + args[6:] + one_by_one) == 143
     assert "stopped by SIGTERM after step 9: its checkpoint is saved" in " ".join(capsys.readouterr().err.split())
     assert json.loads((b_dir / "cross_init_pairs.json").read_text())["pairs"] == [[0, 1]]
     saved = ci.checkpoint_state(b_dir / "cross_init_checkpoint.npz")
     assert saved["pairs"] == [[1, 0]] and saved["step"] == 9 and saved["seconds"] > 0
-    monkeypatch.setattr(ci, "run_steps", unsignalled)
+    monkeypatch.setattr(ci, "run_stage", unsignalled)
     assert main(args[:5] + [str(b_dir)] + args[6:] + one_by_one + ["--resume"]) == 0
     assert "resumed at step 9" in " ".join(capsys.readouterr().out.split())  # the console wraps its lines
-    assert groups == [0, 0] and not (b_dir / "cross_init_checkpoint.npz").exists()
+    assert groups == [False, False] and not (b_dir / "cross_init_checkpoint.npz").exists()
     b = cj.io.read_fused(b_dir / "fused")
     c_dir = tmp_path / "c"  # the same configuration, never interrupted
     assert main(args[:5] + [str(c_dir)] + args[6:] + one_by_one) == 0

@@ -360,8 +360,8 @@ def test_train_cli_writes_a_model_continues_it_and_guards_the_output(corals, tmp
     trains a model further without densifying."""
     import signal
 
+    from cfgs_jax import loop
     from cfgs_jax.app.pipeline import main
-    from cfgs_jax.train import run as train_run
 
     out = tmp_path / "run"
     toml = tmp_path / "short.toml"  # one densification at step 40 (the schedule scaled 1:1 by --steps)
@@ -379,7 +379,7 @@ def test_train_cli_writes_a_model_continues_it_and_guards_the_output(corals, tmp
         "--no-progress",
         "--no-eval",
     ]
-    unsignalled = train_run.run_steps
+    unsignalled = loop.run_steps
 
     def signalled(body, carry, **kw):  # the loop's body as given, with a SIGTERM to this process in step 26
         def step(c, k):
@@ -389,12 +389,12 @@ def test_train_cli_writes_a_model_continues_it_and_guards_the_output(corals, tmp
 
         return unsignalled(step, carry, **kw)
 
-    monkeypatch.setattr(train_run, "run_steps", signalled)
+    monkeypatch.setattr(loop, "run_steps", signalled)
     assert main(args) == 143  # 128 + SIGTERM, as a shell reports a process stopped by it
     assert "stopped by SIGTERM after step 26" in capsys.readouterr().err
     meta = json.loads(bytes(np.load(out / train.CHECKPOINT)["__meta__"]).decode())
     assert meta["step"] == 26 and not (out / "point_cloud.ply").exists()
-    monkeypatch.setattr(train_run, "run_steps", unsignalled)
+    monkeypatch.setattr(loop, "run_steps", unsignalled)
     assert main([*args, "--resume"]) == 0
     g = cj.io.read_ply(out / "point_cloud.ply")
     report = json.loads((out / "train.json").read_text())

@@ -8,6 +8,12 @@ intersection-buffer capacity and recompiles it larger when a view overflows the 
 ``CapacityStep`` does the same one step late, so that the host never waits for a step before the next
 one is queued; ``view_order`` is the view sequence every stage draws from. Nothing here holds state
 between calls: a resumed run passes the step it stopped at as ``start``.
+
+``Stage`` is the shape every optimisation stage takes (training, cross-timestep initialisation,
+refinement): an object whose fields are its settings, with ``init`` (the carry at step 0), ``step``
+(one step of the carry), ``done`` (converged early) and the three methods that say what its checkpoint
+holds. ``run_stage`` runs any of them: it resumes from the stage's checkpoint, runs ``run_steps`` with
+the stage's save cadence, records the seconds of work across resumes, and writes the checkpoint.
 """
 
 from __future__ import annotations
@@ -17,7 +23,7 @@ import dataclasses
 import logging
 import time
 from collections.abc import Callable
-from typing import Any, TypeVar
+from typing import Any, Generic, Protocol, TypeVar
 
 import jax
 import numpy as np
@@ -26,6 +32,7 @@ from rich.progress import Progress as RichProgress
 
 from cfgs_jax import parallel, stopping
 from cfgs_jax.errors import InputError
+from cfgs_jax.io.checkpoint import Checkpoint
 
 Carry = TypeVar("Carry")
 
@@ -204,6 +211,111 @@ def run_steps(
     return carry, last
 
 
+@dataclasses.dataclass(frozen=True)
+class Saved:
+    """What a stage's checkpoint holds after some step: the state pytree (``tree``), the JSON-able
+    records beside it (``meta``) and arrays of shapes the template does not fix (``extra``)."""
+
+    tree: Any
+    meta: dict
+    extra: tuple = ()
+
+
+class Stage(Protocol[Carry]):
+    """An optimisation stage as ``run_stage`` runs it. Its fields are its settings: ``steps`` (the
+    length of the run), ``checkpoint_every`` (steps) and ``checkpoint_minutes`` (wall time) between
+    saves. ``init()``: the carry at step 0. ``step(carry, k)``: the carry after 0-based step ``k``.
+    ``settle(carry)``: the carry with any step still queued on the device finished and recorded (the
+    identity for a stage that queues nothing). ``done(carry, n)``: whether the stage has converged after
+    ``n`` steps (the run ends there). ``saved(carry, n)``: what its checkpoint holds after ``n`` steps;
+    ``template(fresh, meta)``: the pytree a checkpoint with metadata ``meta`` is read into (``fresh``:
+    ``init()``'s carry); ``restored(fresh, saved)``: the carry a checkpoint holds. ``info(carry)``: the
+    progress bar's line."""
+
+    steps: int
+    checkpoint_every: int
+    checkpoint_minutes: float
+
+    def init(self) -> Carry: ...
+
+    def step(self, carry: Carry, k: int) -> Carry: ...
+
+    def settle(self, carry: Carry) -> Carry: ...
+
+    def done(self, carry: Carry, steps_done: int) -> bool: ...
+
+    def saved(self, carry: Carry, steps_done: int) -> Saved: ...
+
+    def template(self, fresh: Carry, meta: dict) -> Any: ...
+
+    def restored(self, fresh: Carry, saved: Saved) -> Carry: ...
+
+    def info(self, carry: Carry) -> str: ...
+
+
+@dataclasses.dataclass(frozen=True)
+class StageRun(Generic[Carry]):
+    """What ``run_stage`` returns: the carry, the step the run started at (0, or where its checkpoint
+    left it), the steps done, and the wall seconds of the stage's steps before this run (a resumed
+    run's earlier parts)."""
+
+    carry: Carry
+    start: int
+    done: int
+    seconds_before: float
+
+
+def run_stage(
+    stage: Stage[Carry],
+    checkpoint: Checkpoint | None = None,
+    *,
+    resume: bool = True,
+    stop_after: int | None = None,
+    save_at_end: bool = False,
+    progress: Progress | None = None,
+    clock: Callable[[], float] = time.perf_counter,
+) -> StageRun[Carry]:
+    """Run ``stage`` to its ``steps`` (or ``stop_after``, or until ``stage.done``). With ``checkpoint``
+    (its identity the stage's), the run continues from it when it exists and ``resume`` is true (the
+    identity refused unless it matches: ``Checkpoint.load``), and saves to it on ``run_steps``' cadence
+    (``stage.checkpoint_every`` steps, ``stage.checkpoint_minutes`` of work, a signal, an early stop, the
+    end with ``save_at_end``); each save records the step (``meta["step"]``) and the seconds of the
+    stage's steps so far, across resumes (``meta["seconds"]``). Only the first process of a
+    multi-process run writes the file."""
+    carry, start, before = stage.init(), 0, 0.0
+    if checkpoint is not None and resume and checkpoint.exists():
+        meta = checkpoint.meta()
+        tree, meta, extra = checkpoint.load(stage.template(carry, meta))
+        carry = stage.restored(carry, Saved(tree, meta, tuple(extra)))
+        start, before = int(meta["step"]), float(meta.get("seconds", 0.0))
+    if progress is not None:
+        progress.skip_to(start)
+    t0 = clock()
+
+    def save(c: Carry, done: int) -> None:
+        saved = stage.saved(c, done)
+        if parallel.is_primary():
+            meta = saved.meta | {"step": done, "seconds": before + clock() - t0}
+            checkpoint.save(saved.tree, meta, saved.extra)
+
+    carry, done = run_steps(
+        stage.step,
+        carry,
+        start=start,
+        steps=stage.steps,
+        stop_after=stop_after,
+        checkpoint_every=stage.checkpoint_every,
+        checkpoint_seconds=60.0 * stage.checkpoint_minutes,
+        save=save if checkpoint is not None else None,
+        save_at_end=save_at_end,
+        progress=progress,
+        info=stage.info,
+        converged=stage.done,
+        settle=stage.settle,
+    )
+    return StageRun(carry, start, done, before)
+
+
 class Progress:
     """A rich progress bar (label, count, time left, one line of ``info``), or, when disabled, a line on
     the ``cfgs_jax.progress`` logger (INFO) every ``log_seconds`` of wall time (by ``clock``; 0: none),
@@ -251,6 +363,11 @@ class Progress:
         if self.log_seconds and now - self.logged >= self.log_seconds:
             self.logged = now
             logging.getLogger("cfgs_jax.progress").info(self._line(completed, now, info))
+
+    def skip_to(self, completed: int):
+        """Show ``completed`` steps as done before this run (a resumed run's start)."""
+        if self.bar is not None:
+            self.bar.update(self.task, completed=completed)
 
     def _line(self, completed: int, now: float, info: str) -> str:
         """``label: done / total steps (share), time so far, about the time left; info``; the time left at

@@ -38,7 +38,6 @@ import dataclasses
 import functools
 import hashlib
 import json
-import time
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -55,7 +54,7 @@ from cfgs_jax.fusion.light import REC709, gain_parameter, light_gain, light_logi
 from cfgs_jax.fusion.updates import cross_init_optimizer
 from cfgs_jax.io.checkpoint import Checkpoint, read_meta
 from cfgs_jax.io.colmap import downscale_image, downscaled_size, scale_camera
-from cfgs_jax.loop import Progress, run_steps, view_order
+from cfgs_jax.loop import Progress, Saved, run_stage, view_order
 from cfgs_jax.model import Camera, DateViews, Gaussians, TemporalGaussians, exposure_table, logit, rgb
 from cfgs_jax.train.step import over_background
 
@@ -457,70 +456,99 @@ def _checkpoint(path, identity: dict) -> Checkpoint:
 
 
 @dataclasses.dataclass(frozen=True)
+class _GroupCarry:
+    """What a group's optimisation carries from step to step: the pairs' parameters, Adam states and
+    background keys, each step's losses, and the convergence test's values at its last check
+    (``last``, None before the first) and whether it ended the run (``converged``)."""
+
+    params: dict
+    opt_state: object
+    keys: jax.Array
+    losses: list
+    last: object = None
+    converged: bool = False
+
+
+@dataclasses.dataclass(frozen=True)
 class _GroupSteps:
-    """A group's Eq. 2 step and what it reads besides the carry: each pair's view sequence (``seeds``,
-    ``counts``), the compiled step per level (coarse first for ``n_coarse`` steps, then full
-    resolution) with its inputs on the devices, the exposures and the Gaussians; ``width`` is the pair
+    """A group's Eq. 2 optimisation as a ``loop.Stage``: its ``steps`` and save cadence, the state it
+    starts from (``start``: parameters, Adam states and key data, on the devices), what a step reads
+    besides the carry — each pair's view sequence (``seeds``, ``counts``), the compiled step per level
+    (coarse first for ``n_coarse`` steps, then full resolution) with its inputs on the devices, the
+    exposures and the Gaussians — and the convergence test (``test``, or None); ``width`` is the pair
     axis padded for the devices, of which the first ``len(seeds)`` are the group's pairs."""
 
+    steps: int
+    checkpoint_every: int
+    checkpoint_minutes: float
+    start: tuple
     seeds: list
     counts: list
     width: int
     n_coarse: int
-    steps: list
+    compiled: list
     inputs: list
     exposures: jax.Array
     g: object
     mesh: object
     progress: object
+    test: object = None
 
-    def body(self, carry, it):
-        """Step ``it`` of every pair: (params, Adam state, keys, losses) → the same after it."""
-        params, opt_state, keys, losses = carry
-        both = jax.vmap(jax.random.split)(keys)
+    def init(self) -> _GroupCarry:
+        params, opt_state, keys = self.start
+        return _GroupCarry(params, opt_state, jax.random.wrap_key_data(keys), [])
+
+    def saved(self, c: _GroupCarry, done: int) -> Saved:
+        """The parameters, Adam states and keys, then the losses so far and the convergence test's last
+        values as extra arrays (every process gathers them; the first writes them)."""
+        tree = parallel.to_host((c.params, c.opt_state, jax.random.key_data(c.keys)))
+        extra = [np.stack(parallel.to_host(c.losses))] if c.losses else []
+        if c.last is not None:
+            extra.append(np.asarray(parallel.to_host(c.last)))
+        return Saved(tree, {"last": c.last is not None}, tuple(extra))
+
+    def template(self, fresh: _GroupCarry, meta: dict) -> tuple:
+        return self.start
+
+    def restored(self, fresh: _GroupCarry, saved: Saved) -> _GroupCarry:
+        params, opt_state, keys = parallel.shard_batch(saved.tree, self.mesh)
+        losses = [jnp.asarray(row) for row in (saved.extra[0] if saved.extra else [])]
+        last = saved.extra[1] if saved.meta.get("last") else None
+        return _GroupCarry(params, opt_state, jax.random.wrap_key_data(keys), losses, last)
+
+    def settle(self, c: _GroupCarry) -> _GroupCarry:
+        return c
+
+    def done(self, c: _GroupCarry, steps_done: int) -> bool:
+        return c.converged
+
+    def info(self, c: _GroupCarry) -> str:
+        return ""
+
+    def step(self, c: _GroupCarry, it: int) -> _GroupCarry:
+        """Step ``it`` of every pair, then the convergence test where one is due."""
+        both = jax.vmap(jax.random.split)(c.keys)
         drawn = [view_order(s, it, n) for s, n in zip(self.seeds, self.counts)]
         drawn = parallel.shard_batch(np.asarray(drawn + drawn[:1] * (self.width - len(drawn)), np.int32), self.mesh)
         level = 1 if it < self.n_coarse else 0  # coarse first, full resolution to the end
-        params, opt_state, loss, overflowed = self.steps[level](
-            params, opt_state, self.g, *self.inputs[level], drawn, both[:, 1], self.exposures, jnp.float32(it)
+        params, opt_state, loss, overflowed = self.compiled[level](
+            c.params, c.opt_state, self.g, *self.inputs[level], drawn, both[:, 1], self.exposures, jnp.float32(it)
         )
         if bool(overflowed):  # cannot happen with capacities from o = 1 (o^q ≤ 1), but never silently
             raise RuntimeError("cross-init render overflowed its intersection buffer")
         if self.progress is not None:
             self.progress(it + 1)
-        losses.append(loss)
-        return params, opt_state, both[:, 0], losses
+        c.losses.append(loss)
+        c = dataclasses.replace(c, params=params, opt_state=opt_state, keys=both[:, 0])
+        if self.test is None:
+            return c
+        converged, last = self.test(c.params, c.losses, c.last, it + 1)
+        return dataclasses.replace(c, last=last, converged=converged)
 
 
 def _pair_keys(seed: int, pairs) -> np.ndarray:
     """Each pair (p, q)'s background key data, a function of (seed, p, q) alone."""
     return np.stack([jax.random.key_data(jax.random.key(seed * 1_000_003 + p * 1009 + q)) for p, q in pairs])
-
-
-def _group_saver(saving: Checkpoint, test: dict, before: float, t0: float):
-    """``save(carry, done)`` writing a group's checkpoint: the parameters, Adam state, keys, the losses so
-    far and the convergence test's last state."""
-
-    def save(carry, done: int) -> None:
-        params, opt_state, keys, losses = carry
-        tree = parallel.to_host((params, opt_state, jax.random.key_data(keys)))
-        extra = [np.stack(parallel.to_host(losses))] if losses else []
-        if test["last"] is not None:
-            extra.append(np.asarray(parallel.to_host(test["last"])))
-        if parallel.is_primary():
-            seconds = before + time.perf_counter() - t0
-            saving.save(tree, {"step": done, "last": test["last"] is not None, "seconds": seconds}, extra)
-
-    return save
-
-
-def _resumed(saving: Checkpoint, template, mesh) -> tuple[tuple, list, object, int, float]:
-    """A group's state as its checkpoint left it (on the devices), the losses per step, the convergence
-    test's last values (or None), the step and the seconds of work before it."""
-    state, meta, extra = saving.load(template)
-    losses = [jnp.asarray(row) for row in (extra[0] if extra else [])]
-    last = extra[1] if meta.get("last") else None
-    return parallel.shard_batch(state, mesh), losses, last, int(meta["step"]), float(meta.get("seconds", 0.0))
 
 
 def _optimise(
@@ -549,38 +577,26 @@ def _optimise(
     state = (params, jax.vmap(compiled[0][0].init)(params), keys, np.asarray(exposures, np.float32))
     params, opt_state, keys, exposures = on_devices(state)
     group = _GroupSteps(
+        steps=config.steps,
+        checkpoint_every=config.checkpoint_every,
+        checkpoint_minutes=config.checkpoint_minutes,
+        start=(params, opt_state, keys),
         seeds=[(config.seed, p, q) for p, q in pairs.pairs],
         counts=[len(ims) for ims in pairs.images],
         width=width,
         n_coarse=n_coarse,
-        steps=[step for _, step in compiled],
+        compiled=[step for _, step in compiled],
         inputs=[on_devices(_stacked_inputs(level, e)) for level, e in levels],  # (cameras, images, ε) per level
         exposures=exposures,
         g=parallel.replicate(pairs.g, mesh) if pairs.shared else on_devices(pairs.g),
         mesh=mesh,
         progress=progress,
+        test=_convergence_test(config, pairs, width) if config.early_stop_tolerance > 0 else None,
     )
-    test = {"last": None, "converged": False}  # the convergence test's state
-    start, losses, before, t0 = 0, [], 0.0, time.perf_counter()
-    if saving is not None and saving.exists():
-        (params, opt_state, keys), losses, test["last"], start, before = _resumed(
-            saving, (params, opt_state, keys), mesh
-        )
-    keys = jax.random.wrap_key_data(keys)
-    (params, _, _, losses), done = run_steps(
-        group.body,
-        (params, opt_state, keys, losses),
-        start=start,
-        steps=config.steps,
-        stop_after=stop_after,
-        checkpoint_every=config.checkpoint_every,
-        checkpoint_seconds=60.0 * config.checkpoint_minutes,
-        save=_group_saver(saving, test, before, t0) if saving is not None else None,
-        converged=_convergence_test(config, pairs, width, test) if config.early_stop_tolerance > 0 else None,
-    )
-    if done < config.steps and not test["converged"]:
-        return None, done
-    params, losses = parallel.to_host((params, jnp.stack(losses)))
+    result = run_stage(group, saving, stop_after=stop_after)
+    if result.done < config.steps and not result.carry.converged:
+        return None, result.done
+    params, losses = parallel.to_host((result.carry.params, jnp.stack(result.carry.losses)))
     return jax.tree_util.tree_map(lambda x: x[:k], params), losses[:, :k]
 
 
@@ -591,44 +607,39 @@ def _settled(params, colours) -> jax.Array:
     return jnp.concatenate([o, light_multiplier(params["u"], params["w"], colours)], axis=-1)
 
 
-def _convergence_test(config: CrossInitConfig, pairs: _Pairs, width: int, state: dict):
-    """``converged(carry, done)`` for ``run_steps``: true at a check (every ``early_stop_every`` steps
-    after the ε ramp and the background anneal) when no o^q or light channel of any pair moved by more
-    than ``early_stop_tolerance`` since the previous check (or their ``early_stop_quantile``-quantile
-    did not; over the rows each pair optimises, the pair axis padded to ``width``); with
-    ``early_stop_on = "loss"``,
-    when no pair's mean loss over the window since the previous check fell by more than the
-    tolerance times the previous window's (both windows after the start). ``state``: the test's memory
-    (``"last"``: the values at the previous check, which a checkpoint keeps; ``"converged"``: set when
-    it ended the run)."""
+def _convergence_test(config: CrossInitConfig, pairs: _Pairs, width: int):
+    """The early stop: ``test(params, losses, last, done) → (converged, last')``, true at a check (every
+    ``early_stop_every`` steps after the ε ramp and the background anneal) when no o^q or light channel
+    of any pair moved by more than ``early_stop_tolerance`` since the previous check (or their
+    ``early_stop_quantile``-quantile did not; over the rows each pair optimises, the pair axis padded to
+    ``width``); with ``early_stop_on = "loss"``, when no pair's mean loss over the window since the
+    previous check fell by more than the tolerance times the previous window's (both windows after the
+    start). ``last``: the values at the previous check (None before the first), which a checkpoint
+    keeps; ``last'`` the values to compare the next check with."""
     start = int(np.ceil(max(config.ramp_fraction, config.background_anneal) * config.steps))
     seen = parallel.pad_rows(np.asarray(pairs.mask) > 0, width)[..., None]  # [pairs, m, 1]
     colours = np.broadcast_to(np.asarray(rgb(pairs.g)), (len(pairs.pairs), *np.shape(pairs.g.colors)[-2:]))
     colours = parallel.pad_rows(colours, width)  # [pairs, m, 3]
 
-    def converged(carry, done: int) -> bool:
+    def test(params, losses, last, done: int) -> tuple[bool, object]:
         if done < start or (done - start) % config.early_stop_every:
-            return False
+            return False, last
         if config.early_stop_on == "loss":  # the window's mean loss per pair against the window before
-            window, previous = jnp.mean(jnp.stack(carry[3][-config.early_stop_every :]), axis=0), state["last"]
-            state["last"] = window
+            window = jnp.mean(jnp.stack(losses[-config.early_stop_every :]), axis=0)
             if done - start < 2 * config.early_stop_every:  # the window before began before the start
-                return False
-            state["converged"] = bool(jnp.all(previous - window <= config.early_stop_tolerance * previous))
-            return state["converged"]
-        values, previous = _settled(carry[0], colours), state["last"]
-        state["last"] = values
-        if previous is None:
-            return False
-        moves = jnp.abs(values - previous)
+                return False, window
+            return bool(jnp.all(last - window <= config.early_stop_tolerance * last)), window
+        values = _settled(params, colours)
+        if last is None:
+            return False, values
+        moves = jnp.abs(values - last)
         if config.early_stop_quantile < 1:  # over the Gaussians each pair optimises (seen from its q)
             moved = float(jnp.nanquantile(jnp.where(seen, moves, jnp.nan), config.early_stop_quantile))
         else:
             moved = float(jnp.max(moves))
-        state["converged"] = moved <= config.early_stop_tolerance
-        return state["converged"]
+        return moved <= config.early_stop_tolerance, values
 
-    return converged
+    return test
 
 
 def _write_back(

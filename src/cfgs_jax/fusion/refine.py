@@ -41,7 +41,6 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-import time
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -62,8 +61,9 @@ from cfgs_jax.loop import (
     CapacityStep,
     Dispatched,
     Progress,
+    Saved,
     check_view_batch,
-    run_steps,
+    run_stage,
     step_with_capacity,
     view_batch,
     view_order,
@@ -268,7 +268,6 @@ class _Carry:
     losses: list
     completed: int = 0  # views completed by forward-only renders
     capacity: int = 0
-    seconds: float = 0.0  # wall time of the steps before this run (a resumed run's earlier part)
     queued: Dispatched | None = None  # the last step, queued and unchecked (params, opt_state: its output)
 
     ARRAYS = ("params", "opt_state", "key", "contributed", "covered", "zeroed", "o_init")
@@ -304,46 +303,6 @@ def _check_frame_dates(model: TemporalGaussians, config: RefineConfig, new_dates
     return frame_dates
 
 
-def _start(run: _Refinement, new_dates, saving: Checkpoint | None) -> tuple[_Carry, int]:
-    """The carry at the start (α halved on ``new_dates``' Gaussians), or as the checkpoint ``saving``
-    left it (refused unless its identity matches); and the step to start from."""
-    model, config = run.model, run.config
-    params = trainable(model) | ({"light_logits": jnp.asarray(model.light_logits)} if config.lr_light else {})
-    if run.maskable is not None:
-        maskable = jnp.asarray(np.asarray(run.maskable, np.float32))
-        start = jnp.full(len(model), MASK_INIT_LOGIT, jnp.float32)
-        params |= {"mask_logits": start, "maskable": maskable, "mask_hard": jnp.zeros((), jnp.float32)}
-    if config.lr_frame:
-        params |= frame_params(model, run.frame_dates, run.extent)
-    if config.halve_alpha and new_dates:
-        params = halve_alpha_of(params, np.isin(np.asarray(model.origin), new_dates))
-    n, t = len(model), model.num_dates
-    carry = _Carry(
-        params,
-        refinement_optimizer(config, run.extent, run.train_config).init(params),
-        jax.random.key(config.seed),
-        jnp.asarray(model.o_logits),
-        np.zeros((n, t), bool),
-        np.zeros(len(run.flat), bool),
-        np.zeros((n, t), bool),
-        [],
-    )
-    if saving is None or not saving.exists():
-        return carry, 0
-    loaded, meta, _ = saving.load(carry.arrays())
-    carry = _Carry(
-        loaded["params"],
-        loaded["opt_state"],
-        jax.random.wrap_key_data(loaded["key"]),
-        jnp.asarray(loaded["o_init"]),
-        *(np.asarray(loaded[k]).copy() for k in ("contributed", "covered", "zeroed")),
-        list(meta["losses"]),
-        int(meta["completed"]),
-        seconds=float(meta.get("seconds", 0.0)),
-    )
-    return carry, int(meta["step"])
-
-
 def _identity(run: _Refinement, new_dates) -> dict:
     """What identifies a refinement: a checkpoint must match it to be resumed."""
     return {
@@ -360,9 +319,9 @@ def _identity(run: _Refinement, new_dates) -> dict:
 
 @dataclasses.dataclass
 class _Refinement:
-    """One refinement's fixed inputs and the pieces of its loop: the jitted step for an intersection
-    capacity, the loop body (a step on one drawn view; the visibility rule every
-    ``visibility_interval`` steps) and the checkpoint."""
+    """One refinement as a ``loop.Stage``: its fixed inputs, the jitted step for an intersection
+    capacity, the step on the drawn views (the visibility rule every ``visibility_interval`` steps) and
+    what its checkpoint holds."""
 
     model: TemporalGaussians
     views: Sequence[DateViews]
@@ -389,9 +348,76 @@ class _Refinement:
         self.batch_mesh = self.mesh if self.config.view_batch > 1 else None
         self.light_logits = parallel.replicate(self.light_logits, self.batch_mesh)
         if self.config.view_batch > 1:
-            self.step = CapacityStep(self.compiled_batch, 2, lambda out: out[-1], self.batch_capacity_for)
+            self.capacity_step = CapacityStep(self.compiled_batch, 2, lambda out: out[-1], self.batch_capacity_for)
         else:
-            self.step = CapacityStep(lambda cap: self.compiled(cap)[1], 2, lambda out: out[-1], self.step_capacity_for)
+            compiled = lambda cap: self.compiled(cap)[1]
+            self.capacity_step = CapacityStep(compiled, 2, lambda out: out[-1], self.step_capacity_for)
+        self.steps = self.config.steps
+        self.checkpoint_every = self.config.checkpoint_every
+        self.checkpoint_minutes = self.config.checkpoint_minutes
+
+    # ---- the stage's start and its checkpoint
+
+    def init(self) -> _Carry:
+        """The carry at step 0: the model's parameters (α halved on the ``new_dates``' Gaussians; with the
+        learned masks, the frame corrections, the light where they are trained), a fresh Adam state, the
+        seed's key and õ = the model's o."""
+        model, config = self.model, self.config
+        params = trainable(model) | ({"light_logits": jnp.asarray(model.light_logits)} if config.lr_light else {})
+        if self.maskable is not None:
+            maskable = jnp.asarray(np.asarray(self.maskable, np.float32))
+            start = jnp.full(len(model), MASK_INIT_LOGIT, jnp.float32)
+            params |= {"mask_logits": start, "maskable": maskable, "mask_hard": jnp.zeros((), jnp.float32)}
+        if config.lr_frame:
+            params |= frame_params(model, self.frame_dates, self.extent)
+        if config.halve_alpha and self.new_dates:
+            params = halve_alpha_of(params, np.isin(np.asarray(model.origin), self.new_dates))
+        n, t = len(model), model.num_dates
+        carry = _Carry(
+            params,
+            refinement_optimizer(config, self.extent, self.train_config).init(params),
+            jax.random.key(config.seed),
+            jnp.asarray(model.o_logits),
+            np.zeros((n, t), bool),
+            np.zeros(len(self.flat), bool),
+            np.zeros((n, t), bool),
+            [],
+        )
+        return self.placed(carry)
+
+    def placed(self, c: _Carry) -> _Carry:
+        """The carry with its parameters, Adam state and õ replicated over the mesh (when a step's views
+        are split over it) and the intersection capacity every view needs."""
+        c.params, c.opt_state, c.o_init = parallel.replicate((c.params, c.opt_state, c.o_init), self.batch_mesh)
+        c.capacity = max(self.capacity_for(c.params, q, v) for q, v in self.flat)
+        return c
+
+    def saved(self, c: _Carry, done: int) -> Saved:
+        return Saved(c.arrays(), {"losses": c.losses, "completed": c.completed})
+
+    def template(self, fresh: _Carry, meta: dict) -> dict:
+        return fresh.arrays()
+
+    def restored(self, fresh: _Carry, saved: Saved) -> _Carry:
+        loaded, meta = saved.tree, saved.meta
+        carry = _Carry(
+            loaded["params"],
+            loaded["opt_state"],
+            jax.random.wrap_key_data(loaded["key"]),
+            jnp.asarray(loaded["o_init"]),
+            *(np.asarray(loaded[k]).copy() for k in ("contributed", "covered", "zeroed")),
+            list(meta["losses"]),
+            int(meta["completed"]),
+        )
+        return self.placed(carry)
+
+    def done(self, c: _Carry, steps_done: int) -> bool:
+        return False
+
+    def info(self, c: _Carry) -> str:
+        return ""
+
+    # ---- the step
 
     def drawn(self, it: int) -> list[int]:
         """The indices into ``flat`` of the views of 0-based step ``it``."""
@@ -484,7 +510,7 @@ class _Refinement:
         """The carry with its queued step checked (redone if it overflowed) and recorded."""
         if c.queued is None:
             return c
-        done, _ = self.step.confirm(c.queued)
+        done, _ = self.capacity_step.confirm(c.queued)
         c = self.landed(c, done)
         c.params, c.opt_state, c.capacity, c.queued = done.out[0], done.out[1], done.capacity, None
         return c
@@ -520,11 +546,11 @@ class _Refinement:
             self.on_snapshot(done, final_prune(model, config.prune_threshold))
         return c
 
-    def body(self, c: _Carry, it: int) -> _Carry:
+    def step(self, c: _Carry, it: int) -> _Carry:
         """Step ``it`` queued, the step before it checked and recorded; where the visibility rule, the
         masks or a snapshot follow the step, it is checked at once and they are applied."""
         inputs = self.batch_inputs(c, it) if self.config.view_batch > 1 else self.view_inputs(c, it)
-        done, c.queued = self.step.advance(c.queued, it, c.capacity, (c.params, c.opt_state), inputs)
+        done, c.queued = self.capacity_step.advance(c.queued, it, c.capacity, (c.params, c.opt_state), inputs)
         if done is not None:
             c = self.landed(c, done)
         c.params, c.opt_state, c.capacity = c.queued.out[0], c.queued.out[1], c.queued.capacity
@@ -549,9 +575,8 @@ def _begin(
     maskable,
     frame_dates,
 ):
-    """The refinement's fixed inputs (checked) and its start: a fresh carry, or the checkpoint's.
-    Returns (refinement, carry, start step, the checkpoint or None); the keywords are
-    ``refine``'s.
+    """The refinement's fixed inputs, checked, as a ``loop.Stage``, and its checkpoint (or None); the
+    keywords are ``refine``'s.
 
     Learned masks (with ``config.mask_lambda`` > 0 and ``maskable``, an [N] bool): each maskable
     Gaussian i gets a mask logit m_i (start ``MASK_INIT_LOGIT``), and the loss gains
@@ -583,12 +608,7 @@ def _begin(
         frame_dates,
     )
     saving = None if checkpoint is None else _checkpoint(checkpoint, _identity(run, new_dates))
-    carry, start = _start(run, new_dates, saving)
-    carry.params, carry.opt_state, carry.o_init = parallel.replicate(
-        (carry.params, carry.opt_state, carry.o_init), run.batch_mesh
-    )
-    carry.capacity = max(run.capacity_for(carry.params, q, v) for q, v in run.flat)
-    return run, carry, start, saving
+    return run, saving
 
 
 def refine(
@@ -636,37 +656,13 @@ def refine(
     config = config or RefineConfig()
     fixed = dict(train_config=train_config, render_config=render_config, extent=extent, snapshot_steps=snapshot_steps)
     fixed |= dict(on_snapshot=on_snapshot, mesh=mesh, new_dates=new_dates, maskable=maskable, frame_dates=frame_dates)
-    run, carry, start, saving = _begin(model, views, config, checkpoint, **fixed)
-    carry, done = _steps(run, carry, start, saving, stop_after, progress)
-    if done < config.steps:
-        return None, {"stopped_at": done}
-    pruned, report = _finish(model, carry, config, run.new_dates, run.last_checked)
-    return pruned, report | {"resumed_at_step": start, "seconds_before_resume": carry.seconds}
-
-
-def _steps(run, carry: _Carry, start: int, saving: Checkpoint | None, stop_after, progress: bool):
-    """The refinement's steps from ``start`` (saved to ``saving`` every ``checkpoint_every`` steps and
-    ``checkpoint_minutes`` when there is one) → (carry, steps done)."""
-    config, t0 = run.config, time.perf_counter()
-
-    def save(c: _Carry, done: int):
-        seconds = c.seconds + time.perf_counter() - t0
-        meta = {"step": done, "losses": c.losses, "completed": c.completed, "seconds": seconds}
-        saving.save(c.arrays(), meta)
-
-    with Progress("refine", total=config.steps, completed=start, enabled=progress, transient=True) as bar:
-        return run_steps(
-            run.body,
-            carry,
-            start=start,
-            steps=config.steps,
-            stop_after=stop_after,
-            checkpoint_every=config.checkpoint_every,
-            checkpoint_seconds=60.0 * config.checkpoint_minutes,
-            save=save if saving is not None else None,
-            progress=bar,
-            settle=run.settle,
-        )
+    run, saving = _begin(model, views, config, checkpoint, **fixed)
+    with Progress("refine", total=config.steps, enabled=progress, transient=True) as bar:
+        result = run_stage(run, saving, stop_after=stop_after, progress=bar)
+    if result.done < config.steps:
+        return None, {"stopped_at": result.done}
+    pruned, report = _finish(model, result.carry, config, run.new_dates, run.last_checked)
+    return pruned, report | {"resumed_at_step": result.start, "seconds_before_resume": result.seconds_before}
 
 
 def o_travel(before: Float[Array, "N T"], after: Float[Array, "N T"], zeroed: np.ndarray) -> dict:

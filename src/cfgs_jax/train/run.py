@@ -24,7 +24,7 @@ from cfgs_jax.errors import InputError
 from cfgs_jax.io.atomic import ensure_writable_dir
 from cfgs_jax.io.checkpoint import Checkpoint
 from cfgs_jax.io.colmap import Scene, read_colmap
-from cfgs_jax.loop import CapacityStep, Dispatched, Progress, check_view_batch, run_steps, view_batch
+from cfgs_jax.loop import CapacityStep, Dispatched, Progress, Saved, check_view_batch, run_stage, view_batch
 from cfgs_jax.model import Gaussians, gaussians_of, with_sh_degree
 from cfgs_jax.train.config import TrainConfig
 from cfgs_jax.train.densify import capacity_bucket, densify_step, reset_opacity
@@ -100,6 +100,36 @@ def _checkpoint(path: Path, config: TrainConfig) -> Checkpoint:
     return Checkpoint(Path(path), FORMAT, identity, "training run", "training", defaults, {"config": "train"})
 
 
+def _saved(
+    state: TrainState, *, extent: float, render_capacity: int, losses: list, counts: list, eval_history: list
+) -> Saved:
+    """What a training checkpoint holds: the state (its RNG key as key data), its step, the Gaussian
+    buffer's and the intersection buffer's capacities, and the run's records."""
+    keyed = dataclasses.replace(state, key=jax.random.key_data(state.key))
+    meta = {
+        "step": int(state.step),
+        "capacity": int(state.active.shape[0]),
+        "render_capacity": int(render_capacity),
+        "extent": extent,
+        "losses": losses,
+        "counts": counts,
+        "eval_history": eval_history,
+    }
+    return Saved(keyed, meta)
+
+
+def _template(optimizer, config: TrainConfig, capacity: int) -> TrainState:
+    """The state pytree a checkpoint of a buffer of ``capacity`` Gaussians is read into."""
+    template = TrainState.create(
+        with_sh_degree(_dummy(1), config.sh_degree), optimizer, jax.random.key(0), capacity=capacity
+    )
+    return dataclasses.replace(template, key=jax.random.key_data(template.key))
+
+
+def _unkeyed(state: TrainState) -> TrainState:
+    return dataclasses.replace(state, key=jax.random.wrap_key_data(state.key))
+
+
 def save_checkpoint(
     path: Path,
     state: TrainState,
@@ -112,29 +142,22 @@ def save_checkpoint(
     eval_history: list | None = None,
 ) -> Path:
     """Parameters, optimiser state, statistics, step and RNG key, written atomically (npz)."""
-    keyed = dataclasses.replace(state, key=jax.random.key_data(state.key))
-    meta = {
-        "step": int(state.step),
-        "capacity": int(state.active.shape[0]),
-        "render_capacity": int(render_capacity),
-        "extent": extent,
-        "losses": losses,
-        "counts": counts,
-        "eval_history": eval_history or [],
-    }
-    return _checkpoint(path, config).save(keyed, meta)
+    saved = _saved(
+        state,
+        extent=extent,
+        render_capacity=render_capacity,
+        losses=losses,
+        counts=counts,
+        eval_history=eval_history or [],
+    )
+    return _checkpoint(path, config).save(saved.tree, saved.meta)
 
 
 def load_checkpoint(path: Path, optimizer, config: TrainConfig):
     """(state, meta) from ``save_checkpoint``; the config must match the one the run was started with."""
     checkpoint = _checkpoint(path, config)
-    capacity = checkpoint.meta()["capacity"]
-    template = TrainState.create(
-        with_sh_degree(_dummy(1), config.sh_degree), optimizer, jax.random.key(0), capacity=capacity
-    )
-    state, meta, _ = checkpoint.load(dataclasses.replace(template, key=jax.random.key_data(template.key)))
-    state = dataclasses.replace(state, key=jax.random.wrap_key_data(state.key))
-    return state, meta
+    state, meta, _ = checkpoint.load(_template(optimizer, config, checkpoint.meta()["capacity"]))
+    return _unkeyed(state), meta
 
 
 def _dummy(n: int) -> Gaussians:
@@ -185,19 +208,6 @@ def _splits(scene: Scene, config: TrainConfig) -> tuple[np.ndarray, np.ndarray]:
     return train_idx, test_idx
 
 
-def _start(scene, config, init, ckpt, optimizer, cameras, render_config) -> _Carry:
-    """The carry from the checkpoint ``ckpt`` (when given and present), else a fresh start from ``init``
-    or the SfM points."""
-    if ckpt is not None and ckpt.is_file():
-        state, meta = load_checkpoint(ckpt, optimizer, config)
-        counts = [tuple(c) for c in meta["counts"]]
-        return _Carry(state, meta["render_capacity"], meta["losses"], counts, meta.get("eval_history", []))
-    g0 = init if init is not None else init_from_points(scene.points, scene.point_colors, opacity=config.init_opacity)
-    g0 = with_sh_degree(g0, config.sh_degree)
-    state = TrainState.create(g0, optimizer, jax.random.key(config.seed), capacity=capacity_bucket(len(g0)))
-    return _Carry(state, _render_capacity(state, cameras, render_config), [], [(0, len(g0))], [])
-
-
 def _densifies(it: int, config: TrainConfig) -> bool:
     """Whether INRIA's schedule densifies and prunes after step ``it`` (1-based)."""
     return config.densify and config.densify_from < it < config.densify_until and it % config.densify_interval == 0
@@ -224,8 +234,9 @@ def _adapt_density(c: _Carry, it: int, config: TrainConfig, extent: float) -> _C
 
 @dataclasses.dataclass
 class _Training:
-    """One training run's fixed inputs and the pieces of its loop: the step on one drawn view (with
-    INRIA's evaluation and density schedule after it) and the checkpoint."""
+    """One training run as a ``loop.Stage``: its fixed inputs (the scene, the settings, the Gaussians it
+    starts from: ``init``, or the SfM points when None) and its loop: the step on the drawn view (with
+    INRIA's evaluation and density schedule after it) and what its checkpoint holds."""
 
     scene: Scene
     config: TrainConfig
@@ -234,19 +245,21 @@ class _Training:
     test_idx: np.ndarray
     lpips_net: str | None
     eval_steps: Sequence[int]
-    ckpt: Path | None
+    start_from: Gaussians | None = None
     mesh: object = None
+    bar: Progress | None = None
 
     def __post_init__(self):
         self.cameras = [self.scene.cameras[i] for i in self.train_idx]
         # RGBA when the dataset has alpha, else alpha 1
         self.images = [jnp.asarray(self.scene.load_image(int(i), with_alpha=True)) for i in self.train_idx]
         self.extent = scene_extent(self.scene.cameras)
+        self.optimizer = make_optimizer(self.config, self.extent)
         shapes = [tuple(im.shape) for im in self.images]
         check_view_batch(self.config.view_batch, shapes, self.mesh, field="train.view_batch", path=self.scene.root)
         # the mesh a step's views are split over (none with one view per step)
         self.batch_mesh = self.mesh if self.config.view_batch > 1 else None
-        self.step = CapacityStep(
+        self.capacity_step = CapacityStep(
             self.compiled,
             carries=1,
             overflowed=lambda out: out[1]["overflowed"],
@@ -254,6 +267,49 @@ class _Training:
                 args[0], [self.cameras[v] for v in self.drawn(k)], self.render_config
             ),
         )
+        self.steps = self.config.steps
+        self.checkpoint_every = self.config.checkpoint_every
+        self.checkpoint_minutes = self.config.checkpoint_minutes
+
+    # ---- the stage's start and its checkpoint
+
+    def init(self) -> _Carry:
+        """The carry at step 0: ``start_from``, or the SfM points, at the configured SH degree."""
+        config, scene = self.config, self.scene
+        g0 = self.start_from
+        g0 = g0 if g0 is not None else init_from_points(scene.points, scene.point_colors, opacity=config.init_opacity)
+        g0 = with_sh_degree(g0, config.sh_degree)
+        state = TrainState.create(g0, self.optimizer, jax.random.key(config.seed), capacity=capacity_bucket(len(g0)))
+        capacity = _render_capacity(state, self.cameras, self.render_config)
+        return _Carry(self.placed(state), capacity, [], [(0, len(g0))], [])
+
+    def saved(self, c: _Carry, done: int) -> Saved:
+        return _saved(
+            c.state,
+            extent=self.extent,
+            render_capacity=c.capacity,
+            losses=c.losses,
+            counts=c.counts,
+            eval_history=c.eval_history,
+        )
+
+    def template(self, fresh: _Carry, meta: dict) -> TrainState:
+        return _template(self.optimizer, self.config, meta["capacity"])
+
+    def restored(self, fresh: _Carry, saved: Saved) -> _Carry:
+        meta = saved.meta
+        counts = [tuple(c) for c in meta["counts"]]
+        state = self.placed(_unkeyed(saved.tree))
+        return _Carry(state, meta["render_capacity"], meta["losses"], counts, meta.get("eval_history", []))
+
+    def done(self, c: _Carry, steps_done: int) -> bool:
+        return False
+
+    def info(self, c: _Carry) -> str:
+        loss = c.losses[-1] if c.losses else math.nan
+        return f"loss {loss:.4f}  PSNR {c.psnr:.2f} dB  {c.counts[-1][1]:,} Gaussians"
+
+    # ---- the step
 
     def drawn(self, k: int) -> list[int]:
         """The training views of 0-based step ``k`` (``loop.view_batch``)."""
@@ -300,16 +356,17 @@ class _Training:
         """The carry with its queued step checked (redone if it overflowed) and recorded."""
         if c.queued is None:
             return c
-        done, _ = self.step.confirm(c.queued)
+        done, _ = self.capacity_step.confirm(c.queued)
         c = self.landed(c, done)
         return dataclasses.replace(c, state=done.out[0], capacity=done.capacity, queued=None)
 
-    def body(self, c: _Carry, k: int, bar: Progress) -> _Carry:
+    def step(self, c: _Carry, k: int) -> _Carry:
         """Step ``k`` queued, the step before it checked; where INRIA's schedule evaluates or adapts the
         density after it, the step is checked at once and the schedule applied."""
         config = self.config
         it = k + 1  # 1-based like INRIA's loop
-        done, queued = self.step.advance(c.queued, k, c.capacity, (c.state,), self.step_inputs(self.drawn(k)))
+        inputs = self.step_inputs(self.drawn(k))
+        done, queued = self.capacity_step.advance(c.queued, k, c.capacity, (c.state,), inputs)
         if done is not None:
             c = self.landed(c, done)
         c = dataclasses.replace(c, state=queued.out[0], capacity=queued.capacity, queued=queued)
@@ -323,21 +380,10 @@ class _Training:
             keep = {k: v for k, v in m.items() if k in ("psnr", "ssim", "lpips")}
             per_view = [{k: v for k, v in r.items() if k in keep} for r in m["views"]]
             c.eval_history.append({"step": it} | keep | {"per_view": per_view})
-            bar.note(f"step {it:,}: test PSNR {m['psnr']:.2f} dB, SSIM {m['ssim']:.4f}")
+            if self.bar is not None:
+                self.bar.note(f"step {it:,}: test PSNR {m['psnr']:.2f} dB, SSIM {m['ssim']:.4f}")
         c = _adapt_density(c, it, config, self.extent)
         return dataclasses.replace(c, state=self.placed(c.state)) if c.state is not state else c
-
-    def save(self, c: _Carry, done: int):
-        save_checkpoint(
-            self.ckpt,
-            c.state,
-            config=self.config,
-            extent=self.extent,
-            render_capacity=c.capacity,
-            losses=c.losses,
-            counts=c.counts,
-            eval_history=c.eval_history,
-        )
 
 
 def fit(
@@ -364,32 +410,14 @@ def fit(
     steps (into ``eval_history``, like ``config.eval_every``). ``mesh`` (``parallel.device_mesh``): split
     each step's ``config.view_batch`` views over its devices."""
     render_config = render_config or splat.RenderConfig()
-    ckpt = Path(out) / CHECKPOINT if out is not None else None
-    run = _Training(scene, config, render_config, *_splits(scene, config), lpips_net, eval_steps, ckpt, mesh)
-    optimizer = make_optimizer(config, run.extent)
-    carry = _start(scene, config, init, ckpt if resume else None, optimizer, run.cameras, render_config)
-    carry = dataclasses.replace(carry, state=run.placed(carry.state))
-    if ckpt is not None:
-        ensure_writable_dir(ckpt.parent)
+    checkpoint = _checkpoint(Path(out) / CHECKPOINT, config) if out is not None else None
+    if checkpoint is not None:
+        ensure_writable_dir(checkpoint.path.parent)
     t0 = time.perf_counter()
-    with Progress("train", total=config.steps, completed=int(carry.state.step), enabled=progress) as bar:
-        carry, _ = run_steps(
-            functools.partial(run.body, bar=bar),
-            carry,
-            start=int(carry.state.step),
-            steps=config.steps,
-            stop_after=stop_after,
-            checkpoint_every=config.checkpoint_every,
-            checkpoint_seconds=60.0 * config.checkpoint_minutes,
-            save=run.save if ckpt is not None else None,
-            save_at_end=True,
-            progress=bar,
-            info=lambda c: (
-                f"loss {c.losses[-1] if c.losses else math.nan:.4f}  PSNR {c.psnr:.2f} dB  "
-                f"{c.counts[-1][1]:,} Gaussians"
-            ),
-            settle=run.settle,
-        )
+    with Progress("train", total=config.steps, enabled=progress) as bar:
+        run = _Training(scene, config, render_config, *_splits(scene, config), lpips_net, eval_steps, init, mesh, bar)
+        result = run_stage(run, checkpoint, resume=resume, stop_after=stop_after, save_at_end=True, progress=bar)
+    carry = result.carry
     finished = int(carry.state.step) >= config.steps
     gaussians = carry.state.gaussians()
     metrics = run.evaluate(gaussians) if finished and evaluate_at_end and len(run.test_idx) else {}
