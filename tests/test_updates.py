@@ -39,6 +39,73 @@ def test_run_steps_checkpoints_on_cadence_at_a_stop_and_resumes_where_it_stopped
     assert done == 5 and seen == []
 
 
+class _RunningSum:
+    """A ``loop.Stage`` computed by hand: the carry is (Σ_k (k + 1)·x, the steps' values), x an array whose
+    length ``init`` sets; ``done`` after the step whose sum first reaches ``stop_at`` (None: never)."""
+
+    def __init__(self, size, steps, checkpoint_every=0, stop_at=None, clock=None):
+        self.size, self.steps, self.checkpoint_every, self.checkpoint_minutes = size, steps, checkpoint_every, 0.0
+        self.stop_at, self.clock, self.inits = stop_at, clock, 0
+
+    def init(self):
+        self.inits += 1
+        return {"total": np.zeros(self.size), "values": []}
+
+    def step(self, c, k):
+        if self.clock is not None:
+            self.clock[0] += 2.0  # every step takes 2 s
+        return {"total": c["total"] + (k + 1), "values": c["values"] + [k + 1]}
+
+    def settle(self, c):
+        return c
+
+    def done(self, c, n):
+        return self.stop_at is not None and c["total"][0] >= self.stop_at
+
+    def saved(self, c, n):
+        return loop.Saved({"total": c["total"]}, {"values": c["values"]}, (np.asarray(c["values"], float),))
+
+    def template(self, fresh, meta):
+        return {"total": np.zeros(self.size)}
+
+    def restored(self, fresh, saved):
+        assert np.array_equal(saved.extra[0], saved.meta["values"])
+        return {"total": np.asarray(saved.tree["total"]), "values": list(saved.meta["values"])}
+
+    def info(self, c):
+        return ""
+
+
+def test_run_stage_resumes_from_the_stages_checkpoint_and_times_its_steps_across_resumes(tmp_path):
+    """A stage stopped after 4 of 10 steps and resumed from its checkpoint ends as the uninterrupted run
+    (Σ_{k=1}^{10} k = 55); each save records the step and the seconds of the stage's steps so far,
+    across the resume; a run told not to resume starts again; an early ``done`` ends the run unsaved."""
+    from cfgs_jax.io.checkpoint import Checkpoint, read_meta
+
+    now = [0.0]
+    path = tmp_path / "stage.npz"
+    checkpoint = Checkpoint(path, "test.stage/1", {"size": 3}, "running sum", "sum")
+    stage = _RunningSum(3, 10, checkpoint_every=3, clock=now)
+    first = loop.run_stage(stage, checkpoint, stop_after=4, clock=lambda: now[0])
+    assert (first.start, first.done, first.seconds_before) == (0, 4, 0.0)
+    meta, _ = read_meta(path, format="test.stage/1", leaves=False)
+    assert meta["step"] == 4 and meta["seconds"] == 8.0 and meta["values"] == [1, 2, 3, 4]
+    now[0] = 100.0  # a later process: its clock starts elsewhere
+    second = loop.run_stage(_RunningSum(3, 10, checkpoint_every=3, clock=now), checkpoint, clock=lambda: now[0])
+    assert (second.start, second.done, second.seconds_before) == (4, 10, 8.0)
+    assert np.array_equal(second.carry["total"], np.full(3, 55.0)) and second.carry["values"] == list(range(1, 11))
+    meta, _ = read_meta(path, format="test.stage/1", leaves=False)
+    assert meta["step"] == 9 and meta["seconds"] == 8.0 + 5 * 2.0  # saved after step 9, steps 5 … 9 took 10 s
+    again = loop.run_stage(_RunningSum(3, 10), checkpoint, resume=False)
+    assert again.start == 0 and again.carry["values"] == list(range(1, 11))
+    # the identity is checked: a checkpoint of another computation is refused
+    with pytest.raises(cj.InputError, match="size: 3 → 4"):
+        loop.run_stage(_RunningSum(4, 10), Checkpoint(path, "test.stage/1", {"size": 4}, "running sum", "sum"))
+    path.unlink()
+    early = loop.run_stage(_RunningSum(3, 10, checkpoint_every=100, stop_at=10), checkpoint)
+    assert early.done == 4 and not path.exists()  # 1 + 2 + 3 + 4 = 10: converged, nothing saved
+
+
 def test_run_steps_also_checkpoints_after_a_stretch_of_wall_time():
     """With ``checkpoint_seconds``, a save also follows the first step that ends that long after the last
     save (or the start), by the loop's clock; the step cadence keeps its own saves and restarts the clock."""
