@@ -3,13 +3,15 @@
 Geometry (projection, binning, sort) is computed once and shared by all dates; compositing runs with
 per-date effective opacity α·o and colour l⊙c. Called with concrete arrays, the intersection buffer
 is sized from an exact count and regrown (power-of-two buckets, one compile each) on overflow, so
-nothing is ever dropped. Called under a JAX trace (inside ``jit``/``grad``), the capacity must be
+nothing is ever dropped, and the model is padded to ``padded_rows`` with rows no tile lists, so that
+models of nearby sizes share one compiled program (the results are those of the exact size). Called under a JAX trace (inside ``jit``/``grad``), the capacity must be
 given (``RenderConfig(capacity=...)``; ``required_capacity`` computes it) and the result's
 ``overflowed`` flag tells the caller to re-run with a larger one.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 from collections.abc import Iterator
 
@@ -108,6 +110,57 @@ def compositor(config: RenderConfig, layout: Layout):
 
 def _bucket(n: int) -> int:
     return max(MIN_CAPACITY, 1 << max(int(n) - 1, 0).bit_length())
+
+
+MIN_ROWS = 256
+# above this many Gaussians a model renders at its own size: a compile is then small beside the renders
+# of one model, and a padded copy per call would cost memory and time
+MAX_PADDED_ROWS = 1 << 18
+
+
+def padded_rows(n: int) -> int:
+    """The model size a render outside a trace is compiled for: ``n`` rounded up to a quarter of its
+    octave (at most 25 % more rows, at least ``MIN_ROWS``), so models of nearby sizes share one compiled
+    program; ``n`` itself from ``MAX_PADDED_ROWS`` on."""
+    if n <= MIN_ROWS:
+        return MIN_ROWS
+    if n >= MAX_PADDED_ROWS:
+        return int(n)
+    step = (1 << (int(n) - 1).bit_length()) // 8
+    return -(-int(n) // step) * step
+
+
+def _padded(gaussians: Gaussians, opacity_mult, rows: int, *per_row):
+    """The model padded to ``rows`` Gaussians with inert rows: opacity multiplier 0 at every date, so
+    binning never lists them (``listed_tiles``) and nothing they hold reaches a pixel; ``opacity_mult``
+    [T, N] and each of ``per_row`` (arrays with the Gaussian axis at ``-2``, or None) padded with zeros."""
+    n = len(gaussians)
+    extra = rows - n
+
+    def pad(x, axis, value=0.0):
+        if x is None:
+            return None
+        widths = [(0, 0)] * np.ndim(x)
+        widths[axis] = (0, extra)
+        return jnp.pad(x, widths, constant_values=value)
+
+    g = gaussians
+    quats = jnp.concatenate([g.quats, jnp.broadcast_to(jnp.asarray([1.0, 0, 0, 0], g.quats.dtype), (extra, 4))])
+    g = Gaussians(pad(g.means, 0), quats, pad(g.log_scales, 0), pad(g.opacity_logits, 0), pad(g.colors, 0),
+                  pad(g.sh_rest, 0))  # fmt: skip
+    return g, pad(opacity_mult, 1), *(pad(x, np.ndim(x) - 2) if x is not None else None for x in per_row)
+
+
+def _unpadded(result: RenderResult, n: int) -> RenderResult:
+    """A render of a padded model with its per-Gaussian outputs cut back to the first ``n`` rows."""
+    cut = lambda x: None if x is None else x[..., :n]
+    return dataclasses.replace(
+        result,
+        max_weight=cut(result.max_weight),
+        hits=cut(result.hits),
+        means2d=result.means2d[:n],
+        radii=result.radii[:n],
+    )
 
 
 def effective_opacity(gaussians: Gaussians, opacity_mult, config: RenderConfig):
@@ -224,10 +277,15 @@ def summed_weight_maps(
         capacity = _traced_capacity(config, "summed_weight_maps")
         return _weighted_sums_jit(gaussians, camera, opacity_mult, maps, config=config, capacity=capacity)[0]
 
+    rows = padded_rows(n)
+    if rows > n:  # one compiled program for the models of nearby sizes
+        gaussians, opacity_mult = _padded(gaussians, opacity_mult, rows)
+
     def attempt(capacity):
         return _weighted_sums_jit(gaussians, camera, opacity_mult, maps, config=config, capacity=capacity)
 
-    return _until_it_fits(attempt, config.capacity or required_capacity(gaussians, camera, opacity_mult, config=config))
+    capacity = config.capacity or required_capacity(gaussians, camera, opacity_mult, config=config)
+    return _until_it_fits(attempt, capacity)[..., :n]
 
 
 @functools.partial(jax.jit, static_argnames=("config",))
@@ -247,7 +305,10 @@ def required_capacity(
     config = config or RenderConfig()
     if opacity_mult is None:
         opacity_mult = jnp.ones((1, len(gaussians)), jnp.result_type(gaussians.means))
-    return _bucket(int(_count_jit(gaussians, camera, jnp.asarray(opacity_mult), config=config)))
+    opacity_mult = jnp.asarray(opacity_mult)
+    if padded_rows(len(gaussians)) > len(gaussians):  # the padded rows are never listed
+        gaussians, opacity_mult = _padded(gaussians, opacity_mult, padded_rows(len(gaussians)))
+    return _bucket(int(_count_jit(gaussians, camera, opacity_mult, config=config)))
 
 
 def _traced_capacity(config: RenderConfig, caller: str, then: str = "") -> int:
@@ -333,13 +394,20 @@ def render_dates(
             *args, config=config, capacity=capacity, with_depth=with_depth, statistics=statistics, relit=relight
         )
 
+    n, rows = len(gaussians), padded_rows(len(gaussians))
+    if rows > n:  # one compiled program for the models of nearby sizes
+        g, o, c, offset = _padded(gaussians, opacity_mult, rows, color_mult, means2d_offset)
+        args = (g, camera, o, c, background, offset)
+
     def attempt(capacity):
         result = _render_jit(
             *args, config=config, capacity=capacity, with_depth=with_depth, statistics=statistics, relit=relight
         )
         return result, result.num_intersections
 
-    return _until_it_fits(attempt, config.capacity or required_capacity(gaussians, camera, opacity_mult, config=config))
+    capacity = config.capacity or required_capacity(args[0], camera, args[2], config=config)
+    result = _until_it_fits(attempt, capacity)
+    return _unpadded(result, n) if rows > n else result
 
 
 def render(
