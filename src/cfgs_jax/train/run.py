@@ -101,7 +101,7 @@ def _checkpoint(path: Path, config: TrainConfig) -> Checkpoint:
 
 
 def _saved(
-    state: TrainState, *, extent: float, render_capacity: int, losses: list, counts: list, eval_history: list
+    state: TrainState, extent: float, render_capacity: int, losses: list, counts: list, eval_history: list
 ) -> Saved:
     """What a training checkpoint holds: the state (its RNG key as key data), its step, the Gaussian
     buffer's and the intersection buffer's capacities, and the run's records."""
@@ -142,14 +142,7 @@ def save_checkpoint(
     eval_history: list | None = None,
 ) -> Path:
     """Parameters, optimiser state, statistics, step and RNG key, written atomically (npz)."""
-    saved = _saved(
-        state,
-        extent=extent,
-        render_capacity=render_capacity,
-        losses=losses,
-        counts=counts,
-        eval_history=eval_history or [],
-    )
+    saved = _saved(state, extent, render_capacity, losses, counts, eval_history or [])
     return _checkpoint(path, config).save(saved.tree, saved.meta)
 
 
@@ -284,14 +277,7 @@ class _Training:
         return _Carry(self.placed(state), capacity, [], [(0, len(g0))], [])
 
     def saved(self, c: _Carry, done: int) -> Saved:
-        return _saved(
-            c.state,
-            extent=self.extent,
-            render_capacity=c.capacity,
-            losses=c.losses,
-            counts=c.counts,
-            eval_history=c.eval_history,
-        )
+        return _saved(c.state, self.extent, c.capacity, c.losses, c.counts, c.eval_history)
 
     def template(self, fresh: _Carry, meta: dict) -> TrainState:
         return _template(self.optimizer, self.config, meta["capacity"])
