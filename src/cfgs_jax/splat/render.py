@@ -488,6 +488,14 @@ def render_views(
     the same images."""
 
     if not parallel.is_parallel(mesh):
+        rows = padded_rows(len(gaussians))
+        if rows > len(gaussians) and not is_traced((gaussians, opacity_mult, color_mult)):  # once, not per view
+            dtype = jnp.result_type(gaussians.means)
+            o, c = jnp.asarray(opacity_mult, dtype), jnp.asarray(color_mult, dtype)
+            cameras = list(cameras)
+            for camera in cameras:  # the shapes checked against the model before it is padded
+                _validate(gaussians, camera, o, c)
+            gaussians, opacity_mult, color_mult = _padded(gaussians, o, rows, c)
         for camera in cameras:
             yield render_dates(
                 gaussians,
