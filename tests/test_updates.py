@@ -65,10 +65,10 @@ class _RunningSum:
     def saved(self, c, n):
         return loop.Saved({"total": c["total"]}, {"values": c["values"]}, (np.asarray(c["values"], float),))
 
-    def template(self, fresh, meta):
+    def template(self, meta):
         return {"total": np.zeros(self.size)}
 
-    def restored(self, fresh, saved):
+    def restored(self, saved):
         assert np.array_equal(saved.extra[0], saved.meta["values"])
         return {"total": np.asarray(saved.tree["total"]), "values": list(saved.meta["values"])}
 
@@ -77,8 +77,8 @@ class _RunningSum:
 
 
 def test_run_stage_resumes_from_the_stages_checkpoint_and_times_its_steps_across_resumes(tmp_path):
-    """A stage stopped after 4 of 10 steps and resumed from its checkpoint ends as the uninterrupted run
-    (Σ_{k=1}^{10} k = 55); each save records the step and the seconds of the stage's steps so far,
+    """A stage stopped after 4 of 10 steps and resumed from its checkpoint (without building the carry of
+    step 0) ends as the uninterrupted run (Σ_{k=1}^{10} k = 55); each save records the step and the seconds of the stage's steps so far,
     across the resume; a run told not to resume starts again; an early ``done`` ends the run unsaved."""
     from cfgs_jax.io.checkpoint import Checkpoint, read_meta
 
@@ -91,8 +91,9 @@ def test_run_stage_resumes_from_the_stages_checkpoint_and_times_its_steps_across
     meta, _ = read_meta(path, format="test.stage/1", leaves=False)
     assert meta["step"] == 4 and meta["seconds"] == 8.0 and meta["values"] == [1, 2, 3, 4]
     now[0] = 100.0  # a later process: its clock starts elsewhere
-    second = loop.run_stage(_RunningSum(3, 10, checkpoint_every=3, clock=now), checkpoint, clock=lambda: now[0])
-    assert (second.start, second.done, second.seconds_before) == (4, 10, 8.0)
+    resumed = _RunningSum(3, 10, checkpoint_every=3, clock=now)
+    second = loop.run_stage(resumed, checkpoint, clock=lambda: now[0])
+    assert (second.start, second.done, second.seconds_before) == (4, 10, 8.0) and resumed.inits == 0
     assert np.array_equal(second.carry["total"], np.full(3, 55.0)) and second.carry["values"] == list(range(1, 11))
     meta, _ = read_meta(path, format="test.stage/1", leaves=False)
     assert meta["step"] == 9 and meta["seconds"] == 8.0 + 5 * 2.0  # saved after step 9, steps 5 … 9 took 10 s

@@ -228,9 +228,9 @@ class Stage(Protocol[Carry]):
     ``settle(carry)``: the carry with any step still queued on the device finished and recorded (the
     identity for a stage that queues nothing). ``done(carry, n)``: whether the stage has converged after
     ``n`` steps (the run ends there). ``saved(carry, n)``: what its checkpoint holds after ``n`` steps;
-    ``template(fresh, meta)``: the pytree a checkpoint with metadata ``meta`` is read into (``fresh``:
-    ``init()``'s carry); ``restored(fresh, saved)``: the carry a checkpoint holds. ``info(carry)``: the
-    progress bar's line."""
+    ``template(meta)``: the pytree a checkpoint with metadata ``meta`` is read into; ``restored(saved)``:
+    the carry a checkpoint holds (a resumed run never calls ``init``). ``info(carry)``: the progress
+    bar's line."""
 
     steps: int
     checkpoint_every: int
@@ -246,9 +246,9 @@ class Stage(Protocol[Carry]):
 
     def saved(self, carry: Carry, steps_done: int) -> Saved: ...
 
-    def template(self, fresh: Carry, meta: dict) -> Any: ...
+    def template(self, meta: dict) -> Any: ...
 
-    def restored(self, fresh: Carry, saved: Saved) -> Carry: ...
+    def restored(self, saved: Saved) -> Carry: ...
 
     def info(self, carry: Carry) -> str: ...
 
@@ -282,12 +282,12 @@ def run_stage(
     end with ``save_at_end``); each save records the step (``meta["step"]``) and the seconds of the
     stage's steps so far, across resumes (``meta["seconds"]``). Only the first process of a
     multi-process run writes the file."""
-    carry, start, before = stage.init(), 0, 0.0
     if checkpoint is not None and resume and checkpoint.exists():
-        meta = checkpoint.meta()
-        tree, meta, extra = checkpoint.load(stage.template(carry, meta))
-        carry = stage.restored(carry, Saved(tree, meta, tuple(extra)))
+        tree, meta, extra = checkpoint.load(stage.template(checkpoint.meta()))
+        carry = stage.restored(Saved(tree, meta, tuple(extra)))
         start, before = int(meta["step"]), float(meta.get("seconds", 0.0))
+    else:
+        carry, start, before = stage.init(), 0, 0.0
     if progress is not None:
         progress.skip_to(start)
     t0 = clock()

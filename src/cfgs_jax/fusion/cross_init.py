@@ -507,10 +507,10 @@ class _GroupSteps:
             extra.append(np.asarray(parallel.to_host(c.last)))
         return Saved(tree, {"last": c.last is not None}, tuple(extra))
 
-    def template(self, fresh: _GroupCarry, meta: dict) -> tuple:
+    def template(self, meta: dict) -> tuple:
         return self.start
 
-    def restored(self, fresh: _GroupCarry, saved: Saved) -> _GroupCarry:
+    def restored(self, saved: Saved) -> _GroupCarry:
         params, opt_state, keys = parallel.shard_batch(saved.tree, self.mesh)
         losses = [jnp.asarray(row) for row in (saved.extra[0] if saved.extra else [])]
         last = saved.extra[1] if saved.meta.get("last") else None

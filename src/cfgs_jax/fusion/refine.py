@@ -359,9 +359,13 @@ class _Refinement:
     # ---- the stage's start and its checkpoint
 
     def init(self) -> _Carry:
-        """The carry at step 0: the model's parameters (α halved on the ``new_dates``' Gaussians; with the
-        learned masks, the frame corrections, the light where they are trained), a fresh Adam state, the
-        seed's key and õ = the model's o."""
+        """The carry at step 0, placed (``placed``)."""
+        return self.placed(self.unplaced())
+
+    def unplaced(self) -> _Carry:
+        """The carry at step 0 before it is placed: the model's parameters (α halved on the
+        ``new_dates``' Gaussians; with the learned masks, the frame corrections, the light where they
+        are trained), a fresh Adam state, the seed's key and õ = the model's o."""
         model, config = self.model, self.config
         params = trainable(model) | ({"light_logits": jnp.asarray(model.light_logits)} if config.lr_light else {})
         if self.maskable is not None:
@@ -373,7 +377,7 @@ class _Refinement:
         if config.halve_alpha and self.new_dates:
             params = halve_alpha_of(params, np.isin(np.asarray(model.origin), self.new_dates))
         n, t = len(model), model.num_dates
-        carry = _Carry(
+        return _Carry(
             params,
             refinement_optimizer(config, self.extent, self.train_config).init(params),
             jax.random.key(config.seed),
@@ -383,7 +387,6 @@ class _Refinement:
             np.zeros((n, t), bool),
             [],
         )
-        return self.placed(carry)
 
     def placed(self, c: _Carry) -> _Carry:
         """The carry with its parameters, Adam state and õ replicated over the mesh (when a step's views
@@ -395,10 +398,10 @@ class _Refinement:
     def saved(self, c: _Carry, done: int) -> Saved:
         return Saved(c.arrays(), {"losses": c.losses, "completed": c.completed})
 
-    def template(self, fresh: _Carry, meta: dict) -> dict:
-        return fresh.arrays()
+    def template(self, meta: dict) -> dict:
+        return self.unplaced().arrays()
 
-    def restored(self, fresh: _Carry, saved: Saved) -> _Carry:
+    def restored(self, saved: Saved) -> _Carry:
         loaded, meta = saved.tree, saved.meta
         carry = _Carry(
             loaded["params"],

@@ -279,10 +279,10 @@ class _Training:
     def saved(self, c: _Carry, done: int) -> Saved:
         return _saved(c.state, self.extent, c.capacity, c.losses, c.counts, c.eval_history)
 
-    def template(self, fresh: _Carry, meta: dict) -> TrainState:
+    def template(self, meta: dict) -> TrainState:
         return _template(self.optimizer, self.config, meta["capacity"])
 
-    def restored(self, fresh: _Carry, saved: Saved) -> _Carry:
+    def restored(self, saved: Saved) -> _Carry:
         meta = saved.meta
         counts = [tuple(c) for c in meta["counts"]]
         state = self.placed(_unkeyed(saved.tree))
