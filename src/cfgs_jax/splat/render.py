@@ -4,10 +4,10 @@ Geometry (projection, binning, sort) is computed once and shared by all dates; c
 per-date effective opacity α·o and colour l⊙c. Called with concrete arrays, the intersection buffer
 is sized from an exact count and regrown (power-of-two buckets, one compile each) on overflow, so
 nothing is ever dropped, and the model is padded to ``padded_rows`` with rows no tile lists, so that
-models of nearby sizes share one compiled program (the lists and their order are those of the exact size;
-a program compiled for another length may vectorise the per-Gaussian arithmetic differently, so values can
-differ from a render traced at the exact size in the last bit). Called under a JAX trace (inside ``jit``/``grad``), the capacity must be
-given (``RenderConfig(capacity=...)``; ``required_capacity`` computes it) and the result's
+models of nearby sizes share one compiled program (the lists and their order are those of the exact
+size; a program compiled for another length may vectorise the per-Gaussian arithmetic differently, so
+values can differ from a render traced at the exact size in the last bit). Called under a JAX trace
+(inside ``jit``/``grad``), the capacity must be given (``RenderConfig(capacity=...)``; ``required_capacity`` computes it) and the result's
 ``overflowed`` flag tells the caller to re-run with a larger one.
 """
 
@@ -132,12 +132,15 @@ def padded_rows(n: int) -> int:
     return -(-int(n) // step) * step
 
 
-def _padded(gaussians: Gaussians, opacity_mult, rows: int, *per_row):
-    """The model padded to ``rows`` Gaussians with inert rows: opacity multiplier 0 at every date, so
-    binning never lists them (``listed_tiles``) and nothing they hold reaches a pixel; ``opacity_mult``
-    [T, N] and each of ``per_row`` (arrays with the Gaussian axis at ``-2``, or None) padded with zeros."""
+def _padded(gaussians: Gaussians, opacity_mult, *per_row):
+    """The model padded to ``padded_rows`` Gaussians with inert rows (as given when it has that many):
+    opacity multiplier 0 at every date, so binning never lists them (``listed_tiles``) and nothing they
+    hold reaches a pixel; ``opacity_mult`` [T, N] and each of ``per_row`` (arrays with the Gaussian axis
+    at ``-2``, or None) padded with zeros."""
     n = len(gaussians)
-    extra = rows - n
+    extra = padded_rows(n) - n
+    if extra <= 0:
+        return gaussians, opacity_mult, *per_row
 
     def pad(x, axis, value=0.0):
         if x is None:
@@ -279,9 +282,7 @@ def summed_weight_maps(
         capacity = _traced_capacity(config, "summed_weight_maps")
         return _weighted_sums_jit(gaussians, camera, opacity_mult, maps, config=config, capacity=capacity)[0]
 
-    rows = padded_rows(n)
-    if rows > n:  # one compiled program for the models of nearby sizes
-        gaussians, opacity_mult = _padded(gaussians, opacity_mult, rows)
+    gaussians, opacity_mult = _padded(gaussians, opacity_mult)  # one program for the models of nearby sizes
 
     def attempt(capacity):
         return _weighted_sums_jit(gaussians, camera, opacity_mult, maps, config=config, capacity=capacity)
@@ -307,9 +308,7 @@ def required_capacity(
     config = config or RenderConfig()
     if opacity_mult is None:
         opacity_mult = jnp.ones((1, len(gaussians)), jnp.result_type(gaussians.means))
-    opacity_mult = jnp.asarray(opacity_mult)
-    if padded_rows(len(gaussians)) > len(gaussians):  # the padded rows are never listed
-        gaussians, opacity_mult = _padded(gaussians, opacity_mult, padded_rows(len(gaussians)))
+    gaussians, opacity_mult = _padded(gaussians, jnp.asarray(opacity_mult))  # the padded rows are never listed
     return _bucket(int(_count_jit(gaussians, camera, opacity_mult, config=config)))
 
 
@@ -396,10 +395,9 @@ def render_dates(
             *args, config=config, capacity=capacity, with_depth=with_depth, statistics=statistics, relit=relight
         )
 
-    n, rows = len(gaussians), padded_rows(len(gaussians))
-    if rows > n:  # one compiled program for the models of nearby sizes
-        g, o, c, offset = _padded(gaussians, opacity_mult, rows, color_mult, means2d_offset)
-        args = (g, camera, o, c, background, offset)
+    n = len(gaussians)
+    g, o, c, offset = _padded(gaussians, opacity_mult, color_mult, means2d_offset)  # one program for nearby sizes
+    args = (g, camera, o, c, background, offset)
 
     def attempt(capacity):
         result = _render_jit(
@@ -409,7 +407,7 @@ def render_dates(
 
     capacity = config.capacity or required_capacity(args[0], camera, args[2], config=config)
     result = _until_it_fits(attempt, capacity)
-    return _unpadded(result, n) if rows > n else result
+    return _unpadded(result, n) if len(g) > n else result
 
 
 def render(
@@ -488,14 +486,13 @@ def render_views(
     the same images."""
 
     if not parallel.is_parallel(mesh):
-        rows = padded_rows(len(gaussians))
-        if rows > len(gaussians) and not is_traced((gaussians, opacity_mult, color_mult)):  # once, not per view
-            dtype = jnp.result_type(gaussians.means)
+        if padded_rows(len(gaussians)) > len(gaussians) and not is_traced((gaussians, opacity_mult, color_mult)):
+            dtype = jnp.result_type(gaussians.means)  # padded once for the stream, not per view
             o, c = jnp.asarray(opacity_mult, dtype), jnp.asarray(color_mult, dtype)
             cameras = list(cameras)
             for camera in cameras:  # the shapes checked against the model before it is padded
                 _validate(gaussians, camera, o, c)
-            gaussians, opacity_mult, color_mult = _padded(gaussians, o, rows, c)
+            gaussians, opacity_mult, color_mult = _padded(gaussians, o, c)
         for camera in cameras:
             yield render_dates(
                 gaussians,
@@ -512,8 +509,7 @@ def render_views(
     opacity_mult, color_mult = jnp.asarray(opacity_mult, dtype), jnp.asarray(color_mult, dtype)
     for c in cameras:
         _validate(gaussians, c, opacity_mult, color_mult)
-    if padded_rows(len(gaussians)) > len(gaussians):  # the programs of the one-device path's sizes
-        gaussians, opacity_mult, color_mult = _padded(gaussians, opacity_mult, padded_rows(len(gaussians)), color_mult)
+    gaussians, opacity_mult, color_mult = _padded(gaussians, opacity_mult, color_mult)  # the one-device path's sizes
     shared = parallel.replicate((gaussians, opacity_mult, color_mult, np.asarray(background, dtype)), mesh)
     width, chunk = parallel.mesh_size(mesh), []
     size = lambda c: (c.width, c.height)
