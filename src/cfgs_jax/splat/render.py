@@ -32,6 +32,7 @@ from cfgs_jax.splat.config import RenderConfig
 from cfgs_jax.splat.pallas_composite import PallasOptions, composite_pallas, weighted_sums_pallas
 from cfgs_jax.splat.project import project, tile_grid
 from cfgs_jax.splat.sh import view_colours
+from cfgs_jax.splat.warp_composite import composite_warp, weighted_sums_warp
 
 MIN_CAPACITY = 1 << 12
 
@@ -73,7 +74,7 @@ def tile_layout(camera: Camera, config: RenderConfig, dates: int, statistics: bo
     opacity bounds, and whether the per-Gaussian statistics are gathered."""
     gx, gy = _composite_grid(camera, config)
     sub = config.resolved_subtile()
-    if config.resolved_backend() == "pallas":  # one program per tile: no tile batches
+    if config.resolved_backend() in ("pallas", "warp"):  # one program (or thread block) per tile: no batches
         chunk = config.chunk or PALLAS_CHUNK[config.walk]
         return Layout(camera.width, camera.height, sub, gx, gy, 1, chunk, config.min_alpha,
                       config.max_alpha, config.min_transmittance, statistics)  # fmt: skip
@@ -101,6 +102,8 @@ def tile_layout(camera: Camera, config: RenderConfig, dates: int, statistics: bo
 def compositor(config: RenderConfig, layout: Layout):
     """The tile compositor of ``config.backend``: (means2d, conics, opac, feats, ids, start, end) →
     (fg, T, max α·T, hits), and the matching weighted-sums walk."""
+    if config.resolved_backend() == "warp":
+        return functools.partial(composite_warp, layout), functools.partial(weighted_sums_warp, layout)
     if config.resolved_backend() == "pallas":
         options = PallasOptions(jax.default_backend() != "gpu", config.num_warps, config.scatter, walk=config.walk)
         return (

@@ -1,0 +1,337 @@
+"""Tile compositing (Eq. 1 per date) as NVIDIA Warp kernels called from JAX, with a custom VJP.
+
+The same semantics as ``composite.composite`` (INRIA's rules, T dates, statistics), laid out as the CUDA
+rasterisers lay it out: one thread per (date, pixel), the pixels of a 16×16 tile side by side, each thread
+walking its tile's depth-sorted range of the intersection list with INRIA's sequential arithmetic,
+
+    α_k = min(0.99, o_k·exp(power_k)),  skipped where power_k > 0 or α_k < 1/255,
+    stop before k where T·(1 − α_k) < 1e-4,  else  w_k = α_k·T,  fg += w_k·f_k,  T ← T·(1 − α_k).
+
+Backward (custom VJP), front to back as in ``composite``: with S_k = Σ_{j≤k} w_j f_j and fg the final
+foreground of the pixel,
+
+    ∂fg/∂α_k = T_k f_k − (fg − S_k) / (1 − α_k),      ∂T_N/∂α_k = −T_N / (1 − α_k),
+
+so only the per-pixel results (fg, T_N) are kept from the forward pass, and the walk recomputes T exactly
+as the forward did. Each (pixel, Gaussian) contribution is added to the Gaussian's gradient with a
+relaxed atomic add (Warp's ``atomic_add``: CUDA's ``atomicAdd``, no fence); on a CPU Warp runs the
+threads one after another, so the sums there are in a fixed order.
+
+The kernels are compiled by Warp (CUDA through NVRTC on a GPU, LLVM on a CPU) and called inside ``jit``
+through Warp's JAX FFI, so the CPU runs the very code a GPU runs, only serially: CI tests it against the
+float64 reference. Warp (``pip install cfgs-jax[warp]``) is imported on first use only.
+"""
+
+import functools
+
+import jax
+import jax.numpy as jnp
+
+from cfgs_jax.errors import InputError
+from cfgs_jax.splat.composite import Layout, footprint_marked_vjp
+from cfgs_jax.splat.pallas_composite import _from_image, _to_image
+
+WARP_VERSION = "1.19.0"  # the release the kernels are written and tested against (the ``warp`` extra)
+
+
+@functools.cache
+def _warp():
+    """The ``warp`` module, initialised quietly; a clear error where it is not installed."""
+    try:
+        import warp as wp
+    except ImportError as err:
+        raise InputError(
+            f"the Warp compositor needs NVIDIA Warp (warp-lang), which is not installed ({err})",
+            field="render.backend",
+            fix=f'pip install "cfgs-jax[warp]" (warp-lang=={WARP_VERSION}), or use backend = "xla"',
+        ) from None
+    wp.config.quiet = True
+    wp.config.log_level = wp.LOG_WARNING
+    wp.init()
+    return wp
+
+
+@functools.cache
+def _kernels(f: int, dtype: str):
+    """The forward, backward and weighted-sums kernels for features of ``f`` channels in ``dtype``
+    (``"float32"``, or ``"float64"`` for tests of the formulas), wrapped as JAX calls
+    (``wp.jax_kernel``); one set per (``f``, ``dtype``): Warp fixes vector types when it compiles."""
+    wp = _warp()
+    real = wp.float64 if dtype == "float64" else wp.float32
+    vec = wp.types.vector(length=f, dtype=real)
+    vec2 = wp.types.vector(length=2, dtype=real)
+    vec3 = wp.types.vector(length=3, dtype=real)
+
+    @wp.func
+    def pixel_of(tile: int, p: int, grid_x: int, ts: int):
+        return wp.vec2i((tile % grid_x) * ts + p % ts, (tile // grid_x) * ts + p // ts)
+
+    @wp.func
+    def power_at(m: vec2, c: vec3, px: real, py: real):
+        dx = m[0] - px
+        dy = m[1] - py
+        return real(-0.5) * (c[0] * dx * dx + c[2] * dy * dy) - c[1] * dx * dy
+
+    def forward(
+        start: wp.array(dtype=wp.int32),
+        end: wp.array(dtype=wp.int32),
+        ids: wp.array(dtype=wp.int32),
+        means: wp.array(dtype=vec2),
+        conics: wp.array(dtype=vec3),
+        opac: wp.array2d(dtype=real),
+        feats: wp.array2d(dtype=vec),
+        width: int,
+        height: int,
+        grid_x: int,
+        ts: int,
+        min_alpha: real,
+        max_alpha: real,
+        min_t: real,
+        statistics: int,
+        maxw: wp.array2d(dtype=real),  # in-out: zeros in
+        hits: wp.array2d(dtype=wp.int32),  # in-out: zeros in
+        fg: wp.array3d(dtype=vec),
+        t_out: wp.array3d(dtype=real),
+    ):
+        i, tile, p = wp.tid()
+        xy = pixel_of(tile, p, grid_x, ts)
+        t = real(1.0)
+        acc = vec()
+        if xy[0] < width and xy[1] < height:
+            px = real(xy[0]) + real(0.5)
+            py = real(xy[1]) + real(0.5)
+            for s in range(start[tile], end[tile]):
+                gid = ids[s]
+                power = power_at(means[gid], conics[gid], px, py)
+                if power > real(0.0):
+                    continue
+                a = wp.min(opac[i, gid] * wp.exp(power), max_alpha)
+                if a < min_alpha:
+                    continue
+                after = t * (real(1.0) - a)
+                if after < min_t:
+                    break
+                w = a * t
+                acc = acc + w * feats[i, gid]
+                if statistics != 0:
+                    wp.atomic_max(maxw, i, gid, w)
+                    wp.atomic_add(hits, i, gid, 1)
+                t = after
+        fg[i, tile, p] = acc
+        t_out[i, tile, p] = t
+
+    def backward(
+        start: wp.array(dtype=wp.int32),
+        end: wp.array(dtype=wp.int32),
+        ids: wp.array(dtype=wp.int32),
+        means: wp.array(dtype=vec2),
+        conics: wp.array(dtype=vec3),
+        opac: wp.array2d(dtype=real),
+        feats: wp.array2d(dtype=vec),
+        gfg: wp.array3d(dtype=vec),
+        gt: wp.array3d(dtype=real),
+        fg: wp.array3d(dtype=vec),
+        t_final: wp.array3d(dtype=real),
+        width: int,
+        height: int,
+        grid_x: int,
+        ts: int,
+        min_alpha: real,
+        max_alpha: real,
+        min_t: real,
+        footprint: int,
+        d_means: wp.array(dtype=vec2),  # in-out: zeros in
+        d_conics: wp.array(dtype=vec3),  # in-out: zeros in
+        d_opac: wp.array2d(dtype=real),  # in-out: zeros in
+        d_feats: wp.array2d(dtype=vec),  # in-out: zeros in
+    ):
+        i, tile, p = wp.tid()
+        xy = pixel_of(tile, p, grid_x, ts)
+        if xy[0] >= width or xy[1] >= height:
+            return
+        px = real(xy[0]) + real(0.5)
+        py = real(xy[1]) + real(0.5)
+        g_fg = gfg[i, tile, p]
+        behind = wp.dot(g_fg, fg[i, tile, p])  # Σ_f ∂L/∂fg_f (fg_f − S_k,f), before the first Gaussian
+        tail = gt[i, tile, p] * t_final[i, tile, p]  # ∂L/∂T_N · T_N
+        t = real(1.0)
+        for s in range(start[tile], end[tile]):
+            gid = ids[s]
+            m = means[gid]
+            c = conics[gid]
+            dx = m[0] - px
+            dy = m[1] - py
+            power = real(-0.5) * (c[0] * dx * dx + c[2] * dy * dy) - c[1] * dx * dy
+            if power > real(0.0):
+                continue
+            g = wp.exp(power)
+            op = opac[i, gid]
+            og = op * g
+            a = wp.min(og, max_alpha)
+            if a < min_alpha:
+                continue
+            after = t * (real(1.0) - a)
+            if after < min_t:
+                break
+            w = a * t
+            gf = wp.dot(g_fg, feats[i, gid])
+            behind = behind - w * gf
+            wp.atomic_add(d_feats, i, gid, w * g_fg)
+            if og < max_alpha:
+                q = (t * gf - (behind + tail) / (real(1.0) - a)) * g  # ∂L/∂(effective opacity) at this pixel
+                wp.atomic_add(d_opac, i, gid, q)
+                if footprint != 0:
+                    dp = op * q  # ∂L/∂power
+                    wp.atomic_add(d_means, gid, vec2(-dp * (c[0] * dx + c[1] * dy), -dp * (c[1] * dx + c[2] * dy)))
+                    wp.atomic_add(
+                        d_conics, gid, vec3(real(-0.5) * dp * dx * dx, -dp * dx * dy, real(-0.5) * dp * dy * dy)
+                    )
+            t = after
+
+    def weighted(
+        start: wp.array(dtype=wp.int32),
+        end: wp.array(dtype=wp.int32),
+        ids: wp.array(dtype=wp.int32),
+        means: wp.array(dtype=vec2),
+        conics: wp.array(dtype=vec3),
+        opac: wp.array2d(dtype=real),
+        maps: wp.array4d(dtype=real),
+        width: int,
+        height: int,
+        grid_x: int,
+        ts: int,
+        min_alpha: real,
+        max_alpha: real,
+        min_t: real,
+        sums: wp.array3d(dtype=real),  # in-out: zeros in
+    ):
+        i, tile, p = wp.tid()
+        xy = pixel_of(tile, p, grid_x, ts)
+        if xy[0] >= width or xy[1] >= height:
+            return
+        px = real(xy[0]) + real(0.5)
+        py = real(xy[1]) + real(0.5)
+        t = real(1.0)
+        for s in range(start[tile], end[tile]):
+            gid = ids[s]
+            power = power_at(means[gid], conics[gid], px, py)
+            if power > real(0.0):
+                continue
+            a = wp.min(opac[i, gid] * wp.exp(power), max_alpha)
+            if a < min_alpha:
+                continue
+            after = t * (real(1.0) - a)
+            if after < min_t:
+                break
+            w = a * t
+            for j in range(maps.shape[0]):
+                wp.atomic_add(sums, j, i, gid, w * maps[j, i, tile, p])
+            t = after
+
+    make = lambda fn: wp.kernel(fn, module="unique", enable_backward=False)  # its adjoint is ours
+    return (
+        wp.jax_kernel(make(forward), num_outputs=4, in_out_argnames=["maxw", "hits"]),
+        wp.jax_kernel(make(backward), num_outputs=4, in_out_argnames=["d_means", "d_conics", "d_opac", "d_feats"]),
+        wp.jax_kernel(make(weighted), num_outputs=1, in_out_argnames=["sums"]),
+    )
+
+
+def _static(layout: Layout) -> tuple:
+    """The kernels' scalar arguments shared by every walk: the image, the tile grid and INRIA's thresholds."""
+    return (
+        layout.width,
+        layout.height,
+        layout.grid_x,
+        layout.tile_size,
+        float(layout.min_alpha),
+        float(layout.max_alpha),
+        float(layout.min_transmittance),
+    )
+
+
+def _real(dtype) -> str:
+    """The kernels' float type for arrays of ``dtype``: float32, or float64 (tests of the formulas)."""
+    name = jnp.dtype(dtype).name
+    if name not in ("float32", "float64"):
+        raise InputError(f"the Warp compositor composites float32 or float64, got {name}", field="render.backend")
+    return name
+
+
+def _launch(layout: Layout, d: int) -> tuple[int, int, int]:
+    """One thread per (date, tile, pixel of the tile)."""
+    return (d, layout.num_tiles, layout.tile_size**2)
+
+
+@functools.partial(jax.custom_vjp, nondiff_argnums=(0,))
+def composite_warp(layout: Layout, means2d, conics, opac, feats, ids, tile_start, tile_end):
+    """``composite.composite`` on the Warp kernels: (fg [D,H,W,F], T [D,H,W], max α·T [D,N], hits [D,N])."""
+    return _composite_fwd(layout, means2d, conics, opac, feats, ids, tile_start, tile_end)[0]
+
+
+def _composite_fwd(layout, means2d, conics, opac, feats, ids, tile_start, tile_end):
+    d, n, f = feats.shape
+    dtype = means2d.dtype
+    forward = _kernels(f, _real(dtype))[0]
+    ids, tile_start, tile_end = (x.astype(jnp.int32) for x in (ids, tile_start, tile_end))
+    maxw, hits, fg, t = forward(
+        tile_start, tile_end, ids, means2d, conics, opac, feats, *_static(layout), int(layout.statistics),
+        jnp.zeros((d, n), dtype), jnp.zeros((d, n), jnp.int32),
+        launch_dims=_launch(layout, d),
+        output_dims={"fg": _launch(layout, d) + (f,), "t_out": _launch(layout, d)},
+    )  # fmt: skip
+    fg_img = jnp.moveaxis(_to_image(layout, jnp.moveaxis(fg, -1, 1)), 1, -1)
+    out = (fg_img, _to_image(layout, t), maxw, hits)
+    return out, (means2d, conics, opac, feats, ids, tile_start, tile_end, fg, t)
+
+
+def _composite_bwd(layout, res, cot, footprint: bool = True):
+    """The backward kernel's walk. ``footprint=False`` leaves out the gradients of the 2D means and
+    conics (returned as zeros), and with them ∂/∂power."""
+    means2d, conics, opac, feats, ids, tile_start, tile_end, fg, t = res
+    d, n, f = feats.shape
+    dtype = means2d.dtype
+    g_fg, g_t, _, _ = cot
+    gfg = jnp.moveaxis(_from_image(layout, jnp.moveaxis(g_fg.astype(dtype), -1, 1)), 1, -1)  # [D, tiles, P, F]
+    gt = _from_image(layout, g_t.astype(dtype))
+    backward = _kernels(f, _real(dtype))[1]
+    zeros = (jnp.zeros((n, 2), dtype), jnp.zeros((n, 3), dtype), jnp.zeros((d, n), dtype), jnp.zeros((d, n, f), dtype))
+    dm, dc, do, dfeat = backward(
+        tile_start, tile_end, ids, means2d, conics, opac, feats, gfg, gt, fg, t, *_static(layout), int(footprint),
+        *zeros, launch_dims=_launch(layout, d),
+    )  # fmt: skip
+    return dm, dc, do, dfeat, None, None, None
+
+
+composite_warp.defvjp(*footprint_marked_vjp(_composite_fwd, _composite_bwd, static=1), symbolic_zeros=True)
+
+
+def weighted_sums_warp(layout: Layout, means2d, conics, opac, ids, tile_start, tile_end, maps):
+    """``composite.weighted_sums`` on the Warp kernels: Σ over pixels of w_k·map_m → [M, D, N]."""
+    d, n = opac.shape
+    m = maps.shape[0]
+    dtype = means2d.dtype
+    weighted = _kernels(1, _real(dtype))[2]
+    maps_t = _from_image(layout, maps.astype(dtype))  # [M, D, tiles, P]
+    ids, tile_start, tile_end = (x.astype(jnp.int32) for x in (ids, tile_start, tile_end))
+    (sums,) = weighted(
+        tile_start, tile_end, ids, means2d, conics, opac, maps_t, *_static(layout), jnp.zeros((m, d, n), dtype),
+        launch_dims=_launch(layout, d),
+    )  # fmt: skip
+    return sums
+
+
+def cuda_ptx(f: int, *, arch: int = 90, folder=None) -> dict[str, str]:
+    """The PTX of the forward, backward and weighted-sums kernels for ``f`` feature channels, compiled for
+    the CUDA architecture ``arch`` (90: H100 / H200) by Warp's NVRTC on any machine, a CPU-only one
+    included: {"forward": text, "backward": text, "weighted": text}. For reading what a GPU will run
+    (fences, atomics, registers) without one."""
+    import tempfile
+    from pathlib import Path
+
+    wp = _warp()
+    out = {}
+    with tempfile.TemporaryDirectory(dir=folder) as tmp:
+        for name, call in zip(("forward", "backward", "weighted"), _kernels(f, "float32")):
+            (path,) = wp.compile_aot_module(call.kernel.module, arch=arch, use_ptx=True, module_dir=Path(tmp) / name)
+            out[name] = Path(path).read_bytes().rstrip(b"\0").decode()
+    return out
