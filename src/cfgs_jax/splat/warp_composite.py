@@ -13,9 +13,11 @@ foreground of the pixel,
     ∂fg/∂α_k = T_k f_k − (fg − S_k) / (1 − α_k),      ∂T_N/∂α_k = −T_N / (1 − α_k),
 
 so only the per-pixel results (fg, T_N) are kept from the forward pass, and the walk recomputes T exactly
-as the forward did. Each (pixel, Gaussian) contribution is added to the Gaussian's gradient with a
-relaxed atomic add (Warp's ``atomic_add``: CUDA's ``atomicAdd``, no fence); on a CPU Warp runs the
-threads one after another, so the sums there are in a fixed order.
+as the forward did. As in gsplat, the 32 lanes of a GPU warp (32 pixels of a tile) walk the list in step,
+sum each Gaussian's gradient terms across the lanes with shuffles, and one lane adds each sum with a
+relaxed atomic add (CUDA's ``atomicAdd``: a ``RED`` instruction, no fence); the walk ends when a vote finds
+every lane stopped. On a CPU Warp runs the threads one after another, each its own warp, so the sums there
+come in a fixed order.
 
 The kernels are compiled by Warp (CUDA through NVRTC on a GPU, LLVM on a CPU) and called inside ``jit``
 through Warp's JAX FFI, so the CPU runs the very code a GPU runs, only serially: CI tests it against the
@@ -49,6 +51,41 @@ def _warp():
     wp.config.log_level = wp.LOG_WARNING
     wp.init()
     return wp
+
+
+# Warp-wide operations for the backward's lanes: on a GPU the 32 lanes of a warp (CUDA shuffles and votes;
+# the launch's blocks of 256 threads hold whole tiles, so every warp is full); on a CPU, where Warp runs one
+# thread at a time, each thread is its own warp.
+LANES_SUM = """
+#if defined(__CUDA_ARCH__)
+    auto s = v;
+    for (int offset = 16; offset > 0; offset >>= 1) s += __shfl_xor_sync(0xffffffffu, s, offset);
+    return s;
+#else
+    return v;
+#endif
+"""
+LANES_ALL = """
+#if defined(__CUDA_ARCH__)
+    return __all_sync(0xffffffffu, v) != 0;
+#else
+    return v;
+#endif
+"""
+LANES_ANY = """
+#if defined(__CUDA_ARCH__)
+    return __any_sync(0xffffffffu, v) != 0;
+#else
+    return v;
+#endif
+"""
+LANE_LEADS = """
+#if defined(__CUDA_ARCH__)
+    return (threadIdx.x & 31) == 0;
+#else
+    return true;
+#endif
+"""
 
 
 @functools.cache
@@ -120,6 +157,18 @@ def _kernels(f: int, dtype: str):
         fg[i, tile, p] = acc
         t_out[i, tile, p] = t
 
+    @wp.func_native(LANES_SUM)
+    def lanes_sum(v: real) -> real: ...
+
+    @wp.func_native(LANES_ALL)
+    def lanes_all(v: bool) -> bool: ...
+
+    @wp.func_native(LANES_ANY)
+    def lanes_any(v: bool) -> bool: ...
+
+    @wp.func_native(LANE_LEADS)
+    def lane_leads() -> bool: ...
+
     def backward(
         start: wp.array(dtype=wp.int32),
         end: wp.array(dtype=wp.int32),
@@ -143,50 +192,67 @@ def _kernels(f: int, dtype: str):
         d_means: wp.array(dtype=vec2),  # in-out: zeros in
         d_conics: wp.array(dtype=vec3),  # in-out: zeros in
         d_opac: wp.array2d(dtype=real),  # in-out: zeros in
-        d_feats: wp.array2d(dtype=vec),  # in-out: zeros in
+        d_feats: wp.array3d(dtype=real),  # in-out: zeros in
     ):
+        # The 32 lanes of a GPU warp (32 pixels of one tile, one date) walk the tile's list in step: a lane
+        # whose pixel is outside the image or has stopped walks on contributing zeros, so that each
+        # Gaussian's terms are summed across the lanes (shuffles) and added by one lane, as gsplat does.
         i, tile, p = wp.tid()
         xy = pixel_of(tile, p, grid_x, ts)
-        if xy[0] >= width or xy[1] >= height:
-            return
+        done = xy[0] >= width or xy[1] >= height
         px = real(xy[0]) + real(0.5)
         py = real(xy[1]) + real(0.5)
         g_fg = gfg[i, tile, p]
         behind = wp.dot(g_fg, fg[i, tile, p])  # Σ_f ∂L/∂fg_f (fg_f − S_k,f), before the first Gaussian
         tail = gt[i, tile, p] * t_final[i, tile, p]  # ∂L/∂T_N · T_N
         t = real(1.0)
+        lead = lane_leads()
         for s in range(start[tile], end[tile]):
+            if lanes_all(done):
+                break
             gid = ids[s]
             m = means[gid]
             c = conics[gid]
             dx = m[0] - px
             dy = m[1] - py
             power = real(-0.5) * (c[0] * dx * dx + c[2] * dy * dy) - c[1] * dx * dy
-            if power > real(0.0):
-                continue
-            g = wp.exp(power)
+            g = wp.exp(wp.min(power, real(0.0)))
             op = opac[i, gid]
             og = op * g
             a = wp.min(og, max_alpha)
-            if a < min_alpha:
-                continue
+            live = not done and power <= real(0.0) and a >= min_alpha
             after = t * (real(1.0) - a)
-            if after < min_t:
-                break
-            w = a * t
-            gf = wp.dot(g_fg, feats[i, gid])
-            behind = behind - w * gf
-            wp.atomic_add(d_feats, i, gid, w * g_fg)
-            if og < max_alpha:
-                q = (t * gf - (behind + tail) / (real(1.0) - a)) * g  # ∂L/∂(effective opacity) at this pixel
-                wp.atomic_add(d_opac, i, gid, q)
-                if footprint != 0:
-                    dp = op * q  # ∂L/∂power
-                    wp.atomic_add(d_means, gid, vec2(-dp * (c[0] * dx + c[1] * dy), -dp * (c[1] * dx + c[2] * dy)))
-                    wp.atomic_add(
-                        d_conics, gid, vec3(real(-0.5) * dp * dx * dx, -dp * dx * dy, real(-0.5) * dp * dy * dy)
-                    )
-            t = after
+            if live and after < min_t:  # INRIA's stop: this Gaussian is not composited, nor any after it
+                done = True
+                live = False
+            if not lanes_any(live):
+                continue
+            w = real(0.0)
+            q = real(0.0)
+            if live:
+                w = a * t
+                gf = wp.dot(g_fg, feats[i, gid])
+                behind = behind - w * gf
+                if og < max_alpha:
+                    q = (t * gf - (behind + tail) / (real(1.0) - a)) * g  # ∂L/∂(effective opacity) here
+                t = after
+            for j in range(f):
+                sj = lanes_sum(w * g_fg[j])
+                if lead:
+                    wp.atomic_add(d_feats, i, gid, j, sj)
+            sq = lanes_sum(q)
+            if lead:
+                wp.atomic_add(d_opac, i, gid, sq)
+            if footprint != 0:
+                dp = op * q  # ∂L/∂power
+                mx = lanes_sum(-dp * (c[0] * dx + c[1] * dy))
+                my = lanes_sum(-dp * (c[1] * dx + c[2] * dy))
+                ca = lanes_sum(real(-0.5) * dp * dx * dx)
+                cb = lanes_sum(-dp * dx * dy)
+                cc = lanes_sum(real(-0.5) * dp * dy * dy)
+                if lead:
+                    wp.atomic_add(d_means, gid, vec2(mx, my))
+                    wp.atomic_add(d_conics, gid, vec3(ca, cb, cc))
 
     def weighted(
         start: wp.array(dtype=wp.int32),
