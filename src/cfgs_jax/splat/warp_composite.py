@@ -53,7 +53,7 @@ def _warp():
     return wp
 
 
-# Warp-wide operations for the backward's lanes: on a GPU the 32 lanes of a warp (CUDA shuffles and votes;
+# Warp-wide operations for the lanes that walk a tile's list in step: on a GPU the 32 lanes of a warp (CUDA shuffles and votes;
 # the launch's blocks of 256 threads hold whole tiles, so every warp is full); on a CPU, where Warp runs one
 # thread at a time, each thread is its own warp.
 LANES_SUM = """
@@ -77,6 +77,22 @@ LANES_ANY = """
     return __any_sync(0xffffffffu, v) != 0;
 #else
     return v;
+#endif
+"""
+LANES_MAX = """
+#if defined(__CUDA_ARCH__)
+    auto s = v;
+    for (int offset = 16; offset > 0; offset >>= 1) s = max(s, __shfl_xor_sync(0xffffffffu, s, offset));
+    return s;
+#else
+    return v;
+#endif
+"""
+LANES_COUNT = """
+#if defined(__CUDA_ARCH__)
+    return __popc(__ballot_sync(0xffffffffu, v));
+#else
+    return v ? 1 : 0;
 #endif
 """
 LANE_LEADS = """
@@ -109,6 +125,24 @@ def _kernels(f: int, dtype: str):
         dy = m[1] - py
         return real(-0.5) * (c[0] * dx * dx + c[2] * dy * dy) - c[1] * dx * dy
 
+    @wp.func_native(LANES_SUM)
+    def lanes_sum(v: real) -> real: ...
+
+    @wp.func_native(LANES_ALL)
+    def lanes_all(v: bool) -> bool: ...
+
+    @wp.func_native(LANES_ANY)
+    def lanes_any(v: bool) -> bool: ...
+
+    @wp.func_native(LANES_MAX)
+    def lanes_max(v: real) -> real: ...
+
+    @wp.func_native(LANES_COUNT)
+    def lanes_count(v: bool) -> int: ...
+
+    @wp.func_native(LANE_LEADS)
+    def lane_leads() -> bool: ...
+
     def forward(
         start: wp.array(dtype=wp.int32),
         end: wp.array(dtype=wp.int32),
@@ -130,44 +164,42 @@ def _kernels(f: int, dtype: str):
         fg: wp.array3d(dtype=vec),
         t_out: wp.array3d(dtype=real),
     ):
+        # the lanes of a warp walk in step (as in the backward), so that the statistics are reduced across
+        # them and a Gaussian no lane composites is skipped by a vote
         i, tile, p = wp.tid()
         xy = pixel_of(tile, p, grid_x, ts)
+        done = xy[0] >= width or xy[1] >= height
+        px = real(xy[0]) + real(0.5)
+        py = real(xy[1]) + real(0.5)
         t = real(1.0)
         acc = vec()
-        if xy[0] < width and xy[1] < height:
-            px = real(xy[0]) + real(0.5)
-            py = real(xy[1]) + real(0.5)
-            for s in range(start[tile], end[tile]):
-                gid = ids[s]
-                power = power_at(means[gid], conics[gid], px, py)
-                if power > real(0.0):
-                    continue
-                a = wp.min(opac[i, gid] * wp.exp(power), max_alpha)
-                if a < min_alpha:
-                    continue
-                after = t * (real(1.0) - a)
-                if after < min_t:
-                    break
+        lead = lane_leads()
+        for s in range(start[tile], end[tile]):
+            if lanes_all(done):
+                break
+            gid = ids[s]
+            power = power_at(means[gid], conics[gid], px, py)
+            a = wp.min(opac[i, gid] * wp.exp(wp.min(power, real(0.0))), max_alpha)
+            live = not done and power <= real(0.0) and a >= min_alpha
+            after = t * (real(1.0) - a)
+            if live and after < min_t:  # INRIA's stop: this Gaussian is not composited, nor any after it
+                done = True
+                live = False
+            if not lanes_any(live):
+                continue
+            w = real(0.0)
+            if live:
                 w = a * t
                 acc = acc + w * feats[i, gid]
-                if statistics != 0:
-                    wp.atomic_max(maxw, i, gid, w)
-                    wp.atomic_add(hits, i, gid, 1)
                 t = after
+            if statistics != 0:
+                top = lanes_max(w)
+                count = lanes_count(live)
+                if lead:
+                    wp.atomic_max(maxw, i, gid, top)
+                    wp.atomic_add(hits, i, gid, count)
         fg[i, tile, p] = acc
         t_out[i, tile, p] = t
-
-    @wp.func_native(LANES_SUM)
-    def lanes_sum(v: real) -> real: ...
-
-    @wp.func_native(LANES_ALL)
-    def lanes_all(v: bool) -> bool: ...
-
-    @wp.func_native(LANES_ANY)
-    def lanes_any(v: bool) -> bool: ...
-
-    @wp.func_native(LANE_LEADS)
-    def lane_leads() -> bool: ...
 
     def backward(
         start: wp.array(dtype=wp.int32),
@@ -273,26 +305,32 @@ def _kernels(f: int, dtype: str):
     ):
         i, tile, p = wp.tid()
         xy = pixel_of(tile, p, grid_x, ts)
-        if xy[0] >= width or xy[1] >= height:
-            return
+        done = xy[0] >= width or xy[1] >= height
         px = real(xy[0]) + real(0.5)
         py = real(xy[1]) + real(0.5)
         t = real(1.0)
-        for s in range(start[tile], end[tile]):
+        lead = lane_leads()
+        for s in range(start[tile], end[tile]):  # the lanes in step, as in the backward
+            if lanes_all(done):
+                break
             gid = ids[s]
             power = power_at(means[gid], conics[gid], px, py)
-            if power > real(0.0):
-                continue
-            a = wp.min(opac[i, gid] * wp.exp(power), max_alpha)
-            if a < min_alpha:
-                continue
+            a = wp.min(opac[i, gid] * wp.exp(wp.min(power, real(0.0))), max_alpha)
+            live = not done and power <= real(0.0) and a >= min_alpha
             after = t * (real(1.0) - a)
-            if after < min_t:
-                break
-            w = a * t
+            if live and after < min_t:
+                done = True
+                live = False
+            if not lanes_any(live):
+                continue
+            w = real(0.0)
+            if live:
+                w = a * t
+                t = after
             for j in range(maps.shape[0]):
-                wp.atomic_add(sums, j, i, gid, w * maps[j, i, tile, p])
-            t = after
+                sj = lanes_sum(w * maps[j, i, tile, p])
+                if lead:
+                    wp.atomic_add(sums, j, i, gid, sj)
 
     make = lambda fn: wp.kernel(fn, module="unique", enable_backward=False)  # its adjoint is ours
     return (
@@ -324,7 +362,14 @@ def _real(dtype) -> str:
 
 
 def _launch(layout: Layout, d: int) -> tuple[int, int, int]:
-    """One thread per (date, tile, pixel of the tile)."""
+    """One thread per (date, tile, pixel of the tile). On a GPU a warp's 32 lanes must lie in one tile
+    (they walk its list in step), so a tile holds a whole number of warps."""
+    if (layout.tile_size**2) % 32 and jax.default_backend() == "gpu":
+        raise InputError(
+            f"the Warp compositor on a GPU needs tiles of a multiple of 32 pixels, got {layout.tile_size}×{layout.tile_size}",
+            field="render.tile_size",
+            fix="tile_size = 16 (INRIA's) or 8",
+        )
     return (d, layout.num_tiles, layout.tile_size**2)
 
 
