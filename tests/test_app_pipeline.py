@@ -434,7 +434,8 @@ def test_compact_cli_merges_in_place_reports_and_refuses_twice(fused_run, tmp_pa
 def test_changes_cli_writes_masks_ply_and_regions(fused_run, tmp_path):
     """`changes --run --pair --out`: a mask, a score image and an overlay per test view of both dates at
     the views' size, a PLY holding exactly the Gaussians in regions, region sizes that add up, the Markdown list;
-    a bad pair and a foreign --set are refused with the field named."""
+    a bad pair and a foreign --set are refused with the field named; the Warp compositor, chosen with
+    `--set render.backend=warp`, detects the same."""
     import json
 
     from PIL import Image
@@ -474,6 +475,20 @@ def test_changes_cli_writes_masks_ply_and_regions(fused_run, tmp_path):
     assert (out / "regions.md").read_text().startswith("# Changes between d0 and d1")
     assert main(["changes", "--run", str(run_dir), "--pair", "d0,d9", "--out", str(tmp_path / "x")]) != 0
     assert main([*args, "--set", "refine.steps=3"]) != 0
+    # the compositor chosen for the detection alone (`--set render.backend=warp`): the same detection, up to
+    # float32 rounding at a threshold (equal Gaussians counts; masks differing on ≤ 1 % of the pixels)
+    warp_out = tmp_path / "ch_warp"
+    warp_args = [*args[:5], "--out", str(warp_out), "--no-progress", *loose, "--set", "render.backend=warp"]
+    assert main(warp_args) == 0
+    other = json.loads((warp_out / "regions.json").read_text())
+    assert other["config"]["min_region_area"] == 0 and other["gaussians"] == summary["gaussians"]
+    for v in summary["views"]:
+        date, name = v["view"].split("/")
+        with (
+            Image.open(out / "masks" / date / f"{name}.png") as a,
+            Image.open(warp_out / "masks" / date / f"{name}.png") as b,
+        ):
+            assert np.mean(np.asarray(a) != np.asarray(b)) <= 0.01
 
 
 def test_fuse_with_compact_enabled_runs_the_stage_before_the_export(tiny_two_dates, fused_run, tmp_path):

@@ -370,7 +370,11 @@ def _add_changes(sub, prog: str) -> None:
     s.add_argument(
         "--split", default="test", choices=["test", "train", "all"], help="which views of both dates get masks"
     )
-    _set_arg(s, "changes.KEY=VALUE", "override one [changes] value of the run's configuration (repeatable)")
+    _set_arg(
+        s,
+        "changes.KEY=VALUE",
+        "override one [changes] or [render] value of the run's configuration, e.g. render.backend=warp (repeatable)",
+    )
     _progress_arg(s)
 
 

@@ -461,14 +461,18 @@ def cmd_compact(args) -> int:
 
 def cmd_changes(args) -> int:
 
-    bad = [o for o in args.overrides if not o.startswith("changes.")]
+    bad = [o for o in args.overrides if not o.startswith(("changes.", "render."))]
     if bad:
         raise InputError(
-            f"only [changes] values can be set here, got {bad}", field="--set", fix="use --set changes.KEY=VALUE"
+            f"only [changes] and [render] values can be set here, got {bad}",
+            field="--set",
+            fix="use --set changes.KEY=VALUE (the detector) or render.KEY=VALUE (e.g. render.backend=warp)",
         )
     run = open_run(args.run)
-    tables = {"changes": dict(run.config.tables.get("changes", {})), "__path__": str(Path(args.run) / "run.json")}
-    config = RunConfig.parse(apply_overrides(tables, args.overrides)).changes
+    tables = {name: dict(run.config.tables.get(name, {})) for name in ("changes", "render")}
+    parsed = RunConfig.parse(apply_overrides(tables | {"__path__": str(Path(args.run) / "run.json")}, args.overrides))
+    config = parsed.changes
+    run = dataclasses.replace(run, config=dataclasses.replace(run.config, render=parsed.render))
     console = _console()
     with Progress(console=console, disable=args.no_progress, transient=True) as bar:
         task = bar.add_task("change evidence (date pairs)", total=None)
