@@ -6,7 +6,8 @@ figures with those of the file it replaces, each marked better or worse.
         [--name NAME]
 
 DIR: the ``--out`` of ``python -m cfgs_jax.pipeline eval --scene S --config CFG --out DIR`` (finished:
-``table.md`` and ``table.json`` present). ``--note`` adds one paragraph on how that run was made (for
+``table.md`` and ``table.json`` present); the table's numbers go beside it as JSON (``table.json`` with the
+machine, date and code). ``--note`` adds one paragraph on how that run was made (for
 instance, resumed from an earlier run whose stages it kept). The comparison parses both files the same
 way: the method table's rows (PSNR, SSIM, LPIPS, Gaussians) and the change block's headline figures
 (per-Gaussian F1, pixel IoU, changed objects found, false regions, pixels flagged).
@@ -157,4 +158,7 @@ def main():
         [header] + ([args.note.strip()] if args.note.strip() else []) + [table_md.rstrip(), comparison(old, table_md)]
     )
     target.write_text("\n\n".join(parts).rstrip() + "\n")
-    print(f"wrote {target}")
+    # the table's numbers as the evaluation wrote them (table.json), with where and how they were made
+    meta = {"machine": machine(), "date": datetime.date.today().isoformat(), "code": code, "header": header}
+    target.with_suffix(".json").write_text(json.dumps(meta | {"note": args.note.strip()} | table, indent=1) + "\n")
+    print(f"wrote {target} and {target.with_suffix('.json').name}")
