@@ -189,7 +189,8 @@ def test_warp_kernels_compile_for_sm90_with_relaxed_reductions_and_no_fence(tmp_
     has a memory fence (``membar``/``fence``) or an ordered atomic (``.acq_rel``/``.sc``), what the
     Pallas-Triton lowering could not give; the backward sums each Gaussian's terms across a warp's 32
     lanes with shuffles (5 per sum: 3 colour channels, the opacity, 2 mean and 3 conic terms) and adds
-    each sum once per warp, votes ending the walk when every lane has stopped."""
+    each sum once per warp, votes ending the walk when every lane has stopped; with several dates in one
+    thread the footprint's sums are shared by the dates."""
     from cfgs_jax.splat import warp_composite
 
     ptx = warp_composite.cuda_ptx(3, arch=90, folder=tmp_path)
@@ -202,3 +203,8 @@ def test_warp_kernels_compile_for_sm90_with_relaxed_reductions_and_no_fence(tmp_
     assert backward.count("atom.global.add") == 3 + 1 + 2 + 3
     assert backward.count("shfl.sync.bfly") == 5 * (3 + 1 + 2 + 3)
     assert backward.count("vote.sync.all") == 1 and backward.count("vote.sync.any") == 1
+    # four dates in one thread: colour and opacity sums per date, the footprint's five once for all of them
+    four = warp_composite.cuda_ptx(3, dates=4, arch=90, folder=tmp_path)["backward"]
+    assert four.count("atom.global.add") == 4 * (3 + 1) + 2 + 3
+    assert four.count("shfl.sync.bfly") == 5 * (4 * (3 + 1) + 2 + 3)
+    assert "membar" not in four and "fence." not in four

@@ -35,7 +35,7 @@ class RenderConfig(Checked):
 
     ``backend`` picks the compositor: ``"xla"`` (tile batches walked by XLA; the CPU kernel),
     ``"pallas"`` (one Pallas program per tile, Triton on a GPU; on a CPU it runs in Pallas interpret
-    mode, slowly, for tests), ``"warp"`` (NVIDIA Warp kernels, one thread per pixel and date as the CUDA
+    mode, slowly, for tests), ``"warp"`` (NVIDIA Warp kernels, one thread per pixel (all dates) as the CUDA
     rasterisers run; compiled for the GPU, or for the CPU where they run serially; needs the ``warp``
     extra) or ``"auto"`` (XLA: neither GPU kernel has been timed on a GPU yet, so both are opt-in). All
     give the same images, statistics and gradients up to float32 rounding. For the Pallas compositor: ``walk`` is ``"chunk"`` (``chunk`` Gaussians × the

@@ -1,8 +1,9 @@
 """Tile compositing (Eq. 1 per date) as NVIDIA Warp kernels called from JAX, with a custom VJP.
 
 The same semantics as ``composite.composite`` (INRIA's rules, T dates, statistics), laid out as the CUDA
-rasterisers lay it out: one thread per (date, pixel), the pixels of a 16×16 tile side by side, each thread
-walking its tile's depth-sorted range of the intersection list with INRIA's sequential arithmetic,
+rasterisers lay it out: one thread per pixel, the pixels of a 16×16 tile side by side, each thread walking
+its tile's depth-sorted range of the intersection list with INRIA's sequential arithmetic for each of the T
+dates (the list, the footprint and the falloff exp(power) read and computed once for all of them),
 
     α_k = min(0.99, o_k·exp(power_k)),  skipped where power_k > 0 or α_k < 1/255,
     stop before k where T·(1 − α_k) < 1e-4,  else  w_k = α_k·T,  fg += w_k·f_k,  T ← T·(1 − α_k).
@@ -105,10 +106,10 @@ LANE_LEADS = """
 
 
 @functools.cache
-def _kernels(f: int, dtype: str):
-    """The forward, backward and weighted-sums kernels for features of ``f`` channels in ``dtype``
-    (``"float32"``, or ``"float64"`` for tests of the formulas), wrapped as JAX calls
-    (``wp.jax_kernel``); one set per (``f``, ``dtype``): Warp fixes vector types when it compiles."""
+def _kernels(f: int, d: int, dtype: str):
+    """The forward, backward and weighted-sums kernels for features of ``f`` channels and ``d`` dates in
+    ``dtype`` (``"float32"``, or ``"float64"`` for tests of the formulas), wrapped as JAX calls
+    (``wp.jax_kernel``); one set per (``f``, ``d``, ``dtype``): Warp fixes vector types when it compiles."""
     wp = _warp()
     real = wp.float64 if dtype == "float64" else wp.float32
     vec = wp.types.vector(length=f, dtype=real)
@@ -143,6 +144,11 @@ def _kernels(f: int, dtype: str):
     @wp.func_native(LANE_LEADS)
     def lane_leads() -> bool: ...
 
+    # Per-thread state of the D dates: transmittance, stopped flags and the colour sums of each date
+    tvec = wp.types.vector(length=d, dtype=real)
+    flags = wp.types.vector(length=d, dtype=wp.int32)
+    sums = wp.types.vector(length=d * f, dtype=real)
+
     def forward(
         start: wp.array(dtype=wp.int32),
         end: wp.array(dtype=wp.int32),
@@ -164,42 +170,53 @@ def _kernels(f: int, dtype: str):
         fg: wp.array3d(dtype=vec),
         t_out: wp.array3d(dtype=real),
     ):
-        # the lanes of a warp walk in step (as in the backward), so that the statistics are reduced across
-        # them and a Gaussian no lane composites is skipped by a vote
-        i, tile, p = wp.tid()
+        # One thread per pixel composites every date: the list, the Gaussian's footprint and its falloff
+        # are read and computed once for all D dates. The lanes of a warp walk in step (as in the
+        # backward), so that the statistics are reduced across them.
+        tile, p = wp.tid()
         xy = pixel_of(tile, p, grid_x, ts)
-        done = xy[0] >= width or xy[1] >= height
+        outside = xy[0] >= width or xy[1] >= height
         px = real(xy[0]) + real(0.5)
         py = real(xy[1]) + real(0.5)
-        t = real(1.0)
-        acc = vec()
+        t = tvec()
+        stopped = flags()
+        for k in range(d):
+            t[k] = real(1.0)
+            stopped[k] = wp.where(outside, 1, 0)
+        acc = sums()
         lead = lane_leads()
         for s in range(start[tile], end[tile]):
-            if lanes_all(done):
+            if lanes_all(wp.min(stopped) > 0):
                 break
             gid = ids[s]
             power = power_at(means[gid], conics[gid], px, py)
-            a = wp.min(opac[i, gid] * wp.exp(wp.min(power, real(0.0))), max_alpha)
-            live = not done and power <= real(0.0) and a >= min_alpha
-            after = t * (real(1.0) - a)
-            if live and after < min_t:  # INRIA's stop: this Gaussian is not composited, nor any after it
-                done = True
-                live = False
-            if not lanes_any(live):
-                continue
-            w = real(0.0)
-            if live:
-                w = a * t
-                acc = acc + w * feats[i, gid]
-                t = after
-            if statistics != 0:
-                top = lanes_max(w)
-                count = lanes_count(live)
-                if lead:
-                    wp.atomic_max(maxw, i, gid, top)
-                    wp.atomic_add(hits, i, gid, count)
-        fg[i, tile, p] = acc
-        t_out[i, tile, p] = t
+            g = wp.exp(wp.min(power, real(0.0)))
+            for k in range(d):
+                a = wp.min(opac[k, gid] * g, max_alpha)
+                live = stopped[k] == 0 and power <= real(0.0) and a >= min_alpha
+                after = t[k] * (real(1.0) - a)
+                if live and after < min_t:  # INRIA's stop: this Gaussian is not composited, nor any after it
+                    stopped[k] = 1
+                    live = False
+                w = real(0.0)
+                if live:
+                    w = a * t[k]
+                    fe = feats[k, gid]
+                    for j in range(f):
+                        acc[k * f + j] = acc[k * f + j] + w * fe[j]
+                    t[k] = after
+                if statistics != 0 and lanes_any(live):
+                    top = lanes_max(w)
+                    count = lanes_count(live)
+                    if lead:
+                        wp.atomic_max(maxw, k, gid, top)
+                        wp.atomic_add(hits, k, gid, count)
+        for k in range(d):
+            out = vec()
+            for j in range(f):
+                out[j] = acc[k * f + j]
+            fg[k, tile, p] = out
+            t_out[k, tile, p] = t[k]
 
     def backward(
         start: wp.array(dtype=wp.int32),
@@ -226,21 +243,27 @@ def _kernels(f: int, dtype: str):
         d_opac: wp.array2d(dtype=real),  # in-out: zeros in
         d_feats: wp.array3d(dtype=real),  # in-out: zeros in
     ):
-        # The 32 lanes of a GPU warp (32 pixels of one tile, one date) walk the tile's list in step: a lane
-        # whose pixel is outside the image or has stopped walks on contributing zeros, so that each
-        # Gaussian's terms are summed across the lanes (shuffles) and added by one lane, as gsplat does.
-        i, tile, p = wp.tid()
+        # One thread per pixel, every date, as the forward. The 32 lanes of a GPU warp (32 pixels of one
+        # tile) walk the tile's list in step: a lane whose pixel is outside the image or has stopped walks
+        # on contributing zeros, so that each Gaussian's terms are summed across the lanes (shuffles) and
+        # added by one lane, as gsplat does.
+        tile, p = wp.tid()
         xy = pixel_of(tile, p, grid_x, ts)
-        done = xy[0] >= width or xy[1] >= height
+        outside = xy[0] >= width or xy[1] >= height
         px = real(xy[0]) + real(0.5)
         py = real(xy[1]) + real(0.5)
-        g_fg = gfg[i, tile, p]
-        behind = wp.dot(g_fg, fg[i, tile, p])  # Σ_f ∂L/∂fg_f (fg_f − S_k,f), before the first Gaussian
-        tail = gt[i, tile, p] * t_final[i, tile, p]  # ∂L/∂T_N · T_N
-        t = real(1.0)
+        t = tvec()
+        stopped = flags()
+        behind = tvec()  # Σ_f ∂L/∂fg_f (fg_f − S_k,f) per date, before the first Gaussian
+        tail = tvec()  # ∂L/∂T_N · T_N per date
+        for k in range(d):
+            t[k] = real(1.0)
+            stopped[k] = wp.where(outside, 1, 0)
+            behind[k] = wp.dot(gfg[k, tile, p], fg[k, tile, p])
+            tail[k] = gt[k, tile, p] * t_final[k, tile, p]
         lead = lane_leads()
         for s in range(start[tile], end[tile]):
-            if lanes_all(done):
+            if lanes_all(wp.min(stopped) > 0):
                 break
             gid = ids[s]
             m = means[gid]
@@ -249,34 +272,39 @@ def _kernels(f: int, dtype: str):
             dy = m[1] - py
             power = real(-0.5) * (c[0] * dx * dx + c[2] * dy * dy) - c[1] * dx * dy
             g = wp.exp(wp.min(power, real(0.0)))
-            op = opac[i, gid]
-            og = op * g
-            a = wp.min(og, max_alpha)
-            live = not done and power <= real(0.0) and a >= min_alpha
-            after = t * (real(1.0) - a)
-            if live and after < min_t:  # INRIA's stop: this Gaussian is not composited, nor any after it
-                done = True
-                live = False
-            if not lanes_any(live):
-                continue
-            w = real(0.0)
-            q = real(0.0)
-            if live:
-                w = a * t
-                gf = wp.dot(g_fg, feats[i, gid])
-                behind = behind - w * gf
-                if og < max_alpha:
-                    q = (t * gf - (behind + tail) / (real(1.0) - a)) * g  # ∂L/∂(effective opacity) here
-                t = after
-            for j in range(f):
-                sj = lanes_sum(w * g_fg[j])
+            dp = real(0.0)  # ∂L/∂power, summed over the dates
+            any_live = False
+            for k in range(d):
+                op = opac[k, gid]
+                og = op * g
+                a = wp.min(og, max_alpha)
+                live = stopped[k] == 0 and power <= real(0.0) and a >= min_alpha
+                after = t[k] * (real(1.0) - a)
+                if live and after < min_t:  # INRIA's stop: this Gaussian is not composited, nor any after it
+                    stopped[k] = 1
+                    live = False
+                if not lanes_any(live):
+                    continue
+                any_live = True
+                g_fg = gfg[k, tile, p]
+                w = real(0.0)
+                q = real(0.0)
+                if live:
+                    w = a * t[k]
+                    gf = wp.dot(g_fg, feats[k, gid])
+                    behind[k] = behind[k] - w * gf
+                    if og < max_alpha:  # ∂L/∂(effective opacity) at this pixel
+                        q = (t[k] * gf - (behind[k] + tail[k]) / (real(1.0) - a)) * g
+                    t[k] = after
+                for j in range(f):
+                    sj = lanes_sum(w * g_fg[j])
+                    if lead:
+                        wp.atomic_add(d_feats, k, gid, j, sj)
+                sq = lanes_sum(q)
                 if lead:
-                    wp.atomic_add(d_feats, i, gid, j, sj)
-            sq = lanes_sum(q)
-            if lead:
-                wp.atomic_add(d_opac, i, gid, sq)
-            if footprint != 0:
-                dp = op * q  # ∂L/∂power
+                    wp.atomic_add(d_opac, k, gid, sq)
+                dp = dp + op * q
+            if footprint != 0 and any_live:
                 mx = lanes_sum(-dp * (c[0] * dx + c[1] * dy))
                 my = lanes_sum(-dp * (c[1] * dx + c[2] * dy))
                 ca = lanes_sum(real(-0.5) * dp * dx * dx)
@@ -303,34 +331,40 @@ def _kernels(f: int, dtype: str):
         min_t: real,
         sums: wp.array3d(dtype=real),  # in-out: zeros in
     ):
-        i, tile, p = wp.tid()
+        tile, p = wp.tid()  # one thread per pixel, every date; the lanes in step, as in the backward
         xy = pixel_of(tile, p, grid_x, ts)
-        done = xy[0] >= width or xy[1] >= height
+        outside = xy[0] >= width or xy[1] >= height
         px = real(xy[0]) + real(0.5)
         py = real(xy[1]) + real(0.5)
-        t = real(1.0)
+        t = tvec()
+        stopped = flags()
+        for k in range(d):
+            t[k] = real(1.0)
+            stopped[k] = wp.where(outside, 1, 0)
         lead = lane_leads()
-        for s in range(start[tile], end[tile]):  # the lanes in step, as in the backward
-            if lanes_all(done):
+        for s in range(start[tile], end[tile]):
+            if lanes_all(wp.min(stopped) > 0):
                 break
             gid = ids[s]
             power = power_at(means[gid], conics[gid], px, py)
-            a = wp.min(opac[i, gid] * wp.exp(wp.min(power, real(0.0))), max_alpha)
-            live = not done and power <= real(0.0) and a >= min_alpha
-            after = t * (real(1.0) - a)
-            if live and after < min_t:
-                done = True
-                live = False
-            if not lanes_any(live):
-                continue
-            w = real(0.0)
-            if live:
-                w = a * t
-                t = after
-            for j in range(maps.shape[0]):
-                sj = lanes_sum(w * maps[j, i, tile, p])
-                if lead:
-                    wp.atomic_add(sums, j, i, gid, sj)
+            g = wp.exp(wp.min(power, real(0.0)))
+            for k in range(d):
+                a = wp.min(opac[k, gid] * g, max_alpha)
+                live = stopped[k] == 0 and power <= real(0.0) and a >= min_alpha
+                after = t[k] * (real(1.0) - a)
+                if live and after < min_t:
+                    stopped[k] = 1
+                    live = False
+                if not lanes_any(live):
+                    continue
+                w = real(0.0)
+                if live:
+                    w = a * t[k]
+                    t[k] = after
+                for j in range(maps.shape[0]):
+                    sj = lanes_sum(w * maps[j, k, tile, p])
+                    if lead:
+                        wp.atomic_add(sums, j, k, gid, sj)
 
     make = lambda fn: wp.kernel(fn, module="unique", enable_backward=False)  # its adjoint is ours
     return (
@@ -361,8 +395,8 @@ def _real(dtype) -> str:
     return name
 
 
-def _launch(layout: Layout, d: int) -> tuple[int, int, int]:
-    """One thread per (date, tile, pixel of the tile). On a GPU a warp's 32 lanes must lie in one tile
+def _launch(layout: Layout) -> tuple[int, int]:
+    """One thread per (tile, pixel of the tile). On a GPU a warp's 32 lanes must lie in one tile
     (they walk its list in step), so a tile holds a whole number of warps."""
     if (layout.tile_size**2) % 32 and jax.default_backend() == "gpu":
         raise InputError(
@@ -370,7 +404,7 @@ def _launch(layout: Layout, d: int) -> tuple[int, int, int]:
             field="render.tile_size",
             fix="tile_size = 16 (INRIA's) or 8",
         )
-    return (d, layout.num_tiles, layout.tile_size**2)
+    return (layout.num_tiles, layout.tile_size**2)
 
 
 @functools.partial(jax.custom_vjp, nondiff_argnums=(0,))
@@ -382,13 +416,13 @@ def composite_warp(layout: Layout, means2d, conics, opac, feats, ids, tile_start
 def _composite_fwd(layout, means2d, conics, opac, feats, ids, tile_start, tile_end):
     d, n, f = feats.shape
     dtype = means2d.dtype
-    forward = _kernels(f, _real(dtype))[0]
+    forward = _kernels(f, d, _real(dtype))[0]
     ids, tile_start, tile_end = (x.astype(jnp.int32) for x in (ids, tile_start, tile_end))
     maxw, hits, fg, t = forward(
         tile_start, tile_end, ids, means2d, conics, opac, feats, *_static(layout), int(layout.statistics),
         jnp.zeros((d, n), dtype), jnp.zeros((d, n), jnp.int32),
-        launch_dims=_launch(layout, d),
-        output_dims={"fg": _launch(layout, d) + (f,), "t_out": _launch(layout, d)},
+        launch_dims=_launch(layout),
+        output_dims={"fg": (d, *_launch(layout), f), "t_out": (d, *_launch(layout))},
     )  # fmt: skip
     fg_img = jnp.moveaxis(_to_image(layout, jnp.moveaxis(fg, -1, 1)), 1, -1)
     out = (fg_img, _to_image(layout, t), maxw, hits)
@@ -404,11 +438,11 @@ def _composite_bwd(layout, res, cot, footprint: bool = True):
     g_fg, g_t, _, _ = cot
     gfg = jnp.moveaxis(_from_image(layout, jnp.moveaxis(g_fg.astype(dtype), -1, 1)), 1, -1)  # [D, tiles, P, F]
     gt = _from_image(layout, g_t.astype(dtype))
-    backward = _kernels(f, _real(dtype))[1]
+    backward = _kernels(f, d, _real(dtype))[1]
     zeros = (jnp.zeros((n, 2), dtype), jnp.zeros((n, 3), dtype), jnp.zeros((d, n), dtype), jnp.zeros((d, n, f), dtype))
     dm, dc, do, dfeat = backward(
         tile_start, tile_end, ids, means2d, conics, opac, feats, gfg, gt, fg, t, *_static(layout), int(footprint),
-        *zeros, launch_dims=_launch(layout, d),
+        *zeros, launch_dims=_launch(layout),
     )  # fmt: skip
     return dm, dc, do, dfeat, None, None, None
 
@@ -421,18 +455,19 @@ def weighted_sums_warp(layout: Layout, means2d, conics, opac, ids, tile_start, t
     d, n = opac.shape
     m = maps.shape[0]
     dtype = means2d.dtype
-    weighted = _kernels(1, _real(dtype))[2]
+    weighted = _kernels(1, d, _real(dtype))[2]
     maps_t = _from_image(layout, maps.astype(dtype))  # [M, D, tiles, P]
     ids, tile_start, tile_end = (x.astype(jnp.int32) for x in (ids, tile_start, tile_end))
     (sums,) = weighted(
         tile_start, tile_end, ids, means2d, conics, opac, maps_t, *_static(layout), jnp.zeros((m, d, n), dtype),
-        launch_dims=_launch(layout, d),
+        launch_dims=_launch(layout),
     )  # fmt: skip
     return sums
 
 
-def cuda_ptx(f: int, *, arch: int = 90, folder=None) -> dict[str, str]:
-    """The PTX of the forward, backward and weighted-sums kernels for ``f`` feature channels, compiled for
+def cuda_ptx(f: int, *, dates: int = 1, arch: int = 90, folder=None) -> dict[str, str]:
+    """The PTX of the forward, backward and weighted-sums kernels for ``f`` feature channels and ``dates``
+    dates, compiled for
     the CUDA architecture ``arch`` (90: H100 / H200) by Warp's NVRTC on any machine, a CPU-only one
     included: {"forward": text, "backward": text, "weighted": text}. For reading what a GPU will run
     (fences, atomics, registers) without one."""
@@ -442,7 +477,7 @@ def cuda_ptx(f: int, *, arch: int = 90, folder=None) -> dict[str, str]:
     wp = _warp()
     out = {}
     with tempfile.TemporaryDirectory(dir=folder) as tmp:
-        for name, call in zip(("forward", "backward", "weighted"), _kernels(f, "float32")):
+        for name, call in zip(("forward", "backward", "weighted"), _kernels(f, dates, "float32")):
             (path,) = wp.compile_aot_module(call.kernel.module, arch=arch, use_ptx=True, module_dir=Path(tmp) / name)
             out[name] = Path(path).read_bytes().rstrip(b"\0").decode()
     return out
