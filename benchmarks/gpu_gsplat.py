@@ -200,8 +200,9 @@ def run_case(name: str, reps: int, backends=("pallas", "xla"), with_gsplat: bool
     return out
 
 
-def dates_ratio(reps: int) -> dict:
-    """Forward of four dates in one ``render_dates`` call over one date, 1M Gaussians at 1080p (Pallas)."""
+def dates_ratio(reps: int, backends=("pallas",)) -> dict:
+    """Forward of four dates in one ``render_dates`` call over one date, 1M Gaussians at 1080p, per backend
+    (keys ``BACKEND/...``; the Pallas keys without a prefix, as results before every backend had them)."""
     import jax
     import jax.numpy as jnp
 
@@ -210,19 +211,21 @@ def dates_ratio(reps: int) -> dict:
     g, cam = scene(*CASES["1M@1920x1080"])
     n = len(g)
     out = {}
-    for stats in (False, True):
-        times = {}
-        for t in (1, 4):
-            om, cm = jnp.ones((t, n)), jnp.ones((t, n, 3))
-            cfg = splat.RenderConfig(capacity=splat.required_capacity(g, cam, om), backend="pallas")
-            f = jax.jit(
-                lambda g, om, cm, cfg=cfg: splat.render_dates(g, cam, om, cm, config=cfg, statistics=stats).image
-            )
-            times[t] = _median_jax(f, (g, om, cm), reps)
-        key = "statistics" if stats else "images_only"
-        out[f"t1_fwd_s_{key}"], out[f"t4_fwd_s_{key}"] = times[1], times[4]
-        out[f"t4_over_t1_{key}"] = times[4] / times[1]
-        print(f"  T=4 / T=1 ({key}): {times[4] / times[1]:.2f}", flush=True)
+    for backend in backends:
+        prefix = "" if backend == "pallas" else f"{backend}/"
+        for stats in (False, True):
+            times = {}
+            for t in (1, 4):
+                om, cm = jnp.ones((t, n)), jnp.ones((t, n, 3))
+                cfg = splat.RenderConfig(capacity=splat.required_capacity(g, cam, om), backend=backend)
+                f = jax.jit(
+                    lambda g, om, cm, cfg=cfg: splat.render_dates(g, cam, om, cm, config=cfg, statistics=stats).image
+                )
+                times[t] = _median_jax(f, (g, om, cm), reps)
+            key = "statistics" if stats else "images_only"
+            out[f"{prefix}t1_fwd_s_{key}"], out[f"{prefix}t4_fwd_s_{key}"] = times[1], times[4]
+            out[f"{prefix}t4_over_t1_{key}"] = times[4] / times[1]
+            print(f"  {backend} T=4 / T=1 ({key}): {times[4] / times[1]:.2f}", flush=True)
     return out
 
 
@@ -289,12 +292,16 @@ def write_markdown(result: dict, path: Path) -> None:
             lines.append(f"| {name} | {r['gaussians']:,} | projection + binning | {ms(r['project_bin_s'])} | | | | | |")
     if result.get("dates"):
         d = result["dates"]
-        lines += ["", "Four dates in one `render_dates` call against one, 1M Gaussians at 1920×1080, Pallas, forward:", "",
-                  "| statistics | T=1 (ms) | T=4 (ms) | T=4 / T=1 |", "|---|---|---|---|"]  # fmt: skip
-        for key in ("images_only", "statistics"):
-            lines.append(
-                f"| {key.replace('_', ' ')} | {ms(d[f't1_fwd_s_{key}'])} | {ms(d[f't4_fwd_s_{key}'])} | {d[f't4_over_t1_{key}']:.2f} |"
-            )
+        lines += ["", "Four dates in one `render_dates` call against one, 1M Gaussians at 1920×1080, forward:", "",
+                  "| backend | statistics | T=1 (ms) | T=4 (ms) | T=4 / T=1 |", "|---|---|---|---|---|"]  # fmt: skip
+        for backend in BACKENDS:
+            prefix = "" if backend == "pallas" else f"{backend}/"
+            for key in ("images_only", "statistics"):
+                if f"{prefix}t4_over_t1_{key}" in d:
+                    lines.append(
+                        f"| {backend} | {key.replace('_', ' ')} | {ms(d[f'{prefix}t1_fwd_s_{key}'])} | "
+                        f"{ms(d[f'{prefix}t4_fwd_s_{key}'])} | {d[f'{prefix}t4_over_t1_{key}']:.2f} |"
+                    )
     if result.get("sweep"):
         lines += ["", "The Pallas compositor's `chunk` (Gaussians per step) and `num_warps`, forward / forward+backward (ms):",
                   "", "| case | chunk | warps | fwd | fwd+bwd |", "|---|---|---|---|---|"]  # fmt: skip
@@ -355,7 +362,7 @@ def main():
         save()
     if not args.no_dates:
         try:
-            result["dates"] = dates_ratio(args.reps)
+            result["dates"] = dates_ratio(args.reps, [b for b in args.backends if b != "xla"])
         except Exception as e:
             traceback.print_exc()
             result["dates_error"] = str(e)[:300]
