@@ -50,8 +50,31 @@ def _warp():
         ) from None
     wp.config.quiet = True
     wp.config.log_level = wp.LOG_WARNING
-    wp.init()
+    _init_without_driver_notice(wp)
     return wp
+
+
+def _init_without_driver_notice(wp) -> None:
+    """``wp.init()``, leaving out the one line Warp's native library prints on a machine without an NVIDIA
+    driver (expected where the kernels run on the CPU); anything else it prints is passed on."""
+    import os
+    import sys
+    import tempfile
+
+    sys.stderr.flush()
+    with tempfile.TemporaryFile() as caught:
+        saved = os.dup(2)
+        os.dup2(caught.fileno(), 2)
+        try:
+            wp.init()
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+        caught.seek(0)
+        text = caught.read().decode(errors="replace")
+    for line in text.splitlines():
+        if "Could not find or load the NVIDIA CUDA driver" not in line:
+            print(line, file=sys.stderr)
 
 
 # Warp-wide operations for the lanes that walk a tile's list in step: on a GPU the 32 lanes of a warp (CUDA shuffles and votes;
