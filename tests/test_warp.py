@@ -208,3 +208,28 @@ def test_warp_kernels_compile_for_sm90_with_relaxed_reductions_and_no_fence(tmp_
     assert four.count("atom.global.add") == 4 * (3 + 1) + 2 + 3
     assert four.count("shfl.sync.bfly") == 5 * (4 * (3 + 1) + 2 + 3)
     assert "membar" not in four and "fence." not in four
+
+
+def test_vmap_of_the_render_and_its_gradient_equals_each_item_alone():
+    """``jax.vmap`` over a batch of opacity multipliers (what downstream code batches): the images and the
+    gradients with respect to the multipliers equal those of each item rendered alone (the Warp calls
+    know no batch axis; a batch runs them one item after another)."""
+    g = scene(200, 0)
+    n = len(g)
+    cam = camera(40, 30)
+    cfg = dataclasses.replace(WARP, capacity=4096)
+    rng = np.random.default_rng(3)
+    om = jnp.asarray(rng.uniform(0.2, 1.0, (3, 1, n)), jnp.float32)
+    target = jnp.asarray(rng.uniform(size=(30, 40, 3)), jnp.float32)
+
+    def image(o):
+        return splat.render_dates(g, cam, o, jnp.ones((1, n, 3)), background=BG, config=cfg).image[0]
+
+    def loss(o):
+        return jnp.mean(jnp.abs(image(o) - target))
+
+    batched, each = jax.vmap(image)(om), jnp.stack([image(o) for o in om])
+    assert float(jnp.abs(batched - each).max()) <= 1e-6 and float(jnp.abs(each[0] - each[1]).max()) > 1e-2
+    grads, one_by_one = jax.vmap(jax.grad(loss))(om), jnp.stack([jax.grad(loss)(o) for o in om])
+    assert float(jnp.abs(grads - one_by_one).max()) <= 1e-6 * float(jnp.abs(one_by_one).max()) + 1e-12
+    assert float(jnp.abs(one_by_one).max()) > 0

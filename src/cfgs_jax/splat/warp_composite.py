@@ -390,10 +390,12 @@ def _kernels(f: int, d: int, dtype: str):
                         wp.atomic_add(sums, j, k, gid, sj)
 
     make = lambda fn: wp.kernel(fn, module="unique", enable_backward=False)  # its adjoint is ours
+    # under jax.vmap each call of a batch runs on its own ("sequential"): the kernels know no batch axis
+    call = functools.partial(wp.jax_kernel, vmap_method="sequential")
     return (
-        wp.jax_kernel(make(forward), num_outputs=4, in_out_argnames=["maxw", "hits"]),
-        wp.jax_kernel(make(backward), num_outputs=4, in_out_argnames=["d_means", "d_conics", "d_opac", "d_feats"]),
-        wp.jax_kernel(make(weighted), num_outputs=1, in_out_argnames=["sums"]),
+        call(make(forward), num_outputs=4, in_out_argnames=["maxw", "hits"]),
+        call(make(backward), num_outputs=4, in_out_argnames=["d_means", "d_conics", "d_opac", "d_feats"]),
+        call(make(weighted), num_outputs=1, in_out_argnames=["sums"]),
     )
 
 
