@@ -62,10 +62,9 @@ def test_forward_matches_float64_reference(n, seed, w, h, chunk, walk):
     assert float(ref.alpha.mean()) > 0.1
 
 
-@pytest.mark.parametrize("walk", ["chunk", "serial"])
-def test_early_saturation_and_long_lists(walk):
-    """Opaque Gaussians stacked in front of one another: every pixel stops long before its list ends
-    (INRIA's T < 1e-4 rule), in a chunk other than the first; the image equals the reference's."""
+def opaque_stack():
+    """400 opaque Gaussians (α ≈ 0.99) stacked in front of one another and a 24×20 camera looking at them:
+    every pixel saturates long before its tile's list ends."""
     rng = np.random.default_rng(5)
     n = 400
     means = np.stack([rng.uniform(-0.4, 0.4, n), rng.uniform(-0.4, 0.4, n), rng.uniform(-1.0, 1.0, n)], 1)
@@ -76,7 +75,14 @@ def test_early_saturation_and_long_lists(walk):
         np.full(n, 5.0, F32),  # α ≈ 0.99
         rng.uniform(0, 1, (n, 3)).astype(F32),
     )
-    cam = cj.Camera.look_at([0, 0, -4.0], [0, 0, 0], up=(0, -1, 0), width=24, height=20, fov_x_deg=20)
+    return g, cj.Camera.look_at([0, 0, -4.0], [0, 0, 0], up=(0, -1, 0), width=24, height=20, fov_x_deg=20)
+
+
+@pytest.mark.parametrize("walk", ["chunk", "serial"])
+def test_early_saturation_and_long_lists(walk):
+    """Opaque Gaussians stacked in front of one another: every pixel stops long before its list ends
+    (INRIA's T < 1e-4 rule), in a chunk other than the first; the image equals the reference's."""
+    g, cam = opaque_stack()
     cfg = dataclasses.replace(PALLAS, chunk=4, walk=walk)
     r = splat.render(g, cam, background=BG, config=cfg)
     assert_matches_reference(r.image, g, cam)

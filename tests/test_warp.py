@@ -15,6 +15,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from test_pallas import opaque_stack
 from test_splat import (
     BG,
     F32,
@@ -27,7 +28,6 @@ from test_splat import (
     scene,
 )
 
-import cfgs_jax as cj
 from cfgs_jax import InputError, splat
 
 WARP = splat.RenderConfig(backend="warp")
@@ -52,17 +52,7 @@ def test_forward_matches_float64_reference(n, seed, w, h):
 def test_early_saturation_stops_each_pixel_where_the_reference_does():
     """Opaque Gaussians stacked in front of one another: every pixel stops long before its list ends
     (INRIA's T < 1e-4 rule); the image and the hit counts equal the reference's."""
-    rng = np.random.default_rng(5)
-    n = 400
-    means = np.stack([rng.uniform(-0.4, 0.4, n), rng.uniform(-0.4, 0.4, n), rng.uniform(-1.0, 1.0, n)], 1)
-    g = cj.Gaussians(
-        means.astype(F32),
-        rng.normal(size=(n, 4)).astype(F32),
-        np.full((n, 3), -1.2, F32),
-        np.full(n, 5.0, F32),  # α ≈ 0.99
-        rng.uniform(0, 1, (n, 3)).astype(F32),
-    )
-    cam = cj.Camera.look_at([0, 0, -4.0], [0, 0, 0], up=(0, -1, 0), width=24, height=20, fov_x_deg=20)
+    g, cam = opaque_stack()
     r = splat.render(g, cam, background=BG, config=WARP)
     assert_matches_reference(r.image, g, cam)
     assert float(jnp.min(r.alpha)) > 0.99

@@ -172,6 +172,30 @@ def _kernels(f: int, d: int, dtype: str):
     flags = wp.types.vector(length=d, dtype=wp.int32)
     sums = wp.types.vector(length=d * f, dtype=real)
 
+    @wp.func
+    def first_state(tile: int, p: int, grid_x: int, ts: int, width: int, height: int):
+        """The pixel's centre, and each date's T = 1 and stop flag (set where the pixel lies outside the
+        image: it walks along with its warp, compositing nothing)."""
+        xy = pixel_of(tile, p, grid_x, ts)
+        outside = wp.where(xy[0] >= width or xy[1] >= height, 1, 0)
+        t = tvec()
+        stopped = flags()
+        for k in range(d):
+            t[k] = real(1.0)
+            stopped[k] = outside
+        return vec2(real(xy[0]) + real(0.5), real(xy[1]) + real(0.5)), t, stopped
+
+    @wp.func
+    def date_step(op: real, g: real, power: real, t: real, stopped: int, min_alpha: real, max_alpha: real,
+                  min_t: real):  # fmt: skip
+        """INRIA's rules for one Gaussian at one date: α, T after it, whether it is composited, and whether
+        the pixel stops before it (T would fall below ``min_t``: neither it nor any after it composites)."""
+        a = wp.min(op * g, max_alpha)
+        live = stopped == 0 and power <= real(0.0) and a >= min_alpha
+        after = t * (real(1.0) - a)
+        stops = live and after < min_t
+        return a, after, live and not stops, stops
+
     def forward(
         start: wp.array(dtype=wp.int32),
         end: wp.array(dtype=wp.int32),
@@ -197,30 +221,19 @@ def _kernels(f: int, d: int, dtype: str):
         # are read and computed once for all D dates. The lanes of a warp walk in step (as in the
         # backward), so that the statistics are reduced across them.
         tile, p = wp.tid()
-        xy = pixel_of(tile, p, grid_x, ts)
-        outside = xy[0] >= width or xy[1] >= height
-        px = real(xy[0]) + real(0.5)
-        py = real(xy[1]) + real(0.5)
-        t = tvec()
-        stopped = flags()
-        for k in range(d):
-            t[k] = real(1.0)
-            stopped[k] = wp.where(outside, 1, 0)
+        centre, t, stopped = first_state(tile, p, grid_x, ts, width, height)
         acc = sums()
         lead = lane_leads()
         for s in range(start[tile], end[tile]):
             if lanes_all(wp.min(stopped) > 0):
                 break
             gid = ids[s]
-            power = power_at(means[gid], conics[gid], px, py)
+            power = power_at(means[gid], conics[gid], centre[0], centre[1])
             g = wp.exp(wp.min(power, real(0.0)))
             for k in range(d):
-                a = wp.min(opac[k, gid] * g, max_alpha)
-                live = stopped[k] == 0 and power <= real(0.0) and a >= min_alpha
-                after = t[k] * (real(1.0) - a)
-                if live and after < min_t:  # INRIA's stop: this Gaussian is not composited, nor any after it
+                a, after, live, stops = date_step(opac[k, gid], g, power, t[k], stopped[k], min_alpha, max_alpha, min_t)
+                if stops:
                     stopped[k] = 1
-                    live = False
                 w = real(0.0)
                 if live:
                     w = a * t[k]
@@ -271,17 +284,10 @@ def _kernels(f: int, d: int, dtype: str):
         # on contributing zeros, so that each Gaussian's terms are summed across the lanes (shuffles) and
         # added by one lane, as gsplat does.
         tile, p = wp.tid()
-        xy = pixel_of(tile, p, grid_x, ts)
-        outside = xy[0] >= width or xy[1] >= height
-        px = real(xy[0]) + real(0.5)
-        py = real(xy[1]) + real(0.5)
-        t = tvec()
-        stopped = flags()
+        centre, t, stopped = first_state(tile, p, grid_x, ts, width, height)
         behind = tvec()  # Σ_f ∂L/∂fg_f (fg_f − S_k,f) per date, before the first Gaussian
         tail = tvec()  # ∂L/∂T_N · T_N per date
         for k in range(d):
-            t[k] = real(1.0)
-            stopped[k] = wp.where(outside, 1, 0)
             behind[k] = wp.dot(gfg[k, tile, p], fg[k, tile, p])
             tail[k] = gt[k, tile, p] * t_final[k, tile, p]
         lead = lane_leads()
@@ -291,8 +297,8 @@ def _kernels(f: int, d: int, dtype: str):
             gid = ids[s]
             m = means[gid]
             c = conics[gid]
-            dx = m[0] - px
-            dy = m[1] - py
+            dx = m[0] - centre[0]
+            dy = m[1] - centre[1]
             power = real(-0.5) * (c[0] * dx * dx + c[2] * dy * dy) - c[1] * dx * dy
             g = wp.exp(wp.min(power, real(0.0)))
             dp = real(0.0)  # ∂L/∂power, summed over the dates
@@ -300,12 +306,9 @@ def _kernels(f: int, d: int, dtype: str):
             for k in range(d):
                 op = opac[k, gid]
                 og = op * g
-                a = wp.min(og, max_alpha)
-                live = stopped[k] == 0 and power <= real(0.0) and a >= min_alpha
-                after = t[k] * (real(1.0) - a)
-                if live and after < min_t:  # INRIA's stop: this Gaussian is not composited, nor any after it
+                a, after, live, stops = date_step(op, g, power, t[k], stopped[k], min_alpha, max_alpha, min_t)
+                if stops:
                     stopped[k] = 1
-                    live = False
                 if not lanes_any(live):
                     continue
                 any_live = True
@@ -355,29 +358,18 @@ def _kernels(f: int, d: int, dtype: str):
         sums: wp.array3d(dtype=real),  # in-out: zeros in
     ):
         tile, p = wp.tid()  # one thread per pixel, every date; the lanes in step, as in the backward
-        xy = pixel_of(tile, p, grid_x, ts)
-        outside = xy[0] >= width or xy[1] >= height
-        px = real(xy[0]) + real(0.5)
-        py = real(xy[1]) + real(0.5)
-        t = tvec()
-        stopped = flags()
-        for k in range(d):
-            t[k] = real(1.0)
-            stopped[k] = wp.where(outside, 1, 0)
+        centre, t, stopped = first_state(tile, p, grid_x, ts, width, height)
         lead = lane_leads()
         for s in range(start[tile], end[tile]):
             if lanes_all(wp.min(stopped) > 0):
                 break
             gid = ids[s]
-            power = power_at(means[gid], conics[gid], px, py)
+            power = power_at(means[gid], conics[gid], centre[0], centre[1])
             g = wp.exp(wp.min(power, real(0.0)))
             for k in range(d):
-                a = wp.min(opac[k, gid] * g, max_alpha)
-                live = stopped[k] == 0 and power <= real(0.0) and a >= min_alpha
-                after = t[k] * (real(1.0) - a)
-                if live and after < min_t:
+                a, after, live, stops = date_step(opac[k, gid], g, power, t[k], stopped[k], min_alpha, max_alpha, min_t)
+                if stops:
                     stopped[k] = 1
-                    live = False
                 if not lanes_any(live):
                     continue
                 w = real(0.0)
