@@ -1,7 +1,7 @@
 """The splatting kernel's benchmarks, one command: its speed and memory by case, the revisions of its
 compositor and binning side by side, the compositor's sub-tile walk, the depth order, a frame's stages,
-SSIM's blur, the cost of a change-aware frame, and the Pallas kernels through Triton's compiler without a
-GPU. Each subcommand's options: ``python benchmarks/bench_kernel.py COMMAND --help``.
+SSIM's blur, the cost of a change-aware frame, and the Pallas and Warp kernels compiled for a GPU without
+one. Each subcommand's options: ``python benchmarks/bench_kernel.py COMMAND --help``.
 
     python benchmarks/bench_kernel.py splat [--quick | --large]      # results/splat*.md
     python benchmarks/bench_kernel.py revision [--base REV] [--module composite|binning]
@@ -11,6 +11,7 @@ GPU. Each subcommand's options: ``python benchmarks/bench_kernel.py COMMAND --he
     python benchmarks/bench_kernel.py ssim [--images 1x240x320 ...] [--step-case 20k@320x240]
     python benchmarks/bench_kernel.py viz [--repeats 7]
     python benchmarks/bench_kernel.py triton [--triton-python PY] [--arch 90]
+    python benchmarks/bench_kernel.py warp [--arch 90] [--dates 1 4]   # results/warp_sass.md
 """
 
 from __future__ import annotations
@@ -30,6 +31,7 @@ COMMANDS = {
     "ssim": ("kernel_ssim", "SSIM's blur: convolutions against banded products"),
     "viz": ("kernel_viz", "a change-aware frame: blend against highlight"),
     "triton": ("kernel_triton", "the Pallas kernels compiled by Triton for a GPU, without one"),
+    "warp": ("kernel_warp", "the Warp kernels compiled for a GPU without one, their machine code read"),
 }
 
 if __name__ == "__main__":
