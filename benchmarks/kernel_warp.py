@@ -93,7 +93,3 @@ def main():
         counts = " | ".join(str(k["counts"][n]) for n in KINDS)
         lines.append(f"| {k['kernel']} | {k['dates']} | {k['registers']} | {k['local_bytes']} | {counts} | {shown} |")
     write_result("warp_sass", result, "\n".join(lines) + "\n")
-
-
-if __name__ == "__main__":
-    main()
