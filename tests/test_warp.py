@@ -157,7 +157,7 @@ def test_backend_choice_and_a_missing_warp_names_the_extra(tmp_path):
     assert splat.RenderConfig(backend="warp").resolved_subtile() == 16  # whole tiles: one block per tile
     with pytest.raises(InputError, match="render.backend"):
         splat.RenderConfig(backend="warp-cuda")
-    # where warp-lang is not installed, the first render says which extra brings it
+    # where warp-lang is not installed, the configuration (checked before any work) names the extra that brings it
     script = (
         "import sys; sys.modules['warp'] = None\n"
         "import numpy as np, cfgs_jax as cj\n"

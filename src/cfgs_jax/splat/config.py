@@ -11,6 +11,16 @@ from cfgs_jax.errors import InputError
 BACKENDS = ("auto", "xla", "pallas", "warp")
 
 
+def _warp_installed() -> bool:
+    """Whether ``import warp`` can succeed, without importing it (it loads a large native library)."""
+    import importlib.util
+    import sys
+
+    if "warp" in sys.modules:
+        return sys.modules["warp"] is not None
+    return importlib.util.find_spec("warp") is not None
+
+
 @dataclasses.dataclass(frozen=True)
 class RenderConfig(Checked):
     """Knobs of the splatting kernel. Defaults reproduce INRIA 3DGS exactly.
@@ -94,6 +104,12 @@ class RenderConfig(Checked):
         if self.backend not in BACKENDS:
             raise InputError(
                 f"unknown backend {self.backend!r}", field="render.backend", fix=f"one of {', '.join(BACKENDS)}"
+            )
+        if self.backend == "warp" and not _warp_installed():
+            raise InputError(
+                "the Warp compositor needs NVIDIA Warp (warp-lang), which is not installed",
+                field="render.backend",
+                fix='pip install "cfgs-jax[warp]", or use backend = "xla"',
             )
         if self.num_warps not in (1, 2, 4, 8, 16):
             raise InputError(f"must be 1, 2, 4, 8 or 16, got {self.num_warps!r}", field="render.num_warps")
