@@ -49,8 +49,9 @@ class RenderConfig(Checked):
     rasterisers run; compiled for the GPU, or for the CPU where they run serially; needs the ``warp``
     extra) or ``"auto"`` (XLA: neither GPU kernel has been timed on a GPU yet, so both are opt-in). All
     give the same images, statistics and gradients up to float32 rounding. For the Pallas compositor:
-    ``walk`` is ``"chunk"`` (``chunk`` Gaussians × the tile's pixels as one block, transmittance by a log-space prefix scan) or ``"serial"`` (one Gaussian
-    at a time, INRIA's sequential arithmetic, ``chunk`` per loop step); ``scatter`` is ``"partials"``
+    ``walk`` is ``"chunk"`` (``chunk`` Gaussians × the tile's pixels as one block, transmittance by a
+    log-space prefix scan) or ``"serial"`` (one Gaussian at a time, INRIA's sequential arithmetic,
+    ``chunk`` per loop step); ``scatter`` is ``"partials"``
     (each Gaussian's per-tile gradient sums stored per intersection with plain stores and summed
     afterwards in a fixed order: deterministic, no fenced atomics, at one value per intersection and
     parameter) or ``"atomic"`` (added atomically: Pallas' Triton lowering makes each an acquire-release
