@@ -320,16 +320,16 @@ def main():
     ap.add_argument("--no-sweep", action="store_true")
     ap.add_argument("--no-dates", action="store_true")
     ap.add_argument("--no-gsplat", action="store_true", help="ours alone (no torch / gsplat here)")
-    ap.add_argument("--backends", nargs="+", default=list(BACKENDS), choices=BACKENDS, help="our compositors to time")
+    ap.add_argument("--backends", nargs="+", choices=BACKENDS, help="our compositors to time (default: each one here)")
     ap.add_argument("--out", type=Path, default=RESULTS, help="folder for the result files")
     ap.add_argument("--rewrite", type=Path, help="rewrite the table of this JSON result, run nothing")
     args = ap.parse_args()
     if args.rewrite:
         write_markdown(json.loads(args.rewrite.read_text()), args.rewrite.with_suffix(".md"))
         return
-    if "warp" in args.backends and "--backends" not in sys.argv and importlib.util.find_spec("warp") is None:
-        args.backends.remove("warp")  # by default, the backends this machine has; asked for, a clear error
-        print("warp-lang is not installed here: timing xla and pallas only", flush=True)
+    if args.backends is None:  # by default, the backends this machine has; asked for, a clear error
+        args.backends = [b for b in BACKENDS if b != "warp" or importlib.util.find_spec("warp") is not None]
+        print(f"timing {', '.join(args.backends)}", flush=True)
     result = {
         "machine": machine(),
         "date": time.strftime("%Y-%m-%d"),

@@ -49,12 +49,14 @@ def read_cubin(tool: str, cubin: Path) -> dict:
     """Registers, local memory per thread and the SASS instruction counts of ``KINDS`` in a cubin."""
     usage = subprocess.run([tool, "-res-usage", str(cubin)], capture_output=True, text=True).stdout
     sass = subprocess.run([tool, "-sass", str(cubin)], capture_output=True, text=True).stdout
-    ops = re.findall(r"\b(" + "|".join(KINDS) + r")[A-Z]*(?:\.[A-Z0-9_]+)*", sass)
-    full = re.findall(r"\b(?:" + "|".join(KINDS) + r")[A-Z]*(?:\.[A-Z0-9_]+)*", sass)
+    found = [
+        (m.group(1), m.group(0)) for m in re.finditer(r"\b(" + "|".join(KINDS) + r")[A-Z]*(?:\.[A-Z0-9_]+)*", sass)
+    ]
+    full = [name for _, name in found]
     return {
         "registers": int(re.search(r"REG:(\d+)", usage).group(1)),
         "local_bytes": int(re.search(r"LOCAL:(\d+)", usage).group(1)),
-        "counts": {k: ops.count(k) for k in KINDS},
+        "counts": {k: sum(kind == k for kind, _ in found) for k in KINDS},
         "instructions": {name: full.count(name) for name in sorted(set(full))},
     }
 
@@ -65,19 +67,20 @@ def main():
     ap.add_argument("--features", type=int, default=3)
     ap.add_argument("--dates", type=int, nargs="+", default=[1, 4])
     args = ap.parse_args()
-    from cfgs_jax.splat import warp_composite as wc
+    import warp
 
-    wp = wc._warp()
+    from cfgs_jax.splat.warp_composite import compile_for_cuda
+
     tool = cuobjdump()
     if tool is None:
         sys.exit("no cuobjdump here: pip install triton (its wheel carries one) or nvidia-cuda-cuobjdump")
-    result = result_header(args) | {"warp": wp.config.version, "kernels": []}
+    result = result_header(args) | {"warp": warp.config.version, "kernels": []}
     with tempfile.TemporaryDirectory() as tmp:
         for d in args.dates:
-            for name, call in zip(("forward", "backward", "weighted sums"), wc._kernels(args.features, d, "float32")):
-                folder = Path(tmp) / f"{name.replace(' ', '_')}_{d}"
-                (cubin,) = wp.compile_aot_module(call.kernel.module, arch=args.arch, use_ptx=False, module_dir=folder)
-                result["kernels"].append({"kernel": name, "dates": d} | read_cubin(tool, Path(cubin)))
+            cubins = compile_for_cuda(args.features, Path(tmp) / str(d), dates=d, arch=args.arch, ptx=False)
+            for name, cubin in cubins.items():
+                name = "weighted sums" if name == "weighted" else name
+                result["kernels"].append({"kernel": name, "dates": d} | read_cubin(tool, cubin))
     lines = [
         "# The Warp compositor's kernels on a GPU, read without one (bench_kernel.py warp)",
         "",

@@ -26,6 +26,7 @@ float64 reference. Warp (``pip install cfgs-jax[warp]``) is imported on first us
 """
 
 import functools
+from pathlib import Path
 
 import jax
 import jax.numpy as jnp
@@ -435,11 +436,11 @@ def _composite_fwd(layout, means2d, conics, opac, feats, ids, tile_start, tile_e
     dtype = means2d.dtype
     forward = _kernels(f, d, _real(dtype))[0]
     ids, tile_start, tile_end = (x.astype(jnp.int32) for x in (ids, tile_start, tile_end))
+    threads = _launch(layout)
     maxw, hits, fg, t = forward(
         tile_start, tile_end, ids, means2d, conics, opac, feats, *_static(layout), int(layout.statistics),
         jnp.zeros((d, n), dtype), jnp.zeros((d, n), jnp.int32),
-        launch_dims=_launch(layout),
-        output_dims={"fg": (d, *_launch(layout), f), "t_out": (d, *_launch(layout))},
+        launch_dims=threads, output_dims={"fg": (d, *threads, f), "t_out": (d, *threads)},
     )  # fmt: skip
     fg_img = jnp.moveaxis(_to_image(layout, jnp.moveaxis(fg, -1, 1)), 1, -1)
     out = (fg_img, _to_image(layout, t), maxw, hits)
@@ -482,19 +483,27 @@ def weighted_sums_warp(layout: Layout, means2d, conics, opac, ids, tile_start, t
     return sums
 
 
-def cuda_ptx(f: int, *, dates: int = 1, arch: int = 90, folder=None) -> dict[str, str]:
-    """The PTX of the forward, backward and weighted-sums kernels for ``f`` feature channels and ``dates``
-    dates, compiled for
-    the CUDA architecture ``arch`` (90: H100 / H200) by Warp's NVRTC on any machine, a CPU-only one
-    included: {"forward": text, "backward": text, "weighted": text}. For reading what a GPU will run
-    (fences, atomics, registers) without one."""
-    import tempfile
-    from pathlib import Path
+KERNELS = ("forward", "backward", "weighted")
 
+
+def compile_for_cuda(f: int, folder, *, dates: int = 1, arch: int = 90, ptx: bool = True) -> dict[str, Path]:
+    """The forward, backward and weighted-sums kernels for ``f`` feature channels and ``dates`` dates
+    (float32) compiled for the CUDA architecture ``arch`` (90: H100 / H200) by Warp's NVRTC on any machine,
+    a CPU-only one included, into ``folder``: {kernel name (``KERNELS``): its PTX (``ptx``) or cubin file}.
+    For reading what a GPU will run (fences, atomics, registers) without one."""
     wp = _warp()
-    out = {}
+    kernels = _kernels(f, dates, "float32")
+    return {
+        name: Path(wp.compile_aot_module(call.kernel.module, arch=arch, use_ptx=ptx, module_dir=Path(folder) / name)[0])
+        for name, call in zip(KERNELS, kernels)
+    }
+
+
+def cuda_ptx(f: int, *, dates: int = 1, arch: int = 90, folder=None) -> dict[str, str]:
+    """The PTX text of each kernel (``compile_for_cuda``), compiled in a temporary folder (inside
+    ``folder`` if given)."""
+    import tempfile
+
     with tempfile.TemporaryDirectory(dir=folder) as tmp:
-        for name, call in zip(("forward", "backward", "weighted"), _kernels(f, dates, "float32")):
-            (path,) = wp.compile_aot_module(call.kernel.module, arch=arch, use_ptx=True, module_dir=Path(tmp) / name)
-            out[name] = Path(path).read_bytes().rstrip(b"\0").decode()
-    return out
+        paths = compile_for_cuda(f, tmp, dates=dates, arch=arch)
+        return {name: path.read_bytes().rstrip(b"\0").decode() for name, path in paths.items()}
