@@ -19,6 +19,8 @@ flagging everything, the o^q < 0.2 rule, and the score alone (s > 0.5, no region
     python benchmarks/bench_change.py probe WORK CELL [CELL ...]
         # what limits the evidence: the score alone under other evidence rules, where its errors lie,
         # and the depth behind them (results/change_probe.md)
+    python benchmarks/bench_change.py pixels WORK CELL [CELL ...]
+        # whether the changes show per pixel in the date models' renders (results/change_pixels.md)
     python benchmarks/bench_change.py rules --run RUN --data DATA --scene NAME --cache DIR [--full] \
         [--rule LABEL changes.KEY=VALUE ...]...   # region rules on one run (change_rules.py)
     python benchmarks/bench_change.py cost --run RUN [--date 1] [--views 6] [--per-pass 1 4]
@@ -381,6 +383,85 @@ def probe(work: Path, cells: list) -> None:
     (RESULTS / "change_probe.md").write_text("\n".join(lines) + "\n")
 
 
+def _auc(truth: np.ndarray, score: np.ndarray) -> float:
+    """The area under the ROC curve of ``score`` for the boolean ``truth`` (Mann–Whitney, ties halved)."""
+    from scipy.stats import rankdata
+
+    n1 = int(truth.sum())
+    n0 = len(truth) - n1
+    return float((rankdata(score)[truth].sum() - n1 * (n1 + 1) / 2) / (n1 * n0)) if n1 and n0 else float("nan")
+
+
+def pixel_probe(work: Path, cells: list) -> None:
+    """Per fused cell and ordered date pair (q observing, p tested): is the change visible per pixel in
+    the date models' renders? At each test view of q, e_x = mean over channels of |R_x − I_q| with R_x
+    the render of date x's Gaussians alone (at q's light), and d = e_p − e_q (how much worse p explains
+    q's image than q's own model does, pixel by pixel); against the pixels whose surface changed
+    between p and q (``masks/changed_vs_<p>``): d's quantiles on both, the area under the ROC curve and
+    the best F1 of a threshold on d (at d's 90th to 99.9th percentile). Writes results/change_pixels.md."""
+    import dataclasses
+
+    import jax.numpy as jnp
+
+    from cfgs_jax import splat
+    from cfgs_jax.app.render_run import open_run
+    from cfgs_jax.evaluation.protocol import date_masks
+    from cfgs_jax.io.run_dir import date_views
+    from cfgs_jax.model import light_multipliers, opacity_multipliers
+
+    command = shlex.join(["python", "benchmarks/bench_change.py", *sys.argv[1:]])
+    lines = [
+        "# Is the change visible per pixel in the date models' renders? (bench_change.py pixels)",
+        "",
+        f"Command: `{command}`. Machine: {machine()}. Date: {datetime.date.today().isoformat()}. Per test view of "
+        "date q, e_x = mean over channels of |R_x − I_q| (R_x: date x's Gaussians alone, at q's light), d = e_p − e_q; "
+        "changed pixels: the ground truth's pixels whose surface differs between p and q. AUC: area under the ROC "
+        "curve of d for them; best F1: of a threshold on d at its 90th–99.9th percentile.",
+    ]
+    for cell in cells:
+        out = fused_cell(cell_dir(work, cell))
+        run = open_run(out / "run")
+        model, g, rc = run.model, run.model.gaussians, run.config.render
+        o = np.asarray(opacity_multipliers(model), np.float32)
+        light = np.asarray(light_multipliers(model), np.float32)
+        origin = np.asarray(model.origin)
+        names = [d.name for d in model.dates]
+        masks = date_masks(out / "data", run.scenes, run.sims, names, "test")
+        lines += [
+            "",
+            f"## {out.name}",
+            "",
+            "| q ← p | changed pixels | d 50 / 90 / 99 %: changed | d: others | AUC | best F1 |",
+        ]
+        lines.append("|---|---:|---|---|---:|---:|")
+        for q in range(model.num_dates):
+            views = date_views(run.scenes[q], run.sims[q], "test")
+            for p in (x for x in range(model.num_dates) if x != q):
+                sets = jnp.asarray(np.stack([np.where(origin == x, o[:, x], 0.0) for x in (p, q)]).astype(np.float32))
+                lq = jnp.asarray(np.broadcast_to(light[:, q], (2, *light[:, q].shape)))
+                ds, ys = [], []
+                for v, (cam, img) in enumerate(zip(views.cameras, views.images)):
+                    cfg = dataclasses.replace(rc, capacity=splat.required_capacity(g, cam, sets, config=rc))
+                    im = np.asarray(splat.render_dates(g, cam, sets, lq, config=cfg, statistics=False).image)
+                    e = np.mean(np.abs(im - np.asarray(img)[None, ..., :3]), axis=-1)
+                    ds.append((e[0] - e[1]).ravel())
+                    ys.append(np.asarray(masks[q].changed_vs[names[p]][v]).ravel())
+                d, y = np.concatenate(ds), np.concatenate(ys)
+                if not y.any():
+                    lines.append(f"| {names[q]} ← {names[p]} | 0 | – | – | – | – |")
+                    continue
+                best = 0.0
+                for t in np.percentile(d, [90, 95, 98, 99, 99.5, 99.8, 99.9]):
+                    tp = float((y & (d > t)).sum())
+                    best = max(best, 2 * tp / (float((d > t).sum()) + float(y.sum())))
+                qs = lambda a: " / ".join(f"{v:.3f}" for v in np.percentile(a, [50, 90, 99]))
+                lines.append(
+                    f"| {names[q]} ← {names[p]} | {y.mean():.4f} | {qs(d[y])} | {qs(d[~y])} | {_auc(y, d):.3f} | {best:.3f} |"
+                )
+                print(lines[-1], flush=True)
+    (RESULTS / "change_pixels.md").write_text("\n".join(lines) + "\n")
+
+
 def merged_rows(rows: list[dict], earlier: Path) -> list[dict]:
     """``rows`` (scored now, under WORK) and the rows of the ``earlier`` results file whose cells they do not
     hold and that were scored with the same detector setting, those marked ``kept`` (scored on an earlier
@@ -448,6 +529,7 @@ SWEEP = {
     "table": "gather the scored cells into results/NAME.md and .json",
     "threshold": "F1 against the threshold τ on fused cells",
     "probe": "what limits the evidence on fused cells",
+    "pixels": "whether the changes show per pixel in the date models' renders (fused cells)",
 }
 
 
@@ -503,6 +585,9 @@ def main(argv: list[str] | None = None):
         ap.error("name the cells, e.g. flood:80x60:10")
     if args.action == "probe":
         probe(work, [parse_cell(c) for c in args.cells])
+        return
+    if args.action == "pixels":
+        pixel_probe(work, [parse_cell(c) for c in args.cells])
         return
     if args.action == "threshold":
         threshold_curve(
