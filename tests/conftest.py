@@ -4,6 +4,9 @@ small deterministic scenes."""
 from __future__ import annotations
 
 import os
+import shutil
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -44,7 +47,34 @@ def _trim(folder: Path, high: int = 2 * 1024**3, low: int = 1024**3) -> None:
         total -= size
 
 
+def _quick_cpu_compiles() -> None:
+    """Compile the tests' programs for the CPU with XLA's elemental IR emitter instead of its newer MLIR
+    fusion emitters (``--xla_cpu_use_fusion_emitters=false``).
+
+    Most of a cold test run is XLA compiling thousands of programs that then run once or a few times on
+    small scenes; the fusion emitters give each fusion an MLIR pipeline of its own and take about 40 % of
+    that compile time. The flag changes how a fusion is turned into machine code, not the operations it
+    computes (no fast-math), and every test passes with and without it (``.ci/nightly`` runs the slow tier
+    with XLA's defaults). Set through the environment before JAX starts its CPU backend, so the CLI
+    subprocesses the tests start compile the same way. ``CFGS_JAX_TEST_COMPILE=default`` keeps XLA's
+    defaults, as a user's run has them; so does a machine with an NVIDIA GPU, whose tests should compile
+    as its runs do."""
+    if os.environ.get("CFGS_JAX_TEST_COMPILE", "quick") != "quick" or shutil.which("nvidia-smi"):
+        return
+    flags = os.environ.get("XLA_FLAGS", "")
+    quick = "--xla_cpu_use_fusion_emitters=false"
+    if quick.split("=")[0] in flags:
+        return
+    # XLA aborts on a flag it does not know (older or newer jaxlib); ask a throwaway process first. The
+    # xdist workers inherit the answer through the environment.
+    probe = [sys.executable, "-c", "import jax; jax.devices()"]
+    env = {**os.environ, "XLA_FLAGS": f"{flags} {quick}".strip(), "JAX_PLATFORMS": "cpu"}
+    if subprocess.run(probe, env=env, capture_output=True, timeout=300).returncode == 0:
+        os.environ["XLA_FLAGS"] = env["XLA_FLAGS"]
+
+
 _persistent_compilation_cache()
+_quick_cpu_compiles()
 
 import cfgs_jax  # noqa: E402, F401  (first: loads the system libz before any test module imports pycolmap)
 
