@@ -1,0 +1,141 @@
+"""Where a cold test run's time goes: every XLA compilation, attributed to the test that ran it. Reached
+through ``benchmarks/test_times.sh`` (the suite's entry point for the tests' run time):
+
+    bash benchmarks/test_times.sh profile                       # the README's test tier, -n 2, empty cache
+    bash benchmarks/test_times.sh profile -- tests/test_sh.py   # any pytest arguments after --
+    CFGS_JAX_TEST_COMPILE=default bash benchmarks/test_times.sh profile   # XLA's default CPU compile
+
+Runs pytest with this file as a plugin (``-p compile_profile``) and an empty JAX compilation cache; the
+plugin turns on ``jax_log_compiles`` in every pytest process and records each "Finished XLA compilation
+of NAME in S sec" record with the test running at the time. Prints the totals, then compile seconds and
+counts by test file and by program, and writes them to ``--out`` (default
+``benchmarks/results/compile_profile.md``) with the command, machine, date and XLA flags.
+"""
+
+from __future__ import annotations
+
+import argparse
+import collections
+import json
+import logging
+import os
+import re
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+_RECORD = re.compile(r"Finished XLA compilation of (.+?) in ([0-9.e+-]+) sec")
+_state = {"test": "<collection>", "rows": [], "busy": 0.0, "last": 0.0}
+
+
+class _Compilations(logging.Handler):
+    def emit(self, record: logging.LogRecord) -> None:
+        found = _RECORD.search(record.getMessage())
+        if found:
+            _state["rows"].append((_state["test"], found.group(1), float(found.group(2))))
+
+
+def pytest_configure(config) -> None:
+    import jax
+
+    jax.config.update("jax_log_compiles", True)
+    logger = logging.getLogger("jax._src.dispatch")  # where JAX logs each backend compilation
+    logger.addHandler(_Compilations())
+    logger.setLevel(logging.DEBUG)
+
+
+def pytest_runtest_logstart(nodeid, location) -> None:
+    _state["test"] = nodeid
+
+
+def pytest_runtest_logreport(report) -> None:
+    _state["busy"] += report.duration  # setup, call and teardown of each test
+    _state["last"] = time.time()
+
+
+def pytest_unconfigure(config) -> None:
+    folder = os.environ.get("CFGS_COMPILE_PROFILE_DIR")
+    if folder:
+        worker = os.environ.get("PYTEST_XDIST_WORKER", "main")
+        with open(Path(folder) / f"{worker}.jsonl", "w") as f:
+            for row in _state["rows"]:
+                f.write(json.dumps(row) + "\n")
+        timeline = {"worker": worker, "busy": _state["busy"], "last": _state["last"]}
+        (Path(folder) / f"{worker}.timeline").write_text(json.dumps(timeline))
+
+
+def _table(totals: dict, title: str, limit: int) -> list[str]:
+    lines = [f"| {title} | compile s | compilations |", "|---|---:|---:|"]
+    for key, (count, seconds) in sorted(totals.items(), key=lambda kv: -kv[1][1])[:limit]:
+        lines.append(f"| `{key}` | {seconds:.1f} | {count} |")
+    return lines
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(
+        prog="test_times.sh profile", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("--out", type=Path, default=Path("benchmarks/results/compile_profile.md"))
+    parser.add_argument("--top", type=int, default=15, help="rows per table")
+    parser.add_argument("pytest_args", nargs="*", help="after --; default: the README's tier, -n 2")
+    args = parser.parse_args()
+    repo = Path(__file__).resolve().parents[1]
+    sys.path.insert(0, str(repo / "benchmarks"))
+    import common
+
+    pytest_args = args.pytest_args or ["-q", "-n", "2", "--dist", "loadfile", "-m", "not slow"]
+    with tempfile.TemporaryDirectory() as cache, tempfile.TemporaryDirectory() as rows_dir:
+        env = {
+            **os.environ,
+            "CFGS_JAX_CACHE": cache,
+            "CFGS_COMPILE_PROFILE_DIR": rows_dir,
+            "PYTHONPATH": os.pathsep.join(filter(None, [str(repo / "benchmarks"), os.environ.get("PYTHONPATH")])),
+        }
+        command = [sys.executable, "-m", "pytest", "-p", "compile_profile", "-p", "no:cacheprovider", *pytest_args]
+        start, began = time.perf_counter(), time.time()
+        result = subprocess.run(command, cwd=repo, env=env, capture_output=True, text=True)
+        wall = time.perf_counter() - start
+        rows = [json.loads(line) for f in Path(rows_dir).glob("*.jsonl") for line in f.read_text().splitlines()]
+        timelines = [json.loads(f.read_text()) for f in sorted(Path(rows_dir).glob("*.timeline"))]
+    workers = [t for t in timelines if t["worker"] != "main"] or timelines  # xdist relays reports to main
+    occupancy = "; ".join(
+        f"{t['worker']}: tests {t['busy']:.0f} s, its last test ended at {t['last'] - began:.0f} s" for t in workers
+    )
+    summary = (result.stdout.strip().splitlines() or ["(no output)"])[-1]
+    by_file, by_program = collections.defaultdict(lambda: [0, 0.0]), collections.defaultdict(lambda: [0, 0.0])
+    for test, program, seconds in rows:
+        for totals, key in ((by_file, test.split("::")[0]), (by_program, program)):
+            totals[key][0] += 1
+            totals[key][1] += seconds
+    total = sum(seconds for *_, seconds in rows)
+    small = [seconds for *_, seconds in rows if seconds < 0.1]
+    code = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=repo, capture_output=True, text=True)
+    lines = [
+        "# Where a cold test run's time goes: XLA compilations by test file and program",
+        "",
+        f"Command: `bash benchmarks/test_times.sh profile {' '.join(sys.argv[1:])}`".rstrip() + " (empty compilation "
+        f"cache; pytest `{' '.join(pytest_args)}`). Machine: {common.machine()}. Date: {time.strftime('%Y-%m-%d')}. "
+        f"Code: {code.stdout.strip()}. XLA_FLAGS seen by the tests: set by tests/conftest.py unless "
+        f"`CFGS_JAX_TEST_COMPILE=default` (here: `{os.environ.get('CFGS_JAX_TEST_COMPILE', 'quick')}`).",
+        "",
+        f"pytest: {summary} (exit code {result.returncode}); wall {wall:.0f} s. Compiling: **{total:.0f} s in "
+        f"{len(rows)} compilations**, summed over the pytest processes; of it {sum(small):.0f} s in "
+        f"{len(small)} programs under 0.1 s each (mostly single operations run outside `jit`). By process: "
+        f"{occupancy}.",
+        "",
+        *_table(by_file, "test file", args.top),
+        "",
+        *_table(by_program, "program", args.top),
+        "",
+    ]
+    text = "\n".join(lines)
+    print(text)
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = args.out.with_suffix(".tmp")
+    tmp.write_text(text)
+    tmp.replace(args.out)
+    if result.returncode != 0:
+        print(result.stdout[-3000:], result.stderr[-3000:], sep="\n", file=sys.stderr)
+    sys.exit(result.returncode)
