@@ -52,8 +52,8 @@ def _quick_cpu_compiles() -> None:
     fusion emitters (``--xla_cpu_use_fusion_emitters=false``).
 
     Most of a cold test run is XLA compiling thousands of programs that then run once or a few times on
-    small scenes; the fusion emitters give each fusion an MLIR pipeline of its own and take about 40 % of
-    that compile time. The flag changes how a fusion is turned into machine code, not the operations it
+    small scenes; the fusion emitters give each fusion an MLIR pipeline of its own, and a large share of
+    that compile time goes there (docs/decisions.md). The flag changes how a fusion is turned into machine code, not the operations it
     computes (no fast-math), and every test passes with and without it (``.ci/nightly`` runs the slow tier
     with XLA's defaults). Set through the environment before JAX starts its CPU backend, so the CLI
     subprocesses the tests start compile the same way. ``CFGS_JAX_TEST_COMPILE=default`` keeps XLA's
