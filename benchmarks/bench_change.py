@@ -54,6 +54,16 @@ HERE = Path(__file__).resolve().parent
 ROW = "change_sweep_row.json"
 
 
+def _command() -> str:
+    """The command line that ran this script, as a results file records it."""
+    return shlex.join(["python", "benchmarks/bench_change.py", *sys.argv[1:]])
+
+
+def _provenance(command: str | None = None) -> str:
+    """A results file's opening: the command (this run's unless given), the machine and the date."""
+    return f"Command: `{command or _command()}`. Machine: {machine()}. Date: {datetime.date.today().isoformat()}."
+
+
 def parse_cell(text: str) -> tuple[str, int, int, int]:
     """``SCENE:WxH:V`` → (scene, width, height, images per date)."""
     try:
@@ -155,11 +165,10 @@ def threshold_curve(work: Path, cells: list, taus: list[float], overrides: list[
             g = r["gaussian"]
             rows.append({"cell": out.name, "tau": tau, "gaussian": g, "pixels": r["pixels"]})
             print(f"{out.name} τ={tau}: F1 {g['f1']:.3f} (score alone {g['score_f1']:.3f})", flush=True)
-    command = shlex.join(["python", "benchmarks/bench_change.py", *sys.argv[1:]])
     lines = [
         "# The change detector's F1 against its threshold τ (bench_change.py threshold)",
         "",
-        f"Command: `{command}`. Machine: {machine()}. Date: {datetime.date.today().isoformat()}. Each cell fused once "
+        f"{_provenance()} Each cell fused once "
         "(as the sweep's); τ the only key changed (the other `[changes]` defaults). Best per cell in bold.",
         "",
         "| cell | τ | P / R / F1 | score alone P / R / F1 | pixel IoU |",
@@ -175,7 +184,7 @@ def threshold_curve(work: Path, cells: list, taus: list[float], overrides: list[
                 f"| {cell} | {r['tau']:.2f} | {g['precision']:.3f} / {g['recall']:.3f} / {f1} | "
                 f"{g['score_precision']:.3f} / {g['score_recall']:.3f} / {g['score_f1']:.3f} | {r['pixels']['iou']:.3f} |"
             )
-    (RESULTS / "change_threshold_curve.json").write_text(json.dumps({"command": command, "rows": rows}, indent=1))
+    (RESULTS / "change_threshold_curve.json").write_text(json.dumps({"command": _command(), "rows": rows}, indent=1))
     (RESULTS / "change_threshold_curve.md").write_text("\n".join(lines) + "\n")
 
 
@@ -292,11 +301,10 @@ def probe(work: Path, cells: list) -> None:
         "pool 3e-3": {"pool_area": 3e-3},
         "τ 0.04": {"threshold": 0.04},
     }
-    command = shlex.join(["python", "benchmarks/bench_change.py", *sys.argv[1:]])
     lines = [
         "# What limits the change evidence (bench_change.py probe)",
         "",
-        f"Command: `{command}`. Machine: {machine()}. Date: {datetime.date.today().isoformat()}. Per cell the score "
+        f"{_provenance()} Per cell the score "
         "alone (s > 0.5, no regions; P / R / F1 per Gaussian against the objects that changed) under other evidence "
         "rules; the ratio rule flags 1 − √(E⁻/E⁺) > ρ on the pooled residuals. Errors of the default: entries by "
         "object; a false entry's distance to the nearest changed object's centre in that object's radii; the depth "
@@ -409,11 +417,10 @@ def pixel_probe(work: Path, cells: list) -> None:
     from cfgs_jax.io.run_dir import date_views
     from cfgs_jax.model import light_multipliers, opacity_multipliers
 
-    command = shlex.join(["python", "benchmarks/bench_change.py", *sys.argv[1:]])
     lines = [
         "# Is the change visible per pixel in the date models' renders? (bench_change.py pixels)",
         "",
-        f"Command: `{command}`. Machine: {machine()}. Date: {datetime.date.today().isoformat()}. Per test view of "
+        f"{_provenance()} Per test view of "
         "date q, e_x = mean over channels of |R_x − I_q| (R_x: date x's Gaussians alone, at q's light), d = e_p − e_q; "
         "changed pixels: the ground truth's pixels whose surface differs between p and q. AUC: area under the ROC "
         "curve of d for them; best F1: of a threshold on d at its 90th–99.9th percentile.",
@@ -491,7 +498,7 @@ def markdown(rows: list[dict], command: str) -> str:
     lines = [
         "# The change detector across scenes, sizes and view counts (bench_change.py)",
         "",
-        f"Command: `{command}`. Machine: {machine()}. Date: {datetime.date.today().isoformat()}. Each row one fused "
+        f"{_provenance(command)} Each row one fused "
         "cell (`eval --part fusion`, `benchmarks/change_sweep_WxH.toml`, the exact Sim(3)s), scored with one "
         "`[changes]` setting for every cell; views: images per date (every 8th a test view). Per Gaussian the truth is "
         "its object changed between the two dates (P / R / F1 of region membership); beside it the truth that follows "
@@ -576,7 +583,7 @@ def main(argv: list[str] | None = None):
         if not rows:
             raise SystemExit(f"no scored cells under {work}: run `score` first")
         rows = merged_rows(rows, RESULTS / f"{args.name}.json")
-        command = shlex.join(["python", "benchmarks/bench_change.py", *sys.argv[1:]])
+        command = _command()
         (RESULTS / f"{args.name}.json").write_text(json.dumps({"command": command, "rows": rows}, indent=1))
         (RESULTS / f"{args.name}.md").write_text(markdown(rows, command))
         print((RESULTS / f"{args.name}.md").read_text())
