@@ -18,6 +18,10 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 [ -d .venv ] && export PATH="$PWD/.venv/bin:$PATH"
+summary_of() {  # pytest's closing line in log $1, without its ===
+  grep -E "^(=+ )?[0-9]+ (passed|failed)" "$1" | tail -1 | sed 's/=//g; s/^ *//; s/ *$//'
+}
+machine() { python -c "import sys; sys.path.insert(0, 'benchmarks'); import common; print(common.machine())"; }
 if [ "${1:-}" = profile ]; then
   shift
   exec python -c 'import sys; sys.path.insert(0, "benchmarks"); import compile_profile; compile_profile.main()' "$@"
@@ -38,7 +42,7 @@ if [ "${1:-}" = compare ]; then
       CFGS_JAX_TEST_COMPILE=$mode CFGS_JAX_CACHE="$logs/cache_$mode" python -m pytest -q -n 2 --dist loadfile \
         -p no:cacheprovider $files >"$logs/$mode.log" 2>&1 || rc=$?
       took=$(( $(date +%s) - t0 ))
-      summary=$(grep -E "^(=+ )?[0-9]+ (passed|failed)" "$logs/$mode.log" | tail -1 | sed 's/=//g; s/^ *//; s/ *$//')
+      summary=$(summary_of "$logs/$mode.log")
       echo "$run $mode: $took s, exit code $rc ($summary)"
       rows+="| $run | $mode | $took | $rc | $summary |"$'\n'
     done
@@ -48,10 +52,10 @@ if [ "${1:-}" = compare ]; then
   cat >"$tmp" <<MD
 # The tests' quick CPU compile against XLA's defaults (benchmarks/test_times.sh compare)
 
-Command: \`bash benchmarks/test_times.sh compare $*\` (\`python -m pytest -q -n 2 --dist loadfile\` on $files;
+Command: \`bash benchmarks/test_times.sh compare${*:+ $*}\` (\`python -m pytest -q -n 2 --dist loadfile\` on $files;
 \`CFGS_JAX_TEST_COMPILE=default\`: XLA's defaults; \`quick\`: tests/conftest.py's \`--xla_cpu_use_fusion_emitters=false\`;
 each with its own compilation cache, emptied before its cold run; the runs alternate). Machine:
-$(python -c "import sys; sys.path.insert(0, 'benchmarks'); import common; print(common.machine())"). Date: $(date -u +%F). Code: $(git rev-parse --short HEAD).
+$(machine). Date: $(date -u +%F). Code: $(git rev-parse --short HEAD).
 
 | run | compile setting | seconds | exit code | pytest's summary |
 |---|---|---:|---:|---|
@@ -72,12 +76,12 @@ for phase in cold warm; do
   rc=0
   CFGS_JAX_CACHE="$cache" bash -c "$test_part" >"$logs/$phase.log" 2>&1 || rc=$?
   took=$(( $(date +%s) - t0 ))
-  summary=$(grep -E "^(=+ )?[0-9]+ (passed|failed)" "$logs/$phase.log" | tail -1 | sed 's/=//g; s/^ *//; s/ *$//')
+  summary=$(summary_of "$logs/$phase.log")
   echo "$phase: $took s, exit code $rc ($summary; log $logs/$phase.log)"
   rows+="| $phase | $took | $rc | $summary | $load |"$'\n'
   [ "$rc" -eq 0 ] || { echo "test_times: the $phase run failed; see $logs/$phase.log" >&2; exit "$rc"; }
 done
-machine=$(python -c "import sys; sys.path.insert(0, 'benchmarks'); import common; print(common.machine())")
+machine=$(machine)
 out=benchmarks/results/test_times.md
 tmp=$(mktemp "$out.XXXX")
 cat >"$tmp" <<MD
