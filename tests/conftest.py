@@ -82,6 +82,64 @@ REPO = Path(__file__).resolve().parents[1]
 FIXTURES = REPO / "tests" / "data"  # files no one here wrote; sources and licences in its README
 DONUT_PLY = FIXTURES / "real_3dgs_donut_dc_only.ply"
 
+#: What a rendered synthetic dataset depends on besides its spec: the modules that render and write it, and
+#: the packages they call.
+_RENDERER_SOURCES = ("synthetic/*.py", "colour.py", "sim3.py", "model.py", "io/atomic.py", "io/images.py")
+_RENDERER_PACKAGES = ("mitsuba", "drjit", "pycolmap", "numpy", "scipy", "pillow")
+
+
+def rendered_dataset(spec, out: Path, *, dates) -> Path:
+    """``synthetic.render_dataset(spec, out, dates=dates)``, kept between test runs in the compilation cache's
+    folder (``CFGS_JAX_CACHE``, under ``datasets/``): path tracing the images is most of the warm run time of
+    the tests that need a dataset larger than a few views. An entry's key is the spec, the dates, the source of
+    the modules that render and write a dataset and the versions of the packages they call, so a changed
+    renderer renders again; a new key is rendered to a staging folder and renamed into place (two workers
+    may render the same one; the first rename wins). The test gets its own copy under ``out``.
+    ``CFGS_JAX_CACHE=off`` renders every time; ``tests/test_synthetic.py``, which tests the renderer, never
+    reads an entry."""
+    import hashlib
+    import pickle
+    import tempfile
+    from importlib import metadata
+
+    from cfgs_jax import synthetic
+
+    where = os.environ.get("CFGS_JAX_CACHE", str(Path.home() / ".cache" / "cfgs_jax" / "xla"))
+    if where == "off":
+        return synthetic.render_dataset(spec, out, dates=dates, progress=False)
+    key = hashlib.sha256(pickle.dumps((spec, sorted(dates))))
+    package = REPO / "src" / "cfgs_jax"
+    for source in sorted(f for pattern in _RENDERER_SOURCES for f in package.glob(pattern)):
+        key.update(source.read_bytes())
+    for name in _RENDERER_PACKAGES:
+        key.update(f"{name} {metadata.version(name)}".encode())
+    store = Path(where) / "datasets"
+    store.mkdir(parents=True, exist_ok=True)
+    entry = store / key.hexdigest()[:32]
+    if not entry.is_dir():
+        staging = Path(tempfile.mkdtemp(dir=store, prefix=".staging-"))
+        synthetic.render_dataset(spec, staging, dates=dates, progress=False)
+        try:
+            staging.rename(entry)
+        except OSError:  # another worker stored the same key first
+            shutil.rmtree(staging, ignore_errors=True)
+        _trim_datasets(store)
+    os.utime(entry)  # recently used: the trim keeps it
+    shutil.copytree(entry, out, dirs_exist_ok=True)
+    return Path(out)
+
+
+def _trim_datasets(store: Path, keep: int = 12) -> None:
+    """Delete all but the ``keep`` most recently used datasets of ``store`` (and staging folders over a day old,
+    left by a killed run)."""
+    import time
+
+    entries = sorted((p for p in store.iterdir() if p.is_dir()), key=lambda p: p.stat().st_mtime, reverse=True)
+    stale = [p for p in entries if p.name.startswith(".staging-") and time.time() - p.stat().st_mtime > 86400]
+    kept = [p for p in entries if not p.name.startswith(".staging-")]
+    for path in stale + kept[keep:]:
+        shutil.rmtree(path, ignore_errors=True)
+
 
 @pytest.fixture(autouse=True, scope="module")
 def _release_compiled_code():
@@ -229,7 +287,7 @@ def tiny_two_dates(tmp_path_factory):
 
     def build(root: Path) -> None:
         spec = synthetic.make_preset("corals", seed=5, width=64, height=48, images_per_date=6, spp=4)
-        synthetic.render_dataset(spec, root, dates=[0, 1, 2], progress=False)
+        rendered_dataset(spec, root, dates=[0, 1, 2])
         (root / "transforms.json").write_text(json.dumps(synthetic.reference_transforms(root, ["d0", "d1", "d2"])))
         (root / "tiny.toml").write_text(
             "[train]\nsteps = 60\ndensify_from = 20\ndensify_until = 50\ndensify_interval = 20\n"

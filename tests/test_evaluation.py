@@ -15,6 +15,8 @@ from cfgs_jax.fusion.evaluate import render_date
 from cfgs_jax.io import read_colmap, read_fused, read_ply
 from cfgs_jax.sim3 import Sim3
 
+from conftest import rendered_dataset
+
 TOML = """
 [eval]
 steps = [60, 120]
@@ -49,7 +51,7 @@ def protocol(tmp_path_factory):
 
     root = tmp_path_factory.mktemp("eval")
     spec = synthetic.make_preset("corals", seed=2, width=64, height=48, images_per_date=12, spp=4)
-    data = synthetic.render_dataset(spec, root / "data", dates=[0, 1], progress=False)
+    data = rendered_dataset(spec, root / "data", dates=[0, 1])
     (root / "tiny.toml").write_text(TOML)
     out = root / "out"
     assert (

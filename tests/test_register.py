@@ -10,6 +10,8 @@ import cfgs_jax as cj
 from cfgs_jax import fusion
 from cfgs_jax.sim3 import Sim3
 
+from conftest import rendered_dataset
+
 
 @pytest.fixture(scope="module")
 def three_dates(tmp_path_factory):
@@ -18,7 +20,7 @@ def three_dates(tmp_path_factory):
     from cfgs_jax import synthetic
 
     spec = synthetic.make_preset("corals", seed=1, width=160, height=120, images_per_date=12, spp=8)
-    return synthetic.render_dataset(spec, tmp_path_factory.mktemp("three"), dates=[0, 1, 2], progress=False)
+    return rendered_dataset(spec, tmp_path_factory.mktemp("three"), dates=[0, 1, 2])
 
 
 def test_a_third_date_is_posed_on_what_both_registered_dates_see(three_dates):
@@ -94,7 +96,7 @@ def test_a_date_that_overlaps_only_a_later_date_registers_into_the_sfm_of_both(t
     spec = dataclasses.replace(
         spec, dates=tuple(dataclasses.replace(d, cam_from_world=c) for d, c in zip(spec.dates, cams))
     )
-    root = synthetic.render_dataset(spec, tmp_path, dates=[0, 1, 2], progress=False)
+    root = rendered_dataset(spec, tmp_path, dates=[0, 1, 2])
     gt = json.loads((root / "ground_truth.json").read_text())["dates"]
     want = [
         Sim3.from_dict(gt[0]["date_from_world"]).compose(Sim3.from_dict(gt[k]["world_from_date"])) for k in range(3)

@@ -127,6 +127,25 @@ def test_renders_are_deterministic_per_seed(corals, tmp_path):
     assert np.abs(a.astype(int) - b.astype(int)).mean() > 5
 
 
+def test_the_tests_dataset_cache_gives_the_renderers_files_and_a_new_key_for_a_new_spec(corals, tmp_path, monkeypatch):
+    """``conftest.rendered_dataset``, which other test files render through: a stored entry read back holds
+    the files a fresh render writes, byte for byte, and another seed is another entry, not the stored one."""
+    from conftest import rendered_dataset
+
+    spec, out, _ = corals
+    monkeypatch.setenv("CFGS_JAX_CACHE", str(tmp_path / "cache"))
+    first = rendered_dataset(spec, tmp_path / "first", dates=[0, 1, 2, 3])  # renders and stores
+    again = rendered_dataset(spec, tmp_path / "again", dates=[0, 1, 2, 3])  # reads the entry
+    assert len(list((tmp_path / "cache" / "datasets").iterdir())) == 1
+    files = sorted(f.relative_to(out) for f in out.rglob("*") if f.is_file())
+    assert files and files == sorted(f.relative_to(again) for f in again.rglob("*") if f.is_file())
+    for f in files:
+        assert (again / f).read_bytes() == (out / f).read_bytes() == (first / f).read_bytes(), f
+    other = synthetic.make_preset("corals", seed=4, **TINY)
+    rendered_dataset(other, tmp_path / "other", dates=[0])
+    assert len(list((tmp_path / "cache" / "datasets").iterdir())) == 2
+
+
 def test_disks_paint_every_pixel_within_the_radius_and_no_other():
     """The texture's disks, tested within their bounding boxes, against the test over the whole image
     (each pixel (x, y) with (x − cx)² + (y − cy)² ≤ r²), for disks inside, across the edge and tiny."""

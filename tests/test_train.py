@@ -16,6 +16,8 @@ from cfgs_jax.io import read_colmap, read_ply, write_ply
 from cfgs_jax.model import gaussians_of, trainable, with_sh_degree
 from cfgs_jax.train.step import TrainState, make_train_step
 
+from conftest import rendered_dataset
+
 
 def test_init_from_points_matches_brute_force_knn():
     rng = np.random.default_rng(0)
@@ -68,7 +70,7 @@ def test_optimizer_applies_each_fields_rate():
 def corals(tmp_path_factory):
     """One date of the corals preset at 64×48, 8 views (7 training, 1 test)."""
     spec = synthetic.make_preset("corals", seed=2, width=64, height=48, images_per_date=8, spp=4)
-    out = synthetic.render_dataset(spec, tmp_path_factory.mktemp("corals"), dates=[0], progress=False)
+    out = rendered_dataset(spec, tmp_path_factory.mktemp("corals"), dates=[0])
     return out / "d0"
 
 
