@@ -13,7 +13,7 @@ flagging everything, the o^q < 0.2 rule, and the score alone (s > 0.5, no region
     python benchmarks/bench_change.py run WORK CELL [CELL ...]   # fuse (resumable) and score
     python benchmarks/bench_change.py score WORK CELL [CELL ...]  # score again (fused cells)
     python benchmarks/bench_change.py table WORK [--name NAME]   # results/NAME.md and .json
-    python benchmarks/bench_change.py readme                     # the table into README.md
+    python benchmarks/bench_change.py readme                     # its figures into README.md
     python benchmarks/bench_change.py threshold WORK CELL [CELL ...] [--tau 0.03,0.06]
         # F1 against τ on fused cells: results/change_threshold_curve.md and .json
     python benchmarks/bench_change.py probe WORK CELL [CELL ...]
@@ -28,8 +28,9 @@ flagging everything, the o^q < 0.2 rule, and the score alone (s > 0.5, no region
 
 ``run`` and ``score`` write WORK/<cell>/change_sweep_row.json; ``table`` gathers every row under WORK and
 keeps the rows of results/NAME.json whose cells WORK does not hold (a cell's folder does not outlive the
-machine it was fused on), marked † with the date they were scored; ``readme`` copies the table of
-results/change_sweep.md between the README's ``<!-- change-sweep -->`` markers.
+machine it was fused on), marked † with the date they were scored; ``readme`` writes the F1 and pixel IoU of
+results/change_sweep.json, one row per scene and one column per size and views, between the README's
+``<!-- change-sweep -->`` markers.
 A cell's fusion runs for minutes at 80×60 and about an hour at 320×240 on the 2-core CPU: run cells as
 separate processes (one a core) and ``table`` once they are scored.
 """
@@ -540,12 +541,29 @@ SWEEP = {
 }
 
 
-def readme_table(readme: Path = RESULTS.parents[1] / "README.md", sweep: Path = RESULTS / "change_sweep.md") -> None:
-    """Copy the table of ``sweep`` (results/change_sweep.md) between ``readme``'s ``<!-- change-sweep -->``
-    markers, so the README's figures are the sweep's, copied by a command and not by hand."""
+def readme_table(readme: Path = RESULTS.parents[1] / "README.md", sweep: Path = RESULTS / "change_sweep.json") -> None:
+    """Write the sweep's figures (results/change_sweep.json) between ``readme``'s ``<!-- change-sweep -->``
+    markers, one row per scene and one column per image size and views per date: F1 / pixel IoU (and the
+    best baseline's F1: flag everything, the o^q rule or the score alone); the full table with
+    every figure stays in results/change_sweep.md. The README's figures are the sweep's, copied by a command
+    and not by hand."""
     import re
 
-    table = "\n".join(line for line in sweep.read_text().splitlines() if line.startswith("|"))
+    rows = json.loads(sweep.read_text())["rows"]
+    area = lambda size: np.prod([int(v) for v in size.split("x")])
+    cells = sorted({(r["size"], r["images_per_date"]) for r in rows}, key=lambda c: (area(c[0]), c[1]))
+    by = {(r["scene"], r["size"], r["images_per_date"]): r for r in rows}
+    head = " | ".join(f"{size.replace('x', '×')}, {views} views" for size, views in cells)
+    lines = [f"| scene | {head} |", "|---|" + "---|" * len(cells)]
+    for scene in sorted({r["scene"] for r in rows}):
+        figures = []
+        for size, views in cells:
+            r = by.get((scene, size, views))
+            g = r["gaussian"] if r is not None else None
+            best = max(g["all_f1"], g["o_f1"], g["score_f1"]) if g is not None else 0.0
+            figures.append("" if g is None else f"**{g['f1']:.3f}** / {r['pixels']['iou']:.3f} ({best:.3f})")
+        lines.append(f"| {scene} | " + " | ".join(figures) + " |")
+    table = "\n".join(lines)
     text = readme.read_text()
     block = re.compile(r"<!-- change-sweep -->\n.*?<!-- /change-sweep -->", re.S)
     if not block.search(text):
@@ -564,7 +582,7 @@ def main(argv: list[str] | None = None):
         p.add_argument("--set", dest="overrides", action="append", default=[], metavar="changes.KEY=VALUE")
         p.add_argument("--name", default="change_sweep", help="results file stem (table)")
         p.add_argument("--tau", default="0.03,0.04,0.05,0.06,0.08,0.10", help="thresholds τ (threshold)")
-    sub.add_parser("readme", help="copy results/change_sweep.md's table into README.md")
+    sub.add_parser("readme", help="results/change_sweep.json into README.md: F1 / pixel IoU per scene and cell")
     for action, text in (("rules", "region rules compared on one run"), ("cost", "the residual sums' cost")):
         sub.add_parser(action, help=f"{text} (its own options: {action} --help)", add_help=False)
     args, rest = ap.parse_known_args(argv)

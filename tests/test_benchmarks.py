@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import contextlib
 import io
+import json
 import runpy
 import shutil
 import sys
@@ -63,7 +64,8 @@ def test_every_subcommand_of_a_topic_shows_its_own_usage(script, command):
 
 def test_the_readme_change_table_is_what_the_sweeps_readme_command_writes(tmp_path):
     """`bench_change.py readme` run on a copy of the README leaves it unchanged: the README's change table
-    is results/change_sweep.md's, not edited by hand."""
+    holds results/change_sweep.json's figures, not edited by hand, and that JSON holds the rows of
+    results/change_sweep.md."""
     sys.path.insert(0, str(REPO / "benchmarks"))
     try:
         import bench_change
@@ -73,9 +75,19 @@ def test_the_readme_change_table_is_what_the_sweeps_readme_command_writes(tmp_pa
     shutil.copy(REPO / "README.md", copy)
     bench_change.readme_table(copy)
     assert copy.read_text() == (REPO / "README.md").read_text()
-    sweep = (REPO / "benchmarks" / "results" / "change_sweep.md").read_text()
-    rows = [line for line in sweep.splitlines() if line.startswith("| ") and "|---" not in line]
-    assert len(rows) > 2 and all(row in copy.read_text() for row in rows)
+    results = REPO / "benchmarks" / "results"
+    rows = json.loads((results / "change_sweep.json").read_text())["rows"]
+    table = copy.read_text().split("<!-- change-sweep -->")[1].split("<!-- /change-sweep -->")[0]
+    assert len(rows) > 2
+    for row in rows:
+        assert f"**{row['gaussian']['f1']:.3f}** / {row['pixels']['iou']:.3f}" in table, row["cell"]
+    lines = [line for line in (results / "change_sweep.md").read_text().splitlines() if line.startswith("| ")]
+    cells = [line for line in lines if "|---" not in line and not line.startswith("| scene")]
+    assert len(cells) == len(rows)
+    for row in rows:
+        size, views = row["size"], row["images_per_date"]
+        line = [c for c in cells if c.startswith(f"| {row['scene']} ") and f"| {size} | {views} |" in c]
+        assert len(line) == 1 and f"**{row['gaussian']['f1']:.3f}**" in line[0], row["cell"]
 
 
 def test_the_suite_has_at_most_twelve_entry_points():
