@@ -8,7 +8,7 @@ through ``benchmarks/test_times.sh`` (the suite's entry point for the tests' run
 Runs pytest with this file as a plugin (``-p compile_profile``) and an empty JAX compilation cache; the
 plugin turns on ``jax_log_compiles`` in every pytest process and records each "Finished XLA compilation
 of NAME in S sec" record with the test running at the time. Prints the totals, then compile seconds and
-counts by test file and by program, and writes them to ``--out`` (default
+counts by test file, by program, by test and, for the stages' ``jit(step)``, by test, and writes them to ``--out`` (default
 ``benchmarks/results/compile_profile.md``) with the command, machine, date and XLA flags.
 """
 
@@ -105,10 +105,14 @@ def main() -> None:
     )
     summary = (result.stdout.strip().splitlines() or ["(no output)"])[-1]
     by_file, by_program = collections.defaultdict(lambda: [0, 0.0]), collections.defaultdict(lambda: [0, 0.0])
+    by_test, steps = collections.defaultdict(lambda: [0, 0.0]), collections.defaultdict(lambda: [0, 0.0])
     for test, program, seconds in rows:
-        for totals, key in ((by_file, test.split("::")[0]), (by_program, program)):
+        for totals, key in ((by_file, test.split("::")[0]), (by_program, program), (by_test, test)):
             totals[key][0] += 1
             totals[key][1] += seconds
+        if program == "jit(step)":  # the stages' compiled steps: one per configuration and shape
+            steps[test][0] += 1
+            steps[test][1] += seconds
     total = sum(seconds for *_, seconds in rows)
     small = [seconds for *_, seconds in rows if seconds < 0.1]
     code = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=repo, capture_output=True, text=True)
@@ -128,6 +132,10 @@ def main() -> None:
         *_table(by_file, "test file", args.top),
         "",
         *_table(by_program, "program", args.top),
+        "",
+        *_table(by_test, "test (its setup included)", args.top),
+        "",
+        *_table(steps, "test compiling a stage's `jit(step)`", args.top),
         "",
     ]
     text = "\n".join(lines)
