@@ -27,23 +27,33 @@ import time
 from pathlib import Path
 
 _RECORD = re.compile(r"Finished XLA compilation of (.+?) in ([0-9.e+-]+) sec")
-_state = {"test": "<collection>", "rows": [], "busy": 0.0, "last": 0.0}
+_HIT = "Persistent compilation cache hit"
+_state = {"test": "<collection>", "rows": [], "busy": 0.0, "last": 0.0, "hit": False}
 
 
 class _Compilations(logging.Handler):
+    """JAX logs "Finished XLA compilation" for a program read from the persistent cache too, right after its
+    "cache hit" record: such a row is marked as a load (an earlier test of the run compiled the same program)."""
+
     def emit(self, record: logging.LogRecord) -> None:
-        found = _RECORD.search(record.getMessage())
+        message = record.getMessage()
+        if message.startswith(_HIT):
+            _state["hit"] = True
+            return
+        found = _RECORD.search(message)
         if found:
-            _state["rows"].append((_state["test"], found.group(1), float(found.group(2))))
+            _state["rows"].append((_state["test"], found.group(1), float(found.group(2)), _state["hit"]))
+            _state["hit"] = False
 
 
 def pytest_configure(config) -> None:
     import jax
 
     jax.config.update("jax_log_compiles", True)
-    logger = logging.getLogger("jax._src.dispatch")  # where JAX logs each backend compilation
-    logger.addHandler(_Compilations())
-    logger.setLevel(logging.DEBUG)
+    for name in ("jax._src.dispatch", "jax._src.compiler"):  # each backend compilation; each cache hit
+        logger = logging.getLogger(name)
+        logger.addHandler(_Compilations())
+        logger.setLevel(logging.DEBUG)
 
 
 def pytest_runtest_logstart(nodeid, location) -> None:
@@ -106,6 +116,8 @@ def main() -> None:
     summary = (result.stdout.strip().splitlines() or ["(no output)"])[-1]
     by_file, by_program = collections.defaultdict(lambda: [0, 0.0]), collections.defaultdict(lambda: [0, 0.0])
     by_test, steps = collections.defaultdict(lambda: [0, 0.0]), collections.defaultdict(lambda: [0, 0.0])
+    loads = [seconds for *_, seconds, hit in rows if hit]
+    rows = [(test, program, seconds) for test, program, seconds, hit in rows if not hit]
     for test, program, seconds in rows:
         for totals, key in ((by_file, test.split("::")[0]), (by_program, program), (by_test, test)):
             totals[key][0] += 1
@@ -126,8 +138,9 @@ def main() -> None:
         "",
         f"pytest: {summary} (exit code {result.returncode}); wall {wall:.0f} s. Compiling: **{total:.0f} s in "
         f"{len(rows)} compilations**, summed over the pytest processes; of it {sum(small):.0f} s in "
-        f"{len(small)} programs under 0.1 s each (mostly single operations run outside `jit`). By process: "
-        f"{occupancy}.",
+        f"{len(small)} programs under 0.1 s each (mostly single operations run outside `jit`). Besides: "
+        f"{len(loads)} programs read from the persistent cache that an earlier test of the run wrote, "
+        f"{sum(loads):.0f} s (not in the tables). By process: {occupancy}.",
         "",
         *_table(by_file, "test file", args.top),
         "",
