@@ -559,9 +559,12 @@ def readme_table(readme: Path = RESULTS.parents[1] / "README.md", sweep: Path = 
         figures = []
         for size, views in cells:
             r = by.get((scene, size, views))
-            g = r["gaussian"] if r is not None else None
-            best = max(g["all_f1"], g["o_f1"], g["score_f1"]) if g is not None else 0.0
-            figures.append("" if g is None else f"**{g['f1']:.3f}** / {r['pixels']['iou']:.3f} ({best:.3f})")
+            if r is None:
+                figures.append("")
+                continue
+            g = r["gaussian"]
+            best = max(g["all_f1"], g["o_f1"], g["score_f1"])
+            figures.append(f"**{g['f1']:.3f}** / {r['pixels']['iou']:.3f} ({best:.3f})")
         lines.append(f"| {scene} | " + " | ".join(figures) + " |")
     table = "\n".join(lines)
     text = readme.read_text()

@@ -13,6 +13,12 @@ import numpy as np
 import pytest
 
 
+def _cache_folder() -> Path | None:
+    """The tests' cache folder: ``CFGS_JAX_CACHE``, else ``~/.cache/cfgs_jax/xla``; None for ``off``."""
+    where = os.environ.get("CFGS_JAX_CACHE", str(Path.home() / ".cache" / "cfgs_jax" / "xla"))
+    return None if where == "off" else Path(where)
+
+
 def _persistent_compilation_cache() -> None:
     """Keep XLA's compiled executables on disk between test runs (most of a cold run is compilation).
 
@@ -20,10 +26,10 @@ def _persistent_compilation_cache() -> None:
     the same cache. The folder lives outside the checkout and the venv (a fresh clone reuses it);
     ``CFGS_JAX_CACHE`` moves it, ``CFGS_JAX_CACHE=off`` turns it off. JAX keys every entry by the
     program, the compiler options and the JAX/jaxlib version, so a stale entry is never used."""
-    where = os.environ.get("CFGS_JAX_CACHE", str(Path.home() / ".cache" / "cfgs_jax" / "xla"))
-    if where == "off":
+    where = _cache_folder()
+    if where is None:
         return
-    os.environ.setdefault("JAX_COMPILATION_CACHE_DIR", where)
+    os.environ.setdefault("JAX_COMPILATION_CACHE_DIR", str(where))
     os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0")
     os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES", "0")
     if "PYTEST_XDIST_WORKER" not in os.environ:  # once per session, in the controlling process
@@ -104,8 +110,8 @@ def rendered_dataset(spec, out: Path, *, dates) -> Path:
 
     from cfgs_jax import synthetic
 
-    where = os.environ.get("CFGS_JAX_CACHE", str(Path.home() / ".cache" / "cfgs_jax" / "xla"))
-    if where == "off":
+    where = _cache_folder()
+    if where is None:
         return synthetic.render_dataset(spec, out, dates=dates, progress=False)
     key = hashlib.sha256(pickle.dumps((spec, sorted(dates))))
     package = REPO / "src" / "cfgs_jax"
@@ -113,7 +119,7 @@ def rendered_dataset(spec, out: Path, *, dates) -> Path:
         key.update(source.read_bytes())
     for name in _RENDERER_PACKAGES:
         key.update(f"{name} {metadata.version(name)}".encode())
-    store = Path(where) / "datasets"
+    store = where / "datasets"
     store.mkdir(parents=True, exist_ok=True)
     entry = store / key.hexdigest()[:32]
     if not entry.is_dir():
