@@ -803,6 +803,73 @@ def test_region_kinds_name_what_changed():
     }
 
 
+def _collapse_scene(rng):
+    """Surfaces as centres, with a region id and the later date's presence: a ground plane (z = 0, 40 × 40)
+    and two 2 × 2 × 2 boxes on it (top face and walls). Box A (region 0) loses its top 60 % at the later
+    date, which shows its walls below 0.8 and a new top face at 0.8; box B (region 1) is removed, and the
+    later date shows the ground it hid; a layer at 0.3 over most of the ground (region 2, "appeared") stands
+    for a flood. The ground under a box is hidden while the box stands."""
+
+    density = 10.0  # centres per unit of area on every surface, as a reconstruction draws them
+
+    def plane(x0, x1, y0, y1, z):
+        n = int(density * (x1 - x0) * (y1 - y0))
+        return np.c_[rng.uniform(x0, x1, n), rng.uniform(y0, y1, n), z + rng.normal(0, 0.005, n)]
+
+    def box(x, y, top, bottom=0.0):
+        n = int(density * 2 * (top - bottom))  # per wall
+        t, z = rng.uniform(0, 2, n), rng.uniform(bottom, top, n)
+        walls = [np.c_[x + t, np.full(n, y), z], np.c_[x + t, np.full(n, y + 2), z]]
+        walls += [np.c_[np.full(n, x), y + t, z], np.c_[np.full(n, x + 2), y + t, z]]
+        return np.concatenate([plane(x, x + 2, y, y + 2, top)] + walls)
+
+    ground = plane(-20, 20, -20, 20, 0.0)
+    hidden = lambda x0: (ground[:, 0] > x0) & (ground[:, 0] < x0 + 2) & (ground[:, 1] > 0) & (ground[:, 1] < 2)
+    ground = ground[~hidden(0) & ~hidden(8)]
+    parts = [
+        (ground, -1, 1),
+        (box(0, 0, 2.0, bottom=0.8), 0, 0),
+        (box(0, 0, 0.8), -1, 1),
+        (box(8, 0, 2.0), 1, 0),
+        (plane(8, 10, 0, 2, 0.0), -1, 1),
+        (plane(-18, 18, -18, 18, 0.3), 2, 1),
+    ]
+    means = np.concatenate([m for m, *_ in parts])
+    member = np.concatenate([np.full(len(m), k) for m, k, _ in parts])
+    later = np.concatenate([np.full(len(m), bool(s)) for m, _, s in parts])
+    return means, member, later
+
+
+def test_a_collapsed_body_is_a_changed_shape_and_a_removed_one_disappeared():
+    """What the later date keeps standing inside a disappeared region's footprint names its kind: the
+    collapsed box keeps a top face at 0.4 of its old height over the ground around it ("changed shape",
+    rise 0.4); the removed box leaves the ground ("disappeared", rise about 0); a layer over most of the scene has no surroundings to compare with (stays "appeared",
+    rise None). The same kinds and rises with the scene rotated, shifted and scaled by 0.1 and 10
+    (``ground_frame`` finds the ground's normal and its sign itself)."""
+    from cfgs_jax.changes.regions import ground_frame, region_kinds
+
+    rng = np.random.default_rng(3)
+    means, member, later = _collapse_scene(rng)
+    difference = np.where(member == 2, -0.9, np.where(member >= 0, 0.9, 0.0))
+    colors = np.full((len(means), 3), 0.5)
+    earlier = member != 2
+    turn = np.linalg.qr(rng.normal(size=(3, 3)))[0]
+    rises = []
+    for scale in (1.0, 0.1, 10.0):
+        moved = scale * means @ turn.T + scale * np.array([3.0, -2.0, 7.0])
+        regions = [{"id": k, "kind": k_} for k, k_ in enumerate(["disappeared", "disappeared", "appeared"])]
+        named = region_kinds(
+            regions, member, moved, colors, difference, 0.15, ground=ground_frame(moved), shown=(earlier, later)
+        )
+        assert [r["kind"] for r in named] == ["changed shape", "disappeared", "appeared"]
+        rises.append([named[0]["rise"], named[1]["rise"]])
+        assert named[2]["rise"] is None
+    # the new top face at 0.8 over the ground, against the region's 95th percentile height (its top face, 2)
+    np.testing.assert_allclose(rises[0][0], 0.4, atol=0.02)
+    assert abs(rises[0][1]) < 0.05
+    np.testing.assert_allclose(rises[1:], [rises[0]] * 2, rtol=1e-6, atol=1e-9)
+
+
 def test_bad_input_gives_a_clear_error_or_an_empty_result():
     """A date without views is refused naming the fix; a pair whose views do not overlap (date 1 looks
     away from the scene) gives no region and no NaN; a region of one Gaussian gets a kind."""

@@ -428,15 +428,20 @@ def change_evidence(
     return evidence_from(stats, np.asarray(model.gaussians.means), config)
 
 
-def presence_difference(evidence: ChangeEvidence, origin: np.ndarray, p: int, q: int) -> np.ndarray:
-    """[N] π^p − π^q per Gaussian, π^x = 1 − s^x its presence at date x (1 at its own date): > 0 where
-    it is shown at p and gone at q. 0 where either date neither owns nor observes it."""
+def presence(evidence: ChangeEvidence, origin: np.ndarray) -> np.ndarray:
+    """[N, T] π^x = 1 − s^x, each Gaussian's presence at each date x: 1 at its own date, NaN where date x
+    neither owns nor observes it."""
     origin = np.asarray(origin)
     known = evidence.computed & evidence.observed
-    presence = np.where(known, 1.0 - evidence.score, np.nan)
     own = origin[:, None] == np.arange(evidence.score.shape[1])[None]
-    presence = np.where(own, 1.0, presence)
-    diff = presence[:, p] - presence[:, q]
+    return np.where(own, 1.0, np.where(known, 1.0 - evidence.score, np.nan))
+
+
+def presence_difference(evidence: ChangeEvidence, origin: np.ndarray, p: int, q: int) -> np.ndarray:
+    """[N] π^p − π^q per Gaussian (``presence``): > 0 where it is shown at p and gone at q. 0 where either
+    date neither owns nor observes it."""
+    pi = presence(evidence, origin)
+    diff = pi[:, p] - pi[:, q]
     return np.where(np.isnan(diff), 0.0, diff)
 
 

@@ -21,7 +21,9 @@ bounds, the volume of the convex hull of its centres, and its kind (``region_kin
 (≥ 80 % of its Gaussians shown at the earlier date and gone at the later), "appeared" (≥ 80 % the
 other way), "moved" (a disappeared and an appeared region of the same look and size elsewhere), and
 for an old and a new version in one place "changed shape" (their extents differ) or "changed surface"
-(the same extents, another look).
+(the same extents, another look); a disappeared (appeared) region is a "changed shape" too where the other
+date keeps a surface standing inside its footprint, above the ground around it (heights along the normal
+of the scene's dominant plane, ``ground_frame``; the lower part of a collapsed body).
 Optionally a region is then completed by colour (``complete_by_colour``): the Gaussians of a date that
 connect to the region's own Gaussians of that date through links of ``complete_reach`` × (r_i + r_j),
 share their colour and lie within ``complete_within`` × the region's diameter of it join it, so that an
@@ -34,17 +36,18 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from typing import NamedTuple
 
 import numpy as np
 from scipy import ndimage
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
-from scipy.spatial import ConvexHull, QhullError, cKDTree
+from scipy.spatial import ConvexHull, Delaunay, QhullError, cKDTree
 
 from cfgs_jax.changes.carried import carried_absence
-from cfgs_jax.changes.evidence import ChangeEvidence, ChangesConfig, pair_known, presence_difference
+from cfgs_jax.changes.evidence import ChangeEvidence, ChangesConfig, pair_known, presence, presence_difference
 from cfgs_jax.errors import InputError
-from cfgs_jax.model import Camera, rgb, scales
+from cfgs_jax.model import Camera, opacities, rgb, scales
 
 
 def local_reach(means: np.ndarray, extents: np.ndarray) -> np.ndarray:
@@ -324,6 +327,93 @@ def _same_size(a: np.ndarray, b: np.ndarray, *, sort: bool = False) -> bool:
     return bool(np.all(np.minimum(a, b) >= SAME_SIZE * big - 1e-12))
 
 
+#: What stays of a changed shape: a disappeared (appeared) region is a body that changed shape when the
+#: other date keeps a surface inside its footprint standing above the surface around it by more than this
+#: share of the region's height over that surrounding surface (a collapse leaves the lower part standing;
+#: a removed object leaves the ground).
+RISE = 0.15
+#: The footprint's core and ring: the region's centres projected onto the ground plane, their hull shrunk
+#: about its centroid by ``CORE`` (clear of the walls) and grown by ``RING`` (the surroundings, the hull
+#: itself left out).
+CORE, RING = 0.6, 2.0
+#: The ring holds the surroundings when its Gaussians span at least this share of the grown footprint's
+#: area (a region that covers most of the scene, a flood, has none to compare with).
+SURROUNDED = 0.5
+#: What the other date shows: Gaussians present there (presence > 0.5) at least this opaque (unitless),
+#: so that faint floaters do not stand for a surface.
+SHOWN_OPACITY = 0.3
+
+
+class Ground(NamedTuple):
+    """The scene's ground frame: each Gaussian's height along the up direction and its place on the
+    ground plane ([N], [N, 2]; ``ground_frame``)."""
+
+    heights: np.ndarray
+    plane: np.ndarray
+
+
+def ground_frame(means: np.ndarray) -> Ground:
+    """The ground frame of centres ``means`` [N, 3]: up is the direction of least spread of the centres
+    inside their 5th–95th percentile box (the normal of the plane that holds most of a captured scene),
+    oriented so that heights skew upward (objects stand on the ground: the mean height lies above the
+    median). Degenerate for a scene with no dominant plane; it then orders heights along some axis."""
+    means = np.asarray(means, np.float64)
+    if len(means) < 4:
+        return Ground(means[:, 2].copy() if len(means) else np.zeros(0), means[:, :2].copy())
+    lo, hi = np.percentile(means, 5, axis=0), np.percentile(means, 95, axis=0)
+    inner = means[np.all((means >= lo) & (means <= hi), axis=1)]
+    axes = np.linalg.eigh(np.cov((inner if len(inner) >= 4 else means).T))[1]
+    up, a, b = axes[:, 0], axes[:, 1], axes[:, 2]
+    heights = means @ up
+    if np.mean(heights) < np.median(heights):
+        heights = -heights
+    return Ground(heights, np.stack([means @ a, means @ b], axis=1))
+
+
+def _hull_area(points: np.ndarray) -> float:
+    """The area of the convex hull of ``points`` [M, 2] (0 where it is flat or has fewer than 3)."""
+    try:
+        return float(ConvexHull(points).volume) if len(points) >= 3 else 0.0
+    except (QhullError, ValueError):
+        return 0.0
+
+
+def _inside(points: np.ndarray, hull_points: np.ndarray) -> np.ndarray:
+    """[M] bool: ``points`` [M, 2] inside the convex hull of ``hull_points`` [K, 2] (none where it is flat)."""
+    try:
+        return Delaunay(hull_points).find_simplex(points) >= 0
+    except (QhullError, ValueError):
+        return np.zeros(len(points), bool)
+
+
+def rise_inside(idx: np.ndarray, shown: np.ndarray, ground: Ground) -> float | None:
+    """How far the surface that ``shown`` ([N] bool: the other date's Gaussians) keeps inside the footprint
+    of the region ``idx`` stands above the surface around it, as a share of the region's height over that
+    surrounding surface: (median height in the core − median height in the ring) / (95th percentile of the
+    region's heights − median height in the ring), with the footprint's core and ring as ``CORE`` and
+    ``RING`` say. None where a core, a ring or the region holds fewer than ``MIN_COLOUR_SAMPLE`` Gaussians
+    (a median needs a sample), where the ring's Gaussians span less than ``SURROUNDED`` of the grown
+    footprint's area (a region covering most of the scene has no surroundings to compare with) or where
+    the region does not stand above its ring."""
+    if len(idx) < MIN_COLOUR_SAMPLE:
+        return None
+    foot = ground.plane[idx]
+    centre = foot.mean(axis=0)
+    others = np.nonzero(shown)[0]
+    where = ground.plane[others]
+    core = others[_inside(where, centre + CORE * (foot - centre))]
+    ring = others[_inside(where, centre + RING * (foot - centre)) & ~_inside(where, foot)]
+    if len(core) < MIN_COLOUR_SAMPLE or len(ring) < MIN_COLOUR_SAMPLE:
+        return None
+    if _hull_area(ground.plane[ring]) < SURROUNDED * _hull_area(centre + RING * (foot - centre)):
+        return None
+    base = float(np.median(ground.heights[ring]))
+    height = float(np.percentile(ground.heights[idx], 95)) - base
+    if height <= 0:
+        return None
+    return (float(np.median(ground.heights[core])) - base) / height
+
+
 def region_kinds(
     regions: list[dict],
     member: np.ndarray,
@@ -331,6 +421,9 @@ def region_kinds(
     colors: np.ndarray,
     difference: np.ndarray,
     tolerance: float,
+    *,
+    ground: Ground | None = None,
+    shown: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> list[dict]:
     """``regions`` (``regions_3d``) with each one's kind of change, from its Gaussians' presence difference
     ([N], > 0: shown at the earlier date, gone at the later), centres and colours ([N, 3]):
@@ -342,10 +435,13 @@ def region_kinds(
     - "moved": both versions of the same extents but their median centres apart by more than ``SHIFTED``
       of the extent along some axis (a risen water level);
     - "changed surface": both versions of the same extents in the same place (a new texture or colour);
-    - "moved" too: a disappeared and an appeared region whose median colours lie within ``tolerance`` (RGB
-      distance) and whose sorted extents (along each one's principal axes) agree (``SAME_SIZE``): the
-      same body elsewhere; matched
-      greedily, closest colours first, and each names the other (``moved_from`` / ``moved_to``).
+    - "changed shape" too, with ``ground`` (``ground_frame``) and ``shown`` (each date's shown Gaussians,
+      [N] bool, earlier date first): a disappeared region whose later date, or an appeared one whose
+      earlier date, keeps a surface inside its footprint that stands above the surroundings by more than
+      ``RISE`` of its height (``rise_inside``; the region gets its ``rise``): the part of a collapsed body
+      still standing, or the old body inside a grown one;
+    - "moved" too: a disappeared and an appeared region of one look and size, the same body elsewhere
+      (``_match_moved``).
 
     Each region also gets its median ``colour``. Modified in place and returned."""
     means = np.asarray(means, np.float64)
@@ -367,6 +463,20 @@ def region_kinds(
         shift = np.abs((np.median(means[old], axis=0) - np.median(means[new], axis=0)) @ axes.T)
         apart = shift > SHIFTED * np.maximum(before, after) + FLAT * float(np.max(np.maximum(before, after)))
         r["kind"] = "moved" if apart.any() else "changed surface"
+    if ground is not None and shown is not None:
+        for r in regions:
+            if r["kind"] in ("disappeared", "appeared"):
+                other = shown[1] if r["kind"] == "disappeared" else shown[0]
+                r["rise"] = rise_inside(np.nonzero(member == r["id"])[0], other & (member < 0), ground)
+                if r["rise"] is not None and r["rise"] > RISE:
+                    r["kind"] = "changed shape"
+    return _match_moved(regions, tolerance)
+
+
+def _match_moved(regions: list[dict], tolerance: float) -> list[dict]:
+    """``regions`` with each disappeared region and an appeared one of its look (median colours within
+    ``tolerance``) and size (sorted extents, ``SAME_SIZE``) named "moved", closest colours first, each
+    naming the other (``moved_to`` / ``moved_from``). Modified in place and returned."""
     gone = [r for r in regions if r["kind"] == "disappeared"]
     came = [r for r in regions if r["kind"] == "appeared"]
     candidates = sorted(
@@ -426,6 +536,8 @@ def pair_regions(
     reach: np.ndarray,
     colors: np.ndarray | None = None,
     carried: np.ndarray | None = None,
+    ground: Ground | None = None,
+    opacity: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray, list[dict], np.ndarray]:
     """The changed regions of dates p < q from their evidence, as the ``changes`` command reports them:
     (presence difference [N], known at both dates [N] bool, regions, [N] region index or −1).
@@ -435,7 +547,9 @@ def pair_regions(
     ``config.complete_within`` > 0 the regions are completed by colour over the known Gaussians
     (``colors``: [N, 3], the model's colours, then required). ``carried``: [N] bool, Gaussians of p or q
     counted gone at the other date (``carried.carried_absence``): presence difference ±1, known. With
-    ``colors`` each region's kind names what changed (``region_kinds``)."""
+    ``colors`` each region's kind names what changed (``region_kinds``), with ``ground`` (``ground_frame``)
+    and ``opacity`` ([N] α) also by what the other date keeps standing inside the region's footprint
+    (its Gaussians present there, ``presence`` > 0.5, with α ≥ ``SHOWN_OPACITY``)."""
     difference = presence_difference(evidence, origin, p, q)
     known = pair_known(evidence, origin, p, q)
     if carried is not None:
@@ -462,7 +576,14 @@ def pair_regions(
         completion=completion,
     )
     if colors is not None:
-        regions = region_kinds(regions, member, means, colors, difference, config.complete_colour)
+        shown = None
+        if ground is not None and opacity is not None:
+            pi = np.nan_to_num(presence(evidence, origin), nan=0.0)
+            solid = np.asarray(opacity) >= SHOWN_OPACITY
+            shown = (solid & (pi[:, p] > 0.5), solid & (pi[:, q] > 0.5))
+        regions = region_kinds(
+            regions, member, means, colors, difference, config.complete_colour, ground=ground, shown=shown
+        )
     return difference, known, regions, member
 
 
@@ -486,6 +607,7 @@ def every_pair_regions(
     t = model.num_dates
     colors = np.asarray(rgb(model.gaussians), np.float64)  # DC: each colour averaged over view directions
     reach = local_reach(means, np.asarray(scales(model.gaussians), np.float64).max(axis=1))
+    shape = {"ground": ground_frame(means), "opacity": np.asarray(opacities(model.gaussians), np.float64)}
     wanted = [(p, q) for p in range(t) for q in range(p + 1, t)] if pairs is None else sorted(set(pairs))
     carry = bool(config.carry_absence) and t > 2
     if carry and cameras is None:
@@ -498,7 +620,7 @@ def every_pair_regions(
         {(min(a, r), max(a, r)) for p, q in wanted for a in (p, q) for r in range(t) if r != a} if carry else set()
     )
     first = {
-        pair: pair_regions(evidence, origin, means, *pair, config, reach=reach, colors=colors)
+        pair: pair_regions(evidence, origin, means, *pair, config, reach=reach, colors=colors, **shape)
         for pair in sorted(first_pairs | set(wanted))
     }
     if not carry:
@@ -510,7 +632,7 @@ def every_pair_regions(
             model, cameras, members, p, q, support_views=config.support_views, render_config=render_config
         )
         out[(p, q)] = (
-            pair_regions(evidence, origin, means, p, q, config, reach=reach, colors=colors, carried=carried)
+            pair_regions(evidence, origin, means, p, q, config, reach=reach, colors=colors, carried=carried, **shape)
             if carried.any()
             else first[(p, q)]
         )
