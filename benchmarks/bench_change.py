@@ -622,7 +622,10 @@ def main(argv: list[str] | None = None):
             work, [parse_cell(c) for c in args.cells], [float(v) for v in args.tau.split(",")], args.overrides
         )
         return
+    from cfgs_jax.compiled_code import release_if_near_limit
+
     for text in args.cells:
+        release_if_near_limit()  # each cell compiles its own shapes: stay below the memory-map limit
         cell = parse_cell(text)
         out = fused_cell(fuse(work, cell) if args.action == "run" else cell_dir(work, cell))
         row = score(out, args.overrides)
