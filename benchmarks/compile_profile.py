@@ -2,7 +2,7 @@
 through ``benchmarks/test_times.sh`` (the suite's entry point for the tests' run time):
 
     bash benchmarks/test_times.sh profile                       # the README's test tier, -n 2, empty cache
-    bash benchmarks/test_times.sh profile -- tests/test_sh.py   # any pytest arguments after --
+    bash benchmarks/test_times.sh profile -- tests/splat/test_sh.py   # any pytest arguments after --
     CFGS_JAX_TEST_COMPILE=default bash benchmarks/test_times.sh profile   # XLA's default CPU compile
 
 Runs pytest with this file as a plugin (``-p compile_profile``) and an empty JAX compilation cache; the

@@ -13,12 +13,12 @@
 source benchmarks/gpu_setup.sh
 python3 -c "import jax, cfgs_jax; print(jax.__version__, jax.devices())" || exit 1
 if [ $# -eq 0 ]; then
-  set -- tests/test_splat.py tests/test_pallas.py tests/test_changes.py tests/test_compact.py tests/test_fused.py \
-    tests/test_exposure.py tests/test_fusion_rules.py tests/test_updates.py tests/test_model.py tests/test_sim3.py tests/test_light.py tests/test_fuse.py \
-    tests/test_metrics.py tests/test_viz.py tests/test_images_colour.py tests/test_ply.py \
+  set -- tests/test_splat.py tests/splat/test_pallas_composite.py tests/changes tests/fusion/test_compact.py tests/io/test_fused.py \
+    tests/test_model_exposure.py tests/io/test_fused_exposure.py tests/fusion/test_cross_init_exposure.py tests/fusion/test_compact_exposure.py tests/test_fusion_rules.py tests/test_loop.py tests/fusion/test_updates.py tests/train/test_optim.py tests/test_model_trainable.py tests/test_model.py tests/test_sim3.py tests/fusion/test_light.py tests/fusion/test_fuse.py \
+    tests/metrics tests/test_viz.py tests/test_colour.py tests/io/test_images.py tests/io/test_ply.py \
     tests/stress/test_stress_kernel.py tests/stress/test_stress_viz.py
 fi
 # shellcheck disable=SC2086
-timeout 420 python3 -m pytest -p no:cacheprovider -n 8 --dist loadfile -q -o addopts="" -rfE --durations=10 \
+timeout 420 python3 -m pytest -p no:cacheprovider -n 8 --dist loadfile -q -o addopts="" --import-mode=importlib -rfE --durations=10 \
   --junitxml="$OUT/${JUNIT:-junit}.xml" $PYTEST_EXTRA "$@"
 echo "pytest rc=$? after $(( $(date +%s) - t0 )) s"

@@ -101,7 +101,7 @@ def rendered_dataset(spec, out: Path, *, dates) -> Path:
     the modules that render and write a dataset and the versions of the packages they call, so a changed
     renderer renders again; a new key is rendered to a staging folder and renamed into place (two workers
     may render the same one; the first rename wins). The test gets its own copy under ``out``.
-    ``CFGS_JAX_CACHE=off`` renders every time; ``tests/test_synthetic.py``, which tests the renderer, never
+    ``CFGS_JAX_CACHE=off`` renders every time; ``tests/synthetic/test_dataset.py``, which tests the renderer, never
     reads an entry."""
     import hashlib
     import pickle

@@ -295,7 +295,7 @@ def _with_sh(model, degree=3, seed=0):
 def _seen_colours(model, centre):
     """[N, 3] float64: each Gaussian's colour seen from ``centre``, max(c + Σ Y_k(d)·f_k, 0) with d the
     unit ray from ``centre`` to its mean and Y_k the closed-form real spherical harmonics (scipy)."""
-    from test_sh import real_sh
+    from scenes import real_sh
 
     g = model.gaussians
     d = np.asarray(g.means, np.float64) - np.asarray(centre, np.float64)

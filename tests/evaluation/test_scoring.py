@@ -10,15 +10,7 @@ import cfgs_jax as cj
 from cfgs_jax.evaluation import scoring
 from cfgs_jax.splat import reference, weights
 
-
-def _weights64(g, cam, opacity):
-    """[N, H, W] float64 compositing weights w_i = α_i·o_i·T_i: the reference render with Gaussian i's
-    colour alone set to 1 (every Gaussian still occludes), one "date" per Gaussian."""
-    n = len(g)
-    ones = cj.Gaussians(g.means, g.quats, g.log_scales, g.opacity_logits, np.ones((n, 3), np.float32))
-    onehot = np.eye(n)[:, :, None].repeat(3, -1)
-    r = reference.render_dates(ones, cam, np.broadcast_to(np.asarray(opacity, np.float64), (n, n)), onehot)
-    return np.asarray(r.image)[..., 0]
+from scenes import weights64
 
 
 def test_contribution_per_label_matches_reference_weights():
@@ -30,7 +22,7 @@ def test_contribution_per_label_matches_reference_weights():
     got = weights.contribution_per_label(g, jnp.asarray(opacity), cams, labels, 5)
     want = np.zeros((len(g), 5))
     for cam, lab in zip(cams, labels):
-        w = _weights64(g, cam, opacity)
+        w = weights64(g, cam, opacity)
         for k in range(5):
             want[:, k] += (w * (lab == k)).sum((1, 2))
     assert got.shape == (len(g), 5) and want.sum() > 1.0
@@ -135,7 +127,7 @@ def test_observed_at_a_date_is_visibility_behind_that_dates_model():
 def test_pixel_iou_of_a_removed_blob():
     model = _two_blobs()
     cam = cj.Camera.look_at([0, -4, 0], [0, 0, 0], width=40, height=20, fov_x_deg=50)
-    w = _weights64(model.gaussians, cam, np.ones(2))
+    w = weights64(model.gaussians, cam, np.ones(2))
     truth = w[0] > 0.5 * np.maximum(w.sum(0), 1e-9)  # pixels the left blob dominates
     assert truth.sum() > 20
     masks = [
@@ -247,7 +239,7 @@ def test_change_table_truth_is_the_weight_share_on_changed_pixels():
         sub = cj.select(g, rows)
         total, changed = np.zeros(len(rows)), np.zeros(len(rows))
         for v, cam in enumerate(cams[p]):
-            w = _weights64(sub, cam, o[rows, p])
+            w = weights64(sub, cam, o[rows, p])
             total += w.sum((1, 2))
             changed += (w * masks[p].changed_vs[names[q]][v]).sum((1, 2))
         keep = total > 0
@@ -286,7 +278,7 @@ def test_surface_effect_of_every_date_pair_matches_float64_renders():
                 np.asarray(reference.render_dates(g, cam, m[None], light[:, q][None]).image[0]) for m in (full, o[:, q])
             ]
             d = np.abs(imgs[0] - imgs[1]).mean(-1)
-            w = _weights64(g, cam, full)
+            w = weights64(g, cam, full)
             want = np.where(w.sum((1, 2)) > 0, (w * d).sum((1, 2)) / np.maximum(w.sum((1, 2)), 1e-30), 0.0)
             assert want[rows].max() > 0.01
             np.testing.assert_allclose(got[rows, q], want[rows], rtol=1e-3, atol=1e-4)
@@ -316,7 +308,7 @@ def test_surface_effect_separates_a_dropped_front_layer_from_a_removed_object():
     full, as_is = o[:, 0], o[:, 1]  # every Gaussian is date a's: at b, "full" puts them at o^a
     imgs = [np.asarray(reference.render_dates(g, cam, m[None], np.ones((1, 3, 3))).image[0]) for m in (full, as_is)]
     d = np.abs(imgs[0] - imgs[1]).mean(-1)
-    w = _weights64(g, cam, full)
+    w = weights64(g, cam, full)
     want = (w * d).sum((1, 2)) / w.sum((1, 2))
     assert np.allclose(got[:, 1], want, rtol=1e-3, atol=1e-4), (got[:, 1], want)
     assert (

@@ -11,25 +11,7 @@ import cfgs_jax as cj
 from cfgs_jax import splat
 from cfgs_jax.fusion.compact import CompactConfig, compact, duplicate_groups, merge_groups
 
-
-def _logit(p):
-    p = np.asarray(p, np.float64)
-    return np.log(p) - np.log1p(-p)
-
-
-def _model(means, log_scales, alphas, colours, o, origin, quats=None):
-    n = len(means)
-    quats = np.tile([1.0, 0, 0, 0], (n, 1)) if quats is None else quats
-    g = cj.Gaussians(
-        np.asarray(means, np.float32),
-        np.asarray(quats, np.float32),
-        np.asarray(log_scales, np.float32),
-        _logit(alphas).astype(np.float32),
-        np.asarray(colours, np.float32),
-    )
-    t = np.asarray(o).shape[1]
-    dates = tuple(cj.DateInfo(f"d{k}") for k in range(t))
-    return cj.TemporalGaussians(g, _logit(o).astype(np.float32), np.zeros((n, t, 3), np.float32), origin, dates)
+from scenes import temporal_model
 
 
 def _render(model, camera, date):
@@ -46,7 +28,7 @@ def test_a_persistent_pair_merges_and_a_changed_one_does_not():
     α'G: they differ by at most 0.36·G(1 − G)·c ≤ 0.09·c for α = 0.6 (closed form), so every pixel of
     both dates' renders stays within 0.09 of the original, and identically where nothing merged."""
     s = np.log(0.05)
-    model = _model(
+    model = temporal_model(
         means=[[0, 0, 0], [0, 0, 0], [0.4, 0, 0], [0.4, 0, 0.01]],
         log_scales=np.full((4, 3), s),
         alphas=[0.6, 0.6, 0.7, 0.7],
@@ -70,7 +52,7 @@ def test_a_persistent_pair_merges_and_a_changed_one_does_not():
         assert np.max(np.abs(before - after)) > 1e-3  # the stacked pair really is replaced
     # a stricter criterion on o keeps them apart; so does a colour change beyond the threshold
     assert len(compact(model, CompactConfig(max_o_difference=0.005))[0]) == 4
-    recoloured = _model(
+    recoloured = temporal_model(
         means=[[0, 0, 0], [0, 0, 0]],
         log_scales=np.full((2, 3), s),
         alphas=[0.6, 0.6],
@@ -88,7 +70,9 @@ def test_merge_is_the_alpha_weighted_moment_match():
     q = Rotation.from_euler("xyz", [[0, 0, 0], [0.3, -0.2, 0.5]]).as_quat(scalar_first=True)
     means = np.array([[0.0, 0.0, 0.0], [0.01, -0.005, 0.004]])
     log_scales = np.log([[0.05, 0.03, 0.02], [0.04, 0.05, 0.02]])
-    model = _model(means, log_scales, [0.5, 0.8], [[0.5, 0.5, 0.5]] * 2, [[0.99, 0.97], [0.97, 0.99]], [0, 1], q)
+    model = temporal_model(
+        means, log_scales, [0.5, 0.8], [[0.5, 0.5, 0.5]] * 2, [[0.99, 0.97], [0.97, 0.99]], [0, 1], q
+    )
     sh_rest = np.random.default_rng(0).normal(0, 0.2, (2, 8, 3))  # SH degree 2
     model = dataclasses.replace(model, gaussians=dataclasses.replace(model.gaussians, sh_rest=sh_rest))
     merged, kept = merge_groups(model, np.array([0, 0]))
@@ -117,7 +101,7 @@ def test_summed_weights_match_one_hot_float64_renders():
     from cfgs_jax.fusion.compact import contributions
     from cfgs_jax.splat import reference
 
-    model = _model(
+    model = temporal_model(
         means=[[0, 0, 0], [0.05, 0.2, 0.02], [-0.1, 0.3, -0.05], [0.1, -0.2, 0.1]],
         log_scales=np.log([[0.12, 0.08, 0.1], [0.06] * 3, [0.09, 0.05, 0.07], [0.05] * 3]),
         alphas=[0.7, 0.9, 0.5, 0.8],
@@ -155,7 +139,7 @@ def test_hidden_share_drops_the_least_shown_gaussians_that_mark_no_change_up_to_
     no change and is dropped first."""
     from cfgs_jax.fusion.compact import Contributions, hidden_persistent
 
-    model = _model(
+    model = temporal_model(
         means=np.zeros((6, 3)),
         log_scales=np.zeros((6, 3)),
         alphas=[0.5] * 6,
@@ -179,7 +163,7 @@ def test_hidden_share_drops_the_least_shown_gaussians_that_mark_no_change_up_to_
 def _five_blobs():
     """Five blobs at two dates for the ranking tests: 1 and 3 overlap (centres 0.05 apart, scales 0.1),
     2 marks a change (o 0.1 at date 0), the others lie far apart."""
-    return _model(
+    return temporal_model(
         means=[[0, 0, 0], [5, 0, 0], [9, 0, 0], [5.05, 0, 0], [-5, 0, 0]],
         log_scales=np.log(np.full((5, 3), 0.1)),
         alphas=[0.5] * 5,

@@ -1,44 +1,13 @@
 import json
 
 import numpy as np
-import pycolmap
 import pytest
 from PIL import Image
-from scipy.spatial.transform import Rotation
 
 from cfgs_jax import InputError
 from cfgs_jax.io import read_colmap
 
-
-def make_dataset(root, *, n=10, model="PINHOLE", params=(60.0, 62.0, 31.5, 24.5), text=False, size=(64, 48)):
-    """A COLMAP dataset written by pycolmap (not by us) with random poses and points."""
-    rng = np.random.default_rng(0)
-    rec = pycolmap.Reconstruction()
-    cam = pycolmap.Camera(model=model, width=size[0], height=size[1], params=list(params), camera_id=1)
-    rec.add_camera_with_trivial_rig(cam)
-    poses = {}
-    names = [f"img_{i:03d}.png" for i in rng.permutation(n)]  # added out of name order
-    for k, name in enumerate(names):
-        q = Rotation.random(random_state=k).as_quat()  # xyzw, pycolmap's order
-        t = rng.normal(size=3)
-        rec.add_image_with_trivial_frame(
-            pycolmap.Image(name=name, camera_id=1, image_id=k + 1), pycolmap.Rigid3d(pycolmap.Rotation3d(q), t)
-        )
-        m = np.eye(4)
-        m[:3, :3] = Rotation.from_quat(q).as_matrix()
-        m[:3, 3] = t
-        poses[name] = m
-    pts = rng.normal(size=(25, 3))
-    cols = rng.integers(0, 256, size=(25, 3)).astype(np.uint8)
-    for p, c in zip(pts, cols):
-        rec.add_point3D(p, pycolmap.Track(), c)
-    sparse = root / "sparse" / "0"
-    sparse.mkdir(parents=True)
-    (rec.write_text if text else rec.write_binary)(str(sparse))
-    (root / "images").mkdir()
-    for name in names:
-        Image.fromarray(rng.integers(0, 256, size=(size[1], size[0], 3)).astype(np.uint8)).save(root / "images" / name)
-    return poses, pts, cols
+from files import make_dataset
 
 
 @pytest.mark.parametrize("text", [False, True])

@@ -1,6 +1,6 @@
 """SPZ v4 and SuperSplat's compressed PLY: bytes checked against the formats' published layouts worked by
 hand, round trips bounded by each field's quantum, and the errors at the file boundary. (That tools no
-one here wrote read the files back is checked in the slow tier: ``test_splat_formats_external.py``.)"""
+one here wrote read the files back is checked in the slow tier: ``tests/io/test_formats_external.py``.)"""
 
 from __future__ import annotations
 

@@ -11,6 +11,7 @@ from cfgs_jax.io import read_ply, write_ply
 from cfgs_jax.io.ply import DC_ONLY_LAYOUT
 
 from conftest import bits_equal, random_gaussians
+from files import full_layout_fields, write_raw_ply
 
 
 def raw(path):
@@ -84,29 +85,10 @@ def test_arbitrary_colours_round_trip_within_one_ulp(tmp_path):
     assert np.all(np.abs(back.astype(np.float64) - colors) <= bound)
 
 
-def _write_raw(path, fields: dict, text=False):
-    n = len(next(iter(fields.values())))
-    arr = np.zeros(n, dtype=[(k, "<f4") for k in fields])
-    for k, v in fields.items():
-        arr[k] = v
-    plyfile.PlyData([plyfile.PlyElement.describe(arr, "vertex")], text=text).write(str(path))
-
-
-def _full_layout_fields(n, seed=0, degree=3):
-    rng = np.random.default_rng(seed)
-    f = {k: rng.normal(size=n) for k in ("x", "y", "z", "nx", "ny", "nz")}
-    f.update({f"f_dc_{i}": rng.normal(size=n) for i in range(3)})
-    f.update({f"f_rest_{i}": rng.normal(size=n) for i in range(3 * ((degree + 1) ** 2 - 1))})
-    f["opacity"] = rng.normal(size=n)
-    f.update({f"scale_{i}": rng.normal(-3, 1, size=n) for i in range(3)})
-    f.update({f"rot_{i}": rng.normal(size=n) for i in range(4)})
-    return f
-
-
 @pytest.mark.parametrize("text", [False, True])
 def test_full_sh_layout_keeps_every_coefficient_or_drops_them_with_a_note(tmp_path, caplog, text):
-    fields = _full_layout_fields(50)
-    _write_raw(tmp_path / "full.ply", fields, text=text)
+    fields = full_layout_fields(50)
+    write_raw_ply(tmp_path / "full.ply", fields, text=text)
     kept = read_ply(tmp_path / "full.ply")
     assert kept.sh_degree == 3
     np.testing.assert_array_equal(np.asarray(kept.sh_rest[:, 4, 2]), fields["f_rest_34"].astype(np.float32))
@@ -124,8 +106,8 @@ def test_dropped_view_dependent_colour_is_measured(tmp_path, caplog):
     """The import's note gives the RMS colour the dropped degree-1 band adds, checked against a
     Monte-Carlo average over uniformly sampled view directions of INRIA's degree-1 evaluation
     (C1·(−y·f₀ + z·f₁ − x·f₂) per channel)."""
-    fields = _full_layout_fields(40, seed=3, degree=1)
-    _write_raw(tmp_path / "deg1.ply", fields)
+    fields = full_layout_fields(40, seed=3, degree=1)
+    write_raw_ply(tmp_path / "deg1.ply", fields)
     with caplog.at_level(logging.WARNING, logger="cfgs_jax.io"):
         read_ply(tmp_path / "deg1.ply", sh_degree=0)
     m = re.search(r"dropped SH degree 1\.\.1 \(9 coefficients per Gaussian\).*RMS (\d+\.\d+)", caplog.text)
@@ -140,9 +122,9 @@ def test_dropped_view_dependent_colour_is_measured(tmp_path, caplog):
 
 
 def test_missing_property_names_field(tmp_path):
-    fields = _full_layout_fields(5, degree=0)
+    fields = full_layout_fields(5, degree=0)
     del fields["scale_1"]
-    _write_raw(tmp_path / "bad.ply", fields)
+    write_raw_ply(tmp_path / "bad.ply", fields)
     with pytest.raises(InputError, match="scale_1") as e:
         read_ply(tmp_path / "bad.ply")
     assert "bad.ply" in str(e.value) and "Fix:" in str(e.value)
@@ -157,10 +139,10 @@ def test_wrong_element_names_element(tmp_path):
 
 
 def test_nan_rows_rejected_with_indices_or_dropped(tmp_path, caplog):
-    fields = _full_layout_fields(20, degree=0)
+    fields = full_layout_fields(20, degree=0)
     fields["opacity"][[3, 11]] = np.nan
     fields["y"][17] = np.inf
-    _write_raw(tmp_path / "nan.ply", fields)
+    write_raw_ply(tmp_path / "nan.ply", fields)
     with pytest.raises(InputError) as e:
         read_ply(tmp_path / "nan.ply")
     msg = str(e.value)
@@ -182,10 +164,10 @@ def test_truncated_file(tmp_path, donut_path):
 def test_missing_file_and_zero_quaternion(tmp_path):
     with pytest.raises(InputError, match="file not found"):
         read_ply(tmp_path / "nope.ply")
-    fields = _full_layout_fields(4, degree=0)
+    fields = full_layout_fields(4, degree=0)
     for i in range(4):
         fields[f"rot_{i}"][2] = 0.0
-    _write_raw(tmp_path / "q.ply", fields)
+    write_raw_ply(tmp_path / "q.ply", fields)
     with pytest.raises(InputError, match="rot_0..rot_3"):
         read_ply(tmp_path / "q.ply")
 

@@ -27,9 +27,10 @@ from test_splat import (
     scene,
 )
 
-import cfgs_jax as cj
 from cfgs_jax import InputError, splat
 from cfgs_jax.splat.pallas_composite import PallasOptions, composite_pallas, lowered_for_cuda, weighted_sums_pallas
+
+from scenes import opaque_stack
 
 PALLAS = splat.RenderConfig(backend="pallas")
 
@@ -60,22 +61,6 @@ def test_forward_matches_float64_reference(n, seed, w, h, chunk, walk):
     if chunk == 8:  # the average tile list spans several loop steps
         assert int(r.num_composited) > 3 * chunk * len(np.unique(np.asarray(r.image)[::16, ::16, 0]))
     assert float(ref.alpha.mean()) > 0.1
-
-
-def opaque_stack():
-    """400 opaque Gaussians (α ≈ 0.99) stacked in front of one another and a 24×20 camera looking at them:
-    every pixel saturates long before its tile's list ends."""
-    rng = np.random.default_rng(5)
-    n = 400
-    means = np.stack([rng.uniform(-0.4, 0.4, n), rng.uniform(-0.4, 0.4, n), rng.uniform(-1.0, 1.0, n)], 1)
-    g = cj.Gaussians(
-        means.astype(F32),
-        rng.normal(size=(n, 4)).astype(F32),
-        np.full((n, 3), -1.2, F32),
-        np.full(n, 5.0, F32),  # α ≈ 0.99
-        rng.uniform(0, 1, (n, 3)).astype(F32),
-    )
-    return g, cj.Camera.look_at([0, 0, -4.0], [0, 0, 0], up=(0, -1, 0), width=24, height=20, fov_x_deg=20)
 
 
 @pytest.mark.parametrize("walk", ["chunk", "serial"])
@@ -178,7 +163,7 @@ def test_triton_lowering_for_the_gpu(walk, scatter):
     assert lowered_for_cuda(jax.grad(loss, argnums=(0, 1, 2, 3)), *shapes).as_text().count("__gpu$xla.gpu.triton") == 2
 
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 
 
 def _triton_compile():

@@ -8,7 +8,6 @@ import jax.numpy as jnp
 import numpy as np
 import plyfile
 import pytest
-from scipy.special import sph_harm_y
 from test_splat import BG, assert_matches_reference, camera, scene
 
 import cfgs_jax as cj
@@ -17,18 +16,7 @@ from cfgs_jax.io import read_ply, write_ply
 from cfgs_jax.model import with_sh_degree
 from cfgs_jax.splat import sh
 
-
-def real_sh(direction: np.ndarray, degree: int) -> np.ndarray:
-    """Y_lm(d) for l = 1..degree, m = −l..l: √2·Im Y_l^|m| (m < 0), Y_l^0, √2·Re Y_l^m (m > 0), from
-    scipy's complex spherical harmonics (with the Condon–Shortley phase)."""
-    x, y, z = direction
-    polar, azimuth = np.arccos(np.clip(z, -1, 1)), np.arctan2(y, x)
-    out = []
-    for degree_l in range(1, degree + 1):
-        for m in range(-degree_l, degree_l + 1):
-            value = sph_harm_y(degree_l, abs(m), polar, azimuth)
-            out.append(np.sqrt(2) * value.imag if m < 0 else value.real if m == 0 else np.sqrt(2) * value.real)
-    return np.asarray(out)
+from scenes import real_sh
 
 
 @pytest.mark.parametrize("degree", [1, 2, 3])

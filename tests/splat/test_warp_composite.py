@@ -15,7 +15,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from test_pallas import opaque_stack
 from test_splat import (
     BG,
     F32,
@@ -29,6 +28,8 @@ from test_splat import (
 )
 
 from cfgs_jax import InputError, splat
+
+from scenes import opaque_stack
 
 WARP = splat.RenderConfig(backend="warp")
 

@@ -6,10 +6,10 @@ import os
 import numpy as np
 import pytest
 from PIL import Image
-from test_colmap import make_dataset
-from test_ply import _full_layout_fields, _write_raw
 
 from cfgs_jax.app.pipeline import main
+
+from files import full_layout_fields, make_dataset, write_raw_ply
 
 pytestmark = pytest.mark.filterwarnings("ignore:fusing a single date")
 
@@ -33,11 +33,11 @@ def inputs(tmp_path):
     good = tmp_path / "in" / "good"
     good.mkdir(parents=True)
     make_dataset(good, n=4)
-    fields = _full_layout_fields(20, degree=0)
-    _write_raw(tmp_path / "in" / "ok.ply", fields)
+    fields = full_layout_fields(20, degree=0)
+    write_raw_ply(tmp_path / "in" / "ok.ply", fields)
     fields["opacity"][[3, 11]] = np.nan
     fields["y"][17] = np.inf
-    _write_raw(tmp_path / "in" / "nan.ply", fields)
+    write_raw_ply(tmp_path / "in" / "nan.ply", fields)
     data = (tmp_path / "in" / "ok.ply").read_bytes()
     (tmp_path / "in" / "trunc.ply").write_bytes(data[: len(data) // 2])
     return tmp_path / "in"

@@ -9,13 +9,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from test_colmap import make_dataset
-from test_ply import _full_layout_fields, _write_raw
 
 import cfgs_jax as cj
 from cfgs_jax import InputError, fusion, splat
 from cfgs_jax.fusion.fuse import INVISIBLE_LOGIT
 from cfgs_jax.io import read_colmap, read_ply
+
+from files import full_layout_fields, make_dataset, write_raw_ply
 
 ci = importlib.import_module("cfgs_jax.fusion.cross_init")  # the package exports a function of that name
 
@@ -104,8 +104,8 @@ def test_fusing_one_date_is_the_identity_with_a_warning(tmp_path, capsys):
 
     (tmp_path / "d0").mkdir()
     make_dataset(tmp_path / "d0", n=4)
-    fields = _full_layout_fields(30, degree=0)
-    _write_raw(tmp_path / "m.ply", fields)
+    fields = full_layout_fields(30, degree=0)
+    write_raw_ply(tmp_path / "m.ply", fields)
     out = tmp_path / "run"
     with pytest.warns(UserWarning, match="single date"):
         rc = main(

@@ -1,16 +1,11 @@
-"""The shared optimisation loop and the stages' update pipelines, on hand-computed cases."""
+"""The step loop (cfgs_jax.loop): checkpoints on a cadence and after a stretch of wall time, resuming,
+queued steps with a capacity that grows, the view order and the progress line."""
 
-import jax
-import jax.numpy as jnp
 import numpy as np
-import optax
 import pytest
 
 import cfgs_jax as cj
-from cfgs_jax import fusion, loop
-from cfgs_jax.fusion import updates
-from cfgs_jax.model import gaussians_of, trainable, with_trainable
-from cfgs_jax.train.optim import per_field_adam
+from cfgs_jax import loop
 
 
 def test_run_steps_checkpoints_on_cadence_at_a_stop_and_resumes_where_it_stopped():
@@ -130,106 +125,6 @@ def test_run_steps_also_checkpoints_after_a_stretch_of_wall_time():
         body, [], start=0, steps=10, checkpoint_seconds=0.0, clock=lambda: now[0], save=lambda c, d: saves.append(d)
     )
     assert saves == []  # 0: no time-based saves
-
-
-def test_a_signal_stops_the_loop_after_its_step_with_a_save_and_otherwise_at_once():
-    """Within ``catching_signals``: a SIGINT during step k ends that step, saves k + 1 steps and raises
-    ``Stopped`` (exit status 130); a second signal in the same loop stops at once; with no loop running a
-    SIGINT raises ``KeyboardInterrupt`` and a SIGTERM exits with 143. The handlers are restored after."""
-    import signal
-
-    from cfgs_jax import stopping
-
-    saves, seen = [], []
-
-    def body(carry, k, at=3, times=1):
-        for _ in range(times if k == at else 0):
-            signal.raise_signal(signal.SIGINT)
-        seen.append(k)
-        return carry + [k]
-
-    before = signal.getsignal(signal.SIGINT)
-    with stopping.catching_signals():
-        with pytest.raises(stopping.Stopped) as stopped:
-            loop.run_steps(body, [], start=0, steps=10, save=lambda c, d: saves.append((d, list(c))))
-        # the next loop of the same command (a later stage) stops before its first step
-        with pytest.raises(stopping.Stopped) as next_loop:
-            loop.run_steps(body, [], start=2, steps=10, save=lambda c, d: saves.append((d, list(c))))
-    assert seen == [0, 1, 2, 3] and saves == [(4, [0, 1, 2, 3])]
-    assert stopped.value.step == 4 and stopped.value.saved and stopped.value.exit_status == 130
-    assert next_loop.value.step == 2 and next_loop.value.saved
-    assert signal.getsignal(signal.SIGINT) is before and stopping.asked() is None
-    seen.clear()
-    with stopping.catching_signals():
-        with pytest.raises(KeyboardInterrupt) as at_once:
-            loop.run_steps(lambda c, k: body(c, k, at=1, times=2), [], start=0, steps=10)
-        assert not isinstance(at_once.value, stopping.Stopped) and seen == [0]  # step 1 did not end
-        with pytest.raises(SystemExit) as exited:
-            signal.raise_signal(signal.SIGTERM)
-        assert exited.value.code == 143
-    with stopping.catching_signals(), pytest.raises(KeyboardInterrupt):
-        signal.raise_signal(signal.SIGINT)
-
-
-def test_a_run_of_several_processes_saves_and_stops_by_the_step_cadence_only(monkeypatch):
-    """Processes that save or stop by their own clocks or signals would save different steps and wait for
-    each other's collectives: with several processes a signal stops the process at once and the clock
-    saves nothing; the step cadence still saves."""
-    import signal
-
-    from cfgs_jax import stopping
-
-    monkeypatch.setattr(jax, "process_count", lambda: 2)
-    now, saves, seen = [0.0], [], []
-
-    def body(carry, k):
-        now[0] += 10.0
-        if k == 3:
-            signal.raise_signal(signal.SIGINT)
-        seen.append(k)
-        return carry + [k]
-
-    with stopping.catching_signals(), pytest.raises(KeyboardInterrupt) as stopped:
-        loop.run_steps(
-            body, [], start=0, steps=10, checkpoint_every=2, checkpoint_seconds=5.0, clock=lambda: now[0],
-            save=lambda c, d: saves.append(d),
-        )  # fmt: skip
-    assert not isinstance(stopped.value, stopping.Stopped) and seen == [0, 1, 2] and saves == [2]
-
-
-def test_a_loop_takes_the_signals_back_from_a_library_that_took_them():
-    """A library imported inside ``catching_signals`` may install its own SIGTERM handler (pycolmap's glog
-    does, at the C level); the next loop installs the stopping handler again, so SIGTERM still stops it
-    after its step (exit status 143)."""
-    import signal
-
-    from cfgs_jax import stopping
-
-    def library_handler(signum, frame):
-        raise RuntimeError("the library's handler ran")
-
-    def body(carry, k):
-        if k == 1:
-            signal.raise_signal(signal.SIGTERM)
-        return carry + [k]
-
-    with stopping.catching_signals():
-        signal.signal(signal.SIGTERM, library_handler)
-        with pytest.raises(stopping.Stopped) as stopped:
-            loop.run_steps(body, [], start=0, steps=5)
-    assert stopped.value.step == 2 and not stopped.value.saved and stopped.value.exit_status == 143
-
-
-def test_a_sigterm_outside_a_loop_exits_with_143_and_no_library_handler_runs():
-    """Outside a loop a SIGTERM stops the process at once with status 143, also where pycolmap is imported
-    inside a command (its glog would print a stack trace and abort): ``catching_signals`` imports it first."""
-    import subprocess
-    import sys
-
-    code = "import os, signal\nfrom cfgs_jax import stopping\nwith stopping.catching_signals():\n"
-    code += "    import pycolmap\n    os.kill(os.getpid(), signal.SIGTERM)\n    print('not stopped')\n"
-    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
-    assert done.returncode == 143 and "not stopped" not in done.stdout and "Aborted" not in done.stderr, done.stderr
 
 
 def test_progress_without_a_bar_logs_a_line_every_few_minutes(caplog):
@@ -372,87 +267,3 @@ def test_view_order_is_a_permutation_per_epoch():
         order = [loop.view_order(seed, k, 5) for k in range(15)]
         for epoch in range(3):
             assert sorted(order[5 * epoch : 5 * epoch + 5]) == list(range(5))
-
-
-def test_rate_zero_freezes_with_set_to_zero_and_matches_adam_at_rate_zero():
-    """A rate of 0 is optax.set_to_zero: no update and no state; the other fields get Adam's first
-    step, −lr·sign(g) (closed form)."""
-    params = {"a": jnp.array([1.0, -2.0]), "b": jnp.array([0.5, 0.0])}
-    grads = {"a": jnp.array([3.0, -0.25]), "b": jnp.array([1.0, 2.0])}
-    opt = per_field_adam({"a": 0.1, "b": 0.0}, eps=1e-15)
-    state = opt.init(params)
-    assert not jax.tree_util.tree_leaves(state.inner_states["b"])  # nothing kept for the frozen field
-    upd, _ = opt.update(grads, state, params)
-    np.testing.assert_allclose(upd["a"], [-0.1, 0.1], rtol=1e-5)
-    assert np.all(np.asarray(upd["b"]) == 0)
-    adam0 = optax.adam(0.0, eps=1e-15)
-    upd0, _ = adam0.update(grads["b"], adam0.init(params["b"]), params["b"])
-    np.testing.assert_array_equal(optax.apply_updates(params["b"], upd0), optax.apply_updates(params["b"], upd["b"]))
-
-
-def test_refinement_optimizer_freezes_positions_at_scale_zero():
-    n = 3
-    params = {k: jnp.ones((n, 3)) for k in ("means", "log_scales", "colors")}
-    params |= {"quats": jnp.ones((n, 4)), "opacity_logits": jnp.ones(n), "o_logits": jnp.ones((n, 2))}
-    grads = jax.tree_util.tree_map(jnp.ones_like, params)
-    opt = updates.refinement_optimizer(fusion.RefineConfig(position_lr_scale=0.0), extent=2.0)
-    upd, _ = opt.update(grads, opt.init(params), params)
-    assert np.all(np.asarray(upd["means"]) == 0)
-    np.testing.assert_allclose(upd["o_logits"], -2.5e-6, rtol=1e-5)
-    assert "sh_rest" not in upd  # a DC-only model: the SH rate names a field it does not have
-    with_sh = params | {"sh_rest": jnp.ones((n, 8, 3))}
-    config = fusion.RefineConfig()
-    upd, _ = opt.update(jax.tree_util.tree_map(jnp.ones_like, with_sh), opt.init(with_sh), with_sh)
-    np.testing.assert_allclose(upd["sh_rest"], -config.lr_color / 20, rtol=1e-5)  # INRIA's f_rest rate
-    with pytest.raises(ValueError):
-        opt.init(params | {"nosuch": jnp.ones(n)})  # a field without a rate is an error
-
-
-def test_halve_alpha_of_halves_only_the_given_rows():
-    x = jnp.array([-1.0, 0.0, 2.0])
-    out = updates.halve_alpha_of({"opacity_logits": x, "other": x}, np.array([True, False, True]))
-    alpha = 1 / (1 + np.exp(-np.array([-1.0, 0.0, 2.0], np.float64)))
-    np.testing.assert_allclose(jax.nn.sigmoid(out["opacity_logits"]), [alpha[0] / 2, alpha[1], alpha[2] / 2], rtol=1e-6)
-    assert out["other"] is x
-
-
-def test_zero_invisible_moves_the_reference_and_restarts_only_the_zeroed_moments():
-    """Entries that contributed to no view get the INVISIBLE logit, the L_change reference takes it
-    (so |d(õ) − d(o)| is 0 there) and Adam's moments of exactly those entries restart."""
-    o = jnp.array([[2.0, 1.0], [0.5, -3.0]])
-    params = {"o_logits": o, "means": jnp.ones((2, 3))}
-    opt = per_field_adam({"o_logits": 0.1, "means": 0.1})
-    state = opt.init(params)
-    _, state = opt.update(jax.tree_util.tree_map(jnp.ones_like, params), state, params)
-    reference = jnp.array([[1.5, 1.2], [0.4, -2.0]])
-    contributed = np.array([[True, False], [True, True]])
-    new, new_state, ref, zeroed = updates.zero_invisible(params, state, reference, contributed)
-    assert zeroed.tolist() == [[False, True], [False, False]]
-    inv = np.float32(fusion.INVISIBLE_LOGIT)  # in the logits' precision
-    np.testing.assert_array_equal(new["o_logits"], [[2.0, inv], [0.5, -3.0]])
-    np.testing.assert_array_equal(ref, np.float32([[1.5, inv], [0.4, -2.0]]))
-    mu = new_state.inner_states["o_logits"].inner_state[0].mu["o_logits"]
-    np.testing.assert_array_equal(np.asarray(mu) == 0, zeroed)
-    assert np.all(np.asarray(new_state.inner_states["means"].inner_state[0].mu) != 0)
-    assert new["means"] is params["means"]
-
-
-def test_trainable_and_with_trainable_are_inverse():
-    g = cj.Gaussians(
-        np.random.default_rng(0).normal(size=(4, 3)),
-        np.tile([1.0, 0, 0, 0], (4, 1)),
-        np.zeros((4, 3)),
-        np.zeros(4),
-        np.full((4, 3), 0.5),
-    )
-    m = fusion.merge([g], ["d0"])
-    p = trainable(m)
-    assert sorted(p) == sorted(cj.model.GAUSSIAN_FIELDS + ("o_logits",))
-    p2 = p | {"o_logits": p["o_logits"] + 1.0, "means": p["means"] * 2}
-    m2 = with_trainable(m, p2)
-    np.testing.assert_array_equal(m2.o_logits, p2["o_logits"])
-    np.testing.assert_array_equal(m2.gaussians.means, p2["means"])
-    assert m2.light_logits is m.light_logits and m2.dates == m.dates
-    lit = with_trainable(m, p2 | {"light_logits": m.light_logits + 0.5})  # refinement with lr_light > 0
-    np.testing.assert_array_equal(lit.light_logits, np.asarray(m.light_logits) + 0.5)
-    assert with_trainable(g, trainable(g)) == gaussians_of(trainable(g))
