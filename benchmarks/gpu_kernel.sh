@@ -50,7 +50,7 @@ grep -n "^PALLAS_CHUNK\|num_warps: int\|scatter: str\|walk: str\|backend: str" s
 # the kernel tests and our compositors timed against gsplat: those the device has (xla; pallas where a backward
 # variant compiles; warp where .warp_1..3 were carried)
 backends="xla${chosen:+ pallas}"
-tests="tests/test_splat.py${chosen:+ tests/splat/test_pallas_composite.py}"
+tests="tests/splat/test_render.py${chosen:+ tests/splat/test_pallas_composite.py}"
 if python3 -c "import warp" 2>/dev/null; then backends="$backends warp"; tests="$tests tests/splat/test_warp_composite.py"; fi
 # shellcheck disable=SC2086
 timeout "${TEST_TIMEOUT:-100}" python3 -m pytest -p no:cacheprovider -n 2 --dist loadfile -q -o addopts="" --import-mode=importlib -rfE \

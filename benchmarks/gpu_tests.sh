@@ -13,8 +13,9 @@
 source benchmarks/gpu_setup.sh
 python3 -c "import jax, cfgs_jax; print(jax.__version__, jax.devices())" || exit 1
 if [ $# -eq 0 ]; then
-  set -- tests/test_splat.py tests/splat/test_pallas_composite.py tests/changes tests/fusion/test_compact.py tests/io/test_fused.py \
-    tests/test_model_exposure.py tests/io/test_fused_exposure.py tests/fusion/test_cross_init_exposure.py tests/fusion/test_compact_exposure.py tests/test_fusion_rules.py tests/test_loop.py tests/fusion/test_updates.py tests/train/test_optim.py tests/test_model_trainable.py tests/test_model.py tests/test_sim3.py tests/fusion/test_light.py tests/fusion/test_fuse.py \
+  set -- tests/splat/test_render.py tests/splat/test_binning.py tests/splat/test_composite.py tests/splat/test_reference.py \
+    tests/splat/test_weights.py tests/splat/test_pallas_composite.py tests/changes tests/fusion/test_compact.py tests/io/test_fused.py \
+    tests/test_model_exposure.py tests/io/test_fused_exposure.py tests/fusion/test_cross_init_exposure.py tests/fusion/test_compact_exposure.py tests/fusion/test_refine_rules.py tests/fusion/test_updates_rates.py tests/fusion/test_light_range.py tests/fusion/test_cross_init_epsilon.py tests/fusion/test_fuse_add_date.py tests/test_loop.py tests/fusion/test_updates.py tests/train/test_optim.py tests/test_model_trainable.py tests/test_model.py tests/test_sim3.py tests/fusion/test_light.py tests/fusion/test_fuse.py \
     tests/metrics tests/test_viz.py tests/test_colour.py tests/io/test_images.py tests/io/test_ply.py \
     tests/stress/test_stress_kernel.py tests/stress/test_stress_viz.py
 fi

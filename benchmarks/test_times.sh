@@ -30,7 +30,7 @@ if [ "${1:-}" = compare ]; then
   # The tests' quick CPU compile (tests/conftest.py) against XLA's defaults, side by side on one machine:
   # each setting cold (its own empty cache), then warm twice, alternating.
   shift
-  files=${*:-tests/test_train.py tests/fusion/test_cross_init.py tests/fusion/test_refine.py tests/changes}
+  files=${*:-tests/train tests/fusion/test_cross_init.py tests/fusion/test_refine.py tests/changes}
   logs=$(mktemp -d)
   trap 'rm -rf "$logs"' EXIT
   rows=""

@@ -127,3 +127,17 @@ def model_with_exposure(n=5, t=3, seed=0, exposure=None):
 def exposure_table(t=3, seed=1):
     """A random [T, T, 3] exposure table of gains in [0.4, 3.5]."""
     return np.random.default_rng(seed).uniform(0.4, 3.5, (t, t, 3))
+
+
+def blobs(centres, scale=0.08, alpha=0.9, colours=None):
+    """Round Gaussians of one ``scale`` and opacity ``alpha`` at ``centres`` (grey unless ``colours``)."""
+    centres = np.asarray(centres, np.float32)
+    n = len(centres)
+    colours = np.full((n, 3), 0.6, np.float32) if colours is None else np.asarray(colours, np.float32)
+    return cj.Gaussians(
+        centres,
+        np.tile(np.float32([1, 0, 0, 0]), (n, 1)),
+        np.full((n, 3), np.log(scale), np.float32),
+        np.full(n, logit(alpha), np.float32),
+        colours,
+    )

@@ -79,29 +79,22 @@ def test_no_function_outside_the_kernel_runs_over_sixty_lines():
 #: Test files of the whole repository rather than of one module: the style, the benchmarks' scripts,
 #: the installed wheel and the shipped configurations.
 REPOSITORY_WIDE = {"test_style.py", "test_benchmarks.py", "test_cli_install.py", "test_shipped_configs.py"}
-#: Files that still test several modules at once, to be split by module like the rest.
-NOT_YET_SPLIT = {
-    "test_splat.py",
-    "test_train.py",
-    "test_fusion_rules.py",
-    "test_evaluation.py",
-}
 
 
 def test_test_files_mirror_the_modules_they_test():
     """``tests/<package>/test_<module>[_<what>].py`` tests ``src/cfgs_jax/<package>/<module>.py``; the
-    property-based suite keeps ``tests/stress/``; the repository-wide files and those not yet split sit
-    at the top beside the files of top-level modules."""
+    property-based suite keeps ``tests/stress/``; the repository-wide files sit at the top beside the
+    files of top-level modules."""
     src = REPO / "src" / "cfgs_jax"
     tests = REPO / "tests"
     stray = []
     for path in sorted(tests.rglob("test_*.py")):
         rel = path.relative_to(tests)
-        if rel.parts[0] == "stress" or (len(rel.parts) == 1 and rel.name in REPOSITORY_WIDE | NOT_YET_SPLIT):
+        if rel.parts[0] == "stress" or (len(rel.parts) == 1 and rel.name in REPOSITORY_WIDE):
             continue
         modules = {p.stem for p in (src / rel.parent).glob("*.py") if p.stem != "__init__"}
         stem = path.stem.removeprefix("test_")
         if not any(stem == m or stem.startswith(f"{m}_") for m in modules):
             stray.append(str(rel))
     assert not stray, f"no module of src/cfgs_jax matches: {stray}"
-    assert all((tests / name).is_file() for name in REPOSITORY_WIDE | NOT_YET_SPLIT)
+    assert all((tests / name).is_file() for name in REPOSITORY_WIDE)

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 import numpy as np
-from test_splat import camera, scene
+from kernel_cases import camera, scene
 
 import cfgs_jax as cj
 from cfgs_jax.evaluation import scoring

@@ -14,16 +14,15 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from test_splat import (
+from kernel_cases import (
     BG,
     F32,
     NAMES,
-    _loss_fast,
-    _ref_grads,
     assert_matches_reference,
     camera,
-    grad_case,  # noqa: F401 (the fixture, shared with the XLA backend's tests)
+    loss_fast,
     multiplier_gradient_jaxprs,
+    reference_gradients,
     scene,
 )
 
@@ -100,14 +99,14 @@ def test_dates_share_the_falloff(walk):
 @pytest.mark.parametrize(
     "tile_cull,walk,scatter", [(True, "chunk", "atomic"), (False, "chunk", "partials"), (True, "serial", "partials")]
 )
-def test_float32_gradients_match_float64(grad_case, tile_cull, walk, scatter):  # noqa: F811 (the imported fixture)
+def test_float32_gradients_match_float64(grad_case, tile_cull, walk, scatter):
     """Every gradient (means, quaternions, scales, opacity, colours, o and l multipliers) of the Pallas
     backend at T = 2 against float64 autodiff of the reference, the tolerance of the XLA backend."""
     g, om, cm, cam, w_img, w_a = grad_case
-    *_, ref = _ref_grads(g, om, cm, cam, w_img, w_a)
+    *_, ref = reference_gradients(g, om, cm, cam, w_img, w_a)
     cfg = dataclasses.replace(PALLAS, tile_cull=tile_cull, chunk=8, walk=walk, scatter=scatter)
     cfg = dataclasses.replace(cfg, capacity=splat.required_capacity(g, cam, om, config=cfg))
-    f = lambda *a: _loss_fast(*a, cam, cfg, jnp.asarray(w_img, F32), jnp.asarray(w_a, F32), jnp.float32)
+    f = lambda *a: loss_fast(*a, cam, cfg, jnp.asarray(w_img, F32), jnp.asarray(w_a, F32), jnp.float32)
     grads = jax.grad(f, argnums=(0, 1, 2))(g, om, cm)
     for name, a, b in zip(NAMES, jax.tree_util.tree_leaves(grads), ref):
         a = np.asarray(a, np.float64)
@@ -288,7 +287,7 @@ def test_backend_choice_and_errors():
 
 
 @pytest.mark.parametrize("scatter, writes", [("atomic", "atomic_rmw"), ("partials", "swap")])
-def test_gradients_of_the_multipliers_alone_match_float64_and_skip_the_footprint(grad_case, scatter, writes):  # noqa: F811
+def test_gradients_of_the_multipliers_alone_match_float64_and_skip_the_footprint(grad_case, scatter, writes):
     """Differentiated with respect to the opacity and colour multipliers only (cross-timestep init's
     case), the Pallas VJP gives the float64 reference's gradients to 1e-10, and its backward kernel
     leaves out the footprint's five gradient writes per Gaussian and tile: atomic adds with

@@ -8,7 +8,7 @@ import jax.numpy as jnp
 import numpy as np
 import plyfile
 import pytest
-from test_splat import BG, assert_matches_reference, camera, scene
+from kernel_cases import BG, assert_matches_reference, camera, scene
 
 import cfgs_jax as cj
 from cfgs_jax import InputError, splat

@@ -4,7 +4,7 @@ On a CPU Warp compiles the kernels with its LLVM back end and runs their threads
 these tests check the arithmetic, the stopping rule, the statistics and the custom VJP that a GPU runs;
 the same kernels are compiled for sm_90 through NVRTC without a GPU and their machine code is read
 (`test_warp_kernels_compile_for_sm90_with_relaxed_reductions_and_no_fence`). The float64 gradient test
-sits with the other backends' in ``test_splat.py``.
+sits with the other backends' in ``tests/splat/test_render.py``.
 """
 
 import dataclasses
@@ -15,15 +15,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from test_splat import (
+from kernel_cases import (
     BG,
     F32,
     NAMES,
-    _loss_fast,
-    _ref_grads,
     assert_matches_reference,
     camera,
-    grad_case,  # noqa: F401 (the fixture, shared with the XLA backend's tests)
+    loss_fast,
+    reference_gradients,
     scene,
 )
 
@@ -84,14 +83,14 @@ def test_dates_in_one_call_equal_the_xla_backend_and_the_reference():
 
 
 @pytest.mark.parametrize("tile_cull", [True, False])
-def test_float32_gradients_match_float64(grad_case, tile_cull):  # noqa: F811 (the imported fixture)
+def test_float32_gradients_match_float64(grad_case, tile_cull):
     """Every gradient (means, quaternions, scales, opacity, colours, o and l multipliers) at T = 2 against
     float64 autodiff of the reference, at the XLA backend's tolerance."""
     g, om, cm, cam, w_img, w_a = grad_case
-    *_, ref = _ref_grads(g, om, cm, cam, w_img, w_a)
+    *_, ref = reference_gradients(g, om, cm, cam, w_img, w_a)
     cfg = dataclasses.replace(WARP, tile_cull=tile_cull)
     cfg = dataclasses.replace(cfg, capacity=splat.required_capacity(g, cam, om, config=cfg))
-    f = lambda *a: _loss_fast(*a, cam, cfg, jnp.asarray(w_img, F32), jnp.asarray(w_a, F32), jnp.float32)
+    f = lambda *a: loss_fast(*a, cam, cfg, jnp.asarray(w_img, F32), jnp.asarray(w_a, F32), jnp.float32)
     grads = jax.grad(f, argnums=(0, 1, 2))(g, om, cm)
     for name, a, b in zip(NAMES, jax.tree_util.tree_leaves(grads), ref):
         a = np.asarray(a, np.float64)
@@ -100,17 +99,17 @@ def test_float32_gradients_match_float64(grad_case, tile_cull):  # noqa: F811 (t
         assert np.abs(b).max() > 0, name
 
 
-def test_gradients_of_the_multipliers_alone_match_float64(grad_case):  # noqa: F811
+def test_gradients_of_the_multipliers_alone_match_float64(grad_case):
     """Differentiated with respect to the opacity and colour multipliers only (cross-timestep init's
     case, where the backward leaves out the footprint), in float64 to 1e-10 of the reference; and the
     footprint's gradients are really left out: the Gaussians' own parameters then get none."""
     g, om, cm, cam, w_img, w_a = grad_case
-    *_, ref = _ref_grads(g, om, cm, cam, w_img, w_a)
+    *_, ref = reference_gradients(g, om, cm, cam, w_img, w_a)
     with jax.enable_x64(True):
         g64 = jax.tree_util.tree_map(lambda x: jnp.asarray(x, jnp.float64), g)
         om64, cm64 = jnp.asarray(om, jnp.float64), jnp.asarray(cm, jnp.float64)
         cfg = dataclasses.replace(WARP, capacity=splat.required_capacity(g64, cam, om64, config=WARP))
-        f = lambda *a: _loss_fast(*a, cam, cfg, jnp.asarray(w_img), jnp.asarray(w_a), jnp.float64)
+        f = lambda *a: loss_fast(*a, cam, cfg, jnp.asarray(w_img), jnp.asarray(w_a), jnp.float64)
         alone = jax.grad(lambda o, c: f(g64, o, c), argnums=(0, 1))(om64, cm64)
     for name, a, b in zip(NAMES[-2:], alone, ref[-2:]):
         assert np.max(np.abs(np.asarray(a) - b)) <= 1e-10 * np.max(np.abs(b)), name

@@ -4,14 +4,14 @@ Gaussians, degenerate projections, huge N on a tiny image and the reverse, up to
 
 Every output and every gradient (means, quats, scales, opacity, colour, o, l) must be finite, and the
 forward pass must agree with the independent float64 reference wherever the reference is finite
-(float32 ties explained as in ``tests/test_splat.py``)."""
+(float32 ties explained as in ``tests/kernel_cases.py``)."""
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 from hypothesis import example, given
 from hypothesis import strategies as st
-from test_splat import BG, _loss_fast, assert_matches_reference, reference_image
+from kernel_cases import BG, assert_matches_reference, loss_fast, reference_image
 
 import cfgs_jax as cj
 from cfgs_jax import splat
@@ -66,7 +66,7 @@ def extreme_scenes(draw, n=N):
     return g, om, cm
 
 
-_grad = jax.jit(jax.grad(_loss_fast, argnums=(0, 1, 2)), static_argnames=("cfg", "dtype"))
+_grad = jax.jit(jax.grad(loss_fast, argnums=(0, 1, 2)), static_argnames=("cfg", "dtype"))
 
 
 def _all_gradients(g, om, cm, cam):

@@ -1,4 +1,6 @@
-"""The `eval` protocol end to end on a tiny two-date scene: every row recomputed independently."""
+"""The ``eval`` command (cfgs_jax.app.evaluate) on a tiny corals run: its rows, the fused model against the
+individual ones, change detection, registration error, parts run apart, resuming and refusals, and a
+sweep sharing its training."""
 
 from __future__ import annotations
 
@@ -33,9 +35,6 @@ visibility_interval = 60
 [oq_rule]
 surface_threshold = 0.08
 """
-# 100 cross-init steps run at 30× the paper's rates (rate_reference_steps = 3000 by default), so o^q can
-# travel as far as in the paper's 3 000 steps; 300 training steps leave the per-date models short of
-# converged, which is the regime where a date gains from the others' views (the paper's claim).
 
 
 def _psnr_np(pred, gt) -> float:
@@ -489,40 +488,6 @@ def test_the_paper_rates_ablation_restores_the_papers_refinement_and_is_skipped_
     assert EvalSetup.parse({"refine": {"lr_frame": 1e-4}}).ablation_keys == tuple(ABLATIONS)
 
 
-def test_sweep_file_errors_name_the_key(tmp_path):
-    from cfgs_jax import InputError
-    from cfgs_jax.evaluation.sweep import parse_sweep
-
-    with pytest.raises(InputError, match=r"cross_init\.dleta|dleta"):
-        parse_sweep({"sweep": {"scene": "corals", "base": "fast", "grid": {"cross_init.dleta": [0.3]}}})
-    with pytest.raises(InputError, match="table.key"):
-        parse_sweep({"sweep": {"scene": "corals", "base": "fast", "grid": {"nosuch.delta": [0.3]}}})
-    with pytest.raises(InputError, match="non-empty list"):
-        parse_sweep({"sweep": {"scene": "corals", "base": "fast", "grid": {"cross_init.delta": []}}})
-    scene, base, variants = parse_sweep(
-        {
-            "sweep": {
-                "scene": "corals",
-                "base": "fast",
-                "grid": {"cross_init.delta": [0.3, 0.6], "refine.steps": [5, 9, 11]},
-            }
-        }
-    )
-    assert scene == "corals" and len(variants) == 6 and len({v.id for v in variants}) == 6
-
-
-def test_sweep_on_an_eval_base_refines_for_its_last_eval_step():
-    """A sweep whose base is an eval configuration without [refine] steps refines each variant for
-    N₃ = max([eval] steps) (eval.toml: 1 500), not RefineConfig's 6 000; a grid value still wins."""
-    from cfgs_jax.evaluation.sweep import parse_sweep, variant_config
-
-    _, base, variants = parse_sweep({"sweep": {"scene": "corals", "base": "eval", "grid": {"cross_init.delta": [0.3]}}})
-    assert "steps" not in base.get("refine", {}) and max(base["eval"]["steps"]) == 1500
-    assert variant_config(base, variants[0])["refine"]["steps"] == 1500
-    _, base, variants = parse_sweep({"sweep": {"scene": "corals", "base": "eval", "grid": {"refine.steps": [7]}}})
-    assert variant_config(base, variants[0])["refine"]["steps"] == 7
-
-
 @pytest.mark.slow
 def test_sweep_shares_training_and_resumes(protocol, tmp_path):
     from cfgs_jax.evaluation.sweep import run_sweep
@@ -550,45 +515,3 @@ def test_sweep_shares_training_and_resumes(protocol, tmp_path):
     assert (
         not [m for m in seen if "[sweep] variant" in m or "[train]" in m] and again["variants"] == summary["variants"]
     )
-
-
-def test_each_margin_carries_its_standard_error_over_the_test_views():
-    """Ours N − Individual +N per test view (paired by place within each date), hand-computed: the
-    margin is the mean of the differences (each date weighted by its test views, as the paper's average
-    is) and its standard error is their sample deviation over √views; the table stars a margin within
-    two standard errors."""
-    import statistics
-
-    from cfgs_jax.evaluation.report import margins, table_markdown
-
-    rng = np.random.default_rng(4)
-    views = {"d0": 3, "d1": 5}
-
-    def row(name, shift):
-        per_date = {}
-        for d, n in views.items():
-            pv = [
-                {"psnr": 25 + shift + rng.normal(), "ssim": 0.9 + rng.normal(0, 0.01), "lpips": 0.05} for _ in range(n)
-            ]
-            per_date[d] = {k: float(np.mean([v[k] for v in pv])) for k in ("psnr", "ssim", "lpips")} | {"per_view": pv}
-        w = np.array(list(views.values()), float)
-        mean = {k: float(np.dot(w, [per_date[d][k] for d in views]) / w.sum()) for k in ("psnr", "ssim", "lpips")}
-        return {"row": name, **mean, "gaussians": 1, "per_date": per_date}
-
-    ours, ind = row("Ours 100", 0.5), row("Individual +100", 0.0)
-    m = margins([ours, ind], 100)
-    d = [
-        a["psnr"] - b["psnr"]
-        for day in views
-        for a, b in zip(ours["per_date"][day]["per_view"], ind["per_date"][day]["per_view"])
-    ]
-    assert m["views"] == 8
-    assert m["psnr"] == pytest.approx(statistics.fmean(d), abs=1e-12)
-    assert m["psnr_se"] == pytest.approx(statistics.stdev(d) / np.sqrt(8), rel=1e-12)
-    assert m["lpips"] == pytest.approx(0.0) and m["lpips_se"] == pytest.approx(0.0)
-    table = {"scene": "s", "rows": [ours, ind], "margins": m, "dates": list(views), "test_views": views, "timings": {}}
-    text = table_markdown(table)
-    star = "*" if abs(m["psnr"]) < 2 * m["psnr_se"] else ""
-    assert f"PSNR {m['psnr']:+.2f} ± {m['psnr_se']:.2f}{star} dB" in text
-    del ours["per_date"]["d1"]["per_view"][0]  # a date whose two lists differ: no spread, the margin stays
-    assert "psnr_se" not in margins([ours, ind], 100)

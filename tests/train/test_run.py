@@ -1,4 +1,6 @@
-"""Trainer foundations: initialisation, learning rates, optimiser groups, and a short training run."""
+"""Training runs (cfgs_jax.train.run) and the ``train`` command: the loss falls, queued steps equal steps
+run one by one, densification grows the model, resuming and killing mid-run, INRIA layouts, downscaled
+datasets and SH bands."""
 
 import dataclasses
 import json
@@ -8,7 +10,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from scipy.spatial.transform import Rotation
 
 import cfgs_jax as cj
 from cfgs_jax import InputError, splat, synthetic, train
@@ -17,53 +18,6 @@ from cfgs_jax.model import gaussians_of, trainable, with_sh_degree
 from cfgs_jax.train.step import TrainState, make_train_step
 
 from conftest import rendered_dataset
-
-
-def test_init_from_points_matches_brute_force_knn():
-    rng = np.random.default_rng(0)
-    pts = rng.normal(size=(60, 3))
-    cols = rng.uniform(size=(60, 3)).astype(np.float32)
-    g = train.init_from_points(pts, cols)
-    d2 = ((pts[:, None] - pts[None]) ** 2).sum(-1)
-    np.fill_diagonal(d2, np.inf)
-    want = 0.5 * np.log(np.sort(d2, axis=1)[:, :3].mean(1))
-    assert np.allclose(np.asarray(g.log_scales), want[:, None], atol=1e-5)
-    assert np.allclose(np.asarray(cj.opacities(g)), 0.1, atol=1e-6)
-    assert np.array_equal(np.asarray(g.quats), np.tile([1, 0, 0, 0], (60, 1)).astype(np.float32))
-    assert np.array_equal(np.asarray(g.colors), cols)
-    with pytest.raises(cj.InputError, match="points"):
-        train.init_from_points(pts[:3], cols[:3])
-
-
-def test_extent_and_position_schedule_closed_forms():
-    cams = [cj.Camera.look_at(e, [0, 0, 0], width=8, height=8) for e in ([2, 0, 0], [-2, 0, 0], [0, 2, 0], [0, -2, 0])]
-    assert np.isclose(train.scene_extent(cams), 1.1 * 2.0)
-    cfg = train.TrainConfig(steps=1000)
-    lr = train.position_lr(cfg, 3.0)
-    assert np.isclose(float(lr(0)), 1.6e-4 * 3.0, rtol=1e-6)
-    assert np.isclose(float(lr(1000)), 1.6e-6 * 3.0, rtol=1e-6)
-    assert np.isclose(float(lr(500)), np.sqrt(1.6e-4 * 1.6e-6) * 3.0, rtol=1e-5)  # log-linear
-    big = train.position_lr(train.TrainConfig(steps=1000, large_scale=True), 3.0)
-    assert np.isclose(float(big(0)), 1.6e-5 * 3.0, rtol=1e-6)
-
-
-def test_optimizer_applies_each_fields_rate():
-    """Adam's first step moves every parameter by exactly its learning rate (bias-corrected m/√v = ±1)."""
-    cfg = train.TrainConfig(steps=100)
-    opt = train.make_optimizer(cfg, extent=2.0)
-    params = {f: jnp.zeros((4, k)) for f, k in (("means", 3), ("quats", 4), ("log_scales", 3), ("colors", 3))}
-    params["opacity_logits"] = jnp.zeros(4)
-    grads = jax.tree_util.tree_map(jnp.ones_like, params)
-    updates, _ = opt.update(grads, opt.init(params), params)
-    want = {
-        "means": 1.6e-4 * 2.0,
-        "quats": 1e-3,
-        "log_scales": 5e-3,
-        "opacity_logits": 0.05,
-        "colors": 2.5e-3 * cj.SH_C0,
-    }
-    for f, lr in want.items():
-        assert np.allclose(np.asarray(updates[f]), -lr, rtol=1e-5), f
 
 
 @pytest.fixture(scope="module")
@@ -132,176 +86,6 @@ def test_training_queued_a_step_ahead_equals_the_steps_run_one_by_one(corals, mo
         np.testing.assert_allclose(np.asarray(got.state.params[field]), np.asarray(value), atol=1e-6, err_msg=field)
 
 
-def test_step_accumulates_the_screen_space_gradient_in_ndc_units():
-    """The accumulated statistic equals |∂L/∂mean2D|·(W/2, H/2) from an independent autodiff of the
-    loss w.r.t. the projected centres, for the visible Gaussians only."""
-    rng = np.random.default_rng(5)
-    n = 40
-    g = cj.Gaussians(
-        rng.uniform(-0.6, 0.6, (n, 3)).astype(np.float32),
-        rng.normal(size=(n, 4)).astype(np.float32),
-        np.full((n, 3), -2.5, np.float32),
-        np.zeros(n, np.float32),
-        rng.uniform(size=(n, 3)).astype(np.float32),
-    )
-    cam = cj.Camera.look_at([0, -3, 0.5], [0, 0, 0], width=40, height=30, fov_x_deg=50)
-    img = jnp.asarray(rng.uniform(size=(30, 40, 3)), jnp.float32)
-    cfg = train.TrainConfig(steps=10, random_background=False)
-    opt = train.make_optimizer(cfg, 1.0)
-    state = TrainState.create(g, opt, jax.random.key(1), capacity=n + 8)
-    rc = splat.RenderConfig(capacity=4 * splat.required_capacity(g, cam))
-    new, stats = make_train_step(opt, cfg, rc)(state, cam, img)
-
-    def by_offset(o):
-        return train.loss_fn(state.params, state.active, cam, img, jnp.zeros(3), cfg, rc, o)[0]
-
-    d = jax.grad(by_offset)(jnp.zeros((n + 8, 2)))
-    want = np.linalg.norm(np.asarray(d) * [20.0, 15.0], axis=-1)
-    radii = np.asarray(splat.render(gaussians_of(state.params), cam, config=rc).radii)
-    vis = (np.arange(n + 8) < n) & (radii > 0)
-    assert vis.sum() > 10 and int(stats["visible"]) == vis.sum()
-    assert np.allclose(np.asarray(new.grad_accum), np.where(vis, want, 0.0), rtol=1e-5, atol=1e-9)
-    assert np.array_equal(np.asarray(new.grad_count), vis.astype(np.int32))
-    assert np.allclose(np.asarray(new.max_radius), np.where(vis, radii, 0.0))
-
-
-def test_rgba_targets_are_composited_over_the_step_background():
-    from cfgs_jax.train.step import over_background
-
-    rng = np.random.default_rng(0)
-    rgba = rng.uniform(size=(5, 6, 4)).astype(np.float32)
-    bg = np.float32([0.2, 0.9, 0.4])
-    want = rgba[..., :3] * rgba[..., 3:] + bg * (1 - rgba[..., 3:])
-    assert np.allclose(np.asarray(over_background(jnp.asarray(rgba), bg)), want, atol=1e-7)
-    assert np.array_equal(np.asarray(over_background(jnp.asarray(rgba[..., :3]), bg)), rgba[..., :3])
-
-
-# ------------------------------------------------------------------------------ adaptive density control
-
-
-def _adc_state():
-    """Five hand-made Gaussians, one per ADC outcome, after one real optimiser step (non-zero moments)."""
-    extent = 2.0
-    means = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1], [1, 1, 0]], np.float32)
-    log_scales = np.log(np.array([0.01, 0.1, 0.01, 0.05, 0.01], np.float32))[:, None].repeat(3, 1)
-    log_scales[1] = np.log([0.1, 0.04, 0.02])  # anisotropic: max 0.1 > 0.01·extent → split
-    quats = np.array([[1, 0, 0, 0], [0.8, 0.6, 0, 0], [1, 0, 0, 0], [1, 0, 0, 0], [1, 0, 0, 0]], np.float32)
-    opac = np.array([0.5, 0.5, 0.003, 0.5, 0.5], np.float32)  # row 2: below min_opacity 0.005
-    g = cj.Gaussians(means, quats, log_scales, np.log(opac / (1 - opac)), np.full((5, 3), 0.5, np.float32))
-    cfg = train.TrainConfig(steps=100)
-    opt = train.make_optimizer(cfg, extent)
-    state = TrainState.create(g, opt, jax.random.key(3), capacity=8)
-    grads = jax.tree_util.tree_map(lambda x: jnp.ones_like(x) * 0.1, state.params)
-    _, opt_state = opt.update(grads, state.opt_state, state.params)
-    # mean screen-space grads: rows 0, 1 above 2e-4; 2, 3 above too; 4 below
-    accum = jnp.asarray([6e-4, 9e-4, 9e-4, 1e-4, 1e-4, 0, 0, 0])
-    count = jnp.asarray([2, 3, 1, 1, 1, 0, 0, 0])
-    radius = jnp.asarray([3.0, 5.0, 2.0, 25.0, 4.0, 0, 0, 0])  # row 3: too big on screen (> 20 px)
-    state = dataclasses.replace(state, opt_state=opt_state, grad_accum=accum, grad_count=count, max_radius=radius)
-    return state, cfg, extent
-
-
-def _moments(opt_state, field):
-    """The Adam (mu, nu) arrays of one parameter field inside the multi_transform state."""
-    inner = opt_state.inner_states[field].inner_state[0]
-    return np.asarray(inner.mu[field]), np.asarray(inner.nu[field])
-
-
-def test_densify_clone_split_prune_hand_case():
-    state, cfg, extent = _adc_state()
-    assert int(train.densify_count(state, cfg, extent, True)) == 2 + 1 + 2  # keep 0,4; clone 0; split 1
-    assert int(train.densify_count(state, cfg, extent, False)) == 3 + 1 + 2  # row 3 survives without prune_big
-    new = train.densify_and_prune(state, cfg, extent, True, out_capacity=8)
-    p = {k: np.asarray(v) for k, v in new.params.items()}
-    assert np.asarray(new.active).tolist() == [True] * 5 + [False] * 3
-    old = {k: np.asarray(v) for k, v in state.params.items()}
-    # order: survivors (0, 4), then the clone of 0, then the two children of 1
-    for f in ("quats", "opacity_logits", "colors"):
-        want = old[f][[0, 4, 0, 1, 1]]
-        assert np.array_equal(p[f][:5], want), f
-    assert np.array_equal(p["means"][:3], old["means"][[0, 4, 0]])
-    assert np.allclose(p["log_scales"][3:5], old["log_scales"][[1, 1]] - np.log(1.6), atol=1e-6)
-    # children lie within the parent's ellipsoid (4σ in its own frame)
-    w, x, y, z = old["quats"][1]
-    rot = Rotation.from_quat([x, y, z, w]).as_matrix()  # independent of our quaternion code
-    local = (p["means"][3:5] - old["means"][1]) @ rot / np.exp(old["log_scales"][1])
-    assert np.all(np.abs(local) < 4) and not np.allclose(p["means"][3], p["means"][4])
-    # padding rows are inert again; statistics restart
-    assert np.all(p["opacity_logits"][5:] == -20.0) and np.all(p["log_scales"][5:] == -10.0)
-    assert float(jnp.sum(new.grad_accum)) == 0 and int(jnp.sum(new.grad_count)) == 0
-    # Adam moments: survivors keep theirs, the clone and the children start from zero
-    for f in ("means", "opacity_logits"):
-        mu_old, nu_old = _moments(state.opt_state, f)
-        mu, nu = _moments(new.opt_state, f)
-        assert np.array_equal(mu[:2], mu_old[[0, 4]]) and np.array_equal(nu[:2], nu_old[[0, 4]])
-        assert np.all(mu[2:] == 0) and np.all(nu[2:] == 0) and np.any(mu_old[[0, 4]] != 0)
-
-
-def test_densify_grows_the_buffer_in_buckets():
-    state, cfg, extent = _adc_state()
-    # every live row is split (all above a tiny gradient threshold, all "large"), none pruned: 2 × 5 > 8
-    every = dataclasses.replace(cfg, densify_grad_threshold=1e-5, percent_dense=1e-6, min_opacity=0.0)
-    need = int(train.densify_count(state, every, extent, False))
-    assert need == 10
-    grown = train.densify_step(state, every, extent, prune_big=False)
-    assert grown.active.shape[0] == train.capacity_bucket(need) == 1024
-    assert int(jnp.sum(grown.active)) == need
-
-
-def test_split_children_sample_the_parent_gaussian():
-    """2000 split copies of one anisotropic rotated Gaussian: the children's empirical covariance
-    matches the closed form R·S²·Rᵀ of the parent."""
-    n = 2000
-    q = np.array([0.9, 0.3, -0.2, 0.25], np.float32)
-    s = np.array([0.3, 0.1, 0.05], np.float32)
-    g = cj.Gaussians(
-        np.zeros((n, 3), np.float32),
-        np.tile(q, (n, 1)),
-        np.tile(np.log(s), (n, 1)),
-        np.zeros(n, np.float32),
-        np.zeros((n, 3), np.float32),
-    )
-    cfg = train.TrainConfig(steps=10)
-    state = TrainState.create(g, train.make_optimizer(cfg, 1.0), jax.random.key(0), capacity=n)
-    state = dataclasses.replace(state, grad_accum=jnp.ones(n), grad_count=jnp.ones(n, jnp.int32))
-    new = train.densify_and_prune(state, cfg, 1.0, False, out_capacity=2 * n)
-    x = np.asarray(new.params["means"], np.float64)
-    r = Rotation.from_quat(q[[1, 2, 3, 0]].astype(np.float64)).as_matrix()
-    want = r @ np.diag(s.astype(np.float64) ** 2) @ r.T
-    assert np.allclose(np.cov(x.T), want, atol=0.08 * s[0] ** 2)
-    assert np.allclose(x.mean(0), 0, atol=4 * s[0] / np.sqrt(2 * n))
-
-
-def test_reset_opacity_caps_alpha_and_restarts_its_moments():
-    state, _, _ = _adc_state()
-    new = train.reset_opacity(state)
-    a_old = np.asarray(jax.nn.sigmoid(state.params["opacity_logits"]))[:5]
-    a_new = np.asarray(jax.nn.sigmoid(new.params["opacity_logits"]))[:5]
-    assert np.allclose(a_new, np.minimum(a_old, 0.01), rtol=1e-5)
-    mu, nu = _moments(new.opt_state, "opacity_logits")
-    assert np.all(mu == 0) and np.all(nu == 0)
-    for f in ("means", "colors"):
-        assert np.array_equal(_moments(new.opt_state, f)[0], _moments(state.opt_state, f)[0])
-
-
-def test_growing_the_buffer_does_not_change_a_training_step():
-    state, cfg, extent = _adc_state()
-    cam = cj.Camera.look_at([0.5, -4, 0.5], [0.5, 0.5, 0.3], width=32, height=24)
-    img = jnp.full((24, 32, 3), 0.3)
-    big = train.grow_capacity(state, out_capacity=24)
-    rc = splat.RenderConfig(capacity=4096)
-    opt = train.make_optimizer(dataclasses.replace(cfg, random_background=False), extent)
-    step = make_train_step(opt, dataclasses.replace(cfg, random_background=False), rc)
-    a, _ = step(state, cam, img)
-    b, _ = step(big, cam, img)
-    for f in a.params:
-        assert np.allclose(np.asarray(a.params[f])[:5], np.asarray(b.params[f])[:5], atol=1e-6), f
-    assert np.asarray(b.active).sum() == 5 and np.all(np.asarray(b.params["opacity_logits"][8:]) == -20)
-
-
-# ------------------------------------------------------------------------------------- the training run
-
-
 def _short(steps, **kw):
     base = dict(
         steps=steps,
@@ -348,12 +132,6 @@ def test_resume_after_a_stop_matches_an_uninterrupted_run(corals, tmp_path):
     with pytest.raises(cj.InputError, match=r"another training run \(it differs in config\.scale_lr: ") as refused:
         train.fit(scene, dataclasses.replace(cfg, scale_lr=1e-3), out=tmp_path / "b", resume=True, progress=False)
     assert refused.value.field == "train.scale_lr"
-
-
-def test_view_order_is_a_refilled_random_stack():
-    orders = [[train.view_order(7, e * 5 + k, 5) for k in range(5)] for e in range(3)]
-    assert all(sorted(o) == list(range(5)) for o in orders) and orders[0] != orders[1]
-    assert train.view_order(7, 12, 5) == orders[2][2]
 
 
 def test_train_cli_writes_a_model_continues_it_and_guards_the_output(corals, tmp_path, capsys, monkeypatch):
