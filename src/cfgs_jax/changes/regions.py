@@ -157,9 +157,10 @@ def _grow(member, free, k, pool, start, means, reach, limit) -> None:
         frontier = added
 
 
-#: The seeds of one date a region needs for that date's reference colour: a median of fewer colours is
-#: a poor estimate (a sample size, not a length or an area, so it holds at any scale).
-MIN_COLOUR_SAMPLE = 8
+#: The fewest Gaussians a median is taken over (a date's reference colour from its seeds, a height in a
+#: footprint's core or ring): of fewer it is a poor estimate (a sample size, not a length or an area, so
+#: it holds at any scale).
+MIN_SAMPLE = 8
 
 
 def complete_by_colour(
@@ -177,7 +178,7 @@ def complete_by_colour(
 ) -> np.ndarray:
     """[N] region index per Gaussian (``member``, −1: none) with every region completed by colour.
 
-    For region k and each date r holding at least ``MIN_COLOUR_SAMPLE`` of its ``seeds``, the reference
+    For region k and each date r holding at least ``MIN_SAMPLE`` of its ``seeds``, the reference
     colour c_kr is the per-channel median of those seeds' colours. A Gaussian i of date r that is
     ``eligible`` and in no region joins k when ‖c_i − c_kr‖₂ ≤ ``tolerance``, it lies within ``within`` ×
     D_k of one of the region's own Gaussians of date r (D_k the longest side of the region's bounding box)
@@ -200,7 +201,7 @@ def complete_by_colour(
         references = {}
         for r in np.unique(origin[mine]):
             own_seeds = mine & (origin == r) & seeds
-            if own_seeds.sum() >= MIN_COLOUR_SAMPLE:
+            if own_seeds.sum() >= MIN_SAMPLE:
                 references[r] = np.median(colors[own_seeds], axis=0)
         if not references or limit <= 0:
             continue
@@ -391,11 +392,11 @@ def rise_inside(idx: np.ndarray, shown: np.ndarray, ground: Ground) -> float | N
     of the region ``idx`` stands above the surface around it, as a share of the region's height over that
     surrounding surface: (median height in the core − median height in the ring) / (95th percentile of the
     region's heights − median height in the ring), with the footprint's core and ring as ``CORE`` and
-    ``RING`` say. None where a core, a ring or the region holds fewer than ``MIN_COLOUR_SAMPLE`` Gaussians
+    ``RING`` say. None where a core, a ring or the region holds fewer than ``MIN_SAMPLE`` Gaussians
     (a median needs a sample), where the ring's Gaussians span less than ``SURROUNDED`` of the grown
     footprint's area (a region covering most of the scene has no surroundings to compare with) or where
     the region does not stand above its ring."""
-    if len(idx) < MIN_COLOUR_SAMPLE:
+    if len(idx) < MIN_SAMPLE:
         return None
     foot = ground.plane[idx]
     centre = foot.mean(axis=0)
@@ -403,7 +404,7 @@ def rise_inside(idx: np.ndarray, shown: np.ndarray, ground: Ground) -> float | N
     where = ground.plane[others]
     core = others[_inside(where, centre + CORE * (foot - centre))]
     ring = others[_inside(where, centre + RING * (foot - centre)) & ~_inside(where, foot)]
-    if len(core) < MIN_COLOUR_SAMPLE or len(ring) < MIN_COLOUR_SAMPLE:
+    if len(core) < MIN_SAMPLE or len(ring) < MIN_SAMPLE:
         return None
     if _hull_area(ground.plane[ring]) < SURROUNDED * _hull_area(centre + RING * (foot - centre)):
         return None
