@@ -363,8 +363,7 @@ def ground_frame(means: np.ndarray) -> Ground:
         return Ground(means[:, 2].copy() if len(means) else np.zeros(0), means[:, :2].copy())
     lo, hi = np.percentile(means, 5, axis=0), np.percentile(means, 95, axis=0)
     inner = means[np.all((means >= lo) & (means <= hi), axis=1)]
-    axes = np.linalg.eigh(np.cov((inner if len(inner) >= 4 else means).T))[1]
-    up, a, b = axes[:, 0], axes[:, 1], axes[:, 2]
+    up, a, b = _principal_axes(inner if len(inner) >= 4 else means)  # least spread first
     heights = means @ up
     if np.mean(heights) < np.median(heights):
         heights = -heights
