@@ -4,6 +4,11 @@ figures with those of the file it replaces, each marked better or worse.
 
     python benchmarks/bench_quality.py publish --scene corals --out DIR --config benchmarks/eval_small.toml [--note TEXT]
         [--name NAME]
+    python benchmarks/bench_quality.py publish --rerender NAME
+
+``--rerender NAME`` writes ``NAME.md`` again from ``NAME.json`` (the table as its evaluation wrote it) with
+the report's current layout, keeping the header, note and comparison block it had, and saying so; the
+figures are the JSON's, so no number moves.
 
 DIR: the ``--out`` of ``python -m cfgs_jax.pipeline eval --scene S --config CFG --out DIR`` (finished:
 ``table.md`` and ``table.json`` present); the table's numbers go beside it as JSON (``table.json`` with the
@@ -127,14 +132,42 @@ def comparison(old: str, new: str) -> str:
     return "\n".join(lines).rstrip() + "\n"
 
 
+COMPARISON = "## Against the previous table"
+
+
+def rerender(name: str) -> Path:
+    """``NAME.md`` written again from ``NAME.json`` by the current ``table_markdown``: the header, note and
+    comparison block of the file as it was, a line naming the code that re-rendered it."""
+    from cfgs_jax.evaluation.report import table_markdown
+
+    target = RESULTS / f"{name}.md"
+    table = json.loads(target.with_suffix(".json").read_text())
+    old = target.read_text()
+    block = old[old.index(COMPARISON) :] if COMPARISON in old else ""
+    code = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True).stdout.strip()
+    line = (
+        f"Laid out again from `{name}.json` at code {code} by `python benchmarks/bench_quality.py publish "
+        f"--rerender {name}` ({datetime.date.today().isoformat()}); every figure is the JSON's."
+    )
+    parts = [table["header"], *([table["note"]] if table.get("note") else []), line, table_markdown(table).rstrip()]
+    target.write_text("\n\n".join(parts + ([block.rstrip()] if block else [])) + "\n")
+    return target
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--scene", required=True)
-    ap.add_argument("--out", required=True, help="the finished evaluation folder")
-    ap.add_argument("--config", required=True, help="the eval's configuration (e.g. benchmarks/eval_small.toml)")
+    ap.add_argument("--rerender", metavar="NAME", help="write results/NAME.md again from results/NAME.json")
+    ap.add_argument("--scene")
+    ap.add_argument("--out", help="the finished evaluation folder")
+    ap.add_argument("--config", help="the eval's configuration (e.g. benchmarks/eval_small.toml)")
     ap.add_argument("--note", default="", help="one paragraph on how the run was made")
     ap.add_argument("--name", help="the result file's stem (default: eval_SCENE)")
     args = ap.parse_args()
+    if args.rerender:
+        print(f"wrote {rerender(args.rerender)}")
+        return
+    if not (args.scene and args.out and args.config):
+        ap.error("--scene, --out and --config are required (or --rerender NAME)")
     out = Path(args.out)
     table_md = (out / "table.md").read_text()
     table = json.loads((out / "table.json").read_text())

@@ -10,7 +10,7 @@ def test_each_margin_carries_its_standard_error_over_the_test_views():
     """Ours N − Individual +N per test view (paired by place within each date), hand-computed: the
     margin is the mean of the differences (each date weighted by its test views, as the paper's average
     is) and its standard error is their sample deviation over √views; the table stars a margin within
-    two standard errors."""
+    two standard errors; the table gives one margin for every N that has both rows."""
     import statistics
 
     from cfgs_jax.evaluation.report import margins, table_markdown
@@ -40,9 +40,15 @@ def test_each_margin_carries_its_standard_error_over_the_test_views():
     assert m["psnr"] == pytest.approx(statistics.fmean(d), abs=1e-12)
     assert m["psnr_se"] == pytest.approx(statistics.stdev(d) / np.sqrt(8), rel=1e-12)
     assert m["lpips"] == pytest.approx(0.0) and m["lpips_se"] == pytest.approx(0.0)
-    table = {"scene": "s", "rows": [ours, ind], "margins": m, "dates": list(views), "test_views": views, "timings": {}}
+    later, later_ind = row("Ours 1,300", 2.0), row("Individual +1,300", 0.0)
+    rows = [ours, later, ind, later_ind]
+    table = {"scene": "s", "rows": rows, "margins": m, "dates": list(views), "test_views": views, "timings": {}}
     text = table_markdown(table)
-    star = "*" if abs(m["psnr"]) < 2 * m["psnr_se"] else ""
-    assert f"PSNR {m['psnr']:+.2f} ± {m['psnr_se']:.2f}{star} dB" in text
+    for n, a, b in ((100, ours, ind), (1300, later, later_ind)):  # every N with both rows, its own margin
+        mn = margins(rows, n)
+        assert mn["psnr"] == pytest.approx(a["psnr"] - b["psnr"], abs=1e-9)
+        star = "*" if abs(mn["psnr"]) < 2 * mn["psnr_se"] else ""
+        assert f"Ours − Individual at N = {n:,}: PSNR {mn['psnr']:+.2f} ± {mn['psnr_se']:.2f}{star} dB" in text
+    assert text.index("at N = 100:") < text.index("at N = 1,300:")
     del ours["per_date"]["d1"]["per_view"][0]  # a date whose two lists differ: no spread, the margin stays
     assert "psnr_se" not in margins([ours, ind], 100)

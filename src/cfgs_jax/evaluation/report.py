@@ -3,6 +3,7 @@ the figure grid (Individual +N₃ | Ours N₃ | ground truth per date) and the c
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import numpy as np
@@ -26,7 +27,7 @@ def _margin(ours: dict, ind: dict) -> dict:
 
 
 def margins(rows: list[dict], n: int) -> dict:
-    """Ours N against Individual +N at the largest N (``_margin``: > 0 is better), with each margin's
+    """Ours N against Individual +N (``_margin``: > 0 is better), with each margin's
     standard error over the test views (``margin_spread``) where both rows carry per-view metrics."""
     ours = next(r for r in rows if r["row"] == f"Ours {n:,}")
     ind = next(r for r in rows if r["row"] == f"Individual +{n:,}")
@@ -196,20 +197,38 @@ def _method_table(table: dict) -> list[str]:
         lines.append(
             f"| {r['row']} | {cell(r, 'psnr')} | {cell(r, 'ssim')} | {cell(r, 'lpips')} | {r['gaussians']:,} |"
         )
-    m = table["margins"]
-    return lines + [
+    return (
+        lines
+        + [line for n in _compared_steps(rows) for line in _margin_lines(table, n)]
+        + [
+            "",
+            *_refinement_counts(table.get("refine")),
+            "Stage wall times (s): " + ", ".join(f"{k} {v:.1f}" for k, v in table["timings"].items() if v is not None),
+        ]
+    )
+
+
+def _compared_steps(rows: list[dict]) -> list[int]:
+    """The step counts N with both an "Ours N" and an "Individual +N" row, in increasing order."""
+    names = {r["row"] for r in rows}
+    steps = {int(m[1].replace(",", "")) for name in names if (m := re.fullmatch(r"Ours ([\d,]+)", name))}
+    return sorted(n for n in steps if f"Individual +{n:,}" in names)
+
+
+def _margin_lines(table: dict, n: int) -> list[str]:
+    """Ours N − Individual +N (``margins``) as a sentence with each margin's standard error, then the
+    same date by date."""
+    m = margins(table["rows"], n)
+    return [
         "",
-        f"Ours − Individual at N = {m['steps']:,}: PSNR {_pm(m, 'psnr', 2)} dB, SSIM {_pm(m, 'ssim', 4)}, "
+        f"Ours − Individual at N = {n:,}: PSNR {_pm(m, 'psnr', 2)} dB, SSIM {_pm(m, 'ssim', 4)}, "
         f"LPIPS {_pm(m, 'lpips', 4)} (positive: ours better"
         + (
             f"; ± the standard error over {m['views']} test views, * where the margin is within two of them)."
             if "views" in m
             else ")."
         ),
-        *_per_date_margins(table),
-        "",
-        *_refinement_counts(table.get("refine")),
-        "Stage wall times (s): " + ", ".join(f"{k} {v:.1f}" for k, v in table["timings"].items() if v is not None),
+        *_per_date_margins(table, n),
     ]
 
 
@@ -221,10 +240,9 @@ def _pm(m: dict, key: str, digits: int) -> str:
     return f"{m[key]:+.{digits}f} ± {se:.{digits}f}" + ("*" if abs(m[key]) < 2 * se else "")
 
 
-def _per_date_margins(table: dict) -> list[str]:
-    """Ours N against Individual +N date by date at the largest N, where both rows carry each date's
-    test metrics (PSNR / SSIM / LPIPS; margins signed so that positive is ours better)."""
-    n = table["margins"]["steps"]
+def _per_date_margins(table: dict, n: int) -> list[str]:
+    """Ours N against Individual +N date by date, where both rows carry each date's test metrics
+    (PSNR / SSIM / LPIPS; margins signed so that positive is ours better)."""
     rows = {r["row"]: r for r in table["rows"]}
     ours, ind = rows.get(f"Ours {n:,}", {}), rows.get(f"Individual +{n:,}", {})
     if "per_date" not in ours or "per_date" not in ind:
