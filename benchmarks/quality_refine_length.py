@@ -3,12 +3,15 @@ against Individual +N at the same step counts.
 
     python benchmarks/bench_quality.py refine-length --eval DIR --steps 1000 3000 --name refine_length_flood
     python benchmarks/bench_quality.py refine-length --eval DIR --steps 1000 --variant 'α rate 0.05|lr_alpha=0.05'
+    python benchmarks/bench_quality.py refine-length --eval DIR --steps 1000 --schedule 3000 --variant …
 
 DIR: the ``--out`` of ``python -m cfgs_jax.pipeline eval`` (its ``run/``, or with ``--known-transforms``
 its ``known_transforms/run/``). Each variant (the run's own ``[refine]`` table, then each ``--variant
 'LABEL|key=value,…'`` of it) refines ``RUN/cross_init`` once for ``max(--steps)`` steps and is evaluated
 on the test views after every count in ``--steps`` (the eval's snapshots: the position schedule decays over
-the whole run). Individual +N trains each date's own model ``max(--steps)`` more steps (the eval's
+the whole run). ``--schedule S`` makes each refinement S steps long (its position schedule and last
+visibility check) and stops it after ``max(--steps)``: the eval's snapshot at N of an S-step run, at N's
+cost. Individual +N trains each date's own model ``max(--steps)`` more steps (the eval's
 baseline) in WORK, or is read from the eval's own when it evaluated every count. Every row states α's
 median and the share of Gaussians with α > 0.9 (refinement starts with α halved, and α's rate bounds how
 fast it comes back). Resumable: finished variants are read from
@@ -60,6 +63,7 @@ def main() -> None:
     ap.add_argument("--known-transforms", action="store_true", help="use its known_transforms/run")
     ap.add_argument("--steps", type=int, nargs="+", required=True)
     ap.add_argument("--variant", action="append", default=[], help="'LABEL|key=value,…' over [refine]")
+    ap.add_argument("--schedule", type=int, default=0, help="each refinement's length (≥ max(--steps))")
     ap.add_argument("--no-baseline", action="store_true", help="skip Individual +N")
     ap.add_argument("--work", default=None, help="default: DIR/refine_length")
     ap.add_argument("--name", default="refine_length")
@@ -77,6 +81,7 @@ def main() -> None:
     from cfgs_jax.sim3 import posed
 
     steps = sorted(set(args.steps))
+    length = max(args.schedule, max(steps))  # the refinement's own length; it stops after max(steps)
     eval_dir = Path(args.eval)
     run_dir = eval_dir / ("known_transforms/run" if args.known_transforms else "run")
     work = Path(args.work or eval_dir / "refine_length")
@@ -126,10 +131,12 @@ def main() -> None:
         cache = work / f"variant_{k}.json"
         done = json.loads(cache.read_text()) if cache.is_file() else None
         stale = done is not None and done.get("run", str(run_dir)) != str(run_dir)  # another run's cross-init
-        if done is not None and (stale or done["overrides"] != over or done["steps"] != steps):
+        if done is not None and (
+            stale or done["overrides"] != over or done["steps"] != steps or done.get("schedule", max(steps)) != length
+        ):
             done = None
         if done is None:
-            fc = dataclasses.replace(config.refine, **(over | {"steps": max(steps)}))
+            fc = dataclasses.replace(config.refine, **(over | {"steps": length}))
             got = []
 
             def snapshot(n, model, label=label, got=got):
@@ -144,13 +151,16 @@ def main() -> None:
                 extent=extent,
                 train_config=config.train,
                 render_config=config.render,
-                snapshot_steps=tuple(s for s in steps if s < max(steps)),
+                snapshot_steps=tuple(s for s in steps if s < length),
                 on_snapshot=snapshot,
+                stop_after=max(steps) if length > max(steps) else None,
                 checkpoint=work / f"variant_{k}_checkpoint.npz",
                 frame_dates=[i for i in range(len(run.names)) if i != run.reference],
             )
-            snapshot(max(steps), model)
+            if model is not None:  # else stopped after max(steps), whose snapshot was taken
+                snapshot(max(steps), model)
             done = {"overrides": over, "steps": steps, "rows": got, "seconds": time.perf_counter() - t0}
+            done["schedule"] = length
             done["run"] = str(run_dir)
             done["zeroed_per_date"] = report.get("zeroed_per_date")
             cache.write_text(json.dumps(done))
