@@ -65,6 +65,7 @@ def main() -> None:
     ap.add_argument("--variant", action="append", default=[], help="'LABEL|key=value,…' over [refine]")
     ap.add_argument("--schedule", type=int, default=0, help="each refinement's length (≥ max(--steps))")
     ap.add_argument("--no-baseline", action="store_true", help="skip Individual +N")
+    ap.add_argument("--variants-only", action="store_true", help="skip the run's own [refine] (Ours)")
     ap.add_argument("--work", default=None, help="default: DIR/refine_length")
     ap.add_argument("--name", default="refine_length")
     args = ap.parse_args()
@@ -126,7 +127,7 @@ def main() -> None:
     cross = read_fused(run_dir / "cross_init")
     rows.append(row("after cross-init (no refinement)", 0, evaluate(cross), cross))
 
-    variants = [("Ours", {})] + [parse_variant(v) for v in args.variant]
+    variants = ([] if args.variants_only else [("Ours", {})]) + [parse_variant(v) for v in args.variant]
     for k, (label, over) in enumerate(variants):
         cache = work / f"variant_{k}.json"
         done = json.loads(cache.read_text()) if cache.is_file() else None
