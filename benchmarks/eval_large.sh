@@ -6,6 +6,9 @@
 #   bash benchmarks/eval_large.sh WORK publish  # write results/eval_large_S.md for each finished scene
 #   bash benchmarks/eval_large.sh WORK stop     # stop every scene's lanes; each checkpoints its step first
 #   SCENES="quake" bash benchmarks/eval_large.sh WORK   # start or publish only these scenes (default: all three)
+#   SET="refine.lr_o=0.05 refine.lr_alpha=0.1" NAME=eval_large_o bash benchmarks/eval_large.sh WORK [publish]
+#                                               # every part run with these overrides (`--set`), published as
+#                                               # results/NAME_S.md (default NAME: eval_large)
 #
 # Each scene is the command `python -m cfgs_jax.pipeline eval --scene S --config benchmarks/eval_large.toml
 # --out WORK/S --resume --no-progress`, run as its parts (`--part`) so that both cores work: first
@@ -25,11 +28,14 @@ python=${PYTHON:-python}
 all_scenes="flood corals quake"
 scene_names=${SCENES:-$all_scenes}
 
+sets=()  # SET's overrides, each as --set ITEM
+for item in ${SET:-}; do sets+=(--set "$item"); done
+
 if [ "${2:-}" = "publish" ]; then
   for s in $scene_names; do
     if [ -f "$work/$s/table.md" ]; then
       "$python" benchmarks/bench_quality.py publish --scene "$s" --out "$work/$s" --config benchmarks/eval_large.toml \
-        --name "eval_large_$s"
+        --name "${NAME:-eval_large}_$s" "${sets[@]}"
     else
       echo "$s: not finished ($work/$s/table.md missing)"
     fi
@@ -50,8 +56,10 @@ fi
 part() {  # part S PART [ARGS...]: one part of scene S's evaluation, logged to WORK/S.log
   local s=$1 rc=0
   shift
-  "$python" -m cfgs_jax.pipeline eval --scene "$s" --config benchmarks/eval_large.toml --out "$work/$s" --resume \
-    --no-progress --part "$@" >>"$work/$s.log" 2>&1 || rc=$?
+  local -a sets=()
+  for item in ${SET:-}; do sets+=(--set "$item"); done
+  "$python" -m cfgs_jax.pipeline eval --scene "$s" --config benchmarks/eval_large.toml "${sets[@]}" --out "$work/$s" \
+    --resume --no-progress --part "$@" >>"$work/$s.log" 2>&1 || rc=$?
   echo "$s part $* rc=$rc $(date -u +%FT%TZ) code $(git rev-parse --short HEAD)" >>"$work/done.log"
   return $rc
 }
@@ -70,7 +78,7 @@ scenes() {  # each unfinished scene in turn: train, the two single-core lanes, t
   done
 }
 export -f part scenes
-export work python scene_names
+export work python scene_names SET
 # The compiled steps are kept on disk (JAX's persistent cache, shared with the tests' cache) so that a
 # restarted scene does not compile again (a training step took 10 minutes to compile on one busy core).
 export JAX_COMPILATION_CACHE_DIR=${JAX_COMPILATION_CACHE_DIR:-$HOME/.cache/cfgs_jax/xla}

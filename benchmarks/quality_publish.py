@@ -3,12 +3,16 @@ the command, the code and the run's stage times; the run's own ``table.md``; and
 figures with those of the file it replaces, each marked better or worse.
 
     python benchmarks/bench_quality.py publish --scene corals --out DIR --config benchmarks/eval_small.toml [--note TEXT]
-        [--name NAME]
+        [--name NAME] [--set TABLE.KEY=VALUE …]
     python benchmarks/bench_quality.py publish --rerender NAME
 
 ``--rerender NAME`` writes ``NAME.md`` again from ``NAME.json`` (the table as its evaluation wrote it) with
 the report's current layout, keeping the header, note and comparison block it had, and saying so; the
 figures are the JSON's, so no number moves.
+
+``--set`` names the overrides the evaluation was run with (its own ``--set``): each is written into the
+header's command and checked against the configuration the run stored, so a header cannot name a value
+the run did not use.
 
 DIR: the ``--out`` of ``python -m cfgs_jax.pipeline eval --scene S --config CFG --out DIR`` (finished:
 ``table.md`` and ``table.json`` present); the table's numbers go beside it as JSON (``table.json`` with the
@@ -154,6 +158,20 @@ def rerender(name: str) -> Path:
     return target
 
 
+def _checked_overrides(stored: dict, overrides: list[str], where: Path) -> list[str]:
+    """``overrides`` (``table.key=value``) as given, after checking that the run stored each value."""
+    from cfgs_jax.config import apply_overrides
+
+    for item in overrides:
+        key = item.partition("=")[0].strip()
+        wanted, found = apply_overrides({}, [item]), stored
+        for part in key.split("."):
+            wanted, found = wanted[part], found.get(part) if isinstance(found, dict) else None
+        if json.loads(json.dumps(found)) != json.loads(json.dumps(wanted)):
+            sys.exit(f"{where}: the run stored {key} = {found!r}, not the --set {item!r} named here")
+    return overrides
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--rerender", metavar="NAME", help="write results/NAME.md again from results/NAME.json")
@@ -162,6 +180,7 @@ def main():
     ap.add_argument("--config", help="the eval's configuration (e.g. benchmarks/eval_small.toml)")
     ap.add_argument("--note", default="", help="one paragraph on how the run was made")
     ap.add_argument("--name", help="the result file's stem (default: eval_SCENE)")
+    ap.add_argument("--set", action="append", default=[], metavar="TABLE.KEY=VALUE", help="the eval's overrides")
     args = ap.parse_args()
     if args.rerender:
         print(f"wrote {rerender(args.rerender)}")
@@ -174,11 +193,12 @@ def main():
     from cfgs_jax.io import RunDir
 
     run = RunDir.open(out / "run").state
+    sets = "".join(f" --set {item}" for item in _checked_overrides(run["config"], args.set, out / "run" / "run.json"))
     code = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True).stdout.strip()
     timings = json.loads((out / "run" / "timings.json").read_text())
     header = (
         f"Machine: {machine()}. Date: {datetime.date.today().isoformat()}. Command: `python -m cfgs_jax.pipeline "
-        f"eval --scene {args.scene} --config {args.config} --out DIR` (steps {table['steps']}; the configuration's "
+        f"eval --scene {args.scene} --config {args.config}{sets} --out DIR` (steps {table['steps']}; the configuration's "
         f"values are in DIR/run/run.json); written at code {code} by `python benchmarks/bench_quality.py publish --scene "
         f"{args.scene} --out DIR --config {args.config}"
         + (f" --name {args.name}" if args.name else "")

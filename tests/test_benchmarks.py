@@ -126,3 +126,16 @@ def test_every_published_result_names_the_command_of_the_suite_that_makes_it():
             if c.split()[1].startswith(("benchmarks/", ".ci/")) and Path(c.split()[1]).name not in entry
         ]
     assert not missing and not unknown, (missing, unknown)
+
+
+def test_a_published_header_names_only_overrides_the_run_stored():
+    """``publish --set``: an override the run stored is named as given; one it did not is refused."""
+    namespace = runpy.run_path(str(REPO / "benchmarks" / "quality_publish.py"), run_name="not_main")
+    check = namespace["_checked_overrides"]
+    stored = {"refine": {"lr_o": 0.05, "lr_alpha": 0.1}, "eval": {"ablations": []}}
+    given = ["refine.lr_o=0.05", "eval.ablations=[]"]
+    assert check(stored, given, Path("run.json")) == given
+    with pytest.raises(SystemExit, match="stored refine.lr_alpha = 0.1, not the --set 'refine.lr_alpha=0.2'"):
+        check(stored, ["refine.lr_alpha=0.2"], Path("run.json"))
+    with pytest.raises(SystemExit, match="stored refine.lr_color = None"):
+        check(stored, ["refine.lr_color=0.0025"], Path("run.json"))
