@@ -11,8 +11,8 @@ the report's current layout, keeping the header, note and comparison block it ha
 figures are the JSON's, so no number moves.
 
 ``--set`` names the overrides the evaluation was run with (its own ``--set``): each is written into the
-header's command and checked against the configuration the run stored, so a header cannot name a value
-the run did not use.
+header's command, and each of a table the run stores (the fusion's) is checked against the value stored, so
+a header cannot name a rate the run did not use.
 
 DIR: the ``--out`` of ``python -m cfgs_jax.pipeline eval --scene S --config CFG --out DIR`` (finished:
 ``table.md`` and ``table.json`` present); the table's numbers go beside it as JSON (``table.json`` with the
@@ -159,11 +159,15 @@ def rerender(name: str) -> Path:
 
 
 def _checked_overrides(stored: dict, overrides: list[str], where: Path) -> list[str]:
-    """``overrides`` (``table.key=value``) as given, after checking that the run stored each value."""
+    """``overrides`` (``table.key=value``) as given, after checking that the run stored each value of the
+    tables it stores (the fusion's; the ``[eval]`` and ``[scene]`` tables are the evaluation's own, not in
+    the run, and the table's rows show them)."""
     from cfgs_jax.config import apply_overrides
 
     for item in overrides:
         key = item.partition("=")[0].strip()
+        if key.split(".")[0] not in stored:
+            continue
         wanted, found = apply_overrides({}, [item]), stored
         for part in key.split("."):
             wanted, found = wanted[part], found.get(part) if isinstance(found, dict) else None
