@@ -206,6 +206,7 @@ def main():
         f"values are in DIR/run/run.json); written at code {code} by `python benchmarks/bench_quality.py publish --scene "
         f"{args.scene} --out DIR --config {args.config}"
         + (f" --name {args.name}" if args.name else "")
+        + sets
         + f"`. Stages done: {', '.join(run['done'])}; stage wall times "
         "(s): " + ", ".join(f"{k} {v:.0f}" for k, v in timings.items()) + "."
     )
