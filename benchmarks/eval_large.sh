@@ -28,8 +28,9 @@ python=${PYTHON:-python}
 all_scenes="flood corals quake"
 scene_names=${SCENES:-$all_scenes}
 
-sets=()  # SET's overrides, each as --set ITEM
-for item in ${SET:-}; do sets+=(--set "$item"); done
+read -r -a items <<<"${SET:-}"  # SET's overrides split at spaces, never globbed ("eval.ablations=[]")
+sets=()
+for item in "${items[@]}"; do sets+=(--set "$item"); done
 
 if [ "${2:-}" = "publish" ]; then
   for s in $scene_names; do
@@ -56,8 +57,9 @@ fi
 part() {  # part S PART [ARGS...]: one part of scene S's evaluation, logged to WORK/S.log
   local s=$1 rc=0
   shift
-  local -a sets=()
-  for item in ${SET:-}; do sets+=(--set "$item"); done
+  local -a sets=() items
+  read -r -a items <<<"${SET:-}"
+  for item in "${items[@]}"; do sets+=(--set "$item"); done
   "$python" -m cfgs_jax.pipeline eval --scene "$s" --config benchmarks/eval_large.toml "${sets[@]}" --out "$work/$s" \
     --resume --no-progress --part "$@" >>"$work/$s.log" 2>&1 || rc=$?
   echo "$s part $* rc=$rc $(date -u +%FT%TZ) code $(git rev-parse --short HEAD)" >>"$work/done.log"
