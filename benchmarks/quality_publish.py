@@ -161,18 +161,15 @@ def rerender(name: str) -> Path:
 def _checked_overrides(stored: dict, overrides: list[str], where: Path) -> list[str]:
     """``overrides`` (``table.key=value``) as given, after checking that the run stored each value of the
     tables it stores (the fusion's; the ``[eval]`` and ``[scene]`` tables are the evaluation's own, not in
-    the run, and the table's rows show them)."""
+    the run, and the table's rows show them): written over the stored configuration, they change nothing."""
     from cfgs_jax.config import apply_overrides
+    from cfgs_jax.io.run_dir import config_changes
 
-    for item in overrides:
-        key = item.partition("=")[0].strip()
-        if key.split(".")[0] not in stored:
-            continue
-        wanted, found = apply_overrides({}, [item]), stored
-        for part in key.split("."):
-            wanted, found = wanted[part], found.get(part) if isinstance(found, dict) else None
-        if json.loads(json.dumps(found)) != json.loads(json.dumps(wanted)):
-            sys.exit(f"{where}: the run stored {key} = {found!r}, not the --set {item!r} named here")
+    own = [item for item in overrides if item.partition("=")[0].strip().split(".")[0] in stored]
+    given = {k: v for k, v in apply_overrides(stored, own).items() if k != "__path__"}
+    changed = config_changes(stored, given)
+    if changed:
+        sys.exit(f"{where}: the run stored other values than the --set named here ({'; '.join(changed)})")
     return overrides
 
 

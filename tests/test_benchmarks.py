@@ -136,7 +136,7 @@ def test_a_published_header_names_only_overrides_the_run_stored():
     stored = {"refine": {"lr_o": 0.05, "lr_alpha": 0.1}}  # the run stores the fusion's tables, not [eval]
     given = ["refine.lr_o=0.05", "eval.ablations=[]"]
     assert check(stored, given, Path("run.json")) == given
-    with pytest.raises(SystemExit, match="stored refine.lr_alpha = 0.1, not the --set 'refine.lr_alpha=0.2'"):
+    with pytest.raises(SystemExit, match="named here \\(refine.lr_alpha: 0.1 → 0.2\\)"):
         check(stored, ["refine.lr_alpha=0.2"], Path("run.json"))
-    with pytest.raises(SystemExit, match="stored refine.lr_color = None"):
+    with pytest.raises(SystemExit, match="named here \\(refine.lr_color: \\(default\\) → 0.0025\\)"):
         check(stored, ["refine.lr_color=0.0025"], Path("run.json"))
