@@ -14,8 +14,10 @@
 # --out WORK/S --resume --no-progress`, run as its parts (`--part`) so that both cores work: first
 # `--part train` (the per-date models, on both cores), then two single-core processes side by side (on
 # the 2-core CPU two processes give about 1.5× the throughput of one on both cores): core 0 runs
-# `fusion` and `ablations` (three refinements as long as the fusion's), core 1 the Individual +N of
-# every date and `known_transforms`; then `--part all` writes the table. Every part
+# `fusion`, core 1 the Individual +N of every date and `known_transforms`; then each lane takes the
+# ablations (each a refinement as long as the fusion's, from its cross-init) one at a time, whichever
+# lane is free first (`--part ablations --set eval.ablations=["KEY"]`; a claim is a folder
+# WORK/S.claims/KEY, cleared when the scene starts again); then `--part all` writes the table. Every part
 # checkpoints, so running this again after the machine or the process stopped continues where each
 # part stopped. The scenes run one after the other (flood, corals, quake); one already running (a
 # process with its --out) is left alone. Publishing runs `benchmarks/bench_quality.py publish --scene S --out
@@ -65,21 +67,47 @@ part() {  # part S PART [ARGS...]: one part of scene S's evaluation, logged to W
   echo "$s part $* rc=$rc $(date -u +%FT%TZ) code $(git rev-parse --short HEAD)" >>"$work/done.log"
   return $rc
 }
+ablation_keys() {  # ablation_keys S: the ablations scene S's evaluation runs ([eval] ablations after SET)
+  local -a sets=() items
+  read -r -a items <<<"${SET:-}"
+  for item in "${items[@]}"; do sets+=("$item"); done
+  "$python" -c 'import sys
+from cfgs_jax.config import apply_overrides, load_config
+from cfgs_jax.evaluation.protocol import EvalSetup
+print(" ".join(EvalSetup.parse(apply_overrides(load_config(sys.argv[1]), sys.argv[2:])).ablation_keys))' \
+    benchmarks/eval_large.toml "${sets[@]}"
+}
+ablations() {  # ablations S KEY...: each ablation no other lane has claimed, one at a time, once the
+  # fusion's cross-init (their start) is done or the fusion's part has ended; one that fails is given back
+  local s=$1 key
+  shift
+  until [ -e "$work/$s.claims/.fusion_ended" ] || "$python" -c 'import json, sys
+sys.exit("cross_init" not in json.load(open(sys.argv[1])).get("done", []))' "$work/$s/run/run.json" 2>/dev/null; do
+    sleep 60
+  done
+  for key in "$@"; do
+    mkdir "$work/$s.claims/$key" 2>/dev/null || continue  # mkdir is atomic: one lane gets each key
+    part "$s" ablations --set "eval.ablations=[\"$key\"]" || rmdir "$work/$s.claims/$key"
+  done
+}
 scenes() {  # each unfinished scene in turn: train, the two single-core lanes, then the table
   local s
   for s in $scene_names; do
     [ -f "$work/$s/table.md" ] && continue
     pgrep -f -- "--out $work/$s( |$)" >/dev/null && continue  # another start is running it
     part "$s" train || continue
+    local keys
+    keys=$(ablation_keys "$s") || continue
+    rm -rf "$work/$s.claims" && mkdir -p "$work/$s.claims"
     (
-      taskset -c 0 bash -c "part $s fusion; part $s ablations" &
-      taskset -c 1 bash -c "part $s individual; part $s known_transforms" &
+      taskset -c 0 bash -c "part $s fusion; touch $work/$s.claims/.fusion_ended; ablations $s $keys" &
+      taskset -c 1 bash -c "part $s individual; part $s known_transforms; ablations $s $keys" &
       wait
     )
     part "$s" all
   done
 }
-export -f part scenes
+export -f part ablation_keys ablations scenes
 export work python scene_names SET
 # The compiled steps are kept on disk (JAX's persistent cache, shared with the tests' cache) so that a
 # restarted scene does not compile again (a training step took 10 minutes to compile on one busy core).
