@@ -97,7 +97,7 @@ scenes() {  # each unfinished scene in turn: train, the two single-core lanes, t
     pgrep -f -- "--out $work/$s( |$)" >/dev/null && continue  # another start is running it
     part "$s" train || continue
     local keys
-    keys=$(ablation_keys "$s") || continue
+    keys=$(ablation_keys "$s" 2>>"$work/$s.log") || continue  # a bad SET: the error is in WORK/S.log
     rm -rf "$work/$s.claims" && mkdir -p "$work/$s.claims"
     (
       taskset -c 0 bash -c "part $s fusion; touch $work/$s.claims/.fusion_ended; ablations $s $keys" &
