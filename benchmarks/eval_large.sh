@@ -81,6 +81,7 @@ ablations() {  # ablations S KEY...: each ablation no other lane has claimed, on
   # fusion's cross-init (their start) is done or the fusion's part has ended; one that fails is given back
   local s=$1 key
   shift
+  [ $# -gt 0 ] || return 0
   until [ -e "$work/$s.claims/.fusion_ended" ] || "$python" -c 'import json, sys
 sys.exit("cross_init" not in json.load(open(sys.argv[1])).get("done", []))' "$work/$s/run/run.json" 2>/dev/null; do
     sleep 60
