@@ -68,22 +68,22 @@ part() {  # part S PART [ARGS...]: one part of scene S's evaluation, logged to W
   return $rc
 }
 ablation_keys() {  # ablation_keys S: the ablations scene S's evaluation runs ([eval] ablations after SET)
-  local -a sets=() items
+  local -a items
   read -r -a items <<<"${SET:-}"
-  for item in "${items[@]}"; do sets+=("$item"); done
   "$python" -c 'import sys
 from cfgs_jax.config import apply_overrides, load_config
 from cfgs_jax.evaluation.protocol import EvalSetup
 print(" ".join(EvalSetup.parse(apply_overrides(load_config(sys.argv[1]), sys.argv[2:])).ablation_keys))' \
-    benchmarks/eval_large.toml "${sets[@]}"
+    benchmarks/eval_large.toml "${items[@]}"
 }
 ablations() {  # ablations S KEY...: each ablation no other lane has claimed, one at a time, once the
   # fusion's cross-init (their start) is done or the fusion's part has ended; one that fails is given back
   local s=$1 key
   shift
   [ $# -gt 0 ] || return 0
-  until [ -e "$work/$s.claims/.fusion_ended" ] || "$python" -c 'import json, sys
-sys.exit("cross_init" not in json.load(open(sys.argv[1])).get("done", []))' "$work/$s/run/run.json" 2>/dev/null; do
+  until [ -e "$work/$s.claims/.fusion_ended" ] || "$python" -c 'import sys
+from cfgs_jax.io.run_dir import RunDir
+sys.exit(not RunDir.open(sys.argv[1], finished=False).done("cross_init"))' "$work/$s/run" 2>/dev/null; do
     sleep 60
   done
   for key in "$@"; do
