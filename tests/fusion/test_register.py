@@ -118,3 +118,19 @@ def test_a_date_that_overlaps_only_a_later_date_registers_into_the_sfm_of_both(t
         assert abs(got.scale / want[k].scale - 1) < 0.01
         moved = np.linalg.norm(got.apply(centres) - want[k].apply(centres), axis=1)  # where its cameras land
         assert moved.max() / extent < 0.01
+
+
+def test_rotation_angle_is_the_axis_angle_at_every_size():
+    """The angle between R(axis, θ)·Q and Q for random axes and Q, θ from 1e-12 rad to π: θ to 1e-12 rad
+    (an arccos of the trace alone cannot resolve the small ones) and 0 for equal rotations."""
+    from cfgs_jax.fusion.register import rotation_angle
+
+    rng = np.random.default_rng(3)
+    for theta in (1e-12, 1e-9, 3e-4, 0.3, 1.0, 2.5, np.pi - 1e-7, np.pi):
+        axis = rng.normal(size=3)
+        axis /= np.linalg.norm(axis)
+        k = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+        turn = np.eye(3) + np.sin(theta) * k + (1 - np.cos(theta)) * k @ k  # Rodrigues
+        q = Sim3.random(rng).rotation
+        assert abs(rotation_angle(turn @ q, q) - theta) <= 1e-12, theta
+        assert rotation_angle(q, q) == 0.0

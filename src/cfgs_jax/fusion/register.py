@@ -394,9 +394,12 @@ def register_date(
 
 
 def rotation_angle(r1, r2) -> float:
-    """The angle of the rotation R₁R₂ᵀ in radians: arccos((tr(R₁R₂ᵀ) − 1) / 2)."""
-    c = (np.trace(np.asarray(r1, np.float64) @ np.asarray(r2, np.float64).T) - 1.0) / 2.0
-    return float(np.arccos(np.clip(c, -1.0, 1.0)))
+    """The angle of the rotation R = R₁R₂ᵀ in radians, atan2(|v|, tr R − 1) with v the axis vector
+    (R₃₂ − R₂₃, R₁₃ − R₃₁, R₂₁ − R₁₂) = 2 sin θ · axis: the arccos of (tr R − 1) / 2 without its loss
+    of precision near 0 (where the arccos of a float64 cosine cannot resolve angles below ~1e-8 rad)."""
+    r = np.asarray(r1, np.float64) @ np.asarray(r2, np.float64).T
+    v = np.array([r[2, 1] - r[1, 2], r[0, 2] - r[2, 0], r[1, 0] - r[0, 1]])
+    return float(np.arctan2(np.linalg.norm(v), np.trace(r) - 1.0))
 
 
 def centre_extent(centres) -> float:
