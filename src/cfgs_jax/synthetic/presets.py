@@ -53,7 +53,7 @@ class SceneSpec:
     def camera(self, date: int, image: int) -> Camera:
         m = np.asarray(self.dates[date].cam_from_world[image], np.float64)
         fx = 0.5 * self.width / np.tan(np.radians(self.fov_x_deg) / 2)
-        return Camera(fx, fx, self.width / 2, self.height / 2, m, width=self.width, height=self.height)
+        return Camera(fx, fx, self.width / 2, self.height / 2, width=self.width, height=self.height, cam_from_world=m)
 
 
 def _mat(m) -> tuple:
