@@ -84,8 +84,8 @@ class CrossInitConfig(Checked):
 
     # the paper: 3000 (same error at a sixth of the time, the README's "Run time against error")
     steps: Annotated[int, POSITIVE] = 500
-    lr_o: float = 0.0075
-    lr_light: float = 0.00375
+    lr_o: Annotated[float, NON_NEGATIVE] = 0.0075
+    lr_light: Annotated[float, NON_NEGATIVE] = 0.00375
     # the paper gives only δ < 1; 0.8 leaves unidentified o^q on the "persistent" side (the README's "Where we depart from the paper")
     delta: Annotated[float, msgspec.Meta(gt=0, le=1)] = 0.8
     epsilon_schedule: Literal["paper", "reference"] = "paper"
@@ -158,18 +158,18 @@ class RefineConfig(Checked):
     steps: Annotated[int, NON_NEGATIVE] = 6000
     # refinement steps when `extend` adds a date (0: ``steps``; the paper is silent)
     extend_steps: Annotated[int, NON_NEGATIVE] = 0
-    lr_o: float = 2.5e-6
-    lr_alpha: float = 0.005
-    lr_color: float = 2e-5  # f_dc units: the RGB colour moves C0 times this
-    lr_other: float = 5e-5
+    lr_o: Annotated[float, NON_NEGATIVE] = 2.5e-6
+    lr_alpha: Annotated[float, NON_NEGATIVE] = 0.005
+    lr_color: Annotated[float, NON_NEGATIVE] = 2e-5  # f_dc units: the RGB colour moves C0 times this
+    lr_other: Annotated[float, NON_NEGATIVE] = 5e-5
     position_lr_scale: Annotated[float, NON_NEGATIVE] = 1.0  # × [train]'s position schedule (0 freezes the positions)
     # Adam rate of the light logits l (0: frozen, the paper's refinement)
     lr_light: Annotated[float, NON_NEGATIVE] = 0.0
     # Adam rate of each registered date's frame correction (log-scale, rotation in radians, translation in
     # extents; 0: the registration is kept, the paper's refinement). See ``fusion.frames``.
     lr_frame: Annotated[float, NON_NEGATIVE] = 0.0
-    lambda_dssim: float = 0.2
-    lambda_change: float = 0.1
+    lambda_dssim: Annotated[float, UNIT] = 0.2
+    lambda_change: Annotated[float, NON_NEGATIVE] = 0.1
     halve_alpha: bool = True
     visibility_interval: Annotated[int, POSITIVE] = 2000
     extend_visibility: str = "drawn"  # "all" | "added" | "drawn": the older dates a check covers when a date is added
