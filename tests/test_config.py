@@ -1,5 +1,5 @@
 """Configuration files (cfgs_jax.config): the shipped TOML folder, presets, and unknown keys named with
-the closest known one."""
+the closest known one, and one message for a declared bound from a file and from Python."""
 
 import dataclasses
 import subprocess
@@ -10,6 +10,7 @@ import pytest
 
 from cfgs_jax import InputError
 from cfgs_jax.config import check_sections, from_dict, load_config, section
+from cfgs_jax.fusion.config import RunConfig
 
 from conftest import REPO
 
@@ -65,3 +66,20 @@ def test_config_unknown_key_suggests_closest(tmp_path):
     with pytest.raises(InputError, match=r"did you mean \[demo\]"):
         check_sections({"dmeo": {}, "__path__": "x"}, ["demo", "render"])
     assert from_dict(_Demo, {}) == _Demo()
+
+
+def test_declared_bounds_give_one_message_from_a_file_and_from_python():
+    """A bound declared on a field (``Annotated[float, msgspec.Meta(...)]``) is checked by msgspec when a
+    table is read and by ``Checked`` when a configuration is built in Python; both say the whole range
+    and the value, naming the table and key (and the file)."""
+    from cfgs_jax.changes import ChangesConfig
+    from cfgs_jax.config import describe_bounds, msgspec
+
+    assert describe_bounds(msgspec.Meta(gt=0, le=0.5)) == "in (0, 0.5]" and describe_bounds(msgspec.Meta(ge=1)) == "≥ 1"
+    with pytest.raises(InputError, match=r"mine\.toml: field 'changes\.grow_above': must be in \(0, 0\.5\], got 0\.7"):
+        RunConfig.parse({"changes": {"grow_above": 0.7}, "__path__": "mine.toml"})
+    with pytest.raises(InputError, match=r"field 'changes\.grow_above': must be in \(0, 0\.5\], got 0\.7"):
+        ChangesConfig(grow_above=0.7)
+    with pytest.raises(InputError, match=r"field 'train\.densify_interval': must be > 0, got 0"):
+        RunConfig.parse({"train": {"densify_interval": 0}})
+    assert RunConfig.parse({"changes": {"grow_above": 0.5}}).changes.grow_above == 0.5  # the bound itself

@@ -140,3 +140,21 @@ def test_select_concatenate_select_dates():
     with pytest.raises(InputError, match="different dates"):
         cfgs_jax.concatenate([m, other])
     assert cfgs_jax.num_dates(m) == 3
+
+
+def test_normalized_quats_are_unit_and_keep_the_rotation_and_a_zero_stays_finite():
+    """Each quaternion divided by its norm (scipy's rotation of q and of the result agree); the zero
+    quaternion, which no rotation has, gives zeros rather than NaN."""
+    rng = np.random.default_rng(6)
+    q = rng.normal(size=(50, 4)) * rng.uniform(0.01, 100, (50, 1))
+    q[0] = 0.0
+    g = Gaussians(np.zeros((50, 3)), q, np.zeros((50, 3)), np.zeros(50), np.zeros((50, 3)))
+    got = np.asarray(cfgs_jax.normalized_quats(g), np.float64)
+    assert np.all(np.isfinite(got)) and np.all(got[0] == 0)
+    np.testing.assert_allclose(np.linalg.norm(got[1:], axis=1), 1.0, atol=1e-6)
+    wxyz_to_xyzw = [1, 2, 3, 0]
+    np.testing.assert_allclose(
+        Rotation.from_quat(got[1:, wxyz_to_xyzw]).as_matrix(),
+        Rotation.from_quat(q[1:, wxyz_to_xyzw]).as_matrix(),
+        atol=1e-5,
+    )

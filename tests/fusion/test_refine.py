@@ -262,3 +262,64 @@ def test_visibility_rule_leaves_persistence_out_and_zeroes_hidden_gaussians():
     kept = np.asarray(out.o_logits)
     np.testing.assert_allclose(np.asarray(out.gaussians.means), means[[0, 1, 3]], atol=1e-6)
     assert np.isclose(kept[2, 1], logit(0.012), atol=1e-6)  # faint o, in view: kept
+
+
+def test_a_batch_of_views_takes_one_adam_step_on_the_mean_of_their_gradients():
+    """``refine.view_batch`` = 2 on one device: the step's loss is the mean of the two views' Eq. 3 losses
+    and its update Adam's first step on the mean of their gradients (each by ``jax.grad`` of
+    ``refine_loss``, averaged here); a batch of one view twice is that view's single step exactly."""
+    import optax
+
+    rf = importlib.import_module("cfgs_jax.fusion.refine")
+    dates = [small_random_gaussians(40, seed=s) for s in (0, 1)]
+    model = fusion.merge(dates, ["a", "b"])
+    cams = [
+        cj.Camera.look_at([x, -0.4, -2.5], [0, 0, 0], up=(0, -1, 0), width=40, height=32, fov_x_deg=55)
+        for x in (-0.5, 0.4)
+    ]
+    rng = np.random.default_rng(2)
+    images = [rng.uniform(size=(32, 40, 4)).astype(np.float32) for _ in cams]
+    config = fusion.RefineConfig(steps=10, view_batch=2, random_background=False, lr_o=0.05)
+    rc = splat.RenderConfig(capacity=1 << 14)
+    tc = cj.train.TrainConfig()
+    params, light, o_init = cj.model.trainable(model), jnp.asarray(model.light_logits), jnp.asarray(model.o_logits)
+    optimizer = fusion.updates.refinement_optimizer(config, 2.0, tc)
+    opt_state = optimizer.init(params)
+    keys = jax.random.split(jax.random.key(0), 2)
+    batch = rf._compiled_batch_step(config, 2.0, rc, tc, None)
+    stacked = jax.tree_util.tree_map(lambda *xs: jnp.stack(xs), *cams)
+    got, got_state, loss, _, overflowed = batch(
+        params, opt_state, light, o_init, stacked, jnp.stack(images), jnp.asarray([0, 1], jnp.int32), keys
+    )
+    assert not bool(overflowed)
+
+    def loss_of(p, cam, image, date):
+        return rf.refine_loss(p, light, o_init, cam, image, date, jnp.zeros(3), config, rc)[0]
+
+    losses, grads = zip(
+        *(jax.value_and_grad(loss_of)(params, c, jnp.asarray(im), d) for c, im, d in zip(cams, images, (0, 1)))
+    )
+    assert np.isclose(float(loss), np.mean([float(v) for v in losses]), rtol=1e-5)
+    mean = jax.tree_util.tree_map(lambda a, b: (a + b) / 2, *grads)
+    updates, want_state = optimizer.update(mean, opt_state, params)
+    want = optax.apply_updates(params, updates)
+    # Adam's moments hold the mean gradient itself (the update alone is scale-free on a first step)
+    for a, b in zip(jax.tree_util.tree_leaves(got_state), jax.tree_util.tree_leaves(want_state)):
+        a, b = np.asarray(a, np.float64), np.asarray(b, np.float64)
+        np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-6 * max(np.abs(b).max(initial=0), 1e-30))
+    for field in params:
+        g, w, p = (np.asarray(x[field]) for x in (mean, want, params))
+        steady = np.abs(g) > 1e-3 * np.abs(g).max()  # Adam's first step is the gradient's sign: skip near-ties
+        assert steady.mean() > 0.5, field
+        np.testing.assert_allclose(np.asarray(got[field])[steady], w[steady], rtol=1e-5, atol=1e-7, err_msg=field)
+        assert np.abs(w - p)[steady].max() > 0 or field == "means", field
+    _, single, _ = rf._compiled_step(config, 2.0, rc, tc)
+    one = single(params, opt_state, light, o_init, cams[0], jnp.asarray(images[0]), jnp.int32(0), keys[0])[0]
+    twice = batch(
+        params, opt_state, light, o_init, jax.tree_util.tree_map(lambda x: jnp.stack([x, x]), cams[0]),
+        jnp.stack([images[0]] * 2), jnp.asarray([0, 0], jnp.int32), keys,
+    )[0]  # fmt: skip
+    for field in params:
+        np.testing.assert_allclose(
+            np.asarray(twice[field]), np.asarray(one[field]), rtol=1e-6, atol=1e-7, err_msg=field
+        )

@@ -381,3 +381,38 @@ def test_sh_training_raises_one_band_per_interval_carries_the_coefficients_and_r
     )
     moved = np.abs(np.asarray(cont.gaussians.sh_rest) - rest)
     assert cont.gaussians.sh_degree == 2 and moved[:, 3:].max() > 0  # band 2 moved on the first step
+
+
+def test_a_saved_training_state_loads_back_bit_for_bit_and_only_under_its_settings(tmp_path):
+    """``train.save_checkpoint`` → ``train.load_checkpoint``: parameters, Adam moments, statistics, step
+    and RNG key equal bit for bit, the run's records in the metadata; another ``[train]`` setting is
+    refused naming it."""
+    import optax
+
+    g = with_sh_degree(cj.Gaussians(*(np.asarray(x) for x in _random_fields(7))), 1)
+    config = train.TrainConfig(steps=50, sh_degree=1)
+    optimizer = optax.adam(1e-3)
+    state = TrainState.create(g, optimizer, jax.random.key(11), capacity=12)
+    state = dataclasses.replace(state, step=jnp.asarray(5, state.step.dtype))
+    path = train.save_checkpoint(
+        tmp_path / "ck.npz", state, config=config, extent=2.5, render_capacity=4096, losses=[0.3, 0.2], counts=[7]
+    )
+    back, meta = train.load_checkpoint(path, optimizer, config)
+    for a, b in zip(jax.tree_util.tree_leaves(back), jax.tree_util.tree_leaves(state)):
+        if jnp.issubdtype(jnp.asarray(b).dtype, jax.dtypes.prng_key):
+            a, b = jax.random.key_data(a), jax.random.key_data(b)
+        assert np.asarray(a).tobytes() == np.asarray(b).tobytes()
+    assert (meta["step"], meta["capacity"], meta["render_capacity"], meta["losses"]) == (5, 12, 4096, [0.3, 0.2])
+    with pytest.raises(InputError, match="train.steps"):
+        train.load_checkpoint(path, optimizer, dataclasses.replace(config, steps=60))
+
+
+def _random_fields(n: int):
+    rng = np.random.default_rng(n)
+    return (
+        rng.normal(size=(n, 3)).astype(np.float32),
+        rng.normal(size=(n, 4)).astype(np.float32),
+        rng.normal(-2, 0.3, (n, 3)).astype(np.float32),
+        rng.normal(size=n).astype(np.float32),
+        rng.uniform(size=(n, 3)).astype(np.float32),
+    )
