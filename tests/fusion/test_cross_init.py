@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 import cfgs_jax as cj
-from cfgs_jax import fusion, splat
+from cfgs_jax import InputError, fusion, splat
 from cfgs_jax.fusion import updates
 
 from conftest import small_random_gaussians
@@ -194,6 +194,15 @@ def test_batched_pairs_equal_the_pairs_one_by_one():
         assert np.isclose(rb["loss_last"], ro["loss_last"], rtol=1e-4) and np.isclose(
             rb["mean_o"], ro["mean_o"], rtol=1e-4
         )
+    # the public entry point groups the two pairs of one p into that same step call
+    via, rv = ci.cross_init(model, [v1, v1, v2], cfg, pairs=[(0, 1), (0, 2)])
+    for name in ("o_logits", "light_logits"):
+        np.testing.assert_array_equal(np.asarray(getattr(via, name)), np.asarray(getattr(both, name)))
+    assert [r["pair"] for r in rv] == [r["pair"] for r in reps]
+    with pytest.raises(InputError, match="2 date views for a model of 3 dates"):
+        ci.cross_init(model, [v1, v2], cfg)
+    with pytest.raises(InputError, match=r"invalid pair \(1, 1\)"):
+        ci.cross_init(model, [v1, v1, v2], cfg, pairs=[(1, 1)])
     # grouping: consecutive pairs of one p and one image shape, at most `batch` per group; then the
     # pairs left alone, across dates p, by image shape
     small = ci.DateViews(wide[:1], (np.zeros((32, 40, 3), np.float32),))
