@@ -287,7 +287,7 @@ def test_a_batch_of_views_takes_one_adam_step_on_the_mean_of_their_gradients():
     opt_state = optimizer.init(params)
     keys = jax.random.split(jax.random.key(0), 2)
     batch = rf._compiled_batch_step(config, 2.0, rc, tc, None)
-    stacked = jax.tree_util.tree_map(lambda *xs: jnp.stack(xs), *cams)
+    stacked = cj.parallel.stack(cams)  # as refinement stacks a batch's cameras
     got, got_state, loss, _, overflowed = batch(
         params, opt_state, light, o_init, stacked, jnp.stack(images), jnp.asarray([0, 1], jnp.int32), keys
     )
@@ -316,7 +316,7 @@ def test_a_batch_of_views_takes_one_adam_step_on_the_mean_of_their_gradients():
     _, single, _ = rf._compiled_step(config, 2.0, rc, tc)
     one = single(params, opt_state, light, o_init, cams[0], jnp.asarray(images[0]), jnp.int32(0), keys[0])[0]
     twice = batch(
-        params, opt_state, light, o_init, jax.tree_util.tree_map(lambda x: jnp.stack([x, x]), cams[0]),
+        params, opt_state, light, o_init, cj.parallel.stack([cams[0]] * 2),
         jnp.stack([images[0]] * 2), jnp.asarray([0, 0], jnp.int32), keys,
     )[0]  # fmt: skip
     for field in params:

@@ -1,25 +1,14 @@
 """EWA projection (cfgs_jax.splat.project) against a float64 numpy derivation of 3DGS §4 written out here:
-Σ = R S Sᵀ Rᵀ from the quaternion's rotation (by numpy's own formula), Σ2D = J W Σ Wᵀ Jᵀ + ε·I with the
+Σ = R S Sᵀ Rᵀ from the quaternion's rotation (scipy's), Σ2D = J W Σ Wᵀ Jᵀ + ε·I with the
 Jacobian of the perspective map at the frustum-clamped point, its inverse by ``numpy.linalg.inv``, the 3σ
 radius from ``numpy.linalg.eigvalsh`` and INRIA's tile rectangle."""
 
 import jax
 import numpy as np
 from kernel_cases import camera, scene
+from scipy.spatial.transform import Rotation
 
 from cfgs_jax import splat
-
-
-def _rotation(q: np.ndarray) -> np.ndarray:
-    """[N, 3, 3] rotations of wxyz quaternions: q v q* applied to the unit axes, in float64."""
-    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
-    w, v = q[:, :1], q[:, 1:]
-    cols = []
-    for axis in np.eye(3):
-        a = np.broadcast_to(axis, v.shape)
-        t = 2.0 * np.cross(v, a)
-        cols.append(a + w * t + np.cross(v, t))  # Rodrigues' form of q a q*
-    return np.stack(cols, -1)
 
 
 def _expected(g, cam, cfg):
@@ -34,7 +23,7 @@ def _expected(g, cam, cfg):
     jac = np.zeros((len(z), 2, 3))
     jac[:, 0, 0], jac[:, 0, 2] = fx / z, -fx * tx / z**2
     jac[:, 1, 1], jac[:, 1, 2] = fy / z, -fy * ty / z**2
-    rs = _rotation(quats) * np.exp(logs)[:, None, :]
+    rs = Rotation.from_quat(quats[:, [1, 2, 3, 0]]).as_matrix() * np.exp(logs)[:, None, :]  # wxyz → scipy's xyzw
     sigma = rs @ np.swapaxes(rs, 1, 2)
     t = jac @ w2c[:3, :3]
     cov = t @ sigma @ np.swapaxes(t, 1, 2) + cfg.eps2d * np.eye(2)

@@ -17,7 +17,7 @@ from cfgs_jax.io import read_colmap, read_ply, write_ply
 from cfgs_jax.model import gaussians_of, trainable, with_sh_degree
 from cfgs_jax.train.step import TrainState, make_train_step
 
-from conftest import rendered_dataset
+from conftest import random_gaussians, rendered_dataset
 
 
 @pytest.fixture(scope="module")
@@ -389,7 +389,7 @@ def test_a_saved_training_state_loads_back_bit_for_bit_and_only_under_its_settin
     refused naming it."""
     import optax
 
-    g = with_sh_degree(cj.Gaussians(*(np.asarray(x) for x in _random_fields(7))), 1)
+    g = with_sh_degree(random_gaussians(7, seed=7), 1)
     config = train.TrainConfig(steps=50, sh_degree=1)
     optimizer = optax.adam(1e-3)
     state = TrainState.create(g, optimizer, jax.random.key(11), capacity=12)
@@ -405,14 +405,3 @@ def test_a_saved_training_state_loads_back_bit_for_bit_and_only_under_its_settin
     assert (meta["step"], meta["capacity"], meta["render_capacity"], meta["losses"]) == (5, 12, 4096, [0.3, 0.2])
     with pytest.raises(InputError, match="train.steps"):
         train.load_checkpoint(path, optimizer, dataclasses.replace(config, steps=60))
-
-
-def _random_fields(n: int):
-    rng = np.random.default_rng(n)
-    return (
-        rng.normal(size=(n, 3)).astype(np.float32),
-        rng.normal(size=(n, 4)).astype(np.float32),
-        rng.normal(-2, 0.3, (n, 3)).astype(np.float32),
-        rng.normal(size=n).astype(np.float32),
-        rng.uniform(size=(n, 3)).astype(np.float32),
-    )
