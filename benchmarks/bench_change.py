@@ -21,6 +21,9 @@ flagging everything, the o^q < 0.2 rule, and the score alone (s > 0.5, no region
         # and the depth behind them (results/change_probe.md)
     python benchmarks/bench_change.py pixels WORK CELL [CELL ...]
         # whether the changes show per pixel in the date models' renders (results/change_pixels.md)
+    python benchmarks/bench_change.py surface WORK CELL [CELL ...] [--pairs 0:3,3:0]
+        # whether the evidence ranks the Gaussians over changed surface first, with the fused model or
+        # only date q's own Gaussians behind them (results/change_surface.md)
     python benchmarks/bench_change.py rules --run RUN --data DATA --scene NAME --cache DIR [--full] \
         [--rule LABEL changes.KEY=VALUE ...]...   # region rules on one run (change_rules.py)
     python benchmarks/bench_change.py cost --run RUN [--date 1] [--views 6] [--per-pass 1 4]
@@ -470,6 +473,93 @@ def pixel_probe(work: Path, cells: list) -> None:
     (RESULTS / "change_pixels.md").write_text("\n".join(lines) + "\n")
 
 
+def surface_probe(work: Path, cells: list, pairs: list[tuple[int, int]] | None) -> None:
+    """Per fused cell and ordered pair (p tested, q observing): does the residual evidence rank date p's
+    Gaussians over the surface that changed first? A Gaussian is on changed surface when more than 0.3 of
+    its compositing weight over q's test views (the fused render at q with date p's Gaussians present)
+    lies on the ground truth's changed pixels (``masks/changed_vs_<p>``). For the evidence e over q's
+    views (``[changes] views``) with the fused model behind date p's Gaussians (the detector's rule) and
+    with only q's own Gaussians behind them (the other dates' o^q set invisible), pooled as configured and
+    not pooled: e's median and 99th percentile on and off changed surface, the area under the ROC curve of
+    e, the share of changed surface among the 200 highest e, and how many pass τ. Writes
+    results/change_surface.md."""
+    import equinox as eqx
+    import jax.numpy as jnp
+
+    from cfgs_jax import splat
+    from cfgs_jax.app.render_run import open_run
+    from cfgs_jax.changes import ChangesConfig, pair_statistics
+    from cfgs_jax.changes.evidence import evidence_from
+    from cfgs_jax.evaluation.protocol import date_masks
+    from cfgs_jax.fusion.fuse import INVISIBLE_LOGIT
+    from cfgs_jax.io.run_dir import date_cameras, date_views
+    from cfgs_jax.model import opacity_multipliers
+
+    config = ChangesConfig()
+    lines = [
+        "# Does the evidence rank the Gaussians over changed surface first? (bench_change.py surface)",
+        "",
+        f"{_provenance()} Per ordered pair, date p's Gaussians observed at q; on changed surface: more than 0.3 of "
+        "a Gaussian's compositing weight over q's test views on the ground truth's changed pixels. Background: the "
+        "fused model at q behind date p's Gaussians (the detector's rule) or q's own Gaussians only. e: the "
+        f"evidence (RMS residual with p's Gaussians minus without, gain-fitted), pooled over {config.pool_area:g} "
+        f"of a view or not pooled; τ = {config.threshold}. AUC: of e for the Gaussians on changed surface.",
+    ]
+    for cell in cells:
+        out = fused_cell(cell_dir(work, cell))
+        run = open_run(out / "run")
+        model, rc = run.model, run.config.render
+        names = [d.name for d in model.dates]
+        origin = np.asarray(model.origin)
+        means = np.asarray(model.gaussians.means, np.float64)
+        masks = date_masks(out / "data", run.scenes, run.sims, names, "test")
+        views = [date_views(sc, sm, config.views) for sc, sm in zip(run.scenes, run.sims)]
+        support = [date_cameras(sc, sm) for sc, sm in zip(run.scenes, run.sims)]
+        t = model.num_dates
+        lines += [
+            "",
+            f"## {out.name}",
+            "",
+            "| p at q | background | pool | on changed surface | e median: on / off | e 99 %: on / off | AUC "
+            "| top 200 on | e > τ (on) |",
+            "|---|---|---:|---:|---|---|---:|---:|---:|",
+        ]
+        for p, q in pairs or [(p, q) for p in range(t) for q in range(t) if p != q]:
+            for background in ("fused", "own"):
+                m = model
+                if background == "own":
+                    o_logits = np.array(model.o_logits)
+                    o_logits[(origin != p) & (origin != q), q] = INVISIBLE_LOGIT
+                    m = eqx.tree_at(lambda x: x.o_logits, model, jnp.asarray(o_logits, model.o_logits.dtype))
+                stats = pair_statistics(m, views, config, pairs=[(p, q)], support_cameras=support, render_config=rc)
+                o = np.asarray(opacity_multipliers(m), np.float32)
+                present = jnp.asarray(np.where(origin == p, o[:, p], o[:, q])[None])
+                weight = np.zeros((2, len(origin)))
+                for v, cam in enumerate(date_views(run.scenes[q], run.sims[q], "test").cameras):
+                    changed = np.asarray(masks[q].changed_vs[names[p]][v]).astype(np.float32)
+                    maps = jnp.asarray(np.stack([np.ones_like(changed), changed])[:, None])
+                    weight += np.asarray(splat.summed_weight_maps(m.gaussians, cam, present, maps, config=rc))[:, 0]
+                for pool in (config.pool_area, 0.0):
+                    ev = evidence_from(stats, means, dataclasses.replace(config, pool_area=pool))
+                    mine = (origin == p) & (weight[0] > 1e-3) & ev.observed[:, q]
+                    on = weight[1, mine] / weight[0, mine] > 0.3
+                    e = ev.evidence[mine, q]
+                    if not on.any() or on.all():
+                        lines.append(
+                            f"| {names[p]} at {names[q]} | {background} | {pool:g} | {int(on.sum())} | – | – | – | – | – |"
+                        )
+                        continue
+                    top = np.argsort(-e)[:200]
+                    q2 = lambda a, x: f"{np.percentile(a[on], x):.4f} / {np.percentile(a[~on], x):.4f}"
+                    passed = e > config.threshold
+                    lines.append(
+                        f"| {names[p]} at {names[q]} | {background} | {pool:g} | {int(on.sum())} / {len(e)} | {q2(e, 50)} "
+                        f"| {q2(e, 99)} | {_auc(on, e):.3f} | {on[top].mean():.3f} | {int(passed.sum())} ({int((passed & on).sum())}) |"
+                    )
+                    print(lines[-1], flush=True)
+    (RESULTS / "change_surface.md").write_text("\n".join(lines) + "\n")
+
+
 def merged_rows(rows: list[dict], earlier: Path) -> list[dict]:
     """``rows`` (scored now, under WORK) and the rows of the ``earlier`` results file whose cells they do not
     hold and that were scored with the same detector setting, those marked ``kept`` (scored on an earlier
@@ -538,6 +628,7 @@ SWEEP = {
     "threshold": "F1 against the threshold τ on fused cells",
     "probe": "what limits the evidence on fused cells",
     "pixels": "whether the changes show per pixel in the date models' renders (fused cells)",
+    "surface": "whether the evidence ranks the Gaussians over changed surface first (fused cells)",
 }
 
 
@@ -585,6 +676,7 @@ def main(argv: list[str] | None = None):
         p.add_argument("--set", dest="overrides", action="append", default=[], metavar="changes.KEY=VALUE")
         p.add_argument("--name", default="change_sweep", help="results file stem (table)")
         p.add_argument("--tau", default="0.03,0.04,0.05,0.06,0.08,0.10", help="thresholds τ (threshold)")
+        p.add_argument("--pairs", default="", help="ordered pairs p:q, comma-separated (surface; default: all)")
     sub.add_parser("readme", help="results/change_sweep.json into README.md: F1 / pixel IoU per scene and cell")
     for action, text in (("rules", "region rules compared on one run"), ("cost", "the residual sums' cost")):
         sub.add_parser(action, help=f"{text} (its own options: {action} --help)", add_help=False)
@@ -616,6 +708,10 @@ def main(argv: list[str] | None = None):
         return
     if args.action == "pixels":
         pixel_probe(work, [parse_cell(c) for c in args.cells])
+        return
+    if args.action == "surface":
+        pairs = [tuple(int(x) for x in pq.split(":")) for pq in args.pairs.split(",") if pq]
+        surface_probe(work, [parse_cell(c) for c in args.cells], pairs or None)
         return
     if args.action == "threshold":
         threshold_curve(
