@@ -476,7 +476,7 @@ def pixel_probe(work: Path, cells: list) -> None:
 def surface_probe(work: Path, cells: list, pairs: list[tuple[int, int]] | None) -> None:
     """Per fused cell and ordered pair (p tested, q observing): does the residual evidence rank date p's
     Gaussians over the surface that changed first? A Gaussian is on changed surface when more than 0.3 of
-    its compositing weight over q's test views (the fused render at q with date p's Gaussians present)
+    its compositing weight over q's test views (the row's background with date p's Gaussians present)
     lies on the ground truth's changed pixels (``masks/changed_vs_<p>``). For the evidence e over q's
     views (``[changes] views``) with the fused model behind date p's Gaussians (the detector's rule) and
     with only q's own Gaussians behind them (the other dates' o^q set invisible), pooled as configured and
@@ -535,7 +535,7 @@ def surface_probe(work: Path, cells: list, pairs: list[tuple[int, int]] | None) 
                 o = np.asarray(opacity_multipliers(m), np.float32)
                 present = jnp.asarray(np.where(origin == p, o[:, p], o[:, q])[None])
                 weight = np.zeros((2, len(origin)))
-                for v, cam in enumerate(date_views(run.scenes[q], run.sims[q], "test").cameras):
+                for v, cam in enumerate(run.date_cameras(q, "test")):
                     changed = np.asarray(masks[q].changed_vs[names[p]][v]).astype(np.float32)
                     maps = jnp.asarray(np.stack([np.ones_like(changed), changed])[:, None])
                     weight += np.asarray(splat.summed_weight_maps(m.gaussians, cam, present, maps, config=rc))[:, 0]
