@@ -8,7 +8,8 @@ through ``benchmarks/test_times.sh`` (the suite's entry point for the tests' run
 Runs pytest with this file as a plugin (``-p compile_profile``) and an empty JAX compilation cache; the
 plugin turns on ``jax_log_compiles`` in every pytest process and records each "Finished XLA compilation
 of NAME in S sec" record with the test running at the time. Prints the totals, then compile seconds and
-counts by test file, by program, by test and, for the stages' ``jit(step)``, by test, and writes them to ``--out`` (default
+counts by test file, by program, by test, for the stages' ``jit(step)`` by test, and for the programs under 0.1 s each (mostly
+single operations run outside ``jit``) by the line of the project's code that called them, and writes them to ``--out`` (default
 ``benchmarks/results/compile_profile.md``) with the command, machine, date and XLA flags.
 """
 
@@ -29,6 +30,20 @@ from pathlib import Path
 _RECORD = re.compile(r"Finished XLA compilation of (.+?) in ([0-9.e+-]+) sec")
 _HIT = "Persistent compilation cache hit"
 _state = {"test": "<collection>", "rows": [], "busy": 0.0, "last": 0.0, "hit": False}
+_OURS = (f"{os.sep}src{os.sep}cfgs_jax{os.sep}", f"{os.sep}tests{os.sep}", f"{os.sep}benchmarks{os.sep}")
+
+
+def _call_site() -> str:
+    """The innermost frame of the project's own code (the package, the tests, the benchmarks) on the current
+    stack, as ``path:line (function)`` relative to the checkout: the line whose call compiled the program."""
+    frame = sys._getframe(2)
+    while frame is not None:
+        name = frame.f_code.co_filename
+        if any(part in name for part in _OURS) and not name.endswith("compile_profile.py"):
+            where = name[name.rfind(next(p for p in _OURS if p in name)) + 1 :]
+            return f"{where}:{frame.f_lineno} ({frame.f_code.co_name})"
+        frame = frame.f_back
+    return "<outside the project>"
 
 
 class _Compilations(logging.Handler):
@@ -42,7 +57,8 @@ class _Compilations(logging.Handler):
             return
         found = _RECORD.search(message)
         if found:
-            _state["rows"].append((_state["test"], found.group(1), float(found.group(2)), _state["hit"]))
+            row = (_state["test"], found.group(1), float(found.group(2)), _state["hit"], _call_site())
+            _state["rows"].append(row)
             _state["hit"] = False
 
 
@@ -116,17 +132,21 @@ def main() -> None:
     summary = (result.stdout.strip().splitlines() or ["(no output)"])[-1]
     by_file, by_program = collections.defaultdict(lambda: [0, 0.0]), collections.defaultdict(lambda: [0, 0.0])
     by_test, steps = collections.defaultdict(lambda: [0, 0.0]), collections.defaultdict(lambda: [0, 0.0])
-    loads = [seconds for *_, seconds, hit in rows if hit]
-    rows = [(test, program, seconds) for test, program, seconds, hit in rows if not hit]
-    for test, program, seconds in rows:
-        for totals, key in ((by_file, test.split("::")[0]), (by_program, program), (by_test, test)):
+    by_site = collections.defaultdict(lambda: [0, 0.0])
+    loads = [seconds for _, _, seconds, hit, _ in rows if hit]
+    rows = [(test, program, seconds, site) for test, program, seconds, hit, site in rows if not hit]
+    for test, program, seconds, site in rows:
+        keys = [(by_file, test.split("::")[0]), (by_program, program), (by_test, test)]
+        if seconds < 0.1:
+            keys.append((by_site, site))
+        for totals, key in keys:
             totals[key][0] += 1
             totals[key][1] += seconds
         if program == "jit(step)":  # the stages' compiled steps: one per configuration and shape
             steps[test][0] += 1
             steps[test][1] += seconds
-    total = sum(seconds for *_, seconds in rows)
-    small = [seconds for *_, seconds in rows if seconds < 0.1]
+    total = sum(seconds for _, _, seconds, _ in rows)
+    small = [seconds for _, _, seconds, _ in rows if seconds < 0.1]
     code = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=repo, capture_output=True, text=True)
     lines = [
         "# Where a cold test run's time goes: XLA compilations by test file and program",
@@ -149,6 +169,8 @@ def main() -> None:
         *_table(by_test, "test (its setup included)", args.top),
         "",
         *_table(steps, "test compiling a stage's `jit(step)`", args.top),
+        "",
+        *_table(by_site, "line of the project's code that compiled programs under 0.1 s each", args.top),
         "",
     ]
     text = "\n".join(lines)

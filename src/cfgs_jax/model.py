@@ -497,15 +497,27 @@ def covariances(g: Gaussians) -> Float[Array, "N 3 3"]:
 # Selection and concatenation along the Gaussian axis
 
 
-def _index(x, idx):
-    return x[idx]
+def _rows(model, idx):
+    return jax.tree_util.tree_map(lambda x: jnp.asarray(x)[idx], model)
+
+
+_rows_compiled = jax.jit(_rows)
 
 
 def select(model, idx):
-    """Gaussians ``idx`` (int indices or a boolean mask over N) of a Gaussians or TemporalGaussians."""
+    """Gaussians ``idx`` (int indices or a boolean mask over N) of a Gaussians or TemporalGaussians.
+
+    Outside a trace every field is gathered by one compiled program per model layout and index count
+    (a gather per field run one by one would compile one program per field); a boolean mask is turned
+    into the indices of its true entries first. Inside a trace the gathers join the caller's program."""
     if isinstance(idx, (np.ndarray, jax.Array)) and idx.dtype == bool and idx.shape != (len(model),):
         raise InputError(f"boolean mask of shape {list(idx.shape)} for N={len(model)}", field="select.idx")
-    return jax.tree_util.tree_map(lambda x: _index(x, idx), model)
+    if is_traced(model, idx) or isinstance(idx, (int, np.integer, slice)):
+        return _rows(model, idx)
+    idx = np.asarray(idx)
+    if idx.dtype == bool:
+        idx = np.nonzero(idx)[0]
+    return _rows_compiled(model, idx)
 
 
 def concatenate(models: Sequence):

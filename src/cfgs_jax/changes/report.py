@@ -13,8 +13,6 @@ from __future__ import annotations
 import dataclasses
 from pathlib import Path
 
-import jax
-import jax.numpy as jnp
 import numpy as np
 
 from cfgs_jax.changes.config import ChangesConfig
@@ -25,6 +23,7 @@ from cfgs_jax.io.atomic import write_json, write_text
 from cfgs_jax.io.images import write_image
 from cfgs_jax.io.ply import write_ply
 from cfgs_jax.io.run_dir import registered_cameras
+from cfgs_jax.model import select
 
 OVERLAY_COLOUR = np.array([1.0, 0.0, 1.0], np.float32)  # magenta
 
@@ -80,7 +79,7 @@ def detect_changes(
     )
     change = found.pairs[(p, q)]
     rows = np.nonzero(change.in_region)[0]
-    write_ply(out / "changed.ply", jax.tree_util.tree_map(lambda x: jnp.asarray(x)[rows], model.gaussians))
+    write_ply(out / "changed.ply", select(model.gaussians, rows))
     views_out = [
         _write_view(found, (p, q), run, d, i, cam, out)
         for d in (p, q)

@@ -34,7 +34,6 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Annotated
 
-import jax
 import jax.numpy as jnp
 import msgspec
 import numpy as np
@@ -45,7 +44,7 @@ from cfgs_jax.changes.detect import Detection, detect
 from cfgs_jax.changes.maps import change_mask, rendered_scores, valid_pixels
 from cfgs_jax.config import OPEN_UNIT, Checked
 from cfgs_jax.errors import InputError
-from cfgs_jax.model import Camera, TemporalGaussians, light_multipliers, opacity_multipliers
+from cfgs_jax.model import Camera, TemporalGaussians, light_multipliers, opacity_multipliers, select
 from cfgs_jax.splat.weights import contribution_per_label, observed_matrix
 
 
@@ -114,7 +113,7 @@ def object_labels(
     for p, dm in enumerate(masks):
         rows = np.nonzero(origin == p)[0]
         if len(rows):
-            g = jax.tree_util.tree_map(lambda x: jnp.asarray(x)[rows], model.gaussians)
+            g = select(model.gaussians, rows)
             w = contribution_per_label(
                 g, jnp.asarray(o[rows, p]), dm.cameras, dm.object_ids, num_objects + 1, render_config=render_config
             )
@@ -192,7 +191,7 @@ def gaussian_change_table(
         rows = np.nonzero(origin == p)[0]
         if len(rows) == 0:
             continue
-        g = jax.tree_util.tree_map(lambda x: jnp.asarray(x)[rows], model.gaussians)
+        g = select(model.gaussians, rows)
         own = jnp.asarray(o[rows, p])
         keep = objects[rows] >= 0  # Gaussians with weight in their own views
         others = [q for q in range(len(names)) if q != p]

@@ -55,7 +55,7 @@ from cfgs_jax.fusion.updates import cross_init_optimizer
 from cfgs_jax.io.checkpoint import Checkpoint, read_meta
 from cfgs_jax.io.colmap import downscale_image, downscaled_size, scale_camera
 from cfgs_jax.loop import Progress, Saved, run_stage, view_order
-from cfgs_jax.model import Camera, DateViews, Gaussians, TemporalGaussians, exposure_table, logit, rgb
+from cfgs_jax.model import Camera, DateViews, Gaussians, TemporalGaussians, exposure_table, logit, rgb, select
 from cfgs_jax.train.step import over_background
 
 #: The format of a cross-init group's mid-way checkpoint (``init_pairs(checkpoint=...)``).
@@ -226,7 +226,7 @@ class _Pairs:
 
 def _gather(model: TemporalGaussians, pairs, rows, seen, views, render_config) -> _Pairs:
     """The group's inputs: ``rows[j]`` date p_j's rows of the model, ``seen[j]`` which of them q_j sees."""
-    gaussians = lambda idx, m: pad_gaussians(jax.tree_util.tree_map(lambda x: jnp.asarray(x)[idx], model.gaussians), m)
+    gaussians = lambda idx, m: pad_gaussians(select(model.gaussians, idx), m)
     o_logits = np.asarray(model.o_logits)
     shared = len({p for p, _ in pairs}) == 1
     if shared:  # one set: the union of what the dates q see, each pair masked to its own
@@ -321,7 +321,7 @@ def init_pairs(
     lpips_net = lpips_net if lpips_net is not None else metrics.load_lpips(config.lpips_net)
     origin = np.asarray(model.origin)
     rows_of = {p: np.nonzero(origin == p)[0] for p in dict.fromkeys(p for p, _ in pairs)}
-    gaussians_of = {p: jax.tree_util.tree_map(lambda x: jnp.asarray(x)[r], model.gaussians) for p, r in rows_of.items()}
+    gaussians_of = {p: select(model.gaussians, r) for p, r in rows_of.items()}
     rows = [rows_of[p] for p, _ in pairs]
     # [N_p] per pair: projects into some view of q
     seen = [visible_from(gaussians_of[p], v.cameras, render_config) for (p, _), v in zip(pairs, views)]

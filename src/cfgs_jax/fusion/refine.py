@@ -233,7 +233,7 @@ def final_prune(model: TemporalGaussians, threshold: float = 1.0 / 255.0) -> Tem
     alpha = np.asarray(jax.nn.sigmoid(model.gaussians.opacity_logits))
     o = np.asarray(jax.nn.sigmoid(model.o_logits))
     keep = np.any(alpha[:, None] * o > threshold, axis=1)
-    return jax.tree_util.tree_map(lambda x: jnp.asarray(x)[np.nonzero(keep)[0]], model)
+    return select(model, np.nonzero(keep)[0])
 
 
 CHECKPOINT_FORMAT = "cfgs_jax.refine_checkpoint/2"

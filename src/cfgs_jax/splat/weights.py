@@ -14,7 +14,7 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from cfgs_jax.errors import InputError
-from cfgs_jax.model import Camera, Gaussians, TemporalGaussians, opacity_multipliers
+from cfgs_jax.model import Camera, Gaussians, TemporalGaussians, opacity_multipliers, select
 from cfgs_jax.splat.config import RenderConfig
 from cfgs_jax.splat.render import render, render_dates, required_capacity, summed_weight_maps
 
@@ -152,7 +152,7 @@ def observed_matrix(
     seen = np.zeros((len(origin), len(observing)), bool)
     for p in [p for p in range(model.num_dates) if (origin == p).any()]:
         rows = np.nonzero(origin == p)[0]
-        g = jax.tree_util.tree_map(lambda x: jnp.asarray(x)[rows], model.gaussians)
+        g = select(model.gaussians, rows)
         for q, cams in enumerate(observing):
             seen[rows, q] = observed_from(g, o[rows, p], cams, threshold, render_config=render_config)
     return seen
