@@ -128,6 +128,15 @@ def test_select_concatenate_select_dates():
     assert len(s) == mask.sum() and np.all(np.asarray(s.origin) == 1)
     with pytest.raises(InputError, match="select.idx"):
         cfgs_jax.select(m, mask[:3])
+    # rows as numpy gathers them, whichever way they are asked for: a list, none, one index, inside jit
+    want = lambda rows: [np.asarray(x)[rows] for x in jax.tree_util.tree_leaves(m)]
+    for rows, got in (
+        ([7, 2, 2], cfgs_jax.select(m, [7, 2, 2])),
+        ([], cfgs_jax.select(m, [])),
+        (slice(3, 5), cfgs_jax.select(m, slice(3, 5))),
+        ([9, 0], jax.jit(cfgs_jax.select)(m, jnp.asarray([9, 0]))),
+    ):
+        assert all(np.array_equal(x, y) for x, y in zip(jax.tree_util.tree_leaves(got), want(rows), strict=True))
     sd = cfgs_jax.select_dates(m, [2, 0])
     keep = np.isin(np.asarray(m.origin), [0, 2])
     assert len(sd) == keep.sum() and sd.date_names == ("date2", "date0")

@@ -515,8 +515,7 @@ def select(model, idx):
     if is_traced(model, idx) or isinstance(idx, (int, np.integer, slice)):
         return _rows(model, idx)
     idx = np.asarray(idx)
-    if idx.dtype == bool:
-        idx = np.nonzero(idx)[0]
+    idx = np.nonzero(idx)[0] if idx.dtype == bool else idx.astype(np.int64, copy=False)  # [] reads as float
     return _rows_compiled(model, idx)
 
 
