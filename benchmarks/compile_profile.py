@@ -39,9 +39,9 @@ def _call_site() -> str:
     frame = sys._getframe(2)
     while frame is not None:
         name = frame.f_code.co_filename
-        if any(part in name for part in _OURS) and not name.endswith("compile_profile.py"):
-            where = name[name.rfind(next(p for p in _OURS if p in name)) + 1 :]
-            return f"{where}:{frame.f_lineno} ({frame.f_code.co_name})"
+        part = next((p for p in _OURS if p in name), None)
+        if part and not name.endswith("compile_profile.py"):
+            return f"{name[name.rfind(part) + 1 :]}:{frame.f_lineno} ({frame.f_code.co_name})"
         frame = frame.f_back
     return "<outside the project>"
 

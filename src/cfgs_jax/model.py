@@ -497,26 +497,14 @@ def covariances(g: Gaussians) -> Float[Array, "N 3 3"]:
 # Selection and concatenation along the Gaussian axis
 
 
-def _rows(model, idx):
-    return jax.tree_util.tree_map(lambda x: jnp.asarray(x)[idx], model)
-
-
-_rows_compiled = jax.jit(_rows)
-
-
 def select(model, idx):
-    """Gaussians ``idx`` (int indices or a boolean mask over N) of a Gaussians or TemporalGaussians.
-
-    Outside a trace every field is gathered by one compiled program per model layout and index count
-    (a gather per field run one by one would compile one program per field); a boolean mask is turned
-    into the indices of its true entries first. Inside a trace the gathers join the caller's program."""
+    """Gaussians ``idx`` (int indices or a boolean mask over N) of a Gaussians or TemporalGaussians."""
+    if isinstance(idx, (list, tuple)):  # JAX reads a sequence as one index per axis, and [] as floats
+        idx = np.asarray(idx)
+        idx = idx if idx.dtype == bool else idx.astype(np.int64)
     if isinstance(idx, (np.ndarray, jax.Array)) and idx.dtype == bool and idx.shape != (len(model),):
         raise InputError(f"boolean mask of shape {list(idx.shape)} for N={len(model)}", field="select.idx")
-    if is_traced(model, idx) or isinstance(idx, (int, np.integer, slice)):
-        return _rows(model, idx)
-    idx = np.asarray(idx)
-    idx = np.nonzero(idx)[0] if idx.dtype == bool else idx.astype(np.int64, copy=False)  # [] reads as float
-    return _rows_compiled(model, idx)
+    return jax.tree_util.tree_map(lambda x: jnp.asarray(x)[idx], model)
 
 
 def concatenate(models: Sequence):

@@ -181,15 +181,9 @@ def pad_gaussians(g: Gaussians, count: int) -> Gaussians:
     extra = count - len(g)
     if extra <= 0:
         return g
-    return _padded_with_first_row(g, extra)
-
-
-@functools.partial(jax.jit, static_argnums=1)
-def _padded_with_first_row(g: Gaussians, extra: int) -> Gaussians:
-    """``pad_gaussians`` as one compiled program (one per model layout and ``extra``, not one per field)."""
-    pad = jax.tree_util.tree_map(lambda x: jnp.repeat(x[:1], extra, axis=0), g)
+    pad = jax.tree_util.tree_map(lambda x: jnp.repeat(jnp.asarray(x)[:1], extra, axis=0), g)
     pad = dataclasses.replace(pad, opacity_logits=jnp.full((extra,), -100.0, jnp.result_type(g.opacity_logits)))
-    return jax.tree_util.tree_map(lambda a, b: jnp.concatenate([a, b]), g, pad)
+    return jax.tree_util.tree_map(lambda a, b: jnp.concatenate([jnp.asarray(a), b]), g, pad)
 
 
 def visible_from(g: Gaussians, cameras: Sequence[Camera], render_config=None) -> np.ndarray:

@@ -139,44 +139,36 @@ def _padded(gaussians: Gaussians, opacity_mult, *per_row):
     """The model padded to ``padded_rows`` Gaussians with inert rows (as given when it has that many):
     opacity multiplier 0 at every date, so binning never lists them (``listed_tiles``) and nothing they
     hold reaches a pixel; ``opacity_mult`` [T, N] and each of ``per_row`` (arrays with the Gaussian axis
-    at ``-2``, or None) padded with zeros. One compiled program pads every field."""
+    at ``-2``, or None) padded with zeros."""
     n = len(gaussians)
     extra = padded_rows(n) - n
     if extra <= 0:
         return gaussians, opacity_mult, *per_row
-    return _pad_rows(gaussians, opacity_mult, per_row, extra)
 
-
-@functools.partial(jax.jit, static_argnums=3)
-def _pad_rows(gaussians: Gaussians, opacity_mult, per_row: tuple, extra: int):
-    """``_padded``'s rows: ``extra`` inert Gaussians (identity rotation, every other field 0) after the model's."""
-
-    def pad(x, axis):
+    def pad(x, axis, value=0.0):
         if x is None:
             return None
         widths = [(0, 0)] * np.ndim(x)
         widths[axis] = (0, extra)
-        return jnp.pad(x, widths)
+        return jnp.pad(x, widths, constant_values=value)
 
     g = gaussians
     quats = jnp.concatenate([g.quats, jnp.broadcast_to(jnp.asarray([1.0, 0, 0, 0], g.quats.dtype), (extra, 4))])
     g = Gaussians(pad(g.means, 0), quats, pad(g.log_scales, 0), pad(g.opacity_logits, 0), pad(g.colors, 0),
                   pad(g.sh_rest, 0))  # fmt: skip
-    return g, pad(opacity_mult, 1), *(pad(x, np.ndim(x) - 2) for x in per_row)
+    return g, pad(opacity_mult, 1), *(pad(x, np.ndim(x) - 2) if x is not None else None for x in per_row)
 
 
 def _unpadded(result: RenderResult, n: int) -> RenderResult:
     """A render of a padded model with its per-Gaussian outputs cut back to the first ``n`` rows."""
-    max_weight, hits, means2d, radii = _first_rows((result.max_weight, result.hits, result.means2d, result.radii), n)
-    return dataclasses.replace(result, max_weight=max_weight, hits=hits, means2d=means2d, radii=radii)
-
-
-@functools.partial(jax.jit, static_argnums=1)
-def _first_rows(fields: tuple, n: int) -> tuple:
-    """Each of ``fields`` (the Gaussian axis last but for [N, 2] projected centres, or None) cut to ``n`` rows."""
-    max_weight, hits, means2d, radii = fields
     cut = lambda x: None if x is None else x[..., :n]
-    return cut(max_weight), cut(hits), means2d[:n], radii[:n]
+    return dataclasses.replace(
+        result,
+        max_weight=cut(result.max_weight),
+        hits=cut(result.hits),
+        means2d=result.means2d[:n],
+        radii=result.radii[:n],
+    )
 
 
 def effective_opacity(gaussians: Gaussians, opacity_mult, config: RenderConfig):
