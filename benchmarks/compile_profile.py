@@ -28,8 +28,9 @@ import time
 from pathlib import Path
 
 _RECORD = re.compile(r"Finished XLA compilation of (.+?) in ([0-9.e+-]+) sec")
+_LOWERED = re.compile(r"Compiling (.+?) with global shapes and types (.*)\. Argument mapping", re.S)
 _HIT = "Persistent compilation cache hit"
-_state = {"test": "<collection>", "rows": [], "busy": 0.0, "last": 0.0, "hit": False}
+_state = {"test": "<collection>", "rows": [], "busy": 0.0, "last": 0.0, "hit": False, "lowered": ("", "")}
 _OURS = (f"{os.sep}src{os.sep}cfgs_jax{os.sep}", f"{os.sep}tests{os.sep}", f"{os.sep}benchmarks{os.sep}")
 
 
@@ -48,16 +49,24 @@ def _call_site() -> str:
 
 class _Compilations(logging.Handler):
     """JAX logs "Finished XLA compilation" for a program read from the persistent cache too, right after its
-    "cache hit" record: such a row is marked as a load (an earlier test of the run compiled the same program)."""
+    "cache hit" record: such a row is marked as a load (an earlier test of the run compiled the same program).
+    Each row keeps the input shapes and types of the program lowered last under the same name (JAX logs them
+    when it lowers, before it compiles)."""
 
     def emit(self, record: logging.LogRecord) -> None:
         message = record.getMessage()
         if message.startswith(_HIT):
             _state["hit"] = True
             return
+        lowered = _LOWERED.match(message)
+        if lowered:
+            _state["lowered"] = (lowered.group(1), lowered.group(2))
+            return
         found = _RECORD.search(message)
         if found:
-            row = (_state["test"], found.group(1), float(found.group(2)), _state["hit"], _call_site())
+            name, types = _state["lowered"]
+            signature = types if name == found.group(1) else ""
+            row = (_state["test"], found.group(1), float(found.group(2)), _state["hit"], _call_site(), signature)
             _state["rows"].append(row)
             _state["hit"] = False
 
@@ -66,7 +75,8 @@ def pytest_configure(config) -> None:
     import jax
 
     jax.config.update("jax_log_compiles", True)
-    for name in ("jax._src.dispatch", "jax._src.compiler"):  # each backend compilation; each cache hit
+    # each lowering (its input types), each backend compilation, each cache hit
+    for name in ("jax._src.interpreters.pxla", "jax._src.dispatch", "jax._src.compiler"):
         logger = logging.getLogger(name)
         logger.addHandler(_Compilations())
         logger.setLevel(logging.DEBUG)
@@ -96,6 +106,43 @@ def _table(totals: dict, title: str, limit: int) -> list[str]:
     lines = [f"| {title} | compile s | compilations |", "|---|---:|---:|"]
     for key, (count, seconds) in sorted(totals.items(), key=lambda kv: -kv[1][1])[:limit]:
         lines.append(f"| `{key}` | {seconds:.1f} | {count} |")
+    return lines
+
+
+def padded(signature: str, per_octave: int = 4, smallest: int = 64) -> str:
+    """``signature`` (JAX's input types, e.g. ``ShapedArray(float32[954,3])``) with every axis of at least
+    ``smallest`` rounded up to the next of ``per_octave`` sizes per octave (954 → 1024, 1100 → 1280): the
+    signatures left if every such axis were padded, an upper bound on what padding could share."""
+
+    def up(found: re.Match) -> str:
+        n = int(found.group(0))
+        if n < smallest:
+            return found.group(0)
+        octave = 1 << (n.bit_length() - 1)
+        step = max(octave // per_octave, 1)
+        return str(-(-n // step) * step)
+
+    return re.sub(r"(?<=[\[,])\d+(?=[,\]])", up, signature)
+
+
+def _signatures(rows: list, limit: int) -> list[str]:
+    """Per program compiled in 1 s or more: its compilations, their distinct input signatures, and how many
+    would be left with every axis of 64 or more padded to four sizes per octave (``padded``)."""
+    groups = collections.defaultdict(list)
+    for _, program, seconds, _, signature in rows:
+        if seconds >= 1.0:
+            groups[program].append((seconds, signature))
+    lines = [
+        "| program (compilations of 1 s or more) | compile s | compilations | distinct input signatures "
+        "| left with every axis ≥ 64 padded to 4 sizes per octave |",
+        "|---|---:|---:|---:|---:|",
+    ]
+    for program, found in sorted(groups.items(), key=lambda kv: -sum(s for s, _ in kv[1]))[:limit]:
+        signatures = {sig for _, sig in found}
+        lines.append(
+            f"| `{program}` | {sum(s for s, _ in found):.1f} | {len(found)} | {len(signatures)} "
+            f"| {len({padded(sig) for sig in signatures})} |"
+        )
     return lines
 
 
@@ -133,8 +180,9 @@ def main() -> None:
     by_file, by_program = collections.defaultdict(lambda: [0, 0.0]), collections.defaultdict(lambda: [0, 0.0])
     by_test, steps = collections.defaultdict(lambda: [0, 0.0]), collections.defaultdict(lambda: [0, 0.0])
     by_site = collections.defaultdict(lambda: [0, 0.0])
-    loads = [seconds for _, _, seconds, hit, _ in rows if hit]
-    rows = [(test, program, seconds, site) for test, program, seconds, hit, site in rows if not hit]
+    loads = [seconds for _, _, seconds, hit, _, _ in rows if hit]
+    compiled = [(test, program, seconds, site, sig) for test, program, seconds, hit, site, sig in rows if not hit]
+    rows = [(test, program, seconds, site) for test, program, seconds, site, _ in compiled]
     for test, program, seconds, site in rows:
         keys = [(by_file, test.split("::")[0]), (by_program, program), (by_test, test)]
         if seconds < 0.1:
@@ -169,6 +217,11 @@ def main() -> None:
         *_table(by_test, "test (its setup included)", args.top),
         "",
         *_table(steps, "test compiling a stage's `jit(step)`", args.top),
+        "",
+        "The large programs by input signature: a program compiled again for the same signature differs in "
+        "something static (a setting, a closure); one compiled per size would be shared by padding.",
+        "",
+        *_signatures(compiled, args.top),
         "",
         *_table(by_site, "line of the project's code that compiled programs under 0.1 s each", args.top),
         "",

@@ -140,3 +140,20 @@ def test_a_published_header_names_only_overrides_the_run_stored():
         check(stored, ["refine.lr_alpha=0.2"], Path("run.json"))
     with pytest.raises(SystemExit, match="named here \\(refine.lr_color: \\(default\\) → 0.0025\\)"):
         check(stored, ["refine.lr_color=0.0025"], Path("run.json"))
+
+
+def test_the_compile_profile_pads_each_large_axis_to_four_sizes_per_octave():
+    """``compile_profile.padded`` against hand-computed sizes: an axis of 64 or more rounds up to a multiple of
+    a quarter of its octave (954: octave 512, step 128 → 1024; 1100: octave 1024, step 256 → 1280; 65 → 80;
+    96 stays); smaller axes, scalars and the dtype's digits stay as they are."""
+    namespace = runpy.run_path(str(REPO / "benchmarks" / "compile_profile.py"), run_name="not_main")
+    padded = namespace["padded"]
+    signature = (
+        "(ShapedArray(float32[954,3]), ShapedArray(float32[1100,8,3]), ShapedArray(int32[]), "
+        "ShapedArray(float32[2,65]), ShapedArray(float32[96,63]), ShapedArray(float32[64]))"
+    )
+    assert padded(signature) == (
+        "(ShapedArray(float32[1024,3]), ShapedArray(float32[1280,8,3]), ShapedArray(int32[]), "
+        "ShapedArray(float32[2,80]), ShapedArray(float32[96,63]), ShapedArray(float32[64]))"
+    )
+    assert padded("(ShapedArray(float32[130]),)", per_octave=1) == "(ShapedArray(float32[256]),)"
