@@ -8,9 +8,11 @@ through ``benchmarks/test_times.sh`` (the suite's entry point for the tests' run
 Runs pytest with this file as a plugin (``-p compile_profile``) and an empty JAX compilation cache; the
 plugin turns on ``jax_log_compiles`` in every pytest process and records each "Finished XLA compilation
 of NAME in S sec" record with the test running at the time. Prints the totals, then compile seconds and
-counts by test file, by program, by test, for the stages' ``jit(step)`` by test, and for the programs under 0.1 s each (mostly
-single operations run outside ``jit``) by the line of the project's code that called them, and writes them to ``--out`` (default
-``benchmarks/results/compile_profile.md``) with the command, machine, date and XLA flags.
+counts by test file, by program, by test, for the stages' ``jit(step)`` by test, for each program compiled
+in 1 s or more its distinct input signatures (and how many padding would leave), and for the programs under
+0.1 s each (mostly single operations run outside ``jit``) by the line of the project's code that called
+them, and writes them to ``--out`` (default ``benchmarks/results/compile_profile.md``) with the command,
+machine, date and XLA flags.
 """
 
 from __future__ import annotations
