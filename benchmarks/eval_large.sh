@@ -17,7 +17,9 @@
 # `fusion`, core 1 the Individual +N of every date and `known_transforms`; then each lane takes the
 # ablations (each a refinement as long as the fusion's, from its cross-init) one at a time, whichever
 # lane is free first (`--part ablations --set eval.ablations=["KEY"]`; a claim is a folder
-# WORK/S.claims/KEY, cleared when the scene starts again); then `--part all` writes the table. Every part
+# WORK/S.claims/KEY, cleared when the scene starts again); then `--part all` writes the table, and
+# WORK/S.finished records the SET it was written with (a start with other overrides, e.g. more
+# ablations, runs the scene's parts again: each finds what is already done and adds the rest). Every part
 # checkpoints, so running this again after the machine or the process stopped continues where each
 # part stopped. The scenes run one after the other (flood, corals, quake); one already running (a
 # process with its --out) is left alone. Publishing runs `benchmarks/bench_quality.py publish --scene S --out
@@ -94,7 +96,8 @@ sys.exit(not RunDir.open(sys.argv[1], finished=False).done("cross_init"))' "$wor
 scenes() {  # each unfinished scene in turn: train, the two single-core lanes, then the table
   local s
   for s in $scene_names; do
-    [ -f "$work/$s/table.md" ] && continue
+    # finished with these overrides: WORK/S.finished holds the SET its table was written with
+    [ -f "$work/$s/table.md" ] && [ -f "$work/$s.finished" ] && [ "$(cat "$work/$s.finished")" = "${SET:-}" ] && continue
     pgrep -f -- "--out $work/$s( |$)" >/dev/null && continue  # another start is running it
     part "$s" train || continue
     local keys
@@ -105,7 +108,7 @@ scenes() {  # each unfinished scene in turn: train, the two single-core lanes, t
       taskset -c 1 bash -c "part $s individual; part $s known_transforms; ablations $s $keys" &
       wait
     )
-    part "$s" all
+    part "$s" all && printf '%s' "${SET:-}" >"$work/$s.finished"
   done
 }
 export -f part ablation_keys ablations scenes
