@@ -149,7 +149,8 @@ def score(out: Path, overrides: list[str], cell: dict | None = None) -> dict:
         "gaussians": int(len(run.model.origin)),
         "config": dict(ev["config"]),
         "gaussian": {k: g[k] for k in g if not isinstance(g[k], dict)},
-        "pixels": {k: px[k] for k in ("iou", "all_iou", "predicted_changed_share", "gt_changed_share")},
+        "pixels": {k: px[k] for k in ("iou", "all_iou", "predicted_changed_share", "gt_changed_share")}
+        | {"by_threshold": {k: px["by_threshold"][k] for k in ("threshold", "iou")}},
         "regions": reg,
         "seconds": {"statistics": cell["seconds"].get("pair_statistics"), "regions_and_scoring": regions_s},
         "overrides": overrides,
@@ -618,7 +619,34 @@ def markdown(rows: list[dict], command: str) -> str:
             f"**{px['iou']:.3f}** ({px['all_iou']:.3f}) | {reg['found_objects']} / {reg['changed_objects']} | "
             f"{reg['false_regions']} ({reg['pairs']} pairs) | {_kinds(reg)} | {secs} |"
         )
-    return "\n".join(lines) + "\n"
+    return "\n".join(lines + _share_curves(rows)) + "\n"
+
+
+SHARES = (0.35, 0.5, 0.6, 0.7, 0.8)
+
+
+def _share_curves(rows: list[dict]) -> list[str]:
+    """A table of pixel IoU against the mask's share threshold (``changes.pixel_threshold``: a pixel is
+    changed where the changed regions' share of its compositing weight exceeds it), for the rows that
+    record the curve: IoU at ``SHARES`` and the best share."""
+    curved = [r for r in rows if r["pixels"].get("by_threshold")]
+    if not curved:
+        return []
+    lines = [
+        "",
+        "Pixel IoU against the share threshold of the masks (`changes.pixel_threshold`; the rows above use the "
+        "setting's value), for the cells scored since their rows record it:",
+        "",
+        "| scene | size | views | " + " | ".join(f"share > {s:g}" for s in SHARES) + " | best (share) |",
+        "|---|---|---:|" + "---:|" * (len(SHARES) + 1),
+    ]
+    for r in sorted(curved, key=lambda r: (r["scene"], r["size"], r["images_per_date"])):
+        curve = r["pixels"]["by_threshold"]
+        iou = dict(zip((round(t, 2) for t in curve["threshold"]), curve["iou"], strict=True))
+        best = max(iou, key=lambda t: -1.0 if iou[t] != iou[t] else iou[t])  # NaN (nothing flagged) last
+        cells = " | ".join(f"{iou.get(s, float('nan')):.3f}" for s in SHARES)
+        lines.append(f"| {r['scene']} | {r['size']} | {r['images_per_date']} | {cells} | {iou[best]:.3f} ({best:g}) |")
+    return lines
 
 
 SWEEP = {
