@@ -16,6 +16,8 @@ flagging everything, the o^q < 0.2 rule, and the score alone (s > 0.5, no region
     python benchmarks/bench_change.py readme                     # its figures into README.md
     python benchmarks/bench_change.py threshold WORK CELL [CELL ...] [--tau 0.03,0.06]
         # F1 against τ on fused cells: results/change_threshold_curve.md and .json
+    python benchmarks/bench_change.py pixel_rules WORK CELL [CELL ...]
+        # pixel IoU under each changes.pixel_rule on fused cells: results/change_pixel_rules.md and .json
     python benchmarks/bench_change.py probe WORK CELL [CELL ...]
         # what limits the evidence: the score alone under other evidence rules, where its errors lie,
         # and the depth behind them (results/change_probe.md)
@@ -191,6 +193,49 @@ def threshold_curve(work: Path, cells: list, taus: list[float], overrides: list[
             )
     (RESULTS / "change_threshold_curve.json").write_text(json.dumps({"command": _command(), "rows": rows}, indent=1))
     (RESULTS / "change_threshold_curve.md").write_text("\n".join(lines) + "\n")
+
+
+def pixel_rules(work: Path, cells: list, overrides: list[str]) -> None:
+    """Pixel IoU of the change masks on fused ``cells`` under each ``changes.pixel_rule`` (the share of
+    every weight of a pixel, its median contributor's, its front half's), at the setting's share threshold
+    and at the best one; the regions, and so the per-Gaussian figures, are the same for every rule. Writes
+    results/change_pixel_rules.md and .json."""
+    from cfgs_jax.changes.maps import PIXEL_RULES
+
+    rows = []
+    for cell in cells:
+        out = fused_cell(cell_dir(work, cell))
+        ready = prepared(out, changes_config(overrides))
+        for rule in PIXEL_RULES:
+            r = score(out, overrides + [f"changes.pixel_rule={rule}"], ready)
+            px = r["pixels"]
+            curve = px["by_threshold"]
+            best = max(zip(curve["iou"], curve["threshold"]))
+            rows.append({"cell": out.name, "size": r["size"], "views": r["images_per_date"], "rule": rule,
+                         "f1": r["gaussian"]["f1"], "threshold": r["config"]["pixel_threshold"], "pixels": px,
+                         "best": {"iou": best[0], "threshold": best[1]}})  # fmt: skip
+            print(f"{out.name} {rule}: pixel IoU {px['iou']:.3f} (best {best[0]:.3f} at {best[1]:g})", flush=True)
+    lines = [
+        "# The change masks' pixel rule (bench_change.py pixel_rules)",
+        "",
+        f"{_provenance()} Each cell fused once (as the sweep's) and its regions found once with the "
+        "`[changes]` defaults; only `changes.pixel_rule` differs: a pixel is changed when the regions' Gaussians "
+        "hold more than the share threshold of its compositing weight (`share`), of its median contributor's "
+        "(`median`: the Gaussian that takes the alpha past 1/2, the surface a median depth reads; the share is "
+        "0 or 1) or of the front half of its opacity (`front`). Pixel IoU over every pair's test views.",
+        "",
+        "| cell | size | views | F1 (regions) | rule | pixel IoU at the setting's share | best (share) | flagged / truth |",
+        "|---|---|---:|---:|---|---:|---:|---|",
+    ]
+    for r in rows:
+        px = r["pixels"]
+        lines.append(
+            f"| {r['cell']} | {r['size']} | {r['views']} | {r['f1']:.3f} | {r['rule']} | {px['iou']:.3f} "
+            f"({r['threshold']:g}) | {r['best']['iou']:.3f} ({r['best']['threshold']:g}) | "
+            f"{px['predicted_changed_share']:.4f} / {px['gt_changed_share']:.4f} |"
+        )
+    (RESULTS / "change_pixel_rules.json").write_text(json.dumps({"command": _command(), "rows": rows}, indent=1))
+    (RESULTS / "change_pixel_rules.md").write_text("\n".join(lines) + "\n")
 
 
 def _entries(run, data: Path, stats) -> dict:
@@ -654,6 +699,7 @@ SWEEP = {
     "score": "score fused cells again",
     "table": "gather the scored cells into results/NAME.md and .json",
     "threshold": "F1 against the threshold τ on fused cells",
+    "pixel_rules": "pixel IoU of the masks under each pixel rule on fused cells",
     "probe": "what limits the evidence on fused cells",
     "pixels": "whether the changes show per pixel in the date models' renders (fused cells)",
     "surface": "whether the evidence ranks the Gaussians over changed surface first (fused cells)",
@@ -731,6 +777,9 @@ def main(argv: list[str] | None = None):
         return
     if not args.cells:
         ap.error("name the cells, e.g. flood:80x60:10")
+    if args.action == "pixel_rules":
+        pixel_rules(work, [parse_cell(c) for c in args.cells], args.overrides)
+        return
     if args.action == "probe":
         probe(work, [parse_cell(c) for c in args.cells])
         return

@@ -15,6 +15,8 @@ def test_changes_config_validates():
         ChangesConfig(threshold=0.0)
     with pytest.raises(InputError, match="changes.pixel_threshold"):
         ChangesConfig(pixel_threshold=1.0)
+    with pytest.raises(InputError, match="changes.pixel_rule"):
+        ChangesConfig(pixel_rule="mean")
     with pytest.raises(InputError, match="changes.pool_area"):
         ChangesConfig(pool_area=-0.1)
     with pytest.raises(InputError, match="changes.views"):

@@ -1,5 +1,6 @@
 """The splatting kernel (cfgs_jax.splat.render) against the float64 reference: images, every gradient,
-several dates in one call, capacity, culling, empty scenes and sizes compiled once."""
+several dates in one call, capacity, culling, empty scenes and sizes compiled once; the surface a pixel
+shows (``surface_features``) against float64 weights."""
 
 import jax
 import jax.numpy as jnp
@@ -264,3 +265,72 @@ def test_an_eager_render_compiled_for_nearby_sizes_equals_the_exact_size(donut_p
     compiled = render_module._render_jit._cache_size()
     splat.render(jax.tree_util.tree_map(lambda x: x[:300], small), cam)
     assert render_module._render_jit._cache_size() == compiled  # 300 and 310 both compile for 320 rows
+
+
+def _float64_weights(g, cam, om):
+    """[N, H, W] float64 compositing weights w_i of each Gaussian (its colour alone set to 1) at
+    opacity multipliers ``om`` [N], and each Gaussian's view depth [N]."""
+    n = len(g)
+    ones = cj.Gaussians(g.means, g.quats, g.log_scales, g.opacity_logits, np.ones((n, 3), F32))
+    onehot = np.eye(n)[:, :, None].repeat(3, -1)
+    w = np.asarray(
+        splat.reference.render_dates(ones, cam, np.broadcast_to(om.astype(np.float64), (n, n)), onehot).image
+    )
+    view = np.asarray(cam.cam_from_world, np.float64)
+    depth = np.asarray(g.means, np.float64) @ view[:3, :3].T + view[:3, 3]
+    return w[..., 0], depth[:, 2]
+
+
+def test_surface_rules_match_float64_weights():
+    """ "median": at every pixel the features of the Gaussian i with T_i ≥ 1/2 > T_i − w_i, where
+    T_i = 1 − Σ_{j in front of i} w_j from the float64 reference's weights (0 where no Gaussian does);
+    pixels where T sits within float32 rounding of 1/2 are ties. "front": the features averaged with
+    weights min(w_i, max(0, T_i − 1/2)). At two dates with different opacities."""
+    g = scene(60, 7, log_scale=-1.9)
+    cam = camera(40, 30)
+    n = len(g)
+    rng = np.random.default_rng(5)
+    om = rng.uniform(0.3, 1.0, (2, n)).astype(F32)
+    om[1, : n // 4] = 0.0
+    feats = rng.uniform(-1.0, 2.0, (2, n, 2)).astype(F32)
+    got, alpha = (np.asarray(x) for x in splat.surface_features(g, cam, om, feats))
+    front_got = np.asarray(splat.surface_features(g, cam, om, feats, rule="front")[0])
+    assert got.shape == (2, 30, 40, 2) and alpha.shape == (2, 30, 40)
+    crossed = 0
+    for t in range(2):
+        w, z = _float64_weights(g, cam, om[t])
+        order = np.argsort(z)
+        before = np.cumsum(w[order], 0) - w[order]  # Σ_{j in front} w_j, in depth order
+        t_before = 1.0 - before
+        is_median = (w[order] > 0) & (t_before >= 0.5) & (t_before - w[order] < 0.5)
+        assert is_median.sum(0).max() <= 1
+        want = np.einsum("khw,kf->hwf", is_median.astype(np.float64), feats[t][order].astype(np.float64))
+        margin = np.minimum(np.abs(t_before - 0.5), np.abs(t_before - w[order] - 0.5)).min(0)
+        clear = margin > 1e-4
+        assert clear.mean() > 0.98
+        np.testing.assert_allclose(got[t][clear], want[clear], atol=1e-6)
+        np.testing.assert_allclose(alpha[t], w.sum(0), atol=2e-4)
+        np.testing.assert_array_equal(is_median.any(0)[clear], (alpha[t] >= 0.5)[clear])
+        crossed += int(is_median.any(0).sum())
+        # the front half: each contribution's part before alpha reaches 1/2, averaged
+        front = np.minimum(w[order], np.maximum(0.0, t_before - 0.5))
+        want_front = np.einsum("khw,kf->hwf", front, feats[t][order].astype(np.float64))
+        want_front /= np.maximum(np.minimum(w.sum(0), 0.5), 1e-12)[..., None]
+        seen = w.sum(0) > 1e-3
+        np.testing.assert_allclose(front_got[t][seen], want_front[seen], rtol=1e-3, atol=1e-3)
+    assert 200 < crossed < 2 * 30 * 40  # the scene has pixels on both sides of alpha 1/2
+
+
+def test_surface_features_validate_their_input_and_pass_no_gradient():
+    g = scene(20, 1)
+    cam = camera(16, 12)
+    om = np.ones((1, len(g)), F32)
+    with pytest.raises(InputError, match="features"):
+        splat.surface_features(g, cam, om, np.ones((1, len(g) + 1, 2), F32))
+    with pytest.raises(InputError, match="rule"):
+        splat.surface_features(g, cam, om, np.ones((1, len(g), 2), F32), rule="mean")
+    with pytest.raises(InputError, match="opacity_mult"):
+        splat.surface_features(g, cam, om[:, :3], np.ones((1, len(g), 2), F32))
+    cap = splat.RenderConfig(capacity=splat.required_capacity(g, cam, om))
+    grad = jax.grad(lambda f: splat.surface_features(g, cam, om, f, config=cap)[0].sum())(np.ones((1, len(g), 1), F32))
+    assert np.all(np.asarray(grad) == 0.0)

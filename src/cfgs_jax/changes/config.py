@@ -31,7 +31,10 @@ class ChangesConfig(Checked):
     that observes them (a share of the image), and an image area of the per-view report at least
     ``min_image_area`` of the image.
     ``pixel_threshold``: a pixel of a view counts as changed when the regions' Gaussians hold more than
-    this share of the compositing weight of what it shows (``maps.change_mask``).
+    this share of the compositing weight of what it shows (``maps.change_mask``); ``pixel_rule`` says which
+    weights: ``"share"`` every weight of the pixel, ``"median"`` only its median contributor's (the surface
+    the pixel shows, where a median depth is read: the share is then 0 or 1), ``"front"`` the front half
+    of its opacity (``maps.pixel_change``).
     ``carry_absence``: a Gaussian that another date pair found gone and that, at the pair's other
     date, lies at or behind a surface that changed between the two dates is counted gone there too
     (``changes.carried``; needs the regions of every pair that holds one of the two dates, so the
@@ -59,6 +62,7 @@ class ChangesConfig(Checked):
     min_region_area: Annotated[float, msgspec.Meta(ge=0, lt=1)] = 2e-4
     min_image_area: Annotated[float, msgspec.Meta(ge=0, lt=1)] = 5e-4
     pixel_threshold: Annotated[float, OPEN_UNIT] = 0.35
+    pixel_rule: str = "share"
     max_view_angle: Annotated[float, msgspec.Meta(gt=0, le=180)] = 20.0
     support_views: Annotated[int, AT_LEAST_ONE] = 64
     complete_within: Annotated[float, NON_NEGATIVE] = 0.25
@@ -86,6 +90,10 @@ class ChangesConfig(Checked):
         super().__post_init__()
         if self.views not in ("all", "train", "test"):
             raise InputError(f"unknown split {self.views!r}", field="changes.views", fix='use "all", "train" or "test"')
+        if self.pixel_rule not in ("share", "median", "front"):
+            raise InputError(
+                f"unknown rule {self.pixel_rule!r}", field="changes.pixel_rule", fix='use "share", "median" or "front"'
+            )
         lo, hi = (float(v) for v in self.gain_range)
         if not 0.0 < lo <= 1.0 <= hi:
             raise InputError(

@@ -53,7 +53,7 @@ class Detection:
     def view(self, p: int, q: int, camera: Camera) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The change seen from ``camera`` between dates p < q: (the share of what each pixel shows that
         lies in the pair's regions [H, W], the pixels covered and observed at both dates, the mask:
-        share above ``config.pixel_threshold`` and valid)."""
+        share above ``config.pixel_threshold`` and valid; the share read by ``config.pixel_rule``)."""
         pair = self.pairs[(p, q)]
         return view_change(
             self.model,
@@ -63,6 +63,7 @@ class Detection:
             p,
             q,
             self.config.pixel_threshold,
+            rule=self.config.pixel_rule,
             render_config=self.render_config,
         )
 

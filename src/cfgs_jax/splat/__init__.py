@@ -20,6 +20,7 @@ from cfgs_jax.splat.render import (
     render_views,
     required_capacity,
     summed_weight_maps,
+    surface_features,
     tile_layout,
 )
 
@@ -31,6 +32,7 @@ __all__ = [
     "bin_gaussians",
     "compositor",
     "effective_opacity",
+    "surface_features",
     "project",
     "project_and_bin",
     "reference",

@@ -53,6 +53,7 @@ class Layout(NamedTuple):
     max_alpha: float
     min_transmittance: float
     statistics: bool  # per-Gaussian max α·T and hit counts (False: not computed, returned as zeros)
+    surface: str = ""  # "": fg = Σ w·f; "median" / "front": ``surface_weights``' weights instead of w
 
     @property
     def num_tiles(self) -> int:
@@ -204,6 +205,30 @@ def _chunk(layout: Layout, r, start, end, ids, means2d, conics, opac, feats, px,
     return _Chunk(gid, dx, dy, con, op, ft, g, og, one_m, tk, w, t_out, done_out)
 
 
+def surface_weights(ch: _Chunk, rule: str):
+    """[K, D, B, P] weights that read the surface a pixel shows, from a chunk's transmittances T_k and
+    contributions w_k = α_k·T_k. ``"median"``: 1 for the contributing Gaussian with T_k ≥ 1/2 > T_k − w_k
+    (the one that takes the accumulated alpha past 1/2: the median contributor along the ray), else 0; T
+    only falls, so at most one Gaussian of a pixel's list qualifies, none where its alpha stays below 1/2.
+    ``"front"``: min(w_k, max(0, T_k − 1/2)), the part of each contribution made before alpha reaches
+    1/2 (they sum to min(alpha, 1/2))."""
+    if rule == "median":
+        return ((ch.w > 0) & (ch.tk >= 0.5) & (ch.tk - ch.w < 0.5)).astype(ch.w.dtype)
+    if rule == "front":
+        return jnp.clip(ch.tk - 0.5, 0.0, ch.w)
+    raise ValueError(f"unknown surface rule {rule!r}")
+
+
+def composite_surface(layout: Layout, rule: str, means2d, conics, opac, feats, ids, tile_start, tile_end):
+    """Σ_k s_k f_k per pixel with the weights s_k of ``surface_weights(·, rule)`` → (f [D,H,W,F], T [D,H,W]).
+    Same walk and arguments as ``composite``; not differentiable (its inputs are taken under
+    ``stop_gradient``)."""
+    args = jax.tree.map(jax.lax.stop_gradient, (means2d, conics, opac, feats))
+    layout = layout._replace(surface=rule, statistics=False)
+    fg_b, t_b, _, _, order = _forward(layout, *args[:3], jnp.moveaxis(args[3], -1, 0), ids, tile_start, tile_end)
+    return _to_image(layout, jnp.moveaxis(fg_b, 1, -1), order), _to_image(layout, t_b, order)
+
+
 def _tile_order(layout: Layout, tile_start, tile_end):
     """Tiles by decreasing workload, padded with the dummy tile to whole batches: [nb, B]."""
     n = layout.num_tiles
@@ -279,9 +304,8 @@ def _forward(layout: Layout, means2d, conics, opac, feats, ids, tile_start, tile
             r, t, done, fg, maxw, hits = c
             ch = _chunk(layout, r, start, end, ids, means2d, conics, opac, feats, px, py, t, done)
             # Σ_k w_k f_k per feature plane, sliced per Gaussian so nothing [K, ...]-sized is materialised
-            fg = jnp.stack(
-                [fg[i] + _sum_leading_of(lambda j, i=i: ch.w[j] * ch.ft[i, j, ..., None], k) for i in range(f)]
-            )
+            w = surface_weights(ch, layout.surface) if layout.surface else ch.w
+            fg = jnp.stack([fg[i] + _sum_leading_of(lambda j, i=i: w[j] * ch.ft[i, j, ..., None], k) for i in range(f)])
             if layout.statistics:
                 maxw = maxw.at[:, ch.gid].max(jnp.moveaxis(_reduce_last(ch.w, jnp.maximum), 1, 0))
                 hits = hits.at[:, ch.gid].add(jnp.moveaxis(_reduce_last((ch.w > 0).astype(jnp.int32)), 1, 0))

@@ -27,7 +27,7 @@ from cfgs_jax import colour, parallel
 from cfgs_jax.errors import InputError
 from cfgs_jax.model import Camera, Gaussians, is_traced, opacities
 from cfgs_jax.splat.binning import bin_gaussians, listed_tiles
-from cfgs_jax.splat.composite import Layout, composite, weighted_sums
+from cfgs_jax.splat.composite import Layout, composite, composite_surface, weighted_sums
 from cfgs_jax.splat.config import RenderConfig
 from cfgs_jax.splat.pallas_composite import PallasOptions, composite_pallas, weighted_sums_pallas
 from cfgs_jax.splat.project import project, tile_grid
@@ -292,6 +292,70 @@ def summed_weight_maps(
 
     capacity = config.capacity or required_capacity(gaussians, camera, opacity_mult, config=config)
     return _until_it_fits(attempt, capacity)[..., :n]
+
+
+SURFACE_RULES = ("median", "front")
+
+
+@functools.partial(jax.jit, static_argnames=("config", "capacity", "rule"))
+def _surface_jit(gaussians, camera, opacity_mult, features, *, config, capacity, rule):
+    proj, opac, layout, bins = project_and_bin(
+        gaussians, camera, opacity_mult, config=config, capacity=capacity, statistics=False
+    )
+    f, t = composite_surface(
+        layout, rule, proj.means2d, proj.conics, opac, features, bins.gaussian_ids, bins.tile_start, bins.tile_end
+    )
+    alpha = 1.0 - t
+    if rule == "front":  # the weights sum to min(alpha, 1/2): their average
+        f = f / jnp.maximum(jnp.minimum(alpha, 0.5), 1e-12)[..., None]
+    return (f, alpha), bins.num_intersections
+
+
+def surface_features(
+    gaussians: Gaussians,
+    camera: Camera,
+    opacity_mult: Float[Array, "T N"],
+    features: Float[Array, "T N F"],
+    *,
+    rule: str = "median",
+    config: RenderConfig | None = None,
+) -> tuple[Float[Array, "T H W F"], Float[Array, "T H W"]]:
+    """Per date t and pixel, the features of the surface the pixel shows in the render at ``opacity_mult``
+    (Eq. 1's walk, weights w_i = α_i·o_i^t·G_i·T_i), and the rendered alpha. ``rule="median"``: those of
+    the median contributor, the first Gaussian i with T_i ≥ 1/2 > T_i − w_i (the one that takes the
+    accumulated alpha past 1/2, as a median depth picks it; with the depths as ``features``, the median
+    depth); ``"front"``: their average over the front half of the opacity, with weights
+    min(w_i, max(0, T_i − 1/2)). Both are 0 where the pixel's alpha stays below 1/2 (``"front"``: averaged
+    over what there is). Forward only (the XLA walk, whatever ``config.backend`` says; no gradient flows);
+    the capacity is sized as in ``render_dates``."""
+    if rule not in SURFACE_RULES:
+        raise InputError(f"unknown rule {rule!r}", field="rule", fix=" or ".join(SURFACE_RULES))
+    config = dataclasses.replace(config or RenderConfig(), backend="xla", subtile=None)
+    n = len(gaussians)
+    t = np.shape(opacity_mult)[0] if np.ndim(opacity_mult) == 2 else -1
+    if np.ndim(opacity_mult) != 2 or np.shape(opacity_mult)[1] != n:
+        raise InputError(f"expected shape [T, {n}], got {list(np.shape(opacity_mult))}", field="opacity_mult")
+    if np.ndim(features) != 3 or np.shape(features)[:2] != (t, n):
+        raise InputError(
+            f"expected shape [{t}, {n}, F], got {list(np.shape(features))}",
+            field="features",
+            fix="one row of F features per date and Gaussian",
+        )
+    dtype = jnp.result_type(gaussians.means)
+    opacity_mult, features = jnp.asarray(opacity_mult, dtype), jnp.asarray(features, dtype)
+    if n == 0:
+        h, w = int(camera.height), int(camera.width)
+        return jnp.zeros((t, h, w, np.shape(features)[2]), dtype), jnp.zeros((t, h, w), dtype)
+    if is_traced((gaussians, camera, opacity_mult, features)):
+        capacity = _traced_capacity(config, "surface_features")
+        return _surface_jit(gaussians, camera, opacity_mult, features, config=config, capacity=capacity, rule=rule)[0]
+    gaussians, opacity_mult, features = _padded(gaussians, opacity_mult, features)
+
+    def attempt(capacity):
+        return _surface_jit(gaussians, camera, opacity_mult, features, config=config, capacity=capacity, rule=rule)
+
+    capacity = config.capacity or required_capacity(gaussians, camera, opacity_mult, config=config)
+    return _until_it_fits(attempt, capacity)
 
 
 @functools.partial(jax.jit, static_argnames=("config",))
