@@ -18,6 +18,8 @@ flagging everything, the o^q < 0.2 rule, and the score alone (s > 0.5, no region
         # F1 against τ on fused cells: results/change_threshold_curve.md and .json
     python benchmarks/bench_change.py pixel_rules WORK CELL [CELL ...]
         # pixel IoU under each changes.pixel_rule on fused cells: results/change_pixel_rules.md and .json
+    python benchmarks/bench_change.py pixel_ceiling WORK CELL [CELL ...] [--draws 16]
+        # the pixel IoU a perfect mask reaches against one-sample truth: results/change_pixel_ceiling.md
     python benchmarks/bench_change.py probe WORK CELL [CELL ...]
         # what limits the evidence: the score alone under other evidence rules, where its errors lie,
         # and the depth behind them (results/change_probe.md)
@@ -236,6 +238,75 @@ def pixel_rules(work: Path, cells: list, overrides: list[str]) -> None:
         )
     (RESULTS / "change_pixel_rules.json").write_text(json.dumps({"command": _command(), "rows": rows}, indent=1))
     (RESULTS / "change_pixel_rules.md").write_text("\n".join(lines) + "\n")
+
+
+def pixel_ceiling(work: Path, cells: list, draws: int) -> None:
+    """How well any mask can match the pixel truth of fused ``cells``: each pixel's truth is one sample at
+    a random position in the pixel (Mitsuba's AOVs, one sample per pixel), so where a boundary crosses the
+    pixel it is a coin toss. For every ordered pair's test views the truth is rendered again ``draws``
+    times at other sample positions (``synthetic.changed_mask_draws``; draw 0 reproduces the written
+    masks, checked); the mask "changed in most draws" (what a perfect detector predicts) is scored
+    against the written truth by IoU over all pixels, beside the IoU of one other draw and the share of
+    changed pixels whose draws disagree. Writes results/change_pixel_ceiling.md and .json."""
+    from cfgs_jax.app.render_run import open_run
+    from cfgs_jax.evaluation.protocol import date_masks
+    from cfgs_jax.io.run_dir import registered_cameras
+    from cfgs_jax.synthetic import changed_mask_draws, make_preset
+
+    rows = []
+    for cell in cells:
+        out = fused_cell(cell_dir(work, cell))
+        run = open_run(out / "run")
+        gt = json.loads((out / "data" / "ground_truth.json").read_text())
+        names = list(run.names)
+        spec = make_preset(gt["preset"], seed=gt["seed"], width=gt["width"], height=gt["height"], spp=gt["spp"],
+                           images_per_date=len(gt["dates"][0]["cameras_world"]))  # fmt: skip
+        masks = date_masks(out / "data", run.scenes, run.sims, names, "test")
+        n = {"inter": 0, "union": 0, "inter1": 0, "union1": 0, "truth": 0, "mixed": 0}
+        for a in range(len(names)):
+            sc = run.scenes[a]
+            views = [
+                int(Path(sc.image_names[i]).stem.split("_")[-1]) for i, _ in registered_cameras(sc, run.sims[a], "test")
+            ]
+            for b in (x for x in range(len(names)) if x != a):
+                drawn = changed_mask_draws(spec, a, b, views, draws + 1)
+                written = np.stack(masks[a].changed_vs[names[b]])
+                if not np.array_equal(drawn[0], written):
+                    raise SystemExit(
+                        f"{out.name}: {names[a]} vs {names[b]}: draw 0 does not reproduce the written masks"
+                    )
+                share = drawn[1:].mean(0)
+                best = share > 0.5
+                n["inter"] += int((best & written).sum())
+                n["union"] += int((best | written).sum())
+                n["inter1"] += int((drawn[1] & written).sum())
+                n["union1"] += int((drawn[1] | written).sum())
+                n["truth"] += int(written.sum())
+                n["mixed"] += int((written & (share > 0) & (share < 1)).sum())
+        row = {"cell": out.name, "size": f"{gt['width']}x{gt['height']}", "draws": draws, "counts": n,
+               "ceiling_iou": n["inter"] / max(n["union"], 1), "one_draw_iou": n["inter1"] / max(n["union1"], 1),
+               "mixed_share": n["mixed"] / max(n["truth"], 1)}  # fmt: skip
+        rows.append(row)
+        print(f"{out.name}: ceiling IoU {row['ceiling_iou']:.3f}, one other draw {row['one_draw_iou']:.3f}, "
+              f"changed pixels whose draws disagree {row['mixed_share']:.3f}", flush=True)  # fmt: skip
+    lines = [
+        "# How well can any change mask match the pixel truth? (bench_change.py pixel_ceiling)",
+        "",
+        f"{_provenance()} The synthetic truth of a pixel is one Mitsuba sample at a random position in "
+        f"it; each ordered pair's test-view truth rendered again {draws} times at other positions. Ceiling: "
+        "the IoU against the written truth of the mask changed in most draws (what a detector that knew the "
+        "scene exactly would draw), over all pixels; one draw: the IoU of one other draw; mixed: the share "
+        "of changed pixels whose draws disagree (a boundary crosses them).",
+        "",
+        "| cell | size | ceiling IoU | one other draw's IoU | mixed changed pixels |",
+        "|---|---|---:|---:|---:|",
+    ]
+    lines += [
+        f"| {r['cell']} | {r['size']} | {r['ceiling_iou']:.3f} | {r['one_draw_iou']:.3f} | {r['mixed_share']:.3f} |"
+        for r in rows
+    ]
+    (RESULTS / "change_pixel_ceiling.json").write_text(json.dumps({"command": _command(), "rows": rows}, indent=1))
+    (RESULTS / "change_pixel_ceiling.md").write_text("\n".join(lines) + "\n")
 
 
 def _entries(run, data: Path, stats) -> dict:
@@ -700,6 +771,7 @@ SWEEP = {
     "table": "gather the scored cells into results/NAME.md and .json",
     "threshold": "F1 against the threshold τ on fused cells",
     "pixel_rules": "pixel IoU of the masks under each pixel rule on fused cells",
+    "pixel_ceiling": "the pixel IoU a perfect mask reaches against one-sample truth (fused cells)",
     "probe": "what limits the evidence on fused cells",
     "pixels": "whether the changes show per pixel in the date models' renders (fused cells)",
     "surface": "whether the evidence ranks the Gaussians over changed surface first (fused cells)",
@@ -750,6 +822,7 @@ def main(argv: list[str] | None = None):
         p.add_argument("--set", dest="overrides", action="append", default=[], metavar="changes.KEY=VALUE")
         p.add_argument("--name", default="change_sweep", help="results file stem (table)")
         p.add_argument("--tau", default="0.03,0.04,0.05,0.06,0.08,0.10", help="thresholds τ (threshold)")
+        p.add_argument("--draws", type=int, default=16, help="truth renders per view (pixel_ceiling)")
         p.add_argument("--pairs", default="", help="ordered pairs p:q, comma-separated (surface; default: all)")
     sub.add_parser("readme", help="results/change_sweep.json into README.md: F1 / pixel IoU per scene and cell")
     for action, text in (("rules", "region rules compared on one run"), ("cost", "the residual sums' cost")):
@@ -777,6 +850,9 @@ def main(argv: list[str] | None = None):
         return
     if not args.cells:
         ap.error("name the cells, e.g. flood:80x60:10")
+    if args.action == "pixel_ceiling":
+        pixel_ceiling(work, [parse_cell(c) for c in args.cells], args.draws)
+        return
     if args.action == "pixel_rules":
         pixel_rules(work, [parse_cell(c) for c in args.cells], args.overrides)
         return

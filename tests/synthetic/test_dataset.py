@@ -93,6 +93,24 @@ def test_masks_agree_with_presence(corals):
             assert len(flagged) == 5 and sum(int(m.any()) for m in flagged) >= 1
 
 
+def test_changed_mask_draws_reproduce_the_written_masks_and_move_only_at_boundaries(corals):
+    """Draw 0 of ``changed_mask_draws`` is the written ``changed_vs`` mask of each view; the other draws
+    (other sample positions in each pixel) differ from it only next to a boundary of the written mask."""
+    spec, out, gt = corals
+    a, b = gt["dates"][0]["name"], gt["dates"][1]["name"]
+    drawn = synthetic.changed_mask_draws(spec, 0, 1, [0, 3], 3)
+    assert drawn.shape == (3, 2, 48, 64)
+    written = np.stack([_mask(out / a / "masks" / f"changed_vs_{b}" / f"img_{v:03d}.png") > 127 for v in (0, 3)])
+    np.testing.assert_array_equal(drawn[0], written)
+    assert written.any() and (drawn[1:] != written).any()
+    padded = np.pad(written, ((0, 0), (1, 1), (1, 1)), mode="edge")
+    near_edge = np.zeros_like(written)
+    for dy in (0, 1, 2):
+        for dx in (0, 1, 2):
+            near_edge |= padded[:, dy : dy + 48, dx : dx + 64] != written
+    assert not ((drawn[1:] != written) & ~near_edge).any()
+
+
 def test_images_carry_surface_coverage_as_alpha(corals):
     """Alpha (from the beauty render, the sky hidden) agrees with the separately rendered object-id
     AOV: ~0 where no object was hit, ~1 inside objects; uncovered pixels show the sky colour."""

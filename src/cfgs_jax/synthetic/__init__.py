@@ -2,10 +2,11 @@
 
 ``make_preset(name, seed=, width=, height=, images_per_date=, spp=)`` builds a ``SceneSpec`` (one of
 vase, corals, flood, coverage, light, reef); ``render_dataset(spec, out)`` writes one COLMAP dataset per
-date in its own random Sim(3) frame, object-id and change masks, and ``ground_truth.json``.
+date in its own random Sim(3) frame, object-id and change masks, and ``ground_truth.json``;
+``changed_mask_draws`` renders a date's change masks again at other sample positions in each pixel.
 """
 
-from cfgs_jax.synthetic.dataset import reference_transforms, render_dataset, sun_rgb
+from cfgs_jax.synthetic.dataset import changed_mask_draws, reference_transforms, render_dataset, sun_rgb
 from cfgs_jax.synthetic.presets import PRESETS, DateSpec, ObjectSpec, SceneSpec, make_preset
 
 __all__ = [
@@ -13,6 +14,7 @@ __all__ = [
     "DateSpec",
     "ObjectSpec",
     "SceneSpec",
+    "changed_mask_draws",
     "make_preset",
     "reference_transforms",
     "render_dataset",

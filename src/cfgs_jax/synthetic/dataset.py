@@ -257,7 +257,7 @@ def _render_date(spec: SceneSpec, q: int, out: Path, frame: Sim3, cam: _Camera, 
     beauty = _Loaded(spec, q, q, aov=False, textures=tex_cache)
     own = _Loaded(spec, q, q, aov=True, textures=tex_cache)
     names = [f"img_{i:03d}.png" for i in range(len(date.cam_from_world))]
-    seeds = [int(np.random.default_rng([spec.seed, q, i]).integers(2**31)) for i in range(len(names))]
+    seeds = [_view_seed(spec, q, i) for i in range(len(names))]
     others = [p for p in range(nd) if p != q]
     with atomic_directory(out / date.name) as tmp:
         tmp = Path(tmp)
@@ -328,14 +328,7 @@ def render_dataset(
     frames = [Sim3.random(rng) for _ in range(nd)]  # date_from_world
     fx = 0.5 * spec.width / np.tan(np.radians(spec.fov_x_deg) / 2)
     cam = _Camera(fx, spec.width / 2, spec.height / 2, points_per_image or max(40, spec.width * spec.height // 250))
-    textures: dict = {}
-
-    def tex_cache(k, date):
-        key = (k, spec.objects[k].variant[date] if spec.objects[k].texture != "water" else -1)
-        if key not in textures:
-            textures[key] = texture(spec, k, date)
-        return textures[key]
-
+    tex_cache = _texture_cache(spec)
     todo = list(range(nd)) if dates is None else sorted({int(d) for d in dates})
     if not todo or todo[0] < 0 or todo[-1] >= nd:
         raise InputError(f"date indices {dates} outside 0..{nd - 1}", field="dates")
@@ -359,6 +352,45 @@ def render_dataset(
     }
     with atomic_file(out / "ground_truth.json") as tmp:
         tmp.write_text(json.dumps(gt, indent=1))
+    return out
+
+
+def _texture_cache(spec: SceneSpec):
+    """(object index, date) → its texture at that date, each variant made once."""
+    textures: dict = {}
+
+    def tex_cache(k, date):
+        key = (k, spec.objects[k].variant[date] if spec.objects[k].texture != "water" else -1)
+        if key not in textures:
+            textures[key] = texture(spec, k, date)
+        return textures[key]
+
+    return tex_cache
+
+
+def _view_seed(spec: SceneSpec, q: int, view: int, draw: int = 0) -> int:
+    """The sampler seed of date q's view: draw 0 is the one the dataset is written with."""
+    key = [spec.seed, q, view] if draw == 0 else [spec.seed, q, view, draw]
+    return int(np.random.default_rng(key).integers(2**31))
+
+
+def changed_mask_draws(spec: SceneSpec, q: int, p: int, views: list[int], draws: int) -> np.ndarray:
+    """[draws, len(views), H, W] bool: date q's ``masks/changed_vs_<p>`` of its ``views`` (indices into its
+    cameras) rendered again, each draw with its own sample position in every pixel (one sample per pixel,
+    as the dataset's): draw 0 with the dataset's seeds (the written masks), draw k > 0 with seeds of its
+    own. Where a boundary crosses a pixel its truth depends on where that one sample fell; the share of
+    draws that call a pixel changed estimates the changed share of its area."""
+    tex_cache = _texture_cache(spec)
+    own = _Loaded(spec, q, q, aov=True, textures=tex_cache)
+    other = _Loaded(spec, p, q, aov=True, textures=tex_cache)
+    seeds = [[_view_seed(spec, q, v, k) for v in views] for k in range(draws)]
+    aovs = [[(own.aov(v, s), other.aov(v, s)) for v, s in zip(views, row)] for row in seeds]
+    table_q, table_p = own.objects(), other.objects()  # after the last render (see ``_Loaded``)
+    out = np.zeros((draws, len(views), spec.height, spec.width), bool)
+    for k, row in enumerate(aovs):
+        for i, ((sid, pos, uv), (sid_p, pos_p, uv_p)) in enumerate(row):
+            ids, ids_p = _object_ids(table_q, sid), _object_ids(table_p, sid_p)
+            out[k, i] = _changed(spec, q, p, ids, pos, uv, ids_p, pos_p, uv_p, tex_cache)
     return out
 
 
