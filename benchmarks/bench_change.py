@@ -18,6 +18,7 @@ flagging everything, the o^q < 0.2 rule, and the score alone (s > 0.5, no region
         # F1 against τ on fused cells: results/change_threshold_curve.md and .json
     python benchmarks/bench_change.py pixel_rules WORK CELL [CELL ...]
         # pixel IoU under each changes.pixel_rule on fused cells: results/change_pixel_rules.md and .json
+        # (no CELL: the .md again from the .json)
     python benchmarks/bench_change.py pixel_ceiling WORK CELL [CELL ...] [--draws 16]
         # the pixel IoU a perfect mask reaches against one-sample truth: results/change_pixel_ceiling.md
     python benchmarks/bench_change.py probe WORK CELL [CELL ...]
@@ -217,27 +218,40 @@ def pixel_rules(work: Path, cells: list, overrides: list[str]) -> None:
                          "f1": r["gaussian"]["f1"], "threshold": r["config"]["pixel_threshold"], "pixels": px,
                          "best": {"iou": best[0], "threshold": best[1]}})  # fmt: skip
             print(f"{out.name} {rule}: pixel IoU {px['iou']:.3f} (best {best[0]:.3f} at {best[1]:g})", flush=True)
+    (RESULTS / "change_pixel_rules.json").write_text(json.dumps({"command": _command(), "rows": rows}, indent=1))
+    (RESULTS / "change_pixel_rules.md").write_text(pixel_rules_markdown(rows, _command()))
+
+
+def pixel_rules_markdown(rows: list[dict], command: str) -> str:
+    """results/change_pixel_rules.md from ``pixel_rules``' rows (its JSON) and the command that made them."""
     lines = [
         "# The change masks' pixel rule (bench_change.py pixel_rules)",
         "",
-        f"{_provenance()} Each cell fused once (as the sweep's) and its regions found once with the "
+        f"{_provenance(command)} Each cell fused once (as the sweep's) and its regions found once with the "
         "`[changes]` defaults; only `changes.pixel_rule` differs: a pixel is changed when the regions' Gaussians "
         "hold more than the share threshold of its compositing weight (`share`), of its median contributor's "
         "(`median`: the Gaussian that takes the alpha past 1/2, the surface a median depth reads; the share is "
-        "0 or 1) or of the front half of its opacity (`front`). Pixel IoU over every pair's test views.",
+        "0 or 1, so every threshold gives the same mask) or of the front half of its opacity (`front`). Pixel "
+        "IoU over every pair's test views; best: the highest IoU over the share thresholds 0.05–0.95, at the "
+        "lowest share that gives it.",
         "",
         "| cell | size | views | F1 (regions) | rule | pixel IoU at the setting's share | best (share) | flagged / truth |",
         "|---|---|---:|---:|---|---:|---:|---|",
     ]
     for r in rows:
-        px = r["pixels"]
+        px, curve = r["pixels"], r["pixels"]["by_threshold"]
+        top = max(curve["iou"])
+        at = (
+            "any"
+            if min(curve["iou"]) == top
+            else f"{min(t for t, i in zip(curve['threshold'], curve['iou']) if i == top):g}"
+        )
         lines.append(
             f"| {r['cell']} | {r['size']} | {r['views']} | {r['f1']:.3f} | {r['rule']} | {px['iou']:.3f} "
-            f"({r['threshold']:g}) | {r['best']['iou']:.3f} ({r['best']['threshold']:g}) | "
+            f"({r['threshold']:g}) | {top:.3f} ({at}) | "
             f"{px['predicted_changed_share']:.4f} / {px['gt_changed_share']:.4f} |"
         )
-    (RESULTS / "change_pixel_rules.json").write_text(json.dumps({"command": _command(), "rows": rows}, indent=1))
-    (RESULTS / "change_pixel_rules.md").write_text("\n".join(lines) + "\n")
+    return "\n".join(lines) + "\n"
 
 
 def pixel_ceiling(work: Path, cells: list, draws: int) -> None:
@@ -847,6 +861,10 @@ def main(argv: list[str] | None = None):
         (RESULTS / f"{args.name}.json").write_text(json.dumps({"command": command, "rows": rows}, indent=1))
         (RESULTS / f"{args.name}.md").write_text(markdown(rows, command))
         print((RESULTS / f"{args.name}.md").read_text())
+        return
+    if args.action == "pixel_rules" and not args.cells:  # the table again from its JSON
+        done = json.loads((RESULTS / "change_pixel_rules.json").read_text())
+        (RESULTS / "change_pixel_rules.md").write_text(pixel_rules_markdown(done["rows"], done["command"]))
         return
     if not args.cells:
         ap.error("name the cells, e.g. flood:80x60:10")
