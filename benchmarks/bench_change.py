@@ -21,6 +21,8 @@ flagging everything, the o^q < 0.2 rule, and the score alone (s > 0.5, no region
         # (no CELL: the .md again from the .json)
     python benchmarks/bench_change.py pixel_ceiling WORK CELL [CELL ...] [--draws 16]
         # the pixel IoU a perfect mask reaches against one-sample truth: results/change_pixel_ceiling.md
+    python benchmarks/bench_change.py mask_errors WORK CELL [CELL ...]
+        # the masks' false positives by distance to the truth, and how much the images changed there
     python benchmarks/bench_change.py probe WORK CELL [CELL ...]
         # what limits the evidence: the score alone under other evidence rules, where its errors lie,
         # and the depth behind them (results/change_probe.md)
@@ -254,6 +256,23 @@ def pixel_rules_markdown(rows: list[dict], command: str) -> str:
     return "\n".join(lines) + "\n"
 
 
+def _cell_spec(out: Path):
+    """The ``SceneSpec`` a synthetic cell's data was rendered from (its ``ground_truth.json``)."""
+    from cfgs_jax.synthetic import make_preset
+
+    gt = json.loads((out / "data" / "ground_truth.json").read_text())
+    return make_preset(gt["preset"], seed=gt["seed"], width=gt["width"], height=gt["height"], spp=gt["spp"],
+                       images_per_date=len(gt["dates"][0]["cameras_world"]))  # fmt: skip
+
+
+def _test_view_indices(run, a: int) -> list[int]:
+    """Date a's test views as indices into its cameras in the scene's spec (``img_<index>.png``)."""
+    from cfgs_jax.io.run_dir import registered_cameras
+
+    sc = run.scenes[a]
+    return [int(Path(sc.image_names[i]).stem.split("_")[-1]) for i, _ in registered_cameras(sc, run.sims[a], "test")]
+
+
 def pixel_ceiling(work: Path, cells: list, draws: int) -> None:
     """How well any mask can match the pixel truth of fused ``cells``: each pixel's truth is one sample at
     a random position in the pixel (Mitsuba's AOVs, one sample per pixel), so where a boundary crosses the
@@ -264,8 +283,7 @@ def pixel_ceiling(work: Path, cells: list, draws: int) -> None:
     changed pixels whose draws disagree. Writes results/change_pixel_ceiling.md and .json."""
     from cfgs_jax.app.render_run import open_run
     from cfgs_jax.evaluation.protocol import date_masks
-    from cfgs_jax.io.run_dir import registered_cameras
-    from cfgs_jax.synthetic import changed_mask_draws, make_preset
+    from cfgs_jax.synthetic import changed_mask_draws
 
     rows = []
     for cell in cells:
@@ -273,15 +291,11 @@ def pixel_ceiling(work: Path, cells: list, draws: int) -> None:
         run = open_run(out / "run")
         gt = json.loads((out / "data" / "ground_truth.json").read_text())
         names = list(run.names)
-        spec = make_preset(gt["preset"], seed=gt["seed"], width=gt["width"], height=gt["height"], spp=gt["spp"],
-                           images_per_date=len(gt["dates"][0]["cameras_world"]))  # fmt: skip
+        spec = _cell_spec(out)
         masks = date_masks(out / "data", run.scenes, run.sims, names, "test")
         n = {"inter": 0, "union": 0, "inter1": 0, "union1": 0, "truth": 0, "mixed": 0}
         for a in range(len(names)):
-            sc = run.scenes[a]
-            views = [
-                int(Path(sc.image_names[i]).stem.split("_")[-1]) for i, _ in registered_cameras(sc, run.sims[a], "test")
-            ]
+            views = _test_view_indices(run, a)
             for b in (x for x in range(len(names)) if x != a):
                 drawn = changed_mask_draws(spec, a, b, views, draws + 1)
                 written = np.stack(masks[a].changed_vs[names[b]])
@@ -321,6 +335,124 @@ def pixel_ceiling(work: Path, cells: list, draws: int) -> None:
     ]
     (RESULTS / "change_pixel_ceiling.json").write_text(json.dumps({"command": _command(), "rows": rows}, indent=1))
     (RESULTS / "change_pixel_ceiling.md").write_text("\n".join(lines) + "\n")
+
+
+def _brightness_moves(luma_a, luma_b, negatives) -> np.ndarray:
+    """|log Y_a − log Y_b| per pixel, less its median over ``negatives`` (the global change of light)."""
+    moved = luma_a - luma_b
+    return np.abs(moved - np.median(moved[negatives])) if negatives.any() else np.abs(moved)
+
+
+def mask_errors(work: Path, cells: list, overrides: list[str]) -> None:
+    """Where the change masks of fused ``cells`` go wrong, over every pair's test views: the false-positive
+    pixels by their distance to the nearest truth pixel, the misses by their distance to the mask, and
+    whether the brightness moved there between the dates. For a view of date a tested against b, ρ =
+    |log Y_a − log Y_b| less its median over the view's true negatives (Y: Rec. 709 luminance), once for the
+    models (Y_a: a's photograph, Y_b: b's Gaussians alone at b's light) and once for the scenes (Y_a, Y_b:
+    a's and b's content path traced through a's camera with the same samples, ``synthetic.content_renders``,
+    linear): the scenes' ρ says whether the scene's appearance moved there (a shadow, a reflection), which
+    the truth never counts, the models' whether the renders did. Writes results/change_mask_errors.md/.json."""
+    import jax.numpy as jnp
+    from change_rules import _statistics
+    from scipy.ndimage import distance_transform_edt
+
+    from cfgs_jax import splat
+    from cfgs_jax.app.render_run import open_run
+    from cfgs_jax.changes import detect
+    from cfgs_jax.colour import REC709_LUMA
+    from cfgs_jax.evaluation.protocol import date_masks
+    from cfgs_jax.io.run_dir import date_views
+    from cfgs_jax.model import light_multipliers, opacity_multipliers
+    from cfgs_jax.synthetic import content_renders
+
+    bands = {"≤ 1 px": (0.0, 1.5), "2–8 px": (1.5, 8.5), "> 8 px": (8.5, np.inf)}
+    classes = ("true negatives", "true positives", *(f"false positives {b}" for b in bands))
+    luma = lambda x: np.log(np.maximum(np.asarray(x)[..., :3] @ np.asarray(REC709_LUMA), 1e-3))
+    rows = []
+    for cell in cells:
+        out = fused_cell(cell_dir(work, cell))
+        config = changes_config(overrides)
+        run = open_run(out / "run")
+        model, rc, spec = run.model, run.config.render, _cell_spec(out)
+        stats, _, _ = _statistics(run, out / "data", out / "change_sweep_cache", config, rc)
+        views = [date_views(sc, sm, config.views) for sc, sm in zip(run.scenes, run.sims)]
+        found = detect(model, views, config, statistics=stats, render_config=rc)
+        names = [d.name for d in model.dates]
+        test = [date_views(sc, sm, "test") for sc, sm in zip(run.scenes, run.sims)]
+        masks = date_masks(out / "data", run.scenes, run.sims, names, "test")
+        o, light = np.asarray(opacity_multipliers(model), np.float32), np.asarray(light_multipliers(model), np.float32)
+        origin = np.asarray(model.origin)
+        rho = {"model": {k: [] for k in classes}, "scene": {k: [] for k in classes}}
+        misses = dict.fromkeys(bands, 0)
+        for p, q in found.pairs:
+            for a, b in ((p, q), (q, p)):
+                alone = jnp.asarray(np.where(origin == b, o[:, b], 0.0)[None].astype(np.float32))
+                at_b = jnp.asarray(light[:, b][None])
+                indices = _test_view_indices(run, a)
+                scene_a, scene_b = content_renders(spec, a, a, indices), content_renders(spec, b, a, indices)
+                for v, (cam, img, truth) in enumerate(
+                    zip(test[a].cameras, test[a].images, masks[a].changed_vs[names[b]])
+                ):
+                    share, valid, mask = found.view(p, q, cam)
+                    truth = truth & valid
+                    cap = splat.required_capacity(model.gaussians, cam, alone, config=rc)
+                    r_b = splat.render_dates(
+                        model.gaussians,
+                        cam,
+                        alone,
+                        at_b,
+                        config=dataclasses.replace(rc, capacity=cap),
+                        statistics=False,
+                    ).image[0]
+                    negatives = valid & ~mask & ~truth
+                    moved = {"model": _brightness_moves(luma(img), luma(r_b), negatives),
+                             "scene": _brightness_moves(luma(scene_a[v]), luma(scene_b[v]), negatives)}  # fmt: skip
+                    far = distance_transform_edt(~truth) if truth.any() else np.full(truth.shape, np.inf)
+                    outside = distance_transform_edt(~mask) if mask.any() else np.full(truth.shape, np.inf)
+                    picks = {"true negatives": negatives, "true positives": mask & truth}
+                    for band, (lo, hi) in bands.items():
+                        picks[f"false positives {band}"] = mask & ~truth & (far > lo) & (far <= hi)
+                        misses[band] += int((truth & ~mask & (outside > lo) & (outside <= hi)).sum())
+                    for kind, m in moved.items():
+                        for k, pick in picks.items():
+                            rho[kind][k].append(m[pick])
+        row = {"cell": out.name, "overrides": overrides, "misses_by_distance": misses, "rho": {}}
+        for kind, by_class in rho.items():
+            row["rho"][kind] = {}
+            for k, v in by_class.items():
+                x = np.concatenate(v) if v else np.zeros(0)
+                row["rho"][kind][k] = {"pixels": int(len(x)), "quantiles": np.percentile(x, [50, 75, 90]).tolist() if len(x) else None,
+                                       "over_0.3": float(np.mean(x > 0.3)) if len(x) else None}  # fmt: skip
+        rows.append(row)
+        print(json.dumps(row), flush=True)
+    lines = [
+        "# Where the change masks go wrong (bench_change.py mask_errors)",
+        "",
+        f"{_provenance()} Every pair's test views of each fused cell, the `[changes]` defaults"
+        f"{' with ' + ', '.join(overrides) if overrides else ''}. Pixels by class, false positives by their "
+        "distance to the nearest truth pixel. ρ = |log Y_a − log Y_b| less its median over the view's true "
+        "negatives, for the scenes (a's and b's content path traced through a's camera with the same samples) "
+        "and for the models (a's photograph, b's Gaussians alone at b's light): how much the brightness moved "
+        "between the dates there, whatever the truth says (it counts content, never lighting).",
+        "",
+        "| cell | pixels | count | scenes' ρ 50 / 75 / 90 % | scenes' ρ > 0.3 | models' ρ 50 / 75 / 90 % | models' ρ > 0.3 |",
+        "|---|---|---:|---|---:|---|---:|",
+    ]
+    fmt = lambda v: (
+        (" / ".join(f"{x:.3f}" for x in v["quantiles"]), f"{v['over_0.3']:.3f}") if v["quantiles"] else ("–", "–")
+    )
+    for r in rows:
+        for k, scene in r["rho"]["scene"].items():
+            (sq, so), (mq, mo) = fmt(scene), fmt(r["rho"]["model"][k])
+            lines.append(f"| {r['cell']} | {k} | {scene['pixels']:,} | {sq} | {so} | {mq} | {mo} |")
+        m = r["misses_by_distance"]
+        lines.append(
+            f"| {r['cell']} | misses, by distance to the mask: "
+            + ", ".join(f"{b} {n:,}" for b, n in m.items())
+            + " | | | | | |"
+        )
+    (RESULTS / "change_mask_errors.json").write_text(json.dumps({"command": _command(), "rows": rows}, indent=1))
+    (RESULTS / "change_mask_errors.md").write_text("\n".join(lines) + "\n")
 
 
 def _entries(run, data: Path, stats) -> dict:
@@ -786,6 +918,7 @@ SWEEP = {
     "threshold": "F1 against the threshold τ on fused cells",
     "pixel_rules": "pixel IoU of the masks under each pixel rule on fused cells",
     "pixel_ceiling": "the pixel IoU a perfect mask reaches against one-sample truth (fused cells)",
+    "mask_errors": "where the masks' false positives and misses lie, and whether the images changed there",
     "probe": "what limits the evidence on fused cells",
     "pixels": "whether the changes show per pixel in the date models' renders (fused cells)",
     "surface": "whether the evidence ranks the Gaussians over changed surface first (fused cells)",
@@ -868,6 +1001,9 @@ def main(argv: list[str] | None = None):
         return
     if not args.cells:
         ap.error("name the cells, e.g. flood:80x60:10")
+    if args.action == "mask_errors":
+        mask_errors(work, [parse_cell(c) for c in args.cells], args.overrides)
+        return
     if args.action == "pixel_ceiling":
         pixel_ceiling(work, [parse_cell(c) for c in args.cells], args.draws)
         return

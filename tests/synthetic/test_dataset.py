@@ -111,6 +111,24 @@ def test_changed_mask_draws_reproduce_the_written_masks_and_move_only_at_boundar
     assert not ((drawn[1:] != written) & ~near_edge).any()
 
 
+def test_content_renders_of_a_date_through_its_own_cameras_are_its_images(corals):
+    """A date's content through its own cameras, 8-bit sRGB-encoded, is the image the dataset wrote (the same
+    samples); another date's content through those cameras differs where the scene changed."""
+    from cfgs_jax.colour import linear_to_srgb
+    from cfgs_jax.io.images import read_image
+
+    spec, out, gt = corals
+    a, b = gt["dates"][0]["name"], gt["dates"][1]["name"]
+    own = synthetic.content_renders(spec, 0, 0, [2])
+    assert own.shape == (1, 48, 64, 4)
+    encoded = np.round(np.clip(np.asarray(linear_to_srgb(np.clip(own[0, ..., :3], 0, 1))), 0, 1) * 255)
+    written = np.round(read_image(out / a / "images" / "img_002.png") * 255)
+    assert np.abs(encoded - written).max() <= 1
+    other = synthetic.content_renders(spec, 1, 0, [2])[0, ..., :3]
+    changed = _mask(out / a / "masks" / f"changed_vs_{b}" / "img_002.png") > 127
+    assert np.abs(other - own[0, ..., :3]).max(-1)[changed].mean() > 0.05
+
+
 def test_images_carry_surface_coverage_as_alpha(corals):
     """Alpha (from the beauty render, the sky hidden) agrees with the separately rendered object-id
     AOV: ~0 where no object was hit, ~1 inside objects; uncovered pixels show the sky colour."""

@@ -374,6 +374,18 @@ def _view_seed(spec: SceneSpec, q: int, view: int, draw: int = 0) -> int:
     return int(np.random.default_rng(key).integers(2**31))
 
 
+def content_renders(spec: SceneSpec, state: int, cam_date: int, views: list[int]) -> np.ndarray:
+    """[len(views), H, W, 4] straight RGBA, linear: date ``state``'s content under its own light and exposure,
+    path traced through date ``cam_date``'s ``views`` (indices into its cameras) with the samples the
+    dataset drew for those views, so that where the two dates' scenes agree the Monte Carlo noise of a
+    view of ``cam_date`` cancels. With ``state == cam_date``: the dataset's own images before 8-bit
+    encoding."""
+    scene = _Loaded(spec, state, cam_date, aov=False, textures=_texture_cache(spec))
+    exposure = [*[2.0 ** spec.dates[state].exposure_ev] * 3, 1]
+    sky = sky_radiance(spec, state)
+    return np.stack([_straight_rgba(scene.render(v, _view_seed(spec, cam_date, v)), sky) * exposure for v in views])
+
+
 def changed_mask_draws(spec: SceneSpec, q: int, p: int, views: list[int], draws: int) -> np.ndarray:
     """[draws, len(views), H, W] bool: date q's ``masks/changed_vs_<p>`` of its ``views`` (indices into its
     cameras) rendered again, each draw with its own sample position in every pixel (one sample per pixel,
