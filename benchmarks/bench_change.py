@@ -70,6 +70,12 @@ def _command() -> str:
     return shlex.join(["python", "benchmarks/bench_change.py", *sys.argv[1:]])
 
 
+def _opening(title: str, command: str | None, text: str) -> list[str]:
+    """A results file's first lines: its title, then the provenance and ``text`` as one paragraph, then a
+    blank line."""
+    return [f"# {title}", "", f"{_provenance(command)} {text}", ""]
+
+
 def _provenance(command: str | None = None) -> str:
     """A results file's opening: the command (this run's unless given), the machine and the date."""
     return f"Command: `{command or _command()}`. Machine: {machine()}. Date: {datetime.date.today().isoformat()}."
@@ -226,17 +232,17 @@ def pixel_rules(work: Path, cells: list, overrides: list[str]) -> None:
 
 def pixel_rules_markdown(rows: list[dict], command: str) -> str:
     """results/change_pixel_rules.md from ``pixel_rules``' rows (its JSON) and the command that made them."""
-    lines = [
-        "# The change masks' pixel rule (bench_change.py pixel_rules)",
-        "",
-        f"{_provenance(command)} Each cell fused once (as the sweep's) and its regions found once with the "
+    lines = _opening(
+        "The change masks' pixel rule (bench_change.py pixel_rules)",
+        command,
+        "Each cell fused once (as the sweep's) and its regions found once with the "
         "`[changes]` defaults; only `changes.pixel_rule` differs: a pixel is changed when the regions' Gaussians "
         "hold more than the share threshold of its compositing weight (`share`), of its median contributor's "
         "(`median`: the Gaussian that takes the alpha past 1/2, the surface a median depth reads; the share is "
         "0 or 1, so every threshold gives the same mask) or of the front half of its opacity (`front`). Pixel "
         "IoU over every pair's test views; best: the highest IoU over the share thresholds 0.05–0.95, at the "
         "lowest share that gives it.",
-        "",
+    ) + [
         "| cell | size | views | F1 (regions) | rule | pixel IoU at the setting's share | best (share) | flagged / truth |",
         "|---|---|---:|---:|---|---:|---:|---|",
     ]
@@ -849,10 +855,10 @@ def _kinds(regions: dict) -> str:
 
 
 def markdown(rows: list[dict], command: str) -> str:
-    lines = [
-        "# The change detector across scenes, sizes and view counts (bench_change.py)",
-        "",
-        f"{_provenance(command)} Each row one fused "
+    lines = _opening(
+        "The change detector across scenes, sizes and view counts (bench_change.py)",
+        command,
+        "Each row one fused "
         "cell (`eval --part fusion`, `benchmarks/change_sweep_WxH.toml`, the exact Sim(3)s), scored with one "
         "`[changes]` setting for every cell; views: images per date (every 8th a test view). Per Gaussian the truth is "
         "its object changed between the two dates (P / R / F1 of region membership); beside it the truth that follows "
@@ -862,7 +868,7 @@ def markdown(rows: list[dict], command: str) -> str:
         "the regions with the scoring. Kinds named: of the regions whose majority object changed, how many name its kind "
         "(appeared, disappeared, moved, changed shape, changed surface). † a row kept from the table before (its cell "
         "scored on an earlier machine; its date, where recorded, in the JSON).",
-        "",
+    ) + [
         "| scene | size | views | Gaussians | P / R / F1 | F1: flag all / o^q / score alone | recall − score alone's | "
         "F1, surface truth | pixel IoU (flag all) | objects found | false regions | kinds named | detector s |",
         "|---|---|---:|---:|---|---|---:|---:|---|---:|---:|---|---:|",
