@@ -357,7 +357,10 @@ def mask_errors(work: Path, cells: list, overrides: list[str]) -> None:
     models (Y_a: a's photograph, Y_b: b's Gaussians alone at b's light) and once for the scenes (Y_a, Y_b:
     a's and b's content path traced through a's camera with the same samples, ``synthetic.content_renders``,
     linear): the scenes' ρ says whether the scene's appearance moved there (a shadow, a reflection), which
-    the truth never counts, the models' whether the renders did. Writes results/change_mask_errors.md/.json."""
+    the truth never counts, the models' whether the renders did. And which members of the pair's regions
+    carry each class: the mean share of a pixel's weight held by members present at both dates (o > 1/2 at
+    each: a surface kept and recoloured) and by members present at one only (what appeared, left or moved).
+    Writes results/change_mask_errors.md and .json."""
     import jax.numpy as jnp
     from change_rules import _statistics
     from scipy.ndimage import distance_transform_edt
@@ -365,6 +368,7 @@ def mask_errors(work: Path, cells: list, overrides: list[str]) -> None:
     from cfgs_jax import splat
     from cfgs_jax.app.render_run import open_run
     from cfgs_jax.changes import detect
+    from cfgs_jax.changes.maps import pixel_change
     from cfgs_jax.colour import REC709_LUMA
     from cfgs_jax.evaluation.protocol import date_masks
     from cfgs_jax.io.run_dir import date_views
@@ -390,7 +394,10 @@ def mask_errors(work: Path, cells: list, overrides: list[str]) -> None:
         origin = np.asarray(model.origin)
         rho = {"model": {k: [] for k in classes}, "scene": {k: [] for k in classes}}
         misses = dict.fromkeys(bands, 0)
-        for p, q in found.pairs:
+        carried = {k: np.zeros(2) for k in classes}  # Σ over a class's pixels of the two member kinds' shares
+        for (p, q), pair in found.pairs.items():
+            kept = (o[:, p] > 0.5) & (o[:, q] > 0.5)
+            kinds = [pair.in_region & kept, pair.in_region & ~kept]
             for a, b in ((p, q), (q, p)):
                 alone = jnp.asarray(np.where(origin == b, o[:, b], 0.0)[None].astype(np.float32))
                 at_b = jnp.asarray(light[:, b][None])
@@ -422,27 +429,39 @@ def mask_errors(work: Path, cells: list, overrides: list[str]) -> None:
                     for kind, m in moved.items():
                         for k, pick in picks.items():
                             rho[kind][k].append(m[pick])
-        row = {"cell": out.name, "overrides": overrides, "misses_by_distance": misses, "rho": {}}
+                    for j, members in enumerate(kinds):
+                        held = pixel_change(model, cam, members.astype(np.float32), pair.known, p, q, render_config=rc)[
+                            0
+                        ]
+                        for k, pick in picks.items():
+                            carried[k][j] += float(held[pick].sum())
+        row = {"cell": out.name, "overrides": overrides, "misses_by_distance": misses, "rho": {}, "members": {}}
         for kind, by_class in rho.items():
             row["rho"][kind] = {}
             for k, v in by_class.items():
                 x = np.concatenate(v) if v else np.zeros(0)
                 row["rho"][kind][k] = {"pixels": int(len(x)), "quantiles": np.percentile(x, [50, 75, 90]).tolist() if len(x) else None,
                                        "over_0.3": float(np.mean(x > 0.3)) if len(x) else None}  # fmt: skip
+        for k, (kept_share, one_share) in carried.items():
+            n = max(len(np.concatenate(rho["scene"][k])) if rho["scene"][k] else 0, 1)
+            row["members"][k] = {"kept_at_both": kept_share / n, "at_one": one_share / n}
         rows.append(row)
         print(json.dumps(row), flush=True)
-    lines = [
-        "# Where the change masks go wrong (bench_change.py mask_errors)",
-        "",
-        f"{_provenance()} Every pair's test views of each fused cell, the `[changes]` defaults"
+    lines = _opening(
+        "Where the change masks go wrong (bench_change.py mask_errors)",
+        None,
+        "Every pair's test views of each fused cell, the `[changes]` defaults"
         f"{' with ' + ', '.join(overrides) if overrides else ''}. Pixels by class, false positives by their "
         "distance to the nearest truth pixel. ρ = |log Y_a − log Y_b| less its median over the view's true "
         "negatives, for the scenes (a's and b's content path traced through a's camera with the same samples) "
         "and for the models (a's photograph, b's Gaussians alone at b's light): how much the brightness moved "
-        "between the dates there, whatever the truth says (it counts content, never lighting).",
-        "",
-        "| cell | pixels | count | scenes' ρ 50 / 75 / 90 % | scenes' ρ > 0.3 | models' ρ 50 / 75 / 90 % | models' ρ > 0.3 |",
-        "|---|---|---:|---|---:|---|---:|",
+        "between the dates there, whatever the truth says (it counts content, never lighting). Members: the mean "
+        "share of a pixel's weight held by the pair's region members present at both dates (o > 1/2 at each) and "
+        "by those present at one only.",
+    ) + [
+        "| cell | pixels | count | scenes' ρ 50 / 75 / 90 % | scenes' ρ > 0.3 | models' ρ 50 / 75 / 90 % | models' ρ > 0.3 "
+        "| share held by members kept at both dates / present at one |",
+        "|---|---|---:|---|---:|---|---:|---|",
     ]
     fmt = lambda v: (
         (" / ".join(f"{x:.3f}" for x in v["quantiles"]), f"{v['over_0.3']:.3f}") if v["quantiles"] else ("–", "–")
@@ -450,12 +469,16 @@ def mask_errors(work: Path, cells: list, overrides: list[str]) -> None:
     for r in rows:
         for k, scene in r["rho"]["scene"].items():
             (sq, so), (mq, mo) = fmt(scene), fmt(r["rho"]["model"][k])
-            lines.append(f"| {r['cell']} | {k} | {scene['pixels']:,} | {sq} | {so} | {mq} | {mo} |")
+            held = r["members"][k]
+            lines.append(
+                f"| {r['cell']} | {k} | {scene['pixels']:,} | {sq} | {so} | {mq} | {mo} | "
+                f"{held['kept_at_both']:.3f} / {held['at_one']:.3f} |"
+            )
         m = r["misses_by_distance"]
         lines.append(
             f"| {r['cell']} | misses, by distance to the mask: "
             + ", ".join(f"{b} {n:,}" for b, n in m.items())
-            + " | | | | | |"
+            + " | | | | | | |"
         )
     (RESULTS / "change_mask_errors.json").write_text(json.dumps({"command": _command(), "rows": rows}, indent=1))
     (RESULTS / "change_mask_errors.md").write_text("\n".join(lines) + "\n")
