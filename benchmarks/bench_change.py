@@ -206,28 +206,28 @@ def threshold_curve(work: Path, cells: list, taus: list[float], overrides: list[
     (RESULTS / "change_threshold_curve.md").write_text("\n".join(lines) + "\n")
 
 
-def pixel_rules(work: Path, cells: list, overrides: list[str]) -> None:
+def pixel_rules(
+    work: Path, cells: list, overrides: list[str], rules: list[str], name: str = "change_pixel_rules"
+) -> None:
     """Pixel IoU of the change masks on fused ``cells`` under each ``changes.pixel_rule`` (the share of
     every weight of a pixel, its median contributor's, its front half's), at the setting's share threshold
     and at the best one; the regions, and so the per-Gaussian figures, are the same for every rule. Writes
     results/change_pixel_rules.md and .json."""
-    from cfgs_jax.changes.maps import PIXEL_RULES
-
     rows = []
     for cell in cells:
         out = fused_cell(cell_dir(work, cell))
         ready = prepared(out, changes_config(overrides))
-        for rule in PIXEL_RULES:
+        for rule in rules:
             r = score(out, overrides + [f"changes.pixel_rule={rule}"], ready)
             px = r["pixels"]
             curve = px["by_threshold"]
             best = max(zip(curve["iou"], curve["threshold"]))
-            rows.append({"cell": out.name, "size": r["size"], "views": r["images_per_date"], "rule": rule,
+            rows.append({"cell": out.name, "size": r["size"], "views": r["images_per_date"], "rule": rule, "overrides": overrides,
                          "f1": r["gaussian"]["f1"], "threshold": r["config"]["pixel_threshold"], "pixels": px,
                          "best": {"iou": best[0], "threshold": best[1]}})  # fmt: skip
             print(f"{out.name} {rule}: pixel IoU {px['iou']:.3f} (best {best[0]:.3f} at {best[1]:g})", flush=True)
-    (RESULTS / "change_pixel_rules.json").write_text(json.dumps({"command": _command(), "rows": rows}, indent=1))
-    (RESULTS / "change_pixel_rules.md").write_text(pixel_rules_markdown(rows, _command()))
+    (RESULTS / f"{name}.json").write_text(json.dumps({"command": _command(), "rows": rows}, indent=1))
+    (RESULTS / f"{name}.md").write_text(pixel_rules_markdown(rows, _command()))
 
 
 def pixel_rules_markdown(rows: list[dict], command: str) -> str:
@@ -236,7 +236,7 @@ def pixel_rules_markdown(rows: list[dict], command: str) -> str:
         "The change masks' pixel rule (bench_change.py pixel_rules)",
         command,
         "Each cell fused once (as the sweep's) and its regions found once with the "
-        "`[changes]` defaults; only `changes.pixel_rule` differs: a pixel is changed when the regions' Gaussians "
+        "`[changes]` defaults (and the row's `--set`s); only `changes.pixel_rule` differs: a pixel is changed when the regions' Gaussians "
         "hold more than the share threshold of its compositing weight (`share`), of its median contributor's "
         "(`median`: the Gaussian that takes the alpha past 1/2, the surface a median depth reads; the share is "
         "0 or 1, so every threshold gives the same mask) or of the front half of its opacity (`front`). Pixel "
@@ -255,7 +255,8 @@ def pixel_rules_markdown(rows: list[dict], command: str) -> str:
             else f"{min(t for t, i in zip(curve['threshold'], curve['iou']) if i == top):g}"
         )
         lines.append(
-            f"| {r['cell']} | {r['size']} | {r['views']} | {r['f1']:.3f} | {r['rule']} | {px['iou']:.3f} "
+            f"| {r['cell']} | {r['size']} | {r['views']} | {r['f1']:.3f} | "
+            f"{' + '.join([r['rule'], *r.get('overrides', [])])} | {px['iou']:.3f} "
             f"({r['threshold']:g}) | {top:.3f} ({at}) | "
             f"{px['predicted_changed_share']:.4f} / {px['gt_changed_share']:.4f} |"
         )
@@ -999,6 +1000,7 @@ def main(argv: list[str] | None = None):
         p.add_argument("--name", default="change_sweep", help="results file stem (table)")
         p.add_argument("--tau", default="0.03,0.04,0.05,0.06,0.08,0.10", help="thresholds τ (threshold)")
         p.add_argument("--draws", type=int, default=16, help="truth renders per view (pixel_ceiling)")
+        p.add_argument("--rules", default="share,median,front", help="pixel rules, comma-separated (pixel_rules)")
         p.add_argument("--pairs", default="", help="ordered pairs p:q, comma-separated (surface; default: all)")
     sub.add_parser("readme", help="results/change_sweep.json into README.md: F1 / pixel IoU per scene and cell")
     for action, text in (("rules", "region rules compared on one run"), ("cost", "the residual sums' cost")):
@@ -1024,9 +1026,10 @@ def main(argv: list[str] | None = None):
         (RESULTS / f"{args.name}.md").write_text(markdown(rows, command))
         print((RESULTS / f"{args.name}.md").read_text())
         return
+    rules_name = "change_pixel_rules" if args.name == "change_sweep" else args.name
     if args.action == "pixel_rules" and not args.cells:  # the table again from its JSON
-        done = json.loads((RESULTS / "change_pixel_rules.json").read_text())
-        (RESULTS / "change_pixel_rules.md").write_text(pixel_rules_markdown(done["rows"], done["command"]))
+        done = json.loads((RESULTS / f"{rules_name}.json").read_text())
+        (RESULTS / f"{rules_name}.md").write_text(pixel_rules_markdown(done["rows"], done["command"]))
         return
     if not args.cells:
         ap.error("name the cells, e.g. flood:80x60:10")
@@ -1037,7 +1040,8 @@ def main(argv: list[str] | None = None):
         pixel_ceiling(work, [parse_cell(c) for c in args.cells], args.draws)
         return
     if args.action == "pixel_rules":
-        pixel_rules(work, [parse_cell(c) for c in args.cells], args.overrides)
+        rules = [r for r in args.rules.split(",") if r]
+        pixel_rules(work, [parse_cell(c) for c in args.cells], args.overrides, rules, rules_name)
         return
     if args.action == "probe":
         probe(work, [parse_cell(c) for c in args.cells])

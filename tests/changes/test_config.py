@@ -17,6 +17,8 @@ def test_changes_config_validates():
         ChangesConfig(pixel_threshold=1.0)
     with pytest.raises(InputError, match="changes.pixel_rule"):
         ChangesConfig(pixel_rule="mean")
+    with pytest.raises(InputError, match="changes.mask_members"):
+        ChangesConfig(mask_members="kept")
     with pytest.raises(InputError, match="changes.pool_area"):
         ChangesConfig(pool_area=-0.1)
     with pytest.raises(InputError, match="changes.views"):

@@ -149,3 +149,16 @@ def test_bad_input_gives_a_clear_error_or_an_empty_result():
         0.15,
     )
     assert one[0]["kind"] == "disappeared" and one[0]["extents"] == [0.0, 0.0, 0.0]
+
+
+def test_masks_show_kept_members_only_where_a_surface_changed_in_place():
+    """Hand-set regions: region 0 an object that appeared (its kept members are ground beside it), region 1
+    a surface changed in place. "all" shows every member; "by_kind" drops region 0's kept members only."""
+    from cfgs_jax.changes.detect import PairChange
+
+    member = np.array([0, 0, 0, 1, 1, -1, -1])
+    kept = np.array([False, True, True, True, False, True, False])
+    regions = [{"id": 0, "kind": "appeared"}, {"id": 1, "kind": "changed surface"}]
+    pair = PairChange(0, 1, np.zeros(7), np.ones(7, bool), regions, member)
+    assert pair.shown(kept).tolist() == [True, True, True, True, True, False, False]
+    assert pair.shown(kept, "by_kind").tolist() == [True, False, False, True, True, False, False]

@@ -34,7 +34,9 @@ class ChangesConfig(Checked):
     this share of the compositing weight of what it shows (``maps.change_mask``); ``pixel_rule`` says which
     weights: ``"share"`` every weight of the pixel, ``"median"`` only its median contributor's (the surface
     the pixel shows, where a median depth is read: the share is then 0 or 1), ``"front"`` the front half
-    of its opacity (``maps.pixel_change``).
+    of its opacity (``maps.pixel_change``). ``mask_members``: which region members the masks show,
+    ``"all"`` or ``"by_kind"`` (members kept at both dates only in regions of a surface changed in place,
+    ``detect.PairChange.shown``).
     ``carry_absence``: a Gaussian that another date pair found gone and that, at the pair's other
     date, lies at or behind a surface that changed between the two dates is counted gone there too
     (``changes.carried``; needs the regions of every pair that holds one of the two dates, so the
@@ -63,6 +65,7 @@ class ChangesConfig(Checked):
     min_image_area: Annotated[float, msgspec.Meta(ge=0, lt=1)] = 5e-4
     pixel_threshold: Annotated[float, OPEN_UNIT] = 0.35
     pixel_rule: str = "share"
+    mask_members: str = "all"
     max_view_angle: Annotated[float, msgspec.Meta(gt=0, le=180)] = 20.0
     support_views: Annotated[int, AT_LEAST_ONE] = 64
     complete_within: Annotated[float, NON_NEGATIVE] = 0.25
@@ -93,6 +96,10 @@ class ChangesConfig(Checked):
         if self.pixel_rule not in ("share", "median", "front"):
             raise InputError(
                 f"unknown rule {self.pixel_rule!r}", field="changes.pixel_rule", fix='use "share", "median" or "front"'
+            )
+        if self.mask_members not in ("all", "by_kind"):
+            raise InputError(
+                f"unknown members {self.mask_members!r}", field="changes.mask_members", fix='use "all" or "by_kind"'
             )
         lo, hi = (float(v) for v in self.gain_range)
         if not 0.0 < lo <= 1.0 <= hi:

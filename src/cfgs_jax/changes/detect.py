@@ -13,7 +13,7 @@ from cfgs_jax.changes.config import ChangesConfig
 from cfgs_jax.changes.evidence import ChangeEvidence, PairStatistics, evidence_from, pair_statistics, pairs_for
 from cfgs_jax.changes.maps import view_change
 from cfgs_jax.changes.regions import every_pair_regions
-from cfgs_jax.model import Camera, TemporalGaussians
+from cfgs_jax.model import Camera, TemporalGaussians, opacity_multipliers
 
 
 @dataclasses.dataclass(frozen=True)
@@ -32,6 +32,20 @@ class PairChange:
     def in_region(self) -> np.ndarray:
         """[N] bool: the Gaussian belongs to a changed region of the pair."""
         return self.member >= 0
+
+    def shown(self, kept: np.ndarray, rule: str = "all") -> np.ndarray:
+        """[N] bool: the members a change mask shows. ``"all"``: every member; ``"by_kind"``: a member present
+        at both dates (``kept``, [N] bool: o > 1/2 at p and q; a surface kept, recoloured) only in a region
+        whose kind is "changed surface" (a surface that changed in place, which only such members show);
+        in a region of an object that appeared, left, moved or changed shape, only its one-date members
+        (the kept ones there are ground beside it, recoloured by its moved shadow or reflection)."""
+        if rule == "all":
+            return self.in_region
+        in_place = np.zeros(len(self.member), bool)
+        for r in self.regions:
+            if r.get("kind") == "changed surface":
+                in_place |= self.member == r["id"]
+        return self.in_region & (~np.asarray(kept, bool) | in_place)
 
     @property
     def changed(self) -> np.ndarray:
@@ -53,12 +67,15 @@ class Detection:
     def view(self, p: int, q: int, camera: Camera) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The change seen from ``camera`` between dates p < q: (the share of what each pixel shows that
         lies in the pair's regions [H, W], the pixels covered and observed at both dates, the mask:
-        share above ``config.pixel_threshold`` and valid; the share read by ``config.pixel_rule``)."""
+        share above ``config.pixel_threshold`` and valid; the share read by ``config.pixel_rule``, of the
+        members ``config.mask_members`` names, ``PairChange.shown``)."""
         pair = self.pairs[(p, q)]
+        o = np.asarray(opacity_multipliers(self.model))
+        shown = pair.shown((o[:, p] > 0.5) & (o[:, q] > 0.5), self.config.mask_members)
         return view_change(
             self.model,
             camera,
-            pair.in_region.astype(np.float32),
+            shown.astype(np.float32),
             pair.known,
             p,
             q,
