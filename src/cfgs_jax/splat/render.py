@@ -268,9 +268,7 @@ def summed_weight_maps(
     ``render_dates`` (given in ``config``, or counted and regrown outside a trace)."""
     config = config or RenderConfig()
     n = len(gaussians)
-    if np.ndim(opacity_mult) != 2 or np.shape(opacity_mult)[1] != n:
-        raise InputError(f"expected shape [T, {n}], got {list(np.shape(opacity_mult))}", field="opacity_mult")
-    t = np.shape(opacity_mult)[0]
+    t = _dates_of(opacity_mult, n)
     if np.ndim(maps) != 4 or np.shape(maps)[1:] != (t, int(camera.height), int(camera.width)):
         raise InputError(
             f"expected shape [M, {t}, {int(camera.height)}, {int(camera.width)}], got {list(np.shape(maps))}",
@@ -332,9 +330,7 @@ def surface_features(
         raise InputError(f"unknown rule {rule!r}", field="rule", fix=" or ".join(SURFACE_RULES))
     config = dataclasses.replace(config or RenderConfig(), backend="xla", subtile=None)
     n = len(gaussians)
-    t = np.shape(opacity_mult)[0] if np.ndim(opacity_mult) == 2 else -1
-    if np.ndim(opacity_mult) != 2 or np.shape(opacity_mult)[1] != n:
-        raise InputError(f"expected shape [T, {n}], got {list(np.shape(opacity_mult))}", field="opacity_mult")
+    t = _dates_of(opacity_mult, n)
     if np.ndim(features) != 3 or np.shape(features)[:2] != (t, n):
         raise InputError(
             f"expected shape [{t}, {n}, F], got {list(np.shape(features))}",
@@ -401,6 +397,13 @@ def _until_it_fits(attempt, capacity: int):
         capacity = _bucket(int(needed))
 
 
+def _dates_of(opacity_mult, n: int) -> int:
+    """T of ``opacity_mult``, checked to be [T, n] (one multiplier per date and Gaussian)."""
+    if np.ndim(opacity_mult) != 2 or np.shape(opacity_mult)[1] != n:
+        raise InputError(f"expected shape [T, {n}], got {list(np.shape(opacity_mult))}", field="opacity_mult")
+    return int(np.shape(opacity_mult)[0])
+
+
 def _validate(gaussians, camera, opacity_mult, color_mult):
     if not isinstance(gaussians, Gaussians):
         raise InputError(f"expected Gaussians, got {type(gaussians).__name__}", field="gaussians")
@@ -409,9 +412,7 @@ def _validate(gaussians, camera, opacity_mult, color_mult):
     n = len(gaussians)
     if np.ndim(gaussians.means) != 2:
         raise InputError("render takes unbatched Gaussians [N, ...]; vmap over a batch", field="gaussians.means")
-    if np.shape(opacity_mult)[-1:] != (n,) or np.ndim(opacity_mult) != 2:
-        raise InputError(f"expected shape [T, {n}], got {list(np.shape(opacity_mult))}", field="opacity_mult")
-    t = np.shape(opacity_mult)[0]
+    t = _dates_of(opacity_mult, n)
     if tuple(np.shape(color_mult)) != (t, n, 3):
         raise InputError(f"expected shape [{t}, {n}, 3], got {list(np.shape(color_mult))}", field="color_mult")
 
