@@ -1000,7 +1000,7 @@ def main(argv: list[str] | None = None):
         p.add_argument("--name", default="change_sweep", help="results file stem (table)")
         p.add_argument("--tau", default="0.03,0.04,0.05,0.06,0.08,0.10", help="thresholds τ (threshold)")
         p.add_argument("--draws", type=int, default=16, help="truth renders per view (pixel_ceiling)")
-        p.add_argument("--rules", default="share,median,front", help="pixel rules, comma-separated (pixel_rules)")
+        p.add_argument("--rules", default="", help="pixel rules, comma-separated (pixel_rules; default: all)")
         p.add_argument("--pairs", default="", help="ordered pairs p:q, comma-separated (surface; default: all)")
     sub.add_parser("readme", help="results/change_sweep.json into README.md: F1 / pixel IoU per scene and cell")
     for action, text in (("rules", "region rules compared on one run"), ("cost", "the residual sums' cost")):
@@ -1040,7 +1040,9 @@ def main(argv: list[str] | None = None):
         pixel_ceiling(work, [parse_cell(c) for c in args.cells], args.draws)
         return
     if args.action == "pixel_rules":
-        rules = [r for r in args.rules.split(",") if r]
+        from cfgs_jax.changes.config import PIXEL_RULES
+
+        rules = [r for r in args.rules.split(",") if r] or list(PIXEL_RULES)
         pixel_rules(work, [parse_cell(c) for c in args.cells], args.overrides, rules, rules_name)
         return
     if args.action == "probe":

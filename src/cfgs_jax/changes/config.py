@@ -10,6 +10,11 @@ import msgspec
 from cfgs_jax.config import AT_LEAST_ONE, NON_NEGATIVE, OPEN_UNIT, POSITIVE, Checked
 from cfgs_jax.errors import InputError
 
+#: ``ChangesConfig.pixel_rule``: the weights a mask's share is read over (``maps.pixel_change``).
+PIXEL_RULES = ("share", "median", "front")
+#: ``ChangesConfig.mask_members``: which region members the masks show (``detect.PairChange.shown``).
+MASK_MEMBERS = ("all", "by_kind")
+
 
 @dataclasses.dataclass(frozen=True)
 class ChangesConfig(Checked):
@@ -93,13 +98,17 @@ class ChangesConfig(Checked):
         super().__post_init__()
         if self.views not in ("all", "train", "test"):
             raise InputError(f"unknown split {self.views!r}", field="changes.views", fix='use "all", "train" or "test"')
-        if self.pixel_rule not in ("share", "median", "front"):
+        if self.pixel_rule not in PIXEL_RULES:
             raise InputError(
-                f"unknown rule {self.pixel_rule!r}", field="changes.pixel_rule", fix='use "share", "median" or "front"'
+                f"unknown rule {self.pixel_rule!r}",
+                field="changes.pixel_rule",
+                fix=f"use one of {', '.join(PIXEL_RULES)}",
             )
-        if self.mask_members not in ("all", "by_kind"):
+        if self.mask_members not in MASK_MEMBERS:
             raise InputError(
-                f"unknown members {self.mask_members!r}", field="changes.mask_members", fix='use "all" or "by_kind"'
+                f"unknown members {self.mask_members!r}",
+                field="changes.mask_members",
+                fix=f"use one of {', '.join(MASK_MEMBERS)}",
             )
         lo, hi = (float(v) for v in self.gain_range)
         if not 0.0 < lo <= 1.0 <= hi:

@@ -42,9 +42,6 @@ def rendered_scores(
     return res.image[0, ..., 0] / safe, res.image[0, ..., 1] / safe, alpha
 
 
-PIXEL_RULES = ("share", "median", "front")
-
-
 def pixel_change(
     model: TemporalGaussians,
     camera: Camera,
