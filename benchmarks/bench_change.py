@@ -397,7 +397,7 @@ def mask_errors(work: Path, cells: list, overrides: list[str]) -> None:
         misses = dict.fromkeys(bands, 0)
         carried = {k: np.zeros(2) for k in classes}  # Σ over a class's pixels of the two member kinds' shares
         for (p, q), pair in found.pairs.items():
-            kept = (o[:, p] > 0.5) & (o[:, q] > 0.5)
+            kept = found.kept(p, q)
             kinds = [pair.in_region & kept, pair.in_region & ~kept]
             for a, b in ((p, q), (q, p)):
                 alone = jnp.asarray(np.where(origin == b, o[:, b], 0.0)[None].astype(np.float32))

@@ -64,14 +64,19 @@ class Detection:
     config: ChangesConfig
     render_config: splat.RenderConfig
 
+    def kept(self, p: int, q: int) -> np.ndarray:
+        """[N] bool: the Gaussians present at both dates p and q (persistence o > 1/2 at each)."""
+        o = np.asarray(opacity_multipliers(self.model))
+        return (o[:, p] > 0.5) & (o[:, q] > 0.5)
+
     def view(self, p: int, q: int, camera: Camera) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The change seen from ``camera`` between dates p < q: (the share of what each pixel shows that
         lies in the pair's regions [H, W], the pixels covered and observed at both dates, the mask:
         share above ``config.pixel_threshold`` and valid; the share read by ``config.pixel_rule``, of the
         members ``config.mask_members`` names, ``PairChange.shown``)."""
         pair = self.pairs[(p, q)]
-        o = np.asarray(opacity_multipliers(self.model))
-        shown = pair.shown((o[:, p] > 0.5) & (o[:, q] > 0.5), self.config.mask_members)
+        rule = self.config.mask_members
+        shown = pair.in_region if rule == "all" else pair.shown(self.kept(p, q), rule)
         return view_change(
             self.model,
             camera,
