@@ -265,8 +265,7 @@ def _render_date(spec: SceneSpec, q: int, out: Path, frame: Sim3, cam: _Camera, 
             (tmp / sub).mkdir(parents=True, exist_ok=True)
         rgbs, own_aovs = [], []
         for i, name in enumerate(names):
-            exposure = [*[2.0**date.exposure_ev] * 3, 1]
-            img = _straight_rgba(beauty.render(i, seeds[i]), sky_radiance(spec, q)) * exposure
+            img = _beauty(beauty, spec, q, i, seeds[i])
             write_image(tmp / "images" / name, img.astype(np.float32), linear=True, captured=date.captured)
             rgbs.append(_read_srgb(tmp / "images" / name))  # the 8-bit colours SfM would see
             own_aovs.append(own.aov(i, seeds[i]))
@@ -368,6 +367,13 @@ def _texture_cache(spec: SceneSpec):
     return tex_cache
 
 
+def _beauty(scene: _Loaded, spec: SceneSpec, state: int, view: int, seed: int) -> np.ndarray:
+    """[H, W, 4] straight RGBA, linear: ``scene`` (date ``state``'s content) path traced at one of its views
+    with ``seed``, the sky put back where nothing was hit and the date's exposure applied."""
+    exposure = [*[2.0 ** spec.dates[state].exposure_ev] * 3, 1]
+    return _straight_rgba(scene.render(view, seed), sky_radiance(spec, state)) * exposure
+
+
 def _view_seed(spec: SceneSpec, q: int, view: int, draw: int = 0) -> int:
     """The sampler seed of date q's view: draw 0 is the one the dataset is written with."""
     key = [spec.seed, q, view] if draw == 0 else [spec.seed, q, view, draw]
@@ -381,9 +387,7 @@ def content_renders(spec: SceneSpec, state: int, cam_date: int, views: list[int]
     view of ``cam_date`` cancels. With ``state == cam_date``: the dataset's own images before 8-bit
     encoding."""
     scene = _Loaded(spec, state, cam_date, aov=False, textures=_texture_cache(spec))
-    exposure = [*[2.0 ** spec.dates[state].exposure_ev] * 3, 1]
-    sky = sky_radiance(spec, state)
-    return np.stack([_straight_rgba(scene.render(v, _view_seed(spec, cam_date, v)), sky) * exposure for v in views])
+    return np.stack([_beauty(scene, spec, state, v, _view_seed(spec, cam_date, v)) for v in views])
 
 
 def changed_mask_draws(spec: SceneSpec, q: int, p: int, views: list[int], draws: int) -> np.ndarray:
