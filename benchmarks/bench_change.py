@@ -220,14 +220,21 @@ def pixel_rules(
         for rule in rules:
             r = score(out, overrides + [f"changes.pixel_rule={rule}"], ready)
             px = r["pixels"]
-            curve = px["by_threshold"]
-            best = max(zip(curve["iou"], curve["threshold"]))
             rows.append({"cell": out.name, "size": r["size"], "views": r["images_per_date"], "rule": rule, "overrides": overrides,
-                         "f1": r["gaussian"]["f1"], "threshold": r["config"]["pixel_threshold"], "pixels": px,
-                         "best": {"iou": best[0], "threshold": best[1]}})  # fmt: skip
-            print(f"{out.name} {rule}: pixel IoU {px['iou']:.3f} (best {best[0]:.3f} at {best[1]:g})", flush=True)
+                         "f1": r["gaussian"]["f1"], "threshold": r["config"]["pixel_threshold"], "pixels": px})  # fmt: skip
+            top, at = _best_share(px["by_threshold"])
+            print(f"{out.name} {rule}: pixel IoU {px['iou']:.3f} (best {top:.3f} at {at})", flush=True)
     (RESULTS / f"{name}.json").write_text(json.dumps({"command": _command(), "rows": rows}, indent=1))
     (RESULTS / f"{name}.md").write_text(pixel_rules_markdown(rows, _command()))
+
+
+def _best_share(curve: dict) -> tuple[float, str]:
+    """The highest pixel IoU of a share-threshold curve and the lowest share that gives it ("any" where
+    every share gives the same IoU)."""
+    top = max(curve["iou"])
+    if min(curve["iou"]) == top:
+        return top, "any"
+    return top, f"{min(t for t, i in zip(curve['threshold'], curve['iou']) if i == top):g}"
 
 
 def pixel_rules_markdown(rows: list[dict], command: str) -> str:
@@ -247,13 +254,8 @@ def pixel_rules_markdown(rows: list[dict], command: str) -> str:
         "|---|---|---:|---:|---|---:|---:|---|",
     ]
     for r in rows:
-        px, curve = r["pixels"], r["pixels"]["by_threshold"]
-        top = max(curve["iou"])
-        at = (
-            "any"
-            if min(curve["iou"]) == top
-            else f"{min(t for t, i in zip(curve['threshold'], curve['iou']) if i == top):g}"
-        )
+        px = r["pixels"]
+        top, at = _best_share(px["by_threshold"])
         lines.append(
             f"| {r['cell']} | {r['size']} | {r['views']} | {r['f1']:.3f} | "
             f"{' + '.join([r['rule'], *r.get('overrides', [])])} | {px['iou']:.3f} "
