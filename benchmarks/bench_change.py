@@ -398,6 +398,7 @@ def mask_errors(work: Path, cells: list, overrides: list[str]) -> None:
         rho = {"model": {k: [] for k in classes}, "scene": {k: [] for k in classes}}
         misses = dict.fromkeys(bands, 0)
         carried = {k: np.zeros(2) for k in classes}  # Σ over a class's pixels of the two member kinds' shares
+        own_scene: dict[int, np.ndarray] = {}
         for (p, q), pair in found.pairs.items():
             kept = found.kept(p, q)
             kinds = [pair.in_region & kept, pair.in_region & ~kept]
@@ -405,7 +406,9 @@ def mask_errors(work: Path, cells: list, overrides: list[str]) -> None:
                 alone = jnp.asarray(np.where(origin == b, o[:, b], 0.0)[None].astype(np.float32))
                 at_b = jnp.asarray(light[:, b][None])
                 indices = _test_view_indices(run, a)
-                scene_a, scene_b = content_renders(spec, a, a, indices), content_renders(spec, b, a, indices)
+                if a not in own_scene:  # date a's own content, shared by every pair a is in
+                    own_scene[a] = content_renders(spec, a, a, indices)
+                scene_a, scene_b = own_scene[a], content_renders(spec, b, a, indices)
                 for v, (cam, img, truth) in enumerate(
                     zip(test[a].cameras, test[a].images, masks[a].changed_vs[names[b]])
                 ):
